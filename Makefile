@@ -1,0 +1,40 @@
+# kpcn: every target creates the environment it needs first, so each works on a fresh clone.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+KPCN   := $(BIN)/kpcn
+SET    ?= default
+RUN    ?= default
+# extra options for each stage, e.g. make train TRAIN_ARGS="--steps 2000"
+RENDER_ARGS ?=
+SHARD_ARGS  ?=
+TRAIN_ARGS  ?=
+
+.PHONY: venv render shards train evaluate test clean
+
+# torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
+$(KPCN): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
+	touch $(KPCN)
+
+venv: $(KPCN)
+
+render: $(KPCN)
+	$(KPCN) render --set $(SET) $(RENDER_ARGS)
+
+shards: render
+	$(KPCN) shards --set $(SET) $(SHARD_ARGS)
+
+train: shards
+	$(KPCN) train --set $(SET) --run $(RUN) $(TRAIN_ARGS)
+	$(KPCN) evaluate --run runs/$(RUN)
+
+evaluate: $(KPCN)
+	$(KPCN) evaluate --run runs/$(RUN)
+
+test: $(KPCN)
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf data runs shards/*/

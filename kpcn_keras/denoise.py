@@ -1,0 +1,129 @@
+"""Full-frame inference: a noisy render in the AOV layout in, the denoised colour out.
+
+Each branch network runs on overlapping tiles so that memory stays bounded at any resolution. A
+tile's margin is the model's receptive radius (trunk + kernel, ``models.receptive_radius``), and only
+its centre is kept, so the result equals an untiled run up to float rounding. The branches are
+mapped back to linear colour (``prep.features`` inverses, with the noisy albedo) and summed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import keras
+import numpy as np
+
+from kpcn_keras.models import ModelConfig, receptive_radius
+from prep import exr, features
+from prep.errors import KpcnError
+
+DEFAULT_TILE = 256
+
+
+class Denoiser:
+    """The finished branch models of one run folder, applied to whole renders."""
+
+    def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE):
+        self.run_dir = Path(run_dir)
+        record_path = self.run_dir / "config.json"
+        if not record_path.is_file():
+            raise KpcnError(f"{self.run_dir}: not a run folder (no config.json); train one with 'kpcn train'")
+        self.record = json.loads(record_path.read_text())
+        self.model_config = ModelConfig.from_dict(self.record["train"]["model"])
+        self.models = {}
+        for branch in ("diffuse", "specular"):
+            path = self.run_dir / f"{branch}.keras"
+            if not path.is_file():
+                raise KpcnError(f"{path}: missing; the run has not finished training the {branch} branch")
+            # inference needs no optimizer or loss: skip compiling them back
+            self.models[branch] = keras.models.load_model(path, compile=False)
+        if tile < 1:
+            raise KpcnError(f"tile must be >= 1 pixel, got {tile}")
+        self.tile = tile
+        self.margin = receptive_radius(self.model_config)
+
+    def run_branch(self, branch: str, feats: np.ndarray) -> np.ndarray:
+        """Model output (log domain) for one (H, W, 27) feature image, tile by tile."""
+        model = self.models[branch]
+        h, w, _ = feats.shape
+        out = np.empty((h, w, 3), dtype=np.float32)
+        t, m = self.tile, self.margin
+        for y0 in range(0, h, t):
+            for x0 in range(0, w, t):
+                y1, x1 = min(y0 + t, h), min(x0 + t, w)
+                ya, xa = max(y0 - m, 0), max(x0 - m, 0)
+                yb, xb = min(y1 + m, h), min(x1 + m, w)
+                pred = model.predict_on_batch(feats[None, ya:yb, xa:xb])
+                pred = keras.ops.convert_to_numpy(pred)[0]
+                out[y0:y1, x0:x1] = pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+        return out
+
+    def __call__(self, aovs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Denoised ``diffuse``, ``specular`` and ``default`` (linear, float32) of one noisy render."""
+        diffuse_log = self.run_branch("diffuse", features.branch_features(aovs, "diffuse"))
+        specular_log = self.run_branch("specular", features.branch_features(aovs, "specular"))
+        diffuse = features.diffuse_from_log(diffuse_log, aovs["albedo"])
+        specular = features.specular_from_log(specular_log)
+        return {
+            "diffuse": diffuse.astype(np.float32),
+            "specular": specular.astype(np.float32),
+            "default": (diffuse + specular).astype(np.float32),
+        }
+
+
+def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
+    """Tonemapped panels in a row with their captions (``prep.metrics.tonemap``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from prep.metrics import tonemap
+
+    h, w = panels[0][1].shape[:2]
+    scale = 4.0 / max(h, w)
+    fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * w * scale, h * scale + 0.8), squeeze=False)
+    for ax, (caption, image) in zip(axes[0], panels):
+        ax.imshow(tonemap(image), interpolation="nearest")
+        ax.set_title(caption, fontsize=9)
+        ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def denoise_file(input_path, run_dir, output, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE) -> dict:
+    """Denoise one EXR; writes ``output`` (+ a PNG beside it); returns timings and, with a reference, metrics."""
+    from prep import metrics
+
+    denoiser = Denoiser(run_dir, tile=tile)
+    noisy = exr.read_aovs(input_path)
+    ref = exr.read_aovs(reference, variances=False) if reference else None
+    if ref is not None and ref["default"].shape != noisy["default"].shape:
+        raise KpcnError(
+            f"{reference} is {ref['default'].shape[1]}x{ref['default'].shape[0]} but {input_path} is "
+            f"{noisy['default'].shape[1]}x{noisy['default'].shape[0]}"
+        )
+    start = time.perf_counter()
+    result = denoiser(noisy)
+    seconds = time.perf_counter() - start
+    layers = dict(result)
+    layers.update({k: noisy[k] for k in ("albedo", "normal", "depth")})
+    output = Path(output)
+    exr.write_aovs(output, layers)
+    report = {"input": str(input_path), "output": str(output), "seconds": seconds}
+    panels = [("input", noisy["default"]), ("denoised", result["default"])]
+    if ref is not None:
+        report["input_metrics"] = metrics.all_metrics(noisy["default"], ref["default"])
+        report["metrics"] = metrics.all_metrics(result["default"], ref["default"])
+        panels.append(("reference", ref["default"]))
+    if png:
+        report["png"] = str(side_by_side_png(output.with_suffix(".png"), panels, title=Path(input_path).name))
+    return report

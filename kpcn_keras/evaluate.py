@@ -1,0 +1,119 @@
+"""Held-out evaluation of a run: raw input, the network and a classical baseline, per scene.
+
+For every (noisy, reference) pair it measures relMSE and DSSIM of the raw input, of the denoised
+frame and of non-local means (``prep.baselines``), plus seconds per frame, and writes
+``<run>/eval/`` with ``report.md``, ``metrics.json`` and one PNG per scene
+(input | NLM | KPCN | reference).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.denoise import DEFAULT_TILE, Denoiser, side_by_side_png
+from prep import baselines, exr, metrics
+from prep.errors import KpcnError
+from prep.shards import discover_renders
+
+COLUMNS = (
+    ("scene", "{}"),
+    ("input spp", "{}"),
+    ("raw relMSE", "{:.4f}"),
+    ("denoised relMSE", "{:.4f}"),
+    ("raw DSSIM", "{:.4f}"),
+    ("denoised DSSIM", "{:.4f}"),
+    ("NLM relMSE", "{:.4f}"),
+    ("s/frame", "{:.2f}"),
+)
+
+
+def held_out_pairs(run_dir: Path) -> list[tuple[str, str]]:
+    """(noisy, reference) paths of the validation scenes of the run's shard set."""
+    record = json.loads((run_dir / "config.json").read_text())
+    manifest = json.loads((Path(record["shards"]["set_dir"]) / "manifest.json").read_text())
+    refs = {s["scene"]: s["path"] for s in manifest["sources"] if s["role"] == "reference"}
+    return [(s["path"], refs[s["scene"]]) for s in manifest["sources"] if s["role"] == "input" and s["split"] == "val"]
+
+
+def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
+    """Each noisy render with the reference of its scene: the same folder's render with the most samples."""
+    pairs = []
+    for path in inputs:
+        scene, spp = exr.parse_render_filename(path)
+        entry = discover_renders(Path(path).parent).get(scene)
+        ref = entry["reference"] if entry else None
+        if ref is None or ref.spp <= spp:
+            raise KpcnError(f"{path}: no reference with more samples than {spp} spp beside it")
+        pairs.append((str(path), ref.path))
+    return pairs
+
+
+def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
+             tile: int = DEFAULT_TILE, baseline: bool = True) -> list[dict]:
+    """Evaluate a run on ``pairs`` (default: its held-out scenes); writes the report and returns the rows."""
+    run_dir = Path(run_dir)
+    denoiser = Denoiser(run_dir, tile=tile)
+    pairs = pairs or held_out_pairs(run_dir)
+    if not pairs:
+        raise KpcnError(f"{run_dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
+    out_dir = Path(out_dir) if out_dir else run_dir / "eval"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for noisy_path, ref_path in pairs:
+        scene, spp = exr.parse_render_filename(noisy_path)
+        noisy = exr.read_aovs(noisy_path)
+        ref = exr.read_aovs(ref_path, variances=False)["default"]
+        start = time.perf_counter()
+        out = denoiser(noisy)["default"]
+        seconds = time.perf_counter() - start
+        row = {
+            "scene": scene,
+            "input spp": spp,
+            "raw": metrics.all_metrics(noisy["default"], ref),
+            "denoised": metrics.all_metrics(out, ref),
+            "seconds": seconds,
+        }
+        panels = [(f"input {spp} spp", noisy["default"]), (f"KPCN relMSE {row['denoised']['relmse']:.4f}", out)]
+        if baseline:
+            start = time.perf_counter()
+            nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
+            row["nlm_seconds"] = time.perf_counter() - start
+            row["nlm"] = metrics.all_metrics(nlm, ref)
+            panels.insert(1, (f"NLM relMSE {row['nlm']['relmse']:.4f}", nlm))
+        panels.append(("reference", ref))
+        row["png"] = str(side_by_side_png(out_dir / f"{scene}-{spp:05d}spp.png", panels, title=scene))
+        rows.append(row)
+    table = format_table(rows)
+    (out_dir / "metrics.json").write_text(json.dumps(rows, indent=2))
+    (out_dir / "report.md").write_text(f"# Evaluation of {run_dir} ({date.today().isoformat()})\n\n{table}\n")
+    return rows
+
+
+def _cells(row: dict) -> list[str]:
+    values = [
+        row["scene"], row["input spp"], row["raw"]["relmse"], row["denoised"]["relmse"],
+        row["raw"]["dssim"], row["denoised"]["dssim"], row.get("nlm", {}).get("relmse", float("nan")), row["seconds"],
+    ]
+    return [fmt.format(v) for (_, fmt), v in zip(COLUMNS, values)]
+
+
+def format_table(rows: list[dict]) -> str:
+    """A Markdown table, one row per scene, with a mean row."""
+    lines = ["| " + " | ".join(name for name, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(_cells(r)) + " |" for r in rows]
+    if len(rows) > 1:
+        mean = {
+            "scene": "**mean**",
+            "input spp": "",
+            "seconds": float(np.mean([r["seconds"] for r in rows])),
+        }
+        for key in ("raw", "denoised", "nlm"):
+            if all(key in r for r in rows):
+                mean[key] = {m: float(np.mean([r[key][m] for r in rows])) for m in ("relmse", "dssim")}
+        lines.append("| " + " | ".join(_cells(mean)) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,162 @@
+"""Network inputs of the diffuse and specular branches (seed report §2.1, §3.3.1).
+
+Features are computed once per full image, before patches are cut, so that patch borders see the
+true gradients. Each branch gets ``NUM_FEATURES`` = 27 channels, in this order:
+
+=======  ==========================  =====================================================  ==============
+channel  name                        formula                                                range
+=======  ==========================  =====================================================  ==============
+0-2      colour                      c = log(1 + max(x, 0)), x = branch colour (below)      [0, 95]
+3-5      dx colour                   c[y, x+1] - c[y, x]  (0 in the last column)            [-95, 95]
+6-8      dx normal                   n = clip(normal, -1, 1), forward difference            [-2, 2]
+9-11     dx albedo                   a = clip(albedo, 0, 1), forward difference             [-1, 1]
+12       dx depth                    d = depth / max(depth) (0 if max <= 0), forward diff.  [-1, 1]
+13-22    dy of the same              forward differences along y (0 in the last row)        as above
+23       relvar colour               log(1 + v_c / (mean_ch(c^2) + REL_EPS))                [0, 300]
+24       relvar normal               log(1 + v_n / (mean_ch(n^2) + REL_EPS))                [0, 300]
+25       relvar albedo               log(1 + v_a / (mean_ch(a^2) + REL_EPS))                [0, 300]
+26       relvar depth                log(1 + v_d / (d^2 + REL_EPS))                         [0, 300]
+=======  ==========================  =====================================================  ==============
+
+Branch colour x: diffuse branch: irradiance = diffuse / (albedo + ALBEDO_EPS), albedo clipped to
+[0, 1]; specular branch: the specular layer. Variances are carried through the same transforms
+by the delta method: irradiance variance = diffuseVariance / (albedo + ALBEDO_EPS)^2, log-colour
+variance v_c = var(x) / (1 + x)^2, depth variance / max(depth)^2. Each relative variance is taken
+against the transformed buffer and compressed by log(1 + .), so every feature is finite and inside
+the range above for any finite input (arithmetic is float64; the bounds are those of float32
+input). Negative variances (a renderer's rounding) count as 0.
+
+The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+ALBEDO_EPS = 0.00316
+REL_EPS = 0.01
+NUM_FEATURES = 27
+FEATURE_NAMES = (
+    ["colour.R", "colour.G", "colour.B"]
+    + [f"dx_{b}.{c}" for b in ("colour", "normal", "albedo") for c in "RGB"]
+    + ["dx_depth"]
+    + [f"dy_{b}.{c}" for b in ("colour", "normal", "albedo") for c in "RGB"]
+    + ["dy_depth"]
+    + ["relvar_colour", "relvar_normal", "relvar_albedo", "relvar_depth"]
+)
+BRANCHES = ("diffuse", "specular")
+assert len(FEATURE_NAMES) == NUM_FEATURES
+
+
+@numba.njit(cache=True, parallel=True)
+def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo, out):
+    """Fill ``out`` (H, W, 27) for one branch; colour is linear, albedo divided when divide_albedo."""
+    h, w = depth.shape
+    dmax = 0.0
+    for y in range(h):
+        for x in range(w):
+            if depth[y, x] > dmax:
+                dmax = depth[y, x]
+    dscale = 1.0 / dmax if dmax > 0.0 else 0.0
+
+    # pass 1: per-pixel transformed buffers into out's slots that the gradients read
+    logc = np.empty((h, w, 3))
+    nrm = np.empty((h, w, 3))
+    alb = np.empty((h, w, 3))
+    dep = np.empty((h, w))
+    for y in numba.prange(h):
+        for x in range(w):
+            vc = max(float(colour_var[y, x]), 0.0)
+            sq_c = 0.0
+            sq_n = 0.0
+            sq_a = 0.0
+            vlog = 0.0
+            for c in range(3):
+                a = min(max(float(albedo[y, x, c]), 0.0), 1.0)
+                alb[y, x, c] = a
+                n = min(max(float(normal[y, x, c]), -1.0), 1.0)
+                nrm[y, x, c] = n
+                v = float(colour[y, x, c])
+                var_c = vc
+                if divide_albedo:
+                    v = v / (a + ALBEDO_EPS)
+                    var_c = vc / ((a + ALBEDO_EPS) * (a + ALBEDO_EPS))
+                v = max(v, 0.0)
+                lc = np.log1p(v)
+                logc[y, x, c] = lc
+                vlog += var_c / ((1.0 + v) * (1.0 + v))
+                sq_c += lc * lc
+                sq_n += n * n
+                sq_a += a * a
+            d = max(float(depth[y, x]), 0.0) * dscale
+            dep[y, x] = d
+            out[y, x, 23] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
+            out[y, x, 24] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
+            out[y, x, 25] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
+            out[y, x, 26] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
+
+    # pass 2: values and forward differences (0 on the last column / row)
+    for y in numba.prange(h):
+        for x in range(w):
+            xn = min(x + 1, w - 1)
+            yn = min(y + 1, h - 1)
+            for c in range(3):
+                out[y, x, c] = logc[y, x, c]
+                out[y, x, 3 + c] = logc[y, xn, c] - logc[y, x, c]
+                out[y, x, 6 + c] = nrm[y, xn, c] - nrm[y, x, c]
+                out[y, x, 9 + c] = alb[y, xn, c] - alb[y, x, c]
+                out[y, x, 13 + c] = logc[yn, x, c] - logc[y, x, c]
+                out[y, x, 16 + c] = nrm[yn, x, c] - nrm[y, x, c]
+                out[y, x, 19 + c] = alb[yn, x, c] - alb[y, x, c]
+            out[y, x, 12] = dep[y, xn] - dep[y, x]
+            out[y, x, 22] = dep[yn, x] - dep[y, x]
+
+
+def branch_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
+    """The (H, W, 27) float32 network input of ``branch`` ('diffuse' or 'specular') for one render.
+
+    ``aovs`` is a noisy render as returned by :func:`prep.exr.read_aovs` (variance layers needed).
+    """
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+    h, w = aovs["depth"].shape
+    out = np.empty((h, w, NUM_FEATURES), dtype=np.float32)
+    f64 = lambda name: np.ascontiguousarray(aovs[name], dtype=np.float64)  # noqa: E731
+    _features_kernel(
+        f64(branch),
+        f64(f"{branch}Variance"),
+        f64("albedo"),
+        f64("albedoVariance"),
+        f64("normal"),
+        f64("normalVariance"),
+        f64("depth"),
+        f64("depthVariance"),
+        branch == "diffuse",
+        out,
+    )
+    return out
+
+
+def branch_colour(aovs: dict[str, np.ndarray], branch: str, albedo: np.ndarray | None = None) -> np.ndarray:
+    """The branch colour in the network's log domain, (H, W, 3) float32 (channels 0-2 of the features).
+
+    ``albedo`` overrides the render's own albedo for the irradiance divide (used for references).
+    """
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+    x = aovs[branch].astype(np.float64)
+    if branch == "diffuse":
+        a = np.clip(aovs["albedo"] if albedo is None else albedo, 0.0, 1.0).astype(np.float64)
+        x = x / (a + ALBEDO_EPS)
+    return np.log1p(np.maximum(x, 0.0)).astype(np.float32)
+
+
+def diffuse_from_log(log_irradiance, albedo):
+    """Inverse of the diffuse transform: (exp(c) - 1) * (clip(albedo, 0, 1) + ALBEDO_EPS)."""
+    return np.expm1(np.asarray(log_irradiance, dtype=np.float64)) * (np.clip(albedo, 0.0, 1.0) + ALBEDO_EPS)
+
+
+def specular_from_log(log_specular):
+    """Inverse of the specular transform: exp(c) - 1."""
+    return np.expm1(np.asarray(log_specular, dtype=np.float64))
