@@ -231,8 +231,10 @@ def train_branch(cfg: TrainConfig, branch: str, *, verbose="auto") -> keras.Mode
         keras.callbacks.TerminateOnNaN(),
     ]
     if initial_epoch < cfg.epochs:
+        # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
+        # across epochs only without its own shuffling (and with one worker), which makes resume exact
         model.fit(train, epochs=cfg.epochs, initial_epoch=initial_epoch, steps_per_epoch=spe,
-                  validation_data=val, callbacks=callbacks, verbose=verbose)
+                  validation_data=val, callbacks=callbacks, verbose=verbose, shuffle=False)
     _atomic_save(model, final)
     return model
 

@@ -243,9 +243,10 @@ def open_shard(path: str | os.PathLike) -> h5py.File:
         f = h5py.File(path, "r")
     except OSError as exc:
         raise ShardError(f"{path}: not a readable HDF5 file ({exc})") from None
-    if f.attrs.get("format") != FORMAT or not f.attrs.get("complete", False):
+    found, complete = f.attrs.get("format"), bool(f.attrs.get("complete", False))
+    if found != FORMAT or not complete:
         f.close()
-        raise ShardError(f"{path}: incomplete or foreign shard (format={f.attrs.get('format')!r} expected {FORMAT!r})")
+        raise ShardError(f"{path}: incomplete or foreign shard (format={found!r}, complete={complete}; expected {FORMAT!r})")
     missing = [name for name in PATCH_DATASETS if name not in f]
     if missing:
         f.close()

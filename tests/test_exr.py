@@ -1,0 +1,86 @@
+import logging
+
+import numpy as np
+import pytest
+
+from conftest import random_aovs
+from prep import exr
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_round_trip_keeps_every_layer(tmp_path, half):
+    aovs = random_aovs(17, 23, seed=1)
+    path = exr.write_aovs(tmp_path / "scene-00004spp.exr", aovs, half=half)
+    back = exr.read_aovs(path)
+    assert set(back) == set(aovs)
+    for name, image in aovs.items():
+        assert back[name].shape == image.shape and back[name].dtype == np.float32
+        expected = image.astype(np.float16).astype(np.float32) if half else image
+        np.testing.assert_array_equal(back[name], expected, err_msg=name)
+
+
+def test_missing_layer_is_named(tmp_path):
+    aovs = random_aovs(8, 8)
+    del aovs["albedoVariance"], aovs["normal"]
+    path = exr.write_aovs(tmp_path / "broken-00004spp.exr", aovs)
+    with pytest.raises(exr.AOVError) as err:
+        exr.read_aovs(path)
+    assert "normal" in str(err.value) and "albedoVariance" in str(err.value) and str(path) in str(err.value)
+
+
+def test_reference_needs_no_variances_and_default_is_derived(tmp_path):
+    aovs = random_aovs(8, 9, variances=False)
+    del aovs["default"]
+    back = exr.read_aovs(exr.write_aovs(tmp_path / "r-01024spp.exr", aovs), variances=False)
+    np.testing.assert_allclose(back["default"], aovs["diffuse"] + aovs["specular"], rtol=1e-6)
+
+
+def test_unreadable_file_is_an_error_naming_it(tmp_path):
+    path = tmp_path / "garbage-00008spp.exr"
+    path.write_bytes(b"not an exr at all")
+    with pytest.raises(exr.AOVError, match="garbage-00008spp.exr"):
+        exr.read_aovs(path)
+    with pytest.raises(exr.AOVError, match="no such file"):
+        exr.read_aovs(tmp_path / "absent-00008spp.exr")
+
+
+def test_nonfinite_values_are_repaired_counted_and_reported(tmp_path, caplog):
+    aovs = random_aovs(6, 7)
+    aovs["diffuse"][1, 2, 0] = np.nan
+    aovs["diffuse"][3, 3, 1] = np.inf
+    aovs["depth"][0, 0] = -np.inf
+    finite_max_g = np.max(np.delete(aovs["diffuse"][..., 1].ravel(), 3 * 7 + 3))
+    path = exr.write_aovs(tmp_path / "nan-00004spp.exr", aovs)
+    with caplog.at_level(logging.WARNING, logger="kpcn"):
+        back = exr.read_aovs(path)
+    assert back["diffuse"][1, 2, 0] == 0.0
+    assert back["diffuse"][3, 3, 1] == finite_max_g
+    assert back["depth"][0, 0] == np.min(aovs["depth"][np.isfinite(aovs["depth"])])
+    assert all(np.isfinite(v).all() for v in back.values())
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 1 and "diffuse: 2" in messages[0] and "depth: 1" in messages[0]
+
+
+def test_rgb_variance_layers_are_averaged(tmp_path):
+    aovs = random_aovs(5, 5)
+    rgb = np.random.default_rng(3).uniform(0, 1, (5, 5, 3)).astype(np.float32)
+    aovs["colorVariance"] = rgb  # written as colorVariance.R/G/B
+    back = exr.read_aovs(exr.write_aovs(tmp_path / "v-00004spp.exr", aovs))
+    np.testing.assert_allclose(back["colorVariance"], rgb.mean(axis=-1), rtol=1e-6)
+
+
+def test_reads_the_mitsuba_fixture(fixture_noisy, fixture_reference):
+    noisy = exr.read_aovs(fixture_noisy)
+    ref = exr.read_aovs(fixture_reference, variances=False)
+    assert noisy["default"].shape == ref["default"].shape == (64, 64, 3)
+    np.testing.assert_allclose(noisy["default"], noisy["diffuse"] + noisy["specular"], atol=1e-5)
+    # that renderer's conventions: no hit -> zero depth, normal and albedo
+    miss = noisy["depth"] == 0
+    assert miss.any() and np.all(noisy["normal"][miss] == 0) and np.all(noisy["albedo"][miss] == 0)
+
+
+def test_render_file_names():
+    assert exr.render_filename("cornell-001", 8) == "cornell-001-00008spp.exr"
+    assert exr.parse_render_filename("/x/cornell-001-00512spp.exr") == ("cornell-001", 512)
+    with pytest.raises(exr.AOVError, match="spp.exr"):
+        exr.parse_render_filename("cornell.exr")

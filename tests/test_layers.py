@@ -1,0 +1,147 @@
+"""KernelApply against an independent float64 numpy reference, plus its numerical edge cases."""
+
+import numpy as np
+import pytest
+
+from kpcn_keras.layers import KernelApply, TakeChannels, apply_kernels, pad_edge, softmax_kernels
+
+import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
+import torch  # noqa: E402
+
+
+def to_np(x):
+    """Tensor -> numpy without keras.ops.convert_to_numpy, whose np.array(torch_tensor) warns on numpy 2."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def reference_kernel_apply(colour, logits, k):
+    """Direct float64 loops: softmax per pixel, edge-replicated neighbourhood, weighted sum."""
+    colour = np.asarray(colour, np.float64)
+    logits = np.asarray(logits, np.float64)
+    b_n, h_n, w_n, c_n = colour.shape
+    r = k // 2
+    out = np.zeros_like(colour)
+    for b in range(b_n):
+        for y in range(h_n):
+            for x in range(w_n):
+                z = logits[b, y, x] - logits[b, y, x].max()
+                wts = np.exp(z) / np.exp(z).sum()
+                for i in range(k):
+                    for j in range(k):
+                        # edge replication: clamp the source coordinate into the image
+                        sy = min(max(y + i - r, 0), h_n - 1)
+                        sx = min(max(x + j - r, 0), w_n - 1)
+                        for c in range(c_n):
+                            out[b, y, x, c] += wts[i * k + j] * colour[b, sy, sx, c]
+    return out
+
+
+def _run(layer, colour, logits):
+    return to_np(layer([colour.astype(np.float32), logits.astype(np.float32)]))
+
+
+@pytest.mark.parametrize("k,h,w", [(3, 5, 7), (5, 6, 4), (5, 3, 2)])
+def test_matches_numpy_loops(k, h, w):
+    rng = np.random.default_rng(k * 100 + h)
+    colour = rng.normal(size=(2, h, w, 3)) * 2.0
+    logits = rng.normal(size=(2, h, w, k * k)) * 3.0
+    got = _run(KernelApply(k), colour, logits)
+    want = reference_kernel_apply(colour, logits, k)
+    assert got.shape == (2, h, w, 3)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_tap_order_is_row_major():
+    # all weight on tap (i=0, j=1): out[y, x] = colour[y-1, x] (clamped); a transposed tap order would
+    # read colour[y, x-1] instead
+    k = 3
+    colour = np.arange(4 * 5, dtype=np.float32).reshape(1, 4, 5, 1).repeat(3, axis=-1)
+    logits = np.full((1, 4, 5, k * k), -1e4, np.float32)
+    logits[..., 0 * k + 1] = 0.0
+    got = _run(KernelApply(k), colour, logits)
+    want = colour[:, np.clip(np.arange(4) - 1, 0, 3)]
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("r", [1, 2, 4])
+def test_pad_edge_is_edge_replication(r):
+    x = np.random.default_rng(r).normal(size=(2, 3, 4, 3)).astype(np.float32)
+    got = to_np(pad_edge(x, r))
+    np.testing.assert_array_equal(got, np.pad(x, ((0, 0), (r, r), (r, r), (0, 0)), mode="edge"))
+
+
+def test_one_hot_centre_kernel_is_identity():
+    k = 5
+    rng = np.random.default_rng(1)
+    colour = rng.normal(size=(2, 6, 9, 3)).astype(np.float32)
+    logits = rng.normal(size=(2, 6, 9, k * k)).astype(np.float32)
+    logits[..., (k // 2) * k + k // 2] = 1e4
+    got = _run(KernelApply(k), colour, logits)
+    np.testing.assert_allclose(got, colour, rtol=1e-6, atol=0)
+
+
+def test_equal_logits_keep_constant_image_constant_at_borders():
+    k = 5
+    colour = np.full((1, 7, 6, 3), 2.5, np.float32)
+    colour[..., 1] = 0.75
+    # equal within each pixel, different across pixels, including large values
+    level = np.random.default_rng(2).normal(size=(1, 7, 6, 1)) * 50.0
+    logits = np.repeat(level, k * k, axis=-1)
+    got = _run(KernelApply(k), colour, logits)
+    np.testing.assert_allclose(got, colour, rtol=1e-6)
+    weights = to_np(softmax_kernels(logits.astype(np.float32)))
+    np.testing.assert_allclose(weights, 1.0 / (k * k), rtol=1e-6)
+
+
+def test_extreme_logits_finite_values_and_gradients():
+    k = 3
+    rng = np.random.default_rng(3)
+    colour = torch.tensor(rng.normal(size=(2, 4, 5, 3)), dtype=torch.float32, requires_grad=True)
+    signs = rng.choice([-1.0, 1.0], size=(2, 4, 5, k * k))
+    logits = torch.tensor(signs * 1e4, dtype=torch.float32, requires_grad=True)
+    out = KernelApply(k)([colour, logits])
+    assert torch.isfinite(out).all()
+    # a convex combination stays within the colour range
+    assert out.min() >= colour.min() - 1e-5 and out.max() <= colour.max() + 1e-5
+    (out**2).sum().backward()
+    assert torch.isfinite(logits.grad).all()
+    assert torch.isfinite(colour.grad).all()
+
+
+def test_gradient_matches_finite_differences():
+    k = 3
+    rng = np.random.default_rng(4)
+    colour = torch.tensor(rng.normal(size=(1, 3, 4, 3)), dtype=torch.float64, requires_grad=True)
+    logits = torch.tensor(rng.normal(size=(1, 3, 4, k * k)), dtype=torch.float64, requires_grad=True)
+    layer = KernelApply(k, dtype="float64")
+    assert torch.autograd.gradcheck(lambda c, z: layer([c, z]), (colour, logits))
+
+
+@pytest.mark.parametrize("k", [4, 0, -3, 2.0, "5"])
+def test_bad_kernel_size_raises_with_value(k):
+    with pytest.raises(ValueError, match=repr(k) if isinstance(k, str) else str(k)):
+        KernelApply(k)
+    with pytest.raises(ValueError, match="kernel size"):
+        apply_kernels(np.zeros((1, 2, 2, 3), np.float32), np.zeros((1, 2, 2, 16), np.float32), k)
+
+
+def test_wrong_logit_count_raises():
+    with pytest.raises(ValueError, match="9 logit channels"):
+        KernelApply(3)([np.zeros((1, 4, 4, 3), np.float32), np.zeros((1, 4, 4, 25), np.float32)])
+
+
+def test_serialisation_round_trip_without_custom_objects():
+    for layer in (KernelApply(7, name="ka"), TakeChannels(0, 3, name="tc")):
+        config = keras.saving.serialize_keras_object(layer)
+        clone = keras.saving.deserialize_keras_object(config)
+        assert type(clone) is type(layer)
+        assert clone.get_config() == layer.get_config()
+
+
+def test_take_channels_validates():
+    x = np.arange(2 * 2 * 5, dtype=np.float32).reshape(1, 2, 2, 5)
+    np.testing.assert_array_equal(to_np(TakeChannels(1, 4)(x)), x[..., 1:4])
+    with pytest.raises(ValueError, match="start=3, stop=3"):
+        TakeChannels(3, 3)
+    with pytest.raises(ValueError, match="at least 6 channels"):
+        TakeChannels(0, 6)(x)

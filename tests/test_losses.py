@@ -1,0 +1,145 @@
+"""SMAPE and asymmetric SMAPE against float64 numpy references and hand-built cases."""
+
+import numpy as np
+import pytest
+
+from kpcn_keras.losses import (
+    SMAPE_EPS,
+    SMAPE,
+    AsymmetricSMAPE,
+    asymmetric_smape,
+    asymmetric_weight,
+    smape,
+    smape_elementwise,
+)
+from kpcn_keras.models import ModelConfig, build_branch_model
+
+import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
+import torch  # noqa: E402
+
+
+def np_smape(gt, out):
+    gt, out = np.float64(gt), np.float64(out)
+    return np.mean(np.abs(out - gt) / (np.abs(out) + np.abs(gt) + 0.01))
+
+
+def to_np(x):
+    """Tensor -> numpy without keras.ops.convert_to_numpy, whose np.array(torch_tensor) warns on numpy 2."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def random_triplet(seed, shape=(3, 5, 4, 3)):
+    rng = np.random.default_rng(seed)
+    gt = rng.normal(size=shape).astype(np.float32)
+    out = (gt + rng.normal(scale=0.5, size=shape)).astype(np.float32)
+    noisy = (gt + rng.normal(scale=0.5, size=shape)).astype(np.float32)
+    gt.flat[:5] = 0.0  # zeros exercise the epsilon
+    out.flat[:3] = 0.0
+    return noisy, gt, out
+
+
+def test_eps_is_the_reports_constant():
+    assert SMAPE_EPS == 0.01
+    assert float(to_np(smape(np.float32([0.0]), np.float32([0.01])))) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_smape_matches_numpy():
+    _, gt, out = random_triplet(0)
+    want = np_smape(gt, out)
+    assert float(to_np(smape(gt, out))) == pytest.approx(want, rel=1e-6)
+    assert float(to_np(SMAPE()(gt, out))) == pytest.approx(want, rel=1e-6)
+    assert to_np(smape_elementwise(gt, out)).shape == gt.shape
+
+
+def test_smape_loss_honours_sample_weight():
+    _, gt, out = random_triplet(1)
+    got = float(to_np(SMAPE()(gt, out, sample_weight=np.float32([1.0, 0.0, 2.0]))))
+    want = (np_smape(gt[0], out[0]) + 2.0 * np_smape(gt[2], out[2])) / 3.0
+    assert got == pytest.approx(want, rel=1e-6)
+
+
+def test_slope_one_equals_smape():
+    noisy, gt, out = random_triplet(2)
+    assert float(to_np(asymmetric_smape(noisy, gt, out, 1.0))) == pytest.approx(float(to_np(smape(gt, out))), rel=1e-7)
+    packed = np.concatenate([gt, noisy], axis=-1)
+    assert float(to_np(AsymmetricSMAPE(1.0)(packed, out))) == pytest.approx(np_smape(gt, out), rel=1e-6)
+
+
+def hand_case():
+    #            opposite  same  opposite  same  out==gt  noisy==gt
+    gt = np.float32([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    noisy = np.float32([0.0, 0.0, 2.0, 2.0, 0.0, 1.0])
+    out = np.float32([2.0, 0.5, 0.0, 1.5, 1.0, 3.0])
+    return noisy, gt, out
+
+
+@pytest.mark.parametrize("slope", [2.0, 8.0])
+def test_slope_multiplies_exactly_the_overshooting_elements(slope):
+    # H((out - gt)(gt - noisy)) > 0 when out and noisy lie on OPPOSITE sides of gt (out overshoots past
+    # the reference, away from the input); ties get factor 1
+    noisy, gt, out = hand_case()
+    expected = np.float64([slope, 1.0, slope, 1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(to_np(asymmetric_weight(noisy, gt, out, slope)), expected)
+    per_element = np.abs(np.float64(out) - gt) / (np.abs(np.float64(out)) + np.abs(gt) + 0.01)
+    want = np.mean(per_element * expected)
+    assert float(to_np(asymmetric_smape(noisy, gt, out, slope))) == pytest.approx(want, rel=1e-6)
+    # the same six elements as 2 pixels x 3 channels, y_true packed as (gt | noisy)
+    packed = np.concatenate([gt.reshape(1, 1, 2, 3), noisy.reshape(1, 1, 2, 3)], axis=-1)
+    got = float(to_np(AsymmetricSMAPE(slope)(packed, out.reshape(1, 1, 2, 3))))
+    assert got == pytest.approx(want, rel=1e-6)
+
+
+def test_asymmetric_matches_numpy_on_random_data():
+    noisy, gt, out = random_triplet(3)
+    g, o, n = (np.float64(a) for a in (gt, out, noisy))
+    weight = 1.0 + 2.0 * ((o - g) * (g - n) > 0)
+    want = np.mean(np.abs(o - g) / (np.abs(o) + np.abs(g) + 0.01) * weight)
+    assert float(to_np(asymmetric_smape(noisy, gt, out, 3.0))) == pytest.approx(want, rel=1e-6)
+
+
+@pytest.mark.parametrize("slope", [0.5, -1.0, float("nan"), "2"])
+def test_bad_slope_raises_with_value(slope):
+    with pytest.raises(ValueError, match="received"):
+        AsymmetricSMAPE(slope)
+    noisy, gt, out = hand_case()
+    with pytest.raises(ValueError, match=repr(slope) if isinstance(slope, str) else str(slope)):
+        asymmetric_smape(noisy, gt, out, slope)
+
+
+def test_asymmetric_loss_needs_six_channels():
+    x = np.zeros((1, 2, 2, 3), np.float32)
+    with pytest.raises(ValueError, match="6 channels"):
+        AsymmetricSMAPE(2.0)(x, x)
+
+
+def test_gradient_finite_at_zero():
+    out = torch.zeros((1, 2, 2, 3), requires_grad=True)
+    gt = torch.zeros((1, 2, 2, 3))
+    loss = smape(gt, out) + asymmetric_smape(gt, gt, out, 4.0)
+    loss.backward()
+    assert float(loss.detach()) == 0.0
+    assert torch.isfinite(out.grad).all()
+
+
+def test_gradient_matches_numpy_derivative():
+    # for o > g > 0: d/do (o - g) / (o + g + eps) = (2g + eps) / (o + g + eps)^2
+    g, o = 0.5, 0.8
+    out = torch.tensor([o], requires_grad=True)
+    smape(torch.tensor([g]), out).backward()
+    assert float(out.grad) == pytest.approx((2 * g + 0.01) / (o + g + 0.01) ** 2, rel=1e-5)
+
+
+def test_losses_serialise_and_train_a_model(tmp_path):
+    for loss in (SMAPE(), AsymmetricSMAPE(2.5)):
+        clone = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(loss))
+        assert type(clone) is type(loss) and clone.get_config() == loss.get_config()
+    keras.utils.set_random_seed(0)
+    model = build_branch_model(ModelConfig(width=4, depth=1, kernel_size=3))
+    model.compile(optimizer="adam", loss=AsymmetricSMAPE(2.0))
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 6, 6, 27)).astype(np.float32)
+    y = np.concatenate([x[..., :3] * 0.5, x[..., :3]], axis=-1)  # gt | noisy
+    assert np.isfinite(float(model.train_on_batch(x, y)))
+    model.save(tmp_path / "m.keras")
+    loaded = keras.models.load_model(tmp_path / "m.keras")
+    assert isinstance(loaded.loss, AsymmetricSMAPE) and loaded.loss.slope == 2.0

@@ -1,0 +1,243 @@
+"""Branch models: shapes, config, initial behaviour, receptive field, save/load, kernels, and learning."""
+
+import numpy as np
+import pytest
+
+from kpcn_keras.layers import apply_kernels
+from kpcn_keras.losses import SMAPE
+from kpcn_keras.models import (
+    ARCHS,
+    ModelConfig,
+    build_branch_model,
+    build_kernel_model,
+    receptive_radius,
+    trunk_radius,
+)
+
+import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
+import torch  # noqa: E402
+
+
+def to_np(x):
+    """Tensor -> numpy without keras.ops.convert_to_numpy, whose np.array(torch_tensor) warns on numpy 2."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def tiny(arch, **kw):
+    base = dict(arch=arch, width=6, depth=2, kernel_size=5)
+    base.update(kw)
+    return ModelConfig(**base)
+
+
+def randomise(model, seed=0, scale=0.3):
+    """Replace every weight (zero-initialised head included) by random values; BN variances stay positive."""
+    rng = np.random.default_rng(seed)
+    new = []
+    for w in model.weights:
+        shape = tuple(w.shape)
+        if "variance" in w.path:
+            new.append(rng.uniform(0.5, 1.5, size=shape))
+        else:
+            new.append(rng.normal(size=shape) * scale)
+    model.set_weights([n.astype(np.float32) for n in new])
+
+
+def predict(model, x):
+    return to_np(model(x, training=False))
+
+
+def features(shape, seed=0):
+    return np.random.default_rng(seed).normal(size=shape).astype(np.float32)
+
+
+# ---------------------------------------------------------------- config
+
+
+def test_config_defaults_and_round_trip():
+    cfg = ModelConfig()
+    assert (cfg.arch, cfg.in_channels, cfg.width, cfg.depth, cfg.kernel_size) == ("kpcn", 27, 32, 7, 13)
+    assert cfg.batchnorm is False
+    assert ModelConfig(arch="kpal").batchnorm is True
+    assert ModelConfig(arch="kpal", batchnorm=False).batchnorm is False
+    d = ModelConfig(arch="kpal", dropout=0.3).to_dict()
+    assert d["batchnorm"] is True and d["dropout"] == 0.3
+    assert ModelConfig.from_dict(d) == ModelConfig(arch="kpal", dropout=0.3)
+
+
+@pytest.mark.parametrize(
+    "kw,echo",
+    [
+        (dict(arch="unet"), "'unet'"),
+        (dict(kernel_size=12), "12"),
+        (dict(conv_size=4), "4"),
+        (dict(dropout=1.0), "1.0"),
+        (dict(dropout=-0.1), "-0.1"),
+        (dict(in_channels=2), "2"),
+        (dict(width=0), "0"),
+        (dict(depth=0), "0"),
+        (dict(width=3.5), "3.5"),
+        (dict(batchnorm="yes"), "'yes'"),
+    ],
+)
+def test_config_validation_echoes_value(kw, echo):
+    with pytest.raises(ValueError, match=echo):
+        ModelConfig(**kw)
+
+
+def test_from_dict_rejects_unknown_keys():
+    with pytest.raises(ValueError, match="kernal_size"):
+        ModelConfig.from_dict({"kernal_size": 5})
+
+
+# ---------------------------------------------------------------- shapes and initial behaviour
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_shapes_any_size(arch):
+    model = build_branch_model(tiny(arch), name="diffuse")
+    assert model.input_shape == (None, None, None, 27)
+    assert model.inputs[0].name == "features"
+    for shape in [(2, 20, 24, 27), (1, 7, 9, 27), (1, 33, 17, 27), (1, 3, 2, 27)]:
+        out = predict(model, features(shape))
+        assert out.shape == shape[:3] + (3,)
+        assert np.isfinite(out).all()
+
+
+def test_default_config_shapes():
+    model = build_branch_model(ModelConfig(), name="specular")
+    assert model.name == "specular"
+    assert predict(model, features((2, 20, 24, 27))).shape == (2, 20, 24, 3)
+
+
+def box_filter(colour, k):
+    r = k // 2
+    h, w = colour.shape[1:3]
+    padded = np.pad(colour.astype(np.float64), ((0, 0), (r, r), (r, r), (0, 0)), mode="edge")
+    out = np.zeros(colour.shape, np.float64)
+    for i in range(k):
+        for j in range(k):
+            out += padded[:, i : i + h, j : j + w]
+    return out / (k * k)
+
+
+@pytest.mark.parametrize("arch", ["kpcn", "kpal"])
+def test_untrained_kernel_model_is_box_filter(arch):
+    model = build_branch_model(tiny(arch))
+    x = features((2, 9, 11, 27), seed=1)
+    np.testing.assert_allclose(predict(model, x), box_filter(x[..., :3], 5), rtol=1e-5, atol=1e-5)
+
+
+def test_untrained_dpcn_is_identity():
+    model = build_branch_model(tiny("dpcn"))
+    x = features((2, 9, 11, 27), seed=1)
+    np.testing.assert_array_equal(predict(model, x), x[..., :3])
+
+
+# ---------------------------------------------------------------- receptive field
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        tiny("kpcn", depth=3, kernel_size=3),  # trunk (3) dominates
+        tiny("kpcn", depth=1, kernel_size=7),  # kernel (3) dominates
+        tiny("kpal", depth=1, kernel_size=3),  # 3 convs -> 3
+        tiny("dpcn", depth=2, conv_size=5),  # 2 * 2 = 4
+    ],
+)
+def test_receptive_radius_is_exact(cfg):
+    radius = receptive_radius(cfg)
+    model = build_branch_model(cfg)
+    randomise(model, seed=5)
+    size, c = 2 * radius + 7, radius + 3
+    x = features((1, size, size, 27), seed=2)
+    base = predict(model, x)[0, c, c]
+    for dy, dx in [(radius + 1, 0), (0, -(radius + 1)), (radius + 1, radius + 1), (-(radius + 2), 1)]:
+        y = x.copy()
+        y[0, c + dy, c + dx] += 5.0
+        np.testing.assert_array_equal(predict(model, y)[0, c, c], base)
+    changed = 0
+    for dy, dx in [(radius, 0), (0, -radius), (-radius, radius), (radius, -1)]:
+        y = x.copy()
+        y[0, c + dy, c + dx] += 5.0
+        changed += not np.array_equal(predict(model, y)[0, c, c], base)
+    assert changed >= 3  # a ReLU may mask one path; the bound must be reached, not just respected
+
+
+def test_radius_formulas():
+    assert trunk_radius(ModelConfig()) == 7
+    assert receptive_radius(ModelConfig()) == 7
+    assert receptive_radius(ModelConfig(kernel_size=21)) == 10
+    assert trunk_radius(ModelConfig(arch="kpal", depth=13)) == 27
+
+
+# ---------------------------------------------------------------- save / load, kernels
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_save_load_round_trip(arch, tmp_path):
+    cfg = tiny(arch, dropout=0.2)
+    model = build_branch_model(cfg, name="diffuse")
+    randomise(model, seed=3)
+    x = features((2, 10, 12, 27), seed=4)
+    before = predict(model, x)
+    path = tmp_path / "model.keras"
+    model.save(path)
+    loaded = keras.models.load_model(path)  # no custom_objects: the kpcn layers are registered
+    np.testing.assert_array_equal(predict(loaded, x), before)
+    assert loaded.name == "diffuse"
+    assert [type(layer) for layer in loaded.layers] == [type(layer) for layer in model.layers]
+
+
+@pytest.mark.parametrize("arch", ["kpcn", "kpal"])
+def test_kernel_model_sums_to_one_and_reproduces_output(arch, tmp_path):
+    cfg = tiny(arch)
+    model = build_branch_model(cfg)
+    randomise(model, seed=6, scale=1.0)
+    model.save(tmp_path / "m.keras")
+    model = keras.models.load_model(tmp_path / "m.keras")
+    x = features((2, 8, 10, 27), seed=7)
+    kernels = predict(build_kernel_model(model), x)
+    assert kernels.shape == (2, 8, 10, cfg.kernel_size**2)
+    assert (kernels >= 0).all()
+    np.testing.assert_allclose(kernels.sum(axis=-1), 1.0, rtol=1e-5)
+    assert kernels.std() > 1e-3  # not the untrained box filter
+    again = to_np(apply_kernels(x[..., :3], kernels, cfg.kernel_size))
+    np.testing.assert_allclose(again, predict(model, x), rtol=1e-5, atol=1e-5)
+
+
+def test_kernel_model_rejects_dpcn():
+    with pytest.raises(ValueError, match="KernelApply"):
+        build_kernel_model(build_branch_model(tiny("dpcn")))
+
+
+# ---------------------------------------------------------------- learning
+
+
+def synthetic_batch(seed, n=4, size=16):
+    """Piecewise-constant log colour with a vertical edge, noisy copy, and a clean edge-indicator feature."""
+    rng = np.random.default_rng(seed)
+    feats = np.zeros((n, size, size, 27), np.float32)
+    gt = np.zeros((n, size, size, 3), np.float32)
+    for b in range(n):
+        edge = rng.integers(4, size - 4)
+        left, right = rng.uniform(0.1, 1.0, 3), rng.uniform(1.5, 3.0, 3)
+        gt[b, :, :edge] = left
+        gt[b, :, edge:] = right
+        feats[b, :, edge:, 3:6] = 1.0  # like an albedo/normal buffer that shows the edge noise-free
+    feats[..., :3] = gt + rng.normal(scale=0.3, size=gt.shape)
+    return feats, gt
+
+
+@pytest.mark.parametrize("arch", ARCHS)
+def test_adam_steps_reduce_loss(arch):
+    keras.utils.set_random_seed(1234)
+    model = build_branch_model(tiny(arch, width=8))
+    model.compile(optimizer=keras.optimizers.Adam(learning_rate=1e-2), loss=SMAPE())
+    x, y = synthetic_batch(0)
+    loss0 = float(model.evaluate(x, y, verbose=0))
+    for _ in range(40):
+        model.train_on_batch(x, y)
+    loss1 = float(model.evaluate(x, y, verbose=0))
+    assert np.isfinite(loss1)
+    assert loss1 < 0.85 * loss0, (loss0, loss1)

@@ -1,0 +1,162 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import make_renders, random_aovs
+from prep import exr, features, shards
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def config(tmp_path, **kw):
+    values = dict(set_name="s", render_root=str(tmp_path / "renders"), out_root=str(tmp_path / "shards"),
+                  patch_size=16, patches_per_image=7, patches_per_shard=5, val_fraction=0.5, seed=3)
+    values.update(kw)
+    return shards.ShardConfig(**values)
+
+
+@pytest.fixture
+def render_set(tmp_path):
+    return make_renders(tmp_path / "renders" / "s")
+
+
+def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
+    cfg = config(tmp_path)
+    manifest = shards.build_shards(cfg, progress=False)
+    by_id = {i: s for i, s in enumerate(manifest["sources"])}
+    seen = 0
+    for split in ("train", "val"):
+        for path in shards.shard_paths(cfg.set_dir, split):
+            with shards.open_shard(path) as f:
+                assert f.attrs["split"] == split
+                for k in range(len(f["source"])):
+                    src = by_id[int(f["source"][k])]
+                    assert src["role"] == "input" and src["split"] == split
+                    noisy = exr.read_aovs(src["path"])
+                    ref_path = next(s["path"] for s in manifest["sources"] if s["scene"] == src["scene"] and s["role"] == "reference")
+                    ref = exr.read_aovs(ref_path, variances=False)
+                    y, x = f["position"][k]
+                    win = np.s_[y:y + 16, x:x + 16]
+                    np.testing.assert_array_equal(f["diffuse/features"][k], features.branch_features(noisy, "diffuse")[win])
+                    np.testing.assert_array_equal(f["specular/features"][k], features.branch_features(noisy, "specular")[win])
+                    np.testing.assert_array_equal(f["specular/reference"][k], features.branch_colour(ref, "specular")[win])
+                    np.testing.assert_array_equal(f["diffuse/reference"][k], features.branch_colour(ref, "diffuse")[win])
+                    np.testing.assert_array_equal(f["reference"][k], ref["default"][win])
+                    np.testing.assert_array_equal(f["albedo"][k], noisy["albedo"][win])
+                    assert f["diffuse/features"].chunks == (1, 16, 16, features.NUM_FEATURES)
+                    seen += 1
+    assert seen == 4 * 7
+    assert json.loads((cfg.set_dir / "manifest.json").read_text())["config_hash"] == cfg.content_hash()
+
+
+def test_split_is_by_scene_never_by_patch(tmp_path, render_set):
+    manifest = shards.build_shards(config(tmp_path), progress=False)
+    assert manifest["split"] == {"train": ["a-000", "b-000"], "val": ["a-001", "b-001"]}
+    train = {s["scene"] for s in manifest["sources"] if s["split"] == "train"}
+    val = {s["scene"] for s in manifest["sources"] if s["split"] == "val"}
+    assert not train & val
+
+
+def test_same_seed_same_shards_and_a_second_run_keeps_them(tmp_path, render_set):
+    a = config(tmp_path, out_root=str(tmp_path / "one"))
+    b = config(tmp_path, out_root=str(tmp_path / "two"))
+    shards.build_shards(a, progress=False)
+    shards.build_shards(b, progress=False)
+    for pa, pb in zip(shards.shard_paths(a.set_dir, "train"), shards.shard_paths(b.set_dir, "train")):
+        with h5py.File(pa) as fa, h5py.File(pb) as fb:
+            np.testing.assert_array_equal(fa["position"][()], fb["position"][()])
+            np.testing.assert_array_equal(fa["diffuse/features"][()], fb["diffuse/features"][()])
+    first = shards.shard_paths(a.set_dir, "train")[0]
+    mtime = first.stat().st_mtime_ns
+    shards.build_shards(a, progress=False)
+    assert first.stat().st_mtime_ns == mtime
+
+
+def test_other_configuration_over_existing_shards_is_refused(tmp_path, render_set):
+    shards.build_shards(config(tmp_path), progress=False)
+    with pytest.raises(shards.ShardError, match="another configuration"):
+        shards.build_shards(config(tmp_path, seed=4), progress=False)
+
+
+def test_interrupted_write_leaves_nothing_a_reader_accepts(tmp_path):
+    out = tmp_path / "killed"
+    out.mkdir()
+    script = f"""
+import numpy as np, sys
+sys.path.insert(0, {str(REPO)!r})
+from pathlib import Path
+from prep import shards
+rng = np.random.default_rng(0)
+arrays = {{name: rng.normal(size=(400, 65, 65, c)).astype(np.float32) for name, c in shards.PATCH_DATASETS.items()}}
+print('ready', flush=True)
+shards.write_shard(Path({str(out)!r}) / 'shard-00000.h5', arrays, {{'format': shards.FORMAT}})
+"""
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    deadline = time.time() + 60
+    while not list(out.glob(".shard-00000.h5.tmp")) and time.time() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.3)  # let it write part of the file
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (out / "shard-00000.h5").exists(), "the writer should still have been busy when killed"
+    leftovers = list(out.iterdir())
+    assert leftovers, "a temporary file should remain after a kill"
+    for path in leftovers:
+        with pytest.raises(shards.ShardError):
+            shards.open_shard(path)
+
+
+def test_reader_rejects_incomplete_and_foreign_files(tmp_path):
+    path = tmp_path / "shard-00000.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = shards.FORMAT  # never marked complete
+    with pytest.raises(shards.ShardError, match="incomplete"):
+        shards.open_shard(path)
+    path.write_bytes(b"truncated")
+    with pytest.raises(shards.ShardError, match="not a readable HDF5"):
+        shards.open_shard(path)
+
+
+def test_rerun_after_a_kill_completes_the_set(tmp_path, render_set):
+    cfg = config(tmp_path)
+    manifest = shards.build_shards(cfg, progress=False)
+    # a kill between shards: the last shard and the manifest are gone, a temporary file is left
+    last = cfg.set_dir / manifest["rounds"]["round-000"]["shards"][-1]["path"]
+    last.rename(last.with_name(f".{last.name}.tmp"))
+    (cfg.set_dir / "manifest.json").unlink()
+    again = shards.build_shards(cfg, progress=False)
+    assert again == manifest
+    assert last.is_file() and not list(last.parent.glob(".*.tmp"))
+
+
+def test_errors_name_the_folder_and_scene(tmp_path):
+    root = tmp_path / "renders" / "s"
+    root.mkdir(parents=True)
+    with pytest.raises(shards.ShardError, match="no '<scene>-<spp>spp.exr' renders"):
+        shards.build_shards(config(tmp_path), progress=False)
+    exr.write_aovs(root / "lonely-00004spp.exr", random_aovs(20, 20))
+    with pytest.raises(shards.ShardError, match="'lonely' has only lonely-00004spp.exr"):
+        shards.build_shards(config(tmp_path), progress=False)
+
+
+def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
+    root = tmp_path / "renders" / "fx"
+    root.mkdir(parents=True)
+    for src in (fixture_noisy, fixture_reference):
+        os.symlink(src, root / src.name)
+    cfg = shards.ShardConfig(set_name="fx", render_root=str(tmp_path / "renders"), out_root=str(tmp_path / "sh"),
+                             patch_size=32, patches_per_image=10, val_fraction=0.0)
+    manifest = shards.build_shards(cfg, progress=False)
+    assert manifest["split"] == {"train": ["fixture"], "val": []}
+    with shards.open_shard(shards.shard_paths(cfg.set_dir, "train")[0]) as f:
+        assert f["diffuse/features"].shape == (10, 32, 32, 27)
+        assert np.isfinite(f["diffuse/features"][()]).all()
