@@ -63,6 +63,7 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         raise KpcnError(f"{run_dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
     out_dir = Path(out_dir) if out_dir else run_dir / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
+    denoiser.warm_up()
     rows = []
     for noisy_path, ref_path in pairs:
         scene, spp = exr.parse_render_filename(noisy_path)

@@ -311,34 +311,16 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
                 f"remove {round_dir} (or choose another --set) to rebuild"
             )
 
-    jobs = [(name, s, renders[s]) for name in ("train", "val") for s in split[name]]
     sources: list[dict] = []
-    shard_entries: list[dict] = []
-    shard_index = 0
-    bar = tqdm(total=sum(len(j[2]["inputs"]) for j in jobs), desc="shards", unit="render", disable=not progress)
+    sink = _ShardSink(round_dir, config, config_hash, sources)
+    bar = tqdm(total=sum(len(renders[s]["inputs"]) for s in renders), desc="shards", unit="render",
+               disable=not progress)
     for split_name in ("train", "val"):
-        pending: dict[str, list[np.ndarray]] = defaultdict(list)
-        pending_count = 0
-
-        def flush():
-            nonlocal shard_index, pending, pending_count
-            path = round_dir / f"shard-{shard_index:05d}.h5"
-            if not path.exists():
-                arrays = {k: np.concatenate(v) for k, v in pending.items()}
-                write_shard(path, arrays, _shard_attrs(config, config_hash, split_name, sources))
-            shard_entries.append(
-                {"path": str(path.relative_to(config.set_dir)), "split": split_name, "patches": pending_count}
-            )
-            shard_index += 1
-            pending, pending_count = defaultdict(list), 0
-
-        for job_split, scene, entry in jobs:
-            if job_split != split_name:
-                continue
-            ref_src = entry["reference"]
+        for scene in split[split_name]:
+            ref_src = renders[scene]["reference"]
             reference = exr.read_aovs(ref_src.path, variances=False)
             sources.append(_source_record(ref_src, "reference", split_name))
-            for src in entry["inputs"]:
+            for src in renders[scene]["inputs"]:
                 noisy = exr.read_aovs(src.path)
                 if noisy["depth"].shape != reference["depth"].shape:
                     raise ShardError(
@@ -360,19 +342,11 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
                 patches["position"] = positions
                 patches["round"] = np.zeros(count, dtype=np.int32)
                 patches["pdf"] = pdf[positions[:, 0], positions[:, 1]]
-                start = 0
-                while start < count:
-                    take = min(count - start, config.patches_per_shard - pending_count)
-                    for k, v in patches.items():
-                        pending[k].append(v[start : start + take])
-                    pending_count += take
-                    start += take
-                    if pending_count == config.patches_per_shard:
-                        flush()
+                sink.add(split_name, patches)
                 bar.update(1)
-        if pending_count:
-            flush()
+        sink.flush()
     bar.close()
+    shard_entries = sink.entries
 
     manifest = {
         "format": FORMAT,
@@ -388,6 +362,46 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
     }
     _atomic_json(config.set_dir / MANIFEST, manifest)
     return manifest
+
+
+class _ShardSink:
+    """Collects patches of one split at a time into shards of ``patches_per_shard``, numbered in order.
+
+    A shard that already exists (complete, same configuration: checked before any work) is kept as it
+    is, which is what makes a rerun resume.
+    """
+
+    def __init__(self, round_dir: Path, config: ShardConfig, config_hash: str, sources: list[dict]):
+        self.round_dir, self.config, self.config_hash, self.sources = round_dir, config, config_hash, sources
+        self.entries: list[dict] = []
+        self.split = ""
+        self.pending: dict[str, list[np.ndarray]] = defaultdict(list)
+        self.count = 0
+
+    def add(self, split: str, patches: dict[str, np.ndarray]) -> None:
+        if split != self.split:
+            self.flush()
+            self.split = split
+        n, start = len(patches["source"]), 0
+        while start < n:
+            take = min(n - start, self.config.patches_per_shard - self.count)
+            for name, values in patches.items():
+                self.pending[name].append(values[start : start + take])
+            self.count += take
+            start += take
+            if self.count == self.config.patches_per_shard:
+                self.flush()
+
+    def flush(self) -> None:
+        if not self.count:
+            return
+        path = self.round_dir / f"shard-{len(self.entries):05d}.h5"
+        if not path.exists():
+            arrays = {name: np.concatenate(parts) for name, parts in self.pending.items()}
+            write_shard(path, arrays, _shard_attrs(self.config, self.config_hash, self.split, self.sources))
+        self.entries.append({"path": str(path.relative_to(self.config.set_dir)), "split": self.split,
+                             "patches": self.count})
+        self.pending, self.count = defaultdict(list), 0
 
 
 def _source_record(src: Source, role: str, split: str) -> dict:

@@ -177,7 +177,7 @@ def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
             raise ValueError(
                 f"{out_dir} holds a set rendered with "
                 + ", ".join(f"{k}={old_cfg[k]!r}" for k in changed)
-                + f", this config has " + ", ".join(f"{k}={getattr(config, k)!r}" for k in changed)
+                + ", this config has " + ", ".join(f"{k}={getattr(config, k)!r}" for k in changed)
                 + ": use another set_name or remove the directory"
             )
         previous = {s["name"]: s for s in old.get("scenes", [])}
