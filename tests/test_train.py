@@ -41,6 +41,16 @@ def test_run_folder_records_how_it_was_made(tmp_path):
     assert np.isfinite(float(log[-1].split(",")[1]))
 
 
+def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
+    cfg = tiny_config(build_tiny_shards(tmp_path), tmp_path / "runs", branches=("specular",), loss="asymmetric",
+                      slope=4.0, steps=4)
+    run_dir = train(cfg, verbose=0)
+    model = keras.models.load_model(run_dir / "checkpoints" / "specular.keras")
+    assert model.loss.slope == 4.0
+    losses = [float(line.split(",")[1]) for line in (run_dir / "log-specular.csv").read_text().splitlines()[1:]]
+    assert losses and all(np.isfinite(losses))
+
+
 def test_same_seed_same_model_on_cpu(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     a = train(tiny_config(shard_cfg, tmp_path / "a", branches=("diffuse",)), verbose=0)

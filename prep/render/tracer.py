@@ -152,6 +152,26 @@ def _to_world(local, n):
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
+def _sphere_t(o, d, tmax, spheres, i):
+    """Distance along o + t d (d unit) to the nearest crossing of sphere i in (T_MIN, tmax), else -1."""
+    ocx = spheres[i, 0] - o[0]
+    ocy = spheres[i, 1] - o[1]
+    ocz = spheres[i, 2] - o[2]
+    b = ocx * d[0] + ocy * d[1] + ocz * d[2]
+    c = ocx * ocx + ocy * ocy + ocz * ocz - spheres[i, 3] * spheres[i, 3]
+    disc = b * b - c
+    if disc <= 0.0:
+        return -1.0
+    sq = math.sqrt(disc)
+    t = b - sq
+    if t <= T_MIN:
+        t = b + sq
+    if T_MIN < t < tmax:
+        return t
+    return -1.0
+
+
+@njit(cache=True, inline="always")
 def _quad_t(o, d, tmax, quads, i):
     """Distance along o + t d (d unit) to quad i if in (T_MIN, tmax), else -1. (Columns as Q_*,
     spelled out: this is the innermost loop.)"""
@@ -199,19 +219,8 @@ def intersect(o, d, tmax, spheres, quads, n_single, groups, bounds):
     kind = -1
     idx = -1
     for i in range(spheres.shape[0]):
-        ocx = spheres[i, 0] - o[0]
-        ocy = spheres[i, 1] - o[1]
-        ocz = spheres[i, 2] - o[2]
-        b = ocx * d[0] + ocy * d[1] + ocz * d[2]
-        c = ocx * ocx + ocy * ocy + ocz * ocz - spheres[i, 3] * spheres[i, 3]
-        disc = b * b - c
-        if disc <= 0.0:
-            continue
-        sq = math.sqrt(disc)
-        t = b - sq
-        if t <= T_MIN:
-            t = b + sq
-        if T_MIN < t < best:
+        t = _sphere_t(o, d, best, spheres, i)
+        if t > 0.0:
             best = t
             kind = 0
             idx = i
@@ -237,19 +246,7 @@ def intersect(o, d, tmax, spheres, quads, n_single, groups, bounds):
 def occluded(o, d, tmax, spheres, quads, n_single, groups, bounds):
     """Whether anything lies on the ray o + t d for t in (T_MIN, tmax)."""
     for i in range(spheres.shape[0]):
-        ocx = spheres[i, 0] - o[0]
-        ocy = spheres[i, 1] - o[1]
-        ocz = spheres[i, 2] - o[2]
-        b = ocx * d[0] + ocy * d[1] + ocz * d[2]
-        c = ocx * ocx + ocy * ocy + ocz * ocz - spheres[i, 3] * spheres[i, 3]
-        disc = b * b - c
-        if disc <= 0.0:
-            continue
-        sq = math.sqrt(disc)
-        t = b - sq
-        if t <= T_MIN:
-            t = b + sq
-        if T_MIN < t < tmax:
+        if _sphere_t(o, d, tmax, spheres, i) > 0.0:
             return True
     for i in range(n_single):
         if _quad_t(o, d, tmax, quads, i) > 0.0:
