@@ -27,7 +27,7 @@ shards: render
 	$(KPCN) shards --set $(SET) $(SHARD_ARGS)
 
 train: shards
-	$(KPCN) train --set $(SET) --run $(RUN) $(TRAIN_ARGS)
+	$(KPCN) train --set $(SET) --run runs/$(RUN) $(TRAIN_ARGS)
 	$(KPCN) evaluate --run runs/$(RUN)
 
 evaluate: $(KPCN)

@@ -11,6 +11,7 @@ import argparse
 import logging
 import os
 import sys
+from pathlib import Path
 
 from prep.errors import KpcnError
 
@@ -53,10 +54,11 @@ def cmd_shards(args) -> int:
 def cmd_train(args) -> int:
     from kpcn_keras.train import TrainConfig, train
 
+    run = Path(args.run)
     model = {k: v for k, v in (("arch", args.arch), ("width", args.width), ("depth", args.depth),
                                 ("kernel_size", args.kernel_size)) if v is not None}
     cfg = TrainConfig.from_preset(
-        args.preset, set_name=args.set, shards_root=args.shards, run=args.run, runs_root=args.runs,
+        args.preset, set_name=args.set, shards_root=args.shards, run=run.name, runs_root=str(run.parent),
         model=model, branches=args.branches, steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.lr, loss=args.loss, slope=args.slope, seed=args.seed,
     )
@@ -122,8 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train the diffuse and specular networks (resumes by itself)")
     t.add_argument("--set", default="default", help="shard set")
     t.add_argument("--shards", default="shards", help="folder holding shard sets")
-    t.add_argument("--run", default="default", help="run name (folder under --runs)")
-    t.add_argument("--runs", default="runs")
+    t.add_argument("--run", default="runs/default", help="run folder (created, or resumed if it exists)")
     t.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
     t.add_argument("--arch", choices=("kpcn", "kpal", "dpcn"))
     t.add_argument("--width", type=int)

@@ -148,6 +148,8 @@ class _Checkpoint(keras.callbacks.Callback):
         self.path = path
 
     def on_epoch_end(self, epoch, logs=None):
+        if not np.isfinite((logs or {}).get("loss", 0.0)):
+            return  # keep the last good checkpoint; train_branch reports the divergence
         _atomic_save(self.model, self.path)
         _atomic_write_text(self.path.with_suffix(".json"), json.dumps({"epochs_done": epoch + 1, "logs": logs or {}}))
 
@@ -231,6 +233,11 @@ def train_branch(cfg: TrainConfig, branch: str, *, verbose="auto") -> keras.Mode
         # across epochs only without its own shuffling (and with one worker), which makes resume exact
         model.fit(train, epochs=cfg.epochs, initial_epoch=initial_epoch, steps_per_epoch=spe,
                   validation_data=val, callbacks=callbacks, verbose=verbose, shuffle=False)
+        if model.stop_training:  # only TerminateOnNaN stops a run early
+            raise KpcnError(
+                f"training the {branch} branch diverged (non-finite loss); the last good checkpoint is {ckpt}. "
+                "Lower the learning rate (--lr) under a new --run, or resume this one as it is."
+            )
     _atomic_save(model, final)
     return model
 

@@ -23,7 +23,7 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
     manifest = json.loads((tmp_path / "shards/toy/manifest.json").read_text())
     assert len(manifest["split"]["val"]) == 3 and not set(manifest["split"]["val"]) & set(manifest["split"]["train"])
 
-    assert main(["-q", "train", "--set", "toy", "--run", "toy", "--steps", "20", "--batch-size", "4",
+    assert main(["-q", "train", "--set", "toy", "--run", "runs/toy", "--steps", "20", "--batch-size", "4",
                  "--width", "8", "--depth", "3", "--kernel-size", "5"]) == 0
     record = json.loads((tmp_path / "runs/toy/config.json").read_text())
     assert record["train"]["steps"] == 20 and set(record["results"]) == {"diffuse", "specular"}

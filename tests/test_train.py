@@ -51,6 +51,15 @@ def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
     assert losses and all(np.isfinite(losses))
 
 
+def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
+    # a learning rate of 1e30 with clipping off blows the weights up within a step or two
+    cfg = tiny_config(build_tiny_shards(tmp_path), tmp_path / "runs", branches=("diffuse",), learning_rate=1e30,
+                      clipnorm=1e38, model={"arch": "dpcn", "width": 4, "depth": 2})
+    with pytest.raises(KpcnError, match="diverged"):
+        train(cfg, verbose=0)
+    assert not (cfg.run_dir / "diffuse.keras").exists()
+
+
 def test_same_seed_same_model_on_cpu(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     a = train(tiny_config(shard_cfg, tmp_path / "a", branches=("diffuse",)), verbose=0)
