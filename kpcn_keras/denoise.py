@@ -45,10 +45,11 @@ class Denoiser:
         self.margin = receptive_radius(self.model_config)
 
     def warm_up(self) -> None:
-        """Run each model once on a small input, so that timings exclude one-time setup."""
+        """Denoise a small black frame once, so that timings exclude one-time setup (numba, torch)."""
         size = 2 * self.margin + 1
-        for model in self.models.values():
-            model.predict_on_batch(np.zeros((1, size, size, self.model_config.in_channels), np.float32))
+        black = {name: np.zeros((size, size, 3), np.float32) for name in exr.RGB_LAYERS}
+        black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
+        self(black)
 
     def run_branch(self, branch: str, feats: np.ndarray) -> np.ndarray:
         """Model output (log domain) for one (H, W, 27) feature image, tile by tile."""
