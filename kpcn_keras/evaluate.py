@@ -18,6 +18,7 @@ import numpy as np
 from kpcn_keras.denoise import DEFAULT_TILE, Denoiser, side_by_side_png
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError
+from prep.files import atomic_write_text
 from prep.shards import discover_renders
 
 COLUMNS = (
@@ -90,8 +91,8 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         row["png"] = str(side_by_side_png(out_dir / f"{scene}-{spp:05d}spp.png", panels, title=scene))
         rows.append(row)
     table = format_table(rows)
-    (out_dir / "metrics.json").write_text(json.dumps(rows, indent=2))
-    (out_dir / "report.md").write_text(f"# Evaluation of {run_dir} ({date.today().isoformat()})\n\n{table}\n")
+    atomic_write_text(out_dir / "metrics.json", json.dumps(rows, indent=2))
+    atomic_write_text(out_dir / "report.md", f"# Evaluation of {run_dir} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 
 

@@ -31,6 +31,7 @@ from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import ModelConfig, build_branch_model, load_model
 from prep.errors import KpcnError
+from prep.files import atomic_write_text
 from prep.shards import load_manifest, shard_paths
 
 BRANCHES = ("diffuse", "specular")
@@ -128,12 +129,6 @@ class TrainConfig:
         return d
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _atomic_save(model: keras.Model, path: Path) -> None:
     tmp = path.with_name(f".tmp-{path.name}")  # keras wants the .keras suffix
     model.save(tmp)
@@ -151,7 +146,7 @@ class _Checkpoint(keras.callbacks.Callback):
         if not np.isfinite((logs or {}).get("loss", 0.0)):
             return  # keep the last good checkpoint; train_branch reports the divergence
         _atomic_save(self.model, self.path)
-        _atomic_write_text(self.path.with_suffix(".json"), json.dumps({"epochs_done": epoch + 1, "logs": logs or {}}))
+        atomic_write_text(self.path.with_suffix(".json"), json.dumps({"epochs_done": epoch + 1, "logs": logs or {}}))
 
 
 def _compile(model: keras.Model, cfg: TrainConfig) -> None:
@@ -190,7 +185,7 @@ def _prepare_run(cfg: TrainConfig, manifest: dict) -> dict:
         "command": " ".join(sys.argv),
         "results": {},
     }
-    _atomic_write_text(record_path, json.dumps(record, indent=2))
+    atomic_write_text(record_path, json.dumps(record, indent=2))
     return record
 
 
@@ -256,7 +251,7 @@ def train(cfg: TrainConfig, *, verbose="auto") -> Path:
         train_branch(cfg, branch, verbose=verbose)
         log = _read_log(cfg.run_dir / f"log-{branch}.csv")
         record["results"][branch] = {"seconds": round(time.perf_counter() - start, 1), "last_epoch": log[-1] if log else {}}
-        _atomic_write_text(cfg.run_dir / "config.json", json.dumps(record, indent=2))
+        atomic_write_text(cfg.run_dir / "config.json", json.dumps(record, indent=2))
     return cfg.run_dir
 
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from prep import exr, features, sampling
 from prep.errors import KpcnError
+from prep.files import atomic_write_text
 
 log = logging.getLogger("kpcn")
 
@@ -262,12 +263,6 @@ def _existing_shard_ok(path: Path, config_hash: str) -> bool:
         return False
 
 
-def _atomic_json(path: Path, payload: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2))
-    os.replace(tmp, path)
-
-
 def load_manifest(set_dir: str | os.PathLike) -> dict:
     path = Path(set_dir) / MANIFEST
     if not path.is_file():
@@ -360,7 +355,7 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
         "sources": sources,
         "rounds": {"round-000": {"shards": shard_entries}},
     }
-    _atomic_json(config.set_dir / MANIFEST, manifest)
+    atomic_write_text(config.set_dir / MANIFEST, json.dumps(manifest, indent=2))
     return manifest
 
 

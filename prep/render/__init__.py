@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from prep.exr import render_filename, write_aovs
+from prep.files import atomic_write_text
 from prep.render.scene import FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene
 
 __all__ = [
@@ -140,16 +140,6 @@ def render_seeds(seed: int, family: str, index: int) -> tuple[int, int]:
     return a, b
 
 
-def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(obj, indent=2) + "\n")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 # config fields that change the pixels of files already on disk
 _PIXEL_FIELDS = ("width", "height", "seed")
 
@@ -225,9 +215,9 @@ def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
                 if bar is not None:
                     bar.update(1)
             meta["scenes"].append(record)
-            _write_json_atomic(meta_path, meta)
+            atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")
     finally:
         if bar is not None:
             bar.close()
-    _write_json_atomic(meta_path, meta)
+    atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")
     return paths
