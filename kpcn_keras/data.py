@@ -9,7 +9,6 @@ uninterrupted run would have seen.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import h5py
 import keras
@@ -95,8 +94,3 @@ class ShardPatches(keras.utils.PyDataset):
         state = self.__dict__.copy()
         state["_files"] = {}
         return state
-
-
-def patch_size_of(paths) -> int:
-    with open_shard(Path(paths[0])) as f:
-        return int(f.attrs["patch_size"])
