@@ -1,49 +1,60 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, denoise, evaluate. Each fills its stage's config dataclass from
-the options; ``render`` and ``shards`` never import keras or torch. Bad input ends with a one-line
-message naming the file, layer or option and exit status 2 (set KPCN_DEBUG=1 for the traceback).
+Subcommands: render, shards, train, denoise, evaluate. Each fills its stage's config dataclass from the
+options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
+``render`` and ``shards`` never import keras or torch.
+
+Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
+one line naming the file, layer or option, and exit status 2; an option is named by its flag. Anything
+else is a bug and keeps its traceback. ``KPCN_DEBUG=1`` shows the traceback of a KpcnError too.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
-from pathlib import Path
 
-from prep.errors import KpcnError
+from prep.errors import KpcnError, OptionError
+
+# The exit status of a KpcnError; argparse uses the same for a malformed command line.
+EXIT_USER_ERROR = 2
 
 
 def _csv(text: str) -> tuple[str, ...]:
     return tuple(t for t in (s.strip() for s in text.split(",")) if t)
 
 
+def _given(args, cls) -> dict:
+    """The options of the subcommand that the user gave and that are fields of the dataclass ``cls``."""
+    names = {f.name for f in dataclasses.fields(cls)} & set(args.flags)
+    return {k: v for k, v in vars(args).items() if k in names}
+
+
+def _default(cls, name: str) -> str:
+    """A dataclass field's default, for help texts."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    value = f.default_factory() if f.default is dataclasses.MISSING else f.default
+    return ",".join(value) if isinstance(value, tuple) else str(value)
+
+
 def cmd_render(args) -> int:
     from prep.render import RenderConfig, render_set
 
-    cfg = RenderConfig(
-        set_name=args.set, families=args.families, per_family=args.per_family, width=args.width,
-        height=args.height, input_spp=args.input_spp, reference_spp=args.reference_spp, seed=args.seed,
-        out_root=args.out,
-    )
+    cfg = RenderConfig(**_given(args, RenderConfig))
     paths = render_set(cfg, progress=not args.quiet)
     print(f"{len(paths)} renders in {cfg.out_root}/{cfg.set_name}")
     return 0
 
 
 def cmd_shards(args) -> int:
-    from prep.shards import ShardConfig, build_shards
+    from prep.shards import ShardConfig, build_shards, round_name
 
-    cfg = ShardConfig(
-        set_name=args.set, render_root=args.renders, out_root=args.out, patch_size=args.patch_size,
-        patches_per_image=args.patches_per_image, patches_per_shard=args.patches_per_shard,
-        val_fraction=args.val_fraction, val_scenes=args.val_scenes, input_spp=args.input_spp, seed=args.seed,
-        command=" ".join(["kpcn"] + sys.argv[1:]),
-    )
+    cfg = ShardConfig(**_given(args, ShardConfig), command=" ".join(["kpcn"] + sys.argv[1:]))
     manifest = build_shards(cfg, progress=not args.quiet)
-    shards = manifest["rounds"]["round-000"]["shards"]
+    shards = manifest["rounds"][round_name(0)]["shards"]
     for split in ("train", "val"):
         n = sum(s["patches"] for s in shards if s["split"] == split)
         print(f"{split}: {len(manifest['split'][split])} scenes, {n} patches")
@@ -52,17 +63,13 @@ def cmd_shards(args) -> int:
 
 
 def cmd_train(args) -> int:
+    from kpcn_keras.models import ModelConfig
     from kpcn_keras.train import TrainConfig, train
 
-    run = Path(args.run)
-    model = {k: v for k, v in (("arch", args.arch), ("width", args.width), ("depth", args.depth),
-                                ("kernel_size", args.kernel_size)) if v is not None}
-    cfg = TrainConfig.from_preset(
-        args.preset, set_name=args.set, shards_root=args.shards, run=run.name, runs_root=str(run.parent),
-        model=model, branches=args.branches, steps=args.steps, batch_size=args.batch_size,
-        learning_rate=args.lr, loss=args.loss, slope=args.slope, seed=args.seed,
-    )
-    run_dir = train(cfg, verbose=0 if args.quiet else "auto")
+    given = _given(args, TrainConfig)
+    given["model"] = _given(args, ModelConfig)
+    cfg = TrainConfig.from_preset(given.pop("preset", None), **given)
+    run_dir = train(cfg, args.run, verbose=0 if args.quiet else "auto")
     print(f"run: {run_dir}")
     return 0
 
@@ -70,8 +77,8 @@ def cmd_train(args) -> int:
 def cmd_denoise(args) -> int:
     from kpcn_keras.denoise import denoise_file
 
-    output = args.output or str(args.input).replace(".exr", "-denoised.exr")
-    report = denoise_file(args.input, args.run, output, args.reference, png=not args.no_png, tile=args.tile)
+    report = denoise_file(args.input, args.run, args.output, args.reference, png=not args.no_png,
+                          **({"tile": args.tile} if "tile" in args else {}))
     print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
     print(f"denoised in {report['seconds']:.2f} s")
     if "metrics" in report:
@@ -85,90 +92,114 @@ def cmd_evaluate(args) -> int:
     from kpcn_keras.evaluate import evaluate, format_table, pairs_for_inputs
 
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
-    rows = evaluate(args.run, pairs, out_dir=args.out, tile=args.tile, baseline=not args.no_baseline)
+    rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline,
+                    **({"tile": args.tile} if "tile" in args else {}))
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from prep.render import RenderConfig  # light: no numba kernels until a render runs
+    from prep.shards import ShardConfig
+
     p = argparse.ArgumentParser(prog="kpcn", description="Kernel-predicting denoisers for path-traced renders.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True)
+    p.set_defaults(subcommands={})
 
-    r = sub.add_parser("render", help="render a built-in scene set (noisy inputs + references) to EXR")
-    r.add_argument("--set", default="default", help="render set name (folder under --out)")
-    r.add_argument("--families", type=_csv, default=("cornell", "spheres", "boxes"), help="comma-separated scene families")
-    r.add_argument("--per-family", type=int, default=4, help="random permutations per family")
-    r.add_argument("--width", type=int, default=256)
-    r.add_argument("--height", type=int, default=256)
-    r.add_argument("--input-spp", type=int, default=8)
-    r.add_argument("--reference-spp", type=int, default=512)
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--out", default="data/renders")
+    def parser(name, **kw):
+        p.get_default("subcommands")[name] = sub.add_parser(name, argument_default=argparse.SUPPRESS, **kw)
+        return p.get_default("subcommands")[name]
+
+    r = parser("render", help="render a built-in scene set (noisy inputs + references) to EXR")
+    d = lambda name: f"(default: {_default(RenderConfig, name)})"  # noqa: E731
+    r.add_argument("--set", dest="set_name", help=f"render set name, a folder under --out {d('set_name')}")
+    r.add_argument("--families", type=_csv, help=f"comma-separated scene families {d('families')}")
+    r.add_argument("--per-family", type=int, help=f"random permutations per family {d('per_family')}")
+    r.add_argument("--width", type=int, help=d("width"))
+    r.add_argument("--height", type=int, help=d("height"))
+    r.add_argument("--input-spp", type=int, help=d("input_spp"))
+    r.add_argument("--reference-spp", type=int, help=d("reference_spp"))
+    r.add_argument("--seed", type=int, help=d("seed"))
+    r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}")
     r.set_defaults(func=cmd_render)
 
-    s = sub.add_parser("shards", help="cut 65x65 patches of a render folder into HDF5 shards")
-    s.add_argument("--set", default="default", help="render set to read and shard set to write")
-    s.add_argument("--renders", default="data/renders", help="folder holding render sets")
-    s.add_argument("--out", default="shards")
-    s.add_argument("--patch-size", type=int, default=65)
-    s.add_argument("--patches-per-image", type=int, default=100)
-    s.add_argument("--patches-per-shard", type=int, default=256)
-    s.add_argument("--val-fraction", type=float, default=0.25, help="scenes held out per family")
-    s.add_argument("--val-scenes", type=_csv, default=(), help="explicit held-out scenes (comma-separated)")
-    s.add_argument("--input-spp", type=int, default=None, help="use only inputs of this spp")
-    s.add_argument("--seed", type=int, default=0)
+    s = parser("shards", help="cut 65x65 patches of a render folder into HDF5 shards")
+    d = lambda name: f"(default: {_default(ShardConfig, name)})"  # noqa: E731
+    s.add_argument("--set", dest="set_name", help=f"render set to read and shard set to write {d('set_name')}")
+    s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
+    s.add_argument("--out", dest="out_root", help=f"folder holding shard sets {d('out_root')}")
+    s.add_argument("--patch-size", type=int, help=d("patch_size"))
+    s.add_argument("--patches-per-image", type=int, help=f"at most the patch positions of the smallest image {d('patches_per_image')}")
+    s.add_argument("--patches-per-shard", type=int, help=d("patches_per_shard"))
+    s.add_argument("--val-fraction", type=float, help=f"scenes held out per family {d('val_fraction')}")
+    s.add_argument("--val-scenes", type=_csv, help="explicit held-out scenes (comma-separated)")
+    s.add_argument("--input-spp", type=int, help="use only inputs of this spp (default: every input)")
+    s.add_argument("--seed", type=int, help=d("seed"))
     s.set_defaults(func=cmd_shards)
 
-    t = sub.add_parser("train", help="train the diffuse and specular networks (resumes by itself)")
-    t.add_argument("--set", default="default", help="shard set")
-    t.add_argument("--shards", default="shards", help="folder holding shard sets")
-    t.add_argument("--run", default="runs/default", help="run folder (created, or resumed if it exists)")
-    t.add_argument("--preset", default="cpu", choices=("cpu", "paper"))
-    t.add_argument("--arch", choices=("kpcn", "kpal", "dpcn"))
+    t = parser("train", help="train the diffuse and specular networks (resumes by itself)")
+    t.add_argument("--set", dest="set_name", help="shard set (default: default)")
+    t.add_argument("--shards", dest="shards_root", help="folder holding shard sets (default: shards)")
+    t.add_argument("--run", default="runs/default", help="run folder, created or resumed (default: runs/default)")
+    t.add_argument("--preset", help="cpu (the default) or paper; the options below override it")
+    t.add_argument("--arch", help="kpcn, kpal or dpcn")
     t.add_argument("--width", type=int)
     t.add_argument("--depth", type=int)
     t.add_argument("--kernel-size", type=int)
-    t.add_argument("--branches", type=_csv, default=None, help="comma-separated subset of diffuse,specular")
+    t.add_argument("--branches", type=_csv, help="comma-separated subset of diffuse,specular")
     t.add_argument("--steps", type=int, help="training steps per branch")
     t.add_argument("--batch-size", type=int)
-    t.add_argument("--lr", type=float, help="initial learning rate")
-    t.add_argument("--loss", choices=("smape", "asymmetric"))
+    t.add_argument("--lr", dest="learning_rate", type=float, help="initial learning rate")
+    t.add_argument("--loss", help="smape or asymmetric")
     t.add_argument("--slope", type=float, help="asymmetric loss slope (>= 1)")
     t.add_argument("--seed", type=int)
     t.set_defaults(func=cmd_train)
 
-    d = sub.add_parser("denoise", help="denoise one EXR in the AOV layout")
-    d.add_argument("input")
-    d.add_argument("--run", required=True, help="run folder with diffuse.keras and specular.keras")
-    d.add_argument("-o", "--output", help="output EXR (default: <input>-denoised.exr)")
-    d.add_argument("--reference", help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
-    d.add_argument("--tile", type=int, default=256, help="tile size in pixels (memory bound)")
-    d.add_argument("--no-png", action="store_true")
-    d.set_defaults(func=cmd_denoise)
+    n = parser("denoise", help="denoise one EXR in the AOV layout")
+    n.add_argument("input")
+    n.add_argument("--run", required=True, help="run folder with diffuse.keras and specular.keras")
+    n.add_argument("-o", "--output", default=None, help="output EXR (default: <input stem>-denoised.exr beside it)")
+    n.add_argument("--reference", default=None, help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
+    n.add_argument("--tile", type=int, help="tile size in pixels, bounds memory (default: 256)")
+    n.add_argument("--no-png", action="store_true", default=False)
+    n.set_defaults(func=cmd_denoise)
 
-    e = sub.add_parser("evaluate", help="compare a run with the raw input and NLM on held-out scenes")
+    e = parser("evaluate", help="compare a run with the raw input and NLM on held-out scenes")
     e.add_argument("--run", required=True)
-    e.add_argument("inputs", nargs="*", help="noisy renders (default: the run's held-out scenes); "
+    e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
                    "each reference is the same scene's render with the most samples in the same folder")
-    e.add_argument("--out", help="report folder (default: <run>/eval)")
-    e.add_argument("--tile", type=int, default=256)
-    e.add_argument("--no-baseline", action="store_true")
+    e.add_argument("--out", default=None, help="report folder (default: <run>/eval)")
+    e.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
+    e.add_argument("--no-baseline", action="store_true", default=False)
     e.set_defaults(func=cmd_evaluate)
     return p
 
 
+def _flags(parser: argparse.ArgumentParser, command: str) -> dict[str, str]:
+    """dest -> the flag a user types, for the subcommand ``command``."""
+    sub = parser.get_default("subcommands")[command]
+    return {a.dest: max(a.option_strings, key=len) for a in sub._actions if a.option_strings}
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="kpcn: %(message)s")
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.flags = _flags(parser, args.command)
     try:
         return args.func(args)
-    except (KpcnError, ValueError, FileNotFoundError) as exc:
+    except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):
             raise
-        print(f"kpcn {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        message = str(exc)
+        if isinstance(exc, OptionError):
+            flag = args.flags.get(exc.option)
+            if flag:
+                message = f"{flag} {exc.detail}"
+        print(f"kpcn {args.command}: error: {message}", file=sys.stderr)
+        return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print(f"kpcn {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130

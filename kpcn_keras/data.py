@@ -81,10 +81,15 @@ class ShardPatches(keras.utils.PyDataset):
         x, y, noisy = [], [], []
         for shard, patch in ids:
             f = files[shard]
-            x.append(f[f"{self.branch}/features"][patch])
-            y.append(f[f"{self.branch}/reference"][patch])
-            if self.target == "reference+noisy":
-                noisy.append(f[f"{self.branch}/noisy"][patch])
+            try:
+                x.append(f[f"{self.branch}/features"][patch])
+                y.append(f[f"{self.branch}/reference"][patch])
+                if self.target == "reference+noisy":
+                    noisy.append(f[f"{self.branch}/noisy"][patch])
+            except OSError as exc:  # a chunk whose Fletcher-32 checksum fails, or a damaged file
+                raise ShardError(
+                    f"{self.paths[shard]}: cannot read patch {patch} ({exc}); run 'kpcn shards' again to rebuild it"
+                ) from None
         x, y = np.stack(x), np.stack(y)
         if noisy:
             y = np.concatenate([y, np.stack(noisy)], axis=-1)

@@ -3,21 +3,28 @@
 Each branch network runs on overlapping tiles so that memory stays bounded at any resolution. A
 tile's margin is the model's receptive radius (trunk + kernel, ``models.receptive_radius``), and only
 its centre is kept, so the result equals an untiled run up to float rounding. The branches are
-mapped back to linear colour (``prep.features`` inverses, with the noisy albedo) and summed.
+mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64 and
+clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
+
+``denoise_file`` checks its outputs before it loads anything: an output that is the input itself, or that
+could not be written, is refused at once. The default output is ``<input stem>-denoised.exr`` beside the
+input (:func:`default_output`).
 """
 
 from __future__ import annotations
 
-import json
+import os
 import time
 from pathlib import Path
 
 import keras
 import numpy as np
 
-from kpcn_keras.models import ModelConfig, receptive_radius
+from kpcn_keras.models import receptive_radius
+from kpcn_keras.run import Run, check_architecture, load_model
 from prep import exr, features
-from prep.errors import KpcnError
+from prep.errors import KpcnError, OptionError
+from prep.files import atomic_path, check_writable
 
 DEFAULT_TILE = 256
 
@@ -26,21 +33,19 @@ class Denoiser:
     """The finished branch models of one run folder, applied to whole renders."""
 
     def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE):
-        self.run_dir = Path(run_dir)
-        record_path = self.run_dir / "config.json"
-        if not record_path.is_file():
-            raise KpcnError(f"{self.run_dir}: not a run folder (no config.json); train one with 'kpcn train'")
-        self.record = json.loads(record_path.read_text())
-        self.model_config = ModelConfig.from_dict(self.record["train"]["model"])
+        if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
+            raise OptionError("tile", f"must be an integer >= 1 (pixels), got {tile!r}")
+        self.run = Run(run_dir)
+        self.record = self.run.read_record()
+        self.model_config = self.run.model_config(self.record)
         self.models = {}
         for branch in ("diffuse", "specular"):
-            path = self.run_dir / f"{branch}.keras"
+            path = self.run.model_path(branch)
             if not path.is_file():
                 raise KpcnError(f"{path}: missing; the run has not finished training the {branch} branch")
             # inference needs no optimizer or loss: skip compiling them back
-            self.models[branch] = keras.models.load_model(path, compile=False)
-        if tile < 1:
-            raise KpcnError(f"tile must be >= 1 pixel, got {tile}")
+            self.models[branch] = load_model(path, compile=False)
+            check_architecture(self.models[branch], self.model_config, path)
         self.tile = tile
         self.margin = receptive_radius(self.model_config)
 
@@ -74,9 +79,9 @@ class Denoiser:
         diffuse = features.diffuse_from_log(diffuse_log, aovs["albedo"])
         specular = features.specular_from_log(specular_log)
         return {
-            "diffuse": diffuse.astype(np.float32),
-            "specular": specular.astype(np.float32),
-            "default": (diffuse + specular).astype(np.float32),
+            "diffuse": exr.to_float32(diffuse),
+            "specular": exr.to_float32(specular),
+            "default": exr.to_float32(diffuse + specular),
         }
 
 
@@ -100,16 +105,37 @@ def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], tit
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return path
 
 
-def denoise_file(input_path, run_dir, output, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE) -> dict:
-    """Denoise one EXR; writes ``output`` (+ a PNG beside it); returns timings and, with a reference, metrics."""
+def default_output(input_path: str | os.PathLike) -> Path:
+    """``<input stem>-denoised.exr`` beside the input, whatever the input's suffix (or none)."""
+    path = Path(input_path)
+    stem = path.name[: -len(".exr")] if path.name.lower().endswith(".exr") else path.name
+    return path.with_name(f"{stem}-denoised.exr")
+
+
+def png_path(output: str | os.PathLike) -> Path:
+    """The side-by-side PNG written beside an output EXR."""
+    return Path(output).with_suffix(".png")
+
+
+def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,
+                 tile: int = DEFAULT_TILE) -> dict:
+    """Denoise one EXR; writes ``output`` (default :func:`default_output`) and a PNG beside it; returns
+    timings and, with a reference, metrics."""
     from prep import metrics
 
+    output = Path(output) if output is not None else default_output(input_path)
+    for label, other in (("input", input_path), ("reference", reference)):
+        if other is not None and Path(other).exists() and output.exists() and os.path.samefile(output, other):
+            raise KpcnError(f"--output {output} is the {label} file itself; choose another -o")
+    check_writable(output, "--output")
+    if png:
+        check_writable(png_path(output), "side-by-side PNG")
     denoiser = Denoiser(run_dir, tile=tile)
     noisy = exr.read_aovs(input_path)
     ref = exr.read_aovs(reference, variances=False) if reference else None
@@ -124,7 +150,6 @@ def denoise_file(input_path, run_dir, output, reference=None, *, png: bool = Tru
     seconds = time.perf_counter() - start
     layers = dict(result)
     layers.update({k: noisy[k] for k in ("albedo", "normal", "depth")})
-    output = Path(output)
     exr.write_aovs(output, layers)
     report = {"input": str(input_path), "output": str(output), "seconds": seconds}
     panels = [("input", noisy["default"]), ("denoised", result["default"])]
@@ -133,5 +158,5 @@ def denoise_file(input_path, run_dir, output, reference=None, *, png: bool = Tru
         report["metrics"] = metrics.all_metrics(result["default"], ref["default"])
         panels.append(("reference", ref["default"]))
     if png:
-        report["png"] = str(side_by_side_png(output.with_suffix(".png"), panels, title=Path(input_path).name))
+        report["png"] = str(side_by_side_png(png_path(output), panels, title=Path(input_path).name))
     return report

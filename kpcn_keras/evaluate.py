@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.denoise import DEFAULT_TILE, Denoiser, side_by_side_png
+from kpcn_keras.run import Run
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError
-from prep.files import atomic_write_text
+from prep.files import atomic_write_text, check_writable
 from prep.shards import discover_renders
 
 COLUMNS = (
@@ -33,12 +34,11 @@ COLUMNS = (
 )
 
 
-def held_out_pairs(run_dir: Path) -> list[tuple[str, str]]:
+def held_out_pairs(run_dir: str | Path) -> list[tuple[str, str]]:
     """(noisy, reference) paths of the validation scenes of the run's shard set."""
-    record = json.loads((run_dir / "config.json").read_text())
-    manifest = json.loads((Path(record["shards"]["set_dir"]) / "manifest.json").read_text())
-    refs = {s["scene"]: s["path"] for s in manifest["sources"] if s["role"] == "reference"}
-    return [(s["path"], refs[s["scene"]]) for s in manifest["sources"] if s["role"] == "input" and s["split"] == "val"]
+    run = Run(run_dir)
+    sset = run.shard_set(run.read_record())
+    return [(str(a), str(b)) for a, b in sset.pairs(sset.complete_manifest(), "val")]
 
 
 def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
@@ -57,13 +57,13 @@ def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              tile: int = DEFAULT_TILE, baseline: bool = True) -> list[dict]:
     """Evaluate a run on ``pairs`` (default: its held-out scenes); writes the report and returns the rows."""
-    run_dir = Path(run_dir)
-    denoiser = Denoiser(run_dir, tile=tile)
-    pairs = pairs or held_out_pairs(run_dir)
+    run = Run(run_dir)
+    out_dir = Path(out_dir) if out_dir else run.eval_dir
+    check_writable(out_dir, "report folder (--out)", directory=True)
+    denoiser = Denoiser(run.dir, tile=tile)
+    pairs = pairs or held_out_pairs(run.dir)
     if not pairs:
-        raise KpcnError(f"{run_dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
-    out_dir = Path(out_dir) if out_dir else run_dir / "eval"
-    out_dir.mkdir(parents=True, exist_ok=True)
+        raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
     denoiser.warm_up()
     rows = []
     for noisy_path, ref_path in pairs:
@@ -92,7 +92,7 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         rows.append(row)
     table = format_table(rows)
     atomic_write_text(out_dir / "metrics.json", json.dumps(rows, indent=2))
-    atomic_write_text(out_dir / "report.md", f"# Evaluation of {run_dir} ({date.today().isoformat()})\n\n{table}\n")
+    atomic_write_text(out_dir / "report.md", f"# Evaluation of {run.dir} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 
 

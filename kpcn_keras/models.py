@@ -12,7 +12,9 @@ domain, (B, H, W, 3). Architectures (``ModelConfig.arch``):
   input added back before the final ReLU; then the same kernel-predicting head. The report's 28-layer
   network is ``depth=13`` (1 + 2 * 13 + 1 layers).
 - ``"dpcn"``: the ``"kpcn"`` trunk with a 1x1 convolution to 3 channels that is **added to the noisy
-  colour** (residual direct prediction): the network predicts a correction, not the colour itself.
+  colour** (residual direct prediction): the network predicts a correction, not the colour itself. The sum
+  is clamped to the colour feature's range [0, ``prep.features.LOG_COLOUR_MAX``], which a kernel output
+  never leaves (it is a convex combination of the input colour).
 
 Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL therefore predicts
 all-equal logits, i.e. a uniform k x k box filter (a sensible smoother rather than noise), and an untrained
@@ -32,6 +34,8 @@ from typing import Optional
 import keras
 
 from kpcn_keras.layers import KernelApply, TakeChannels, check_kernel_size, softmax_kernels
+from prep.errors import OptionError
+from prep.features import LOG_COLOUR_MAX
 
 __all__ = [
     "ARCHS",
@@ -69,32 +73,34 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.arch not in ARCHS:
-            raise ValueError(f"arch must be one of {ARCHS}, received {self.arch!r}")
+            raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
         for field in ("in_channels", "width", "depth", "conv_size", "kernel_size"):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{field} must be an integer, received {value!r}")
+                raise OptionError(field, f"must be an integer, received {value!r}")
         if self.in_channels < COLOUR_CHANNELS:
-            raise ValueError(
-                f"in_channels must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), "
-                f"received {self.in_channels}"
+            raise OptionError(
+                "in_channels", f"must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), received {self.in_channels}"
             )
         if self.width < 1:
-            raise ValueError(f"width must be >= 1, received {self.width}")
+            raise OptionError("width", f"must be >= 1, received {self.width}")
         if self.depth < 1:
-            raise ValueError(f"depth must be >= 1, received {self.depth}")
+            raise OptionError("depth", f"must be >= 1, received {self.depth}")
         if self.conv_size < 1 or self.conv_size % 2 == 0:
-            raise ValueError(f"conv_size must be a positive odd integer, received {self.conv_size}")
-        check_kernel_size(self.kernel_size)
+            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
+        try:
+            check_kernel_size(self.kernel_size)
+        except ValueError as exc:
+            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
         if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)):
-            raise ValueError(f"dropout must be a number in [0, 1), received {self.dropout!r}")
+            raise OptionError("dropout", f"must be a number in [0, 1), received {self.dropout!r}")
         if not 0.0 <= float(self.dropout) < 1.0:
-            raise ValueError(f"dropout must be in [0, 1), received {self.dropout!r}")
+            raise OptionError("dropout", f"must be in [0, 1), received {self.dropout!r}")
         self.dropout = float(self.dropout)
         if self.batchnorm is None:
             self.batchnorm = self.arch == "kpal"
         elif not isinstance(self.batchnorm, bool):
-            raise ValueError(f"batchnorm must be a bool or None, received {self.batchnorm!r}")
+            raise OptionError("batchnorm", f"must be a bool or None, received {self.batchnorm!r}")
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict; ``batchnorm`` is resolved (never None)."""
@@ -106,7 +112,7 @@ class ModelConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:
-            raise ValueError(f"unknown ModelConfig keys {unknown}; known keys are {sorted(names)}")
+            raise OptionError("model", f"has unknown ModelConfig keys {unknown}; known keys are {sorted(names)}")
         return cls(**d)
 
 
@@ -175,7 +181,10 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse") -> keras.Model:
         correction = keras.layers.Conv2D(
             COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", name="correction"
         )(x)
-        out = keras.layers.Add(name="colour_out")([colour, correction])
+        out = keras.layers.Add(name="colour_sum")([colour, correction])
+        # a kernel output is a convex combination of the input colour and stays in its range by itself;
+        # a direct prediction is clamped to it, else one extreme pixel maps back to inf (exp(c) - 1)
+        out = keras.layers.ReLU(max_value=LOG_COLOUR_MAX, name="colour_out")(out)
     else:
         logits = keras.layers.Conv2D(
             cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name="kernel_logits"

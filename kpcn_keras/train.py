@@ -1,24 +1,25 @@
 """Training the diffuse and specular branch networks from a shard set (seed report §2.3).
 
-A run folder ``<runs_root>/<run>/`` records how it was made and resumes by itself:
+The run folder's layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 
-- ``config.json``: this TrainConfig, the model config, the shard set's manifest hash and split,
-  library versions, the command line, and per-branch results once finished;
-- ``<branch>.keras``: the finished model of each branch;
-- ``checkpoints/<branch>.keras`` + ``checkpoints/<branch>.json``: the model with its optimizer state
-  and the number of epochs done, written atomically after every epoch;
-- ``log-<branch>.csv``: loss and validation loss per epoch.
-
-Running the same command again continues an interrupted run where its last checkpoint left off; a
-different configuration under an existing run name is an error.
+- **Inputs first, record second.** The shard set must be complete and every shard's SHA-256 must match
+  its manifest, the options must fit the data, and the run folder must be writable, before
+  ``config.json`` is written; a command refused for bad input leaves no run behind.
+- **Exact resume.** After every epoch the model, its optimizer and the training state (epochs done, the
+  model configuration, the loss history) are written as one ``.keras`` file (``run.save_model``), so
+  the model and its epoch count cannot disagree. Running the same command again continues from it and
+  ends with the same bytes as an uninterrupted run (the CSV log is cut back to the checkpoint's epochs).
+- **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
+  another architecture under an existing run is an error that says which.
+- **One trainer per run**: the run's lock is held while training.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -29,10 +30,11 @@ import numpy as np
 
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
-from kpcn_keras.models import ModelConfig, build_branch_model, load_model
-from prep.errors import KpcnError
-from prep.files import atomic_write_text
-from prep.shards import load_manifest, shard_paths
+from kpcn_keras.models import ModelConfig, build_branch_model
+from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
+from prep.errors import KpcnError, OptionError
+from prep.files import atomic_path, atomic_write_json, check_writable, read_json
+from prep.shards import ShardSet
 
 BRANCHES = ("diffuse", "specular")
 
@@ -52,18 +54,21 @@ PRESETS = {
 }
 
 
+# Fields that say where the data is, not what is trained: a run is the same run wherever it is read from.
+_LOCATION_FIELDS = ("set_name", "shards_root")
+
+
 @dataclass
 class TrainConfig:
     """Configuration of ``kpcn train``; every field is saved in the run's config.json.
 
     The defaults are the "cpu" preset: a 7-layer, 32-wide vanilla KPCN with 13x13 kernels (the
-    ModelConfig defaults), 1200 steps of batch 8 per branch.
+    ModelConfig defaults), 1200 steps of batch 8 per branch. The run folder is not part of it
+    (:class:`kpcn_keras.run.Run` owns that), so a renamed run folder resumes.
     """
 
     set_name: str = "default"
     shards_root: str = "shards"
-    run: str = "default"
-    runs_root: str = "runs"
     preset: str = "cpu"
     model: dict = field(default_factory=dict)
     branches: tuple[str, ...] = BRANCHES
@@ -81,34 +86,37 @@ class TrainConfig:
 
     def __post_init__(self):
         self.branches = tuple(self.branches)
-        bad = [b for b in self.branches if b not in BRANCHES] or (not self.branches and ["(none)"])
-        if bad:
-            raise ValueError(f"branches must be a non-empty subset of {BRANCHES}, got {list(self.branches)}")
+        if not self.branches or any(b not in BRANCHES for b in self.branches):
+            raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, got {list(self.branches)}")
         if self.loss not in ("smape", "asymmetric"):
-            raise ValueError(f"loss must be 'smape' or 'asymmetric', got {self.loss!r}")
+            raise OptionError("loss", f"must be 'smape' or 'asymmetric', got {self.loss!r}")
         for name in ("steps", "steps_per_epoch", "batch_size", "decay_steps", "val_batches"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
-        if not self.learning_rate > 0 or not self.clipnorm > 0 or not 0 < self.decay_rate <= 1:
-            raise ValueError(
-                f"need learning_rate > 0, clipnorm > 0, 0 < decay_rate <= 1; got "
-                f"{self.learning_rate}, {self.clipnorm}, {self.decay_rate}"
-            )
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise OptionError(name, f"must be an integer >= 1, got {value!r}")
+        checks = {
+            "learning_rate": (0 < self.learning_rate < math.inf, "> 0 and finite"),
+            "clipnorm": (0 < self.clipnorm < math.inf, "> 0 and finite"),
+            "decay_rate": (0 < self.decay_rate <= 1, "in (0, 1]"),
+            "slope": (1 <= self.slope < math.inf, ">= 1 and finite"),
+            "seed": (self.seed >= 0, ">= 0"),
+        }
+        for name, (ok, bound) in checks.items():
+            if not ok:
+                raise OptionError(name, f"must be {bound}, got {getattr(self, name)!r}")
         self.model = ModelConfig(**self.model).to_dict()  # validates and fills defaults
 
     @classmethod
-    def from_preset(cls, preset: str, **overrides) -> "TrainConfig":
-        """The preset's values, then ``overrides`` (None values ignored; ``model`` keys merged)."""
+    def from_preset(cls, preset: str | None = None, **overrides) -> "TrainConfig":
+        """The preset's values (None: the default preset), then ``overrides`` (None values ignored;
+        ``model`` keys merged)."""
+        preset = cls.preset if preset is None else preset
         if preset not in PRESETS:
-            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {preset!r}")
+            raise OptionError("preset", f"must be one of {sorted(PRESETS)}, got {preset!r}")
         values = json.loads(json.dumps(PRESETS[preset]))
         values["model"] = {**values.get("model", {}), **(overrides.pop("model", None) or {})}
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(preset=preset, **values)
-
-    @property
-    def run_dir(self) -> Path:
-        return Path(self.runs_root) / self.run
 
     @property
     def set_dir(self) -> Path:
@@ -128,25 +136,32 @@ class TrainConfig:
         d["branches"] = list(self.branches)
         return d
 
-
-def _atomic_save(model: keras.Model, path: Path) -> None:
-    tmp = path.with_name(f".tmp-{path.name}")  # keras wants the .keras suffix
-    model.save(tmp)
-    os.replace(tmp, path)
+    def identity(self) -> dict:
+        """The fields that make two runs the same run (everything but where the data is read from)."""
+        return {k: v for k, v in self.to_dict().items() if k not in _LOCATION_FIELDS}
 
 
 class _Checkpoint(keras.callbacks.Callback):
-    """Saves the model (with optimizer state) and the epochs done after every epoch, atomically."""
+    """After every epoch: the model, its optimizer and the training state, as one atomic .keras file."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, cfg: TrainConfig, history: list[dict]):
         super().__init__()
-        self.path = path
+        self.path, self.cfg, self.history = path, cfg, history
 
     def on_epoch_end(self, epoch, logs=None):
-        if not np.isfinite((logs or {}).get("loss", 0.0)):
+        logs = {k: float(v) for k, v in (logs or {}).items()}
+        if not np.isfinite(logs.get("loss", 0.0)):
             return  # keep the last good checkpoint; train_branch reports the divergence
-        _atomic_save(self.model, self.path)
-        atomic_write_text(self.path.with_suffix(".json"), json.dumps({"epochs_done": epoch + 1, "logs": logs or {}}))
+        self.history.append({"epoch": epoch, **logs})
+        save_model(self.model, self.path, _state(self.cfg, epoch + 1, self.history))
+
+
+def _state(cfg: TrainConfig, epochs_done: int, history: list[dict]) -> dict:
+    return {"epochs_done": epochs_done, "model": cfg.model, "train": _identity_key(cfg), "history": history}
+
+
+def _identity_key(cfg: TrainConfig) -> str:
+    return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _compile(model: keras.Model, cfg: TrainConfig) -> None:
@@ -155,72 +170,110 @@ def _compile(model: keras.Model, cfg: TrainConfig) -> None:
     model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm), loss=loss)
 
 
-def _prepare_run(cfg: TrainConfig, manifest: dict) -> dict:
-    """Create or reopen the run folder; returns the record written to config.json."""
-    run_dir = cfg.run_dir
-    record_path = run_dir / "config.json"
-    if record_path.is_file():
-        record = json.loads(record_path.read_text())
-        if record.get("train") != cfg.to_dict() or record.get("shards", {}).get("config_hash") != manifest["config_hash"]:
-            old = record.get("train", {})
-            diff = sorted(k for k in set(old) | set(cfg.to_dict()) if old.get(k) != cfg.to_dict().get(k))
+def _check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
+    """Everything a run needs from its shard set, checked before the run folder is touched; returns the
+    manifest and ``split -> shard paths``."""
+    manifest = sset.complete_manifest()
+    if manifest.get("features") is not None and len(manifest["features"]) != cfg.model["in_channels"]:
+        raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
+                          f"{len(manifest['features'])} feature channels")
+    paths = {split: [e.path for e in sset.verified_shards(split, manifest)] for split in ("train", "val")}
+    patches = sum(s["patches"] for r in manifest["rounds"].values() for s in r["shards"] if s["split"] == "train")
+    if patches < cfg.batch_size:
+        raise OptionError("batch_size", f"{cfg.batch_size} exceeds the {patches} training patches of {sset.dir}")
+    return manifest, paths
+
+
+def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> dict:
+    """The run's record: read and compared if the run exists, else created (inputs are checked by now)."""
+    if run.has_record():
+        record = run.read_record()
+        old = {k: v for k, v in record["train"].items() if k not in _LOCATION_FIELDS}
+        diff = sorted(k for k in set(old) | set(cfg.identity()) if old.get(k) != cfg.identity().get(k))
+        if diff:
             raise KpcnError(
-                f"{record_path}: run {cfg.run!r} was made with another configuration "
-                f"(differs in {diff or ['shard set']}); choose another --run or remove {run_dir}"
+                f"{run.record_path}: this run was made with another configuration (differs in {', '.join(diff)}); "
+                f"choose another --run or remove {run.dir}"
+            )
+        if record["shards"].get("content_key") != manifest["content_key"]:
+            raise KpcnError(
+                f"{run.record_path}: the shard set {sset.dir} changed since this run started (its renders or "
+                f"options differ); choose another --run or remove {run.dir}"
             )
         return record
     import torch
 
-    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     record = {
         "train": cfg.to_dict(),
         "shards": {
-            "set_dir": str(cfg.set_dir),
+            "set_dir": run.relative(sset.dir),
             "config_hash": manifest["config_hash"],
+            "content_key": manifest["content_key"],
             "split": manifest["split"],
             "features": manifest["features"],
             "constants": manifest["constants"],
         },
         "versions": {"keras": keras.__version__, "torch": torch.__version__, "numpy": np.__version__},
-        "command": " ".join(sys.argv),
+        "command": " ".join(["kpcn"] + sys.argv[1:]),
         "results": {},
     }
-    atomic_write_text(record_path, json.dumps(record, indent=2))
+    run.write_record(record)
     return record
 
 
-def train_branch(cfg: TrainConfig, branch: str, *, verbose="auto") -> keras.Model:
-    """Train (or resume, or reuse) one branch network; returns the finished model."""
-    run_dir = cfg.run_dir
-    final = run_dir / f"{branch}.keras"
+def _resume_log(path: Path, epochs_done: int) -> None:
+    """Cut the CSV log back to its header and the ``epochs_done`` rows the checkpoint has seen (a kill
+    after the log row but before the checkpoint would otherwise leave that epoch twice)."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines(keepends=True)[: 1 + epochs_done]
+    with atomic_path(path) as tmp:
+        tmp.write_text("".join(lines))
+
+
+def train_branch(cfg: TrainConfig, run: Run, branch: str, paths: dict, *, verbose="auto") -> keras.Model:
+    """Train (or resume, or reuse) one branch network of ``run``; returns the finished model."""
+    model_cfg = ModelConfig.from_dict(cfg.model)
+    final = run.model_path(branch)
     if final.is_file():
-        return load_model(final)
-    ckpt = run_dir / "checkpoints" / f"{branch}.keras"
-    state = ckpt.with_suffix(".json")
-    initial_epoch = 0
-    if ckpt.is_file() and state.is_file():
+        model = load_model(final)
+        check_architecture(model, model_cfg, final)
+        return model
+    ckpt = run.checkpoint_path(branch)
+    initial_epoch, history = 0, []
+    if ckpt.is_file():
+        state = read_state(ckpt)
+        if state is None or "epochs_done" not in state:
+            raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the {branch} branch")
+        if state.get("model") != cfg.model or state.get("train") != _identity_key(cfg):
+            raise KpcnError(
+                f"{ckpt}: checkpoint of another configuration (model {state.get('model')}); the run asks for "
+                f"{cfg.model}. Remove the checkpoint to restart the {branch} branch, or choose another --run"
+            )
         model = load_model(ckpt)
-        initial_epoch = int(json.loads(state.read_text())["epochs_done"])
+        check_architecture(model, model_cfg, ckpt)
+        initial_epoch, history = int(state["epochs_done"]), list(state.get("history", []))
+        _resume_log(run.log_path(branch), initial_epoch)
         print(f"[{branch}] resuming from {ckpt} after epoch {initial_epoch}")
     else:
+        run.log_path(branch).unlink(missing_ok=True)  # a log without a checkpoint holds no epoch we keep
         keras.utils.set_random_seed(cfg.seed + BRANCHES.index(branch))
-        model = build_branch_model(ModelConfig.from_dict(cfg.model), name=branch)
+        model = build_branch_model(model_cfg, name=branch)
         _compile(model, cfg)
 
     target = "reference+noisy" if cfg.loss == "asymmetric" else "reference"
     spe = cfg.epoch_steps
     train = ShardPatches(
-        shard_paths(cfg.set_dir, "train"), branch, cfg.batch_size, steps=(cfg.epochs - initial_epoch) * spe,
+        paths["train"], branch, cfg.batch_size, steps=(cfg.epochs - initial_epoch) * spe,
         seed=cfg.seed, offset=initial_epoch * spe, target=target,
     )
-    val_paths = shard_paths(cfg.set_dir, "val")
     val = None
-    if val_paths:
-        val = ShardPatches(val_paths, branch, cfg.batch_size, shuffle=False, target=target)
+    if paths["val"]:
+        val = ShardPatches(paths["val"], branch, cfg.batch_size, shuffle=False, target=target)
         val.steps = min(val.steps, cfg.val_batches)
     callbacks = [
-        keras.callbacks.CSVLogger(str(run_dir / f"log-{branch}.csv"), append=True),
-        _Checkpoint(ckpt),
+        keras.callbacks.CSVLogger(str(run.log_path(branch)), append=True),
+        _Checkpoint(ckpt, cfg, history),
         keras.callbacks.TerminateOnNaN(),
     ]
     if initial_epoch < cfg.epochs:
@@ -233,26 +286,33 @@ def train_branch(cfg: TrainConfig, branch: str, *, verbose="auto") -> keras.Mode
                 f"training the {branch} branch diverged (non-finite loss); the last good checkpoint is {ckpt}. "
                 "Lower the learning rate (--lr) under a new --run, or resume this one as it is."
             )
-    _atomic_save(model, final)
+    save_model(model, final)
     return model
 
 
-def train(cfg: TrainConfig, *, verbose="auto") -> Path:
-    """Train every configured branch into ``cfg.run_dir``; returns the run folder."""
+def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
+    """Train every configured branch into the run folder ``run_dir``; returns it."""
     keras_backend = keras.backend.backend()
     if keras_backend != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras_backend!r}")
-    manifest = load_manifest(cfg.set_dir)
-    record = _prepare_run(cfg, manifest)
-    for branch in cfg.branches:
-        if branch in record["results"]:
-            continue
-        start = time.perf_counter()
-        train_branch(cfg, branch, verbose=verbose)
-        log = _read_log(cfg.run_dir / f"log-{branch}.csv")
-        record["results"][branch] = {"seconds": round(time.perf_counter() - start, 1), "last_epoch": log[-1] if log else {}}
-        atomic_write_text(cfg.run_dir / "config.json", json.dumps(record, indent=2))
-    return cfg.run_dir
+    run = Run(run_dir)
+    sset = ShardSet(cfg.set_dir)
+    manifest, paths = _check_inputs(cfg, sset)
+    check_writable(run.dir, "run folder (--run)", directory=True)
+    with run.lock():
+        record = _open_record(run, cfg, manifest, sset)
+        timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
+        for branch in cfg.branches:
+            if branch in record["results"]:
+                continue
+            start = time.perf_counter()
+            train_branch(cfg, run, branch, paths, verbose=verbose)
+            log = _read_log(run.log_path(branch))
+            record["results"][branch] = {"last_epoch": log[-1] if log else {}}
+            timings[branch] = round(time.perf_counter() - start, 1)  # the session that finished it
+            atomic_write_json(run.timings_path, timings)
+            run.write_record(record)
+    return run.dir
 
 
 def _read_log(path: Path) -> list[dict]:

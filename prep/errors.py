@@ -1,5 +1,20 @@
-"""The one error family that the command line reports as a message (no traceback)."""
+"""The error family that the command line reports as one line (no traceback), and nothing else.
+
+Everything a user can cause and fix (a bad file, a bad option, a folder in the wrong state) is a
+:class:`KpcnError` whose message names the file, the layer or the option and what was found. Any other
+exception is a bug and keeps its traceback.
+"""
 
 
 class KpcnError(Exception):
     """Bad input or state that a user can fix; the message names the file, layer or option."""
+
+
+class OptionError(KpcnError, ValueError):
+    """An option (a config field) out of range: ``str()`` is ``"<option> <detail>"``. The command line
+    names the option by its flag instead (``val_fraction`` -> ``--val-fraction``)."""
+
+    def __init__(self, option: str, detail: str):
+        super().__init__(f"{option} {detail}")
+        self.option = option
+        self.detail = detail

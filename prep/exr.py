@@ -20,7 +20,12 @@ In memory a render is a dict ``layer -> float32 array`` of shape (H, W, 3) for c
 
 Non-finite values are repaired by one rule, applied per channel: NaN becomes 0, +inf becomes the
 largest finite value of that channel (0 if it has none) and -inf the smallest. Repairs are counted
-and reported once per file through the ``kpcn`` logger.
+and reported once per file through the ``kpcn`` logger. A derived ``default`` is summed in float64 and
+clamped to the float32 range (:func:`to_float32`), so two finite float32 layers can never sum to inf.
+
+Writing is atomic (``prep.files.atomic_path``); finite values beyond the range of the file's pixel type
+(half or float) are clamped to its largest finite value rather than overflowing to inf. The OpenEXR library's
+own messages about a corrupt file are captured and folded into the one error that names the file.
 """
 
 from __future__ import annotations
@@ -28,11 +33,15 @@ from __future__ import annotations
 import logging
 import os
 import re
+import sys
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from prep.errors import KpcnError
+from prep.files import atomic_path
 
 log = logging.getLogger("kpcn")
 
@@ -73,32 +82,123 @@ def parse_render_filename(path: str | os.PathLike) -> tuple[str, int]:
 
 def _group_channels(path, channels: dict) -> dict[str, dict[str, np.ndarray]]:
     layers: dict[str, dict[str, np.ndarray]] = {}
-    for full_name, channel in channels.items():
-        layer, _, comp = full_name.rpartition(".")
-        if not layer:  # unprefixed R, G, B is the beauty pass in many renderers
-            layer = "default"
-        pixels = np.asarray(channel.pixels)
+    for full_name, pixels in channels.items():
+        layer, comp = _split_name(full_name)
         if pixels.ndim != 2:
             raise AOVError(f"{path}: channel {full_name!r} has shape {pixels.shape}, expected 2-D")
         layers.setdefault(layer, {})[comp] = pixels
     return layers
 
 
-def _assemble(path, name: str, comps: dict[str, np.ndarray]) -> np.ndarray:
+def _assemble(name: str, comps: dict[str, np.ndarray]) -> np.ndarray:
+    """One layer as float32, (H, W, 3) or (H, W); its channels were checked by _check_layers."""
     if name in RGB_LAYERS:
-        missing = [c for c in "RGB" if c not in comps]
-        if missing:
-            raise AOVError(
-                f"{path}: layer {name!r} needs channels R G B, found {sorted(comps)}"
-            )
         return np.stack([comps[c] for c in "RGB"], axis=-1).astype(np.float32)
     if "Z" in comps:
         return comps["Z"].astype(np.float32)
-    if all(c in comps for c in "RGB"):
-        return np.mean([comps[c].astype(np.float32) for c in "RGB"], axis=0).astype(np.float32)
     if len(comps) == 1:
         return next(iter(comps.values())).astype(np.float32)
-    raise AOVError(f"{path}: layer {name!r} needs one channel Z (or R G B), found {sorted(comps)}")
+    return to_float32(np.mean([comps[c].astype(np.float64) for c in "RGB"], axis=0))
+
+
+def to_float32(image, dtype=np.float32) -> np.ndarray:
+    """``image`` cast to ``dtype`` (float32 or float16) with finite values beyond its range clamped to
+    its largest finite magnitude, so that a cast never turns a finite value into inf. Non-finite values
+    are kept as they are (the reader's repair rule deals with them)."""
+    image = np.asarray(image, dtype=np.float64)
+    big = float(np.finfo(dtype).max)
+    return np.where(np.isfinite(image), np.clip(image, -big, big), image).astype(dtype)
+
+
+@contextmanager
+def _captured_native_output():
+    """Send what native code writes to file descriptors 1 and 2 into a buffer for the block.
+
+    The OpenEXR library prints its own diagnostics for corrupt files; the caller folds them into one
+    error instead. Yields a list that holds the captured text once the block ends.
+    """
+    captured: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            yield captured
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            captured.append(sink.read().decode(errors="replace"))
+
+
+def _native_detail(path: Path, captured: list[str], exc: Exception) -> str:
+    """The most telling line of what the library said: its first error code line, else the exception."""
+    lines = [line.strip().removeprefix(f"{path}:").strip() for text in captured for line in text.splitlines()]
+    coded = [line for line in lines if "EXR_ERR" in line]
+    return coded[0] if coded else str(exc)
+
+
+def _open(path: Path, **kwargs):
+    """Run OpenEXR.File on ``path``; returns (header, channels); AOVError naming the file if unreadable."""
+    import OpenEXR  # imported here so that modules using only the constants stay light
+
+    if not path.is_file():
+        raise AOVError(f"{path}: no such file")
+    try:
+        with _captured_native_output() as captured:
+            with OpenEXR.File(str(path), **kwargs) as f:
+                # the header dict is emptied when the file closes: copy what we need inside
+                header = {"dataWindow": f.header()["dataWindow"], "channels": list(f.header()["channels"])}
+                channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    except Exception as exc:  # the binding raises bare RuntimeErrors for corrupt files
+        raise AOVError(f"{path}: not a readable OpenEXR file ({_native_detail(path, captured, exc)})") from None
+    lo, hi = header["dataWindow"]
+    return (int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)), header, channels
+
+
+def _check_layers(path, components: dict[str, set[str]], variances: bool) -> tuple[str, ...]:
+    """The layers to read from a file whose channels are ``layer -> component names``; AOVError for a
+    missing layer or a colour layer without R G B."""
+    needed = BASE_LAYERS + (VARIANCE_LAYERS if variances else ())
+    missing = [n for n in needed if n not in components]
+    if missing:
+        raise AOVError(
+            f"{path}: missing layer(s) {', '.join(missing)}; the file has "
+            f"{', '.join(sorted(components)) or 'no layers'}"
+        )
+    wanted = needed + (("default",) if "default" in components else ())
+    for name in wanted:
+        comps = components[name]
+        if name in RGB_LAYERS and not set("RGB") <= comps:
+            raise AOVError(f"{path}: layer {name!r} needs channels R G B, found {sorted(comps)}")
+        if name in SCALAR_LAYERS and "Z" not in comps and not set("RGB") <= comps and len(comps) != 1:
+            raise AOVError(f"{path}: layer {name!r} needs one channel Z (or R G B), found {sorted(comps)}")
+    return wanted
+
+
+def _split_name(full_name: str) -> tuple[str, str]:
+    layer, _, comp = full_name.rpartition(".")
+    return layer or "default", comp  # unprefixed R, G, B is the beauty pass in many renderers
+
+
+def read_header(path: str | os.PathLike, *, variances: bool = True) -> tuple[int, int]:
+    """Check a render's header against the layout without decoding pixels; returns (height, width).
+
+    Lets a command find a missing layer or a wrong size in every input before it writes anything.
+    Raises AOVError naming the file and the layer.
+    """
+    path = Path(path)
+    size, header, _ = _open(path, header_only=True)
+    components: dict[str, set[str]] = {}
+    for channel in header["channels"]:
+        layer, comp = _split_name(channel.name)
+        components.setdefault(layer, set()).add(comp)
+    _check_layers(path, components, variances)
+    return size
 
 
 def repair_nonfinite(image: np.ndarray) -> tuple[np.ndarray, int]:
@@ -126,33 +226,14 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
     ``variances=False`` reads a reference render, which needs no variance layers. ``default`` is
     derived as diffuse + specular when the file has none. Raises AOVError naming the file and layer.
     """
-    import OpenEXR  # imported here so that modules using only the constants stay light
-
     path = Path(path)
-    if not path.is_file():
-        raise AOVError(f"{path}: no such file")
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            # the header dict is emptied when the file closes: read what we need inside
-            lo, hi = f.header()["dataWindow"]
-            raw = _group_channels(path, f.channels())
-    except AOVError:
-        raise
-    except Exception as exc:  # the binding raises bare RuntimeErrors for corrupt files
-        raise AOVError(f"{path}: not a readable OpenEXR file ({exc})") from None
-
-    expected = (int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1))
-    needed = BASE_LAYERS + (VARIANCE_LAYERS if variances else ())
-    missing = [n for n in needed if n not in raw]
-    if missing:
-        raise AOVError(
-            f"{path}: missing layer(s) {', '.join(missing)}; the file has {', '.join(sorted(raw)) or 'no layers'}"
-        )
-    wanted = needed + (("default",) if "default" in raw else ())
+    expected, _, channels = _open(path, separate_channels=True)
+    raw = _group_channels(path, channels)
+    wanted = _check_layers(path, {name: set(comps) for name, comps in raw.items()}, variances)
     out: dict[str, np.ndarray] = {}
     repaired: dict[str, int] = {}
     for name in wanted:
-        image = _assemble(path, name, raw[name])
+        image = _assemble(name, raw[name])
         if image.shape[:2] != expected:
             raise AOVError(
                 f"{path}: layer {name!r} is {image.shape[1]}x{image.shape[0]}, "
@@ -163,7 +244,7 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
             repaired[name] = count
         out[name] = image
     if "default" not in out:
-        out["default"] = out["diffuse"] + out["specular"]
+        out["default"] = to_float32(out["diffuse"].astype(np.float64) + out["specular"])
     if repaired:
         detail = ", ".join(f"{k}: {v}" for k, v in repaired.items())
         log.warning("%s: repaired non-finite values (NaN->0, inf->channel's finite max/min): %s", path, detail)
@@ -189,19 +270,13 @@ def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: 
             raise AOVError(f"{path}: layer {name!r} is {image.shape[:2]}, other layers are {shape}")
         if image.ndim == 3 and image.shape[2] == 3:
             for i, c in enumerate("RGB"):
-                channels[f"{name}.{c}"] = np.ascontiguousarray(image[..., i], dtype=dtype)
+                channels[f"{name}.{c}"] = np.ascontiguousarray(to_float32(image[..., i], dtype))
         elif image.ndim == 2:
-            channels[f"{name}.Z"] = np.ascontiguousarray(image, dtype=dtype)
+            channels[f"{name}.Z"] = np.ascontiguousarray(to_float32(image, dtype))
         else:
             raise AOVError(f"{path}: layer {name!r} has shape {image.shape}, expected (H, W, 3) or (H, W)")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.exr")
-    try:
+    with atomic_path(path) as tmp:
         with OpenEXR.File(header, channels) as f:
             f.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path

@@ -1,19 +1,184 @@
-"""Writing files so that a reader never sees half of one: a temporary name beside it, then rename."""
+"""Files that are never half-written, folders that one process writes at a time, and records read back
+with errors that name them.
+
+- :func:`atomic_path` is the one atomic-write primitive: every EXR, HDF5 shard, ``.keras`` model and text
+  record of the project is written under a temporary name beside its target (``.<name>.tmp-<pid>-<token>
+  <suffix>``, unique per process, hidden from every reader), flushed to disk and renamed over the target
+  in one step. A kill at any point leaves either the old file or the new one, never a mixture.
+- :func:`exclusive_lock` serialises the writers of one folder (a render set, a shard set, a run): a
+  second command on the same folder waits for the first, then finds its work done.
+- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts.
+- :func:`read_json` turns a missing or broken record into one line naming the file and what it is.
+
+Dot-files in a folder (``.lock``, temporaries) are this module's; no reader takes them for data.
+"""
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import hashlib
+import json
+import logging
 import os
+import secrets
+from contextlib import contextmanager
 from pathlib import Path
+
+from prep.errors import KpcnError
+
+log = logging.getLogger("kpcn")
+
+LOCK_NAME = ".lock"
+_TEMP_MARK = ".tmp-"
+
+
+def _fsync(path: Path, *, directory: bool = False) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def is_temporary(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a temporary file of :func:`atomic_path`."""
+    name = Path(path).name
+    return name.startswith(".") and _TEMP_MARK in name
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path beside ``path``; when the block ends normally it replaces ``path``.
+
+    The temporary name keeps ``path``'s suffix (Keras and OpenEXR look at it). If the block raises, the
+    temporary file is removed and ``path`` is left as it was. Failures of the file system (no space, no
+    permission, a parent that is a file) become a KpcnError naming ``path``.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}{_TEMP_MARK}{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        _fsync(tmp)
+        os.replace(tmp, path)
+        _fsync(path.parent, directory=True)
+    except OSError as exc:
+        raise KpcnError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+    finally:
+        if tmp.exists():
+            tmp.unlink()
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Replace ``path`` with ``text`` in one step; an interrupted write leaves the old file as it was."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    return Path(path)
+
+
+def atomic_write_json(path: str | os.PathLike, value) -> Path:
+    """``value`` as indented JSON, written with :func:`atomic_write_text`."""
+    return atomic_write_text(path, json.dumps(value, indent=2) + "\n")
+
+
+def read_json(path: str | os.PathLike, what: str, keys: tuple[str, ...] = ()):
+    """The JSON value in ``path``, a ``what`` (for messages: "run record", "shard manifest", ...).
+
+    KpcnError naming the file and ``what`` if it is missing, unreadable, not JSON, or (with ``keys``)
+    not an object holding every key of ``keys``.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise KpcnError(f"{path}: no such {what}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise KpcnError(f"{path}: cannot read the {what} ({getattr(exc, 'strerror', None) or exc})") from None
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise KpcnError(
+            f"{path}: the {what} is not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"
+        ) from None
+    if keys:
+        missing = [k for k in keys if not isinstance(value, dict) or k not in value]
+        if missing:
+            raise KpcnError(f"{path}: the {what} lacks {', '.join(repr(k) for k in missing)}")
+    return value
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_writable(path: str | os.PathLike, what: str, *, directory: bool = False) -> Path:
+    """Refuse now an output that could not be written later; returns ``path``.
+
+    ``what`` names the option or output in the message (``"--output"``, ``"run folder"``). ``path`` may
+    not exist yet: its nearest existing ancestor must be a folder in which a file can be created (tried
+    for real, so read-only mounts and permissions count as they will). An existing ``path`` must be a
+    folder when ``directory`` is set and must not be one otherwise.
+    """
+    path = Path(path)
+    if path.exists() and path.is_dir() != directory:
+        found = "a folder" if path.is_dir() else "a file"
+        raise KpcnError(f"{what} {path}: is {found}, expected {'a folder' if directory else 'a file'}")
+    ancestor = path if directory and path.is_dir() else path.parent
+    while not ancestor.exists() and not ancestor.is_symlink():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise KpcnError(f"{what} {path}: {ancestor} is a file, not a folder")
+    try:
+        with open(ancestor / f".probe{_TEMP_MARK}{os.getpid()}-{secrets.token_hex(4)}", "x") as probe:
+            pass
+        os.unlink(probe.name)
+    except OSError as exc:
+        raise KpcnError(f"{what} {path}: cannot write in {ancestor} ({exc.strerror or exc})") from None
     return path
+
+
+def remove_temporaries(folder: str | os.PathLike) -> int:
+    """Remove the temporary files that killed writers left in ``folder``; returns how many.
+
+    Call only while holding the folder's :func:`exclusive_lock`: then no live writer owns one.
+    """
+    count = 0
+    for path in Path(folder).iterdir():
+        if is_temporary(path) and path.is_file():
+            path.unlink()
+            count += 1
+    return count
+
+
+@contextmanager
+def exclusive_lock(folder: str | os.PathLike, what: str):
+    """Hold the lock of ``folder`` (created if needed) for the block; ``what`` names it in messages.
+
+    A second holder waits, saying for whom. The lock is an advisory ``flock`` on ``folder/.lock``: the
+    kernel releases it when its process dies, so a killed command never leaves a stale lock.
+    """
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise KpcnError(f"{what} {folder}: cannot lock ({exc.strerror or exc})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            log.info("%s %s is being written by another process (pid %s); waiting for it", what, folder, holder)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield folder
+    finally:
+        os.close(fd)

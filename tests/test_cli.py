@@ -31,7 +31,7 @@ def test_missing_render_folder_and_bad_option_values(tmp_path):
     res = kpcn("shards", "--set", "nothing", "--renders", str(tmp_path), cwd=tmp_path)
     assert res.returncode == 2 and "no such render folder" in res.stderr and "Traceback" not in res.stderr
     res = kpcn("shards", "--set", "nothing", "--renders", str(tmp_path), "--val-fraction", "1.5", cwd=tmp_path)
-    assert res.returncode == 2 and "val_fraction" in res.stderr and "1.5" in res.stderr
+    assert res.returncode == 2 and "--val-fraction" in res.stderr and "1.5" in res.stderr
 
 
 def test_denoise_without_a_run_names_the_folder(tmp_path, fixture_noisy):

@@ -31,6 +31,7 @@ def render_set(tmp_path):
 def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
     cfg = config(tmp_path)
     manifest = shards.build_shards(cfg, progress=False)
+    sset = shards.ShardSet(cfg.set_dir)
     by_id = {i: s for i, s in enumerate(manifest["sources"])}
     seen = 0
     for split in ("train", "val"):
@@ -40,9 +41,9 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
                 for k in range(len(f["source"])):
                     src = by_id[int(f["source"][k])]
                     assert src["role"] == "input" and src["split"] == split
-                    noisy = exr.read_aovs(src["path"])
+                    noisy = exr.read_aovs(sset.resolve(src["path"]))
                     ref_path = next(s["path"] for s in manifest["sources"] if s["scene"] == src["scene"] and s["role"] == "reference")
-                    ref = exr.read_aovs(ref_path, variances=False)
+                    ref = exr.read_aovs(sset.resolve(ref_path), variances=False)
                     y, x = f["position"][k]
                     win = np.s_[y:y + 16, x:x + 16]
                     np.testing.assert_array_equal(f["diffuse/features"][k], features.branch_features(noisy, "diffuse")[win])
@@ -102,7 +103,7 @@ shards.write_shard(Path({str(out)!r}) / 'shard-00000.h5', arrays, {{'format': sh
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "ready"
     deadline = time.time() + 60
-    while not list(out.glob(".shard-00000.h5.tmp")) and time.time() < deadline:
+    while not list(out.glob(".shard-00000.h5.tmp-*")) and time.time() < deadline:
         time.sleep(0.01)
     time.sleep(0.3)  # let it write part of the file
     proc.send_signal(signal.SIGKILL)
@@ -131,11 +132,11 @@ def test_rerun_after_a_kill_completes_the_set(tmp_path, render_set):
     manifest = shards.build_shards(cfg, progress=False)
     # a kill between shards: the last shard and the manifest are gone, a temporary file is left
     last = cfg.set_dir / manifest["rounds"]["round-000"]["shards"][-1]["path"]
-    last.rename(last.with_name(f".{last.name}.tmp"))
+    last.rename(last.with_name(f".{last.name}.tmp-123-abcd.h5"))
     (cfg.set_dir / "manifest.json").unlink()
     again = shards.build_shards(cfg, progress=False)
     assert again == manifest
-    assert last.is_file() and not list(last.parent.glob(".*.tmp"))
+    assert last.is_file() and not list(last.parent.glob(".*.tmp-*"))
 
 
 def test_errors_name_the_folder_and_scene(tmp_path):

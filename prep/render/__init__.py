@@ -2,12 +2,13 @@
 
 ``render(scene, spp, seed, width, height)`` returns one render in the AOV layout of ``prep.exr``;
 ``render_set(RenderConfig(...))`` renders families x per_family scenes at an input and a reference
-sample count into ``<out_root>/<set_name>/`` and records what it did in ``config.json``.
+sample count into ``<out_root>/<set_name>/`` and records what it did in ``config.json`` (reproducible:
+the same command writes the same bytes) and how long it took in ``timings.json`` (the one file that
+differs between runs).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import zlib
@@ -16,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
-from prep.files import atomic_write_text
+from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.render.scene import FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene
 
 __all__ = [
@@ -41,10 +43,10 @@ _U64 = (1 << 64) - 1
 
 def _check_int(name, value, lo, hi=None):
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an int, got {value!r}")
+        raise OptionError(name, f"must be an int, got {value!r}")
     if value < lo or (hi is not None and value > hi):
         bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ValueError(f"{name} must be {bound}, got {value!r}")
+        raise OptionError(name, f"must be {bound}, got {value!r}")
     return int(value)
 
 
@@ -114,12 +116,14 @@ class RenderConfig:
 
     def validate(self) -> None:
         if not self.set_name or "/" in self.set_name or self.set_name in (".", ".."):
-            raise ValueError(f"set_name must be a plain directory name, got {self.set_name!r}")
+            raise OptionError("set_name", f"must be a plain directory name, got {self.set_name!r}")
         if isinstance(self.families, str):
-            raise ValueError(f"families must be a tuple of names, got the string {self.families!r}")
+            raise OptionError("families", f"must be a tuple of names, got the string {self.families!r}")
+        if not self.families:
+            raise OptionError("families", "must name at least one scene family")
         for fam in self.families:
             if fam not in FAMILIES:
-                raise ValueError(f"unknown scene family {fam!r}; valid families: {', '.join(FAMILIES)}")
+                raise OptionError("families", f"has unknown scene family {fam!r}; valid families: {', '.join(FAMILIES)}")
         _check_int("per_family", self.per_family, 1)
         _check_int("width", self.width, 1)
         _check_int("height", self.height, 1)
@@ -127,7 +131,7 @@ class RenderConfig:
         _check_int("reference_spp", self.reference_spp, 2)
         _check_int("seed", self.seed, 0)
         if self.input_spp == self.reference_spp:
-            raise ValueError(f"input_spp and reference_spp must differ, both are {self.input_spp!r}")
+            raise OptionError("reference_spp", f"must differ from input_spp, both are {self.input_spp!r}")
 
 
 def render_seeds(seed: int, family: str, index: int) -> tuple[int, int]:
@@ -149,28 +153,33 @@ def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
 
     Writes ``<out_root>/<set_name>/<scene>-<spp>spp.exr`` (input and reference rendered with
     different seeds, see :func:`render_seeds`), skipping files that exist so an interrupted run
-    resumes, and ``config.json`` (the config, each scene's ``to_dict()``, its seeds, seconds per
-    render) beside them, rewritten atomically after every scene. Returns the EXR paths, input then
-    reference per scene. Raises ValueError if the directory holds a set made with a different
-    width, height or seed.
+    resumes, and ``config.json`` (the config, each scene's ``to_dict()`` and its seeds) beside them,
+    rewritten atomically after every scene; seconds per render go to ``timings.json``. Holds the
+    set's lock. Returns the EXR paths, input then reference per scene. Raises OptionError if the
+    directory holds a set made with a different width, height or seed.
     """
     config.validate()
     out_dir = Path(config.out_root) / config.set_name
-    out_dir.mkdir(parents=True, exist_ok=True)
-    meta_path = out_dir / "config.json"
-    previous = {}
+    check_writable(out_dir, "render set folder (--out)", directory=True)
+    with exclusive_lock(out_dir, "render set"):
+        remove_temporaries(out_dir)
+        return _render_set_locked(config, out_dir, progress)
+
+
+def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> list[Path]:
+    meta_path, times_path = out_dir / "config.json", out_dir / "timings.json"
     if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        old_cfg = old.get("config", {})
+        old_cfg = read_json(meta_path, "render set record", keys=("config",))["config"]
         changed = [k for k in _PIXEL_FIELDS if k in old_cfg and old_cfg[k] != getattr(config, k)]
         if changed:
-            raise ValueError(
-                f"{out_dir} holds a set rendered with "
+            raise OptionError(
+                changed[0],
+                f"differs from the set in {out_dir}, rendered with "
                 + ", ".join(f"{k}={old_cfg[k]!r}" for k in changed)
-                + ", this config has " + ", ".join(f"{k}={getattr(config, k)!r}" for k in changed)
-                + ": use another set_name or remove the directory"
+                + "; this config has " + ", ".join(f"{k}={getattr(config, k)!r}" for k in changed)
+                + ": use another set_name or remove the directory",
             )
-        previous = {s["name"]: s for s in old.get("scenes", [])}
+    times = read_json(times_path, "render timings") if times_path.exists() else {}
 
     jobs = []
     for fam in config.families:
@@ -189,13 +198,11 @@ def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
         for fam, index in jobs:
             scene = make_scene(fam, index, config.seed)
             in_seed, ref_seed = render_seeds(config.seed, fam, index)
-            old_seconds = previous.get(scene.name, {}).get("seconds", {})
             record = {
                 "name": scene.name,
                 "family": fam,
                 "index": index,
                 "seeds": {str(config.input_spp): in_seed, str(config.reference_spp): ref_seed},
-                "seconds": {},
                 "files": {},
                 "scene": scene.to_dict(),
             }
@@ -203,21 +210,20 @@ def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
                 path = out_dir / render_filename(scene.name, spp)
                 if bar is not None:
                     bar.set_postfix_str(f"{scene.name} {spp}spp")
-                if path.exists():
-                    record["seconds"][str(spp)] = old_seconds.get(str(spp))
-                else:
+                if not path.exists():
                     t0 = time.perf_counter()
                     layers = render(scene, spp, seed, config.width, config.height)
                     write_aovs(path, layers)
-                    record["seconds"][str(spp)] = round(time.perf_counter() - t0, 3)
+                    times[path.name] = round(time.perf_counter() - t0, 3)
+                    atomic_write_json(times_path, times)
                 record["files"][str(spp)] = path.name
                 paths.append(path)
                 if bar is not None:
                     bar.update(1)
             meta["scenes"].append(record)
-            atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")
+            atomic_write_json(meta_path, meta)
     finally:
         if bar is not None:
             bar.close()
-    atomic_write_text(meta_path, json.dumps(meta, indent=2) + "\n")
+    atomic_write_json(meta_path, meta)
     return paths

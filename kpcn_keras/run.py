@@ -1,0 +1,175 @@
+"""A run folder, and the ``.keras`` files in it (design.md "Models and training").
+
+:class:`Run` is the one owner of a run folder's layout::
+
+    <run>/config.json                 the run record: training config, shard set, versions, command, results
+    <run>/timings.json                seconds per branch (the one file that differs between identical runs)
+    <run>/<component>.keras           a finished network (``diffuse``, ``specular``)
+    <run>/checkpoints/<component>.keras   the network being trained, with its optimizer and training state
+    <run>/log-<component>.csv         loss and validation loss per epoch
+    <run>/eval/                       ``kpcn evaluate``'s report
+    <run>/.lock                       held by the one process that trains into the run
+
+The record stores the shard set's folder relative to the run folder, and no field names the run itself,
+so a run folder can be renamed or used from any working directory.
+
+``.keras`` files are written by :func:`save_model` through ``prep.files.atomic_path`` and made canonical:
+fixed zip timestamps and no save date, so the same weights give the same bytes (checksums of models mean
+something), and a checkpoint carries its training state (epochs done, model configuration, history) as one
+more entry of the same zip, so the model and its epoch count can never disagree after a kill.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import keras
+
+from kpcn_keras.models import ModelConfig, build_branch_model
+from prep.errors import KpcnError
+from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json
+from prep.shards import ShardSet
+
+RECORD = "config.json"
+STATE_ENTRY = "kpcn-state.json"
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+class Run:
+    """One run folder (it may not exist yet)."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.dir = Path(path)
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.dir)!r})"
+
+    @property
+    def record_path(self) -> Path:
+        return self.dir / RECORD
+
+    @property
+    def timings_path(self) -> Path:
+        return self.dir / "timings.json"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.dir / "eval"
+
+    def model_path(self, component: str) -> Path:
+        return self.dir / f"{component}.keras"
+
+    def checkpoint_path(self, component: str) -> Path:
+        return self.dir / "checkpoints" / f"{component}.keras"
+
+    def log_path(self, component: str) -> Path:
+        return self.dir / f"log-{component}.csv"
+
+    def lock(self):
+        return exclusive_lock(self.dir, "run folder")
+
+    def has_record(self) -> bool:
+        return self.record_path.is_file()
+
+    def read_record(self) -> dict:
+        """The run record; KpcnError naming the file if the folder is not a run or the record is broken."""
+        if not self.record_path.is_file():
+            raise KpcnError(f"{self.dir}: not a run folder (no {RECORD}); train one with 'kpcn train'")
+        record = read_json(self.record_path, "run record", keys=("train", "shards", "results"))
+        try:
+            ModelConfig.from_dict(record["train"]["model"])
+            record["shards"]["set_dir"]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise KpcnError(f"{self.record_path}: the run record is damaged ({type(exc).__name__}: {exc})") from None
+        return record
+
+    def write_record(self, record: dict) -> None:
+        atomic_write_json(self.record_path, record)
+
+    def model_config(self, record: dict) -> ModelConfig:
+        return ModelConfig.from_dict(record["train"]["model"])
+
+    def relative(self, path: str | os.PathLike) -> str:
+        return os.path.relpath(os.path.abspath(path), os.path.abspath(self.dir))
+
+    def shard_set(self, record: dict) -> ShardSet:
+        """The shard set the run was trained on (stored relative to the run folder)."""
+        return ShardSet(os.path.normpath(self.dir / record["shards"]["set_dir"]))
+
+
+# ---------------------------------------------------------------- .keras files
+
+
+def save_model(model: keras.Model, path: str | os.PathLike, state: dict | None = None) -> Path:
+    """Save ``model`` (with its optimizer, if compiled) atomically and canonically; ``state`` is stored
+    inside the same file (see :func:`read_state`)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        model.save(tmp)
+        _canonicalise(tmp, state)
+    return path
+
+
+def _canonicalise(path: Path, state: dict | None) -> None:
+    """Rewrite the zip Keras wrote: entries in name order, fixed timestamps, no save date, plus ``state``."""
+    with zipfile.ZipFile(path) as src:
+        entries = {info.filename: src.read(info.filename) for info in src.infolist()}
+    metadata = json.loads(entries["metadata.json"])
+    metadata.pop("date_saved", None)
+    entries["metadata.json"] = json.dumps(metadata, sort_keys=True).encode()
+    if state is not None:
+        entries[STATE_ENTRY] = json.dumps(state, sort_keys=True, indent=1).encode()
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as dst:
+        for name in sorted(entries):
+            dst.writestr(zipfile.ZipInfo(name, date_time=_ZIP_TIME), entries[name])
+
+
+def read_state(path: str | os.PathLike) -> dict | None:
+    """The training state stored in a ``.keras`` file by :func:`save_model` (None if it has none)."""
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as z:
+            if STATE_ENTRY not in z.namelist():
+                return None
+            return json.loads(z.read(STATE_ENTRY))
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise KpcnError(f"{path}: not a readable .keras file ({type(exc).__name__}: {exc})") from None
+
+
+def load_model(path: str | os.PathLike, *, compile: bool = True) -> keras.Model:
+    """``keras.models.load_model`` with errors that name the file: missing, or damaged (and how)."""
+    path = Path(path)
+    if not path.is_file():
+        raise KpcnError(f"{path}: no such model file")
+    if not zipfile.is_zipfile(path):
+        raise KpcnError(f"{path}: damaged model file (not a .keras zip archive)")
+    try:
+        return keras.models.load_model(path, compile=compile)
+    except Exception as exc:  # Keras reports every failure as ValueError("File not found") or worse
+        raise KpcnError(f"{path}: damaged model file ({type(exc).__name__}: {exc})") from exc
+
+
+def weight_signature(model: keras.Model) -> list[tuple[str, tuple[int, ...]]]:
+    """(path, shape) of every weight: what must agree for two models to be the same architecture."""
+    return [(w.path, tuple(int(d) for d in w.shape)) for w in model.weights]
+
+
+def check_architecture(model: keras.Model, config: ModelConfig, path: str | os.PathLike) -> None:
+    """KpcnError naming ``path`` unless ``model`` has the weights a model built from ``config`` has.
+
+    Tiled inference derives its overlap from the configuration, so a model of another architecture would
+    give wrong (tile-size dependent) output rather than fail.
+    """
+    expected = weight_signature(build_branch_model(config, name=model.name))
+    found = weight_signature(model)
+    if found != expected:
+        first = next((f"{a} vs {b}" for a, b in zip(found, expected) if a != b),
+                     f"{len(found)} weights vs {len(expected)}")
+        raise KpcnError(
+            f"{path}: the model's architecture differs from the run's configuration "
+            f"({config.arch}, width {config.width}, depth {config.depth}, conv {config.conv_size}, "
+            f"kernel {config.kernel_size}); first difference: {first}"
+        )
