@@ -114,17 +114,28 @@ def save_model(model: keras.Model, path: str | os.PathLike, state: dict | None =
 
 
 def _canonicalise(path: Path, state: dict | None) -> None:
-    """Rewrite the zip Keras wrote: entries in name order, fixed timestamps, no save date, plus ``state``."""
+    """Rewrite the zip Keras wrote: entries in name order, fixed timestamps, no save date, shared-object
+    ids numbered in order of appearance (Keras writes Python ``id()``s), plus ``state``."""
     with zipfile.ZipFile(path) as src:
         entries = {info.filename: src.read(info.filename) for info in src.infolist()}
     metadata = json.loads(entries["metadata.json"])
     metadata.pop("date_saved", None)
     entries["metadata.json"] = json.dumps(metadata, sort_keys=True).encode()
+    entries["config.json"] = json.dumps(_renumber_shared_objects(json.loads(entries["config.json"]), {})).encode()
     if state is not None:
         entries[STATE_ENTRY] = json.dumps(state, sort_keys=True, indent=1).encode()
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as dst:
         for name in sorted(entries):
             dst.writestr(zipfile.ZipInfo(name, date_time=_ZIP_TIME), entries[name])
+
+
+def _renumber_shared_objects(value, ids: dict):
+    if isinstance(value, dict):
+        return {k: (ids.setdefault(v, len(ids) + 1) if k == "shared_object_id" else _renumber_shared_objects(v, ids))
+                for k, v in value.items()}
+    if isinstance(value, list):
+        return [_renumber_shared_objects(v, ids) for v in value]
+    return value
 
 
 def read_state(path: str | os.PathLike) -> dict | None:

@@ -167,7 +167,9 @@ def _identity_key(cfg: TrainConfig) -> str:
 def _compile(model: keras.Model, cfg: TrainConfig) -> None:
     schedule = keras.optimizers.schedules.ExponentialDecay(cfg.learning_rate, cfg.decay_steps, cfg.decay_rate)
     loss = AsymmetricSMAPE(cfg.slope) if cfg.loss == "asymmetric" else SMAPE()
-    model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm), loss=loss)
+    # a fixed name: Keras numbers unnamed optimizers per process (adam, adam_1, ...), and the name is
+    # saved with the model and its variables, so two identical runs would otherwise differ in bytes
+    model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
 
 
 def _check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
@@ -303,7 +305,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
         record = _open_record(run, cfg, manifest, sset)
         timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
         for branch in cfg.branches:
-            if branch in record["results"]:
+            if branch in record["results"] and run.model_path(branch).is_file():
                 continue
             start = time.perf_counter()
             train_branch(cfg, run, branch, paths, verbose=verbose)

@@ -30,12 +30,13 @@ own messages about a corrupt file are captured and folded into the one error tha
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import re
 import sys
 import tempfile
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
@@ -121,18 +122,31 @@ def _captured_native_output():
     sys.stdout.flush()
     sys.stderr.flush()
     saved = [os.dup(1), os.dup(2)]
+    text = io.StringIO()  # what the binding prints through Python (sys.stdout may not be fd 1)
     with tempfile.TemporaryFile(mode="w+b") as sink:
         try:
             os.dup2(sink.fileno(), 1)
             os.dup2(sink.fileno(), 2)
-            yield captured
+            with redirect_stdout(text), redirect_stderr(text):
+                yield captured
         finally:
+            # the binding prints through Python's and C's stdio, both buffered when fd 1 is not a tty
+            sys.stdout.flush()
+            sys.stderr.flush()
+            _flush_c_stdio()
             os.dup2(saved[0], 1)
             os.dup2(saved[1], 2)
             for fd in saved:
                 os.close(fd)
             sink.seek(0)
             captured.append(sink.read().decode(errors="replace"))
+            captured.append(text.getvalue())
+
+
+def _flush_c_stdio() -> None:
+    import ctypes
+
+    ctypes.CDLL(None).fflush(None)
 
 
 def _native_detail(path: Path, captured: list[str], exc: Exception) -> str:

@@ -3,7 +3,8 @@
 - MSE: mean((x - r)^2).
 - relMSE (MrSE): mean((x - r)^2 / (r^2 + RELMSE_EPS)), per channel.
 - SMAPE: mean(|x - r| / (|x| + |r| + SMAPE_EPS)).
-- DSSIM: (1 - SSIM) / 2 on tonemapped images (``tonemap``), SSIM over the three channels.
+- DSSIM: (1 - SSIM) / 2 on tonemapped images (``tonemap``), SSIM over the three channels, with 7x7 windows
+  (the largest odd window that fits on images smaller than that; one window, the whole image, below 3x3).
 - PSNR: 10 log10(1 / MSE) on tonemapped images (peak 1).
 All are computed in float64.
 """
@@ -14,6 +15,8 @@ import numpy as np
 
 RELMSE_EPS = 1e-2
 SMAPE_EPS = 1e-2
+SSIM_WINDOW = 7
+SSIM_K = (0.01, 0.03)  # skimage's constants, for the one-window case
 METRICS = ("mse", "relmse", "smape", "dssim", "psnr")
 
 
@@ -50,8 +53,24 @@ def dssim(x, r) -> float:
     from skimage.metrics import structural_similarity
 
     x, r = _pair(x, r)
-    ssim = structural_similarity(tonemap(x), tonemap(r), channel_axis=-1, data_range=1.0)
+    side = min(x.shape[:2])
+    window = min(SSIM_WINDOW, side if side % 2 else side - 1)
+    if window >= 3:
+        ssim = structural_similarity(tonemap(x), tonemap(r), channel_axis=-1, data_range=1.0, win_size=window)
+    else:
+        ssim = _global_ssim(tonemap(x), tonemap(r))
     return float((1.0 - ssim) / 2.0)
+
+
+def _global_ssim(x, r) -> float:
+    """SSIM of one window covering the whole (tiny) image, per channel, averaged; data range 1."""
+    c1, c2 = SSIM_K[0] ** 2, SSIM_K[1] ** 2
+    axes = (0, 1)
+    mx, mr = x.mean(axes), r.mean(axes)
+    vx, vr = x.var(axes), r.var(axes)
+    cov = ((x - mx) * (r - mr)).mean(axes)
+    ssim = ((2 * mx * mr + c1) * (2 * cov + c2)) / ((mx**2 + mr**2 + c1) * (vx + vr + c2))
+    return float(ssim.mean())
 
 
 def psnr(x, r) -> float:

@@ -1,4 +1,7 @@
+import hashlib
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -7,6 +10,8 @@ import pytest
 os.environ.setdefault("KERAS_BACKEND", "torch")
 
 FIXTURES = Path(__file__).parent / "fixtures"
+REPO = Path(__file__).resolve().parents[1]
+TINY_MODEL = {"width": 6, "depth": 3, "kernel_size": 5}
 
 
 @pytest.fixture
@@ -57,3 +62,40 @@ def build_tiny_shards(tmp_path: Path, **kw):
     cfg = shards.ShardConfig(**values)
     shards.build_shards(cfg, progress=False)
     return cfg
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A run folder with both branches of a tiny KPCN trained for a few steps on random renders."""
+    from kpcn_keras.train import TrainConfig, train
+
+    tmp = tmp_path_factory.mktemp("run")
+    shard_cfg = build_tiny_shards(tmp)
+    cfg = TrainConfig.from_preset(
+        "cpu", set_name="s", shards_root=shard_cfg.out_root,
+        model=TINY_MODEL, steps=8, steps_per_epoch=4, batch_size=2, val_batches=1,
+    )
+    return train(cfg, tmp / "runs" / "r", verbose=0)
+
+
+def kpcn(*args, cwd, timeout=300) -> subprocess.CompletedProcess:
+    """``kpcn -q ARGS`` as a user runs it, in a fresh process with a bare environment."""
+    return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout,
+                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch"})
+
+
+def assert_one_line_error(res: subprocess.CompletedProcess, *needles: str) -> None:
+    """Exit status 2, one line on stderr containing every needle, nothing on stdout, no traceback."""
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
+    assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert res.stdout.strip() == "", res.stdout
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+
+
+def checksums(root: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``root`` but dot files (locks, temporaries), by path relative to it."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(Path(root).rglob("*")) if p.is_file() and not p.name.startswith(".")}

@@ -4,15 +4,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import random_aovs
+import pytest
+
+from conftest import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def kpcn(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=cwd, capture_output=True,
-                          text=True, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
 
 
 def test_missing_layer_is_reported_without_traceback(tmp_path):
@@ -45,3 +42,83 @@ def test_render_and_shards_do_not_import_the_deep_learning_stack():
             "bad = [m for m in ('keras', 'torch', 'tensorflow') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+# --- kpcn denoise's default output (issue 5, defect 3) ---
+
+@pytest.mark.parametrize("name", ["noext", "UP.EXR", "frame.exr.d/in.exr", "x.Exr"])
+def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_path, tiny_run, name):
+    src = tmp_path / name
+    exr.write_aovs(src, random_aovs(20, 24))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", name, "--run", tiny_run, "--no-png", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    stem = src.name[:-4] if src.name.lower().endswith(".exr") else src.name
+    out = src.with_name(stem + "-denoised.exr")
+    assert checksums(tmp_path)[name] == before[name]  # the input is untouched
+    assert sorted(checksums(tmp_path)) == sorted([name, str(out.relative_to(tmp_path))])
+    assert exr.read_aovs(out, variances=False)["default"].shape == (20, 24, 3)
+
+
+def test_denoise_refuses_an_output_that_is_its_input(tmp_path, tiny_run):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, "-o", "./in.exr", cwd=tmp_path)
+    assert_one_line_error(res, "in.exr", "input")
+    assert checksums(tmp_path) == before
+
+
+# --- outputs are checked before the work starts (defect 6) ---
+
+def test_denoise_output_under_a_file_is_refused_before_inference(tmp_path, tiny_run):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    (tmp_path / "afile").write_text("not a folder")
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, "-o", "afile/out.exr", cwd=tmp_path)
+    assert_one_line_error(res, "afile/out.exr")
+    assert checksums(tmp_path) == before
+
+
+def test_render_output_under_a_file_is_refused_before_rendering(tmp_path):
+    (tmp_path / "afile").write_text("not a folder")
+    # a set that would take hours: the refusal has to come first to return within the timeout
+    res = kpcn("render", "--set", "s", "--out", "afile/renders", "--width", "2048", "--height", "2048",
+               "--reference-spp", "4096", cwd=tmp_path, timeout=60)
+    assert_one_line_error(res, "afile")
+    assert checksums(tmp_path) == {"afile": checksums(tmp_path)["afile"]}
+
+
+def test_shards_output_under_a_file_is_refused(tmp_path):
+    make_renders(tmp_path / "renders" / "s")
+    (tmp_path / "afile").write_text("not a folder")
+    before = checksums(tmp_path)
+    res = kpcn("shards", "--set", "s", "--renders", "renders", "--out", "afile", "--patch-size", "8", cwd=tmp_path)
+    assert_one_line_error(res, "afile")
+    assert checksums(tmp_path) == before
+
+
+def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, tmp_path):
+    # a ValueError from a bug is not the user's fault: it must surface as a traceback, not as exit 2
+    from kpcn_keras import cli
+    from prep import render
+
+    def bug(*args, **kwargs):
+        raise ValueError("an internal bug")
+
+    monkeypatch.setattr(render, "render_set", bug)
+    with pytest.raises(ValueError, match="an internal bug"):
+        cli.main(["-q", "render", "--set", "s", "--out", str(tmp_path)])
+
+
+# --- corrupt and broken inputs give one line (defect 10) ---
+
+def test_corrupt_exr_gives_one_line_and_no_library_output(tmp_path, tiny_run):
+    good = tmp_path / "good.exr"
+    exr.write_aovs(good, random_aovs(16, 16))
+    data = bytearray(good.read_bytes())
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(bytes(data[: len(data) // 2]))  # truncated mid-file, as a killed copy leaves it
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "bad.exr", "--run", tiny_run, cwd=tmp_path)
+    assert_one_line_error(res, "bad.exr")
+    assert checksums(tmp_path) == before

@@ -1,21 +1,8 @@
 import numpy as np
-import pytest
 
-from conftest import build_tiny_shards, random_aovs
+from conftest import random_aovs
 from kpcn_keras.denoise import Denoiser, denoise_file
-from kpcn_keras.train import TrainConfig, train
 from prep import exr, features
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("run")
-    shard_cfg = build_tiny_shards(tmp)
-    cfg = TrainConfig.from_preset(
-        "cpu", set_name="s", shards_root=shard_cfg.out_root,
-        model={"width": 6, "depth": 3, "kernel_size": 5}, steps=8, steps_per_epoch=4, batch_size=2, val_batches=1,
-    )
-    return train(cfg, tmp / "runs" / "r", verbose=0)
 
 
 def test_tiles_equal_an_untiled_run(tiny_run):

@@ -46,3 +46,20 @@ def test_nlm_baseline_reduces_noise_on_a_known_signal():
     out = baselines.nlm_denoise(noisy, np.full(clean.shape[:2], sigma**2))
     assert out.shape == clean.shape and out.dtype == np.float32
     assert metrics.mse(out, clean) < 0.5 * metrics.mse(noisy, clean)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 2, 3), (2, 9, 3), (6, 7, 3)])
+def test_dssim_is_defined_on_images_smaller_than_its_window(shape):
+    rng = np.random.default_rng(5)
+    x, r = rng.uniform(0, 4, shape), rng.uniform(0, 4, shape)
+    assert metrics.dssim(x, x) == pytest.approx(0.0, abs=1e-12)
+    assert 0.0 < metrics.dssim(x, r) <= 1.0
+
+
+def test_one_window_ssim_of_constant_images_is_the_luminance_term():
+    a, b = 0.5, 2.0
+    ta, tb = metrics.tonemap(np.float64(a)), metrics.tonemap(np.float64(b))
+    c1 = metrics.SSIM_K[0] ** 2
+    expected = (2 * ta * tb + c1) / (ta**2 + tb**2 + c1)
+    got = metrics.dssim(np.full((2, 2, 3), a), np.full((2, 2, 3), b))
+    assert got == pytest.approx((1 - expected) / 2, rel=1e-12)

@@ -1,0 +1,130 @@
+"""A run folder: its record is written only after its inputs are checked, it can be moved, a checkpoint
+holds the model and its epoch count in one file, and anything broken in it is one clear line
+(issue 5, defects 4, 9, 10 and 11)."""
+
+import shutil
+import zipfile
+
+import numpy as np
+import pytest
+
+from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from kpcn_keras.run import Run, load_model, read_state
+from kpcn_keras.train import TrainConfig, train
+from prep import exr
+from prep.errors import KpcnError
+
+TINY = {"width": 4, "depth": 2, "kernel_size": 3}
+TRAIN = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
+         "--steps", "4", "--batch-size", "2", "--branches", "diffuse")
+
+
+def tiny_config(shard_cfg, **kw):
+    values = dict(set_name=shard_cfg.set_name, shards_root=shard_cfg.out_root, model=TINY, steps=4,
+                  steps_per_epoch=2, batch_size=2, val_batches=1, branches=("diffuse",))
+    values.update(kw)
+    return TrainConfig.from_preset("cpu", **values)
+
+
+def weights(path):
+    return [np.asarray(w) for w in load_model(path, compile=False).get_weights()]
+
+
+def test_a_first_train_that_fails_its_checks_writes_nothing_and_the_corrected_command_runs(tmp_path):
+    build_tiny_shards(tmp_path)
+    before = checksums(tmp_path)
+    res = kpcn(*TRAIN, "--run", "runs/r", "--batch-size", "100000", cwd=tmp_path)
+    assert_one_line_error(res, "--batch-size", "100000")
+    assert checksums(tmp_path) == before and not (tmp_path / "runs" / "r" / "config.json").exists()
+    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "runs" / "r" / "config.json").is_file() and (tmp_path / "runs" / "r" / "diffuse.keras").is_file()
+
+
+def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg), tmp_path / "runs" / "r", verbose=0)
+    done = checksums(run_dir)
+    moved = run_dir.rename(tmp_path / "runs" / "renamed")
+    again = train(tiny_config(shard_cfg), moved, verbose=0)  # finds every branch finished
+    assert {k: v for k, v in checksums(again).items() if k != "timings.json"} == \
+           {k: v for k, v in done.items() if k != "timings.json"}
+    run = Run(moved)
+    assert run.shard_set(run.read_record()).dir.resolve() == shard_cfg.set_dir.resolve()
+
+
+def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
+    run_dir = tmp_path / "runs" / "r"
+    shutil.copytree(other / "checkpoints", run_dir / "checkpoints")
+    with pytest.raises(KpcnError, match="checkpoint of another configuration"):
+        train(tiny_config(shard_cfg), run_dir, verbose=0)
+    assert not (run_dir / "diffuse.keras").exists()
+
+
+def test_a_checkpoint_whose_weights_disagree_with_its_record_is_refused(tmp_path):
+    # the state entry claims the run's model, the weights are another's: checked against the weights
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg), tmp_path / "runs" / "r", verbose=0)
+    wide = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
+    ckpt = run_dir / "checkpoints" / "diffuse.keras"
+    state = zipfile.ZipFile(ckpt).read("kpcn-state.json")
+    with zipfile.ZipFile(wide / "checkpoints" / "diffuse.keras") as src, zipfile.ZipFile(ckpt, "w") as dst:
+        for item in src.infolist():
+            dst.writestr(item, state if item.filename == "kpcn-state.json" else src.read(item))
+    (run_dir / "diffuse.keras").unlink()
+    with pytest.raises(KpcnError, match="diffuse.keras"):
+        train(tiny_config(shard_cfg), run_dir, verbose=0)
+
+
+def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, steps=6), tmp_path / "runs" / "r", verbose=0)
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["diffuse.keras"]
+    ckpt = run_dir / "checkpoints" / "diffuse.keras"
+    state = read_state(ckpt)
+    assert state["epochs_done"] == 3 and [h["epoch"] for h in state["history"]] == [0, 1, 2]
+    assert state["model"] == tiny_config(shard_cfg).model
+    for a, b in zip(weights(ckpt), weights(run_dir / "diffuse.keras")):
+        np.testing.assert_array_equal(a, b)
+    # the same weights give the same bytes: a model's checksum means something
+    again = train(tiny_config(shard_cfg, steps=6), tmp_path / "runs" / "again", verbose=0)
+    assert (again / "diffuse.keras").read_bytes() == (run_dir / "diffuse.keras").read_bytes()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not json", "no train key"])
+def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg), tmp_path / "runs" / "r", verbose=0)
+    record = run_dir / "config.json"
+    text = record.read_text()
+    record.write_text({"truncated": text[: len(text) // 2], "not json": "<html>", "no train key": "{}"}[damage])
+    before = checksums(tmp_path)
+    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/config.json")
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/config.json")
+    assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
+
+
+@pytest.mark.parametrize("which", ["checkpoints/diffuse.keras", "diffuse.keras"])
+def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path, which):
+    build_tiny_shards(tmp_path)
+    assert kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path).returncode == 0
+    run_dir = tmp_path / "runs" / "r"
+    victim = run_dir / which
+    victim.write_bytes(victim.read_bytes()[:500])
+    before = checksums(tmp_path)
+    if which == "diffuse.keras":
+        exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+        res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+        assert not (tmp_path / "in-denoised.exr").exists()
+    else:
+        (run_dir / "diffuse.keras").unlink()  # so that training goes back to the checkpoint
+        before = checksums(tmp_path)
+        res = kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path)
+    assert_one_line_error(res, which)
+    assert "File not found" not in res.stderr
+    assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
