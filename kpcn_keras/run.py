@@ -114,14 +114,17 @@ def save_model(model: keras.Model, path: str | os.PathLike, state: dict | None =
 
 
 def _canonicalise(path: Path, state: dict | None) -> None:
-    """Rewrite the zip Keras wrote: entries in name order, fixed timestamps, no save date, shared-object
-    ids numbered in order of appearance (Keras writes Python ``id()``s), plus ``state``."""
+    """Rewrite the zip Keras wrote: entries in name order, fixed timestamps, no save date, no shared-object
+    ids, plus ``state``."""
     with zipfile.ZipFile(path) as src:
         entries = {info.filename: src.read(info.filename) for info in src.infolist()}
     metadata = json.loads(entries["metadata.json"])
     metadata.pop("date_saved", None)
     entries["metadata.json"] = json.dumps(metadata, sort_keys=True).encode()
-    entries["config.json"] = json.dumps(_renumber_shared_objects(json.loads(entries["config.json"]), {})).encode()
+    # Keras marks objects that several layers share (a dtype policy) with their id(), a per-process memory
+    # address, and a model read back from a file shares nothing: without the marks, the same weights give
+    # the same bytes whether the model was built in this process or loaded
+    entries["config.json"] = json.dumps(_without_shared_ids(json.loads(entries["config.json"]))).encode()
     if state is not None:
         entries[STATE_ENTRY] = json.dumps(state, sort_keys=True, indent=1).encode()
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as dst:
@@ -129,12 +132,11 @@ def _canonicalise(path: Path, state: dict | None) -> None:
             dst.writestr(zipfile.ZipInfo(name, date_time=_ZIP_TIME), entries[name])
 
 
-def _renumber_shared_objects(value, ids: dict):
+def _without_shared_ids(value):
     if isinstance(value, dict):
-        return {k: (ids.setdefault(v, len(ids) + 1) if k == "shared_object_id" else _renumber_shared_objects(v, ids))
-                for k, v in value.items()}
+        return {k: _without_shared_ids(v) for k, v in value.items() if k != "shared_object_id"}
     if isinstance(value, list):
-        return [_renumber_shared_objects(v, ids) for v in value]
+        return [_without_shared_ids(v) for v in value]
     return value
 
 

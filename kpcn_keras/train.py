@@ -228,9 +228,9 @@ def _resume_log(path: Path, epochs_done: int) -> None:
     after the log row but before the checkpoint would otherwise leave that epoch twice)."""
     if not path.is_file():
         return
-    lines = path.read_text().splitlines(keepends=True)[: 1 + epochs_done]
+    lines = path.read_bytes().splitlines(keepends=True)[: 1 + epochs_done]  # bytes: keeps CSVLogger's \r\n
     with atomic_path(path) as tmp:
-        tmp.write_text("".join(lines))
+        tmp.write_bytes(b"".join(lines))
 
 
 def train_branch(cfg: TrainConfig, run: Run, branch: str, paths: dict, *, verbose="auto") -> keras.Model:
