@@ -6,7 +6,7 @@ true gradients. Each branch gets ``NUM_FEATURES`` = 27 channels, in this order:
 =======  ==========================  =====================================================  ==============
 channel  name                        formula                                                range
 =======  ==========================  =====================================================  ==============
-0-2      colour                      c = log(1 + max(x, 0)), x = branch colour (below)      [0, 94.47]
+0-2      colour                      c = log(1 + max(x, 0)), x = branch colour (below)      [0, 94.5]
 3-5      dx colour                   c[y, x+1] - c[y, x]  (0 in the last column)            [-95, 95]
 6-8      dx normal                   n = clip(normal, -1, 1), forward difference            [-2, 2]
 9-11     dx albedo                   a = clip(albedo, 0, 1), forward difference             [-1, 1]
@@ -36,7 +36,7 @@ import numpy as np
 
 ALBEDO_EPS = 0.00316
 REL_EPS = 0.01
-# Largest log colour any float32 input can give: log1p(float32 max / ALBEDO_EPS), about 94.47. The
+# Largest log colour any float32 input can give: log1p(float32 max / ALBEDO_EPS), about 94.48. The
 # colour features (and every network output in the log domain) lie in [0, LOG_COLOUR_MAX].
 LOG_COLOUR_MAX = float(np.log1p(np.float64(np.finfo(np.float32).max) / ALBEDO_EPS))
 NUM_FEATURES = 27

@@ -33,20 +33,29 @@ def variance_importance(aovs: dict[str, np.ndarray], colour_weight: float = 1.0,
 
 @numba.njit(cache=True)
 def _window_sums(image, size):
-    """Sum of ``image`` over every size x size window; output (H - size + 1, W - size + 1)."""
+    """Sum of ``image`` (finite, >= 0) over every size x size window; output (H - size + 1, W - size + 1).
+
+    Summed directly, along rows then along columns (O(H W size)), not as differences of an integral
+    image: those cancel catastrophically when one pixel is many orders of magnitude above the rest (a
+    firefly's variance), which zeroed or corrupted every window below and right of it. Sums of
+    non-negative terms keep a relative error below 2 * size * machine epsilon.
+    """
     h, w = image.shape
-    integral = np.zeros((h + 1, w + 1))
-    for y in range(h):
-        row = 0.0
-        for x in range(w):
-            row += image[y, x]
-            integral[y + 1, x + 1] = integral[y, x + 1] + row
     oh, ow = h - size + 1, w - size + 1
-    out = np.empty((oh, ow))
+    rows = np.zeros((h, ow))
+    for y in range(h):
+        for x in range(ow):
+            s = 0.0
+            for i in range(size):
+                s += image[y, x + i]
+            rows[y, x] = s
+    out = np.zeros((oh, ow))
     for y in range(oh):
         for x in range(ow):
-            s = integral[y + size, x + size] - integral[y, x + size] - integral[y + size, x] + integral[y, x]
-            out[y, x] = max(s, 0.0)  # cancellation in the integral image can leave tiny negatives
+            s = 0.0
+            for i in range(size):
+                s += rows[y + i, x]
+            out[y, x] = s
     return out
 
 
@@ -63,6 +72,9 @@ def patch_pdf(importance: np.ndarray, patch_size: int, uniform_mix: float = 0.1)
     if not 0.0 <= uniform_mix <= 1.0:
         raise ValueError(f"uniform_mix must be in [0, 1], got {uniform_mix}")
     importance = np.where(np.isfinite(importance), np.maximum(importance, 0.0), 0.0)
+    peak = importance.max()
+    if peak > 0.0:
+        importance = importance / peak  # the PDF is scale-free; values <= 1 cannot overflow the sums
     sums = _window_sums(np.ascontiguousarray(importance), patch_size)
     uniform = np.full(sums.shape, 1.0 / sums.size)
     total = sums.sum()
@@ -96,7 +108,9 @@ def draw_positions(pdf: np.ndarray, count: int, rng: np.random.Generator) -> np.
         raise ValueError(f"count must be in [0, {support}] (positions with non-zero probability), got {count}")
     u = rng.random(flat.size)
     with np.errstate(divide="ignore"):
-        keys = np.where(flat > 0, -np.log1p(-u) / np.where(flat > 0, flat, 1.0), np.inf)
+        # log(-log1p(-u) / p), the same order: the ratio itself overflows to inf for a tiny p (1e-310),
+        # which tied such positions with the zero-probability ones (key inf) and drew those instead
+        keys = np.where(flat > 0, np.log(-np.log1p(-u)) - np.log(np.where(flat > 0, flat, 1.0)), np.inf)
     chosen = np.argpartition(keys, count - 1)[:count] if count else np.empty(0, dtype=np.int64)
     chosen = chosen[np.argsort(keys[chosen], kind="stable")]
     ys, xs = np.unravel_index(chosen, pdf.shape)

@@ -142,7 +142,9 @@ class ShardConfig:
             "patches_per_image": (self.patches_per_image >= 1, ">= 1"),
             "patches_per_shard": (self.patches_per_shard >= 1, ">= 1"),
             "val_fraction": (0.0 <= self.val_fraction < 1.0, "in [0, 1)"),
-            "uniform_mix": (0.0 <= self.uniform_mix <= 1.0, "in [0, 1]"),
+            # > 0: every position can be drawn, so the plan's check of patches_per_image against the
+            # positions of each image is complete (with 0, an image without variance has none)
+            "uniform_mix": (0.0 < self.uniform_mix <= 1.0, "in (0, 1]"),
             "seed": (self.seed >= 0, ">= 0"),
             "input_spp": (self.input_spp is None or self.input_spp >= 1, ">= 1"),
         }
