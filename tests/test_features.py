@@ -1,43 +1,8 @@
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from conftest import random_aovs, reference_features
 from prep import features
-from prep.features import ALBEDO_EPS, REL_EPS
-
-
-def reference_features(aovs, branch):
-    """Independent float64 numpy version of the feature table in prep/features.py."""
-    a = np.clip(aovs["albedo"].astype(np.float64), 0, 1)
-    n = np.clip(aovs["normal"].astype(np.float64), -1, 1)
-    depth = np.maximum(aovs["depth"].astype(np.float64), 0)
-    d = depth / depth.max() if depth.max() > 0 else np.zeros_like(depth)
-    x = aovs[branch].astype(np.float64)
-    var = np.maximum(aovs[f"{branch}Variance"].astype(np.float64), 0)[..., None] * np.ones(3)
-    if branch == "diffuse":
-        x, var = x / (a + ALBEDO_EPS), var / (a + ALBEDO_EPS) ** 2
-    x = np.maximum(x, 0)
-    c = np.log1p(x)
-    v_c = (var / (1 + x) ** 2).mean(-1)
-
-    def dx(img):
-        out = np.zeros_like(img)
-        out[:, :-1] = img[:, 1:] - img[:, :-1]
-        return out
-
-    def dy(img):
-        out = np.zeros_like(img)
-        out[:-1] = img[1:] - img[:-1]
-        return out
-
-    rel = lambda v, m2: np.log1p(np.maximum(v, 0) / (m2 + REL_EPS))  # noqa: E731
-    scale2 = 1 / depth.max() ** 2 if depth.max() > 0 else 0.0
-    chans = [c, dx(c), dx(n), dx(a), dx(d)[..., None], dy(c), dy(n), dy(a), dy(d)[..., None],
-             rel(v_c, (c * c).mean(-1))[..., None],
-             rel(aovs["normalVariance"].astype(np.float64), (n * n).mean(-1))[..., None],
-             rel(aovs["albedoVariance"].astype(np.float64), (a * a).mean(-1))[..., None],
-             rel(aovs["depthVariance"].astype(np.float64) * scale2, d * d)[..., None]]
-    return np.concatenate(chans, axis=-1)
 
 
 @pytest.mark.parametrize("branch", ["diffuse", "specular"])

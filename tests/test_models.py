@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 
+from conftest import randomise
+
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
 from kpcn_keras.models import (
@@ -27,19 +29,6 @@ def tiny(arch, **kw):
     base = dict(arch=arch, width=6, depth=2, kernel_size=5)
     base.update(kw)
     return ModelConfig(**base)
-
-
-def randomise(model, seed=0, scale=0.3):
-    """Replace every weight (zero-initialised head included) by random values; BN variances stay positive."""
-    rng = np.random.default_rng(seed)
-    new = []
-    for w in model.weights:
-        shape = tuple(w.shape)
-        if "variance" in w.path:
-            new.append(rng.uniform(0.5, 1.5, size=shape))
-        else:
-            new.append(rng.normal(size=shape) * scale)
-    model.set_weights([n.astype(np.float32) for n in new])
 
 
 def predict(model, x):

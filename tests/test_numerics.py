@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import random_aovs
+from conftest import random_aovs, randomise, reference_features
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.layers import KernelApply, softmax_kernels
 from kpcn_keras.losses import SMAPE, SMAPE_EPS, AsymmetricSMAPE, asymmetric_smape, smape
@@ -85,47 +85,6 @@ def _one_torch_thread():
 
 
 # ---------------------------------------------------------------- float64 references
-
-
-def reference_features(aovs: dict, branch: str) -> np.ndarray:
-    """float64 numpy evaluation of the feature table in prep/features.py (no numba, nothing shared)."""
-    f64 = {name: np.asarray(image, np.float64) for name, image in aovs.items()}
-    a = np.clip(f64["albedo"], 0.0, 1.0)
-    n = np.clip(f64["normal"], -1.0, 1.0)
-    depth = np.maximum(f64["depth"], 0.0)
-    dmax = depth.max()
-    scale = 1.0 / dmax if dmax > 0 else 0.0
-    d = depth * scale
-    x = f64[branch]
-    var = np.maximum(f64[f"{branch}Variance"], 0.0)[..., None]
-    if branch == "diffuse":
-        x = x / (a + ALBEDO_EPS)
-        var = var / (a + ALBEDO_EPS) ** 2
-    x = np.maximum(x, 0.0)
-    c = np.log1p(x)
-    v_c = np.mean(var / (1.0 + x) ** 2, axis=-1)
-
-    def dx(img):
-        out = np.zeros_like(img)
-        out[:, :-1] = img[:, 1:] - img[:, :-1]
-        return out
-
-    def dy(img):
-        out = np.zeros_like(img)
-        out[:-1] = img[1:] - img[:-1]
-        return out
-
-    def relvar(v, mean_square):
-        return np.log1p(np.maximum(v, 0.0) / (mean_square + REL_EPS))[..., None]
-
-    return np.concatenate(
-        [c, dx(c), dx(n), dx(a), dx(d)[..., None], dy(c), dy(n), dy(a), dy(d)[..., None],
-         relvar(v_c, np.mean(c * c, axis=-1)),
-         relvar(f64["normalVariance"], np.mean(n * n, axis=-1)),
-         relvar(f64["albedoVariance"], np.mean(a * a, axis=-1)),
-         relvar(np.maximum(f64["depthVariance"], 0.0) * scale**2, d * d)],
-        axis=-1,
-    )
 
 
 def reference_log_colour(colour, albedo=None) -> np.ndarray:
@@ -227,19 +186,6 @@ def finite_loss_and_gradients(model: keras.Model, x, gt, noisy) -> torch.Tensor:
         for w, g in zip(model.trainable_weights, grads):
             assert g is None or torch.isfinite(g).all(), f"{name}: non-finite gradient of {w.path}"
     return out
-
-
-def randomise(model: keras.Model, seed: int, scale: float) -> None:
-    """Replace every weight (the zero-initialised head too) by random values; BN variances stay positive."""
-    rng = np.random.default_rng(seed)
-    new = []
-    for w in model.weights:
-        shape = tuple(w.shape)
-        if "variance" in w.path:
-            new.append(rng.uniform(0.5, 1.5, size=shape))
-        else:
-            new.append(rng.normal(size=shape) * scale)
-    model.set_weights([v.astype(np.float32) for v in new])
 
 
 def extreme_features(shape, seed: int) -> np.ndarray:
