@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
-from prep.render import RenderConfig, render, render_seeds, render_set
+from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seeds, render_set
+from prep.render.packing import pack
 from prep.render.scene import (
-    FAMILIES,
     Camera,
     Material,
     Quad,
@@ -24,7 +24,6 @@ from prep.render.scene import (
     emitter,
     glossy,
     lambert,
-    make_scene,
 )
 
 ALL_LAYERS = RGB_LAYERS + SCALAR_LAYERS
@@ -530,22 +529,22 @@ def test_make_scene_is_deterministic_and_named():
         assert a.to_dict() != make_scene(fam, 4, 7).to_dict()
         assert a.to_dict() != make_scene(fam, 3, 8).to_dict()
         back = Scene.from_dict(json.loads(json.dumps(a.to_dict())))
-        for x, y in zip(dataclasses.astuple(back.to_arrays()), dataclasses.astuple(a.to_arrays())):
+        for x, y in zip(pack(back), pack(a)):
             np.testing.assert_array_equal(x, y)
 
 
 def test_kernel_table_layouts_agree_with_scene():
-    from prep.render import scene as sc
-    from prep.render import tracer
+    from prep.render import packing as sc
+    from prep.render import scene, tracer
 
     assert (tracer.M_KIND, tracer.M_ALBEDO, tracer.M_SPECULAR, tracer.M_ROUGHNESS, tracer.M_EMISSION,
             tracer.M_TEXTURE, tracer.M_ALBEDO2, tracer.M_SCALE) == (
         sc.MAT_KIND, sc.MAT_ALBEDO, sc.MAT_SPECULAR, sc.MAT_ROUGHNESS, sc.MAT_EMISSION, sc.MAT_TEXTURE,
         sc.MAT_ALBEDO2, sc.MAT_SCALE)
-    assert sc.MATERIAL_KINDS.index("plastic") == tracer.PLASTIC and sc.TEXTURES.index("uv") == tracer.TEX_UV
+    assert scene.MATERIAL_KINDS.index("plastic") == tracer.PLASTIC and scene.TEXTURES.index("uv") == tracer.TEX_UV
     q = Quad((1, 2, 3), (0, 0, 2), (3, 0, 0), "m")
-    row = Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), {"m": lambert((0.5,) * 3)},
-                quads=[q]).to_arrays().quads[0]
+    row = pack(Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), {"m": lambert((0.5,) * 3)},
+                     quads=[q])).quads[0]
     np.testing.assert_allclose(row[tracer.Q_CORNER:tracer.Q_CORNER + 3], q.corner)
     np.testing.assert_allclose(row[tracer.Q_U:tracer.Q_U + 3], q.u)
     np.testing.assert_allclose(row[tracer.Q_V:tracer.Q_V + 3], q.v)
@@ -563,8 +562,7 @@ def test_unknown_family_is_named():
 
 def test_scene_validation_names_the_problem():
     with pytest.raises(ValueError, match="'nope'"):
-        Scene("x", "test", Camera((0, 0, 0), (0, 0, -1)), {},
-              spheres=[Sphere((0, 0, -2), 1, "nope")]).to_arrays()
+        pack(Scene("x", "test", Camera((0, 0, 0), (0, 0, -1)), {}, spheres=[Sphere((0, 0, -2), 1, "nope")]))
     with pytest.raises(ValueError, match="'velvet'"):
         Material("velvet")
     with pytest.raises(ValueError, match="-1"):
@@ -620,7 +618,87 @@ def test_prep_render_does_not_import_frameworks():
     import subprocess
     import sys
 
-    code = ("import sys, prep.render, prep.render.tracer, prep.render.scene; "
+    code = ("import sys, prep.render, prep.render.tracer, prep.render.scene, prep.render.kernels; "
             "bad = [m for m in ('keras', 'torch', 'kpcn_keras') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ------------------------------------------------------------------------------------------
+# kernels specialised to a scene's effects
+# ------------------------------------------------------------------------------------------
+
+def test_a_scene_calls_for_the_effects_of_what_it_uses():
+    cam = Camera((0, 0, 0), (0, 0, -1))
+    mats = {"grey": lambert((0.5,) * 3), "metal": glossy((0.9,) * 3, 0.2), "unused": Material("plastic", (0.2,) * 3)}
+    diffuse_only = Scene("d", "test", cam, mats, spheres=[Sphere((0, 0, -3), 1, "grey")])
+    assert diffuse_only.effects() == {"lambert"}
+    lit = dataclasses.replace(diffuse_only, spheres=[Sphere((0, 0, -3), 1, "metal")], environment=(0.1, 0.1, 0.1),
+                              materials={**mats, "grey": lambert((0.5,) * 3, texture="uv", albedo2=(0.1,) * 3)},
+                              quads=[Quad((0, 1, 0), (1, 0, 0), (0, 0, 1), "grey")])
+    assert lit.effects() == {"glossy", "lambert", "texture", "environment"}
+
+
+SUBSETS = [
+    ("lambert only", lambda s: _only(s, "lambert")),
+    ("glossy under the environment", lambda s: _only(s, "glossy", env=(0.5, 0.6, 0.7), lights=False)),
+    ("plastic under a light", lambda s: _only(s, "plastic")),
+]
+
+
+def _only(scene: Scene, kind: str, env=(0.0, 0.0, 0.0), lights: bool = True) -> Scene:
+    """``scene`` with every non-emitting material made ``kind`` (textures dropped), lights kept or not."""
+    def one(m):
+        if m.kind == "emitter":
+            return m
+        if kind == "lambert":
+            return lambert(m.albedo if max(m.albedo) > 0 else (0.5, 0.5, 0.5))
+        if kind == "glossy":
+            return glossy((0.8, 0.7, 0.6), 0.3)
+        return Material("plastic", albedo=(0.5, 0.4, 0.3), specular=(0.05,) * 3, roughness=0.2)
+
+    quads = [q for q in scene.quads if lights or scene.materials[q.material].kind != "emitter"]
+    return dataclasses.replace(scene, materials={k: one(m) for k, m in scene.materials.items()}, quads=quads,
+                               environment=env)
+
+
+@pytest.mark.parametrize("label, make", SUBSETS + [("cornell-001 (no plastic, no environment)", None)])
+def test_specialised_kernel_renders_the_bits_of_the_all_effects_kernel(label, make):
+    from prep.render import EFFECTS, kernels
+
+    base = make_scene("cornell", 1, 0)
+    scene = make(base) if make else base
+    assert scene.effects() != frozenset(EFFECTS)
+    assert kernels.kernel_for(scene.effects()) is not kernels.kernel_for(EFFECTS)
+    fast = render(scene, spp=3, seed=9, width=16, height=12)
+    full = render(scene, spp=3, seed=9, width=16, height=12, effects=EFFECTS)
+    for name in fast:
+        np.testing.assert_array_equal(fast[name], full[name], err_msg=f"{label}: {name}")
+    assert fast["default"].max() > 0
+
+
+def test_a_kernel_without_an_effect_the_scene_needs_is_refused():
+    scene = make_scene("cornell", 0, 0)
+    with pytest.raises(ValueError, match="calls for"):
+        render(scene, spp=2, seed=0, width=4, height=4, effects={"lambert"})
+
+
+def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
+    # the flags are compile-time constants: a diffuse-only kernel's machine code never calls GGX or the
+    # plastic's lobe choice, the all-effects kernel's does (compiled afresh here: numba's disk cache
+    # keeps no IR to inspect)
+    import numba
+
+    from prep.render import EFFECTS, kernels
+
+    scene = _only(make_scene("cornell", 0, 0), "lambert")
+    packed = pack(scene)
+    calls = {}
+    for effects in (scene.effects(), EFFECTS):
+        trace = numba.njit(kernels.kernel_for(effects).trace_sample.py_func)
+        trace((0.0, 1.0, 5.0), (0.0, 0.0, -1.0), np.uint64(1), packed, 5, 3, np.zeros(16))
+        ir = "".join(trace.inspect_llvm().values())
+        calls[frozenset(effects)] = {name for name in ("_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect")
+                                     if name in ir}
+    assert calls[scene.effects()] == {"intersect"}
+    assert calls[frozenset(EFFECTS)] == {"_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect"}

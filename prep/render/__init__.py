@@ -9,7 +9,6 @@ differs between runs).
 
 from __future__ import annotations
 
-import math
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -20,9 +19,11 @@ import numpy as np
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json, remove_temporaries
-from prep.render.scene import FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene
+from prep.render.families import FAMILIES, make_scene
+from prep.render.scene import EFFECTS, Camera, Material, Quad, Scene, Sphere
 
 __all__ = [
+    "EFFECTS",
     "FAMILIES",
     "Camera",
     "Material",
@@ -51,7 +52,7 @@ def _check_int(name, value, lo, hi=None):
 
 
 def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 256, *,
-           max_depth: int = MAX_DEPTH, rr_depth: int = RR_DEPTH) -> dict[str, np.ndarray]:
+           max_depth: int = MAX_DEPTH, rr_depth: int = RR_DEPTH, effects=None) -> dict[str, np.ndarray]:
     """Path-trace ``scene``: ``layer -> float32 array`` with every layer of the AOV contract
     (``default``, ``diffuse``, ``specular``, ``albedo``, ``normal`` (H, W, 3); ``depth`` and the six
     ``*Variance`` layers (H, W)).
@@ -60,8 +61,11 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     ``spp >= 2`` because the variance layers need two samples. ``default`` is exactly
     ``diffuse + specular`` in float32. ``max_depth`` caps the scattering vertices of a path,
     Russian roulette starts at vertex ``rr_depth`` (0-based; >= max_depth switches it off).
+    The kernel is the one compiled for ``effects`` (default: ``scene.effects()``, the effects the scene
+    calls for; ``EFFECTS`` gives the all-effects kernel, which renders the same bits).
     """
-    from prep.render import tracer  # numba import and kernel loading only when rendering
+    from prep.render import kernels, tracer  # numba import and kernel loading only when rendering
+    from prep.render.packing import pack
 
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a prep.render.Scene, got {type(scene).__name__}")
@@ -71,17 +75,17 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     height = _check_int("height", height, 1)
     max_depth = _check_int("max_depth", max_depth, 0)
     rr_depth = _check_int("rr_depth", rr_depth, 0)
-    a = scene.to_arrays()
-    tan_half = math.tan(math.radians(scene.camera.fov) / 2)
+    needed = scene.effects()
+    effects = needed if effects is None else frozenset(effects)
+    if not needed <= effects:
+        raise ValueError(f"scene {scene.name} calls for {sorted(needed - effects)}, not in effects {sorted(effects)}")
+    kernel = kernels.kernel_for(effects)
+    packed = pack(scene)
     # prange gives each thread a contiguous block of iterations; a golden-ratio interleaving of the
     # rows makes every block a mix of cheap (sky) and expensive rows
     row_order = np.argsort(np.arange(height) * 0.6180339887498949 % 1.0, kind="stable").astype(np.int64)
     out = np.zeros((height, width, tracer.N_OUT), dtype=np.float64)
-    tracer.render_kernel(
-        a.spheres, a.sphere_mat, a.quads, a.quad_mat, a.quad_light, a.n_single, a.groups, a.group_bounds,
-        a.materials, a.lights, a.light_cdf, a.light_prob, a.camera, tan_half, a.environment,
-        width, height, spp, np.uint64(seed), max_depth, rr_depth, row_order, out,
-    )
+    kernel.render_kernel(packed, width, height, spp, np.uint64(seed), max_depth, rr_depth, row_order, out)
     f = out.astype(np.float32)
     diffuse = np.ascontiguousarray(f[..., 0:3])
     specular = np.ascontiguousarray(f[..., 3:6])

@@ -1,0 +1,240 @@
+"""The built-in scene families: functions ``(rng or seed) -> Scene`` with seeded random variations of
+geometry, materials, colours, light placement and camera; see :data:`FAMILIES` and :func:`make_scene`."""
+
+from __future__ import annotations
+
+import colorsys
+import math
+import zlib
+
+import numpy as np
+
+from prep.render.scene import Camera, Material, Quad, Scene, Sphere, Vec3, _luminance, emitter, glossy, lambert, plastic
+
+# ---------------------------------------------------------------------------------------------
+
+def _rng(rng_or_seed) -> np.random.Generator:
+    if isinstance(rng_or_seed, np.random.Generator):
+        return rng_or_seed
+    return np.random.default_rng(rng_or_seed)
+
+
+def _u(rng, lo, hi) -> float:
+    return float(rng.uniform(lo, hi))
+
+
+def _hsv(h, s, v) -> Vec3:
+    r, g, b = colorsys.hsv_to_rgb(h % 1.0, s, v)
+    return (float(r), float(g), float(b))
+
+
+def _colour(rng, sat=(0.4, 0.85), val=(0.45, 0.8)) -> Vec3:
+    return _hsv(_u(rng, 0, 1), _u(rng, *sat), _u(rng, *val))
+
+
+def _light_colour(rng) -> Vec3:
+    # warm to cool white, normalised to luminance 1 so intensity is set separately
+    tint = _hsv(_u(rng, 0.05, 0.6), _u(rng, 0.0, 0.25), 1.0)
+    lum = _luminance(tint)
+    return tuple(c / lum for c in tint)
+
+
+def _object_material(rng, kind: str | None = None) -> Material:
+    """A random lambert / glossy metal / plastic material for an object."""
+    if kind is None:
+        kind = str(rng.choice(["lambert", "glossy", "plastic"], p=[0.35, 0.3, 0.35]))
+    if kind == "lambert":
+        if rng.uniform() < 0.3:
+            return lambert(_colour(rng), texture="uv", albedo2=_colour(rng, val=(0.7, 0.9)),
+                           checker_scale=float(rng.integers(4, 12)))
+        return lambert(_colour(rng))
+    if kind == "glossy":
+        # metals: silver, gold, copper-ish and coloured tints; F0 kept high as for conductors
+        base = _hsv(_u(rng, 0.0, 1.0), _u(rng, 0.0, 0.6), _u(rng, 0.75, 0.95))
+        return glossy(base, roughness=_u(rng, 0.08, 0.35))
+    if kind == "plastic":
+        f0 = _u(rng, 0.04, 0.08)
+        return plastic(_colour(rng), (f0, f0, f0), roughness=_u(rng, 0.05, 0.3))
+    raise ValueError(f"unknown object material kind {kind!r}")
+
+
+def _place_on_floor(rng, n, radii_range, x_range, z_range, existing=(), gap=0.05, tries=200):
+    """Non-overlapping discs (x, z, r) on the floor; fewer than n if it runs out of room."""
+    placed = list(existing)
+    out = []
+    for _ in range(n):
+        for _ in range(tries):
+            r = _u(rng, *radii_range)
+            x = _u(rng, x_range[0] + r, x_range[1] - r)
+            z = _u(rng, z_range[0] + r, z_range[1] - r)
+            if all((x - px) ** 2 + (z - pz) ** 2 > (r + pr + gap) ** 2 for px, pz, pr in placed):
+                placed.append((x, z, r))
+                out.append((x, z, r))
+                break
+    return out
+
+
+def _ceiling_light(centre, sx, sz) -> Quad:
+    """Horizontal sx*sz rectangle centred at ``centre``, emitting downwards (-y)."""
+    cx, cy, cz = centre
+    # cross((sx,0,0), (0,0,sz)) = (0, -sx*sz, 0): normal points down
+    return Quad((cx - sx / 2, cy, cz - sz / 2), (sx, 0.0, 0.0), (0.0, 0.0, sz), "light")
+
+
+def _box_quads(x0, x1, y0, y1, z0, z1, material) -> list[Quad]:
+    """The five visible faces of an axis-aligned box standing on a floor (no bottom face)."""
+    dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
+    return [
+        Quad((x0, y1, z0), (0, 0, dz), (dx, 0, 0), material),  # top
+        Quad((x0, y0, z1), (dx, 0, 0), (0, dy, 0), material),  # front (+z)
+        Quad((x0, y0, z0), (0, dy, 0), (dx, 0, 0), material),  # back (-z)
+        Quad((x0, y0, z0), (0, 0, dz), (0, dy, 0), material),  # left (-x)
+        Quad((x1, y0, z0), (0, dy, 0), (0, 0, dz), material),  # right (+x)
+    ]
+
+
+def cornell(rng_or_seed=None, name: str = "cornell") -> Scene:
+    """A 2x2x2 box room open towards the camera: coloured side walls, checker floor, a ceiling light,
+    2-3 spheres of mixed materials (at least one glossy or plastic)."""
+    rng = _rng(rng_or_seed)
+    hue = _u(rng, 0, 1)
+    left = _hsv(hue, _u(rng, 0.6, 0.85), _u(rng, 0.55, 0.75))
+    right = _hsv(hue + _u(rng, 0.25, 0.5), _u(rng, 0.6, 0.85), _u(rng, 0.55, 0.75))
+    white = _u(rng, 0.65, 0.8)
+    floor_a = _colour(rng, sat=(0.0, 0.3), val=(0.6, 0.8))
+    floor_b = _colour(rng, sat=(0.0, 0.5), val=(0.15, 0.35))
+    mats = {
+        "white": lambert((white, white, white)),
+        "left": lambert(left),
+        "right": lambert(right),
+        "floor": lambert(floor_a, texture=str(rng.choice(["world", "uv"])), albedo2=floor_b,
+                         checker_scale=float(rng.integers(3, 8))),
+    }
+    quads = [
+        Quad((-1, 0, -1), (0, 0, 2), (2, 0, 0), "floor"),
+        Quad((-1, 2, -1), (2, 0, 0), (0, 0, 2), "white"),  # ceiling
+        Quad((-1, 0, -1), (2, 0, 0), (0, 2, 0), "white"),  # back
+        Quad((-1, 0, -1), (0, 2, 0), (0, 0, 2), "left"),
+        Quad((1, 0, -1), (0, 0, 2), (0, 2, 0), "right"),
+    ]
+    sx, sz = _u(rng, 0.3, 0.7), _u(rng, 0.3, 0.7)
+    power = _u(rng, 3.0, 6.0)
+    mats["light"] = emitter(tuple(c * power / (sx * sz) for c in _light_colour(rng)))
+    # 1e-3 below the ceiling so the two never fight for the same depth
+    quads.append(_ceiling_light((_u(rng, -0.3, 0.3), 2 - 1e-3, _u(rng, -0.3, 0.3)), sx, sz))
+
+    n = int(rng.integers(2, 4))
+    kinds = [str(rng.choice(["glossy", "plastic"]))] + [None] * (n - 1)
+    spheres = []
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, n, (0.22, 0.45), (-0.95, 0.95), (-0.95, 0.7))):
+        key = f"sphere{i}"
+        mats[key] = _object_material(rng, kinds[i])
+        spheres.append(Sphere((x, r, z), r, key))
+    cam = Camera(position=(_u(rng, -0.15, 0.15), _u(rng, 0.9, 1.1), _u(rng, 3.2, 3.6)),
+                 look_at=(0.0, _u(rng, 0.9, 1.0), 0.0), fov=_u(rng, 37, 42))
+    return Scene(name=name, family="cornell", camera=cam, materials=mats, spheres=spheres, quads=quads,
+                 environment=(0.0, 0.0, 0.0))
+
+
+def spheres(rng_or_seed=None, name: str = "spheres") -> Scene:
+    """An open checker ground with 6-12 spheres of mixed materials, 1-2 area lights overhead and a dim
+    environment."""
+    rng = _rng(rng_or_seed)
+    mats = {
+        "ground": lambert(_colour(rng, sat=(0.0, 0.35), val=(0.55, 0.8)), texture="world",
+                          albedo2=_colour(rng, sat=(0.0, 0.6), val=(0.1, 0.3)),
+                          checker_scale=_u(rng, 0.8, 2.5)),
+    }
+    quads = [Quad((-30, 0, -30), (0, 0, 60), (60, 0, 0), "ground")]
+    n = int(rng.integers(6, 13))
+    spheres_ = []
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, n, (0.25, 0.75), (-3.2, 3.2), (-3.2, 2.2))):
+        key = f"sphere{i}"
+        mats[key] = _object_material(rng)
+        spheres_.append(Sphere((x, r, z), r, key))
+    n_lights = int(rng.integers(1, 3))
+    for i in range(n_lights):
+        sx, sz = _u(rng, 0.8, 2.0), _u(rng, 0.8, 2.0)
+        power = _u(rng, 50.0, 110.0) / n_lights ** 0.5
+        key = "light" if i == 0 else f"light{i}"
+        mats[key] = emitter(tuple(c * power / (sx * sz) for c in _light_colour(rng)))
+        q = _ceiling_light((_u(rng, -3, 3), _u(rng, 3.0, 5.0), _u(rng, -3, 2)), sx, sz)
+        quads.append(Quad(q.corner, q.u, q.v, key))
+    angle = _u(rng, -0.5, 0.5)
+    dist = _u(rng, 6.5, 8.0)
+    cam = Camera(position=(dist * math.sin(angle), _u(rng, 1.5, 3.0), dist * math.cos(angle)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), _u(rng, -0.5, 0.0)), fov=_u(rng, 38, 46))
+    env = _u(rng, 0.03, 0.1)
+    return Scene(name=name, family="spheres", camera=cam, materials=mats, spheres=spheres_, quads=quads,
+                 environment=(env * 0.8, env * 0.9, env))
+
+
+def boxes(rng_or_seed=None, name: str = "boxes") -> Scene:
+    """Axis-aligned boxes on a glossy or plastic floor against a back wall, lit by one small bright
+    light (hard-ish shadows) and a dim environment."""
+    rng = _rng(rng_or_seed)
+    if rng.uniform() < 0.5:
+        floor = glossy(_hsv(_u(rng, 0, 1), _u(rng, 0.0, 0.3), _u(rng, 0.6, 0.85)),
+                       roughness=_u(rng, 0.12, 0.3))
+    else:
+        f0 = _u(rng, 0.04, 0.08)
+        floor = plastic(_colour(rng, val=(0.3, 0.6)), (f0, f0, f0), roughness=_u(rng, 0.06, 0.25),
+                        texture="world", albedo2=_colour(rng, val=(0.15, 0.35)),
+                        checker_scale=_u(rng, 1.0, 2.5))
+    wall = _u(rng, 0.55, 0.75)
+    mats = {
+        "floor": floor,
+        "wall": lambert((wall, wall, wall), texture="world", albedo2=(wall * 0.75, wall * 0.75, wall * 0.75),
+                        checker_scale=_u(rng, 1.0, 2.0)),
+    }
+    quads = [
+        Quad((-6, 0, -6), (0, 0, 12), (12, 0, 0), "floor"),
+        Quad((-6, 0, -2.5), (12, 0, 0), (0, 6, 0), "wall"),
+    ]
+    if rng.uniform() < 0.5:
+        side = -1 if rng.uniform() < 0.5 else 1
+        quads.append(Quad((side * 3.0, 0, -2.5), (0, 0, 6), (0, 6, 0), "wall"))
+    n = int(rng.integers(3, 7))
+    kinds = ["glossy"] + [None] * (n - 1)
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, n, (0.3, 0.7), (-2.0, 2.0), (-2.2, 1.0))):
+        key = f"box{i}"
+        mats[key] = _object_material(rng, kinds[i])
+        hx, hz = r * _u(rng, 0.6, 0.7), r * _u(rng, 0.6, 0.7)  # half sides that fit in the placed disc
+        height = _u(rng, 0.3, 1.4)
+        quads.extend(_box_quads(x - hx, x + hx, 0.0, height, z - hz, z + hz, key))
+    s = _u(rng, 0.15, 0.35)
+    power = _u(rng, 20.0, 40.0)
+    mats["light"] = emitter(tuple(c * power / (s * s) for c in _light_colour(rng)))
+    quads.append(_ceiling_light((_u(rng, -1.5, 1.5), _u(rng, 2.5, 3.5), _u(rng, -1.0, 1.0)), s, s))
+    cam = Camera(position=(_u(rng, -1.0, 1.0), _u(rng, 1.5, 2.5), _u(rng, 4.5, 5.5)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.4, 0.7), 0.0), fov=_u(rng, 38, 46))
+    env = _u(rng, 0.02, 0.06)
+    return Scene(name=name, family="boxes", camera=cam, materials=mats, quads=quads,
+                 environment=(env, env, env * 1.1))
+
+
+FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes}
+
+
+def family_seed(family: str, index: int, seed: int) -> list[int]:
+    """The SeedSequence entropy a scene is generated from: stable across runs and Python versions."""
+    return [int(seed), zlib.crc32(family.encode()), int(index)]
+
+
+def make_scene(family: str, index: int, seed: int) -> Scene:
+    """Scene number ``index`` of ``family`` for a set seeded with ``seed``; deterministic.
+
+    Named ``f"{family}-{index:03d}"``. Raises ValueError for an unknown family (listing the valid
+    ones) or a negative index/seed.
+    """
+    if family not in FAMILIES:
+        raise ValueError(f"unknown scene family {family!r}; valid families: {', '.join(FAMILIES)}")
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+        raise ValueError(f"scene index must be an int >= 0, got {index!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    rng = np.random.default_rng(family_seed(family, index, seed))
+    scene = FAMILIES[family](rng, name=f"{family}-{int(index):03d}")
+    scene.seed = int(seed)
+    scene.validate()
+    return scene

@@ -1,0 +1,360 @@
+"""The path-tracing integrator, compiled once per set of effects a scene calls for.
+
+Unidirectional path tracing with next-event estimation to the rectangle lights (light picked in
+proportion to power, uniform area sampling) combined with BSDF sampling by the power heuristic.
+Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
+that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
+alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
+deciding the split.
+
+**Specialisation.** The ``HAS_*`` flags below are module constants, which numba compiles as constants:
+the code of an effect whose flag is False is removed from the kernel, not branched around per sample.
+This file as it is (every flag True) is the all-effects kernel; ``kernels.kernel_for(effects)`` loads a
+copy of it with the flags of a scene's effect set (``Scene.effects()``). Which random dimension each
+decision uses does not depend on the flags, so a specialised kernel gives the all-effects kernel's
+output bit for bit on a scene it was made for.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from prep.render.tracer import (
+    DIMS_PER_BOUNCE,
+    EMITTER,
+    GLOSSY,
+    INV_PI,
+    LAMBERT,
+    M_ALBEDO,
+    M_ALBEDO2,
+    M_EMISSION,
+    M_KIND,
+    M_ROUGHNESS,
+    M_SCALE,
+    M_SPECULAR,
+    M_TEXTURE,
+    N_SAMPLE,
+    OUT_MEANS,
+    OUT_VARS,
+    PLASTIC,
+    Q_AREA,
+    Q_CORNER,
+    Q_NORMAL,
+    Q_U,
+    Q_V,
+    RAY_OFFSET,
+    TEX_NONE,
+    TEX_WORLD,
+    _add,
+    _dot,
+    _ggx_d,
+    _ggx_g1,
+    _madd,
+    _mul,
+    _normalize,
+    _plastic_spec_prob,
+    _row3,
+    _scale,
+    _sub,
+    _to_world,
+    intersect,
+    occluded,
+    rand,
+    sample_key,
+    surface,
+)
+
+# --- effects (kernels.py rewrites this block; one line per name of scene.EFFECTS) ---
+HAS_LAMBERT = True
+HAS_GLOSSY = True
+HAS_PLASTIC = True
+HAS_EMITTER = True
+HAS_ENVIRONMENT = True
+HAS_TEXTURE = True
+# --- end of effects ---
+
+
+@njit(cache=True)
+def albedo_at(materials, m, p, u, v):
+    """Diffuse reflectance of material m at p (checker textures evaluated)."""
+    if not HAS_TEXTURE:
+        return _row3(materials, m, M_ALBEDO)
+    tex = int(materials[m, M_TEXTURE])
+    if tex == TEX_NONE:
+        return _row3(materials, m, M_ALBEDO)
+    s = materials[m, M_SCALE]
+    if tex == TEX_WORLD:
+        # odd offsets keep axis-aligned planes at round coordinates (y = 0) off the cell borders
+        k = (math.floor((p[0] + 0.01370) * s) + math.floor((p[1] + 0.02910) * s)
+             + math.floor((p[2] + 0.01730) * s))
+    else:
+        k = math.floor(u * s) + math.floor(v * s)
+    if int(k) % 2 == 0:
+        return _row3(materials, m, M_ALBEDO)
+    return _row3(materials, m, M_ALBEDO2)
+
+
+# ---------------------------------------------------------------------------------------------
+# BSDFs: lambert, GGX metal, plastic = lambert + GGX coat
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def bsdf_eval(mk, kd, ks, alpha, n, wo, wi):
+    """(f_diffuse RGB, f_glossy RGB, pdf of bsdf_sample for wi) at a surface with unit normal n
+    facing wo. Zero below the horizon."""
+    zero = (0.0, 0.0, 0.0)
+    ci = _dot(n, wi)
+    co = _dot(n, wo)
+    if ci <= 0.0 or co <= 0.0:
+        return zero, zero, 0.0
+    if HAS_LAMBERT and mk == LAMBERT:
+        return _scale(kd, INV_PI), zero, ci * INV_PI
+    if HAS_GLOSSY or HAS_PLASTIC:
+        h = _normalize(_add(wo, wi))
+        nh = _dot(n, h)
+        oh = _dot(wo, h)
+        a2 = alpha * alpha
+        dd = _ggx_d(nh, a2)
+        common = dd * _ggx_g1(co, a2) * _ggx_g1(ci, a2) / (4.0 * co * ci)
+        fw = (1.0 - oh) ** 5
+        fs = ((ks[0] + (1.0 - ks[0]) * fw) * common,
+              (ks[1] + (1.0 - ks[1]) * fw) * common,
+              (ks[2] + (1.0 - ks[2]) * fw) * common)
+        pdf_s = dd * nh / (4.0 * oh)
+        if HAS_GLOSSY and mk == GLOSSY:
+            return zero, fs, pdf_s
+        if HAS_PLASTIC:
+            ps = _plastic_spec_prob(kd, ks, co)
+            return _scale(kd, INV_PI), fs, ps * pdf_s + (1.0 - ps) * ci * INV_PI
+    return zero, zero, 0.0
+
+
+@njit(cache=True)
+def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
+    """A direction wi drawn from the BSDF's sampling density (cosine for the diffuse lobe, GGX
+    normals for the glossy one, lobes mixed for plastic); (wi, ok)."""
+    diffuse = HAS_LAMBERT and mk == LAMBERT
+    if HAS_PLASTIC and mk == PLASTIC:
+        diffuse = u0 >= _plastic_spec_prob(kd, ks, _dot(n, wo))
+    phi = 2.0 * math.pi * u2
+    if diffuse or not (HAS_GLOSSY or HAS_PLASTIC):
+        r = math.sqrt(u1)
+        wi = _to_world((r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))), n)
+    else:
+        a2 = alpha * alpha
+        tan2 = a2 * u1 / (1.0 - u1)
+        ct = 1.0 / math.sqrt(1.0 + tan2)
+        st = math.sqrt(max(0.0, 1.0 - ct * ct))
+        h = _to_world((st * math.cos(phi), st * math.sin(phi), ct), n)
+        oh = _dot(wo, h)
+        if oh <= 0.0:
+            return wo, False
+        wi = _madd(_scale(wo, -1.0), h, 2.0 * oh)
+    return wi, _dot(n, wi) > 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the integrator
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
+    """Trace one camera ray through the packed scene ``sc``; writes out[0:13] = diffuse, specular,
+    albedo, normal, depth."""
+    for i in range(13):
+        out[i] = 0.0
+    ld = (0.0, 0.0, 0.0)
+    ls = (0.0, 0.0, 0.0)
+    bd = (0.0, 0.0, 0.0)  # throughput of the diffuse part of the first vertex
+    bs = (0.0, 0.0, 0.0)  # throughput of the glossy part
+    prev_pdf = 0.0
+    materials, quads, env = sc.materials, sc.quads, sc.environment
+    n_lights = sc.lights.shape[0]
+    for bounce in range(max_depth + 1):
+        t, kind, idx = intersect(o, d, np.inf, sc)
+        if kind < 0:
+            if HAS_ENVIRONMENT:
+                if bounce == 0:
+                    ls = _add(ls, env)
+                else:
+                    ld = _add(ld, _mul(bd, env))
+                    ls = _add(ls, _mul(bs, env))
+            break
+        p = _madd(o, d, t)
+        ng, tu, tv = surface(p, kind, idx, sc.spheres, quads)
+        m = sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
+        mk = int(materials[m, M_KIND])
+        cos_d = _dot(ng, d)
+        n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
+        kd = (0.0, 0.0, 0.0)
+        if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
+            kd = albedo_at(materials, m, p, tu, tv)
+        if bounce == 0:
+            out[6] = kd[0]
+            out[7] = kd[1]
+            out[8] = kd[2]
+            out[9] = n[0]
+            out[10] = n[1]
+            out[11] = n[2]
+            out[12] = t
+        if HAS_EMITTER and mk == EMITTER:
+            if cos_d < 0.0:  # front side only
+                le = _row3(materials, m, M_EMISSION)
+                if bounce == 0:
+                    ls = _add(ls, le)
+                else:
+                    li = sc.quad_light[idx] if kind == 1 else -1
+                    w = 1.0
+                    if li >= 0:
+                        pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
+                        w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
+                    ld = _madd(ld, _mul(bd, le), w)
+                    ls = _madd(ls, _mul(bs, le), w)
+            break
+        if bounce == max_depth:
+            break
+        ks = _row3(materials, m, M_SPECULAR)
+        alpha = materials[m, M_ROUGHNESS]
+        wo = _scale(d, -1.0)
+        base = 2 + bounce * DIMS_PER_BOUNCE
+        origin = _madd(p, n, RAY_OFFSET)
+
+        # next-event estimation, MIS-weighted against BSDF sampling
+        if HAS_EMITTER and n_lights > 0:
+            u0 = rand(key, base)
+            li = 0
+            while li < n_lights - 1 and u0 >= sc.light_cdf[li]:
+                li += 1
+            q = sc.lights[li]
+            u1 = rand(key, base + 1)
+            u2 = rand(key, base + 2)
+            point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
+            dl = _sub(point, origin)
+            dist2 = _dot(dl, dl)
+            dist = math.sqrt(dist2)
+            wi = _scale(dl, 1.0 / dist)
+            cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
+            ci = _dot(n, wi)
+            if cos_l > 0.0 and ci > 0.0:
+                fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+                if pdf_b > 0.0:
+                    # stop short of the light's own plane
+                    tmax = dist * (1.0 - 1e-5)
+                    if not occluded(origin, wi, tmax, sc):
+                        pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
+                        w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
+                        c = _scale(_row3(materials, sc.quad_mat[q], M_EMISSION), ci * w / pdf_l)
+                        if bounce == 0:
+                            ld = _add(ld, _mul(fd, c))
+                            ls = _add(ls, _mul(fs, c))
+                        else:
+                            fc = _mul(_add(fd, fs), c)
+                            ld = _add(ld, _mul(bd, fc))
+                            ls = _add(ls, _mul(bs, fc))
+
+        # continue the path by sampling the BSDF
+        wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4),
+                             rand(key, base + 5))
+        if not ok:
+            break
+        fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+        if pdf <= 0.0:
+            break
+        ci = _dot(n, wi)
+        if bounce == 0:
+            bd = _scale(fd, ci / pdf)
+            bs = _scale(fs, ci / pdf)
+        else:
+            f = _scale(_add(fd, fs), ci / pdf)
+            bd = _mul(bd, f)
+            bs = _mul(bs, f)
+        prev_pdf = pdf
+        o = origin
+        d = wi
+        if bounce >= rr_depth:
+            survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
+            if rand(key, base + 6) >= survive:
+                break
+            bd = _scale(bd, 1.0 / survive)
+            bs = _scale(bs, 1.0 / survive)
+
+    good = True
+    for c in range(3):
+        if not (math.isfinite(ld[c]) and math.isfinite(ls[c])):
+            good = False
+    if good:  # a non-finite sample (should not happen) counts as black rather than poisoning the pixel
+        out[0] = ld[0]
+        out[1] = ld[1]
+        out[2] = ld[2]
+        out[3] = ls[0]
+        out[4] = ls[1]
+        out[5] = ls[2]
+
+
+@njit(cache=True, parallel=True)
+def render_kernel(sc, width, height, spp, seed, max_depth, rr_depth, row_order, out):
+    """Render the packed scene ``sc`` into out (height, width, N_OUT) float64: means of the 13 sample
+    channels, then the variances of the pixel mean (unbiased per-sample variance / spp, averaged over
+    RGB) of diffuse, specular, colour, albedo, normal, depth. ``row_order`` is a permutation of the
+    rows that spreads cheap and expensive rows over the threads; results do not depend on it."""
+    camera = sc.camera
+    tan_half = sc.tan_half
+    pos = (camera[0], camera[1], camera[2])
+    fwd = (camera[3], camera[4], camera[5])
+    right = (camera[6], camera[7], camera[8])
+    up = (camera[9], camera[10], camera[11])
+    aspect = width / height
+    for ri in prange(height):
+        y = row_order[ri]
+        v = np.zeros(N_SAMPLE)
+        first = np.zeros(N_SAMPLE)
+        s1 = np.zeros(N_SAMPLE)
+        s2 = np.zeros(N_SAMPLE)
+        for x in range(width):
+            s1[:] = 0.0
+            s2[:] = 0.0
+            pix = y * width + x
+            for s in range(spp):
+                key = sample_key(seed, pix, s)
+                sx = (2.0 * (x + rand(key, 0)) / width - 1.0) * tan_half * aspect
+                sy = (1.0 - 2.0 * (y + rand(key, 1)) / height) * tan_half
+                d = _normalize(_madd(_madd(fwd, right, sx), up, sy))
+                trace_sample(pos, d, key, sc, max_depth, rr_depth, v)
+                for c in range(3):
+                    v[13 + c] = v[c] + v[3 + c]
+                if s == 0:
+                    first[:] = v
+                # sums of differences from the first sample: exact zero variance for constant
+                # pixels and no catastrophic cancellation for bright ones
+                for c in range(N_SAMPLE):
+                    dv = v[c] - first[c]
+                    s1[c] += dv
+                    s2[c] += dv * dv
+            inv_n = 1.0 / spp
+            for c in range(OUT_MEANS):
+                out[y, x, c] = first[c] + s1[c] * inv_n
+            if spp > 1:
+                # per-channel variance of the mean, then averaged over each buffer's channels
+                for b in range(OUT_VARS):
+                    if b == 0:
+                        c0, nc = 0, 3
+                    elif b == 1:
+                        c0, nc = 3, 3
+                    elif b == 2:
+                        c0, nc = 13, 3
+                    elif b == 3:
+                        c0, nc = 6, 3
+                    elif b == 4:
+                        c0, nc = 9, 3
+                    else:
+                        c0, nc = 12, 1
+                    acc = 0.0
+                    for c in range(c0, c0 + nc):
+                        acc += max(0.0, s2[c] - s1[c] * s1[c] * inv_n) / (spp - 1) * inv_n
+                    out[y, x, OUT_MEANS + b] = acc / nc
+            else:
+                for b in range(OUT_VARS):
+                    out[y, x, OUT_MEANS + b] = 0.0
