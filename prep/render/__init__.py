@@ -37,8 +37,10 @@ __all__ = [
     "render_set",
 ]
 
-MAX_DEPTH = 5  # scattering vertices per path
-RR_DEPTH = 3  # Russian roulette from this vertex (0-based) on
+# Paths end by Russian roulette from vertex RR_DEPTH (0-based) on; MAX_DEPTH only guards against a
+# path that roulette keeps alive by chance (a scene may set a lower cap to imitate another renderer).
+MAX_DEPTH = 256
+RR_DEPTH = 3
 _U64 = (1 << 64) - 1
 
 

@@ -25,17 +25,21 @@ from numba import njit, prange
 from prep.render.tracer import (
     DIMS_PER_BOUNCE,
     EMITTER,
+    GLASS,
     GLOSSY,
     INV_PI,
     LAMBERT,
+    LENS_DIM,
     M_ALBEDO,
     M_ALBEDO2,
     M_EMISSION,
+    M_IOR,
     M_KIND,
     M_ROUGHNESS,
     M_SCALE,
     M_SPECULAR,
     M_TEXTURE,
+    MIRROR,
     N_SAMPLE,
     OUT_MEANS,
     OUT_VARS,
@@ -60,9 +64,12 @@ from prep.render.tracer import (
     _scale,
     _sub,
     _to_world,
+    fresnel_dielectric,
     intersect,
     occluded,
     rand,
+    reflect,
+    refract,
     sample_key,
     surface,
 )
@@ -72,8 +79,11 @@ HAS_LAMBERT = True
 HAS_GLOSSY = True
 HAS_PLASTIC = True
 HAS_EMITTER = True
+HAS_MIRROR = True
+HAS_GLASS = True
 HAS_ENVIRONMENT = True
 HAS_TEXTURE = True
+HAS_LENS = True
 # --- end of effects ---
 
 
@@ -156,6 +166,14 @@ def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
     return wi, _dot(n, wi) > 0.0
 
 
+@njit(cache=True)
+def environment_at(sc, d):
+    """Radiance of the environment in direction d: horizon colour blended to the zenith colour."""
+    t = max(d[1], 0.0)
+    e, z = sc.environment, sc.environment_zenith
+    return (e[0] + (z[0] - e[0]) * t, e[1] + (z[1] - e[1]) * t, e[2] + (z[2] - e[2]) * t)
+
+
 # ---------------------------------------------------------------------------------------------
 # the integrator
 # ---------------------------------------------------------------------------------------------
@@ -170,13 +188,14 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     ls = (0.0, 0.0, 0.0)
     bd = (0.0, 0.0, 0.0)  # throughput of the diffuse part of the first vertex
     bs = (0.0, 0.0, 0.0)  # throughput of the glossy part
-    prev_pdf = 0.0
-    materials, quads, env = sc.materials, sc.quads, sc.environment
+    prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
+    materials, quads = sc.materials, sc.quads
     n_lights = sc.lights.shape[0]
     for bounce in range(max_depth + 1):
         t, kind, idx = intersect(o, d, np.inf, sc)
         if kind < 0:
             if HAS_ENVIRONMENT:
+                env = environment_at(sc, d)
                 if bounce == 0:
                     ls = _add(ls, env)
                 else:
@@ -208,7 +227,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 else:
                     li = sc.quad_light[idx] if kind == 1 else -1
                     w = 1.0
-                    if li >= 0:
+                    if li >= 0 and prev_pdf > 0.0:
                         pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
                         w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
                     ld = _madd(ld, _mul(bd, le), w)
@@ -216,62 +235,88 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             break
         if bounce == max_depth:
             break
-        ks = _row3(materials, m, M_SPECULAR)
-        alpha = materials[m, M_ROUGHNESS]
-        wo = _scale(d, -1.0)
         base = 2 + bounce * DIMS_PER_BOUNCE
-        origin = _madd(p, n, RAY_OFFSET)
-
-        # next-event estimation, MIS-weighted against BSDF sampling
-        if HAS_EMITTER and n_lights > 0:
-            u0 = rand(key, base)
-            li = 0
-            while li < n_lights - 1 and u0 >= sc.light_cdf[li]:
-                li += 1
-            q = sc.lights[li]
-            u1 = rand(key, base + 1)
-            u2 = rand(key, base + 2)
-            point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
-            dl = _sub(point, origin)
-            dist2 = _dot(dl, dl)
-            dist = math.sqrt(dist2)
-            wi = _scale(dl, 1.0 / dist)
-            cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
-            ci = _dot(n, wi)
-            if cos_l > 0.0 and ci > 0.0:
-                fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-                if pdf_b > 0.0:
-                    # stop short of the light's own plane
-                    tmax = dist * (1.0 - 1e-5)
-                    if not occluded(origin, wi, tmax, sc):
-                        pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
-                        w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
-                        c = _scale(_row3(materials, sc.quad_mat[q], M_EMISSION), ci * w / pdf_l)
-                        if bounce == 0:
-                            ld = _add(ld, _mul(fd, c))
-                            ls = _add(ls, _mul(fs, c))
-                        else:
-                            fc = _mul(_add(fd, fs), c)
-                            ld = _add(ld, _mul(bd, fc))
-                            ls = _add(ls, _mul(bs, fc))
-
-        # continue the path by sampling the BSDF
-        wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4),
-                             rand(key, base + 5))
-        if not ok:
-            break
-        fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-        if pdf <= 0.0:
-            break
-        ci = _dot(n, wi)
-        if bounce == 0:
-            bd = _scale(fd, ci / pdf)
-            bs = _scale(fs, ci / pdf)
+        if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):
+            # a delta vertex: one direction (or two, for glass), no light sampling
+            wt = _row3(materials, m, M_SPECULAR)
+            cos_i = -_dot(n, d)
+            if HAS_GLASS and mk == GLASS:
+                ior = materials[m, M_IOR]
+                eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
+                fr, cos_t = fresnel_dielectric(cos_i, eta)
+                if rand(key, base + 3) < fr:
+                    wi = reflect(d, n)
+                    origin = _madd(p, n, RAY_OFFSET)
+                    wt = (1.0, 1.0, 1.0)
+                else:
+                    wi = refract(d, n, eta, cos_i, cos_t)
+                    origin = _madd(p, n, -RAY_OFFSET)
+            else:
+                wi = reflect(d, n)
+                origin = _madd(p, n, RAY_OFFSET)
+            if bounce == 0:
+                bd = (0.0, 0.0, 0.0)
+                bs = wt
+            else:
+                bd = _mul(bd, wt)
+                bs = _mul(bs, wt)
+            prev_pdf = -1.0
         else:
-            f = _scale(_add(fd, fs), ci / pdf)
-            bd = _mul(bd, f)
-            bs = _mul(bs, f)
-        prev_pdf = pdf
+            ks = _row3(materials, m, M_SPECULAR)
+            alpha = materials[m, M_ROUGHNESS]
+            wo = _scale(d, -1.0)
+            origin = _madd(p, n, RAY_OFFSET)
+
+            # next-event estimation, MIS-weighted against BSDF sampling
+            if HAS_EMITTER and n_lights > 0:
+                u0 = rand(key, base)
+                li = 0
+                while li < n_lights - 1 and u0 >= sc.light_cdf[li]:
+                    li += 1
+                q = sc.lights[li]
+                u1 = rand(key, base + 1)
+                u2 = rand(key, base + 2)
+                point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
+                dl = _sub(point, origin)
+                dist2 = _dot(dl, dl)
+                dist = math.sqrt(dist2)
+                wi = _scale(dl, 1.0 / dist)
+                cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
+                ci = _dot(n, wi)
+                if cos_l > 0.0 and ci > 0.0:
+                    fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+                    if pdf_b > 0.0:
+                        # stop short of the light's own plane
+                        tmax = dist * (1.0 - 1e-5)
+                        if not occluded(origin, wi, tmax, sc):
+                            pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
+                            w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
+                            c = _scale(_row3(materials, sc.quad_mat[q], M_EMISSION), ci * w / pdf_l)
+                            if bounce == 0:
+                                ld = _add(ld, _mul(fd, c))
+                                ls = _add(ls, _mul(fs, c))
+                            else:
+                                fc = _mul(_add(fd, fs), c)
+                                ld = _add(ld, _mul(bd, fc))
+                                ls = _add(ls, _mul(bs, fc))
+
+            # continue the path by sampling the BSDF
+            wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4),
+                                 rand(key, base + 5))
+            if not ok:
+                break
+            fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+            if pdf <= 0.0:
+                break
+            ci = _dot(n, wi)
+            if bounce == 0:
+                bd = _scale(fd, ci / pdf)
+                bs = _scale(fs, ci / pdf)
+            else:
+                f = _scale(_add(fd, fs), ci / pdf)
+                bd = _mul(bd, f)
+                bs = _mul(bs, f)
+            prev_pdf = pdf
         o = origin
         d = wi
         if bounce >= rr_depth:
@@ -322,7 +367,15 @@ def render_kernel(sc, width, height, spp, seed, max_depth, rr_depth, row_order, 
                 sx = (2.0 * (x + rand(key, 0)) / width - 1.0) * tan_half * aspect
                 sy = (1.0 - 2.0 * (y + rand(key, 1)) / height) * tan_half
                 d = _normalize(_madd(_madd(fwd, right, sx), up, sy))
-                trace_sample(pos, d, key, sc, max_depth, rr_depth, v)
+                o = pos
+                if HAS_LENS and sc.lens_radius > 0.0:
+                    # thin lens: a point on the lens disc, aimed at the ray's point on the focal plane
+                    focal = _madd(pos, d, sc.focus_distance / _dot(d, fwd))
+                    r = sc.lens_radius * math.sqrt(rand(key, LENS_DIM))
+                    phi = 2.0 * math.pi * rand(key, LENS_DIM + 1)
+                    o = _madd(_madd(pos, right, r * math.cos(phi)), up, r * math.sin(phi))
+                    d = _normalize(_sub(focal, o))
+                trace_sample(o, d, key, sc, max_depth, rr_depth, v)
                 for c in range(3):
                     v[13 + c] = v[c] + v[3 + c]
                 if s == 0:

@@ -17,7 +17,8 @@ from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec
 # Layout of one row of the material table handed to the kernels (see tracer.py).
 MAT_KIND, MAT_ALBEDO, MAT_SPECULAR, MAT_ROUGHNESS = 0, 1, 4, 7
 MAT_EMISSION, MAT_TEXTURE, MAT_ALBEDO2, MAT_SCALE = 8, 11, 12, 15
-MAT_COLS = 16
+MAT_IOR = 16
+MAT_COLS = 17
 # Layout of one row of the quad table: corner, u, v, unit normal, dual vectors of u and v, area.
 QUAD_COLS = 19
 
@@ -40,7 +41,10 @@ class PackedScene(NamedTuple):
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
     camera: np.ndarray  # (12,) see Camera.frame
     tan_half: float  # tan(vertical field of view / 2)
-    environment: np.ndarray  # (3,)
+    lens_radius: float  # 0 for a pinhole
+    focus_distance: float  # along the view direction
+    environment: np.ndarray  # (3,) radiance towards the horizon
+    environment_zenith: np.ndarray  # (3,) radiance straight up (= environment when constant)
 
 
 def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
@@ -85,6 +89,7 @@ def pack(scene: Scene) -> PackedScene:
         mats[i, MAT_TEXTURE] = TEXTURES.index(m.texture)
         mats[i, MAT_ALBEDO2:MAT_ALBEDO2 + 3] = m.albedo2
         mats[i, MAT_SCALE] = m.checker_scale
+        mats[i, MAT_IOR] = m.ior
 
     spheres = np.array([[*s.center, s.radius] for s in scene.spheres], dtype=np.float64).reshape(-1, 4)
     sphere_mat = np.array([index[s.material] for s in scene.spheres], dtype=np.int64)
@@ -117,6 +122,9 @@ def pack(scene: Scene) -> PackedScene:
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
         lights=np.asarray(lights, dtype=np.int64), light_cdf=cdf, light_prob=prob,
         camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
+        lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
         environment=np.asarray(_vec(scene.environment, "environment")),
+        environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
+                                           else scene.environment_zenith, "environment_zenith")),
     )
 

@@ -20,9 +20,23 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
     Fresnel weight, clamped to [0.15, 0.85]). The base is not dimmed by the coat: keep
     albedo + specular <= 1. The ``albedo`` AOV of a plastic is its base albedo.
   - ``emitter``: radiance ``emission`` (RGB), reflects nothing.
+  - ``mirror``: perfect mirror reflecting ``specular`` (RGB reflectance).
+  - ``glass``: smooth dielectric of index of refraction ``ior`` (exact Fresnel, unpolarised): each
+    crossing reflects with the Fresnel probability and refracts otherwise; refracted light is tinted by
+    ``specular`` (1, 1, 1 is clear glass). Radiance is not scaled by the squared index ratio on
+    crossing, which cancels for closed objects seen from outside. Glass needs closed shapes whose
+    normals point outwards (spheres; boxes of quads with outward ``cross(u, v)``).
 
-* ``Camera``: pinhole at ``position`` looking at ``look_at``, vertical field of view ``fov`` degrees.
-* ``environment``: constant RGB radiance of rays that leave the scene.
+  The AOVs follow the lobe of the first scattering vertex: mirror, glass and glossy surfaces go to
+  ``specular``, and their ``albedo`` is 0 (as for emitters and the background), so that ``diffuse /
+  albedo`` stays the irradiance of diffuse surfaces only.
+
+* ``Camera``: at ``position`` looking at ``look_at``, vertical field of view ``fov`` degrees; a pinhole
+  when ``aperture`` (the lens radius) is 0, else a thin lens focused at ``focus_distance`` along the view
+  direction (default: the distance to ``look_at``).
+* ``environment``: RGB radiance of rays that leave the scene towards the horizon; with
+  ``environment_zenith`` set, radiance blends linearly from the horizon colour to that colour as the
+  direction rises to straight up (below the horizon: the horizon colour). Constant otherwise.
 
 The built-in scene families are in ``families.py``; ``packing.py`` flattens a scene for the kernels.
 """
@@ -34,10 +48,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter")
+MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
 TEXTURES = ("none", "world", "uv")
-# What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py).
-EFFECTS = ("lambert", "glossy", "plastic", "emitter", "environment", "texture")
+# What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
+# material kinds, plus these.
+EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens")
+IOR_RANGE = (1.0, 3.0)
 
 Vec3 = tuple[float, float, float]
 
@@ -61,6 +77,7 @@ class Material:
     texture: str = "none"
     albedo2: Vec3 = (0.0, 0.0, 0.0)
     checker_scale: float = 1.0
+    ior: float = 1.5
 
     def __post_init__(self):
         if self.kind not in MATERIAL_KINDS:
@@ -78,6 +95,8 @@ class Material:
             raise ValueError(f"GGX roughness must be in [0.01, 1], got {self.roughness!r}")
         if self.texture != "none" and not self.checker_scale > 0:
             raise ValueError(f"checker_scale must be > 0, got {self.checker_scale!r}")
+        if not IOR_RANGE[0] <= self.ior <= IOR_RANGE[1]:
+            raise ValueError(f"Material.ior must be in [{IOR_RANGE[0]}, {IOR_RANGE[1]}], got {self.ior!r}")
 
 
 def lambert(albedo, texture: str = "none", albedo2=(0.0, 0.0, 0.0), checker_scale: float = 1.0) -> Material:
@@ -96,6 +115,14 @@ def plastic(albedo, specular, roughness: float, texture: str = "none", albedo2=(
 
 def emitter(emission) -> Material:
     return Material("emitter", emission=emission)
+
+
+def mirror(reflectance=(1.0, 1.0, 1.0)) -> Material:
+    return Material("mirror", specular=reflectance)
+
+
+def glass(ior: float = 1.5, tint=(1.0, 1.0, 1.0)) -> Material:
+    return Material("glass", specular=tint, ior=ior)
 
 
 @dataclass(frozen=True)
@@ -139,17 +166,30 @@ class Camera:
     look_at: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
     fov: float = 40.0
+    aperture: float = 0.0
+    focus_distance: float | None = None
 
     def __post_init__(self):
         for name in ("position", "look_at", "up"):
             object.__setattr__(self, name, _vec(getattr(self, name), f"Camera.{name}"))
         if not 0 < self.fov < 180:
             raise ValueError(f"Camera.fov must be in (0, 180) degrees, got {self.fov!r}")
+        if not (math.isfinite(self.aperture) and self.aperture >= 0):
+            raise ValueError(f"Camera.aperture must be >= 0, got {self.aperture!r}")
+        if self.focus_distance is not None and not (math.isfinite(self.focus_distance) and self.focus_distance > 0):
+            raise ValueError(f"Camera.focus_distance must be > 0, got {self.focus_distance!r}")
         fwd = np.subtract(self.look_at, self.position)
         if np.linalg.norm(fwd) < 1e-12 or np.linalg.norm(np.cross(fwd, self.up)) < 1e-9 * np.linalg.norm(fwd):
             raise ValueError(
                 f"Camera looks from {self.position} to {self.look_at} with up {self.up}: degenerate"
             )
+
+    @property
+    def focus(self) -> float:
+        """Distance of the plane in focus along the view direction."""
+        if self.focus_distance is not None:
+            return float(self.focus_distance)
+        return float(np.linalg.norm(np.subtract(self.look_at, self.position)))
 
     def frame(self) -> np.ndarray:
         """(12,) float64: position, forward, right, up (unit vectors; right-handed, image x = right)."""
@@ -186,13 +226,15 @@ class Scene:
     spheres: list[Sphere] = field(default_factory=list)
     quads: list[Quad] = field(default_factory=list)
     environment: Vec3 = (0.0, 0.0, 0.0)
+    environment_zenith: Vec3 | None = None
     seed: int | None = None  # the seed the family was generated from, if any
 
     def validate(self) -> None:
         """Raise ValueError if an object names an unknown material or a sphere is an emitter."""
-        env = _vec(self.environment, "Scene.environment")
-        if min(env) < 0:
-            raise ValueError(f"Scene.environment must be >= 0, got {env}")
+        for name in ("environment", "environment_zenith"):
+            value = getattr(self, name)
+            if value is not None and min(_vec(value, f"Scene.{name}")) < 0:
+                raise ValueError(f"Scene.{name} must be >= 0, got {value}")
         for obj in list(self.spheres) + list(self.quads):
             if obj.material not in self.materials:
                 raise ValueError(f"{self.name}: object {obj} names unknown material {obj.material!r}; "
@@ -208,8 +250,10 @@ class Scene:
         out = {m.kind for m in used}
         if any(m.texture != "none" and m.kind in ("lambert", "plastic") for m in used):
             out.add("texture")
-        if max(self.environment) > 0:
+        if max(self.environment) > 0 or (self.environment_zenith is not None and max(self.environment_zenith) > 0):
             out.add("environment")
+        if self.camera.aperture > 0:
+            out.add("lens")
         return frozenset(out)
 
     def to_dict(self) -> dict:
@@ -220,6 +264,7 @@ class Scene:
             "seed": self.seed,
             "camera": asdict(self.camera),
             "environment": list(self.environment),
+            "environment_zenith": None if self.environment_zenith is None else list(self.environment_zenith),
             "materials": {k: asdict(m) for k, m in self.materials.items()},
             "spheres": [asdict(s) for s in self.spheres],
             "quads": [asdict(q) for q in self.quads],
@@ -231,6 +276,7 @@ class Scene:
             name=d["name"], family=d["family"], seed=d.get("seed"),
             camera=Camera(**d["camera"]),
             environment=tuple(d["environment"]),
+            environment_zenith=None if d.get("environment_zenith") is None else tuple(d["environment_zenith"]),
             materials={k: Material(**m) for k, m in d["materials"].items()},
             spheres=[Sphere(**s) for s in d["spheres"]],
             quads=[Quad(**q) for q in d["quads"]],

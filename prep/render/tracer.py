@@ -13,11 +13,11 @@ import math
 import numpy as np
 from numba import njit
 
-LAMBERT, GLOSSY, PLASTIC, EMITTER = 0, 1, 2, 3  # order of scene.MATERIAL_KINDS
+LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
 TEX_NONE, TEX_WORLD, TEX_UV = 0, 1, 2  # order of scene.TEXTURES
 # Column layouts of the material and quad tables, mirrored from packing.py (MAT_*, QUAD_COLS) rather than
 # imported, so that numba's cache of this file cannot hold stale copies; a test checks they agree.
-M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE = 0, 1, 4, 7, 8, 11, 12, 15
+M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 0, 1, 4, 7, 8, 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
 
 # Spawned rays start this far off the surface along the shading normal; scenes are a few units big.
@@ -25,8 +25,9 @@ RAY_OFFSET = 1e-4
 T_MIN = 1e-7
 INV_PI = 1.0 / math.pi
 # Random dimensions used per bounce (light pick, 2 for the light point, lobe pick, 2 for the
-# direction, roulette) plus 2 for the pixel jitter.
+# direction, roulette) plus 2 for the pixel jitter; the lens point uses two dimensions of its own.
 DIMS_PER_BOUNCE = 8
+LENS_DIM = 1 << 40
 
 # Channel layout of the per-sample vector and of the kernel output.
 N_SAMPLE = 16  # diffuse 0:3, specular 3:6, albedo 6:9, normal 9:12, depth 12, default 13:16
@@ -297,3 +298,33 @@ def _plastic_spec_prob(kd, ks, cos_o):
     return min(0.85, max(0.15, p))
 
 
+
+
+# ---------------------------------------------------------------------------------------------
+# smooth dielectric
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def fresnel_dielectric(cos_i, eta):
+    """(unpolarised Fresnel reflectance, cosine of the refracted direction) for light arriving at
+    cos_i > 0 from a medium with eta = n_incident / n_transmitted; reflectance 1 under total internal
+    reflection."""
+    sin2_t = eta * eta * max(0.0, 1.0 - cos_i * cos_i)
+    if sin2_t >= 1.0:
+        return 1.0, 0.0
+    cos_t = math.sqrt(1.0 - sin2_t)
+    rs = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    rp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    return 0.5 * (rs * rs + rp * rp), cos_t
+
+
+@njit(cache=True)
+def reflect(d, n):
+    """The mirror direction of d (travelling towards the surface) about the unit normal n."""
+    return _madd(d, n, -2.0 * _dot(d, n))
+
+
+@njit(cache=True)
+def refract(d, n, eta, cos_i, cos_t):
+    """The refracted direction of unit d through the surface with unit normal n facing d's origin."""
+    return _normalize(_madd(_scale(d, eta), n, eta * cos_i - cos_t))
