@@ -122,7 +122,7 @@ class ShardConfig:
     render_root: str = "data/renders"
     out_root: str = "shards"
     patch_size: int = 65
-    patches_per_image: int = 100
+    patches_per_image: int = 32  # per input render: a ladder of three inputs gives 96 per scene
     patches_per_shard: int = 256
     val_fraction: float = 0.25
     val_scenes: tuple[str, ...] = ()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
-from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seeds, render_set
+from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.packing import pack
 from prep.render.scene import (
     Camera,
@@ -569,31 +569,51 @@ def test_scene_validation_names_the_problem():
         Sphere((0, 0, 0), -1, "m")
 
 
-def test_families_vary_and_stay_sensible():
-    for fam in FAMILIES:
-        kinds = set()
-        for i in range(4):
-            s = make_scene(fam, i, 0)
-            kinds |= {m.kind for m in s.materials.values()}
-            assert any(m.kind == "emitter" for m in s.materials.values())
-        assert {"lambert", "emitter"} <= kinds and kinds & {"glossy", "plastic"}, (fam, kinds)
+# what each family must show in its first four permutations, besides lambert surfaces and a light
+FAMILY_EFFECTS = {
+    "cornell": {"texture"}, "spheres": {"environment", "texture"}, "boxes": {"environment"},
+    "indirect": set(), "fireflies": {"mirror"}, "caustics": {"glass", "mirror"},
+    "outdoor": {"environment", "lens", "texture"}, "textures": {"texture", "mirror"},
+}
+
+
+def _smallest_light_area(scene):
+    return min(q.area for q in scene.quads if scene.materials[q.material].kind == "emitter")
+
+
+def test_families_vary_and_show_what_they_are_for():
+    assert set(FAMILY_EFFECTS) == set(FAMILIES) and len(FAMILIES) >= 8
+    for fam, wanted in FAMILY_EFFECTS.items():
+        scenes = [make_scene(fam, i, 0) for i in range(4)]
+        effects = set().union(*(s.effects() for s in scenes))
+        assert {"lambert", "emitter"} | wanted <= effects, (fam, effects)
+        assert len({json.dumps(s.to_dict()) for s in scenes}) == 4
+    # small bright lights make fireflies; the indirect room's light faces the ceiling, away from view
+    assert max(_smallest_light_area(make_scene("fireflies", i, 0)) for i in range(4)) < 0.01
+    for i in range(4):
+        scene = make_scene("indirect", i, 0)
+        light = next(q for q in scene.quads if scene.materials[q.material].kind == "emitter")
+        assert light.normal[1] > 0.99 and scene.camera.position[1] < light.corner[1]
+        assert make_scene("outdoor", i, 0).environment_zenith is not None
+    # fine texture detail: several checker cells per unit
+    assert any(m.texture == "world" and m.checker_scale >= 6 for m in make_scene("textures", 0, 0).materials.values())
 
 
 def test_render_set_writes_resumes_and_records(tmp_path):
     cfg = RenderConfig(set_name="tiny", families=("cornell", "boxes"), per_family=1, width=12, height=10,
-                       input_spp=2, reference_spp=4, seed=3, out_root=str(tmp_path))
+                       input_spp=(3, 2), reference_spp=4, seed=3, out_root=str(tmp_path))
     paths = render_set(cfg, progress=False)
     names = sorted(p.name for p in paths)
-    assert names == ["boxes-000-00002spp.exr", "boxes-000-00004spp.exr",
-                     "cornell-000-00002spp.exr", "cornell-000-00004spp.exr"]
+    assert names == ["boxes-000-00002spp.exr", "boxes-000-00003spp.exr", "boxes-000-00004spp.exr",
+                     "cornell-000-00002spp.exr", "cornell-000-00003spp.exr", "cornell-000-00004spp.exr"]
     for p in paths:
         layers = read_aovs(p)
         assert layers["default"].shape == (10, 12, 3)
     meta = json.loads((tmp_path / "tiny" / "config.json").read_text())
     assert meta["config"]["seed"] == 3 and len(meta["scenes"]) == 2
     rec = meta["scenes"][0]
-    assert rec["seeds"]["2"] != rec["seeds"]["4"]
-    assert (rec["seeds"]["2"], rec["seeds"]["4"]) == render_seeds(3, rec["family"], rec["index"])
+    assert len(set(rec["seeds"].values())) == 3  # each sample count has a seed of its own
+    assert rec["seeds"] == {str(spp): render_seed(3, rec["family"], rec["index"], spp) for spp in (2, 3, 4)}
     assert rec["scene"] == make_scene(rec["family"], rec["index"], 3).to_dict()
     times = json.loads((tmp_path / "tiny" / "timings.json").read_text())
     assert set(times) == {p.name for p in paths} and all(v >= 0 for v in times.values())
@@ -612,6 +632,8 @@ def test_render_set_writes_resumes_and_records(tmp_path):
         render_set(dataclasses.replace(cfg, seed=4), progress=False)
     with pytest.raises(ValueError, match="'kitchen'"):
         render_set(dataclasses.replace(cfg, families=("kitchen",)), progress=False)
+    with pytest.raises(ValueError, match="reference_spp must exceed every input_spp"):
+        render_set(dataclasses.replace(cfg, input_spp=(2, 8)), progress=False)
 
 
 def test_prep_render_does_not_import_frameworks():

@@ -9,7 +9,21 @@ import zlib
 
 import numpy as np
 
-from prep.render.scene import Camera, Material, Quad, Scene, Sphere, Vec3, _luminance, emitter, glossy, lambert, plastic
+from prep.render.scene import (
+    Camera,
+    Material,
+    Quad,
+    Scene,
+    Sphere,
+    Vec3,
+    _luminance,
+    emitter,
+    glass,
+    glossy,
+    lambert,
+    mirror,
+    plastic,
+)
 
 # ---------------------------------------------------------------------------------------------
 
@@ -213,7 +227,201 @@ def boxes(rng_or_seed=None, name: str = "boxes") -> Scene:
                  environment=(env, env, env * 1.1))
 
 
-FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes}
+def _closed_box(x0, x1, y0, y1, z0, z1, material) -> list[Quad]:
+    """All six faces of an axis-aligned box, normals outwards (what glass needs)."""
+    return _box_quads(x0, x1, y0, y1, z0, z1, material) + [
+        Quad((x0, y0, z0), (x1 - x0, 0, 0), (0, 0, z1 - z0), material)]  # bottom, normal -y
+
+
+def _room(w, h, d, wall="wall") -> list[Quad]:
+    """Floor, ceiling, back and side walls of a w x h x d room centred on x = 0, z in [-d/2, d/2],
+    open towards +z (the camera's side)."""
+    x0, x1, z0 = -w / 2, w / 2, -d / 2
+    return [
+        Quad((x0, 0, z0), (0, 0, d), (w, 0, 0), "floor"),
+        Quad((x0, h, z0), (w, 0, 0), (0, 0, d), wall),  # ceiling
+        Quad((x0, 0, z0), (w, 0, 0), (0, h, 0), wall),  # back
+        Quad((x0, 0, z0), (0, h, 0), (0, 0, d), wall),  # left
+        Quad((x1, 0, z0), (0, 0, d), (0, h, 0), wall),  # right
+    ]
+
+
+def indirect(rng_or_seed=None, name: str = "indirect") -> Scene:
+    """A closed-off room lit only indirectly: the light faces the ceiling from above a tall cabinet,
+    so every visible surface is lit by interreflection; mixed objects on the floor."""
+    rng = _rng(rng_or_seed)
+    wall = _u(rng, 0.6, 0.8)
+    mats = {
+        "wall": lambert(_colour(rng, sat=(0.0, 0.25), val=(wall, wall + 0.1))),
+        "floor": lambert(_colour(rng, sat=(0.2, 0.6), val=(0.35, 0.6)), texture="world",
+                         albedo2=_colour(rng, sat=(0.2, 0.6), val=(0.15, 0.3)), checker_scale=_u(rng, 1.5, 3.0)),
+        "cabinet": _object_material(rng, str(rng.choice(["lambert", "plastic"]))),
+    }
+    w, h, d = 4.0, 2.6, 4.0
+    quads = _room(w, h, d)
+    side = -1 if rng.uniform() < 0.5 else 1
+    cx = side * _u(rng, 0.9, 1.4)
+    top = _u(rng, 1.6, 2.0)
+    quads.extend(_box_quads(cx - 0.4, cx + 0.4, 0.0, top, -1.9, -1.2, "cabinet"))
+    power = _u(rng, 25.0, 45.0)
+    mats["light"] = emitter(tuple(c * power for c in _light_colour(rng)))
+    # facing up (cross(u, v) = +y), just above the cabinet top: no camera ray sees it
+    quads.append(Quad((cx - 0.3, top + 1e-3, -1.85), (0, 0, 0.6), (0.6, 0, 0), "light"))
+    spheres = []
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, int(rng.integers(2, 5)), (0.2, 0.45), (-1.6, 1.6),
+                                                    (-1.0, 1.2), existing=[(cx, -1.55, 0.6)])):
+        mats[f"sphere{i}"] = _object_material(rng)
+        spheres.append(Sphere((x, r, z), r, f"sphere{i}"))
+    cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 1.1, 1.5), _u(rng, 3.8, 4.4)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.6, 0.9), -1.0), fov=_u(rng, 45, 55))
+    return Scene(name=name, family="indirect", camera=cam, materials=mats, spheres=spheres, quads=quads)
+
+
+def fireflies(rng_or_seed=None, name: str = "fireflies") -> Scene:
+    """Small, very bright lights over smooth glossy and plastic objects: the paths that find a light
+    by BSDF sampling are rare and bright, so low sample counts show fireflies."""
+    rng = _rng(rng_or_seed)
+    mats = {
+        "floor": plastic(_colour(rng, val=(0.2, 0.45)), (0.05, 0.05, 0.05), roughness=_u(rng, 0.05, 0.15)),
+        "wall": lambert(_colour(rng, sat=(0.0, 0.3), val=(0.3, 0.5))),
+    }
+    quads = [Quad((-8, 0, -8), (0, 0, 16), (16, 0, 0), "floor"), Quad((-8, 0, -3), (16, 0, 0), (0, 6, 0), "wall")]
+    spheres = []
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, int(rng.integers(4, 8)), (0.2, 0.5), (-2.5, 2.5),
+                                                    (-2.5, 1.5))):
+        kind = str(rng.choice(["glossy", "plastic", "lambert", "mirror"], p=[0.4, 0.3, 0.15, 0.15]))
+        mats[f"sphere{i}"] = mirror(_colour(rng, sat=(0.0, 0.2), val=(0.8, 0.95))) if kind == "mirror" else \
+            _object_material(rng, kind)
+        spheres.append(Sphere((x, r, z), r, f"sphere{i}"))
+    for i in range(int(rng.integers(2, 5))):
+        s = _u(rng, 0.02, 0.06)
+        power = _u(rng, 1.0, 4.0)
+        key = f"light{i}"
+        mats[key] = emitter(tuple(c * power / (s * s) for c in _light_colour(rng)))
+        q = _ceiling_light((_u(rng, -2.5, 2.5), _u(rng, 1.0, 3.0), _u(rng, -2.5, 1.5)), s, s)
+        quads.append(Quad(q.corner, q.u, q.v, key))
+    cam = Camera(position=(_u(rng, -1.5, 1.5), _u(rng, 1.2, 2.5), _u(rng, 5.0, 6.5)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), -0.5), fov=_u(rng, 38, 46))
+    env = _u(rng, 0.005, 0.02)
+    return Scene(name=name, family="fireflies", camera=cam, materials=mats, spheres=spheres, quads=quads,
+                 environment=(env, env, env))
+
+
+def caustics(rng_or_seed=None, name: str = "caustics") -> Scene:
+    """Glass spheres and boxes and a mirror panel on a diffuse floor under one small light: caustics
+    (light focused through glass, or off the mirror, onto diffuse surfaces) and refraction."""
+    rng = _rng(rng_or_seed)
+    mats = {
+        "floor": lambert(_colour(rng, sat=(0.0, 0.3), val=(0.55, 0.8)), texture="world",
+                         albedo2=_colour(rng, sat=(0.0, 0.4), val=(0.3, 0.5)), checker_scale=_u(rng, 1.0, 2.5)),
+        "wall": lambert(_colour(rng, sat=(0.0, 0.3), val=(0.5, 0.7))),
+        "mirror": mirror(_colour(rng, sat=(0.0, 0.15), val=(0.85, 0.97))),
+    }
+    quads = [Quad((-8, 0, -8), (0, 0, 16), (16, 0, 0), "floor"), Quad((-8, 0, -2.5), (16, 0, 0), (0, 6, 0), "wall")]
+    spheres = []
+    placed = _place_on_floor(rng, int(rng.integers(2, 5)), (0.3, 0.6), (-2.0, 2.0), (-1.8, 1.0))
+    for i, (x, z, r) in enumerate(placed):
+        tint = _hsv(_u(rng, 0, 1), _u(rng, 0.0, 0.25), 1.0)
+        mats[f"glass{i}"] = glass(_u(rng, 1.33, 1.8), tint)
+        if i % 2 == 0 or rng.uniform() < 0.5:
+            spheres.append(Sphere((x, r + 1e-3, z), r, f"glass{i}"))
+        else:
+            hx = r * 0.65
+            quads.extend(_closed_box(x - hx, x + hx, 1e-3, _u(rng, 0.3, 0.9), z - hx, z + hx, f"glass{i}"))
+    mx = _u(rng, -2.5, 2.5)
+    quads.append(Quad((mx - 0.6, 0.0, -2.4), (1.2, 0, 0), (0, 1.5, 0), "mirror"))  # leaning on the wall
+    s = _u(rng, 0.1, 0.25)
+    power = _u(rng, 15.0, 30.0)
+    mats["light"] = emitter(tuple(c * power / (s * s) for c in _light_colour(rng)))
+    quads.append(_ceiling_light((_u(rng, -1.5, 1.5), _u(rng, 2.5, 3.5), _u(rng, -1.0, 1.0)), s, s))
+    cam = Camera(position=(_u(rng, -1.0, 1.0), _u(rng, 1.5, 2.5), _u(rng, 4.5, 5.5)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), -0.3), fov=_u(rng, 38, 46))
+    env = _u(rng, 0.01, 0.04)
+    return Scene(name=name, family="caustics", camera=cam, materials=mats, spheres=spheres, quads=quads,
+                 environment=(env, env, env))
+
+
+def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
+    """A long ground under a sky (horizon-to-zenith gradient, bright) and a small intense sun: rows of
+    objects and thin poles receding into the distance (high depth variation), often seen through a lens
+    with shallow depth of field."""
+    rng = _rng(rng_or_seed)
+    mats = {
+        "ground": lambert(_colour(rng, sat=(0.2, 0.6), val=(0.3, 0.55)), texture="world",
+                          albedo2=_colour(rng, sat=(0.2, 0.6), val=(0.15, 0.3)), checker_scale=_u(rng, 0.5, 1.5)),
+        "pole": _object_material(rng, str(rng.choice(["lambert", "glossy"]))),
+    }
+    quads = [Quad((-200, 0, -200), (0, 0, 400), (400, 0, 0), "ground")]
+    spheres = []
+    for row in range(int(rng.integers(3, 6))):
+        z = -row * _u(rng, 3.0, 6.0)
+        for side in (-1, 1):
+            x = side * _u(rng, 1.0, 3.0)
+            key = f"obj{row}{'lr'[side > 0]}"
+            mats[key] = _object_material(rng)
+            if rng.uniform() < 0.5:
+                r = _u(rng, 0.3, 0.8)
+                spheres.append(Sphere((x, r, z), r, key))
+            else:
+                h = _u(rng, 0.5, 2.0)
+                quads.extend(_box_quads(x - 0.4, x + 0.4, 0.0, h, z - 0.4, z + 0.4, key))
+        px = _u(rng, -0.5, 0.5)
+        quads.extend(_box_quads(px - 0.02, px + 0.02, 0.0, _u(rng, 2.0, 4.0), z - 1.5, z - 1.46, "pole"))
+    horizon = _hsv(_u(rng, 0.05, 0.15), _u(rng, 0.1, 0.4), _u(rng, 0.6, 1.0))
+    zenith = _hsv(_u(rng, 0.55, 0.65), _u(rng, 0.4, 0.8), _u(rng, 0.8, 1.5))
+    sun = _u(rng, 0.05, 0.12)
+    power = _u(rng, 200.0, 500.0)
+    mats["sun"] = emitter(tuple(c * power / (sun * sun) for c in _light_colour(rng)))
+    q = _ceiling_light((_u(rng, -6, 6), _u(rng, 8, 12), _u(rng, -8, 2)), sun, sun)
+    quads.append(Quad(q.corner, q.u, q.v, "sun"))
+    cam_z = _u(rng, 4.0, 6.0)
+    aperture = _u(rng, 0.02, 0.12) if rng.uniform() < 0.7 else 0.0
+    cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 0.8, 1.6), cam_z),
+                 look_at=(_u(rng, -0.5, 0.5), _u(rng, 0.5, 1.0), -5.0), fov=_u(rng, 35, 50),
+                 aperture=aperture, focus_distance=_u(rng, 3.0, 12.0) if aperture else None)
+    return Scene(name=name, family="outdoor", camera=cam, materials=mats, spheres=spheres, quads=quads,
+                 environment=horizon, environment_zenith=zenith)
+
+
+def textures(rng_or_seed=None, name: str = "textures") -> Scene:
+    """Fine texture detail: small checker cells on the floor, the walls and the objects (several cells
+    per pixel in the distance), a mirror, an area light and a dim environment."""
+    rng = _rng(rng_or_seed)
+    mats = {
+        "floor": lambert(_colour(rng, val=(0.6, 0.85)), texture="world", albedo2=_colour(rng, val=(0.1, 0.3)),
+                         checker_scale=_u(rng, 6.0, 16.0)),
+        "wall": lambert(_colour(rng, sat=(0.0, 0.3), val=(0.6, 0.8)), texture="world",
+                        albedo2=_colour(rng, sat=(0.0, 0.3), val=(0.3, 0.5)), checker_scale=_u(rng, 4.0, 10.0)),
+        "mirror": mirror(_colour(rng, sat=(0.0, 0.1), val=(0.85, 0.95))),
+    }
+    quads = [Quad((-10, 0, -10), (0, 0, 20), (20, 0, 0), "floor"), Quad((-10, 0, -3), (20, 0, 0), (0, 6, 0), "wall"),
+             Quad((_u(rng, -2.5, 1.0), 0.0, -2.95), (1.5, 0, 0), (0, 2.0, 0), "mirror")]
+    spheres = []
+    for i, (x, z, r) in enumerate(_place_on_floor(rng, int(rng.integers(3, 7)), (0.25, 0.6), (-2.5, 2.5),
+                                                    (-2.5, 1.5))):
+        key = f"sphere{i}"
+        if rng.uniform() < 0.6:
+            mats[key] = lambert(_colour(rng), texture="uv", albedo2=_colour(rng, val=(0.75, 0.95)),
+                                checker_scale=float(rng.integers(12, 40)))
+        else:
+            mats[key] = plastic(_colour(rng), (0.05, 0.05, 0.05), _u(rng, 0.05, 0.3), texture="uv",
+                                albedo2=_colour(rng, val=(0.1, 0.3)), checker_scale=float(rng.integers(12, 40)))
+        spheres.append(Sphere((x, r, z), r, key))
+    sx, sz = _u(rng, 0.8, 1.5), _u(rng, 0.8, 1.5)
+    power = _u(rng, 40.0, 80.0)
+    mats["light"] = emitter(tuple(c * power / (sx * sz) for c in _light_colour(rng)))
+    quads.append(_ceiling_light((_u(rng, -1.5, 1.5), _u(rng, 3.0, 4.0), _u(rng, -1.0, 1.0)), sx, sz))
+    aperture = _u(rng, 0.02, 0.08) if rng.uniform() < 0.4 else 0.0
+    cam = Camera(position=(_u(rng, -1.0, 1.0), _u(rng, 1.2, 2.2), _u(rng, 4.5, 6.0)),
+                 look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), -1.0), fov=_u(rng, 35, 45),
+                 aperture=aperture, focus_distance=_u(rng, 4.0, 7.0) if aperture else None)
+    env = _u(rng, 0.02, 0.08)
+    return Scene(name=name, family="textures", camera=cam, materials=mats, spheres=spheres, quads=quads,
+                 environment=(env, env, env * 1.2))
+
+
+FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes, "indirect": indirect,
+            "fireflies": fireflies, "caustics": caustics, "outdoor": outdoor, "textures": textures}
 
 
 def family_seed(family: str, index: int, seed: int) -> list[int]:
