@@ -615,6 +615,8 @@ def test_render_set_writes_resumes_and_records(tmp_path):
     assert len(set(rec["seeds"].values())) == 3  # each sample count has a seed of its own
     assert rec["seeds"] == {str(spp): render_seed(3, rec["family"], rec["index"], spp) for spp in (2, 3, 4)}
     assert rec["scene"] == make_scene(rec["family"], rec["index"], 3).to_dict()
+    sheet = (tmp_path / "tiny" / "contact-sheet.png").read_bytes()
+    assert sheet.startswith(b"\x89PNG")
     times = json.loads((tmp_path / "tiny" / "timings.json").read_text())
     assert set(times) == {p.name for p in paths} and all(v >= 0 for v in times.values())
     # the written input is the render of the recorded seed
@@ -628,6 +630,7 @@ def test_render_set_writes_resumes_and_records(tmp_path):
     assert paths2 == paths
     assert all(p.stat().st_mtime_ns == mtimes[p] for p in paths if p.name != "boxes-000-00004spp.exr")
     assert (tmp_path / "tiny" / "boxes-000-00004spp.exr").exists()
+    assert (tmp_path / "tiny" / "contact-sheet.png").read_bytes() == sheet  # same renders, same bytes
     with pytest.raises(ValueError, match="seed=3"):
         render_set(dataclasses.replace(cfg, seed=4), progress=False)
     with pytest.raises(ValueError, match="'kitchen'"):
@@ -724,3 +727,21 @@ def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
                                      if name in ir}
     assert calls[scene.effects()] == {"intersect"}
     assert calls[frozenset(EFFECTS)] == {"_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect"}
+
+
+def test_render_bench_writes_its_report_for_every_family(tmp_path):
+    from prep.render.bench import RenderBenchConfig, bench_render
+
+    record = bench_render(RenderBenchConfig(width=8, height=6, spp=2, repeats=1, out_dir=str(tmp_path)),
+                          progress=False)
+    saved = json.loads((tmp_path / "render.json").read_text())
+    assert saved == json.loads(json.dumps(record))
+    scenes = [row["scene"] for row in saved["families"]]
+    assert scenes[:len(FAMILIES)] == [f"{f}-000" for f in FAMILIES] and "lambert only" in scenes[-1]
+    lean = saved["families"][-1]
+    assert lean["effects"] == ["emitter", "lambert"] and not lean["same_kernel"]
+    for row in saved["families"]:
+        assert row["specialised_samples_per_s"] > 0 and row["all_effects_samples_per_s"] > 0
+        assert math.isclose(row["saving"], 1 - row["specialised_s"] / row["all_effects_s"])
+    md = (tmp_path / "render.md").read_text()
+    assert all(s in md for s in scenes) and "Msamples/s" in md

@@ -156,4 +156,40 @@ def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> l
         if bar is not None:
             bar.close()
     atomic_write_json(meta_path, meta)
+    contact_sheet(out_dir, [(r["family"], r["name"], out_dir / r["files"][str(config.reference_spp)])
+                            for r in meta["scenes"]])
     return paths
+
+
+CONTACT_SHEET = "contact-sheet.png"
+
+
+def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
+    """``<out_dir>/contact-sheet.png``: the reference render of every scene, one row per family (the
+    same bytes for the same renders: no metadata that changes between runs)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from prep.exr import read_aovs
+    from prep.files import atomic_path
+    from prep.metrics import tonemap
+
+    rows: dict[str, list[tuple[str, Path]]] = {}
+    for family, name, path in entries:
+        rows.setdefault(family, []).append((name, path))
+    n_cols = max(len(v) for v in rows.values())
+    fig, axes = plt.subplots(len(rows), n_cols, figsize=(2.0 * n_cols, 2.1 * len(rows)), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, scenes in enumerate(rows.values()):
+        for j, (name, path) in enumerate(scenes):
+            axes[i, j].imshow(tonemap(read_aovs(path, variances=False)["default"]), interpolation="nearest")
+            axes[i, j].set_title(name, fontsize=8)
+    fig.tight_layout()
+    target = out_dir / CONTACT_SHEET
+    with atomic_path(target) as tmp:
+        fig.savefig(tmp, dpi=80, metadata={"Software": None})
+    plt.close(fig)
+    return target
