@@ -27,6 +27,13 @@ def _csv(text: str) -> tuple[str, ...]:
     return tuple(t for t in (s.strip() for s in text.split(",")) if t)
 
 
+def _csv_ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(t) for t in _csv(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
 def _given(args, cls) -> dict:
     """The options of the subcommand that the user gave and that are fields of the dataclass ``cls``."""
     names = {f.name for f in dataclasses.fields(cls)} & set(args.flags)
@@ -37,15 +44,37 @@ def _default(cls, name: str) -> str:
     """A dataclass field's default, for help texts."""
     f = next(f for f in dataclasses.fields(cls) if f.name == name)
     value = f.default_factory() if f.default is dataclasses.MISSING else f.default
-    return ",".join(value) if isinstance(value, tuple) else str(value)
+    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
 def cmd_render(args) -> int:
     from prep.render import RenderConfig, render_set
 
+    if "scene" in args:
+        return cmd_render_scene(args)
+    for dest in ("spp", "no_png"):
+        if dest in args:
+            raise OptionError(dest, "is for one scene file: it needs --scene FILE")
     cfg = RenderConfig(**_given(args, RenderConfig))
     paths = render_set(cfg, progress=not args.quiet)
     print(f"{len(paths)} renders in {cfg.out_root}/{cfg.set_name}")
+    return 0
+
+
+def cmd_render_scene(args) -> int:
+    """``kpcn render --scene FILE``: one scene file (prep/render/scenefile.py) to one EXR and a PNG."""
+    from prep.render import RenderConfig
+    from prep.render.scenefile import render_scene_file
+
+    shared = {"width", "height", "seed", "out_root"}  # the options that also mean something with --scene
+    for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared):
+        if dest in args:
+            raise OptionError(dest, "is for a built-in scene set, not for --scene FILE (use --spp)")
+    overrides = {k: getattr(args, k) for k in ("spp", "seed", "width", "height") if k in args}
+    report = render_scene_file(args.scene, getattr(args, "out_root", None), overrides=overrides,
+                               png="no_png" not in args)
+    print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
+    print(f"rendered in {report['seconds']:.2f} s")
     return 0
 
 
@@ -99,6 +128,16 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from prep.render.bench import RenderBenchConfig, bench_render, format_report
+
+    cfg = RenderBenchConfig(**_given(args, RenderBenchConfig))
+    record = bench_render(cfg, progress=not args.quiet)
+    print(format_report(record))
+    print(f"report: {cfg.out_dir}/render.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from prep.render import RenderConfig  # light: no numba kernels until a render runs
     from prep.shards import ShardConfig
@@ -112,17 +151,22 @@ def build_parser() -> argparse.ArgumentParser:
         p.get_default("subcommands")[name] = sub.add_parser(name, argument_default=argparse.SUPPRESS, **kw)
         return p.get_default("subcommands")[name]
 
-    r = parser("render", help="render a built-in scene set (noisy inputs + references) to EXR")
+    r = parser("render", help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")
     d = lambda name: f"(default: {_default(RenderConfig, name)})"  # noqa: E731
     r.add_argument("--set", dest="set_name", help=f"render set name, a folder under --out {d('set_name')}")
     r.add_argument("--families", type=_csv, help=f"comma-separated scene families {d('families')}")
     r.add_argument("--per-family", type=int, help=f"random permutations per family {d('per_family')}")
     r.add_argument("--width", type=int, help=d("width"))
     r.add_argument("--height", type=int, help=d("height"))
-    r.add_argument("--input-spp", type=int, help=d("input_spp"))
+    r.add_argument("--input-spp", type=_csv_ints, help=f"comma-separated input sample counts {d('input_spp')}")
     r.add_argument("--reference-spp", type=int, help=d("reference_spp"))
     r.add_argument("--seed", type=int, help=d("seed"))
-    r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}")
+    r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}; with --scene: "
+                   "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file)")
+    r.add_argument("--scene", help="render this scene file (.toml or .json; see README, 'Scene files') instead "
+                   "of a set; --spp, --seed, --width, --height override its [render] table")
+    r.add_argument("--spp", type=int, help="with --scene: samples per pixel (default: the file's)")
+    r.add_argument("--no-png", action="store_true", help="with --scene: no tonemapped PNG beside the EXR")
     r.set_defaults(func=cmd_render)
 
     s = parser("shards", help="cut 65x65 patches of a render folder into HDF5 shards")
@@ -174,6 +218,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
     e.add_argument("--no-baseline", action="store_true", default=False)
     e.set_defaults(func=cmd_evaluate)
+
+    from prep.render.bench import RenderBenchConfig
+
+    b = parser("bench", help="measure what a stage costs; writes reports/<what>.{md,json}")
+    d = lambda name: f"(default: {_default(RenderBenchConfig, name)})"  # noqa: E731
+    b.add_argument("what", choices=["render"], help="render: samples per second per scene family, "
+                                                    "specialised against all-effects kernels")
+    b.add_argument("--width", type=int, help=d("width"))
+    b.add_argument("--height", type=int, help=d("height"))
+    b.add_argument("--spp", type=int, help=d("spp"))
+    b.add_argument("--repeats", type=int, help=d("repeats"))
+    b.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
+    b.set_defaults(func=cmd_bench)
     return p
 
 

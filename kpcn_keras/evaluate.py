@@ -1,9 +1,10 @@
 """Held-out evaluation of a run: raw input, the network and a classical baseline, per scene.
 
-For every (noisy, reference) pair it measures relMSE and DSSIM of the raw input, of the denoised
-frame and of non-local means (``prep.baselines``), plus seconds per frame, and writes
-``<run>/eval/`` with ``report.md``, ``metrics.json`` and one PNG per scene
-(input | NLM | KPCN | reference).
+For every (noisy, reference) pair it measures relMSE, the 99.9th percentile of the per-pixel relative
+squared error (relSE p99.9: the worst pixels, e.g. fireflies copied rather than repaired) and DSSIM of the
+raw input, of the denoised frame and of non-local means (``prep.baselines``), plus seconds per frame, and
+writes ``<run>/eval/`` with ``report.md``, ``metrics.json`` (every metric of ``prep.metrics.METRICS``) and
+one PNG per scene (input | NLM | KPCN | reference).
 """
 
 from __future__ import annotations
@@ -22,15 +23,19 @@ from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_writable
 from prep.shards import discover_renders
 
+# (header, format, where the value is in a row: a top-level key, or (method, metric))
 COLUMNS = (
-    ("scene", "{}"),
-    ("input spp", "{}"),
-    ("raw relMSE", "{:.4f}"),
-    ("denoised relMSE", "{:.4f}"),
-    ("raw DSSIM", "{:.4f}"),
-    ("denoised DSSIM", "{:.4f}"),
-    ("NLM relMSE", "{:.4f}"),
-    ("s/frame", "{:.2f}"),
+    ("scene", "{}", "scene"),
+    ("input spp", "{}", "input spp"),
+    ("raw relMSE", "{:.4f}", ("raw", "relmse")),
+    ("denoised relMSE", "{:.4f}", ("denoised", "relmse")),
+    ("raw relSE p99.9", "{:.4f}", ("raw", "relse_p999")),
+    ("denoised relSE p99.9", "{:.4f}", ("denoised", "relse_p999")),
+    ("raw DSSIM", "{:.4f}", ("raw", "dssim")),
+    ("denoised DSSIM", "{:.4f}", ("denoised", "dssim")),
+    ("NLM relMSE", "{:.4f}", ("nlm", "relmse")),
+    ("NLM relSE p99.9", "{:.4f}", ("nlm", "relse_p999")),
+    ("s/frame", "{:.2f}", "seconds"),
 )
 
 
@@ -96,17 +101,22 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     return rows
 
 
+def _value(row: dict, where):
+    """The value of one column in a row; NaN for a method the row lacks (NLM under --no-baseline)."""
+    if isinstance(where, str):
+        return row[where]
+    method, metric = where
+    return row.get(method, {}).get(metric, float("nan"))
+
+
 def _cells(row: dict) -> list[str]:
-    values = [
-        row["scene"], row["input spp"], row["raw"]["relmse"], row["denoised"]["relmse"],
-        row["raw"]["dssim"], row["denoised"]["dssim"], row.get("nlm", {}).get("relmse", float("nan")), row["seconds"],
-    ]
-    return [fmt.format(v) for (_, fmt), v in zip(COLUMNS, values)]
+    return [fmt.format(_value(row, where)) for _, fmt, where in COLUMNS]
 
 
 def format_table(rows: list[dict]) -> str:
-    """A Markdown table, one row per scene, with a mean row."""
-    lines = ["| " + " | ".join(name for name, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    """A Markdown table, one row per scene, with a mean row: each column's mean over the scenes (for relSE
+    p99.9 the mean of the scenes' percentiles, not a percentile of all their pixels)."""
+    lines = ["| " + " | ".join(name for name, _, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     lines += ["| " + " | ".join(_cells(r)) + " |" for r in rows]
     if len(rows) > 1:
         mean = {
@@ -114,8 +124,10 @@ def format_table(rows: list[dict]) -> str:
             "input spp": "",
             "seconds": float(np.mean([r["seconds"] for r in rows])),
         }
-        for key in ("raw", "denoised", "nlm"):
-            if all(key in r for r in rows):
-                mean[key] = {m: float(np.mean([r[key][m] for r in rows])) for m in ("relmse", "dssim")}
+        for _, _, where in COLUMNS:
+            if isinstance(where, tuple):
+                method, metric = where
+                if all(method in r for r in rows):
+                    mean.setdefault(method, {})[metric] = float(np.mean([_value(r, where) for r in rows]))
         lines.append("| " + " | ".join(_cells(mean)) + " |")
     return "\n".join(lines)

@@ -30,7 +30,7 @@ import keras
 
 from kpcn_keras.models import ModelConfig, build_branch_model
 from prep.errors import KpcnError
-from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json
+from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries
 from prep.shards import ShardSet
 
 RECORD = "config.json"
@@ -62,14 +62,24 @@ class Run:
     def model_path(self, component: str) -> Path:
         return self.dir / f"{component}.keras"
 
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.dir / "checkpoints"
+
     def checkpoint_path(self, component: str) -> Path:
-        return self.dir / "checkpoints" / f"{component}.keras"
+        return self.checkpoint_dir / f"{component}.keras"
 
     def log_path(self, component: str) -> Path:
         return self.dir / f"log-{component}.csv"
 
     def lock(self):
         return exclusive_lock(self.dir, "run folder")
+
+    def remove_temporaries(self) -> None:
+        """Remove what killed trainers left (hold :meth:`lock`; ``eval/`` is evaluate's, which takes no lock)."""
+        for folder in (self.dir, self.checkpoint_dir):
+            if folder.is_dir():
+                remove_temporaries(folder)
 
     def has_record(self) -> bool:
         return self.record_path.is_file()

@@ -302,6 +302,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
     manifest, paths = _check_inputs(cfg, sset)
     check_writable(run.dir, "run folder (--run)", directory=True)
     with run.lock():
+        run.remove_temporaries()
         record = _open_record(run, cfg, manifest, sset)
         timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
         for branch in cfg.branches:

@@ -39,5 +39,6 @@ def test_denoises_the_mitsuba_fixture(tiny_run, tmp_path, fixture_noisy, fixture
     out = exr.read_aovs(tmp_path / "fx.exr", variances=False)
     assert out["default"].shape == (64, 64, 3) and np.isfinite(out["default"]).all()
     assert (tmp_path / "fx.png").is_file()
-    assert set(report["metrics"]) == {"mse", "relmse", "smape", "dssim", "psnr"}
+    assert set(report["metrics"]) == set(report["input_metrics"]) == {
+        "mse", "relmse", "relse_p999", "smape", "dssim", "psnr"}
     assert all(np.isfinite(v) for v in report["metrics"].values())

@@ -13,10 +13,10 @@ from prep import exr
 @pytest.mark.slow
 def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_noisy, fixture_reference, capsys):
     monkeypatch.chdir(tmp_path)
-    assert main(["-q", "render", "--set", "toy", "--per-family", "2", "--width", "48", "--height", "40",
-                 "--input-spp", "4", "--reference-spp", "32"]) == 0
+    assert main(["-q", "render", "--set", "toy", "--families", "cornell,caustics,outdoor", "--per-family", "2",
+                 "--width", "48", "--height", "40", "--input-spp", "4,8", "--reference-spp", "32"]) == 0
     renders = sorted((tmp_path / "data/renders/toy").glob("*.exr"))
-    assert len(renders) == 3 * 2 * 2
+    assert len(renders) == 3 * 2 * 3  # families x scenes x (two inputs and the reference)
 
     assert main(["-q", "shards", "--set", "toy", "--patch-size", "24", "--patches-per-image", "6",
                  "--val-fraction", "0.5"]) == 0
@@ -40,6 +40,9 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
 
     assert main(["-q", "evaluate", "--run", "runs/toy"]) == 0
     rows = json.loads((tmp_path / "runs/toy/eval/metrics.json").read_text())
-    assert [r["scene"] for r in rows] == manifest["split"]["val"]
+    assert sorted((r["scene"], r["input spp"]) for r in rows) == sorted((s, n) for s in manifest["split"]["val"] for n in (4, 8))
     assert all(np.isfinite(r["denoised"]["relmse"]) and np.isfinite(r["nlm"]["relmse"]) for r in rows)
-    assert "| scene | input spp | raw relMSE" in (tmp_path / "runs/toy/eval/report.md").read_text()
+    assert all(np.isfinite(r[k]["relse_p999"]) for r in rows for k in ("raw", "denoised", "nlm"))
+    report = (tmp_path / "runs/toy/eval/report.md").read_text()
+    assert "| scene | input spp | raw relMSE | denoised relMSE | raw relSE p99.9 | denoised relSE p99.9 |" in report
+    assert "| NLM relMSE | NLM relSE p99.9 |" in report

@@ -63,3 +63,88 @@ def test_one_window_ssim_of_constant_images_is_the_luminance_term():
     expected = (2 * ta * tb + c1) / (ta**2 + tb**2 + c1)
     got = metrics.dssim(np.full((2, 2, 3), a), np.full((2, 2, 3), b))
     assert got == pytest.approx((1 - expected) / 2, rel=1e-12)
+
+
+def _relse_p999_by_hand(x, r):
+    """Independent float64 reference: per-pixel mean over channels of (x - r)^2 / (r^2 + 0.01) in explicit
+    loops, then the 99.9th percentile of the sorted errors by linear interpolation between order statistics."""
+    h, w, c = x.shape
+    errors = []
+    for i in range(h):
+        for j in range(w):
+            total = 0.0
+            for k in range(c):
+                d = float(x[i, j, k]) - float(r[i, j, k])
+                total += d * d / (float(r[i, j, k]) ** 2 + 0.01)
+            errors.append(total / c)
+    s = sorted(errors)
+    pos = 0.999 * (len(s) - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, len(s) - 1)
+    return s[lo] + (pos - lo) * (s[hi] - s[lo])
+
+
+def test_relmse_is_the_mean_of_the_relse_terms():
+    rng = np.random.default_rng(7)
+    r = rng.gamma(0.5, 1.0, (9, 11, 3))
+    x = r + rng.normal(0, 0.3, r.shape)
+    assert metrics.relmse(x, r) == float(np.mean(metrics.relse(x, r)))
+    assert metrics.relmse(x, r) == pytest.approx(np.mean(metrics.relse_pixels(x, r)), rel=1e-12)
+    assert metrics.relse_pixels(x, r).shape == (9, 11) and metrics.relse_pixels(x, r).dtype == np.float64
+
+
+def test_relse_p999_on_a_hand_computed_case():
+    # 1000 pixels whose errors are 0, 1, ..., 999 (all in the red channel, so 3 i there): the 99.9th
+    # percentile sits at position 0.999 * 999 = 998.001, i.e. 998 + 0.001 * (999 - 998) = 998.001
+    i = np.random.default_rng(3).permutation(1000).astype(np.float64)
+    r = np.zeros((1000, 3))
+    x = np.zeros((1000, 3))
+    x[:, 0] = np.sqrt(3 * i * 0.01)  # (x - 0)^2 / (0 + 0.01) = 3 i; mean over R, G, B = i
+    x, r = x.reshape(25, 40, 3), r.reshape(25, 40, 3)
+    assert metrics.relse_p999(x, r) == pytest.approx(998.001, rel=1e-12)
+    assert metrics.relmse(x, r) == pytest.approx(499.5, rel=1e-12)
+    assert metrics.relse_p999(r, r) == 0.0
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 3, 3), (30, 30, 3), (64, 64, 3), (37, 53, 3)])
+def test_relse_p999_equals_a_float64_reference(shape):
+    rng = np.random.default_rng(sum(shape))
+    r = rng.gamma(0.5, 1.0, shape)
+    x = np.maximum(r + rng.normal(0, 0.5, shape) * np.sqrt(r + 0.01), 0).astype(np.float32)
+    assert metrics.relse_p999(x, r) == pytest.approx(_relse_p999_by_hand(x, r), rel=1e-12)
+
+
+def test_relse_p999_sees_fireflies_that_the_mean_hides():
+    rng = np.random.default_rng(11)
+    r = rng.uniform(0.2, 1.0, (30, 30, 3))  # 900 pixels: the worst one enters the percentile
+    x = r * (1 + rng.normal(0, 0.05, r.shape))
+    firefly = x.copy()
+    firefly[17, 4] = 500.0
+    mean_before, mean_after = metrics.relmse(x, r), metrics.relmse(firefly, r)
+    p_before, p_after = metrics.relse_p999(x, r), metrics.relse_p999(firefly, r)
+    # (rel 1e-10: the last bit of the position 0.999 * 899 times the firefly's gap of 5e5 to its neighbour)
+    assert p_after == pytest.approx(_relse_p999_by_hand(firefly, r), rel=1e-10)
+    # position 0.999 * 899 = 898.101: the firefly's error weighs 0.101 in the percentile, 1/900 in the mean
+    assert p_after - p_before > 50 * (mean_after - mean_before) > 0
+    assert p_after > 1000 * p_before
+
+    # on a larger frame the percentile needs fireflies in at least 0.1 % of the pixels: 9 of 4096 here
+    r = rng.uniform(0.2, 1.0, (64, 64, 3))
+    x = r * (1 + rng.normal(0, 0.05, r.shape))
+    one, nine = x.copy(), x.copy()
+    one[5, 5] = 500.0
+    nine[rng.choice(64, 9, replace=False), rng.choice(64, 9, replace=False)] = 500.0
+    worst_clean = metrics.relse_pixels(x, r).max()
+    assert metrics.relse_p999(one, r) <= worst_clean  # a single firefly in 4096 pixels is not seen
+    assert metrics.relse_p999(nine, r) > 1000 * worst_clean
+    assert metrics.relmse(nine, r) < 0.01 * metrics.relse_p999(nine, r)
+    assert metrics.relse_p999(nine, r) == pytest.approx(_relse_p999_by_hand(nine, r), rel=1e-10)
+
+
+def test_all_metrics_hold_every_metric_in_order():
+    rng = np.random.default_rng(4)
+    r = rng.gamma(1.0, 1.0, (8, 8, 3))
+    x = r + rng.normal(0, 0.1, r.shape)
+    values = metrics.all_metrics(x, r)
+    assert tuple(values) == metrics.METRICS
+    assert values["relse_p999"] == metrics.relse_p999(x, r) and values["relmse"] == metrics.relmse(x, r)

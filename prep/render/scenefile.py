@@ -1,0 +1,712 @@
+"""Scene files: a scene and its render settings as TOML (``.toml``) or JSON (``.json``).
+
+``load_scene(path) -> (Scene, RenderSettings)`` reads one; ``dump_scene(scene, settings)`` writes the text
+of one (every built-in family scene round-trips: the loaded scene equals the original and renders the
+same bits); ``render_scene_file`` is what ``kpcn render --scene FILE`` runs.
+
+Format
+------
+
+The file is one table (a TOML document or a JSON object) whose keys are the fields of
+:class:`prep.render.scene.Scene` plus ``render``:
+
+``name``, ``family``, ``seed`` (optional)
+    The scene's name (default: the file's stem), its family (default ``"custom"``) and the seed a built-in
+    family generated it from (informational; the noise seed is ``render.seed``).
+``environment``, ``environment_zenith`` (optional)
+    RGB radiance of rays that leave the scene, ``[r, g, b]`` (default black), towards the horizon; with
+    ``environment_zenith``, blending to that colour straight up.
+``[camera]``
+    The fields of ``Camera``: ``position`` and ``look_at`` (``[x, y, z]``, required), ``up`` (default
+    ``[0, 1, 0]``), ``fov`` (vertical, degrees; default 40), ``aperture`` (thin-lens radius; default 0, a
+    pinhole) and ``focus_distance`` (default: the distance to ``look_at``).
+``[materials.<name>]``
+    One table per material, named by ``<name>``; the fields of ``Material``: ``kind`` (required; one of
+    ``scene.MATERIAL_KINDS``: ``lambert``, ``glossy``, ``plastic``, ``emitter``, ``mirror``, ``glass``),
+    ``albedo``, ``specular``, ``roughness``, ``emission``, ``ior``, and the checker texture ``texture``
+    (``"none"``, ``"world"``, ``"uv"``), ``albedo2``, ``checker_scale``. A field a kind does not use is
+    ignored; ``scene.py`` says which kind uses which.
+``[[spheres]]``
+    One table per sphere: ``center``, ``radius``, ``material`` (a name under ``[materials]``).
+``[[quads]]``
+    One table per parallelogram ``corner + a*u + b*v``: ``corner``, ``u``, ``v``, ``material``. A quad with
+    an ``emitter`` material is an area light, emitting on the side of ``cross(u, v)``; only quads emit.
+``[render]``
+    The render settings, the keyword parameters of :func:`prep.render.render` but ``effects``:
+    ``width``, ``height``, ``max_depth``, ``rr_depth`` (defaults: those of ``render``), ``spp`` and
+    ``seed`` (``render`` has no defaults for these: the smallest of ``RenderConfig.input_spp`` and
+    ``RenderConfig.seed``, those of the built-in sets' inputs). ``kpcn render --scene`` options override
+    them.
+
+The keys of each table are the fields of the dataclass it builds (``dataclasses.fields``), read when this
+module loads, so fields and material kinds added to ``scene.py`` (and parameters added to ``render``) are
+part of the format without a change here; the list above is today's.
+
+Colours and points are arrays of 3 numbers; every number must be finite; an integer is accepted where a
+number is. Each table's meaning beyond its type (ranges, degenerate cameras or quads) is checked by the
+dataclass it builds.
+
+Errors
+------
+
+Every problem is a :class:`SceneFileError` (a :class:`prep.errors.KpcnError`: one line from ``kpcn``)
+whose message starts with the file's path and names the key by its full path, array items counted from 0,
+with the value found: ``scene.toml: unknown key materials.red.albdo = [0.7, 0.1, 0.1] (did you mean
+albedo?); valid keys of materials.red: kind, albedo, ...``, ``scene.toml: spheres[2].radius = -1: Sphere.radius
+must be > 0, got -1.0``, ``scene.toml: spheres[0].material = "gold": no such material; defined under
+[materials]: red, white``. A syntax error names the line and column; a file that is neither ``.toml`` nor
+``.json`` is refused by its suffix.
+
+A complete example (``scenes/example.toml`` is a larger one)::
+
+    name = "two-spheres"
+    environment = [0.05, 0.06, 0.08]
+
+    [render]
+    width = 320
+    height = 240
+    spp = 16
+    seed = 7
+
+    [camera]
+    position = [0.0, 1.2, 4.0]
+    look_at = [0.0, 0.5, 0.0]
+    fov = 40
+
+    [materials.ground]
+    kind = "lambert"
+    albedo = [0.7, 0.7, 0.7]
+    texture = "world"
+    albedo2 = [0.2, 0.2, 0.2]
+    checker_scale = 2.0
+
+    [materials.chrome]
+    kind = "glossy"
+    specular = [0.9, 0.9, 0.9]
+    roughness = 0.1
+
+    [materials.red]
+    kind = "plastic"
+    albedo = [0.6, 0.1, 0.1]
+    specular = [0.05, 0.05, 0.05]
+    roughness = 0.2
+
+    [materials.light]
+    kind = "emitter"
+    emission = [12.0, 11.0, 10.0]
+
+    [[quads]]  # the ground, facing up
+    corner = [-10.0, 0.0, -10.0]
+    u = [0.0, 0.0, 20.0]
+    v = [20.0, 0.0, 0.0]
+    material = "ground"
+
+    [[quads]]  # an area light above, facing down
+    corner = [-0.5, 3.0, -0.5]
+    u = [1.0, 0.0, 0.0]
+    v = [0.0, 0.0, 1.0]
+    material = "light"
+
+    [[spheres]]
+    center = [-0.6, 0.5, 0.0]
+    radius = 0.5
+    material = "chrome"
+
+    [[spheres]]
+    center = [0.6, 0.4, 0.3]
+    radius = 0.4
+    material = "red"
+
+The same scene in JSON has the same keys: ``{"name": ..., "render": {...}, "materials": {"ground": {...}},
+"quads": [{...}, ...], ...}``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import inspect
+import json
+import math
+import re
+import sys
+import time
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import numpy as np
+
+from prep.errors import KpcnError, OptionError
+from prep.render import RenderConfig, render
+from prep.render.scene import Scene
+
+__all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "render_scene_file"]
+
+SUFFIXES = (".toml", ".json")
+DEFAULT_FAMILY = "custom"
+
+
+class SceneFileError(KpcnError):
+    """A scene file that cannot be read or describes no valid scene; the message is one line that starts
+    with the file's path."""
+
+    def __init__(self, message: str):
+        super().__init__(" ".join(str(message).split("\n")))
+
+
+# ------------------------------------------------------------------------------------------------
+# render settings: the keyword parameters of prep.render.render, with its defaults
+# ------------------------------------------------------------------------------------------------
+
+def _config_default(name: str):
+    return next(f.default for f in dataclasses.fields(RenderConfig) if f.name == name)
+
+
+def _smallest(value):
+    return min(value) if isinstance(value, (tuple, list)) else value
+
+
+# render() has no defaults for these: a scene file takes the built-in sets' (their smallest input spp)
+_FALLBACK_DEFAULTS = {"spp": lambda: _smallest(_config_default("input_spp")),
+                      "seed": lambda: _config_default("seed")}
+_NOT_SETTINGS = ("scene", "effects")
+
+
+def _settings_fields() -> list:
+    try:
+        hints = typing.get_type_hints(render)
+    except Exception:  # an annotation that does not resolve: take the values as they come
+        hints = {}
+    required, optional = [], []
+    for p in inspect.signature(render).parameters.values():
+        if p.name in _NOT_SETTINGS or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+            continue
+        hint = hints.get(p.name, Any)
+        if p.default is not p.empty:
+            optional.append((p.name, hint, dataclasses.field(default=p.default)))
+        elif p.name in _FALLBACK_DEFAULTS:
+            optional.append((p.name, hint, dataclasses.field(default=_FALLBACK_DEFAULTS[p.name]())))
+        else:
+            required.append((p.name, hint))
+    return required + optional
+
+
+RenderSettings = dataclasses.make_dataclass("RenderSettings", _settings_fields(), frozen=True,
+                                            namespace={"__module__": __name__})
+RenderSettings.__doc__ = ("The ``[render]`` table of a scene file: the keyword parameters of "
+                          "``prep.render.render`` (but ``effects``), with its defaults. "
+                          "``render(scene, **dataclasses.asdict(settings))`` renders.")
+
+
+# ------------------------------------------------------------------------------------------------
+# reading
+# ------------------------------------------------------------------------------------------------
+
+class _Bad(Exception):
+    """A problem at a key path; load_scene prefixes the file name."""
+
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def _key(key: str) -> str:
+    return key if _BARE_KEY.fullmatch(key) else json.dumps(key, ensure_ascii=False)
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{_key(key)}" if path else _key(key)
+
+
+def _show(value) -> str:
+    """A value as the file wrote it (TOML notation; JSON's null as null), at most 120 characters."""
+    try:
+        text = "null" if value is None else _toml_value(value)
+    except TypeError:
+        text = repr(value)
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _hints(cls) -> dict:
+    """The resolved type hints of a dataclass; a hint that does not resolve (a name only a type checker
+    sees) becomes Any, which passes values through for the dataclass to judge."""
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:
+        pass
+    out = {}
+    for klass in reversed(cls.__mro__):
+        module = sys.modules.get(klass.__module__)
+        for name, hint in vars(klass).get("__annotations__", {}).items():
+            if isinstance(hint, str):
+                try:
+                    hint = eval(hint, dict(vars(module)) if module else {}, dict(vars(klass)))  # noqa: S307
+                except Exception:
+                    hint = Any
+            out[name] = hint
+    return out
+
+
+def _init_fields(cls) -> list:
+    return [f for f in dataclasses.fields(cls) if f.init]
+
+
+def _required(f) -> bool:
+    return f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+
+
+def _is_union(hint) -> bool:
+    return typing.get_origin(hint) in (Union, types.UnionType)
+
+
+def _describe(hint) -> str:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if _is_union(hint):
+        return " or ".join(_describe(a) for a in args)
+    if hint is type(None):
+        return "no value"
+    if hint is bool:
+        return "true or false"
+    if hint is int:
+        return "an integer"
+    if hint is float:
+        return "a finite number"
+    if hint is str:
+        return "a string"
+    if origin is Literal:
+        return "one of " + ", ".join(_show(a) for a in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"an array of {_describe(args[0])}s"
+        if args and all(a == args[0] for a in args):
+            return f"{len(args)} {_plural(args[0])}"
+        return "an array of " + ", ".join(_describe(a) for a in args)
+    if origin is list:
+        return f"an array (each {_describe(args[0])})" if args else "an array"
+    if origin is dict or (dataclasses.is_dataclass(hint) and isinstance(hint, type)):
+        return "a table"
+    return getattr(hint, "__name__", str(hint))
+
+
+def _plural(hint) -> str:
+    return {float: "finite numbers", int: "integers", str: "strings"}.get(hint, f"values ({_describe(hint)})")
+
+
+def _category(value) -> str:
+    if isinstance(value, dict):
+        return "table"
+    if isinstance(value, (list, tuple)):
+        return "array"
+    return "scalar"
+
+
+def _hint_category(hint) -> str | None:
+    origin = typing.get_origin(hint)
+    if origin is dict or (dataclasses.is_dataclass(hint) and isinstance(hint, type)):
+        return "table"
+    if origin in (list, tuple):
+        return "array"
+    if hint in (bool, int, float, str, type(None)) or origin is Literal:
+        return "scalar"
+    return None
+
+
+def _convert(value, hint, path: str):
+    """``value`` as read from the file, checked against the type hint ``hint`` and converted (arrays to
+    tuples where the hint is a tuple, integers to floats where it is float, tables to dataclasses).
+    Hints this does not know pass the value through for the dataclass to judge."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    wrong = _Bad(f"{path} = {_show(value)}: expected {_describe(hint)}")
+    if hint is Any or hint is object:
+        return value
+    if _is_union(hint):
+        members = [a for a in args if _hint_category(a) in (_category(value), None)]
+        if value is None and type(None) in args:
+            return None
+        if len(members) == 1:
+            return _convert(value, members[0], path)
+        errors = []
+        for member in members:
+            try:
+                return _convert(value, member, path)
+            except _Bad as exc:
+                errors.append(exc)
+        raise errors[0] if len(errors) == 1 else wrong
+    if hint is type(None):
+        if value is None:
+            return None
+        raise wrong
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise wrong
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise wrong
+    if hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        raise wrong
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise wrong
+    if origin is Literal:
+        if any(value == a and type(value) is type(a) for a in args):
+            return value
+        raise wrong
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise wrong
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
+        if args:
+            if len(value) != len(args):
+                raise wrong
+            try:
+                return tuple(_convert(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+            except _Bad:
+                raise wrong from None
+        return tuple(value)
+    if origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise wrong
+        return [_convert(v, args[0], f"{path}[{i}]") if args else v for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise wrong
+        return {k: _convert(v, args[1], _join(path, k)) if len(args) == 2 else v for k, v in value.items()}
+    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+        return _build(hint, value, path)
+    return value
+
+
+def _field_of(message: str, cls, names) -> str | None:
+    """The field a dataclass's ValueError is about: ``Cls.field`` anywhere in the message, or a field
+    name followed by "must" (the convention of scene.py's messages); None when neither is there."""
+    m = re.search(rf"\b{re.escape(cls.__name__)}\.(\w+)", message)
+    if m and m.group(1) in names:
+        return m.group(1)
+    for m in re.finditer(r"\b(\w+) must\b", message):
+        if m.group(1) in names:
+            return m.group(1)
+    return None
+
+
+def _build(cls, table, path: str, defaults: dict | None = None, also_valid: tuple = ()):
+    """An instance of the dataclass ``cls`` from the table ``table`` at ``path``; ``defaults`` fill
+    fields the table lacks; ``also_valid`` are keys the caller took out of the table (listed as valid)."""
+    if not isinstance(table, dict):
+        raise _Bad(f"{path} = {_show(table)}: expected a table (the fields of {cls.__name__})")
+    fields = _init_fields(cls)
+    names = [f.name for f in fields]
+    defaults = defaults or {}
+    for key, value in table.items():
+        if key not in names:
+            close = difflib.get_close_matches(key, names + list(also_valid), n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            where = f"of {path}" if path else "at the top level"
+            raise _Bad(f"unknown key {_join(path, key)} = {_show(value)}{hint}; valid keys {where}: "
+                       f"{', '.join(names + list(also_valid))}")
+    hints = _hints(cls)
+    kwargs = {}
+    for f in fields:
+        if f.name in table:
+            kwargs[f.name] = _convert(table[f.name], hints.get(f.name, Any), _join(path, f.name))
+        elif f.name in defaults:
+            kwargs[f.name] = defaults[f.name]
+        elif _required(f):
+            required = ", ".join(g.name for g in fields if _required(g) and g.name not in defaults)
+            raise _Bad(f"{path or 'the top level'} lacks key {f.name} (required: {required})")
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as exc:
+        message = str(exc)
+        name = _field_of(message, cls, [n for n in names if n in table])
+        if name is None:
+            raise _Bad(f"{path}: {message}" if path else message) from None
+        raise _Bad(f"{_join(path, name)} = {_show(table[name])}: {message}") from None
+
+
+def _scene_problem(scene: Scene, exc: ValueError) -> str:
+    """A Scene.validate() message with the key path of the object or field it is about."""
+    message = str(exc).removeprefix(f"{scene.name}: ")
+    for f in _init_fields(Scene):
+        items = getattr(scene, f.name)
+        if isinstance(items, list):
+            for i, obj in enumerate(items):
+                if repr(obj) in message:
+                    return f"{f.name}[{i}]: {message}"
+    name = _field_of(message, Scene, [f.name for f in _init_fields(Scene)])
+    if name is not None:
+        return f"{name} = {_show(_plain(getattr(scene, name)))}: {message}"
+    return message
+
+
+def _check_material_names(scene: Scene) -> None:
+    """Every object's ``material`` names a key of ``scene.materials``."""
+    materials = getattr(scene, "materials", None)
+    if not isinstance(materials, dict):
+        return
+    for f in _init_fields(Scene):
+        items = getattr(scene, f.name)
+        if not isinstance(items, list):
+            continue
+        for i, obj in enumerate(items):
+            name = getattr(obj, "material", None)
+            if isinstance(name, str) and name not in materials:
+                raise _Bad(f"{f.name}[{i}].material = {_show(name)}: no such material; defined under "
+                           f"[materials]: {', '.join(materials) or 'none'}")
+
+
+def _parse(path: Path) -> dict:
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise SceneFileError(f"{path}: a scene file must end in {' or '.join(SUFFIXES)} (TOML or JSON), "
+                             f"found {path.suffix or 'no suffix'!r}")
+    if not path.exists():
+        raise SceneFileError(f"{path}: no such file")
+    if path.is_dir():
+        raise SceneFileError(f"{path}: is a folder, expected a scene file")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise SceneFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise SceneFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    if suffix == ".json":
+        return _parse_json(path, text)
+    return _parse_toml(path, text)
+
+
+def _parse_json(path: Path, text: str) -> dict:
+    def pairs(items):
+        out = {}
+        for k, v in items:
+            if k in out:
+                raise SceneFileError(f"{path}: duplicate key {_show(k)} in a JSON object")
+            out[k] = v
+        return out
+
+    try:
+        data = json.loads(text, object_pairs_hook=pairs)
+    except json.JSONDecodeError as exc:
+        raise SceneFileError(f"{path}: line {exc.lineno}, column {exc.colno}: invalid JSON: {exc.msg}") from None
+    if not isinstance(data, dict):
+        raise SceneFileError(f"{path}: expected a JSON object at the top level, found {_show(data)}")
+    return data
+
+
+def _parse_toml(path: Path, text: str) -> dict:
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        try:
+            import tomli as tomllib
+        except ModuleNotFoundError:
+            raise SceneFileError(f"{path}: reading TOML needs Python >= 3.11 or the tomli package; "
+                                 "a .json scene file works everywhere") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        message = str(exc)
+        line, col = getattr(exc, "lineno", None), getattr(exc, "colno", None)
+        m = re.fullmatch(r"(.*) \(at line (\d+), column (\d+)\)", message, re.S)
+        if m:
+            message, line, col = m.group(1), m.group(2), m.group(3)
+        else:
+            message = getattr(exc, "msg", None) or re.sub(r" \(at end of document\)$", "", message)
+        where = f"line {line}, column {col}" if line is not None else "at the end of the file"
+        raise SceneFileError(f"{path}: {where}: invalid TOML: {message}") from None
+
+
+def load_scene(path) -> tuple[Scene, RenderSettings]:
+    """Read a scene file (see the module docstring): the scene and its render settings.
+
+    Raises :class:`SceneFileError` naming the file, the key path and the value found.
+    """
+    path = Path(path)
+    data = dict(_parse(path))
+    render_table = data.pop("render", {})
+    try:
+        scene = _build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
+                       also_valid=("render",))
+        _check_material_names(scene)
+        if hasattr(scene, "validate"):
+            try:
+                scene.validate()
+            except ValueError as exc:
+                raise _Bad(_scene_problem(scene, exc)) from None
+        settings = _build(RenderSettings, render_table, "render")
+    except _Bad as exc:
+        raise SceneFileError(f"{path}: {exc}") from None
+    return scene, settings
+
+
+# ------------------------------------------------------------------------------------------------
+# writing
+# ------------------------------------------------------------------------------------------------
+
+def _plain(value):
+    """Dataclasses to dicts (init fields, in order), tuples to lists, numpy to Python; None dropped from
+    tables (TOML has no null; a field that is None is left to its default)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in _init_fields(type(value))
+                if getattr(value, f.name) is not None}
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _toml_str(s: str) -> str:
+    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)  # the shortest text that reads back as the same float
+    if isinstance(v, str):
+        return _toml_str(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write a {type(v).__name__} to TOML: {v!r}")
+
+
+def _is_table_array(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
+def _toml_table(lines: list, prefix: list, table: dict) -> None:
+    for k, v in table.items():
+        if not isinstance(v, dict) and not _is_table_array(v):
+            lines.append(f"{_key(k)} = {_toml_value(v)}")
+    for k, v in table.items():
+        name = ".".join(_key(p) for p in prefix + [k])
+        if isinstance(v, dict):
+            if not v or any(not isinstance(x, dict) and not _is_table_array(x) for x in v.values()):
+                lines += ["", f"[{name}]"]
+            _toml_table(lines, prefix + [k], v)
+        elif _is_table_array(v):
+            for item in v:
+                lines += ["", f"[[{name}]]"]
+                _toml_table(lines, prefix + [k], item)
+
+
+def _json_value(v, indent: int) -> str:
+    pad = "  " * (indent + 1)
+    if isinstance(v, dict):
+        if not v:
+            return "{}"
+        items = [f"{pad}{json.dumps(k, ensure_ascii=False)}: {_json_value(x, indent + 1)}" for k, x in v.items()]
+        return "{\n" + ",\n".join(items) + "\n" + "  " * indent + "}"
+    if isinstance(v, list) and any(isinstance(x, (dict, list)) for x in v):
+        return "[\n" + ",\n".join(pad + _json_value(x, indent + 1) for x in v) + "\n" + "  " * indent + "]"
+    return json.dumps(v, ensure_ascii=False)
+
+
+def dump_scene(scene: Scene, settings: RenderSettings | None = None, format: str = "toml") -> str:
+    """The text of a scene file (``format`` ``"toml"`` or ``"json"``) describing ``scene`` and its render
+    ``settings`` (default: ``RenderSettings()``). Every field is written, defaults too, and floats in their
+    shortest exact form, so :func:`load_scene` gives back an equal scene that renders the same bits."""
+    if format not in ("toml", "json"):
+        raise ValueError(f"format must be 'toml' or 'json', got {format!r}")
+    settings = RenderSettings() if settings is None else settings
+    data = _plain(scene)
+    data = {"render": _plain(settings), **data}
+    if format == "json":
+        return _json_value(data, 0) + "\n"
+    lines = [f"# kpcn scene file (format: prep/render/scenefile.py); scene {scene.name}"]
+    _toml_table(lines, [], data)
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------------
+# kpcn render --scene
+# ------------------------------------------------------------------------------------------------
+
+def default_output(scene_path, spp: int) -> Path:
+    """``<scene file stem>-<spp, 5 digits>spp.exr`` beside the scene file."""
+    from prep.exr import render_filename
+
+    scene_path = Path(scene_path)
+    return scene_path.with_name(render_filename(scene_path.stem, spp))
+
+
+def png_path(output) -> Path:
+    """The tonemapped preview written beside an output EXR."""
+    output = Path(output)
+    png = output.with_suffix(".png")
+    return png if png != output else output.with_name(output.name + ".png")
+
+
+def _write_png(path: Path, colour: np.ndarray) -> None:
+    import matplotlib.image
+
+    from prep.files import atomic_path
+    from prep.metrics import tonemap
+
+    pixels = np.round(tonemap(colour) * 255.0).astype(np.uint8)
+    with atomic_path(path) as tmp:
+        matplotlib.image.imsave(tmp, pixels, format="png")
+
+
+def render_scene_file(scene_path, output=None, *, overrides: dict | None = None, png: bool = True) -> dict:
+    """Render a scene file to one EXR in the AOV layout (``prep.exr.write_aovs``) and, with ``png``, a
+    tonemapped PNG beside it. ``overrides`` (``spp``, ``seed``, ``width``, ... as given on the command
+    line) replace the file's ``[render]`` values. The outputs are checked before rendering; an output that
+    is the scene file is refused. Returns ``{"output", "png" (if written), "seconds", "settings"}``.
+
+    A render setting out of range raises OptionError when it came from ``overrides`` (the command line
+    names the flag) and SceneFileError naming ``render.<key>`` when it came from the file.
+    """
+    from prep.exr import write_aovs
+    from prep.files import check_writable
+
+    scene_path = Path(scene_path)
+    overrides = dict(overrides or {})
+    scene, settings = load_scene(scene_path)
+    unknown = set(overrides) - {f.name for f in dataclasses.fields(RenderSettings)}
+    if unknown:
+        raise ValueError(f"unknown render settings {sorted(unknown)}")
+    settings = dataclasses.replace(settings, **overrides)
+    output = Path(output) if output is not None else default_output(scene_path, settings.spp)
+    outputs = [output] + ([png_path(output)] if png else [])
+    for out in outputs:
+        if out.resolve() == scene_path.resolve():
+            raise KpcnError(f"output {out}: is the scene file {scene_path}; choose another --out")
+    check_writable(output, "output EXR (--out)")
+    if png:
+        check_writable(outputs[1], "PNG preview")
+    t0 = time.perf_counter()
+    try:
+        layers = render(scene, **dataclasses.asdict(settings))
+    except OptionError as exc:
+        if exc.option in overrides or exc.option not in {f.name for f in dataclasses.fields(RenderSettings)}:
+            raise
+        raise SceneFileError(f"{scene_path}: render.{exc.option} = {_show(getattr(settings, exc.option))}: "
+                             f"{exc.option} {exc.detail}") from None
+    seconds = time.perf_counter() - t0
+    write_aovs(output, layers)
+    report = {"output": output, "seconds": seconds, "settings": settings}
+    if png:
+        _write_png(outputs[1], layers["default"])
+        report["png"] = outputs[1]
+    return report

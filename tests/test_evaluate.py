@@ -1,0 +1,79 @@
+"""`kpcn evaluate`'s table: every scene gets relMSE, relSE p99.9 and DSSIM of the raw input, the network and
+NLM; the mean row averages the scenes' values."""
+
+import json
+
+import numpy as np
+
+from kpcn_keras.cli import main
+from kpcn_keras.evaluate import COLUMNS, format_table, held_out_pairs
+from prep import exr, metrics
+
+P999 = ("raw relSE p99.9", "denoised relSE p99.9", "NLM relSE p99.9")
+
+
+def _parse(table: str) -> tuple[list[str], list[list[str]]]:
+    lines = table.strip().splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert lines[1] == "|" + "---|" * len(header)
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    assert all(len(r) == len(header) for r in rows)
+    return header, rows
+
+
+def _row(scene, raw, den, nlm=None, seconds=0.5):
+    row = {"scene": scene, "input spp": 8, "seconds": seconds,
+           "raw": {"relmse": raw[0], "relse_p999": raw[1], "dssim": raw[2]},
+           "denoised": {"relmse": den[0], "relse_p999": den[1], "dssim": den[2]}}
+    if nlm is not None:
+        row["nlm"] = {"relmse": nlm[0], "relse_p999": nlm[1], "dssim": nlm[2]}
+    return row
+
+
+def test_table_shows_the_p999_columns_beside_relmse_and_their_mean():
+    rows = [_row("a-003", (0.01, 2.5, 0.1), (0.002, 0.25, 0.01), (0.004, 1.5, 0.02), 0.9),
+            _row("b-003", (0.03, 7.5, 0.2), (0.004, 0.75, 0.03), (0.006, 2.5, 0.04), 0.3)]
+    header, cells = _parse(format_table(rows))
+    assert header == [name for name, _, _ in COLUMNS]
+    assert header[2:6] == ["raw relMSE", "denoised relMSE", "raw relSE p99.9", "denoised relSE p99.9"]
+    assert header.index("NLM relSE p99.9") == header.index("NLM relMSE") + 1
+    col = {name: header.index(name) for name in header}
+    assert [c[0] for c in cells] == ["a-003", "b-003", "**mean**"]
+    for row, line in zip(rows, cells):
+        assert line[col["raw relSE p99.9"]] == f"{row['raw']['relse_p999']:.4f}"
+        assert line[col["denoised relSE p99.9"]] == f"{row['denoised']['relse_p999']:.4f}"
+        assert line[col["NLM relSE p99.9"]] == f"{row['nlm']['relse_p999']:.4f}"
+        assert line[col["denoised relMSE"]] == f"{row['denoised']['relmse']:.4f}"
+    mean = cells[-1]
+    assert (mean[col["raw relSE p99.9"]], mean[col["denoised relSE p99.9"]], mean[col["NLM relSE p99.9"]]) \
+        == ("5.0000", "0.5000", "2.0000")
+    assert (mean[col["raw relMSE"]], mean[col["denoised DSSIM"]], mean[col["s/frame"]]) == ("0.0200", "0.0200", "0.60")
+
+
+def test_table_without_the_baseline_leaves_the_nlm_columns_nan():
+    rows = [_row("a-003", (0.01, 2.5, 0.1), (0.002, 0.25, 0.01)), _row("b-003", (0.03, 7.5, 0.2), (0.004, 0.75, 0.03))]
+    header, cells = _parse(format_table(rows))
+    for line in cells:
+        assert line[header.index("NLM relMSE")] == line[header.index("NLM relSE p99.9")] == "nan"
+    assert cells[-1][header.index("raw relSE p99.9")] == "5.0000"
+
+
+def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path, capsys):
+    out = tmp_path / "eval"
+    assert main(["-q", "evaluate", "--run", str(tiny_run), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    table = "\n".join(line for line in printed.splitlines() if line.startswith("|"))
+    assert table in (out / "report.md").read_text()
+    header, cells = _parse(table)
+    rows = json.loads((out / "metrics.json").read_text())
+    assert len(rows) == 2 and [c[0] for c in cells] == [r["scene"] for r in rows] + ["**mean**"]
+    for (noisy, ref), row, line in zip(held_out_pairs(tiny_run), rows, cells):
+        raw = metrics.relse_p999(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])
+        assert row["raw"]["relse_p999"] == raw
+        assert set(row["raw"]) == set(row["denoised"]) == set(row["nlm"]) == set(metrics.METRICS)
+        for name, key in zip(P999, ("raw", "denoised", "nlm")):
+            value = row[key]["relse_p999"]
+            assert np.isfinite(value) and value >= 0
+            assert line[header.index(name)] == f"{value:.4f}"
+    for name, key in zip(P999, ("raw", "denoised", "nlm")):
+        assert cells[-1][header.index(name)] == f"{np.mean([r[key]['relse_p999'] for r in rows]):.4f}"
