@@ -536,6 +536,7 @@ def test_make_scene_is_deterministic_and_named():
 def test_kernel_table_layouts_agree_with_scene():
     from prep.render import packing as sc
     from prep.render import scene, tracer
+    from prep.render.scene import Mesh
 
     assert (tracer.M_KIND, tracer.M_ALBEDO, tracer.M_SPECULAR, tracer.M_ROUGHNESS, tracer.M_EMISSION,
             tracer.M_TEXTURE, tracer.M_ALBEDO2, tracer.M_SCALE) == (
@@ -553,6 +554,27 @@ def test_kernel_table_layouts_agree_with_scene():
     p = np.array([1 + 0.75, 2, 3 + 0.5])  # a = 0.25 along u, b = 0.25 along v
     assert (p - q.corner) @ row[tracer.Q_DUAL_U:tracer.Q_DUAL_U + 3] == pytest.approx(0.25)
     assert (p - q.corner) @ row[tracer.Q_DUAL_V:tracer.Q_DUAL_V + 3] == pytest.approx(0.25)
+    assert (tracer.T_V0, tracer.T_E1, tracer.T_E2, tracer.T_NORMAL) == (sc.TRI_V0, sc.TRI_E1, sc.TRI_E2,
+                                                                        sc.TRI_NORMAL)
+    assert (tracer.B_LEFT, tracer.B_RIGHT, tracer.B_IS_LEAF, tracer.B_FIRST, tracer.B_COUNT) == (
+        sc.BVH_LEFT, sc.BVH_RIGHT, sc.BVH_IS_LEAF, sc.BVH_FIRST, sc.BVH_COUNT)
+    assert tracer.BVH_STACK > sc.BVH_MAX_DEPTH
+    mesh = Mesh(((1, 2, 3), (3, 2, 3), (1, 2, 5)), ((0, 1, 2),), "m")  # normal cross((2,0,0), (0,0,2)) = -y
+    packed = pack(Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), {"m": lambert((0.5,) * 3)},
+                        meshes=[mesh]))
+    tri = packed.triangles[0]
+    assert packed.triangles.shape == (1, sc.TRI_COLS)
+    np.testing.assert_allclose(tri[tracer.T_V0:tracer.T_V0 + 3], (1, 2, 3))
+    np.testing.assert_allclose(tri[tracer.T_E1:tracer.T_E1 + 3], (2, 0, 0))
+    np.testing.assert_allclose(tri[tracer.T_E2:tracer.T_E2 + 3], (0, 0, 2))
+    np.testing.assert_allclose(tri[tracer.T_NORMAL:tracer.T_NORMAL + 3], (0, -1, 0))
+    node = packed.bvh_nodes[0]
+    assert node[tracer.B_IS_LEAF] == 1 and (node[tracer.B_FIRST], node[tracer.B_COUNT]) == (0, 1)
+    np.testing.assert_allclose(packed.bvh_bounds[0], (1, 2, 3, 3, 2, 5), atol=1e-6)
+    # surface() of a triangle hit: the geometric normal and the barycentrics (u along e1, v along e2)
+    ng, u, v = tracer.surface((1.5, 2.0, 4.0), 2, 0, packed.spheres, packed.quads, packed.triangles)
+    np.testing.assert_allclose(ng, (0, -1, 0))
+    assert (u, v) == (pytest.approx(0.25), pytest.approx(0.5))
 
 
 def test_unknown_family_is_named():
@@ -573,7 +595,7 @@ def test_scene_validation_names_the_problem():
 FAMILY_EFFECTS = {
     "cornell": {"texture"}, "spheres": {"environment", "texture"}, "boxes": {"environment"},
     "indirect": set(), "fireflies": {"mirror"}, "caustics": {"glass", "mirror"},
-    "outdoor": {"environment", "lens", "texture"}, "textures": {"texture", "mirror"},
+    "outdoor": {"environment", "lens", "texture", "mesh"}, "textures": {"texture", "mirror"},
 }
 
 

@@ -135,7 +135,7 @@ def test_json_null_leaves_an_optional_field_unset(tmp_path):
 
 
 @dataclasses.dataclass(frozen=True)
-class Mesh:
+class Cone:
     """A shape the scene model does not have (yet)."""
 
     vertices: list[Vec3]
@@ -144,28 +144,87 @@ class Mesh:
 
 
 @dataclasses.dataclass
-class MeshScene(Scene):
-    meshes: list[Mesh] = dataclasses.field(default_factory=list)
+class ConeScene(Scene):
+    cones: list[Cone] = dataclasses.field(default_factory=list)
 
 
 def test_tables_follow_the_dataclass_fields_so_new_fields_and_shapes_need_no_change(tmp_path, monkeypatch):
     """A scene model with a field and a shape list this module has never heard of still loads, checks and
     round-trips: what the format accepts is read from the dataclasses."""
 
-    monkeypatch.setattr(scenefile, "Scene", MeshScene)
-    mesh = '\n[[meshes]]\nvertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nmaterial = "red"\n'
-    scene, settings = load_scene(write(tmp_path / "m.toml", example_text() + mesh))
-    assert scene.meshes == [Mesh([(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], "red")]
+    monkeypatch.setattr(scenefile, "Scene", ConeScene)
+    cone = '\n[[cones]]\nvertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nmaterial = "red"\n'
+    scene, settings = load_scene(write(tmp_path / "m.toml", example_text() + cone))
+    assert scene.cones == [Cone([(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], "red")]
     again, _ = load_scene(write(tmp_path / "again.toml", dump_scene(scene, settings)))
     assert again == scene
 
-    def error(new_mesh):
-        return load_error(write(tmp_path / "bad.toml", example_text() + new_mesh))
+    def error(new_cone):
+        return load_error(write(tmp_path / "bad.toml", example_text() + new_cone))
 
-    message = error(mesh + "smoth = true\n")
-    assert "unknown key meshes[0].smoth = true" in message and "vertices, material, smooth" in message
-    assert "meshes[0].vertices[2] = [0, 1]: expected 3 finite numbers" in error(mesh.replace("[0, 1, 0]]", "[0, 1]]"))
-    assert 'meshes[0].material = "rouge": no such material' in error(mesh.replace('"red"', '"rouge"'))
+    message = error(cone + "smoth = true\n")
+    assert "unknown key cones[0].smoth = true" in message and "vertices, material, smooth" in message
+    assert "cones[0].vertices[2] = [0, 1]: expected 3 finite numbers" in error(cone.replace("[0, 1, 0]]", "[0, 1]]"))
+    assert 'cones[0].material = "rouge": no such material' in error(cone.replace('"red"', '"rouge"'))
+
+
+# ------------------------------------------------------------------------------------------------
+# meshes: from OBJ files or inline
+# ------------------------------------------------------------------------------------------------
+
+TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n"
+
+
+def with_mesh(tmp_path, table: str, obj: str | None = TRIANGLE_OBJ) -> Path:
+    if obj is not None:
+        write(tmp_path / "shape.obj", obj)
+    return write(tmp_path / "scene.toml", example_text() + "\n[[meshes]]\n" + table)
+
+
+def test_a_mesh_from_an_obj_file_beside_the_scene_is_placed_and_round_trips_inline(tmp_path):
+    path = with_mesh(tmp_path, 'obj = "shape.obj"\nscale = 2\nrotate_y = 90\ntranslate = [0, 1, 0]\n'
+                               'material = "red"\n')
+    scene, settings = load_scene(path)
+    (mesh,) = scene.meshes
+    assert mesh.faces == ((0, 1, 2), (0, 2, 3)) and mesh.material == "red"
+    np.testing.assert_allclose(mesh.vertices[1], (0, 1, -2), atol=1e-12)
+    text = dump_scene(scene, settings)
+    assert "[[meshes]]" in text and "obj" not in text.split("[[meshes]]")[1]
+    again, _ = load_scene(write(tmp_path / "inline.toml", text))
+    assert again == scene
+    json_again, _ = load_scene(write(tmp_path / "inline.json", dump_scene(scene, settings, "json")))
+    assert json_again == scene
+    inline = load_scene(with_mesh(tmp_path, 'vertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nfaces = [[0, 1, 2]]\n'
+                                            'material = "red"\n', obj=None))[0]
+    assert inline.meshes[0].faces == ((0, 1, 2),) and "mesh" in inline.effects()
+
+
+@pytest.mark.parametrize("table, obj, needles", [
+    ('obj = "shape.obj"\nmaterial = "red"\n', "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n",
+     ['meshes[0].obj = "shape.obj": ', "shape.obj:4: face vertex 9 does not exist"]),
+    ('obj = "nothing.obj"\nmaterial = "red"\n', None, ['meshes[0].obj = "nothing.obj": ', "nothing.obj: no such file"]),
+    ('obj = "shape.obj"\nscale = 0\nmaterial = "red"\n', TRIANGLE_OBJ, ["meshes[0].scale = 0: scale must be > 0"]),
+    ('obj = "shape.obj"\nrotate_y = "left"\nmaterial = "red"\n', TRIANGLE_OBJ,
+     ['meshes[0].rotate_y = "left": expected a finite number']),
+    ('obj = "shape.obj"\ntranslate = [0, 1]\nmaterial = "red"\n', TRIANGLE_OBJ,
+     ["meshes[0].translate = [0, 1]: expected 3 finite numbers"]),
+    ('scale = 2\nvertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nfaces = [[0, 1, 2]]\nmaterial = "red"\n', None,
+     ["meshes[0].scale = 2: ", "no obj key"]),
+    ('obj = "shape.obj"\nfaces = [[0, 1, 2]]\nmaterial = "red"\n', TRIANGLE_OBJ, ["meshes[0].faces: ", "not both"]),
+    ('obj = "shape.obj"\nmaterial = "light"\n', TRIANGLE_OBJ, ["meshes[0]: ", "emitter"]),
+    ('obj = "shape.obj"\nmaterial = "rouge"\n', TRIANGLE_OBJ, ['meshes[0].material = "rouge": no such material']),
+    ('obj = "shape.obj"\nscal = 2\nmaterial = "red"\n', TRIANGLE_OBJ,
+     ["unknown key meshes[0].scal = 2 (did you mean scale?)", "vertices, faces, material, obj, translate, scale"]),
+    ('vertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nfaces = [[0, 1, 3]]\nmaterial = "red"\n', None,
+     ["meshes[0].faces = [[0, 1, 3]]: Mesh.faces must index the 3 vertices"]),
+    ('vertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nfaces = [[0, 1.5, 2]]\nmaterial = "red"\n', None,
+     ["meshes[0].faces[0] = [0, 1.5, 2]: expected 3 integers"]),
+    ('obj = "shape.obj"\n', TRIANGLE_OBJ, ["meshes[0] lacks key material"]),
+])
+def test_mesh_mistakes_name_the_key_path_and_the_obj_file_and_line(tmp_path, table, obj, needles):
+    message = load_error(with_mesh(tmp_path, table, obj))
+    for needle in needles:
+        assert needle in message, (needle, message)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import numpy as np
 from prep.render.scene import (
     Camera,
     Material,
+    Mesh,
     Quad,
     Scene,
     Sphere,
@@ -24,6 +25,7 @@ from prep.render.scene import (
     mirror,
     plastic,
 )
+from prep.render.shapes import icosphere, torus
 
 # ---------------------------------------------------------------------------------------------
 
@@ -344,7 +346,7 @@ def caustics(rng_or_seed=None, name: str = "caustics") -> Scene:
 def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
     """A long ground under a sky (horizon-to-zenith gradient, bright) and a small intense sun: rows of
     objects and thin poles receding into the distance (high depth variation), often seen through a lens
-    with shallow depth of field."""
+    with shallow depth of field; in front, two triangle meshes (a torus and an icosphere)."""
     rng = _rng(rng_or_seed)
     mats = {
         "ground": lambert(_colour(rng, sat=(0.2, 0.6), val=(0.3, 0.55)), texture="world",
@@ -379,8 +381,28 @@ def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
     cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 0.8, 1.6), cam_z),
                  look_at=(_u(rng, -0.5, 0.5), _u(rng, 0.5, 1.0), -5.0), fov=_u(rng, 35, 50),
                  aperture=aperture, focus_distance=_u(rng, 3.0, 12.0) if aperture else None)
+    # drawn last, so the rest of the scene is what it was before the family had meshes
+    meshes = _foreground_meshes(rng, mats)
     return Scene(name=name, family="outdoor", camera=cam, materials=mats, spheres=spheres, quads=quads,
-                 environment=horizon, environment_zenith=zenith)
+                 environment=horizon, environment_zenith=zenith, meshes=meshes)
+
+
+def _foreground_meshes(rng, mats: dict) -> list[Mesh]:
+    """A torus (lying, or tilted up) and an icosphere on the ground between the camera and the first
+    row of objects (z in [1.5, 2.3], either side of the aisle), each with a random object material."""
+    side = -1 if rng.uniform() < 0.5 else 1
+    major, minor = _u(rng, 0.22, 0.32), _u(rng, 0.07, 0.11)
+    tilt = _u(rng, 0.0, 70.0) if rng.uniform() < 0.5 else 0.0
+    # lowest point of the tilted torus: its centre minus the tube radius minus major * sin(tilt)
+    lift = minor + major * math.sin(math.radians(tilt)) + 1e-3
+    centre = (side * _u(rng, 0.35, 0.8), lift, _u(rng, 1.5, 2.3))
+    mats["torus"] = _object_material(rng)
+    ring = torus(centre, major, minor, "torus", n_major=32, n_minor=12, tilt=tilt)
+    r = _u(rng, 0.18, 0.3)
+    mats["icosphere"] = _object_material(rng)
+    ball = icosphere((-side * _u(rng, 0.35, 0.8), r + 1e-3, _u(rng, 1.5, 2.3)), r, int(rng.integers(1, 3)),
+                     "icosphere")
+    return [ring, ball]
 
 
 def textures(rng_or_seed=None, name: str = "textures") -> Scene:

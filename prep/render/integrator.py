@@ -9,8 +9,8 @@ deciding the split.
 
 **Specialisation.** The ``HAS_*`` flags below are module constants, which numba compiles as constants:
 the code of an effect whose flag is False is removed from the kernel, not branched around per sample.
-This file as it is (every flag True) is the all-effects kernel; ``kernels.kernel_for(effects)`` loads a
-copy of it with the flags of a scene's effect set (``Scene.effects()``). Which random dimension each
+The kernels are not compiled from this file: ``kernels.kernel_for(effects)`` loads a copy of it with the
+flags of an effect set (``Scene.effects()``; every flag on for the all-effects kernel). Which random dimension each
 decision uses does not depend on the flags, so a specialised kernel gives the all-effects kernel's
 output bit for bit on a scene it was made for.
 """
@@ -66,7 +66,9 @@ from prep.render.tracer import (
     _to_world,
     fresnel_dielectric,
     intersect,
+    intersect_mesh,
     occluded,
+    occluded_mesh,
     rand,
     reflect,
     refract,
@@ -84,6 +86,7 @@ HAS_GLASS = True
 HAS_ENVIRONMENT = True
 HAS_TEXTURE = True
 HAS_LENS = True
+HAS_MESH = True
 # --- end of effects ---
 
 
@@ -193,6 +196,12 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     n_lights = sc.lights.shape[0]
     for bounce in range(max_depth + 1):
         t, kind, idx = intersect(o, d, np.inf, sc)
+        if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
+            tm, ti = intersect_mesh(o, d, t, sc)
+            if ti >= 0:
+                t = tm
+                kind = 2
+                idx = ti
         if kind < 0:
             if HAS_ENVIRONMENT:
                 env = environment_at(sc, d)
@@ -203,8 +212,11 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                     ls = _add(ls, _mul(bs, env))
             break
         p = _madd(o, d, t)
-        ng, tu, tv = surface(p, kind, idx, sc.spheres, quads)
-        m = sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
+        ng, tu, tv = surface(p, kind, idx, sc.spheres, quads, sc.triangles)
+        if HAS_MESH and kind == 2:
+            m = sc.tri_mat[idx]
+        else:
+            m = sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
         mk = int(materials[m, M_KIND])
         cos_d = _dot(ng, d)
         n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
@@ -288,7 +300,10 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                     if pdf_b > 0.0:
                         # stop short of the light's own plane
                         tmax = dist * (1.0 - 1e-5)
-                        if not occluded(origin, wi, tmax, sc):
+                        blocked = occluded(origin, wi, tmax, sc)
+                        if HAS_MESH and not blocked:
+                            blocked = occluded_mesh(origin, wi, tmax, sc)
+                        if not blocked:
                             pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
                             w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
                             c = _scale(_row3(materials, sc.quad_mat[q], M_EMISSION), ci * w / pdf_l)

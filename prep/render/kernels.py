@@ -5,8 +5,10 @@ exactly those effects; numba compiles the flags as constants, so a diffuse-only 
 without glossy lobes, emitter lookups or an environment, rather than one that branches past them on
 every sample. The copies are generated source files in a cache folder (``KPCN_KERNEL_DIR``, by default
 ``~/.cache/kpcn/kernels``), named by their flags and rewritten only when the integrator changes, so
-numba's own on-disk cache keeps each compiled kernel across processes. The all-effects kernel is
-``integrator.py`` itself.
+numba's own on-disk cache keeps each compiled kernel across processes. The all-effects kernel is a
+copy too (every flag on), so that every kernel's file name carries a digest of the integrator *and* of
+the modules it calls: numba's cache checks only the file a function is in, and would otherwise serve a
+kernel compiled against an older ``tracer.py``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from pathlib import Path
 from types import ModuleType
 
 from prep.files import atomic_write_text
-from prep.render import integrator
+from prep.render import integrator, packing, tracer
 from prep.render.scene import EFFECTS
 
 _BLOCK = re.compile(r"(# --- effects \(kernels\.py rewrites this block.*?\n)(.*?)(# --- end of effects ---)", re.S)
@@ -51,13 +53,12 @@ def kernel_for(effects) -> ModuleType:
     unknown = effects - set(EFFECTS)
     if unknown:
         raise ValueError(f"unknown effects {sorted(unknown)}; known: {', '.join(EFFECTS)}")
-    if effects == frozenset(EFFECTS):
-        return integrator
     if effects in _loaded:
         return _loaded[effects]
     text = _source(effects)
     tag = "".join("1" if e in effects else "0" for e in EFFECTS)
-    digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+    callees = "".join(Path(m.__file__).read_text() for m in (tracer, packing))
+    digest = hashlib.sha256((text + callees).encode()).hexdigest()[:12]
     name = f"kpcn_integrator_{tag}_{digest}"
     path = kernel_dir() / f"{name}.py"
     if not path.is_file() or path.read_text() != text:

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec
+from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec, triangle_areas
 
 # Layout of one row of the material table handed to the kernels (see tracer.py).
 MAT_KIND, MAT_ALBEDO, MAT_SPECULAR, MAT_ROUGHNESS = 0, 1, 4, 7
@@ -21,7 +21,19 @@ MAT_IOR = 16
 MAT_COLS = 17
 # Layout of one row of the quad table: corner, u, v, unit normal, dual vectors of u and v, area.
 QUAD_COLS = 19
-
+# Layout of one row of the triangle table: v0, e1 = v1 - v0, e2 = v2 - v0, unit normal normalize(cross(e1, e2)).
+TRI_V0, TRI_E1, TRI_E2, TRI_NORMAL = 0, 3, 6, 9
+TRI_COLS = 12
+# The BVH over the triangles: node bounds (min x y z, max x y z) and links; an inner node's children are
+# nodes [BVH_LEFT] and [BVH_RIGHT], a leaf holds triangles [BVH_FIRST, BVH_FIRST + BVH_COUNT). Node 0 is
+# the root. Leaves hold at most BVH_LEAF_SIZE triangles; the tree is at most BVH_MAX_DEPTH deep (the
+# traversal's fixed stack in tracer.py has room for that).
+BVH_LEFT, BVH_RIGHT, BVH_IS_LEAF = 0, 1, 2
+BVH_FIRST, BVH_COUNT = 0, 1
+BVH_LEAF_SIZE = 4
+BVH_MAX_DEPTH = 60
+_SAH_BINS = 12
+_SAH_DEPTH = 40  # below this depth splits are at the median, which bounds the depth by ~log2(triangles)
 
 
 class PackedScene(NamedTuple):
@@ -45,6 +57,10 @@ class PackedScene(NamedTuple):
     focus_distance: float  # along the view direction
     environment: np.ndarray  # (3,) radiance towards the horizon
     environment_zenith: np.ndarray  # (3,) radiance straight up (= environment when constant)
+    triangles: np.ndarray  # (Nt, TRI_COLS) the triangles of every mesh, in BVH leaf order
+    tri_mat: np.ndarray  # (Nt,) int64
+    bvh_bounds: np.ndarray  # (Nn, 6) float64 node bounds
+    bvh_nodes: np.ndarray  # (Nn, 3) int64 node links (BVH_*)
 
 
 def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
@@ -71,6 +87,96 @@ def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
         order.extend(run)
     return (order, len(singles), np.asarray(ranges, dtype=np.int64).reshape(-1, 2),
             np.asarray(bounds, dtype=np.float64).reshape(-1, 4))
+
+
+def _split(lo, hi, cen, idx, depth):
+    """Split the triangles ``idx`` (more than a leaf holds) in two non-empty parts: binned SAH along the
+    longest axis of their centroids, the median along it where SAH finds nothing or the tree is deep."""
+    c = cen[idx]
+    cmin, cmax = c.min(axis=0), c.max(axis=0)
+    axis = int(np.argmax(cmax - cmin))
+    extent = cmax[axis] - cmin[axis]
+    if extent > 0 and depth < _SAH_DEPTH:
+        bins = np.minimum(((c[:, axis] - cmin[axis]) / extent * _SAH_BINS).astype(np.int64), _SAH_BINS - 1)
+        counts = np.bincount(bins, minlength=_SAH_BINS)
+        blo = np.full((_SAH_BINS, 3), np.inf)
+        bhi = np.full((_SAH_BINS, 3), -np.inf)
+        np.minimum.at(blo, bins, lo[idx])
+        np.maximum.at(bhi, bins, hi[idx])
+
+        def areas(lo_, hi_):
+            d = np.maximum(hi_ - lo_, 0.0)
+            return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+
+        left_lo, left_hi = np.minimum.accumulate(blo), np.maximum.accumulate(bhi)
+        right_lo = np.minimum.accumulate(blo[::-1])[::-1]
+        right_hi = np.maximum.accumulate(bhi[::-1])[::-1]
+        n_left = np.cumsum(counts)
+        with np.errstate(invalid="ignore"):
+            cost = (n_left[:-1] * areas(left_lo[:-1], left_hi[:-1])
+                    + (len(idx) - n_left[:-1]) * areas(right_lo[1:], right_hi[1:]))
+        cost = np.where((n_left[:-1] > 0) & (n_left[:-1] < len(idx)), cost, np.inf)
+        k = int(np.argmin(cost))
+        if np.isfinite(cost[k]):
+            mask = bins <= k
+            return idx[mask], idx[~mask]
+    order = idx[np.argsort(c[:, axis], kind="stable")]
+    half = len(order) // 2
+    return order[:half], order[half:]
+
+
+def build_bvh(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A BVH over the triangles (v0, v1, v2) (each (Nt, 3)): (order of the triangles in the leaves,
+    node bounds (Nn, 6), node links (Nn, 3)) in the layout of ``BVH_*``. Bounds are widened by a hair so
+    that a flat node (an axis-aligned face) cannot be missed by rounding."""
+    lo = np.minimum(np.minimum(v0, v1), v2)
+    hi = np.maximum(np.maximum(v0, v1), v2)
+    cen = (lo + hi) / 2
+    pad = 1e-9 * (max(np.abs(lo).max(), np.abs(hi).max()) + 1.0)  # one pad for all: children nest exactly
+    bounds, links, order = [None], [None], []
+    stack = [(0, np.arange(len(v0)), 0)]
+    while stack:
+        node, idx, depth = stack.pop()
+        nlo, nhi = lo[idx].min(axis=0), hi[idx].max(axis=0)
+        bounds[node] = np.concatenate([nlo - pad, nhi + pad])
+        if len(idx) <= BVH_LEAF_SIZE:
+            links[node] = (len(order), len(idx), 1)
+            order.extend(idx.tolist())
+            continue
+        if depth >= BVH_MAX_DEPTH:  # cannot happen below ~2**(BVH_MAX_DEPTH - _SAH_DEPTH) triangles
+            raise ValueError(f"BVH deeper than {BVH_MAX_DEPTH} levels over {len(v0)} triangles")
+        left, right = _split(lo, hi, cen, idx, depth)
+        links[node] = (len(links), len(links) + 1, 0)
+        bounds += [None, None]
+        links += [None, None]
+        stack.append((links[node][1], right, depth + 1))
+        stack.append((links[node][0], left, depth + 1))
+    return (np.asarray(order, dtype=np.int64), np.asarray(bounds, dtype=np.float64).reshape(-1, 6),
+            np.asarray(links, dtype=np.int64).reshape(-1, 3))
+
+
+def pack_meshes(scene: Scene, index: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The triangles of every mesh of ``scene`` (degenerate ones dropped) in BVH leaf order, their
+    material indices, and the BVH: (triangles, tri_mat, bvh_bounds, bvh_nodes); empty arrays of the same
+    dtypes and dimensions without meshes."""
+    tris, mats = [], []
+    for mesh in scene.meshes:
+        v, f = mesh.arrays()
+        f = f[triangle_areas(v, f) > 0]
+        tris.append(np.stack([v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]], axis=1))
+        mats.append(np.full(len(f), index[mesh.material], dtype=np.int64))
+    if not tris:
+        return (np.zeros((0, TRI_COLS)), np.zeros(0, dtype=np.int64), np.zeros((0, 6)),
+                np.zeros((0, 3), dtype=np.int64))
+    tri = np.concatenate(tris)
+    mat = np.concatenate(mats)
+    order, bounds, nodes = build_bvh(tri[:, 0], tri[:, 1], tri[:, 2])
+    tri, mat = tri[order], mat[order]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    n = np.cross(e1, e2)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    table = np.ascontiguousarray(np.concatenate([tri[:, 0], e1, e2, n], axis=1))
+    return table, np.ascontiguousarray(mat), bounds, nodes
 
 
 def pack(scene: Scene) -> PackedScene:
@@ -117,6 +223,7 @@ def pack(scene: Scene) -> PackedScene:
     cdf = np.cumsum(prob)
     if len(cdf):
         cdf[-1] = 1.0
+    triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
     return PackedScene(
         spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
@@ -126,5 +233,6 @@ def pack(scene: Scene) -> PackedScene:
         environment=np.asarray(_vec(scene.environment, "environment")),
         environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
                                            else scene.environment_zenith, "environment_zenith")),
+        triangles=triangles, tri_mat=tri_mat, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
     )
 

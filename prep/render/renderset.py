@@ -30,7 +30,7 @@ class RenderConfig:
     width: int = 256
     height: int = 256
     input_spp: tuple[int, ...] = (4, 16, 64)  # a ladder: the network sees every noise level
-    reference_spp: int = 1024
+    reference_spp: int = 512
     seed: int = 0
     out_root: str = "data/renders"
 

@@ -7,6 +7,11 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
   is flipped to face the incoming ray); an ``emitter`` quad emits only on the side its normal points
   to and is black on the other side.
 * ``Sphere(center, radius, material)``; emitters must be quads (next-event estimation samples quads).
+* ``Mesh(vertices, faces, material)``: a triangle mesh, ``faces`` index ``vertices`` from 0. A triangle's
+  geometric normal is ``normalize(cross(v1 - v0, v2 - v0))``: counter-clockwise winding seen from outside
+  makes it point outwards, which glass needs (a closed mesh wound that way). Shading is double-sided as
+  for quads; texture coordinates are the barycentrics (u along v1 - v0, v along v2 - v0). Meshes cannot
+  emit. ``obj.load_obj`` reads one from an OBJ file, ``shapes.py`` makes a few procedurally.
 * ``Material.kind``:
 
   - ``lambert``: diffuse ``albedo``; ``texture`` ``"world"`` (3-D checker with cells of side
@@ -52,7 +57,7 @@ MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
 TEXTURES = ("none", "world", "uv")
 # What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
 # material kinds, plus these.
-EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens")
+EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh")
 IOR_RANGE = (1.0, 3.0)
 
 Vec3 = tuple[float, float, float]
@@ -160,6 +165,60 @@ class Quad:
         return float(np.linalg.norm(np.cross(self.u, self.v)))
 
 
+@dataclass(frozen=True, repr=False)
+class Mesh:
+    """A triangle mesh: ``faces`` are triples of 0-based indices into ``vertices``; plain tuples, so that
+    meshes compare by value. Degenerate (zero-area) faces are allowed but never hit; a mesh needs at
+    least one face that is not."""
+
+    vertices: tuple[Vec3, ...]
+    faces: tuple[tuple[int, int, int], ...]
+    material: str
+
+    def __post_init__(self):
+        try:
+            v = np.asarray(self.vertices, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"Mesh.vertices must be an array of 3 finite numbers each, "
+                             f"got {self.vertices!r}") from None
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3:
+            raise ValueError(f"Mesh.vertices must be at least 3 points of 3 numbers, got shape {v.shape}")
+        if not np.all(np.isfinite(v)):
+            bad = int(np.flatnonzero(~np.all(np.isfinite(v), axis=1))[0])
+            raise ValueError(f"Mesh.vertices must be finite, vertex {bad} is {tuple(v[bad].tolist())}")
+        f = np.asarray(self.faces)
+        if f.size == 0:
+            raise ValueError("Mesh.faces must hold at least one face, got none")
+        if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
+            raise ValueError(f"Mesh.faces must be triples of integer vertex indices, got shape {f.shape} "
+                             f"of {f.dtype}")
+        if f.min() < 0 or f.max() >= len(v):
+            bad = int(np.flatnonzero((f < 0).any(axis=1) | (f >= len(v)).any(axis=1))[0])
+            raise ValueError(f"Mesh.faces must index the {len(v)} vertices (0 to {len(v) - 1}), face {bad} is "
+                             f"{tuple(f[bad].tolist())}")
+        if not np.any(triangle_areas(v, f) > 0):
+            raise ValueError(f"Mesh.faces must include a face of non-zero area; all {len(f)} are degenerate")
+        object.__setattr__(self, "vertices", tuple((float(a), float(b), float(c)) for a, b, c in v.tolist()))
+        object.__setattr__(self, "faces", tuple((int(a), int(b), int(c)) for a, b, c in f.tolist()))
+
+    def __repr__(self) -> str:  # short: a mesh can have thousands of vertices
+        return f"Mesh(<{len(self.vertices)} vertices>, <{len(self.faces)} faces>, material={self.material!r})"
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices (N, 3) float64, faces (M, 3) int64)."""
+        return (np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3),
+                np.asarray(self.faces, dtype=np.int64).reshape(-1, 3))
+
+
+def triangle_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area of each face; 0 for degenerate ones (and for slivers whose area is lost to rounding)."""
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    e1, e2 = v1 - v0, v2 - v0
+    area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    return np.where(area > 1e-12 * scale, area, 0.0)
+
+
 @dataclass(frozen=True)
 class Camera:
     position: Vec3
@@ -228,25 +287,34 @@ class Scene:
     environment: Vec3 = (0.0, 0.0, 0.0)
     environment_zenith: Vec3 | None = None
     seed: int | None = None  # the seed the family was generated from, if any
+    meshes: list[Mesh] = field(default_factory=list)
 
     def validate(self) -> None:
-        """Raise ValueError if an object names an unknown material or a sphere is an emitter."""
+        """Raise ValueError if an object names an unknown material or a sphere or mesh is an emitter."""
         for name in ("environment", "environment_zenith"):
             value = getattr(self, name)
             if value is not None and min(_vec(value, f"Scene.{name}")) < 0:
                 raise ValueError(f"Scene.{name} must be >= 0, got {value}")
-        for obj in list(self.spheres) + list(self.quads):
+        for obj in self._objects():
             if obj.material not in self.materials:
                 raise ValueError(f"{self.name}: object {obj} names unknown material {obj.material!r}; "
                                  f"known: {sorted(self.materials)}")
         for s in self.spheres:
             if self.materials[s.material].kind == "emitter":
                 raise ValueError(f"{self.name}: sphere {s} uses an emitter material; only quads may emit")
+        for mesh in self.meshes:
+            if self.materials[mesh.material].kind == "emitter":
+                raise ValueError(f"{self.name}: mesh {mesh} uses an emitter material; meshes cannot emit, "
+                                 "only quads may")
+
+    def _objects(self) -> list:
+        return list(self.spheres) + list(self.quads) + list(self.meshes)
 
     def effects(self) -> frozenset[str]:
         """The effects (names of :data:`EFFECTS`) this scene calls for: the kinds of the materials its
-        objects use, ``texture`` if one of them is textured, ``environment`` if the environment is not black."""
-        used = [self.materials[obj.material] for obj in list(self.spheres) + list(self.quads)]
+        objects use, ``texture`` if one of them is textured, ``environment`` if the environment is not black,
+        ``lens`` for a thin-lens camera, ``mesh`` if the scene has a triangle mesh."""
+        used = [self.materials[obj.material] for obj in self._objects()]
         out = {m.kind for m in used}
         if any(m.texture != "none" and m.kind in ("lambert", "plastic") for m in used):
             out.add("texture")
@@ -254,11 +322,13 @@ class Scene:
             out.add("environment")
         if self.camera.aperture > 0:
             out.add("lens")
+        if self.meshes:
+            out.add("mesh")
         return frozenset(out)
 
     def to_dict(self) -> dict:
         """A JSON-able description, vectors as lists (inverse: :meth:`from_dict`)."""
-        return _lists({
+        out = _lists({
             "name": self.name,
             "family": self.family,
             "seed": self.seed,
@@ -269,6 +339,9 @@ class Scene:
             "spheres": [asdict(s) for s in self.spheres],
             "quads": [asdict(q) for q in self.quads],
         })
+        if self.meshes:  # only when there are any: the descriptions of scenes without meshes stay as they were
+            out["meshes"] = _lists([asdict(m) for m in self.meshes])
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "Scene":
@@ -280,4 +353,5 @@ class Scene:
             materials={k: Material(**m) for k, m in d["materials"].items()},
             spheres=[Sphere(**s) for s in d["spheres"]],
             quads=[Quad(**q) for q in d["quads"]],
+            meshes=[Mesh(**m) for m in d.get("meshes", [])],
         )

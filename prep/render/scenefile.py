@@ -31,6 +31,15 @@ The file is one table (a TOML document or a JSON object) whose keys are the fiel
 ``[[quads]]``
     One table per parallelogram ``corner + a*u + b*v``: ``corner``, ``u``, ``v``, ``material``. A quad with
     an ``emitter`` material is an area light, emitting on the side of ``cross(u, v)``; only quads emit.
+``[[meshes]]``
+    One table per triangle mesh (``scene.Mesh``), with a ``material`` (not an emitter) and either
+    ``obj = "file.obj"`` (a Wavefront OBJ file, relative to the scene file; read by
+    ``prep.render.obj.load_obj``), optionally placed by ``scale`` (default 1), ``rotate_y`` (degrees about
+    the y axis, default 0) and ``translate`` (``[x, y, z]``, default 0), applied in that order; or the
+    arrays ``vertices`` (``[[x, y, z], ...]``) and ``faces`` (``[[i, j, k], ...]``, 0-based vertex
+    indices). Faces wound counter-clockwise seen from outside have outward normals (glass needs them).
+    ``dump_scene`` writes meshes as ``vertices`` and ``faces``. A problem in the OBJ file names the key
+    (``meshes[0].obj``), the OBJ file and its line.
 ``[render]``
     The render settings, the keyword parameters of :func:`prep.render.render` but ``effects``:
     ``width``, ``height``, ``max_depth``, ``rr_depth`` (defaults: those of ``render``), ``spp`` and
@@ -140,7 +149,7 @@ import numpy as np
 
 from prep.errors import KpcnError, OptionError
 from prep.render import RenderConfig, render
-from prep.render.scene import Scene
+from prep.render.scene import Mesh, Scene
 
 __all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "render_scene_file"]
 
@@ -403,6 +412,7 @@ def _build(cls, table, path: str, defaults: dict | None = None, also_valid: tupl
     fields = _init_fields(cls)
     names = [f.name for f in fields]
     defaults = defaults or {}
+    also_valid = tuple(also_valid) or _EXTRA_KEYS.get(cls, ())
     for key, value in table.items():
         if key not in names:
             close = difflib.get_close_matches(key, names + list(also_valid), n=1)
@@ -428,6 +438,48 @@ def _build(cls, table, path: str, defaults: dict | None = None, also_valid: tupl
         if name is None:
             raise _Bad(f"{path}: {message}" if path else message) from None
         raise _Bad(f"{_join(path, name)} = {_show(table[name])}: {message}") from None
+
+
+# keys a table may have beyond its dataclass's fields (taken out before it is built; listed as valid)
+_OBJ_KEYS = ("obj", "translate", "scale", "rotate_y")
+_EXTRA_KEYS = {Mesh: _OBJ_KEYS}
+
+
+def _obj_meshes(data: dict, base: Path) -> None:
+    """Replace each ``[[meshes]]`` entry that names an ``obj`` file (relative to ``base``) by the
+    vertices and faces read from it, placed by ``translate``, ``scale`` and ``rotate_y``."""
+    from prep.render.obj import ObjError, load_obj
+
+    meshes = data.get("meshes")
+    if not isinstance(meshes, list):
+        return
+    for i, entry in enumerate(meshes):
+        if not isinstance(entry, dict) or not any(k in entry for k in _OBJ_KEYS):
+            continue
+        path = f"meshes[{i}]"
+        if "obj" not in entry:
+            key = next(k for k in _OBJ_KEYS if k in entry)
+            raise _Bad(f"{path}.{key} = {_show(entry[key])}: {key} places a mesh read from an OBJ file, and "
+                       f"{path} has no obj key")
+        inline = [k for k in ("vertices", "faces") if k in entry]
+        if inline:
+            raise _Bad(f"{path}.{inline[0]}: a mesh is either read from obj = {_show(entry['obj'])} or given "
+                       "by vertices and faces, not both")
+        name = _convert(entry["obj"], str, f"{path}.obj")
+        translate = _convert(entry.get("translate", [0.0, 0.0, 0.0]), tuple[float, float, float],
+                             f"{path}.translate")
+        scale = _convert(entry.get("scale", 1.0), float, f"{path}.scale")
+        if not scale > 0:
+            raise _Bad(f"{path}.scale = {_show(entry['scale'])}: scale must be > 0")
+        rotate_y = _convert(entry.get("rotate_y", 0.0), float, f"{path}.rotate_y")
+        obj_path = Path(name) if Path(name).is_absolute() else base / name
+        try:
+            mesh = load_obj(obj_path, "", translate, scale, rotate_y)
+        except ObjError as exc:
+            raise _Bad(f"{path}.obj = {_show(name)}: {exc}") from None
+        rest = {k: v for k, v in entry.items() if k not in _OBJ_KEYS}
+        meshes[i] = {"vertices": [list(v) for v in mesh.vertices], "faces": [list(f) for f in mesh.faces],
+                     **rest}
 
 
 def _scene_problem(scene: Scene, exc: ValueError) -> str:
@@ -531,6 +583,9 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
     data = dict(_parse(path))
     render_table = data.pop("render", {})
     try:
+        if isinstance(data.get("meshes"), list):
+            data["meshes"] = list(data["meshes"])
+            _obj_meshes(data, path.parent)
         scene = _build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
                        also_valid=("render",))
         _check_material_names(scene)

@@ -15,10 +15,14 @@ from numba import njit
 
 LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
 TEX_NONE, TEX_WORLD, TEX_UV = 0, 1, 2  # order of scene.TEXTURES
-# Column layouts of the material and quad tables, mirrored from packing.py (MAT_*, QUAD_COLS) rather than
-# imported, so that numba's cache of this file cannot hold stale copies; a test checks they agree.
+# Column layouts of the material, quad, triangle and BVH tables, mirrored from packing.py (MAT_*, QUAD_COLS,
+# TRI_*, BVH_*) rather than imported, so that numba's cache of this file cannot hold stale copies; a test
+# checks they agree.
 M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 0, 1, 4, 7, 8, 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
+T_V0, T_E1, T_E2, T_NORMAL = 0, 3, 6, 9
+B_LEFT, B_RIGHT, B_IS_LEAF, B_FIRST, B_COUNT = 0, 1, 2, 0, 1
+BVH_STACK = 64  # > packing.BVH_MAX_DEPTH: the traversal pushes at most one node per level
 
 # Spawned rays start this far off the surface along the shading normal; scenes are a few units big.
 RAY_OFFSET = 1e-4
@@ -258,9 +262,171 @@ def occluded(o, d, tmax, sc):
     return False
 
 
+@njit(cache=True, inline="always")
+def _triangle_t(o, d, tmax, tris, i):
+    """Distance along o + t d to triangle i if in (T_MIN, tmax), else -1 (Moeller-Trumbore; columns as
+    T_*, spelled out: this is the innermost loop)."""
+    # pvec = d x e2
+    px = d[1] * tris[i, 8] - d[2] * tris[i, 7]
+    py = d[2] * tris[i, 6] - d[0] * tris[i, 8]
+    pz = d[0] * tris[i, 7] - d[1] * tris[i, 6]
+    det = tris[i, 3] * px + tris[i, 4] * py + tris[i, 5] * pz
+    if det == 0.0:
+        return -1.0
+    inv = 1.0 / det
+    sx = o[0] - tris[i, 0]
+    sy = o[1] - tris[i, 1]
+    sz = o[2] - tris[i, 2]
+    u = (sx * px + sy * py + sz * pz) * inv
+    if u < 0.0 or u > 1.0:
+        return -1.0
+    # qvec = s x e1
+    qx = sy * tris[i, 5] - sz * tris[i, 4]
+    qy = sz * tris[i, 3] - sx * tris[i, 5]
+    qz = sx * tris[i, 4] - sy * tris[i, 3]
+    v = (d[0] * qx + d[1] * qy + d[2] * qz) * inv
+    if v < 0.0 or u + v > 1.0:
+        return -1.0
+    t = (tris[i, 6] * qx + tris[i, 7] * qy + tris[i, 8] * qz) * inv
+    if T_MIN < t < tmax:
+        return t
+    return -1.0
+
+
+@njit(cache=True, inline="always")
+def _box_t(o, inv, tmax, bounds, n):
+    """Where the ray o + t d (inv = 1 / d per axis, a huge finite value for a zero component) enters BVH
+    node n's box within [0, tmax); -1 if it misses the box there."""
+    t0 = 0.0
+    t1 = tmax
+    for a in range(3):
+        ta = (bounds[n, a] - o[a]) * inv[a]
+        tb = (bounds[n, a + 3] - o[a]) * inv[a]
+        if ta > tb:
+            ta, tb = tb, ta
+        if ta > t0:
+            t0 = ta
+        if tb < t1:
+            t1 = tb
+    if t0 <= t1:
+        return t0
+    return -1.0
+
+
+@njit(cache=True, inline="always")
+def _inverse(d):
+    """1 / d per axis, with a huge finite value (not inf: no 0 * inf) for a zero component."""
+    return (1.0 / d[0] if d[0] != 0.0 else 1e300, 1.0 / d[1] if d[1] != 0.0 else 1e300,
+            1.0 / d[2] if d[2] != 0.0 else 1e300)
+
+
+@njit(cache=True, inline="always")
+def intersect_mesh(o, d, tmax, sc):
+    """Closest triangle hit in (T_MIN, tmax) of the ray o + t d over the meshes of ``sc`` (BVH traversal,
+    nearer child first, with a fixed stack): (t, triangle index), (tmax, -1) on a miss."""
+    # inlined, so that the call below passes three arrays rather than the whole packed scene
+    return _intersect_bvh(o, d, tmax, sc.triangles, sc.bvh_bounds, sc.bvh_nodes)
+
+
+@njit(cache=True, inline="always")
+def occluded_mesh(o, d, tmax, sc):
+    """Whether a triangle of the meshes of ``sc`` lies on the ray o + t d for t in (T_MIN, tmax)."""
+    return _occluded_bvh(o, d, tmax, sc.triangles, sc.bvh_bounds, sc.bvh_nodes)
+
+
 @njit(cache=True)
-def surface(p, kind, idx, spheres, quads):
-    """Geometric normal (outward for spheres, cross(u, v) for quads) and texture coordinates."""
+def _intersect_bvh(o, d, tmax, tris, bounds, nodes):
+    """intersect_mesh over the triangle table and BVH arrays."""
+    best = tmax
+    hit = -1
+    if nodes.shape[0] == 0:
+        return best, hit
+    inv = _inverse(d)
+    if _box_t(o, inv, best, bounds, 0) < 0.0:
+        return best, hit
+    stack = np.empty(BVH_STACK, dtype=np.int64)
+    stack_t = np.empty(BVH_STACK, dtype=np.float64)
+    sp = 0
+    node = 0
+    while True:
+        if nodes[node, B_IS_LEAF] != 0:
+            first = nodes[node, B_FIRST]
+            for i in range(first, first + nodes[node, B_COUNT]):
+                t = _triangle_t(o, d, best, tris, i)
+                if t > 0.0:
+                    best = t
+                    hit = i
+            node = -1
+        else:
+            left = nodes[node, B_LEFT]
+            right = nodes[node, B_RIGHT]
+            tl = _box_t(o, inv, best, bounds, left)
+            tr = _box_t(o, inv, best, bounds, right)
+            if tl >= 0.0 and tr >= 0.0:
+                if tr < tl:
+                    left, right = right, left
+                    tl, tr = tr, tl
+                stack[sp] = right
+                stack_t[sp] = tr
+                sp += 1
+                node = left
+            elif tl >= 0.0:
+                node = left
+            elif tr >= 0.0:
+                node = right
+            else:
+                node = -1
+        while node < 0 and sp > 0:  # the next pushed node the ray can still reach before its best hit
+            sp -= 1
+            if stack_t[sp] <= best:
+                node = stack[sp]
+        if node < 0:
+            return best, hit
+
+
+@njit(cache=True)
+def _occluded_bvh(o, d, tmax, tris, bounds, nodes):
+    """occluded_mesh over the triangle table and BVH arrays."""
+    if nodes.shape[0] == 0:
+        return False
+    inv = _inverse(d)
+    if _box_t(o, inv, tmax, bounds, 0) < 0.0:  # before the stack is allocated: most rays stop here
+        return False
+    stack = np.empty(BVH_STACK, dtype=np.int64)
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if node != 0 and _box_t(o, inv, tmax, bounds, node) < 0.0:
+            continue
+        if nodes[node, B_IS_LEAF] != 0:
+            first = nodes[node, B_FIRST]
+            for i in range(first, first + nodes[node, B_COUNT]):
+                if _triangle_t(o, d, tmax, tris, i) > 0.0:
+                    return True
+        else:
+            stack[sp] = nodes[node, B_RIGHT]
+            stack[sp + 1] = nodes[node, B_LEFT]
+            sp += 2
+    return False
+
+
+@njit(cache=True)
+def surface(p, kind, idx, spheres, quads, tris):
+    """Geometric normal (outward for spheres, cross(u, v) for quads, cross(e1, e2) for triangles) and
+    texture coordinates (barycentrics u, v for triangles)."""
+    if kind == 2:
+        ng = _row3(tris, idx, T_NORMAL)
+        e1 = _row3(tris, idx, T_E1)
+        e2 = _row3(tris, idx, T_E2)
+        q = _sub(p, _row3(tris, idx, T_V0))
+        # q = u e1 + v e2 in the triangle's plane: u = q . (e2 x w), v = q . (w x e1), w = n / |n|^2
+        nn = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+        w = _scale(nn, 1.0 / _dot(nn, nn))
+        du = (e2[1] * w[2] - e2[2] * w[1], e2[2] * w[0] - e2[0] * w[2], e2[0] * w[1] - e2[1] * w[0])
+        dv = (w[1] * e1[2] - w[2] * e1[1], w[2] * e1[0] - w[0] * e1[2], w[0] * e1[1] - w[1] * e1[0])
+        return ng, _dot(q, du), _dot(q, dv)
     if kind == 0:
         r = spheres[idx, 3]
         ng = ((p[0] - spheres[idx, 0]) / r, (p[1] - spheres[idx, 1]) / r, (p[2] - spheres[idx, 2]) / r)
