@@ -478,12 +478,19 @@ def _mean_vs_reference(scene, layer, k, spp, ref_spp, size, seed0, ref_scale=1.0
 #   variance layer off by 2x (spp or ddof mistakes) moves it to ~0.5 or ~2.
 # * fraction |z| > 4 below 3 %: 6e-5 for a Gaussian; path samples are heavy-tailed (observed up to
 #   1.8 % on glossy floors); a biased renderer or wrong variance puts far more mass out there.
-@pytest.mark.parametrize("family,index", [("cornell", 1), ("spheres", 2), ("boxes", 0)])
-def test_mean_of_low_spp_renders_matches_reference(family, index):
+# * the families with glass, tiny lights, meshes and lenses are heavy-tailed enough at 4 spp that the
+#   mean of 8 renders sits below the reference in most seed sets (caustics-000: z_sum -1.4 to -3.3 over
+#   four sets at 4 spp, -0.13 at 64 spp, the reference's sample count): they are compared at 64 spp.
+#   (indirect uses no effect the others lack, and its glossy paths to the hidden light are rare enough
+#   that the reference's variance layer underestimates their spread: it is left out.)
+@pytest.mark.parametrize("family,index,spp", [("cornell", 1, 4), ("spheres", 2, 4), ("boxes", 0, 4),
+                                              ("fireflies", 0, 64), ("caustics", 0, 64),
+                                              ("outdoor", 1, 64), ("textures", 0, 64)])
+def test_mean_of_low_spp_renders_matches_reference(family, index, spp):
     scene = grey(make_scene(family, index, 0))
     for layer in ("default", "diffuse", "specular"):
-        z, z_sum, const_diff = _mean_vs_reference(scene, layer, k=8, spp=4, ref_spp=512, size=24, seed0=100)
-        assert z.size > 300, layer
+        z, z_sum, const_diff = _mean_vs_reference(scene, layer, k=8, spp=spp, ref_spp=512, size=24, seed0=100)
+        assert z.size > 150, layer  # pixel-channels with variance (the specular of indirect, textures: ~200)
         assert np.all(const_diff < 1e-5), layer
         assert abs(z_sum) < 4.5, (layer, z_sum)
         assert 0.6 < np.mean(np.minimum(z ** 2, 16)) < 1.6, (layer, np.mean(np.minimum(z ** 2, 16)))
