@@ -121,3 +121,29 @@ def test_specialised_kernel_gives_the_all_effects_bits_for_new_effects(scene):
     full = render(scene, spp=3, seed=9, width=10, height=8, max_depth=DEEP, effects=EFFECTS)
     for name in fast:
         np.testing.assert_array_equal(fast[name], full[name], err_msg=name)
+
+
+@pytest.mark.parametrize("radius,height", [(0.1, 1.0), (0.6, 0.8)], ids=["small-far", "large-close"])
+def test_lambert_plane_under_a_sphere_light_matches_the_analytic_irradiance(radius, height):
+    # a sphere of radiance Le seen from a point whose normal points at its centre: E = pi Le (r / d)^2,
+    # so a plane of albedo a reflects L = a Le (r / d)^2. Small and far is carried by light sampling;
+    # large and close needs the MIS weight of BSDF-sampled hits to be right as well.
+    albedo, le = 0.6, 5.0
+    cam = Camera(position=(0, 0.3, 1.0), look_at=(0, 0, 0), fov=0.5)
+    scene = Scene("sphere-light", "test", cam, {"g": lambert((albedo,) * 3), "light": emitter((le,) * 3)},
+                  spheres=[Sphere((0, height, 0), radius, "light")],
+                  quads=[Quad((-50, 0, -50), (0, 0, 100), (100, 0, 0), "g")])
+    assert "emitter" in scene.effects()
+    r = render(scene, spp=2048, seed=8, width=3, height=3)
+    expected = albedo * le * (radius / height) ** 2
+    got = r["diffuse"][1, 1].astype(np.float64)
+    sigma = math.sqrt(r["diffuseVariance"][1, 1])
+    assert np.all(np.abs(got - expected) < 5 * sigma + 1e-3 * expected), (got, expected, sigma)
+    assert sigma < 0.05 * expected  # not vacuous
+
+
+def test_a_sphere_light_seen_directly_shows_its_radiance():
+    cam = Camera(position=(0, 0, 3), look_at=(0, 0, 0), fov=2.0)
+    scene = Scene("lamp", "test", cam, {"light": emitter((2.0, 3.0, 4.0))}, spheres=[Sphere((0, 0, 0), 0.5, "light")])
+    r = render(scene, spp=2, seed=0, width=3, height=3)
+    np.testing.assert_allclose(r["specular"], np.broadcast_to([2.0, 3.0, 4.0], (3, 3, 3)), rtol=1e-6)

@@ -268,7 +268,6 @@ def test_unknown_key_in_a_table_names_the_key_path_and_the_valid_keys(tmp_path, 
     ('position = [0.0, 1.0, 3.4]', 'position = 3', 'camera.position = 3: expected 3 finite numbers'),
     ('environment = [0.0, 0.0, 0.0]', 'environment = [-1.0, 0.0, 0.0]',
      'environment = [-1.0, 0.0, 0.0]: Scene.environment must be >= 0'),
-    ('material = "blue"', 'material = "light"', 'spheres[1]: sphere Sphere('),
     ('v = [0.0, 0.0, 0.5]', 'v = [1.0, 0.0, 0.0]', 'quads[5]: Quad edges are parallel'),
 ])
 def test_a_wrong_value_names_the_key_path_and_the_value_found(tmp_path, old, new, needle):

@@ -237,10 +237,16 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 if bounce == 0:
                     ls = _add(ls, le)
                 else:
-                    li = sc.quad_light[idx] if kind == 1 else -1
+                    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
                     w = 1.0
                     if li >= 0 and prev_pdf > 0.0:
-                        pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
+                        if kind == 1:
+                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
+                        else:  # the cone density light sampling used from the previous vertex, o
+                            wc = _sub(_row3(sc.spheres, idx, 0), o)
+                            sin2 = sc.spheres[idx, 3] * sc.spheres[idx, 3] / _dot(wc, wc)
+                            one_minus = sin2 / (1.0 + math.sqrt(max(0.0, 1.0 - sin2)))
+                            pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
                         w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
                     ld = _madd(ld, _mul(bd, le), w)
                     ls = _madd(ls, _mul(bs, le), w)
@@ -288,25 +294,51 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 q = sc.lights[li]
                 u1 = rand(key, base + 1)
                 u2 = rand(key, base + 2)
-                point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
-                dl = _sub(point, origin)
-                dist2 = _dot(dl, dl)
-                dist = math.sqrt(dist2)
-                wi = _scale(dl, 1.0 / dist)
-                cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
+                lit = False
+                wi = n
+                tmax = 0.0
+                pdf_l = 0.0
+                le = (0.0, 0.0, 0.0)
+                if sc.light_kind[li] == 0:  # a rectangle: a uniform point on it
+                    point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
+                    dl = _sub(point, origin)
+                    dist2 = _dot(dl, dl)
+                    dist = math.sqrt(dist2)
+                    wi = _scale(dl, 1.0 / dist)
+                    cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
+                    if cos_l > 0.0:
+                        lit = True
+                        tmax = dist * (1.0 - 1e-5)  # stop short of the light's own plane
+                        pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
+                        le = _row3(materials, sc.quad_mat[q], M_EMISSION)
+                else:  # a sphere: a direction uniform in the cone it subtends
+                    wc = _sub(_row3(sc.spheres, q, 0), origin)
+                    dc2 = _dot(wc, wc)
+                    r2 = sc.spheres[q, 3] * sc.spheres[q, 3]
+                    if dc2 > r2:
+                        dc = math.sqrt(dc2)
+                        sin2 = r2 / dc2
+                        cos_max = math.sqrt(max(0.0, 1.0 - sin2))
+                        one_minus = sin2 / (1.0 + cos_max)  # 1 - cos_max without cancellation
+                        ct = 1.0 - u1 * one_minus
+                        st = math.sqrt(max(0.0, 1.0 - ct * ct))
+                        phi = 2.0 * math.pi * u2
+                        wi = _to_world((st * math.cos(phi), st * math.sin(phi), ct), _scale(wc, 1.0 / dc))
+                        b = _dot(wc, wi)
+                        lit = True
+                        tmax = (b - math.sqrt(max(0.0, b * b - dc2 + r2))) * (1.0 - 1e-5)
+                        pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
+                        le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
                 ci = _dot(n, wi)
-                if cos_l > 0.0 and ci > 0.0:
+                if lit and ci > 0.0:
                     fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
                     if pdf_b > 0.0:
-                        # stop short of the light's own plane
-                        tmax = dist * (1.0 - 1e-5)
                         blocked = occluded(origin, wi, tmax, sc)
                         if HAS_MESH and not blocked:
                             blocked = occluded_mesh(origin, wi, tmax, sc)
                         if not blocked:
-                            pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
                             w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
-                            c = _scale(_row3(materials, sc.quad_mat[q], M_EMISSION), ci * w / pdf_l)
+                            c = _scale(le, ci * w / pdf_l)
                             if bounce == 0:
                                 ld = _add(ld, _mul(fd, c))
                                 ls = _add(ls, _mul(fs, c))

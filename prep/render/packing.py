@@ -48,7 +48,9 @@ class PackedScene(NamedTuple):
     groups: np.ndarray  # (Ng, 2) int64 [start, end) ranges of the other quads
     group_bounds: np.ndarray  # (Ng, 4) bounding sphere (centre, radius) of each range
     materials: np.ndarray  # (Nm, MAT_COLS)
-    lights: np.ndarray  # (Nl,) int64 quad index of each light
+    sphere_light: np.ndarray  # (Ns,) int64, index into lights or -1
+    lights: np.ndarray  # (Nl,) int64 index of each light in its table (quads first, then spheres)
+    light_kind: np.ndarray  # (Nl,) int64: 0 a quad, 1 a sphere
     light_cdf: np.ndarray  # (Nl,) cumulative selection probability
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
     camera: np.ndarray  # (12,) see Camera.frame
@@ -218,6 +220,15 @@ def pack(scene: Scene) -> PackedScene:
             quad_light[i] = len(lights)
             lights.append(i)
             powers.append(q.area * max(_luminance(m.emission), 1e-6))
+    kinds = [0] * len(lights)
+    sphere_light = np.full(len(scene.spheres), -1, dtype=np.int64)
+    for i, sp in enumerate(scene.spheres):
+        m = scene.materials[sp.material]
+        if m.kind == "emitter" and max(m.emission) > 0:
+            sphere_light[i] = len(lights)
+            lights.append(i)
+            kinds.append(1)
+            powers.append(4.0 * math.pi * sp.radius**2 * max(_luminance(m.emission), 1e-6))
     powers = np.asarray(powers, dtype=np.float64)
     prob = powers / powers.sum() if len(powers) else powers
     cdf = np.cumsum(prob)
@@ -227,7 +238,8 @@ def pack(scene: Scene) -> PackedScene:
     return PackedScene(
         spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
-        lights=np.asarray(lights, dtype=np.int64), light_cdf=cdf, light_prob=prob,
+        sphere_light=sphere_light, lights=np.asarray(lights, dtype=np.int64),
+        light_kind=np.asarray(kinds, dtype=np.int64), light_cdf=cdf, light_prob=prob,
         camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
         lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
         environment=np.asarray(_vec(scene.environment, "environment")),

@@ -6,7 +6,8 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
   Its normal is ``normalize(cross(u, v))``. Quads are double-sided for shading (the shading normal
   is flipped to face the incoming ray); an ``emitter`` quad emits only on the side its normal points
   to and is black on the other side.
-* ``Sphere(center, radius, material)``; emitters must be quads (next-event estimation samples quads).
+* ``Sphere(center, radius, material)``; an ``emitter`` sphere is a light that emits outwards (light
+  sampling picks a direction in the cone it subtends).
 * ``Mesh(vertices, faces, material)``: a triangle mesh, ``faces`` index ``vertices`` from 0. A triangle's
   geometric normal is ``normalize(cross(v1 - v0, v2 - v0))``: counter-clockwise winding seen from outside
   makes it point outwards, which glass needs (a closed mesh wound that way). Shading is double-sided as
@@ -290,7 +291,7 @@ class Scene:
     meshes: list[Mesh] = field(default_factory=list)
 
     def validate(self) -> None:
-        """Raise ValueError if an object names an unknown material or a sphere or mesh is an emitter."""
+        """Raise ValueError if an object names an unknown material or a mesh is an emitter."""
         for name in ("environment", "environment_zenith"):
             value = getattr(self, name)
             if value is not None and min(_vec(value, f"Scene.{name}")) < 0:
@@ -299,13 +300,10 @@ class Scene:
             if obj.material not in self.materials:
                 raise ValueError(f"{self.name}: object {obj} names unknown material {obj.material!r}; "
                                  f"known: {sorted(self.materials)}")
-        for s in self.spheres:
-            if self.materials[s.material].kind == "emitter":
-                raise ValueError(f"{self.name}: sphere {s} uses an emitter material; only quads may emit")
         for mesh in self.meshes:
             if self.materials[mesh.material].kind == "emitter":
                 raise ValueError(f"{self.name}: mesh {mesh} uses an emitter material; meshes cannot emit, "
-                                 "only quads may")
+                                 "only quads and spheres may")
 
     def _objects(self) -> list:
         return list(self.spheres) + list(self.quads) + list(self.meshes)
