@@ -550,6 +550,7 @@ def test_kernel_table_layouts_agree_with_scene():
         sc.MAT_KIND, sc.MAT_ALBEDO, sc.MAT_SPECULAR, sc.MAT_ROUGHNESS, sc.MAT_EMISSION, sc.MAT_TEXTURE,
         sc.MAT_ALBEDO2, sc.MAT_SCALE)
     assert scene.MATERIAL_KINDS.index("plastic") == tracer.PLASTIC and scene.TEXTURES.index("uv") == tracer.TEX_UV
+    assert scene.TEXTURES.index("image") == tracer.TEX_IMAGE
     q = Quad((1, 2, 3), (0, 0, 2), (3, 0, 0), "m")
     row = pack(Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), {"m": lambert((0.5,) * 3)},
                      quads=[q])).quads[0]

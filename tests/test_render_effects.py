@@ -147,3 +147,32 @@ def test_a_sphere_light_seen_directly_shows_its_radiance():
     scene = Scene("lamp", "test", cam, {"light": emitter((2.0, 3.0, 4.0))}, spheres=[Sphere((0, 0, 0), 0.5, "light")])
     r = render(scene, spp=2, seed=0, width=3, height=3)
     np.testing.assert_allclose(r["specular"], np.broadcast_to([2.0, 3.0, 4.0], (3, 3, 3)), rtol=1e-6)
+
+
+def test_image_texture_gives_the_texel_under_each_pixel(tmp_path):
+    # a 2x2 PNG on a quad that fills the view: each image quadrant's albedo AOV is albedo x its texel
+    import matplotlib.image
+
+    texels = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [128, 128, 128]]], dtype=np.uint8)
+    png = tmp_path / "t.png"
+    matplotlib.image.imsave(png, texels)
+    cam = Camera(position=(0, 0, 0), look_at=(0, 0, -1), fov=40.0)
+    h = math.tan(math.radians(20.0)) * 3.0  # the quad at z = -3 exactly fills the view
+    # corner at the image's top left: u runs right (across), v runs down
+    quad = Quad((-h, h, -3.0), (2 * h, 0, 0), (0, -2 * h, 0), "t")
+    mat = lambert((0.5, 0.8, 1.0), texture="image", image=str(png))
+    r = render(Scene("img", "test", cam, {"t": mat}, quads=[quad]), spp=2, seed=0, width=8, height=8)
+    linear = (texels / 255.0) ** 2.2
+    for (y, x), (ty, tx) in {(1, 1): (0, 0), (1, 6): (0, 1), (6, 1): (1, 0), (6, 6): (1, 1)}.items():
+        np.testing.assert_allclose(r["albedo"][y, x], np.array([0.5, 0.8, 1.0]) * linear[ty, tx], rtol=1e-3, atol=1e-4)
+    assert "texture" in Scene("img", "test", cam, {"t": mat}, quads=[quad]).effects()
+
+
+def test_an_image_texture_that_cannot_be_read_is_named(tmp_path):
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    mat = lambert((0.5,) * 3, texture="image", image=str(tmp_path / "bad.png"))
+    scene = Scene("img", "test", Camera((0, 0, 0), (0, 0, -1)), {"t": mat}, quads=[Quad((-1, -1, -3), (2, 0, 0), (0, 2, 0), "t")])
+    with pytest.raises(ValueError, match="bad.png"):
+        render(scene, spp=2, seed=0, width=4, height=4)
+    with pytest.raises(ValueError, match="image"):
+        lambert((0.5,) * 3, texture="image")

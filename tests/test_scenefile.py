@@ -360,3 +360,18 @@ def test_cli_refuses_options_of_the_other_mode_and_an_output_over_the_scene_file
     assert_one_line_error(kpcn("render", "--scene", "s.toml", "--spp", "1", "--out", "o.exr", cwd=tmp_path),
                           "--spp", "got 1")
     assert checksums(tmp_path) == before
+
+
+def test_an_image_texture_is_found_beside_the_scene_file_and_a_missing_one_is_named(tmp_path):
+    import matplotlib.image
+
+    (tmp_path / "tex").mkdir()
+    matplotlib.image.imsave(tmp_path / "tex" / "wood.png", np.full((2, 2, 3), 200, dtype=np.uint8))
+    text = (EXAMPLE.read_text().replace('texture = "uv"', 'texture = "image"\nimage = "tex/wood.png"')
+            .replace("albedo2 = [0.2, 0.2, 0.24]\n", ""))
+    scene_file = tmp_path / "s.toml"
+    scene_file.write_text(text)
+    scene, _ = load_scene(scene_file)
+    assert Path(scene.materials["floor"].image) == tmp_path / "tex" / "wood.png"
+    scene_file.write_text(text.replace("tex/wood.png", "tex/oak.png"))
+    assert 'materials.floor.image = "tex/oak.png": no such file' in load_error(scene_file)

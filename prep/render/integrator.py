@@ -50,6 +50,7 @@ from prep.render.tracer import (
     Q_U,
     Q_V,
     RAY_OFFSET,
+    TEX_IMAGE,
     TEX_NONE,
     TEX_WORLD,
     _add,
@@ -91,14 +92,21 @@ HAS_MESH = True
 
 
 @njit(cache=True)
-def albedo_at(materials, m, p, u, v):
-    """Diffuse reflectance of material m at p (checker textures evaluated)."""
+def albedo_at(sc, m, p, u, v):
+    """Diffuse reflectance of material m at p (checker and image textures evaluated)."""
+    materials = sc.materials
     if not HAS_TEXTURE:
         return _row3(materials, m, M_ALBEDO)
     tex = int(materials[m, M_TEXTURE])
     if tex == TEX_NONE:
         return _row3(materials, m, M_ALBEDO)
     s = materials[m, M_SCALE]
+    if tex == TEX_IMAGE:
+        first, w, h = sc.image_info[m, 0], sc.image_info[m, 1], sc.image_info[m, 2]
+        fu = u * s - math.floor(u * s)
+        fv = v * s - math.floor(v * s)
+        i = first + min(int(fv * h), h - 1) * w + min(int(fu * w), w - 1)
+        return _mul(_row3(materials, m, M_ALBEDO), _row3(sc.image_pixels, i, 0))
     if tex == TEX_WORLD:
         # odd offsets keep axis-aligned planes at round coordinates (y = 0) off the cell borders
         k = (math.floor((p[0] + 0.01370) * s) + math.floor((p[1] + 0.02910) * s)
@@ -222,7 +230,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
         n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
         kd = (0.0, 0.0, 0.0)
         if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
-            kd = albedo_at(materials, m, p, tu, tv)
+            kd = albedo_at(sc, m, p, tu, tv)
         if bounce == 0:
             out[6] = kd[0]
             out[7] = kd[1]

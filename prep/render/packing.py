@@ -59,6 +59,8 @@ class PackedScene(NamedTuple):
     focus_distance: float  # along the view direction
     environment: np.ndarray  # (3,) radiance towards the horizon
     environment_zenith: np.ndarray  # (3,) radiance straight up (= environment when constant)
+    image_pixels: np.ndarray  # (Np, 3) linear texels of every image texture, row by row
+    image_info: np.ndarray  # (Nm, 3) int64 per material: first texel, width, height (0s without an image)
     triangles: np.ndarray  # (Nt, TRI_COLS) the triangles of every mesh, in BVH leaf order
     tri_mat: np.ndarray  # (Nt,) int64
     bvh_bounds: np.ndarray  # (Nn, 6) float64 node bounds
@@ -157,6 +159,41 @@ def build_bvh(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarra
             np.asarray(links, dtype=np.int64).reshape(-1, 3))
 
 
+SRGB_GAMMA = 2.2
+
+
+def load_image(path: str) -> np.ndarray:
+    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); ValueError naming the file."""
+    import matplotlib.image
+
+    try:
+        image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable PNG image ({exc})") from None
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)
+    if image.ndim != 3 or image.shape[2] < 3 or image.size == 0:
+        raise ValueError(f"{path}: expected an RGB image, found shape {image.shape}")
+    return np.clip(image[..., :3], 0.0, 1.0) ** SRGB_GAMMA
+
+
+def pack_images(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Every image texture's texels in one table, and per material (first texel, width, height)."""
+    info = np.zeros((max(len(scene.materials), 1), 3), dtype=np.int64)
+    chunks, loaded, count = [], {}, 0
+    for i, m in enumerate(scene.materials.values()):
+        if m.texture != "image":
+            continue
+        if m.image not in loaded:
+            image = load_image(m.image)
+            loaded[m.image] = (count, image.shape[1], image.shape[0])
+            chunks.append(image.reshape(-1, 3))
+            count += image.shape[0] * image.shape[1]
+        info[i] = loaded[m.image]
+    pixels = np.concatenate(chunks) if chunks else np.zeros((0, 3))
+    return np.ascontiguousarray(pixels, dtype=np.float64), info
+
+
 def pack_meshes(scene: Scene, index: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The triangles of every mesh of ``scene`` (degenerate ones dropped) in BVH leaf order, their
     material indices, and the BVH: (triangles, tri_mat, bvh_bounds, bvh_nodes); empty arrays of the same
@@ -235,6 +272,7 @@ def pack(scene: Scene) -> PackedScene:
     if len(cdf):
         cdf[-1] = 1.0
     triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
+    image_pixels, image_info = pack_images(scene)
     return PackedScene(
         spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
@@ -245,6 +283,7 @@ def pack(scene: Scene) -> PackedScene:
         environment=np.asarray(_vec(scene.environment, "environment")),
         environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
                                            else scene.environment_zenith, "environment_zenith")),
+        image_pixels=image_pixels, image_info=image_info,
         triangles=triangles, tri_mat=tri_mat, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
     )
 

@@ -18,7 +18,9 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
   - ``lambert``: diffuse ``albedo``; ``texture`` ``"world"`` (3-D checker with cells of side
     ``1/checker_scale`` in world space) or ``"uv"`` (``checker_scale`` cells along each quad edge;
     on spheres ``checker_scale`` along a meridian, twice that around the equator) alternates
-    ``albedo`` and ``albedo2``.
+    ``albedo`` and ``albedo2``; ``texture`` ``"image"`` multiplies ``albedo`` by the texel of the PNG
+    file ``image`` at the surface's texture coordinates (tiled ``checker_scale`` times along each; u runs
+    across the image, v down it; nearest texel; sRGB values decoded to linear with gamma 2.2).
   - ``glossy``: rough metal, GGX lobe, Schlick Fresnel with ``specular`` as F0, GGX alpha
     ``roughness``; no diffuse lobe.
   - ``plastic``: lambert base (``albedo``, textures as for lambert) plus a GGX coat with F0
@@ -55,7 +57,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
-TEXTURES = ("none", "world", "uv")
+TEXTURES = ("none", "world", "uv", "image")
 # What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
 # material kinds, plus these.
 EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh")
@@ -84,6 +86,7 @@ class Material:
     albedo2: Vec3 = (0.0, 0.0, 0.0)
     checker_scale: float = 1.0
     ior: float = 1.5
+    image: str = ""
 
     def __post_init__(self):
         if self.kind not in MATERIAL_KINDS:
@@ -101,12 +104,17 @@ class Material:
             raise ValueError(f"GGX roughness must be in [0.01, 1], got {self.roughness!r}")
         if self.texture != "none" and not self.checker_scale > 0:
             raise ValueError(f"checker_scale must be > 0, got {self.checker_scale!r}")
+        if (self.texture == "image") != bool(self.image):
+            raise ValueError(f"Material.image names the PNG of texture 'image' (and only then), got texture "
+                             f"{self.texture!r} and image {self.image!r}")
         if not IOR_RANGE[0] <= self.ior <= IOR_RANGE[1]:
             raise ValueError(f"Material.ior must be in [{IOR_RANGE[0]}, {IOR_RANGE[1]}], got {self.ior!r}")
 
 
-def lambert(albedo, texture: str = "none", albedo2=(0.0, 0.0, 0.0), checker_scale: float = 1.0) -> Material:
-    return Material("lambert", albedo=albedo, texture=texture, albedo2=albedo2, checker_scale=checker_scale)
+def lambert(albedo, texture: str = "none", albedo2=(0.0, 0.0, 0.0), checker_scale: float = 1.0,
+            image: str = "") -> Material:
+    return Material("lambert", albedo=albedo, texture=texture, albedo2=albedo2, checker_scale=checker_scale,
+                    image=image)
 
 
 def glossy(specular, roughness: float) -> Material:

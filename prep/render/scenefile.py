@@ -482,6 +482,19 @@ def _obj_meshes(data: dict, base: Path) -> None:
                      **rest}
 
 
+def _image_paths(data: dict, base: Path) -> None:
+    """Image textures are named relative to the scene file: make each path one that works from anywhere."""
+    materials = data.get("materials")
+    if not isinstance(materials, dict):
+        return
+    for name, table in materials.items():
+        if isinstance(table, dict) and isinstance(table.get("image"), str) and table["image"]:
+            image = Path(table["image"]) if Path(table["image"]).is_absolute() else base / table["image"]
+            if not image.is_file():
+                raise _Bad(f"{_join(_join('materials', name), 'image')} = {_show(table['image'])}: no such file {image}")
+            materials[name] = {**table, "image": str(image)}
+
+
 def _scene_problem(scene: Scene, exc: ValueError) -> str:
     """A Scene.validate() message with the key path of the object or field it is about."""
     message = str(exc).removeprefix(f"{scene.name}: ")
@@ -586,6 +599,7 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
         if isinstance(data.get("meshes"), list):
             data["meshes"] = list(data["meshes"])
             _obj_meshes(data, path.parent)
+        _image_paths(data, path.parent)
         scene = _build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
                        also_valid=("render",))
         _check_material_names(scene)

@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
-TEX_NONE, TEX_WORLD, TEX_UV = 0, 1, 2  # order of scene.TEXTURES
+TEX_NONE, TEX_WORLD, TEX_UV, TEX_IMAGE = 0, 1, 2, 3  # order of scene.TEXTURES
 # Column layouts of the material, quad, triangle and BVH tables, mirrored from packing.py (MAT_*, QUAD_COLS,
 # TRI_*, BVH_*) rather than imported, so that numba's cache of this file cannot hold stale copies; a test
 # checks they agree.
