@@ -82,6 +82,20 @@ def atomic_write_json(path: str | os.PathLike, value) -> Path:
     return atomic_write_text(path, json.dumps(value, indent=2) + "\n")
 
 
+def read_input(path: str | os.PathLike, expected: str, error=KpcnError) -> bytes:
+    """The bytes of an input file; ``error`` (a KpcnError class) naming ``path`` if it is missing, a folder
+    (``expected`` says what should be there: "an OBJ file") or unreadable."""
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{path}: no such file")
+    if path.is_dir():
+        raise error(f"{path}: is a folder, expected {expected}")
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def read_json(path: str | os.PathLike, what: str, keys: tuple[str, ...] = ()):
     """The JSON value in ``path``, a ``what`` (for messages: "run record", "shard manifest", ...).
 

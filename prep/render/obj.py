@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from prep.errors import KpcnError
+from prep.files import read_input
 from prep.render.scene import Mesh, Vec3, _vec
 
 __all__ = ["ObjError", "load_obj", "transform_vertices"]
@@ -64,19 +65,11 @@ def load_obj(path, material: str, translate: Vec3 = (0.0, 0.0, 0.0), scale: floa
         raise ValueError(f"scale must be a finite number > 0, got {scale!r}")
     if isinstance(rotate_y, bool) or not isinstance(rotate_y, (int, float)) or not math.isfinite(rotate_y):
         raise ValueError(f"rotate_y must be a finite number of degrees, got {rotate_y!r}")
-    if not path.exists():
-        raise ObjError(f"{path}: no such file")
-    if path.is_dir():
-        raise ObjError(f"{path}: is a folder, expected an OBJ file")
+    data = read_input(path, "an OBJ file", ObjError)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as exc:
-        raise ObjError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        text = data.decode("utf-8")
     except UnicodeDecodeError:
-        try:
-            text = path.read_bytes().decode("latin-1")  # OBJ is ASCII; names in comments may be anything
-        except OSError as exc:  # pragma: no cover - the first read worked
-            raise ObjError(f"{path}: cannot read ({exc})") from None
+        text = data.decode("latin-1")  # OBJ is ASCII; names in comments may be anything
 
     vertices: list[tuple[float, float, float]] = []
     faces: list[tuple[int, int, int]] = []

@@ -148,6 +148,7 @@ from typing import Any, Literal, Union
 import numpy as np
 
 from prep.errors import KpcnError, OptionError
+from prep.files import read_input
 from prep.render import RenderConfig, render
 from prep.render.scene import Mesh, Scene
 
@@ -531,14 +532,9 @@ def _parse(path: Path) -> dict:
     if suffix not in SUFFIXES:
         raise SceneFileError(f"{path}: a scene file must end in {' or '.join(SUFFIXES)} (TOML or JSON), "
                              f"found {path.suffix or 'no suffix'!r}")
-    if not path.exists():
-        raise SceneFileError(f"{path}: no such file")
-    if path.is_dir():
-        raise SceneFileError(f"{path}: is a folder, expected a scene file")
+    data = read_input(path, "a scene file", SceneFileError)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as exc:
-        raise SceneFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise SceneFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
     if suffix == ".json":
