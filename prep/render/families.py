@@ -90,11 +90,11 @@ def _place_on_floor(rng, n, radii_range, x_range, z_range, existing=(), gap=0.05
     return out
 
 
-def _ceiling_light(centre, sx, sz) -> Quad:
-    """Horizontal sx*sz rectangle centred at ``centre``, emitting downwards (-y)."""
+def _ceiling_light(centre, sx, sz, material: str = "light") -> Quad:
+    """Horizontal sx*sz rectangle of ``material`` centred at ``centre``, emitting downwards (-y)."""
     cx, cy, cz = centre
     # cross((sx,0,0), (0,0,sz)) = (0, -sx*sz, 0): normal points down
-    return Quad((cx - sx / 2, cy, cz - sz / 2), (sx, 0.0, 0.0), (0.0, 0.0, sz), "light")
+    return Quad((cx - sx / 2, cy, cz - sz / 2), (sx, 0.0, 0.0), (0.0, 0.0, sz), material)
 
 
 def _box_quads(x0, x1, y0, y1, z0, z1, material) -> list[Quad]:
@@ -174,8 +174,7 @@ def spheres(rng_or_seed=None, name: str = "spheres") -> Scene:
         power = _u(rng, 50.0, 110.0) / n_lights ** 0.5
         key = "light" if i == 0 else f"light{i}"
         mats[key] = emitter(tuple(c * power / (sx * sz) for c in _light_colour(rng)))
-        q = _ceiling_light((_u(rng, -3, 3), _u(rng, 3.0, 5.0), _u(rng, -3, 2)), sx, sz)
-        quads.append(Quad(q.corner, q.u, q.v, key))
+        quads.append(_ceiling_light((_u(rng, -3, 3), _u(rng, 3.0, 5.0), _u(rng, -3, 2)), sx, sz, key))
     angle = _u(rng, -0.5, 0.5)
     dist = _u(rng, 6.5, 8.0)
     cam = Camera(position=(dist * math.sin(angle), _u(rng, 1.5, 3.0), dist * math.cos(angle)),
@@ -300,8 +299,7 @@ def fireflies(rng_or_seed=None, name: str = "fireflies") -> Scene:
         power = _u(rng, 1.0, 4.0)
         key = f"light{i}"
         mats[key] = emitter(tuple(c * power / (s * s) for c in _light_colour(rng)))
-        q = _ceiling_light((_u(rng, -2.5, 2.5), _u(rng, 1.0, 3.0), _u(rng, -2.5, 1.5)), s, s)
-        quads.append(Quad(q.corner, q.u, q.v, key))
+        quads.append(_ceiling_light((_u(rng, -2.5, 2.5), _u(rng, 1.0, 3.0), _u(rng, -2.5, 1.5)), s, s, key))
     cam = Camera(position=(_u(rng, -1.5, 1.5), _u(rng, 1.2, 2.5), _u(rng, 5.0, 6.5)),
                  look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), -0.5), fov=_u(rng, 38, 46))
     env = _u(rng, 0.005, 0.02)
@@ -374,8 +372,7 @@ def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
     sun = _u(rng, 0.05, 0.12)
     power = _u(rng, 200.0, 500.0)
     mats["sun"] = emitter(tuple(c * power / (sun * sun) for c in _light_colour(rng)))
-    q = _ceiling_light((_u(rng, -6, 6), _u(rng, 8, 12), _u(rng, -8, 2)), sun, sun)
-    quads.append(Quad(q.corner, q.u, q.v, "sun"))
+    quads.append(_ceiling_light((_u(rng, -6, 6), _u(rng, 8, 12), _u(rng, -8, 2)), sun, sun, "sun"))
     cam_z = _u(rng, 4.0, 6.0)
     aperture = _u(rng, 0.02, 0.12) if rng.uniform() < 0.7 else 0.0
     cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 0.8, 1.6), cam_z),
