@@ -18,3 +18,8 @@ class OptionError(KpcnError, ValueError):
         super().__init__(f"{option} {detail}")
         self.option = option
         self.detail = detail
+
+
+class InputFileError(KpcnError, ValueError):
+    """A file a scene reads (an image texture, an environment map) that cannot be read or holds no usable
+    image; the message starts with the file's path."""

@@ -265,6 +265,20 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
     return out
 
 
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """The (H, W, 3) float32 colour of an ordinary RGB EXR (an image, not a render): its unprefixed R G B
+    channels, or those of layer ``default``. Non-finite values are left for the caller to judge.
+    Raises AOVError naming the file."""
+    path = Path(path)
+    _, _, channels = _open(path, separate_channels=True)
+    layers = _group_channels(path, channels)
+    comps = layers.get("default", {})
+    if not set("RGB") <= set(comps):
+        raise AOVError(f"{path}: an RGB image needs channels R G B (unprefixed or default.R/G/B); the file has "
+                       f"{', '.join(sorted(channels)) or 'no channels'}")
+    return np.stack([comps[c] for c in "RGB"], axis=-1).astype(np.float32)
+
+
 def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: bool = False) -> Path:
     """Write ``layer -> array`` as one multi-layer EXR (ZIP), atomically: a temporary name, then rename.
 

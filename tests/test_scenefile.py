@@ -375,3 +375,34 @@ def test_an_image_texture_is_found_beside_the_scene_file_and_a_missing_one_is_na
     assert Path(scene.materials["floor"].image) == tmp_path / "tex" / "wood.png"
     scene_file.write_text(text.replace("tex/wood.png", "tex/oak.png"))
     assert 'materials.floor.image = "tex/oak.png": no such file' in load_error(scene_file)
+
+
+def test_an_environment_map_is_read_beside_the_scene_file_or_baked_from_a_sky_table(tmp_path):
+    (tmp_path / "maps").mkdir()
+    exr.write_aovs(tmp_path / "maps" / "sky.exr", {"default": np.full((4, 8, 3), 0.25, dtype=np.float32)})
+    base = example_text().replace("environment = [0.0, 0.0, 0.0]", "", 1)
+    scene_file = write(tmp_path / "s.toml", base + '\n[environment_map]\nimage = "maps/sky.exr"\nscale = 2.0\n')
+    scene, settings = load_scene(scene_file)
+    assert Path(scene.environment_map.image) == tmp_path / "maps" / "sky.exr"
+    assert scene.environment_map.scale == 2.0 and "environment_map" in scene.effects()
+    again, _ = load_scene(write(tmp_path / "again.toml", dump_scene(scene, settings)))
+    assert again == scene
+    sky = base + "\n[environment_map]\nscale = 2.0\n\n[environment_map.sky]\nsun_elevation = 25\nsun_radius = 3.0\n"
+    scene, _ = load_scene(write(tmp_path / "sky.toml", sky))
+    assert scene.environment_map.sky.sun_elevation == 25.0 and scene.environment_map.image == ""
+    assert tiny_render(scene)["default"].max() > 0
+    missing = write(tmp_path / "m.toml", scene_file.read_text().replace("maps/sky.exr", "maps/none.exr"))
+    assert 'environment_map.image = "maps/none.exr": no such file' in load_error(missing)
+    bad = write(tmp_path / "b.toml", sky.replace("sun_radius = 3.0", "sun_radius = -3.0"))
+    assert "environment_map.sky.sun_radius = -3.0: Sky.sun_radius must be in (0, 20]" in load_error(bad)
+    both = write(tmp_path / "both.toml", "environment = [0.1, 0.1, 0.1]\n" + sky)
+    assert "Scene.environment must stay black" in load_error(both)
+
+
+def test_an_unreadable_environment_map_is_one_line_naming_the_scene_and_the_map(tmp_path):
+    (tmp_path / "sky.exr").write_bytes(b"not an exr")
+    text = example_text().replace("environment = [0.0, 0.0, 0.0]", "")
+    scene_file = write(tmp_path / "s.toml", text + '\n[environment_map]\nimage = "sky.exr"\n')
+    with pytest.raises(SceneFileError, match=r"s\.toml: .*sky\.exr: not a readable OpenEXR file"):
+        render_scene_file(scene_file, tmp_path / "out.exr", overrides=TINY)
+    assert not (tmp_path / "out.exr").exists()

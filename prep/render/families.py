@@ -11,10 +11,12 @@ import numpy as np
 
 from prep.render.scene import (
     Camera,
+    EnvironmentMap,
     Material,
     Mesh,
     Quad,
     Scene,
+    Sky,
     Sphere,
     Vec3,
     _luminance,
@@ -154,7 +156,7 @@ def cornell(rng_or_seed=None, name: str = "cornell") -> Scene:
 
 def spheres(rng_or_seed=None, name: str = "spheres") -> Scene:
     """An open checker ground with 6-12 spheres of mixed materials, 1-2 area lights overhead and a dim
-    environment."""
+    gradient environment (bluer and brighter towards the zenith)."""
     rng = _rng(rng_or_seed)
     mats = {
         "ground": lambert(_colour(rng, sat=(0.0, 0.35), val=(0.55, 0.8)), texture="world",
@@ -181,7 +183,7 @@ def spheres(rng_or_seed=None, name: str = "spheres") -> Scene:
                  look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.3, 0.6), _u(rng, -0.5, 0.0)), fov=_u(rng, 38, 46))
     env = _u(rng, 0.03, 0.1)
     return Scene(name=name, family="spheres", camera=cam, materials=mats, spheres=spheres_, quads=quads,
-                 environment=(env * 0.8, env * 0.9, env))
+                 environment=(env, env * 0.95, env * 0.9), environment_zenith=(env * 0.5, env * 0.8, env * 2.0))
 
 
 def boxes(rng_or_seed=None, name: str = "boxes") -> Scene:
@@ -342,8 +344,8 @@ def caustics(rng_or_seed=None, name: str = "caustics") -> Scene:
 
 
 def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
-    """A long ground under a sky (horizon-to-zenith gradient, bright) and a small intense sun: rows of
-    objects and thin poles receding into the distance (high depth variation), often seen through a lens
+    """A long ground under a procedural HDR sky (an environment map: horizon-to-zenith gradient, a glow and
+    a small intense sun disc, importance sampled): rows of objects and thin poles receding into the distance (high depth variation), often seen through a lens
     with shallow depth of field; in front, two triangle meshes (a torus and an icosphere)."""
     rng = _rng(rng_or_seed)
     mats = {
@@ -367,12 +369,15 @@ def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
                 quads.extend(_box_quads(x - 0.4, x + 0.4, 0.0, h, z - 0.4, z + 0.4, key))
         px = _u(rng, -0.5, 0.5)
         quads.extend(_box_quads(px - 0.02, px + 0.02, 0.0, _u(rng, 2.0, 4.0), z - 1.5, z - 1.46, "pole"))
-    horizon = _hsv(_u(rng, 0.05, 0.15), _u(rng, 0.1, 0.4), _u(rng, 0.6, 1.0))
-    zenith = _hsv(_u(rng, 0.55, 0.65), _u(rng, 0.4, 0.8), _u(rng, 0.8, 1.5))
-    sun = _u(rng, 0.05, 0.12)
-    power = _u(rng, 200.0, 500.0)
-    mats["sun"] = emitter(tuple(c * power / (sun * sun) for c in _light_colour(rng)))
-    quads.append(_ceiling_light((_u(rng, -6, 6), _u(rng, 8, 12), _u(rng, -8, 2)), sun, sun, "sun"))
+    # an HDR sky map: the sun disc's radiance is set by its irradiance at normal incidence, drawn in [4, 10]
+    # (the sky's alone is 0.5-1 on level ground: sunlit and shaded ground differ as on a clear day)
+    radius = _u(rng, 1.0, 3.0)
+    solid_angle = 2 * math.pi * (1 - math.cos(math.radians(radius)))
+    sun = tuple(c * _u(rng, 4.0, 10.0) / solid_angle for c in _light_colour(rng))
+    sky = Sky(sun_elevation=_u(rng, 12.0, 60.0), sun_azimuth=_u(rng, -180.0, 180.0), sun_radius=radius, sun=sun,
+              zenith=_hsv(_u(rng, 0.55, 0.65), _u(rng, 0.5, 0.8), _u(rng, 0.2, 0.4)),
+              horizon=_hsv(_u(rng, 0.05, 0.15), _u(rng, 0.1, 0.3), _u(rng, 0.35, 0.6)),
+              ground=_hsv(_u(rng, 0.05, 0.15), _u(rng, 0.2, 0.4), _u(rng, 0.05, 0.15)))
     cam_z = _u(rng, 4.0, 6.0)
     aperture = _u(rng, 0.02, 0.12) if rng.uniform() < 0.7 else 0.0
     cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 0.8, 1.6), cam_z),
@@ -381,7 +386,7 @@ def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
     # drawn last, so the rest of the scene is what it was before the family had meshes
     meshes = _foreground_meshes(rng, mats)
     return Scene(name=name, family="outdoor", camera=cam, materials=mats, spheres=spheres, quads=quads,
-                 environment=horizon, environment_zenith=zenith, meshes=meshes)
+                 meshes=meshes, environment_map=EnvironmentMap(sky=sky))
 
 
 def _foreground_meshes(rng, mats: dict) -> list[Mesh]:
@@ -441,6 +446,10 @@ def textures(rng_or_seed=None, name: str = "textures") -> Scene:
 
 FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes, "indirect": indirect,
             "fireflies": fireflies, "caustics": caustics, "outdoor": outdoor, "textures": textures}
+# Families with light paths that only BSDF sampling finds (caustics through glass and off mirrors, small
+# lights seen in glossy surfaces, a room lit through a gap): their references take this many times a
+# render set's reference_spp, so that the targets the network learns from are not themselves noisy.
+REFERENCE_SPP_FACTOR = {"caustics": 4, "fireflies": 4, "indirect": 2, "textures": 2}
 
 
 def family_seed(family: str, index: int, seed: int) -> list[int]:

@@ -1,7 +1,8 @@
 """The path-tracing integrator, compiled once per set of effects a scene calls for.
 
-Unidirectional path tracing with next-event estimation to the rectangle lights (light picked in
-proportion to power, uniform area sampling) combined with BSDF sampling by the power heuristic.
+Unidirectional path tracing with next-event estimation to the lights (one picked in proportion to its
+power: rectangles sampled uniformly by area, spheres uniformly in the cone they subtend, an environment
+map by texel luminance) combined with BSDF sampling by the power heuristic.
 Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
 that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
 alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
@@ -28,6 +29,9 @@ from prep.render.tracer import (
     GLASS,
     GLOSSY,
     INV_PI,
+    L_ENVIRONMENT,
+    L_QUAD,
+    L_SPHERE,
     LAMBERT,
     LENS_DIM,
     M_ALBEDO,
@@ -65,7 +69,11 @@ from prep.render.tracer import (
     _scale,
     _sub,
     _to_world,
+    env_pdf,
+    env_sample,
+    env_texel,
     fresnel_dielectric,
+    ggx_visible_normal,
     intersect,
     intersect_mesh,
     occluded,
@@ -74,6 +82,7 @@ from prep.render.tracer import (
     reflect,
     refract,
     sample_key,
+    search_cdf,
     surface,
 )
 
@@ -88,6 +97,7 @@ HAS_ENVIRONMENT = True
 HAS_TEXTURE = True
 HAS_LENS = True
 HAS_MESH = True
+HAS_ENVIRONMENT_MAP = True
 # --- end of effects ---
 
 
@@ -139,12 +149,13 @@ def bsdf_eval(mk, kd, ks, alpha, n, wo, wi):
         oh = _dot(wo, h)
         a2 = alpha * alpha
         dd = _ggx_d(nh, a2)
-        common = dd * _ggx_g1(co, a2) * _ggx_g1(ci, a2) / (4.0 * co * ci)
+        g1o = _ggx_g1(co, a2)
+        common = dd * g1o * _ggx_g1(ci, a2) / (4.0 * co * ci)
         fw = (1.0 - oh) ** 5
         fs = ((ks[0] + (1.0 - ks[0]) * fw) * common,
               (ks[1] + (1.0 - ks[1]) * fw) * common,
               (ks[2] + (1.0 - ks[2]) * fw) * common)
-        pdf_s = dd * nh / (4.0 * oh)
+        pdf_s = dd * g1o / (4.0 * co)  # visible normals: D_wo(h) / (4 wo.h)
         if HAS_GLOSSY and mk == GLOSSY:
             return zero, fs, pdf_s
         if HAS_PLASTIC:
@@ -155,25 +166,18 @@ def bsdf_eval(mk, kd, ks, alpha, n, wo, wi):
 
 @njit(cache=True)
 def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
-    """A direction wi drawn from the BSDF's sampling density (cosine for the diffuse lobe, GGX
-    normals for the glossy one, lobes mixed for plastic); (wi, ok)."""
+    """A direction wi drawn from the BSDF's sampling density (cosine for the diffuse lobe, GGX normals
+    visible from wo for the glossy one, lobes mixed for plastic); (wi, ok): not ok below the horizon."""
     diffuse = HAS_LAMBERT and mk == LAMBERT
     if HAS_PLASTIC and mk == PLASTIC:
         diffuse = u0 >= _plastic_spec_prob(kd, ks, _dot(n, wo))
-    phi = 2.0 * math.pi * u2
     if diffuse or not (HAS_GLOSSY or HAS_PLASTIC):
+        phi = 2.0 * math.pi * u2
         r = math.sqrt(u1)
         wi = _to_world((r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u1))), n)
     else:
-        a2 = alpha * alpha
-        tan2 = a2 * u1 / (1.0 - u1)
-        ct = 1.0 / math.sqrt(1.0 + tan2)
-        st = math.sqrt(max(0.0, 1.0 - ct * ct))
-        h = _to_world((st * math.cos(phi), st * math.sin(phi), ct), n)
-        oh = _dot(wo, h)
-        if oh <= 0.0:
-            return wo, False
-        wi = _madd(_scale(wo, -1.0), h, 2.0 * oh)
+        h = ggx_visible_normal(wo, n, alpha, u1, u2)
+        wi = _madd(_scale(wo, -1.0), h, 2.0 * _dot(wo, h))
     return wi, _dot(n, wi) > 0.0
 
 
@@ -211,13 +215,21 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 kind = 2
                 idx = ti
         if kind < 0:
-            if HAS_ENVIRONMENT:
+            env = (0.0, 0.0, 0.0)
+            w = 1.0
+            if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
+                row, col = env_texel(sc, d)
+                env = _row3(sc.env_map, row * sc.env_pdf.shape[1] + col, 0)
+                if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
+                    pdf_l = sc.light_prob[sc.env_light] * env_pdf(sc, d)
+                    w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
+            elif HAS_ENVIRONMENT:
                 env = environment_at(sc, d)
-                if bounce == 0:
-                    ls = _add(ls, env)
-                else:
-                    ld = _add(ld, _mul(bd, env))
-                    ls = _add(ls, _mul(bs, env))
+            if bounce == 0:
+                ls = _add(ls, env)
+            else:
+                ld = _madd(ld, _mul(bd, env), w)
+                ls = _madd(ls, _mul(bs, env), w)
             break
         p = _madd(o, d, t)
         ng, tu, tv = surface(p, kind, idx, sc.spheres, quads, sc.triangles)
@@ -294,11 +306,8 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             origin = _madd(p, n, RAY_OFFSET)
 
             # next-event estimation, MIS-weighted against BSDF sampling
-            if HAS_EMITTER and n_lights > 0:
-                u0 = rand(key, base)
-                li = 0
-                while li < n_lights - 1 and u0 >= sc.light_cdf[li]:
-                    li += 1
+            if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and n_lights > 0:
+                li = search_cdf(sc.light_cdf, rand(key, base))
                 q = sc.lights[li]
                 u1 = rand(key, base + 1)
                 u2 = rand(key, base + 2)
@@ -307,7 +316,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 tmax = 0.0
                 pdf_l = 0.0
                 le = (0.0, 0.0, 0.0)
-                if sc.light_kind[li] == 0:  # a rectangle: a uniform point on it
+                if HAS_EMITTER and sc.light_kind[li] == L_QUAD:  # a uniform point on it
                     point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
                     dl = _sub(point, origin)
                     dist2 = _dot(dl, dl)
@@ -319,7 +328,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                         tmax = dist * (1.0 - 1e-5)  # stop short of the light's own plane
                         pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
                         le = _row3(materials, sc.quad_mat[q], M_EMISSION)
-                else:  # a sphere: a direction uniform in the cone it subtends
+                elif HAS_EMITTER and sc.light_kind[li] == L_SPHERE:  # a direction uniform in the cone it subtends
                     wc = _sub(_row3(sc.spheres, q, 0), origin)
                     dc2 = _dot(wc, wc)
                     r2 = sc.spheres[q, 3] * sc.spheres[q, 3]
@@ -337,6 +346,12 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                         tmax = (b - math.sqrt(max(0.0, b * b - dc2 + r2))) * (1.0 - 1e-5)
                         pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
                         le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
+                elif HAS_ENVIRONMENT_MAP and sc.light_kind[li] == L_ENVIRONMENT:
+                    wi, pdf_dir, le = env_sample(sc, u1, u2)
+                    if pdf_dir > 0.0:
+                        lit = True
+                        tmax = np.inf
+                        pdf_l = sc.light_prob[li] * pdf_dir
                 ci = _dot(n, wi)
                 if lit and ci > 0.0:
                     fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)

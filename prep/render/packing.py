@@ -12,6 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from prep.errors import InputFileError
+from prep.render.environment import load_texels, sampling_tables
 from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec, triangle_areas
 
 # Layout of one row of the material table handed to the kernels (see tracer.py).
@@ -19,6 +21,8 @@ MAT_KIND, MAT_ALBEDO, MAT_SPECULAR, MAT_ROUGHNESS = 0, 1, 4, 7
 MAT_EMISSION, MAT_TEXTURE, MAT_ALBEDO2, MAT_SCALE = 8, 11, 12, 15
 MAT_IOR = 16
 MAT_COLS = 17
+# light_kind of a light in the light table
+LIGHT_QUAD, LIGHT_SPHERE, LIGHT_ENVIRONMENT = 0, 1, 3
 # Layout of one row of the quad table: corner, u, v, unit normal, dual vectors of u and v, area.
 QUAD_COLS = 19
 # Layout of one row of the triangle table: v0, e1 = v1 - v0, e2 = v2 - v0, unit normal normalize(cross(e1, e2)).
@@ -50,7 +54,7 @@ class PackedScene(NamedTuple):
     materials: np.ndarray  # (Nm, MAT_COLS)
     sphere_light: np.ndarray  # (Ns,) int64, index into lights or -1
     lights: np.ndarray  # (Nl,) int64 index of each light in its table (quads first, then spheres)
-    light_kind: np.ndarray  # (Nl,) int64: 0 a quad, 1 a sphere
+    light_kind: np.ndarray  # (Nl,) int64: LIGHT_*
     light_cdf: np.ndarray  # (Nl,) cumulative selection probability
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
     camera: np.ndarray  # (12,) see Camera.frame
@@ -65,6 +69,11 @@ class PackedScene(NamedTuple):
     tri_mat: np.ndarray  # (Nt,) int64
     bvh_bounds: np.ndarray  # (Nn, 6) float64 node bounds
     bvh_nodes: np.ndarray  # (Nn, 3) int64 node links (BVH_*)
+    env_map: np.ndarray  # (H * W, 3) radiance texels of the environment map, row by row; (0, 3) without one
+    env_pdf: np.ndarray  # (H, W) sampling density over the unit square (environment.sampling_tables)
+    env_row_cdf: np.ndarray  # (H,)
+    env_col_cdf: np.ndarray  # (H, W)
+    env_light: int  # index of the map in lights, -1 without one (or for a black one)
 
 
 def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
@@ -163,17 +172,18 @@ SRGB_GAMMA = 2.2
 
 
 def load_image(path: str) -> np.ndarray:
-    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); ValueError naming the file."""
+    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); InputFileError naming the
+    file."""
     import matplotlib.image
 
     try:
         image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
     except (OSError, SyntaxError, ValueError) as exc:
-        raise ValueError(f"{path}: not a readable PNG image ({exc})") from None
+        raise InputFileError(f"{path}: not a readable PNG image ({exc})") from None
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
     if image.ndim != 3 or image.shape[2] < 3 or image.size == 0:
-        raise ValueError(f"{path}: expected an RGB image, found shape {image.shape}")
+        raise InputFileError(f"{path}: expected an RGB image, found shape {image.shape}")
     return np.clip(image[..., :3], 0.0, 1.0) ** SRGB_GAMMA
 
 
@@ -257,15 +267,26 @@ def pack(scene: Scene) -> PackedScene:
             quad_light[i] = len(lights)
             lights.append(i)
             powers.append(q.area * max(_luminance(m.emission), 1e-6))
-    kinds = [0] * len(lights)
+    kinds = [LIGHT_QUAD] * len(lights)
     sphere_light = np.full(len(scene.spheres), -1, dtype=np.int64)
     for i, sp in enumerate(scene.spheres):
         m = scene.materials[sp.material]
         if m.kind == "emitter" and max(m.emission) > 0:
             sphere_light[i] = len(lights)
             lights.append(i)
-            kinds.append(1)
+            kinds.append(LIGHT_SPHERE)
             powers.append(4.0 * math.pi * sp.radius**2 * max(_luminance(m.emission), 1e-6))
+    env_map, env_pdf, env_row_cdf, env_col_cdf, env_light = _no_environment_map()
+    if scene.environment_map is not None:
+        texels = load_texels(scene.environment_map)
+        env_pdf, env_row_cdf, env_col_cdf, mean_lum = sampling_tables(texels)
+        env_map = texels.reshape(-1, 3)
+        if mean_lum > 0:
+            # an infinitely distant light's power as it reaches the scene: pi R^2 x mean radiance
+            env_light = len(lights)
+            lights.append(0)
+            kinds.append(LIGHT_ENVIRONMENT)
+            powers.append(math.pi * _bounding_radius(scene) ** 2 * mean_lum)
     powers = np.asarray(powers, dtype=np.float64)
     prob = powers / powers.sum() if len(powers) else powers
     cdf = np.cumsum(prob)
@@ -285,5 +306,23 @@ def pack(scene: Scene) -> PackedScene:
                                            else scene.environment_zenith, "environment_zenith")),
         image_pixels=image_pixels, image_info=image_info,
         triangles=triangles, tri_mat=tri_mat, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
+        env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
     )
+
+
+def _no_environment_map():
+    return np.zeros((0, 3)), np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), -1
+
+
+def _bounding_radius(scene: Scene) -> float:
+    """Half the diagonal of the box around every object of ``scene`` (1 for an empty scene)."""
+    points = [np.asarray(s.center) + sign * s.radius for s in scene.spheres for sign in (-1, 1)]
+    points += [np.asarray(q.corner) + a * np.asarray(q.u) + b * np.asarray(q.v)
+               for q in scene.quads for a in (0, 1) for b in (0, 1)]
+    for mesh in scene.meshes:
+        points.extend(mesh.arrays()[0])
+    if not points:
+        return 1.0
+    points = np.asarray(points)
+    return max(float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) / 2, 1e-3)
 

@@ -16,7 +16,7 @@ import numpy as np
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json, remove_temporaries
-from prep.render.families import FAMILIES, make_scene
+from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
 from prep.render.frame import _check_int, render
 
 
@@ -30,7 +30,7 @@ class RenderConfig:
     width: int = 256
     height: int = 256
     input_spp: tuple[int, ...] = (4, 16, 64)  # a ladder: the network sees every noise level
-    reference_spp: int = 512
+    reference_spp: int = 512  # times families.REFERENCE_SPP_FACTOR for the families slow to converge
     seed: int = 0
     out_root: str = "data/renders"
 
@@ -65,6 +65,11 @@ class RenderConfig:
                                                f"{list(self.input_spp)}")
 
 
+def reference_spp(config: RenderConfig, family: str) -> int:
+    """The sample count of the references of ``family`` in a set made with ``config``."""
+    return config.reference_spp * REFERENCE_SPP_FACTOR.get(family, 1)
+
+
 def render_seed(seed: int, family: str, index: int, spp: int) -> int:
     """The seed of the ``spp`` render of scene ``index`` of ``family`` in a set with ``seed``: one per
     sample count, stable, derived by SeedSequence so that no two renders of a set share noise."""
@@ -77,7 +82,8 @@ _PIXEL_FIELDS = ("width", "height", "seed")
 
 
 def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
-    """Render every scene of ``config`` (families x per_family) at each input_spp and at reference_spp.
+    """Render every scene of ``config`` (families x per_family) at each input_spp and at its family's
+    reference count (:func:`reference_spp`).
 
     Writes ``<out_root>/<set_name>/<scene>-<spp>spp.exr`` (each with its own seed, see
     :func:`render_seed`), skipping files that exist so an interrupted run
@@ -116,17 +122,17 @@ def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> l
     meta = {"config": asdict(config), "scenes": []}
     meta["config"]["families"] = list(config.families)
     meta["config"]["input_spp"] = list(config.input_spp)
-    counts = sorted(config.input_spp) + [config.reference_spp]
     paths: list[Path] = []
 
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(counts) * len(jobs), unit="render", desc=config.set_name)
+        bar = tqdm(total=(len(config.input_spp) + 1) * len(jobs), unit="render", desc=config.set_name)
     try:
         for fam, index in jobs:
             scene = make_scene(fam, index, config.seed)
+            counts = sorted(config.input_spp) + [reference_spp(config, fam)]
             seeds = {spp: render_seed(config.seed, fam, index, spp) for spp in counts}
             record = {
                 "name": scene.name,
@@ -156,7 +162,7 @@ def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> l
         if bar is not None:
             bar.close()
     atomic_write_json(meta_path, meta)
-    contact_sheet(out_dir, [(r["family"], r["name"], out_dir / r["files"][str(config.reference_spp)])
+    contact_sheet(out_dir, [(r["family"], r["name"], out_dir / r["files"][str(reference_spp(config, r["family"]))])
                             for r in meta["scenes"]])
     return paths
 

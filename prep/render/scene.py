@@ -45,6 +45,14 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
 * ``environment``: RGB radiance of rays that leave the scene towards the horizon; with
   ``environment_zenith`` set, radiance blends linearly from the horizon colour to that colour as the
   direction rises to straight up (below the horizon: the horizon colour). Constant otherwise.
+* ``environment_map``: instead (``environment`` then stays black), an :class:`EnvironmentMap`: radiance
+  from a latitude-longitude texture, either an image file (OpenEXR for real HDR, or PNG) or a
+  procedural HDR :class:`Sky` baked into one; texel (row, column) of an H x W map covers polar angles
+  theta in [row, row + 1) * pi / H from straight up (+y) and azimuths phi in [column, column + 1) * 2 pi / W
+  - pi, phi measured about y from +x towards +z (``environment.py`` owns the mapping). Radiance is the
+  texel's (nearest, no filtering), times ``scale``. Unlike a constant or gradient environment, a map is
+  a light: it is importance sampled in proportion to texel luminance x solid angle and MIS-weighted
+  against BSDF sampling, so a small bright sun converges as an area light does.
 
 The built-in scene families are in ``families.py``; ``packing.py`` flattens a scene for the kernels.
 """
@@ -60,7 +68,7 @@ MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
 TEXTURES = ("none", "world", "uv", "image")
 # What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
 # material kinds, plus these.
-EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh")
+EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh", "environment_map")
 IOR_RANGE = (1.0, 3.0)
 
 Vec3 = tuple[float, float, float]
@@ -270,6 +278,59 @@ class Camera:
         return np.concatenate([pos, fwd, right, up]).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class Sky:
+    """A procedural HDR sky (a clear day): above the horizon, ``horizon`` blending to ``zenith`` as
+    (sin elevation) ** 0.5, plus a glow around the sun; a sun disc of angular radius ``sun_radius``
+    degrees and radiance ``sun`` at ``sun_elevation`` degrees above the horizon and ``sun_azimuth`` degrees
+    (about y from +x towards +z); ``ground`` below the horizon. Baked at ``height`` x 2 ``height``
+    texels: keep ``sun_radius`` above a texel (180 / ``height`` degrees) so the disc is round."""
+
+    sun_elevation: float = 40.0
+    sun_azimuth: float = 0.0
+    sun_radius: float = 2.0
+    sun: Vec3 = (500.0, 470.0, 420.0)
+    zenith: Vec3 = (0.15, 0.3, 0.8)
+    horizon: Vec3 = (0.7, 0.75, 0.85)
+    ground: Vec3 = (0.15, 0.13, 0.11)
+    height: int = 256
+
+    def __post_init__(self):
+        for name in ("sun", "zenith", "horizon", "ground"):
+            v = _vec(getattr(self, name), f"Sky.{name}")
+            if min(v) < 0:
+                raise ValueError(f"Sky.{name} must be >= 0, got {v}")
+            object.__setattr__(self, name, v)
+        if not -90 <= self.sun_elevation <= 90:
+            raise ValueError(f"Sky.sun_elevation must be in [-90, 90] degrees, got {self.sun_elevation!r}")
+        if not math.isfinite(self.sun_azimuth):
+            raise ValueError(f"Sky.sun_azimuth must be finite, got {self.sun_azimuth!r}")
+        if not 0 < self.sun_radius <= 20:
+            raise ValueError(f"Sky.sun_radius must be in (0, 20] degrees, got {self.sun_radius!r}")
+        if isinstance(self.height, bool) or not isinstance(self.height, int) or not 4 <= self.height <= 4096:
+            raise ValueError(f"Sky.height must be an integer in [4, 4096], got {self.height!r}")
+
+
+@dataclass(frozen=True)
+class EnvironmentMap:
+    """Radiance of rays that leave the scene from a latitude-longitude texture: the image file ``image``
+    (``.exr``: its R G B channels, unprefixed or of layer ``default``; ``.png``: sRGB decoded) or the
+    baked ``sky``, exactly one of them, times ``scale``."""
+
+    image: str = ""
+    sky: Sky | None = None
+    scale: float = 1.0
+
+    def __post_init__(self):
+        if bool(self.image) == (self.sky is not None):
+            raise ValueError(f"EnvironmentMap.image names a file or EnvironmentMap.sky describes a sky, exactly "
+                             f"one of them; got image {self.image!r} and sky {self.sky!r}")
+        if self.image and not self.image.lower().endswith((".exr", ".png")):
+            raise ValueError(f"EnvironmentMap.image must be an .exr or .png file, got {self.image!r}")
+        if not (math.isfinite(self.scale) and self.scale >= 0):
+            raise ValueError(f"EnvironmentMap.scale must be >= 0, got {self.scale!r}")
+
+
 def _lists(obj):
     """Tuples to lists, recursively, so a dict equals its JSON round trip."""
     if isinstance(obj, dict):
@@ -297,6 +358,7 @@ class Scene:
     environment_zenith: Vec3 | None = None
     seed: int | None = None  # the seed the family was generated from, if any
     meshes: list[Mesh] = field(default_factory=list)
+    environment_map: EnvironmentMap | None = None
 
     def validate(self) -> None:
         """Raise ValueError if an object names an unknown material or a mesh is an emitter."""
@@ -304,6 +366,10 @@ class Scene:
             value = getattr(self, name)
             if value is not None and min(_vec(value, f"Scene.{name}")) < 0:
                 raise ValueError(f"Scene.{name} must be >= 0, got {value}")
+        if self.environment_map is not None and self._environment_colour():
+            raise ValueError(f"Scene.environment must stay black when Scene.environment_map is set (the map is "
+                             f"the environment), got environment {self.environment} and zenith "
+                             f"{self.environment_zenith}")
         for obj in self._objects():
             if obj.material not in self.materials:
                 raise ValueError(f"{self.name}: object {obj} names unknown material {obj.material!r}; "
@@ -319,18 +385,24 @@ class Scene:
     def effects(self) -> frozenset[str]:
         """The effects (names of :data:`EFFECTS`) this scene calls for: the kinds of the materials its
         objects use, ``texture`` if one of them is textured, ``environment`` if the environment is not black,
-        ``lens`` for a thin-lens camera, ``mesh`` if the scene has a triangle mesh."""
+        ``environment_map`` with a map, ``lens`` for a thin-lens camera, ``mesh`` if the scene has a triangle
+        mesh."""
         used = [self.materials[obj.material] for obj in self._objects()]
         out = {m.kind for m in used}
         if any(m.texture != "none" and m.kind in ("lambert", "plastic") for m in used):
             out.add("texture")
-        if max(self.environment) > 0 or (self.environment_zenith is not None and max(self.environment_zenith) > 0):
+        if self._environment_colour():
             out.add("environment")
+        if self.environment_map is not None:
+            out.add("environment_map")
         if self.camera.aperture > 0:
             out.add("lens")
         if self.meshes:
             out.add("mesh")
         return frozenset(out)
+
+    def _environment_colour(self) -> bool:
+        return max(self.environment) > 0 or (self.environment_zenith is not None and max(self.environment_zenith) > 0)
 
     def to_dict(self) -> dict:
         """A JSON-able description, vectors as lists (inverse: :meth:`from_dict`)."""
@@ -347,6 +419,8 @@ class Scene:
         })
         if self.meshes:  # only when there are any: the descriptions of scenes without meshes stay as they were
             out["meshes"] = _lists([asdict(m) for m in self.meshes])
+        if self.environment_map is not None:  # likewise
+            out["environment_map"] = _lists(asdict(self.environment_map))
         return out
 
     @classmethod
@@ -360,4 +434,12 @@ class Scene:
             spheres=[Sphere(**s) for s in d["spheres"]],
             quads=[Quad(**q) for q in d["quads"]],
             meshes=[Mesh(**m) for m in d.get("meshes", [])],
+            environment_map=_environment_map(d.get("environment_map")),
         )
+
+
+def _environment_map(d: dict | None) -> EnvironmentMap | None:
+    if d is None:
+        return None
+    sky = d.get("sky")
+    return EnvironmentMap(**{**d, "sky": None if sky is None else Sky(**sky)})

@@ -16,6 +16,12 @@ The file is one table (a TOML document or a JSON object) whose keys are the fiel
 ``environment``, ``environment_zenith`` (optional)
     RGB radiance of rays that leave the scene, ``[r, g, b]`` (default black), towards the horizon; with
     ``environment_zenith``, blending to that colour straight up.
+``[environment_map]`` (optional)
+    Instead of ``environment``, radiance from a latitude-longitude map (``scene.EnvironmentMap``; the
+    mapping is in ``scene.py``), importance sampled as a light: ``image = "sky.exr"`` (OpenEXR R G B, or a
+    PNG; relative to the scene file) or a procedural HDR sky in ``[environment_map.sky]`` (the fields of
+    ``scene.Sky``: ``sun_elevation``, ``sun_azimuth``, ``sun_radius`` in degrees, ``sun``, ``zenith``,
+    ``horizon``, ``ground`` radiances, ``height`` in texels), and ``scale`` (default 1).
 ``[camera]``
     The fields of ``Camera``: ``position`` and ``look_at`` (``[x, y, z]``, required), ``up`` (default
     ``[0, 1, 0]``), ``fov`` (vertical, degrees; default 40), ``aperture`` (thin-lens radius; default 0, a
@@ -147,7 +153,7 @@ from typing import Any, Literal, Union
 
 import numpy as np
 
-from prep.errors import KpcnError, OptionError
+from prep.errors import InputFileError, KpcnError, OptionError
 from prep.files import read_input
 from prep.render import RenderConfig, render
 from prep.render.scene import Mesh, Scene
@@ -484,16 +490,21 @@ def _obj_meshes(data: dict, base: Path) -> None:
 
 
 def _image_paths(data: dict, base: Path) -> None:
-    """Image textures are named relative to the scene file: make each path one that works from anywhere."""
+    """Image textures and environment maps are named relative to the scene file: make each path one that
+    works from anywhere."""
+    tables = {}
     materials = data.get("materials")
-    if not isinstance(materials, dict):
-        return
-    for name, table in materials.items():
+    if isinstance(materials, dict):
+        tables.update({_join("materials", name): (materials, name) for name in materials})
+    if "environment_map" in data:
+        tables["environment_map"] = (data, "environment_map")
+    for path, (parent, key) in tables.items():
+        table = parent[key]
         if isinstance(table, dict) and isinstance(table.get("image"), str) and table["image"]:
             image = Path(table["image"]) if Path(table["image"]).is_absolute() else base / table["image"]
             if not image.is_file():
-                raise _Bad(f"{_join(_join('materials', name), 'image')} = {_show(table['image'])}: no such file {image}")
-            materials[name] = {**table, "image": str(image)}
+                raise _Bad(f"{_join(path, 'image')} = {_show(table['image'])}: no such file {image}")
+            parent[key] = {**table, "image": str(image)}
 
 
 def _scene_problem(scene: Scene, exc: ValueError) -> str:
@@ -763,6 +774,8 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     t0 = time.perf_counter()
     try:
         layers = render(scene, **dataclasses.asdict(settings))
+    except InputFileError as exc:
+        raise SceneFileError(f"{scene_path}: {exc}") from None
     except OptionError as exc:
         if exc.option in overrides or exc.option not in {f.name for f in dataclasses.fields(RenderSettings)}:
             raise

@@ -15,13 +15,14 @@ from numba import njit
 
 LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
 TEX_NONE, TEX_WORLD, TEX_UV, TEX_IMAGE = 0, 1, 2, 3  # order of scene.TEXTURES
-# Column layouts of the material, quad, triangle and BVH tables, mirrored from packing.py (MAT_*, QUAD_COLS,
-# TRI_*, BVH_*) rather than imported, so that numba's cache of this file cannot hold stale copies; a test
+# Column layouts of the material, quad, triangle and BVH tables and the light kinds, mirrored from packing.py
+# (MAT_*, QUAD_COLS, TRI_*, BVH_*, LIGHT_*) rather than imported, so that numba's cache of this file cannot hold stale copies; a test
 # checks they agree.
 M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 0, 1, 4, 7, 8, 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
 T_V0, T_E1, T_E2, T_NORMAL = 0, 3, 6, 9
 B_LEFT, B_RIGHT, B_IS_LEAF, B_FIRST, B_COUNT = 0, 1, 2, 0, 1
+L_QUAD, L_SPHERE, L_ENVIRONMENT = 0, 1, 3  # light kinds (packing.LIGHT_*)
 BVH_STACK = 64  # > packing.BVH_MAX_DEPTH: the traversal pushes at most one node per level
 
 # Spawned rays start this far off the surface along the shading normal; scenes are a few units big.
@@ -456,6 +457,37 @@ def _ggx_g1(c, a2):
 
 
 @njit(cache=True)
+def ggx_visible_normal(wo, n, alpha, u1, u2):
+    """A microfacet normal drawn from the GGX normals visible from wo (unit, above the surface with unit
+    normal n), density D_wo(h) = G1(wo) max(0, wo.h) D(h) / (n.wo) (Heitz 2018, "Sampling the GGX
+    distribution of visible normals"): every h faces wo, so no sample is wasted on a back-facing normal and
+    the weight f cos / pdf of the lobe is F G1(wi) <= 1 rather than unbounded at grazing angles."""
+    t, s = _onb(n)
+    # wo in the frame (t, s, n), stretched to the hemisphere configuration of roughness 1
+    vh = _normalize((alpha * _dot(wo, t), alpha * _dot(wo, s), _dot(wo, n)))
+    lensq = vh[0] * vh[0] + vh[1] * vh[1]
+    if lensq > 0.0:
+        inv = 1.0 / math.sqrt(lensq)
+        t1 = (-vh[1] * inv, vh[0] * inv, 0.0)
+    else:
+        t1 = (1.0, 0.0, 0.0)
+    t2 = (vh[1] * t1[2] - vh[2] * t1[1], vh[2] * t1[0] - vh[0] * t1[2], vh[0] * t1[1] - vh[1] * t1[0])
+    # a point of the disc, warped to the visible half of the projected hemisphere
+    r = math.sqrt(u1)
+    phi = 2.0 * math.pi * u2
+    p1 = r * math.cos(phi)
+    p2 = r * math.sin(phi)
+    w = 0.5 * (1.0 + vh[2])
+    p2 = (1.0 - w) * math.sqrt(max(0.0, 1.0 - p1 * p1)) + w * p2
+    pz = math.sqrt(max(0.0, 1.0 - p1 * p1 - p2 * p2))
+    nh = (p1 * t1[0] + p2 * t2[0] + pz * vh[0], p1 * t1[1] + p2 * t2[1] + pz * vh[1],
+          p1 * t1[2] + p2 * t2[2] + pz * vh[2])
+    # unstretched back to roughness alpha, and out of the local frame
+    local = _normalize((alpha * nh[0], alpha * nh[1], max(1e-12, nh[2])))
+    return _to_world(local, n)
+
+
+@njit(cache=True)
 def _plastic_spec_prob(kd, ks, cos_o):
     """Probability of sampling the coat of a plastic: its Fresnel weight against the base's."""
     f0 = _luminance(ks)
@@ -464,6 +496,66 @@ def _plastic_spec_prob(kd, ks, cos_o):
     return min(0.85, max(0.15, p))
 
 
+
+
+# ---------------------------------------------------------------------------------------------
+# discrete sampling and the environment map (the mapping and tables of environment.py)
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def search_cdf(cdf, u):
+    """The first index k with u < cdf[k] (the last index if there is none): the entry a uniform u picks
+    from a table with cumulative probabilities ``cdf``, by bisection."""
+    lo = 0
+    hi = cdf.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if u < cdf[mid]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@njit(cache=True)
+def env_texel(sc, d):
+    """(row, column) of the environment map's texel in unit direction d."""
+    height, width = sc.env_pdf.shape
+    theta = math.acos(min(1.0, max(-1.0, d[1])))
+    phi = math.atan2(d[2], d[0])
+    row = min(int(theta * INV_PI * height), height - 1)
+    col = min(int((phi + math.pi) * (0.5 * INV_PI) * width), width - 1)
+    return row, col
+
+
+@njit(cache=True)
+def env_pdf(sc, d):
+    """Solid-angle density with which env_sample draws unit direction d."""
+    row, col = env_texel(sc, d)
+    sin_t = math.sqrt(max(0.0, 1.0 - d[1] * d[1]))
+    if sin_t <= 0.0:
+        return 0.0
+    return sc.env_pdf[row, col] / (2.0 * math.pi * math.pi * sin_t)
+
+
+@njit(cache=True)
+def env_sample(sc, u1, u2):
+    """A direction drawn in proportion to texel luminance x solid angle, uniform in (theta, phi) within
+    its texel: (direction, solid-angle density, radiance)."""
+    height, width = sc.env_pdf.shape
+    row = search_cdf(sc.env_row_cdf, u1)
+    lo = sc.env_row_cdf[row - 1] if row > 0 else 0.0
+    fr = (u1 - lo) / (sc.env_row_cdf[row] - lo)
+    cdf = sc.env_col_cdf[row]
+    col = search_cdf(cdf, u2)
+    lo = cdf[col - 1] if col > 0 else 0.0
+    fc = (u2 - lo) / (cdf[col] - lo)
+    theta = (row + min(max(fr, 0.0), 1.0)) * math.pi / height
+    phi = (col + min(max(fc, 0.0), 1.0)) * 2.0 * math.pi / width - math.pi
+    sin_t = math.sin(theta)
+    d = (sin_t * math.cos(phi), math.cos(theta), sin_t * math.sin(phi))
+    pdf = sc.env_pdf[row, col] / (2.0 * math.pi * math.pi * sin_t) if sin_t > 0.0 else 0.0
+    return d, pdf, _row3(sc.env_map, row * width + col, 0)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,110 @@
+"""Environment maps: the latitude-longitude mapping, the procedural sky, image loading, and the tables
+the kernels sample a map with.
+
+The mapping (``scene.py`` states it for users): texel (row i, column j) of an H x W map covers polar
+angles theta in [i, i + 1) pi / H from +y and azimuths phi in [j, j + 1) 2 pi / W - pi about y from +x
+towards +z; the direction of (theta, phi) is (sin theta cos phi, cos theta, sin theta sin phi).
+``tracer.py`` mirrors :func:`texel_of` and the sampling below in numba (a test checks they agree).
+
+Sampling is piecewise constant over the texels in proportion to luminance x sin theta (the texel's solid
+angle up to a constant), by a marginal CDF over rows and a conditional CDF per row; within a texel the
+point is uniform in (theta, phi). The density of a direction in texel (i, j) is ``pdf[i, j] / (2 pi^2
+sin theta)`` with ``pdf`` the density over the unit square of (phi, theta) that :func:`sampling_tables`
+returns.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from prep.errors import InputFileError
+from prep.render.scene import EnvironmentMap, Sky
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+# Sky glow around the sun: a fraction of the sun's radiance, falling off over this angle (radians).
+_GLOW, _GLOW_ANGLE = 2e-3, math.radians(8.0)
+
+
+def texel_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(unit direction of each texel centre (H, W, 3), sin theta of each row (H,))."""
+    theta = (np.arange(height) + 0.5) * math.pi / height
+    phi = (np.arange(width) + 0.5) * 2 * math.pi / width - math.pi
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    d = np.stack([st * np.cos(phi)[None, :], np.broadcast_to(ct, (height, width)), st * np.sin(phi)[None, :]],
+                 axis=-1)
+    return d, np.sin(theta)
+
+
+def texel_of(d: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of the texel holding each unit direction of ``d`` (..., 3)."""
+    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
+    phi = np.arctan2(d[..., 2], d[..., 0])
+    row = np.minimum((theta / math.pi * height).astype(np.int64), height - 1)
+    col = np.minimum(((phi + math.pi) / (2 * math.pi) * width).astype(np.int64), width - 1)
+    return row, col
+
+
+def bake_sky(sky: Sky) -> np.ndarray:
+    """The (height, 2 height, 3) float64 radiance of ``sky`` at its texel centres."""
+    d, _ = texel_directions(sky.height, 2 * sky.height)
+    el, az = math.radians(sky.sun_elevation), math.radians(sky.sun_azimuth)
+    sun_dir = np.array([math.cos(el) * math.cos(az), math.sin(el), math.cos(el) * math.sin(az)])
+    up = np.clip(d[..., 1:2], 0.0, 1.0)
+    above = np.asarray(sky.horizon) + (np.asarray(sky.zenith) - np.asarray(sky.horizon)) * np.sqrt(up)
+    angle = np.arccos(np.clip(d @ sun_dir, -1.0, 1.0))[..., None]
+    above = above + np.asarray(sky.sun) * _GLOW * np.exp(-angle / _GLOW_ANGLE)
+    out = np.where(d[..., 1:2] >= 0.0, above, np.asarray(sky.ground))
+    return np.where(angle <= math.radians(sky.sun_radius), np.asarray(sky.sun), out)
+
+
+def load_texels(env: EnvironmentMap) -> np.ndarray:
+    """The (H, W, 3) float64 radiance texels of ``env`` (scale applied); InputFileError naming an image
+    file that cannot be read or is not an RGB map with finite, non-negative texels."""
+    if env.sky is not None:
+        texels = bake_sky(env.sky)
+    else:
+        path = Path(env.image)
+        if path.suffix.lower() == ".exr":
+            from prep.exr import AOVError, read_rgb
+
+            try:
+                texels = read_rgb(path).astype(np.float64)
+            except AOVError as exc:
+                raise InputFileError(str(exc)) from None
+        else:
+            from prep.render.packing import load_image
+
+            texels = load_image(str(path))
+        if texels.shape[0] < 2 or texels.shape[1] < 2:
+            raise InputFileError(f"{path}: an environment map needs at least 2 x 2 texels, found "
+                             f"{texels.shape[1]} x {texels.shape[0]}")
+        if not np.all(np.isfinite(texels)) or texels.min() < 0:
+            raise InputFileError(f"{path}: environment texels must be finite and >= 0, found values from "
+                             f"{np.nanmin(texels):g} to {np.nanmax(texels):g}")
+    return np.ascontiguousarray(texels * env.scale, dtype=np.float64)
+
+
+def sampling_tables(texels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(pdf (H, W) over the unit square of (phi, theta), row CDF (H,), column CDF per row (H, W), mean
+    radiance luminance over the sphere). A black map gives zero tables (it is never sampled)."""
+    height, width = texels.shape[:2]
+    _, sin_t = texel_directions(height, width)
+    lum = texels @ LUMINANCE
+    weight = lum * sin_t[:, None]
+    total = float(weight.sum())
+    mean_lum = total / float(sin_t.sum() * width)
+    if not total > 0:
+        return np.zeros((height, width)), np.zeros(height), np.zeros((height, width)), 0.0
+    rows = weight.sum(axis=1)
+    row_cdf = np.cumsum(rows) / total
+    row_cdf[-1] = 1.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        col_cdf = np.cumsum(weight, axis=1) / rows[:, None]
+    col_cdf = np.where(rows[:, None] > 0, col_cdf, 0.0)
+    col_cdf[rows > 0, -1] = 1.0
+    pdf = weight * (height * width / total)
+    return pdf, row_cdf, col_cdf, mean_lum
+
