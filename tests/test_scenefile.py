@@ -406,3 +406,10 @@ def test_an_unreadable_environment_map_is_one_line_naming_the_scene_and_the_map(
     with pytest.raises(SceneFileError, match=r"s\.toml: .*sky\.exr: not a readable OpenEXR file"):
         render_scene_file(scene_file, tmp_path / "out.exr", overrides=TINY)
     assert not (tmp_path / "out.exr").exists()
+
+
+def test_the_sky_example_is_lit_by_its_sky_alone():
+    scene, _ = load_scene(REPO / "scenes" / "sky.toml")
+    assert scene.environment_map.sky is not None and "emitter" not in scene.effects()
+    layers = tiny_render(scene)
+    assert layers["diffuse"].max() > 0  # the ground is lit, by the map as a light
