@@ -15,12 +15,13 @@ from numba import njit
 
 LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
 TEX_NONE, TEX_WORLD, TEX_UV, TEX_IMAGE = 0, 1, 2, 3  # order of scene.TEXTURES
-# Column layouts of the material, quad, triangle and BVH tables, mirrored from packing.py (MAT_*, QUAD_COLS,
-# TRI_*, BVH_*) rather than imported, so that numba's cache of this file cannot hold stale copies; a test
-# checks they agree.
+# Column layouts of the material, quad, triangle and BVH tables and the kinds of lights, mirrored from packing.py
+# (MAT_*, QUAD_COLS, TRI_*, BVH_*, LIGHT_*) rather than imported, so that numba's cache of this file cannot hold
+# stale copies; a test checks they agree.
 M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 0, 1, 4, 7, 8, 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
-T_V0, T_E1, T_E2, T_NORMAL = 0, 3, 6, 9
+T_V0, T_E1, T_E2, T_NORMAL, T_AREA = 0, 3, 6, 9, 12
+L_QUAD, L_SPHERE, L_TRIANGLE = 0, 1, 2
 B_LEFT, B_RIGHT, B_IS_LEAF, B_FIRST, B_COUNT = 0, 1, 2, 0, 1
 BVH_STACK = 64  # > packing.BVH_MAX_DEPTH: the traversal pushes at most one node per level
 
@@ -438,6 +439,27 @@ def surface(p, kind, idx, spheres, quads, tris):
     ng = _row3(quads, idx, Q_NORMAL)
     q = _sub(p, _row3(quads, idx, Q_CORNER))
     return ng, _dot(q, _row3(quads, idx, Q_DUAL_U)), _dot(q, _row3(quads, idx, Q_DUAL_V))
+
+
+# ---------------------------------------------------------------------------------------------
+# light selection
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True)
+def pick_light(cdf, u):
+    """The light whose slice of the cumulative selection probabilities ``cdf`` (non-decreasing) holds ``u``:
+    the first index i with u < cdf[i], the last one if there is none. A bisection, since emissive meshes bring
+    thousands of lights, that returns exactly what the scan ``while i < n - 1 and u >= cdf[i]: i += 1`` would
+    (neither reads the last entry)."""
+    lo = 0
+    hi = cdf.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if u >= cdf[mid]:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 # ---------------------------------------------------------------------------------------------
