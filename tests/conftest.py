@@ -1,4 +1,5 @@
 import hashlib
+import math
 import os
 import subprocess
 import sys
@@ -105,6 +106,22 @@ def reference_features(aovs: dict, branch: str) -> np.ndarray:
          relvar(np.maximum(f64["depthVariance"], 0.0) * scale**2, d * d)],
         axis=-1,
     )
+
+
+def _corner_form_factor(a, b, h):
+    """Form factor from a differential area to a parallel a x b rectangle at height h whose corner is
+    straight above it (standard closed form)."""
+    x, y = a / h, b / h
+    return (x / math.sqrt(1 + x * x) * math.atan(y / math.sqrt(1 + x * x))
+            + y / math.sqrt(1 + y * y) * math.atan(x / math.sqrt(1 + y * y))) / (2 * math.pi)
+
+
+def rect_form_factor(x0, x1, z0, z1, h):
+    """Form factor from a differential area at the origin (normal +y) to the rectangle
+    [x0, x1] x [z0, z1] at height h, parallel to it: signed corner decomposition (the corner form
+    factor is odd in each extent)."""
+    f = _corner_form_factor
+    return f(x1, z1, h) - f(x0, z1, h) - f(x1, z0, h) + f(x0, z0, h)
 
 
 def randomise(model, seed: int = 0, scale: float = 0.3) -> None:

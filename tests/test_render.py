@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import rect_form_factor
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -261,22 +262,6 @@ def test_lambert_plane_under_environment_reflects_albedo_times_environment():
     assert np.all(r["diffuseVariance"] < 1e-12)
 
 
-def _corner_form_factor(a, b, h):
-    """Form factor from a differential area to a parallel a x b rectangle at height h whose corner is
-    straight above it (standard closed form)."""
-    x, y = a / h, b / h
-    return (x / math.sqrt(1 + x * x) * math.atan(y / math.sqrt(1 + x * x))
-            + y / math.sqrt(1 + y * y) * math.atan(x / math.sqrt(1 + y * y))) / (2 * math.pi)
-
-
-def _rect_form_factor(x0, x1, z0, z1, h):
-    """Form factor from a differential area at the origin (normal +y) to the rectangle
-    [x0, x1] x [z0, z1] at height h, parallel to it: signed corner decomposition (the corner form
-    factor is odd in each extent)."""
-    f = _corner_form_factor
-    return f(x1, z1, h) - f(x0, z1, h) - f(x1, z0, h) + f(x0, z0, h)
-
-
 @pytest.mark.parametrize(
     "lights",
     [
@@ -295,7 +280,7 @@ def test_lambert_plane_under_area_lights_matches_form_factor(lights):
     for i, (x0, x1, z0, z1, le) in enumerate(lights):
         mats[f"light{i}"] = emitter((le,) * 3)
         quads.append(Quad((x0, h, z0), (x1 - x0, 0, 0), (0, 0, z1 - z0), f"light{i}"))  # faces down
-        expected += albedo * le * _rect_form_factor(x0, x1, z0, z1, h)
+        expected += albedo * le * rect_form_factor(x0, x1, z0, z1, h)
     r = render(Scene("ff", "test", cam, mats, quads=quads), spp=4096, seed=5, width=3, height=3)
     got = r["diffuse"][1, 1]
     sigma = math.sqrt(r["diffuseVariance"][1, 1])
@@ -572,13 +557,13 @@ def test_kernel_table_layouts_agree_with_scene():
     p = np.array([1 + 0.75, 2, 3 + 0.5])  # a = 0.25 along u, b = 0.25 along v
     assert (p - q.corner) @ row[tracer.Q_DUAL_U:tracer.Q_DUAL_U + 3] == pytest.approx(0.25)
     assert (p - q.corner) @ row[tracer.Q_DUAL_V:tracer.Q_DUAL_V + 3] == pytest.approx(0.25)
-    assert (tracer.T_V0, tracer.T_E1, tracer.T_E2, tracer.T_NORMAL) == (sc.TRI_V0, sc.TRI_E1, sc.TRI_E2,
-                                                                        sc.TRI_NORMAL)
+    assert (tracer.T_V0, tracer.T_E1, tracer.T_E2, tracer.T_NORMAL, tracer.T_AREA) == (
+        sc.TRI_V0, sc.TRI_E1, sc.TRI_E2, sc.TRI_NORMAL, sc.TRI_AREA)
+    assert (tracer.L_QUAD, tracer.L_SPHERE, tracer.L_TRIANGLE, tracer.L_ENVIRONMENT) == (
+        sc.LIGHT_QUAD, sc.LIGHT_SPHERE, sc.LIGHT_TRIANGLE, sc.LIGHT_ENVIRONMENT)
     assert (tracer.B_LEFT, tracer.B_RIGHT, tracer.B_IS_LEAF, tracer.B_FIRST, tracer.B_COUNT) == (
         sc.BVH_LEFT, sc.BVH_RIGHT, sc.BVH_IS_LEAF, sc.BVH_FIRST, sc.BVH_COUNT)
     assert tracer.BVH_STACK > sc.BVH_MAX_DEPTH
-    assert (tracer.L_QUAD, tracer.L_SPHERE, tracer.L_ENVIRONMENT) == (sc.LIGHT_QUAD, sc.LIGHT_SPHERE,
-                                                                      sc.LIGHT_ENVIRONMENT)
     mesh = Mesh(((1, 2, 3), (3, 2, 3), (1, 2, 5)), ((0, 1, 2),), "m")  # normal cross((2,0,0), (0,0,2)) = -y
     packed = pack(Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), {"m": lambert((0.5,) * 3)},
                         meshes=[mesh]))
@@ -588,6 +573,7 @@ def test_kernel_table_layouts_agree_with_scene():
     np.testing.assert_allclose(tri[tracer.T_E1:tracer.T_E1 + 3], (2, 0, 0))
     np.testing.assert_allclose(tri[tracer.T_E2:tracer.T_E2 + 3], (0, 0, 2))
     np.testing.assert_allclose(tri[tracer.T_NORMAL:tracer.T_NORMAL + 3], (0, -1, 0))
+    assert tri[tracer.T_AREA] == pytest.approx(2.0)
     node = packed.bvh_nodes[0]
     assert node[tracer.B_IS_LEAF] == 1 and (node[tracer.B_FIRST], node[tracer.B_COUNT]) == (0, 1)
     np.testing.assert_allclose(packed.bvh_bounds[0], (1, 2, 3, 3, 2, 5), atol=1e-6)

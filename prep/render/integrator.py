@@ -1,8 +1,8 @@
 """The path-tracing integrator, compiled once per set of effects a scene calls for.
 
 Unidirectional path tracing with next-event estimation to the lights (one picked in proportion to its
-power: rectangles sampled uniformly by area, spheres uniformly in the cone they subtend, an environment
-map by texel luminance) combined with BSDF sampling by the power heuristic.
+power: a uniform point on a rectangle or on a triangle of an emissive mesh, a direction uniform in the cone
+a sphere subtends, an environment map by texel luminance) combined with BSDF sampling by the power heuristic.
 Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
 that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
 alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
@@ -32,6 +32,7 @@ from prep.render.tracer import (
     L_ENVIRONMENT,
     L_QUAD,
     L_SPHERE,
+    L_TRIANGLE,
     LAMBERT,
     LENS_DIM,
     M_ALBEDO,
@@ -54,6 +55,11 @@ from prep.render.tracer import (
     Q_U,
     Q_V,
     RAY_OFFSET,
+    T_AREA,
+    T_E1,
+    T_E2,
+    T_NORMAL,
+    T_V0,
     TEX_IMAGE,
     TEX_NONE,
     TEX_WORLD,
@@ -182,6 +188,23 @@ def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
 
 
 @njit(cache=True)
+def toward_planar_light(origin, point, normal, area, prob):
+    """Light sampling of a planar light (a rectangle, a triangle) of unit ``normal`` and ``area``, picked with
+    probability ``prob``, at ``point`` drawn uniformly on it: (lit, wi, tmax, pdf) with wi the unit direction from
+    ``origin``, tmax the distance that a shadow ray tests and pdf the solid-angle density of light sampling
+    there; lit is False, and pdf 0, where origin is behind the light (it emits on the side of its normal)."""
+    dl = _sub(point, origin)
+    dist2 = _dot(dl, dl)
+    dist = math.sqrt(dist2)
+    wi = _scale(dl, 1.0 / dist)
+    cos_l = -_dot(normal, wi)
+    if cos_l <= 0.0:
+        return False, wi, 0.0, 0.0
+    # the shadow ray stops short of the light's own plane
+    return True, wi, dist * (1.0 - 1e-5), prob * dist2 / (cos_l * area)
+
+
+@njit(cache=True)
 def environment_at(sc, d):
     """Radiance of the environment in direction d: horizon colour blended to the zenith colour."""
     t = max(d[1], 0.0)
@@ -258,10 +281,14 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                     ls = _add(ls, le)
                 else:
                     li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
+                    if HAS_MESH and kind == 2:
+                        li = sc.tri_light[idx]
                     w = 1.0
                     if li >= 0 and prev_pdf > 0.0:
                         if kind == 1:
                             pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
+                        elif HAS_MESH and kind == 2:
+                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * sc.triangles[idx, T_AREA])
                         else:  # the cone density light sampling used from the previous vertex, o
                             wc = _sub(_row3(sc.spheres, idx, 0), o)
                             sin2 = sc.spheres[idx, 3] * sc.spheres[idx, 3] / _dot(wc, wc)
@@ -316,18 +343,19 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                 tmax = 0.0
                 pdf_l = 0.0
                 le = (0.0, 0.0, 0.0)
-                if HAS_EMITTER and sc.light_kind[li] == L_QUAD:  # a uniform point on it
+                if HAS_EMITTER and sc.light_kind[li] == L_QUAD:  # a rectangle: a uniform point on it
                     point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
-                    dl = _sub(point, origin)
-                    dist2 = _dot(dl, dl)
-                    dist = math.sqrt(dist2)
-                    wi = _scale(dl, 1.0 / dist)
-                    cos_l = -_dot(_row3(quads, q, Q_NORMAL), wi)
-                    if cos_l > 0.0:
-                        lit = True
-                        tmax = dist * (1.0 - 1e-5)  # stop short of the light's own plane
-                        pdf_l = sc.light_prob[li] * dist2 / (cos_l * quads[q, Q_AREA])
-                        le = _row3(materials, sc.quad_mat[q], M_EMISSION)
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(quads, q, Q_NORMAL),
+                                                               quads[q, Q_AREA], sc.light_prob[li])
+                    le = _row3(materials, sc.quad_mat[q], M_EMISSION)
+                elif HAS_EMITTER and HAS_MESH and sc.light_kind[li] == L_TRIANGLE:  # a uniform point on it
+                    tris = sc.triangles
+                    su = math.sqrt(u1)
+                    point = _madd(_madd(_row3(tris, q, T_V0), _row3(tris, q, T_E1), u2 * su), _row3(tris, q, T_E2),
+                                  su * (1.0 - u2))
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(tris, q, T_NORMAL),
+                                                               tris[q, T_AREA], sc.light_prob[li])
+                    le = _row3(materials, sc.tri_mat[q], M_EMISSION)
                 elif HAS_EMITTER and sc.light_kind[li] == L_SPHERE:  # a direction uniform in the cone it subtends
                     wc = _sub(_row3(sc.spheres, q, 0), origin)
                     dc2 = _dot(wc, wc)

@@ -21,13 +21,15 @@ MAT_KIND, MAT_ALBEDO, MAT_SPECULAR, MAT_ROUGHNESS = 0, 1, 4, 7
 MAT_EMISSION, MAT_TEXTURE, MAT_ALBEDO2, MAT_SCALE = 8, 11, 12, 15
 MAT_IOR = 16
 MAT_COLS = 17
-# light_kind of a light in the light table
-LIGHT_QUAD, LIGHT_SPHERE, LIGHT_ENVIRONMENT = 0, 1, 3
 # Layout of one row of the quad table: corner, u, v, unit normal, dual vectors of u and v, area.
 QUAD_COLS = 19
-# Layout of one row of the triangle table: v0, e1 = v1 - v0, e2 = v2 - v0, unit normal normalize(cross(e1, e2)).
-TRI_V0, TRI_E1, TRI_E2, TRI_NORMAL = 0, 3, 6, 9
-TRI_COLS = 12
+# Layout of one row of the triangle table: v0, e1 = v1 - v0, e2 = v2 - v0, unit normal normalize(cross(e1, e2)),
+# area.
+TRI_V0, TRI_E1, TRI_E2, TRI_NORMAL, TRI_AREA = 0, 3, 6, 9, 12
+TRI_COLS = 13
+# light_kind of each entry of the light list; the list holds the quads, then the spheres, then the triangles,
+# then the environment map.
+LIGHT_QUAD, LIGHT_SPHERE, LIGHT_TRIANGLE, LIGHT_ENVIRONMENT = 0, 1, 2, 3
 # The BVH over the triangles: node bounds (min x y z, max x y z) and links; an inner node's children are
 # nodes [BVH_LEFT] and [BVH_RIGHT], a leaf holds triangles [BVH_FIRST, BVH_FIRST + BVH_COUNT). Node 0 is
 # the root. Leaves hold at most BVH_LEAF_SIZE triangles; the tree is at most BVH_MAX_DEPTH deep (the
@@ -53,7 +55,7 @@ class PackedScene(NamedTuple):
     group_bounds: np.ndarray  # (Ng, 4) bounding sphere (centre, radius) of each range
     materials: np.ndarray  # (Nm, MAT_COLS)
     sphere_light: np.ndarray  # (Ns,) int64, index into lights or -1
-    lights: np.ndarray  # (Nl,) int64 index of each light in its table (quads first, then spheres)
+    lights: np.ndarray  # (Nl,) int64 index of each light in its table (quads first, then spheres, then triangles, then an environment map)
     light_kind: np.ndarray  # (Nl,) int64: LIGHT_*
     light_cdf: np.ndarray  # (Nl,) cumulative selection probability
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
@@ -67,6 +69,7 @@ class PackedScene(NamedTuple):
     image_info: np.ndarray  # (Nm, 3) int64 per material: first texel, width, height (0s without an image)
     triangles: np.ndarray  # (Nt, TRI_COLS) the triangles of every mesh, in BVH leaf order
     tri_mat: np.ndarray  # (Nt,) int64
+    tri_light: np.ndarray  # (Nt,) int64, index into lights or -1
     bvh_bounds: np.ndarray  # (Nn, 6) float64 node bounds
     bvh_nodes: np.ndarray  # (Nn, 3) int64 node links (BVH_*)
     env_map: np.ndarray  # (H * W, 3) radiance texels of the environment map, row by row; (0, 3) without one
@@ -223,8 +226,8 @@ def pack_meshes(scene: Scene, index: dict) -> tuple[np.ndarray, np.ndarray, np.n
     tri, mat = tri[order], mat[order]
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     n = np.cross(e1, e2)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    table = np.ascontiguousarray(np.concatenate([tri[:, 0], e1, e2, n], axis=1))
+    twice_area = np.linalg.norm(n, axis=1, keepdims=True)
+    table = np.ascontiguousarray(np.concatenate([tri[:, 0], e1, e2, n / twice_area, twice_area / 2], axis=1))
     return table, np.ascontiguousarray(mat), bounds, nodes
 
 
@@ -276,6 +279,16 @@ def pack(scene: Scene) -> PackedScene:
             lights.append(i)
             kinds.append(LIGHT_SPHERE)
             powers.append(4.0 * math.pi * sp.radius**2 * max(_luminance(m.emission), 1e-6))
+    # triangles last, indexed in the table's (BVH leaf) order, which the kernels see
+    triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
+    lum = np.array([max(_luminance(m.emission), 1e-6) if m.kind == "emitter" and max(m.emission) > 0 else 0.0
+                    for m in scene.materials.values()])
+    emitting = np.flatnonzero(lum[tri_mat] > 0)
+    tri_light = np.full(len(triangles), -1, dtype=np.int64)
+    tri_light[emitting] = len(lights) + np.arange(len(emitting))
+    lights.extend(emitting.tolist())
+    kinds.extend([LIGHT_TRIANGLE] * len(emitting))
+    powers.extend((triangles[emitting, TRI_AREA] * lum[tri_mat[emitting]]).tolist())
     env_map, env_pdf, env_row_cdf, env_col_cdf, env_light = _no_environment_map()
     if scene.environment_map is not None:
         texels = load_texels(scene.environment_map)
@@ -292,7 +305,6 @@ def pack(scene: Scene) -> PackedScene:
     cdf = np.cumsum(prob)
     if len(cdf):
         cdf[-1] = 1.0
-    triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
     image_pixels, image_info = pack_images(scene)
     return PackedScene(
         spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
@@ -305,7 +317,7 @@ def pack(scene: Scene) -> PackedScene:
         environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
                                            else scene.environment_zenith, "environment_zenith")),
         image_pixels=image_pixels, image_info=image_info,
-        triangles=triangles, tri_mat=tri_mat, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
+        triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
         env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
     )
 

@@ -11,8 +11,10 @@ Conventions (world space, y up, units arbitrary but scenes are a few units acros
 * ``Mesh(vertices, faces, material)``: a triangle mesh, ``faces`` index ``vertices`` from 0. A triangle's
   geometric normal is ``normalize(cross(v1 - v0, v2 - v0))``: counter-clockwise winding seen from outside
   makes it point outwards, which glass needs (a closed mesh wound that way). Shading is double-sided as
-  for quads; texture coordinates are the barycentrics (u along v1 - v0, v along v2 - v0). Meshes cannot
-  emit. ``obj.load_obj`` reads one from an OBJ file, ``shapes.py`` makes a few procedurally.
+  for quads; texture coordinates are the barycentrics (u along v1 - v0, v along v2 - v0). An ``emitter``
+  mesh is an area light made of its triangles, each emitting only on the side its geometric normal points
+  to (black on the other side) and sampled as a light of its own in proportion to its power. ``obj.load_obj``
+  reads one from an OBJ file, ``shapes.py`` makes a few procedurally.
 * ``Material.kind``:
 
   - ``lambert``: diffuse ``albedo``; ``texture`` ``"world"`` (3-D checker with cells of side
@@ -361,7 +363,7 @@ class Scene:
     environment_map: EnvironmentMap | None = None
 
     def validate(self) -> None:
-        """Raise ValueError if an object names an unknown material or a mesh is an emitter."""
+        """Raise ValueError if an object names an unknown material or the environment is negative."""
         for name in ("environment", "environment_zenith"):
             value = getattr(self, name)
             if value is not None and min(_vec(value, f"Scene.{name}")) < 0:
@@ -374,10 +376,6 @@ class Scene:
             if obj.material not in self.materials:
                 raise ValueError(f"{self.name}: object {obj} names unknown material {obj.material!r}; "
                                  f"known: {sorted(self.materials)}")
-        for mesh in self.meshes:
-            if self.materials[mesh.material].kind == "emitter":
-                raise ValueError(f"{self.name}: mesh {mesh} uses an emitter material; meshes cannot emit, "
-                                 "only quads and spheres may")
 
     def _objects(self) -> list:
         return list(self.spheres) + list(self.quads) + list(self.meshes)

@@ -36,14 +36,16 @@ The file is one table (a TOML document or a JSON object) whose keys are the fiel
     One table per sphere: ``center``, ``radius``, ``material`` (a name under ``[materials]``).
 ``[[quads]]``
     One table per parallelogram ``corner + a*u + b*v``: ``corner``, ``u``, ``v``, ``material``. A quad with
-    an ``emitter`` material is an area light, emitting on the side of ``cross(u, v)``; only quads emit.
+    an ``emitter`` material is an area light, emitting on the side of ``cross(u, v)``.
 ``[[meshes]]``
-    One table per triangle mesh (``scene.Mesh``), with a ``material`` (not an emitter) and either
+    One table per triangle mesh (``scene.Mesh``), with a ``material`` and either
     ``obj = "file.obj"`` (a Wavefront OBJ file, relative to the scene file; read by
     ``prep.render.obj.load_obj``), optionally placed by ``scale`` (default 1), ``rotate_y`` (degrees about
     the y axis, default 0) and ``translate`` (``[x, y, z]``, default 0), applied in that order; or the
     arrays ``vertices`` (``[[x, y, z], ...]``) and ``faces`` (``[[i, j, k], ...]``, 0-based vertex
-    indices). Faces wound counter-clockwise seen from outside have outward normals (glass needs them).
+    indices). Faces wound counter-clockwise seen from outside have outward normals (glass needs them). A mesh
+    with an ``emitter`` material is an area light, each triangle emitting on the side of
+    ``cross(v1 - v0, v2 - v0)``.
     ``dump_scene`` writes meshes as ``vertices`` and ``faces``. A problem in the OBJ file names the key
     (``meshes[0].obj``), the OBJ file and its line.
 ``[render]``
