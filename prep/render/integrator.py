@@ -187,7 +187,7 @@ def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
     return wi, _dot(n, wi) > 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def toward_planar_light(origin, point, normal, area, prob):
     """Light sampling of a planar light (a rectangle, a triangle) of unit ``normal`` and ``area``, picked with
     probability ``prob``, at ``point`` drawn uniformly on it: (lit, wi, tmax, pdf) with wi the unit direction from
@@ -216,7 +216,7 @@ def environment_at(sc, d):
 # the integrator
 # ---------------------------------------------------------------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     """Trace one camera ray through the packed scene ``sc``; writes out[0:13] = diffuse, specular,
     albedo, normal, depth."""
@@ -442,7 +442,20 @@ def render_kernel(sc, width, height, spp, seed, max_depth, rr_depth, row_order, 
     """Render the packed scene ``sc`` into out (height, width, N_OUT) float64: means of the 13 sample
     channels, then the variances of the pixel mean (unbiased per-sample variance / spp, averaged over
     RGB) of diffuse, specular, colour, albedo, normal, depth. ``row_order`` is a permutation of the
-    rows that spreads cheap and expensive rows over the threads; results do not depend on it."""
+    rows that spreads cheap and expensive rows over the threads; results do not depend on it.
+
+    The parallel loop only hands rows to :func:`render_row`, into which numba inlines :func:`trace_sample`
+    (``inline="always"``). Without both, a kernel loaded from numba's cache ran at other speeds than the same
+    kernel freshly compiled (numba issue #10617: on fireflies-000 the specialised kernel ran 3.35 Msamples/s
+    fresh and 2.1 from the cache, the all-effects kernel 2.3 and 2.75), so what specialisation saved depended
+    on the state of the cache; compiled as one function, both give the same speed."""
+    for ri in prange(height):
+        render_row(sc, row_order[ri], width, height, spp, seed, max_depth, rr_depth, out)
+
+
+@njit(cache=True)
+def render_row(sc, y, width, height, spp, seed, max_depth, rr_depth, out):
+    """Row y of :func:`render_kernel`."""
     camera = sc.camera
     tan_half = sc.tan_half
     pos = (camera[0], camera[1], camera[2])
@@ -450,62 +463,60 @@ def render_kernel(sc, width, height, spp, seed, max_depth, rr_depth, row_order, 
     right = (camera[6], camera[7], camera[8])
     up = (camera[9], camera[10], camera[11])
     aspect = width / height
-    for ri in prange(height):
-        y = row_order[ri]
-        v = np.zeros(N_SAMPLE)
-        first = np.zeros(N_SAMPLE)
-        s1 = np.zeros(N_SAMPLE)
-        s2 = np.zeros(N_SAMPLE)
-        for x in range(width):
-            s1[:] = 0.0
-            s2[:] = 0.0
-            pix = y * width + x
-            for s in range(spp):
-                key = sample_key(seed, pix, s)
-                sx = (2.0 * (x + rand(key, 0)) / width - 1.0) * tan_half * aspect
-                sy = (1.0 - 2.0 * (y + rand(key, 1)) / height) * tan_half
-                d = _normalize(_madd(_madd(fwd, right, sx), up, sy))
-                o = pos
-                if HAS_LENS and sc.lens_radius > 0.0:
-                    # thin lens: a point on the lens disc, aimed at the ray's point on the focal plane
-                    focal = _madd(pos, d, sc.focus_distance / _dot(d, fwd))
-                    r = sc.lens_radius * math.sqrt(rand(key, LENS_DIM))
-                    phi = 2.0 * math.pi * rand(key, LENS_DIM + 1)
-                    o = _madd(_madd(pos, right, r * math.cos(phi)), up, r * math.sin(phi))
-                    d = _normalize(_sub(focal, o))
-                trace_sample(o, d, key, sc, max_depth, rr_depth, v)
-                for c in range(3):
-                    v[13 + c] = v[c] + v[3 + c]
-                if s == 0:
-                    first[:] = v
-                # sums of differences from the first sample: exact zero variance for constant
-                # pixels and no catastrophic cancellation for bright ones
-                for c in range(N_SAMPLE):
-                    dv = v[c] - first[c]
-                    s1[c] += dv
-                    s2[c] += dv * dv
-            inv_n = 1.0 / spp
-            for c in range(OUT_MEANS):
-                out[y, x, c] = first[c] + s1[c] * inv_n
-            if spp > 1:
-                # per-channel variance of the mean, then averaged over each buffer's channels
-                for b in range(OUT_VARS):
-                    if b == 0:
-                        c0, nc = 0, 3
-                    elif b == 1:
-                        c0, nc = 3, 3
-                    elif b == 2:
-                        c0, nc = 13, 3
-                    elif b == 3:
-                        c0, nc = 6, 3
-                    elif b == 4:
-                        c0, nc = 9, 3
-                    else:
-                        c0, nc = 12, 1
-                    acc = 0.0
-                    for c in range(c0, c0 + nc):
-                        acc += max(0.0, s2[c] - s1[c] * s1[c] * inv_n) / (spp - 1) * inv_n
-                    out[y, x, OUT_MEANS + b] = acc / nc
-            else:
-                for b in range(OUT_VARS):
-                    out[y, x, OUT_MEANS + b] = 0.0
+    v = np.zeros(N_SAMPLE)
+    first = np.zeros(N_SAMPLE)
+    s1 = np.zeros(N_SAMPLE)
+    s2 = np.zeros(N_SAMPLE)
+    for x in range(width):
+        s1[:] = 0.0
+        s2[:] = 0.0
+        pix = y * width + x
+        for s in range(spp):
+            key = sample_key(seed, pix, s)
+            sx = (2.0 * (x + rand(key, 0)) / width - 1.0) * tan_half * aspect
+            sy = (1.0 - 2.0 * (y + rand(key, 1)) / height) * tan_half
+            d = _normalize(_madd(_madd(fwd, right, sx), up, sy))
+            o = pos
+            if HAS_LENS and sc.lens_radius > 0.0:
+                # thin lens: a point on the lens disc, aimed at the ray's point on the focal plane
+                focal = _madd(pos, d, sc.focus_distance / _dot(d, fwd))
+                r = sc.lens_radius * math.sqrt(rand(key, LENS_DIM))
+                phi = 2.0 * math.pi * rand(key, LENS_DIM + 1)
+                o = _madd(_madd(pos, right, r * math.cos(phi)), up, r * math.sin(phi))
+                d = _normalize(_sub(focal, o))
+            trace_sample(o, d, key, sc, max_depth, rr_depth, v)
+            for c in range(3):
+                v[13 + c] = v[c] + v[3 + c]
+            if s == 0:
+                first[:] = v
+            # sums of differences from the first sample: exact zero variance for constant
+            # pixels and no catastrophic cancellation for bright ones
+            for c in range(N_SAMPLE):
+                dv = v[c] - first[c]
+                s1[c] += dv
+                s2[c] += dv * dv
+        inv_n = 1.0 / spp
+        for c in range(OUT_MEANS):
+            out[y, x, c] = first[c] + s1[c] * inv_n
+        if spp > 1:
+            # per-channel variance of the mean, then averaged over each buffer's channels
+            for b in range(OUT_VARS):
+                if b == 0:
+                    c0, nc = 0, 3
+                elif b == 1:
+                    c0, nc = 3, 3
+                elif b == 2:
+                    c0, nc = 13, 3
+                elif b == 3:
+                    c0, nc = 6, 3
+                elif b == 4:
+                    c0, nc = 9, 3
+                else:
+                    c0, nc = 12, 1
+                acc = 0.0
+                for c in range(c0, c0 + nc):
+                    acc += max(0.0, s2[c] - s1[c] * s1[c] * inv_n) / (spp - 1) * inv_n
+                out[y, x, OUT_MEANS + b] = acc / nc
+        else:
+            for b in range(OUT_VARS):
+                out[y, x, OUT_MEANS + b] = 0.0
