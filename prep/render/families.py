@@ -345,8 +345,9 @@ def caustics(rng_or_seed=None, name: str = "caustics") -> Scene:
 
 def outdoor(rng_or_seed=None, name: str = "outdoor") -> Scene:
     """A long ground under a procedural HDR sky (an environment map: horizon-to-zenith gradient, a glow and
-    a small intense sun disc, importance sampled): rows of objects and thin poles receding into the distance (high depth variation), often seen through a lens
-    with shallow depth of field; in front, two triangle meshes (a torus and an icosphere)."""
+    a small intense sun disc, importance sampled): rows of objects and thin poles receding into the distance
+    (high depth variation), often seen through a lens with shallow depth of field; in front, two triangle
+    meshes (a torus and an icosphere)."""
     rng = _rng(rng_or_seed)
     mats = {
         "ground": lambert(_colour(rng, sat=(0.2, 0.6), val=(0.3, 0.55)), texture="world",

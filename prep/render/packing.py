@@ -55,7 +55,7 @@ class PackedScene(NamedTuple):
     group_bounds: np.ndarray  # (Ng, 4) bounding sphere (centre, radius) of each range
     materials: np.ndarray  # (Nm, MAT_COLS)
     sphere_light: np.ndarray  # (Ns,) int64, index into lights or -1
-    lights: np.ndarray  # (Nl,) int64 index of each light in its table (quads first, then spheres, then triangles, then an environment map)
+    lights: np.ndarray  # (Nl,) int64 index of each light in its table (in the order of LIGHT_*)
     light_kind: np.ndarray  # (Nl,) int64: LIGHT_*
     light_cdf: np.ndarray  # (Nl,) cumulative selection probability
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
