@@ -4,7 +4,8 @@ the kernels sample a map with.
 The mapping (``scene.py`` states it for users): texel (row i, column j) of an H x W map covers polar
 angles theta in [i, i + 1) pi / H from +y and azimuths phi in [j, j + 1) 2 pi / W - pi about y from +x
 towards +z; the direction of (theta, phi) is (sin theta cos phi, cos theta, sin theta sin phi).
-``tracer.py`` mirrors :func:`texel_of` and the sampling below in numba (a test checks they agree).
+``tracer.py`` mirrors the mapping and the sampling below in numba (a test checks its texel of each
+direction of :func:`texel_directions`).
 
 Sampling is piecewise constant over the texels in proportion to luminance x sin theta (the texel's solid
 angle up to a constant), by a marginal CDF over rows and a conditional CDF per row; within a texel the
@@ -21,9 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from prep.errors import InputFileError
-from prep.render.scene import EnvironmentMap, Sky
+from prep.render.scene import EnvironmentMap, Sky, _luminance
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+# scene._luminance's weights as a vector, for luminance of whole maps as one product
+LUMINANCE = np.array([_luminance(e) for e in np.eye(3)])
 # Sky glow around the sun: a fraction of the sun's radiance, falling off over this angle (radians).
 _GLOW, _GLOW_ANGLE = 2e-3, math.radians(8.0)
 
@@ -36,15 +38,6 @@ def texel_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     d = np.stack([st * np.cos(phi)[None, :], np.broadcast_to(ct, (height, width)), st * np.sin(phi)[None, :]],
                  axis=-1)
     return d, np.sin(theta)
-
-
-def texel_of(d: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """(row, column) of the texel holding each unit direction of ``d`` (..., 3)."""
-    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
-    phi = np.arctan2(d[..., 2], d[..., 0])
-    row = np.minimum((theta / math.pi * height).astype(np.int64), height - 1)
-    col = np.minimum(((phi + math.pi) / (2 * math.pi) * width).astype(np.int64), width - 1)
-    return row, col
 
 
 def bake_sky(sky: Sky) -> np.ndarray:
@@ -80,10 +73,10 @@ def load_texels(env: EnvironmentMap) -> np.ndarray:
             texels = load_image(str(path))
         if texels.shape[0] < 2 or texels.shape[1] < 2:
             raise InputFileError(f"{path}: an environment map needs at least 2 x 2 texels, found "
-                             f"{texels.shape[1]} x {texels.shape[0]}")
+                                 f"{texels.shape[1]} x {texels.shape[0]}")
         if not np.all(np.isfinite(texels)) or texels.min() < 0:
             raise InputFileError(f"{path}: environment texels must be finite and >= 0, found values from "
-                             f"{np.nanmin(texels):g} to {np.nanmax(texels):g}")
+                                 f"{np.nanmin(texels):g} to {np.nanmax(texels):g}")
     return np.ascontiguousarray(texels * env.scale, dtype=np.float64)
 
 

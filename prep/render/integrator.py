@@ -75,9 +75,8 @@ from prep.render.tracer import (
     _scale,
     _sub,
     _to_world,
-    env_pdf,
+    env_lookup,
     env_sample,
-    env_texel,
     fresnel_dielectric,
     ggx_visible_normal,
     intersect,
@@ -241,10 +240,9 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             env = (0.0, 0.0, 0.0)
             w = 1.0
             if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
-                row, col = env_texel(sc, d)
-                env = _row3(sc.env_map, row * sc.env_pdf.shape[1] + col, 0)
+                env, pdf_dir = env_lookup(sc, d)
                 if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
-                    pdf_l = sc.light_prob[sc.env_light] * env_pdf(sc, d)
+                    pdf_l = sc.light_prob[sc.env_light] * pdf_dir
                     w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
             elif HAS_ENVIRONMENT:
                 env = environment_at(sc, d)

@@ -265,24 +265,23 @@ def pack(scene: Scene) -> PackedScene:
         quads[i] = np.concatenate([q.corner, u, v, nn / np.linalg.norm(nn),
                                    np.cross(v, w), np.cross(w, u), [np.linalg.norm(nn)]])
         quad_mat[i] = index[q.material]
-        m = scene.materials[q.material]
-        if m.kind == "emitter" and max(m.emission) > 0:
+        lum = _emitted_luminance(scene.materials[q.material])
+        if lum > 0:
             quad_light[i] = len(lights)
             lights.append(i)
-            powers.append(q.area * max(_luminance(m.emission), 1e-6))
+            powers.append(q.area * lum)
     kinds = [LIGHT_QUAD] * len(lights)
     sphere_light = np.full(len(scene.spheres), -1, dtype=np.int64)
     for i, sp in enumerate(scene.spheres):
-        m = scene.materials[sp.material]
-        if m.kind == "emitter" and max(m.emission) > 0:
+        lum = _emitted_luminance(scene.materials[sp.material])
+        if lum > 0:
             sphere_light[i] = len(lights)
             lights.append(i)
             kinds.append(LIGHT_SPHERE)
-            powers.append(4.0 * math.pi * sp.radius**2 * max(_luminance(m.emission), 1e-6))
+            powers.append(4.0 * math.pi * sp.radius**2 * lum)
     # triangles last, indexed in the table's (BVH leaf) order, which the kernels see
     triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
-    lum = np.array([max(_luminance(m.emission), 1e-6) if m.kind == "emitter" and max(m.emission) > 0 else 0.0
-                    for m in scene.materials.values()])
+    lum = np.array([_emitted_luminance(m) for m in scene.materials.values()])
     emitting = np.flatnonzero(lum[tri_mat] > 0)
     tri_light = np.full(len(triangles), -1, dtype=np.int64)
     tri_light[emitting] = len(lights) + np.arange(len(emitting))
@@ -320,6 +319,14 @@ def pack(scene: Scene) -> PackedScene:
         triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
         env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
     )
+
+
+def _emitted_luminance(m) -> float:
+    """The luminance a light of material m emits, for picking lights by power (at least 1e-6, so that a
+    light of pure blue is still picked); 0 for a material that is not a light."""
+    if m.kind != "emitter" or max(m.emission) <= 0:
+        return 0.0
+    return max(_luminance(m.emission), 1e-6)
 
 
 def _no_environment_map():

@@ -531,13 +531,20 @@ def env_texel(sc, d):
 
 
 @njit(cache=True)
-def env_pdf(sc, d):
-    """Solid-angle density with which env_sample draws unit direction d."""
-    row, col = env_texel(sc, d)
-    sin_t = math.sqrt(max(0.0, 1.0 - d[1] * d[1]))
+def _env_density(sc, row, col, sin_t):
+    """Solid-angle density of env_sample at a direction in texel (row, col) with sin theta = sin_t."""
     if sin_t <= 0.0:
         return 0.0
     return sc.env_pdf[row, col] / (2.0 * math.pi * math.pi * sin_t)
+
+
+@njit(cache=True)
+def env_lookup(sc, d):
+    """(radiance of the environment map in unit direction d, solid-angle density with which env_sample
+    draws d): one texel lookup serves both."""
+    row, col = env_texel(sc, d)
+    pdf = _env_density(sc, row, col, math.sqrt(max(0.0, 1.0 - d[1] * d[1])))
+    return _row3(sc.env_map, row * sc.env_pdf.shape[1] + col, 0), pdf
 
 
 @njit(cache=True)
@@ -556,8 +563,7 @@ def env_sample(sc, u1, u2):
     phi = (col + min(max(fc, 0.0), 1.0)) * 2.0 * math.pi / width - math.pi
     sin_t = math.sin(theta)
     d = (sin_t * math.cos(phi), math.cos(theta), sin_t * math.sin(phi))
-    pdf = sc.env_pdf[row, col] / (2.0 * math.pi * math.pi * sin_t) if sin_t > 0.0 else 0.0
-    return d, pdf, _row3(sc.env_map, row * width + col, 0)
+    return d, _env_density(sc, row, col, sin_t), _row3(sc.env_map, row * width + col, 0)
 
 
 # ---------------------------------------------------------------------------------------------
