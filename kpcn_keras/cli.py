@@ -1,6 +1,6 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, denoise, evaluate. Each fills its stage's config dataclass from the
+Subcommands: render, shards, train, denoise, evaluate, figures, bench. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
 ``render`` and ``shards`` never import keras or torch.
 
@@ -32,6 +32,13 @@ def _csv_ints(text: str) -> tuple[int, ...]:
         return tuple(int(t) for t in _csv(text))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def _csv_floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(t) for t in _csv(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
 def _given(args, cls) -> dict:
@@ -92,11 +99,17 @@ def cmd_shards(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from kpcn_keras.models import ModelConfig
-    from kpcn_keras.train import TrainConfig, train
+    from kpcn_keras.config import ModelConfig, TrainConfig
+    from kpcn_keras.train import train
 
     given = _given(args, TrainConfig)
     given["model"] = _given(args, ModelConfig)
+    # the compositor's own options (its width and depth are not the network's --width and --depth)
+    compositor = {k: getattr(args, k) for k in ("gamma",) if k in args}
+    if compositor and "compositor" not in args:
+        raise OptionError("gamma", "is a setting of the multiscale compositor: it needs --compositor alpha|kernel")
+    if "compositor" in args:
+        given["compositor"] = {"kind": args.compositor, **compositor}
     cfg = TrainConfig.from_preset(given.pop("preset", None), **given)
     run_dir = train(cfg, args.run, verbose=0 if args.quiet else "auto")
     print(f"run: {run_dir}")
@@ -107,7 +120,7 @@ def cmd_denoise(args) -> int:
     from kpcn_keras.denoise import denoise_file
 
     report = denoise_file(args.input, args.run, args.output, args.reference, png=not args.no_png,
-                          **({"tile": args.tile} if "tile" in args else {}))
+                          **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
     print(f"denoised in {report['seconds']:.2f} s")
     if "metrics" in report:
@@ -125,6 +138,19 @@ def cmd_evaluate(args) -> int:
                     **({"tile": args.tile} if "tile" in args else {}))
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
+    return 0
+
+
+def cmd_figures(args) -> int:
+    from kpcn_keras.evaluate import pairs_for_inputs
+    from kpcn_keras.figures import make_figures
+
+    frame = pairs_for_inputs([args.input])[0] if args.input else None
+    if "pixel" in args and len(args.pixel) != 2:
+        raise OptionError("pixel", f"must be two integers y,x, got {','.join(map(str, args.pixel))}")
+    written = make_figures(args.run, frame, **{k: getattr(args, k) for k in ("pixel", "slopes", "tile") if k in args})
+    for name, path in written.items():
+        print(f"{name}: {path}")
     return 0
 
 
@@ -183,22 +209,46 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, help=d("seed"))
     s.set_defaults(func=cmd_shards)
 
-    t = parser("train", help="train the diffuse and specular networks (resumes by itself)")
-    t.add_argument("--set", dest="set_name", help="shard set (default: default)")
-    t.add_argument("--shards", dest="shards_root", help="folder holding shard sets (default: shards)")
+    from kpcn_keras.config import PRESETS, TrainConfig
+
+    t = parser("train", help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
+    d = lambda name: f"(default: {_default(TrainConfig, name)})"  # noqa: E731
+    t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
+    t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
     t.add_argument("--run", default="runs/default", help="run folder, created or resumed (default: runs/default)")
-    t.add_argument("--preset", help="cpu (the default) or paper; the options below override it")
-    t.add_argument("--arch", help="kpcn, kpal or dpcn")
-    t.add_argument("--width", type=int)
-    t.add_argument("--depth", type=int)
-    t.add_argument("--kernel-size", type=int)
-    t.add_argument("--branches", type=_csv, help="comma-separated subset of diffuse,specular")
-    t.add_argument("--steps", type=int, help="training steps per branch")
-    t.add_argument("--batch-size", type=int)
-    t.add_argument("--lr", dest="learning_rate", type=float, help="initial learning rate")
-    t.add_argument("--loss", help="smape or asymmetric")
-    t.add_argument("--slope", type=float, help="asymmetric loss slope (>= 1)")
-    t.add_argument("--seed", type=int)
+    t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
+    g = t.add_argument_group("network (each branch, or the shared one)")
+    g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm) or dpcn (direct prediction)")
+    g.add_argument("--width", type=int, help="filters per convolution")
+    g.add_argument("--depth", type=int, help="convolutions (kpcn, dpcn) or residual blocks (kpal)")
+    g.add_argument("--conv-size", type=int, help="convolution size (odd)")
+    g.add_argument("--kernel-size", type=int, help="predicted kernel side (odd; the papers use 21)")
+    g.add_argument("--dropout", type=float, help="drop rate after every convolution (the report's keep 0.7 is 0.3)")
+    g.add_argument("--shared", action="store_true", help="one network for both branches, told apart by a one-hot "
+                   "input (default: one network per branch)")
+    g = t.add_argument_group("phases")
+    g.add_argument("--branches", type=_csv, help=f"comma-separated subset of diffuse,specular {d('branches')}")
+    g.add_argument("--steps", type=int, help=f"training steps per branch {d('steps')}")
+    g.add_argument("--joint-steps", type=int, help=f"joint fine-tuning steps on the final colour, 0 for none {d('joint_steps')}")
+    g.add_argument("--joint-lr", dest="joint_learning_rate", type=float, help=d("joint_learning_rate"))
+    g.add_argument("--compositor", help="alpha or kernel: add the multiscale compositor phase (default: none)")
+    g.add_argument("--compositor-steps", type=int, help=d("compositor_steps"))
+    g.add_argument("--compositor-lr", dest="compositor_learning_rate", type=float, help=d("compositor_learning_rate"))
+    g.add_argument("--gamma", type=float, help="weight of the compositor's α regulariser (default: 0.01)")
+    g = t.add_argument_group("optimisation")
+    g.add_argument("--batch-size", type=int, help=d("batch_size"))
+    g.add_argument("--lr", dest="learning_rate", type=float, help=f"initial learning rate {d('learning_rate')}")
+    g.add_argument("--decay-steps", type=int, help=f"steps per decay of the learning rate by --decay-rate {d('decay_steps')}")
+    g.add_argument("--decay-rate", type=float, help=d("decay_rate"))
+    g.add_argument("--clipnorm", type=float, help=f"gradient norm clip {d('clipnorm')}")
+    g.add_argument("--loss", help=f"smape or asymmetric {d('loss')}")
+    g.add_argument("--slope", type=float, help=f"asymmetric loss slope λ >= 1 {d('slope')}")
+    g.add_argument("--slope-input", action="store_true", help="λ as an input channel: one network for every λ "
+                   "in --slope-range, chosen at 'kpcn denoise --slope'")
+    g.add_argument("--slope-range", type=_csv_floats, help=f"low,high {d('slope_range')}")
+    g.add_argument("--no-augment", dest="augment", action="store_false", help="no flips, rotations or colour "
+                   "permutations of the training patches")
+    g.add_argument("--seed", type=int, help=d("seed"))
     t.set_defaults(func=cmd_train)
 
     n = parser("denoise", help="denoise one EXR in the AOV layout")
@@ -207,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("-o", "--output", default=None, help="output EXR (default: <input stem>-denoised.exr beside it)")
     n.add_argument("--reference", default=None, help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
     n.add_argument("--tile", type=int, help="tile size in pixels, bounds memory (default: 256)")
+    n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
+                   "input's detail (and noise)")
     n.add_argument("--no-png", action="store_true", default=False)
     n.set_defaults(func=cmd_denoise)
 
@@ -218,6 +270,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
     e.add_argument("--no-baseline", action="store_true", default=False)
     e.set_defaults(func=cmd_evaluate)
+
+    f = parser("figures", help="draw the report's figures from a run: kernels, α maps, with and without "
+               "multiscale, a λ sweep (into <run>/figures)")
+    f.add_argument("--run", required=True)
+    f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
+                   "at its lowest spp); its reference is the same scene's render with the most samples beside it")
+    f.add_argument("--pixel", type=_csv_ints, help="y,x of the kernel figure's pixel (default: the noisiest)")
+    f.add_argument("--slopes", type=_csv_floats, help="the λ of the sweep (default: 1,2,4,8)")
+    f.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
+    f.set_defaults(func=cmd_figures)
 
     from prep.render.bench import RenderBenchConfig
 

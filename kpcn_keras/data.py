@@ -1,54 +1,81 @@
 """Training batches read from HDF5 shards (``prep.shards`` layout) for ``model.fit``.
 
-Files are opened lazily, once per process, so a dataset object can be pickled into workers.
-Batch ``i`` is a pure function of (seed, offset + i): patches are visited in a fresh seeded
-permutation every pass over the data, so a resumed run sees exactly the batches that an
-uninterrupted run would have seen.
+One :class:`ShardPatches` serves one training phase (``kpcn_keras.train``); ``source`` says what a batch is:
+
+============  ===========================================================  =================================
+source        x (network input, ``models.network_input``)                   y (target)
+============  ===========================================================  =================================
+``diffuse``   the diffuse features + conditioning channels (B, P, P, C)     diffuse reference, log domain
+``specular``  likewise, specular                                            specular reference, log domain
+``both``      each patch from one of the two branches (a shared network)    that branch's reference
+``final``     ``{"diffuse_input", "specular_input", "albedo"}``              reference final colour, linear
+============  ===========================================================  =================================
+
+``loss_target`` extends y for the asymmetric loss: ``"reference+noisy"`` appends the noisy colour of the same
+domain (6 channels), and a network with a slope channel gets λ as a seventh, the same λ its input carries.
+
+Per patch, a training stream draws (from a generator seeded by (seed, batch number), so resume is exact):
+an augmentation (``kpcn_keras.augment``: one of 8 flips/rotations times one of 6 colour permutations), and,
+for a network with a slope channel, λ log-uniform in ``slope_range``. A validation stream
+(``shuffle=False``) augments nothing and uses the fixed ``slope``.
+
+Files are opened lazily, once per process, so a dataset object can be pickled into workers. Batch ``i`` is
+a pure function of (seed, offset + i): patches are visited in a fresh seeded permutation every pass over
+the data, so a resumed run sees exactly the batches that an uninterrupted run would have seen.
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 import h5py
 import keras
 import numpy as np
 
+from kpcn_keras import augment
+from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
+from prep.features import BRANCHES
 from prep.shards import ShardError, open_shard
 
-TARGETS = ("reference", "reference+noisy")
+SOURCES = BRANCHES + ("both", "final")
+LOSS_TARGETS = ("reference", "reference+noisy")
 
 
 class ShardPatches(keras.utils.PyDataset):
-    """Batches ``(features, target)`` of one branch.
+    """Batches ``(x, y)`` of one training phase (module docstring).
 
-    ``features`` is ``<branch>/features`` (B, P, P, 27). ``target`` is ``<branch>/reference``
-    (B, P, P, 3), or with ``target="reference+noisy"`` the reference and the noisy colour
-    concatenated on channels (B, P, P, 6), the layout the asymmetric loss expects.
-    ``steps`` batches are served; ``offset`` skips that many batches of the stream (resume);
-    ``shuffle=False`` serves patches in shard order (validation).
+    ``steps`` batches are served (default: one pass); ``offset`` skips that many batches of the stream
+    (resume); ``shuffle=False`` serves patches in shard order without augmentation (validation).
     """
 
-    def __init__(self, paths, branch: str, batch_size: int, steps: int | None = None, *,
-                 shuffle: bool = True, seed: int = 0, offset: int = 0, target: str = "reference", **kwargs):
+    def __init__(self, paths, source: str, model: ModelConfig, batch_size: int, steps: int | None = None, *,
+                 shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
+                 augment: bool = False, slope: float = 2.0, slope_range: tuple[float, float] = (1.0, 8.0),
+                 **kwargs):
         super().__init__(**kwargs)
-        if branch not in ("diffuse", "specular"):
-            raise ValueError(f"branch must be 'diffuse' or 'specular', got {branch!r}")
-        if target not in TARGETS:
-            raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
+        if source not in SOURCES:
+            raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
+        if loss_target not in LOSS_TARGETS:
+            raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.paths = [str(p) for p in paths]
         if not self.paths:
-            raise ShardError(f"no shards given for the {branch} branch")
-        self.branch, self.batch_size, self.shuffle, self.seed = branch, batch_size, shuffle, seed
-        self.offset, self.target = offset, target
+            raise ShardError(f"no shards given for the {source} patches")
+        self.source, self.model, self.batch_size, self.shuffle, self.seed = source, model, batch_size, shuffle, seed
+        self.offset, self.loss_target = offset, loss_target
+        self.augment = augment and shuffle
+        self.slope, self.slope_range = slope, tuple(slope_range)
         counts = []
         for p in self.paths:
             with open_shard(p) as f:
                 counts.append(len(f["source"]))
-        # (shard, patch) of every patch, in shard order
-        self.index = np.array([(s, i) for s, n in enumerate(counts) for i in range(n)], dtype=np.int64)
+        # (branch, shard, patch) of every sample, in shard order; a shared network sees each patch once
+        # per branch, so both branches weigh the same
+        branches = range(len(BRANCHES)) if source == "both" else [BRANCHES.index(source) if source in BRANCHES else -1]
+        self.index = np.array([(b, s, i) for b in branches for s, n in enumerate(counts) for i in range(n)],
+                              dtype=np.int64)
         if len(self.index) < batch_size:
             raise ShardError(f"{len(self.index)} patches in {len(self.paths)} shard(s), fewer than batch_size={batch_size}")
         per_pass = len(self.index) // batch_size if shuffle else -(-len(self.index) // batch_size)
@@ -73,27 +100,58 @@ class ShardPatches(keras.utils.PyDataset):
             self._files = {pid: [open_shard(p) for p in self.paths]}
         return self._files[pid]
 
+    def _read(self, shard: int, patch: int, names) -> dict[str, np.ndarray]:
+        f = self._handles()[shard]
+        try:
+            return {name: f[name][patch] for name in names}
+        except OSError as exc:  # a chunk whose Fletcher-32 checksum fails, or a damaged file
+            raise ShardError(
+                f"{self.paths[shard]}: cannot read patch {patch} ({exc}); run 'kpcn shards' again to rebuild it"
+            ) from None
+
+    def _slopes(self, rng: np.random.Generator, n: int) -> list[float | None]:
+        if not self.model.slope_channel:
+            return [None] * n
+        if not self.shuffle:
+            return [self.slope] * n
+        lo, hi = self.slope_range
+        return list(np.exp(rng.uniform(math.log(lo), math.log(hi), n)))
+
     def __getitem__(self, i):
         if not 0 <= i < self.steps:
             raise IndexError(f"batch {i} out of range [0, {self.steps})")
-        files = self._handles()
         ids = self._patch_ids(i)
-        x, y, noisy = [], [], []
-        for shard, patch in ids:
-            f = files[shard]
-            try:
-                x.append(f[f"{self.branch}/features"][patch])
-                y.append(f[f"{self.branch}/reference"][patch])
-                if self.target == "reference+noisy":
-                    noisy.append(f[f"{self.branch}/noisy"][patch])
-            except OSError as exc:  # a chunk whose Fletcher-32 checksum fails, or a damaged file
-                raise ShardError(
-                    f"{self.paths[shard]}: cannot read patch {patch} ({exc}); run 'kpcn shards' again to rebuild it"
-                ) from None
-        x, y = np.stack(x), np.stack(y)
-        if noisy:
-            y = np.concatenate([y, np.stack(noisy)], axis=-1)
-        return x, y
+        # one generator per batch number: what a patch gets does not depend on which batches ran before
+        rng = np.random.default_rng([self.seed, self.offset + i, 1])
+        augs = [augment.draw(rng) if self.augment else augment.IDENTITY for _ in ids]
+        slopes = self._slopes(rng, len(ids))
+        samples = [self._sample(b, s, p, aug, slope) for (b, s, p), aug, slope in zip(ids, augs, slopes)]
+        x = samples[0][0]
+        if isinstance(x, dict):
+            x = {k: np.stack([s[0][k] for s in samples]) for k in x}
+        else:
+            x = np.stack([s[0] for s in samples])
+        return x, np.stack([s[1] for s in samples])
+
+    def _sample(self, branch_id: int, shard: int, patch: int, aug, slope):
+        if self.source == "final":
+            names = [f"{b}/features" for b in BRANCHES] + ["albedo", "reference", "noisy"]
+            data = self._read(shard, patch, names)
+            x = {FINAL_INPUTS[b]: network_input(augment.augment_features(data[f"{b}/features"], aug),
+                                                self.model, b, slope) for b in BRANCHES}
+            x["albedo"] = augment.augment_colour(data["albedo"], aug)
+            reference, noisy = data["reference"], data["noisy"]
+        else:
+            branch = BRANCHES[branch_id]
+            data = self._read(shard, patch, [f"{branch}/features", f"{branch}/reference", f"{branch}/noisy"])
+            x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
+            reference, noisy = data[f"{branch}/reference"], data[f"{branch}/noisy"]
+        y = [augment.augment_colour(reference, aug)]
+        if self.loss_target == "reference+noisy":
+            y.append(augment.augment_colour(noisy, aug))
+            if slope is not None:
+                y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
+        return x, np.concatenate(y, axis=-1).astype(np.float32)
 
     def __getstate__(self):
         state = self.__dict__.copy()

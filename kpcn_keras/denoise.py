@@ -1,8 +1,10 @@
 """Full-frame inference: a noisy render in the AOV layout in, the denoised colour out.
 
-Each branch network runs on overlapping tiles so that memory stays bounded at any resolution. A
-tile's margin is the model's receptive radius (trunk + kernel, ``models.receptive_radius``), and only
-its centre is kept, so the result equals an untiled run up to float rounding. The branches are
+Each branch network (or the shared one, or either wrapped in the multiscale compositor) runs on overlapping
+tiles so that memory stays bounded at any resolution. A tile's margin is the model's receptive radius
+(trunk + kernel, ``models.receptive_radius``; ``multiscale.multiscale_radius`` with a compositor), and only
+its centre is kept, so the result equals an untiled run up to float rounding. With a compositor, tiles and
+margins are multiples of the pyramid's alignment, so each tile pools the same 2x2 blocks as the whole image. The branches are
 mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64 and
 clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
 
@@ -20,34 +22,56 @@ from pathlib import Path
 import keras
 import numpy as np
 
-from kpcn_keras.models import receptive_radius
-from kpcn_keras.run import Run, check_architecture, load_model
+from kpcn_keras.models import network_input, receptive_radius
+from kpcn_keras.multiscale import CompositorConfig, alignment, build_multiscale_model, multiscale_radius
+from kpcn_keras.run import Run, check_architecture
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
+from prep.features import BRANCHES
 from prep.files import atomic_path, check_writable
 
 DEFAULT_TILE = 256
 
 
 class Denoiser:
-    """The finished branch models of one run folder, applied to whole renders."""
+    """The finished networks of one run folder, applied to whole renders.
 
-    def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE):
+    ``slope``: λ for a run trained with a slope input channel (required there, refused elsewhere).
+    ``multiscale=False`` leaves a multiscale run's compositor out (the single-scale networks alone: the
+    "without" of a with/without comparison).
+    """
+
+    def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE, *, slope: float | None = None,
+                 multiscale: bool = True):
         if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
             raise OptionError("tile", f"must be an integer >= 1 (pixels), got {tile!r}")
         self.run = Run(run_dir)
         self.record = self.run.read_record()
         self.model_config = self.run.model_config(self.record)
-        self.models = {}
-        for branch in ("diffuse", "specular"):
-            path = self.run.model_path(branch)
-            if not path.is_file():
-                raise KpcnError(f"{path}: missing; the run has not finished training the {branch} branch")
-            # inference needs no optimizer or loss: skip compiling them back
-            self.models[branch] = load_model(path, compile=False)
-            check_architecture(self.models[branch], self.model_config, path)
-        self.tile = tile
+        if self.model_config.slope_channel and slope is None:
+            raise OptionError("slope", f"is needed: {self.run.dir} was trained with λ as an input, for λ in "
+                              f"{self.record['train']['slope_range']}")
+        self.slope = slope
+        names = {b: "shared" if self.model_config.branch_channels else b for b in BRANCHES}
+        networks = {}
+        for name in sorted(set(names.values())):
+            networks[name] = self.run.load_component(self.record, name)
+            check_architecture(networks[name], self.model_config, self.run.dir / self.record["components"][name]["file"])
+        self.networks = networks
         self.margin = receptive_radius(self.model_config)
+        self.align = 1
+        self.compositor = None
+        if multiscale and "compositor" in self.record["components"]:
+            comp_cfg = CompositorConfig.from_dict(self.record["train"]["compositor"])
+            self.compositor = self.run.load_component(self.record, "compositor")
+            networks = {name: build_multiscale_model(net, comp_cfg, compositor=self.compositor, name=f"multiscale_{name}")
+                        for name, net in networks.items()}
+            self.margin = multiscale_radius(self.margin, comp_cfg)
+            self.align = alignment(comp_cfg)
+        self.models = {b: networks[names[b]] for b in BRANCHES}
+        # tiles start at multiples of the pyramid's alignment, so every tile pools the image's own 2x2 blocks
+        self.margin = -(-self.margin // self.align) * self.align
+        self.tile = -(-tile // self.align) * self.align
 
     def warm_up(self) -> None:
         """Denoise a small black frame once, so that timings exclude one-time setup (numba, torch)."""
@@ -59,6 +83,7 @@ class Denoiser:
     def run_branch(self, branch: str, feats: np.ndarray) -> np.ndarray:
         """Model output (log domain) for one (H, W, 27) feature image, tile by tile."""
         model = self.models[branch]
+        feats = network_input(feats, self.model_config, branch, self.slope)
         h, w, _ = feats.shape
         out = np.empty((h, w, 3), dtype=np.float32)
         t, m = self.tile, self.margin
@@ -124,7 +149,7 @@ def png_path(output: str | os.PathLike) -> Path:
 
 
 def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,
-                 tile: int = DEFAULT_TILE) -> dict:
+                 tile: int = DEFAULT_TILE, slope: float | None = None) -> dict:
     """Denoise one EXR; writes ``output`` (default :func:`default_output`) and a PNG beside it; returns
     timings and, with a reference, metrics."""
     from prep import metrics
@@ -136,7 +161,7 @@ def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool 
     check_writable(output, "--output")
     if png:
         check_writable(png_path(output), "side-by-side PNG")
-    denoiser = Denoiser(run_dir, tile=tile)
+    denoiser = Denoiser(run_dir, tile=tile, slope=slope)
     noisy = exr.read_aovs(input_path)
     ref = exr.read_aovs(reference, variances=False) if reference else None
     if ref is not None and ref["default"].shape != noisy["default"].shape:

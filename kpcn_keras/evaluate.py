@@ -2,9 +2,10 @@
 
 For every (noisy, reference) pair it measures relMSE, the 99.9th percentile of the per-pixel relative
 squared error (relSE p99.9: the worst pixels, e.g. fireflies copied rather than repaired) and DSSIM of the
-raw input, of the denoised frame and of non-local means (``prep.baselines``), plus seconds per frame, and
-writes ``<run>/eval/`` with ``report.md``, ``metrics.json`` (every metric of ``prep.metrics.METRICS``) and
-one PNG per scene (input | NLM | KPCN | reference).
+raw input, of the denoised frame, of non-local means and, when ``pyoidn`` is installed, of Intel Open Image
+Denoise (``prep.baselines``), plus seconds per frame, and writes ``<run>/eval/`` with ``report.md``,
+``metrics.json`` (every metric of ``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | KPCN |
+reference). A baseline that is not installed has NaN in its columns.
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ COLUMNS = (
     ("denoised DSSIM", "{:.4f}", ("denoised", "dssim")),
     ("NLM relMSE", "{:.4f}", ("nlm", "relmse")),
     ("NLM relSE p99.9", "{:.4f}", ("nlm", "relse_p999")),
+    ("OIDN relMSE", "{:.4f}", ("oidn", "relmse")),
+    ("OIDN relSE p99.9", "{:.4f}", ("oidn", "relse_p999")),
     ("s/frame", "{:.2f}", "seconds"),
 )
 
@@ -92,6 +95,12 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
             row["nlm_seconds"] = time.perf_counter() - start
             row["nlm"] = metrics.all_metrics(nlm, ref)
             panels.insert(1, (f"NLM relMSE {row['nlm']['relmse']:.4f}", nlm))
+            if baselines.oidn_available():
+                start = time.perf_counter()
+                oidn = baselines.oidn_denoise(noisy)
+                row["oidn_seconds"] = time.perf_counter() - start
+                row["oidn"] = metrics.all_metrics(oidn, ref)
+                panels.insert(2, (f"OIDN relMSE {row['oidn']['relmse']:.4f}", oidn))
         panels.append(("reference", ref))
         row["png"] = str(side_by_side_png(out_dir / f"{scene}-{spp:05d}spp.png", panels, title=scene))
         rows.append(row)

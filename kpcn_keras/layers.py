@@ -14,12 +14,15 @@ torch. No epsilon is needed: after max subtraction the softmax denominator is >=
 
 from __future__ import annotations
 
-import operator
-
 import keras
+import numpy as np
 from keras import ops
 
+from kpcn_keras.config import check_kernel_size
+from prep.features import ALBEDO_EPS
+
 __all__ = [
+    "FinalColour",
     "KernelApply",
     "TakeChannels",
     "apply_kernels",
@@ -27,17 +30,6 @@ __all__ = [
     "pad_edge",
     "softmax_kernels",
 ]
-
-
-def check_kernel_size(k) -> int:
-    """Return ``k`` as an int if it is a positive odd integer, else raise ValueError naming the value."""
-    try:
-        value = operator.index(k)  # ints and numpy integers; rejects floats and strings
-    except TypeError:
-        value = None
-    if value is None or isinstance(k, bool) or value < 1 or value % 2 == 0:
-        raise ValueError(f"kernel size must be a positive odd integer, received {k!r}")
-    return value
 
 
 def softmax_kernels(logits):
@@ -69,10 +61,12 @@ def pad_edge(x, r: int):
     return ops.concatenate([left, x, right], axis=2)
 
 
-def apply_kernels(colour, weights, k: int):
+def apply_kernels(colour, weights, k: int, dilation: int = 1):
     """Filter ``colour`` (B, H, W, C) with normalised per-pixel ``weights`` (B, H, W, k*k); returns (B, H, W, C).
 
     The weights are used as given (no softmax), so this also serves to apply hand-made kernels.
+    ``dilation`` d spaces the taps d pixels apart: tap (i, j) reads colour[y + d(i - k//2), x + d(j - k//2)],
+    edge-replicated (d = 2 on a nearest-upsampled image reads the coarse image at coarse offsets).
     Implementation: a loop over the k*k shifted views accumulating a weighted sum. Measured on a 2-core CPU
     (k=13, 8 x 65 x 65, forward + backward) it beat stacking the shifted views into a (B, H, W, k*k, C)
     tensor and contracting with einsum/matmul (0.11 s vs 0.13-0.17 s), and it never materialises the stack.
@@ -80,17 +74,20 @@ def apply_kernels(colour, weights, k: int):
     allocates a full-size zero gradient, which made the sliced loop three times slower.
     """
     k = check_kernel_size(k)
+    d = dilation if isinstance(dilation, int) and not isinstance(dilation, bool) else 0
+    if d < 1:
+        raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
     r = k // 2
     h = ops.shape(colour)[1]
     w = ops.shape(colour)[2]
     colour = ops.convert_to_tensor(colour)
     weights = ops.convert_to_tensor(weights, dtype=colour.dtype)
-    padded = pad_edge(colour, r)
+    padded = pad_edge(colour, r * d)
     taps = ops.unstack(weights, num=k * k, axis=-1)
     out = None
     for i in range(k):
         for j in range(k):
-            term = ops.expand_dims(taps[i * k + j], -1) * padded[:, i : i + h, j : j + w, :]
+            term = ops.expand_dims(taps[i * k + j], -1) * padded[:, i * d : i * d + h, j * d : j * d + w, :]
             out = term if out is None else out + term
     return out
 
@@ -167,3 +164,28 @@ class TakeChannels(keras.layers.Layer):
         config = super().get_config()
         config.update(start=self.start, stop=self.stop)
         return config
+
+
+# exp() of a log colour above this would overflow float32 once remodulated and summed; a kernel output
+# never gets there on real data, but a clamp keeps a wild early training step finite
+LOG_LINEAR_MAX = float(np.log(np.finfo(np.float32).max / 4))
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class FinalColour(keras.layers.Layer):
+    """Inputs ``[diffuse (B, H, W, 3), specular (B, H, W, 3), albedo (B, H, W, 3)]``, the branch colours in
+    the log domain and the noisy albedo -> the final linear colour (B, H, W, 3).
+
+    The inverse of the branch transforms of ``prep.features`` (``diffuse_from_log``, ``specular_from_log``)
+    written in ``keras.ops``, so a model can be supervised on the colour users see (joint fine-tuning):
+    ``expm1(d) * (clip(albedo, 0, 1) + ALBEDO_EPS) + expm1(s)``, each log colour clamped to LOG_LINEAR_MAX.
+    """
+
+    def call(self, inputs):
+        diffuse, specular, albedo = inputs
+        albedo = ops.clip(albedo, 0.0, 1.0) + ALBEDO_EPS
+        return (ops.expm1(ops.minimum(diffuse, LOG_LINEAR_MAX)) * albedo
+                + ops.expm1(ops.minimum(specular, LOG_LINEAR_MAX)))
+
+    def compute_output_shape(self, input_shape):
+        return tuple(input_shape[0])

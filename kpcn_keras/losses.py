@@ -12,7 +12,9 @@ over blurring.
 Keras use: ``SMAPE()`` is a ``keras.losses.Loss`` for ``model.compile(loss=...)``. ``AsymmetricSMAPE(slope)``
 needs the noisy colour too, so its ``y_true`` has 6 channels, ``concatenate([gt, noisy], axis=-1)``
 (gt first); a data pipeline yields ``(features, concatenate([gt, features[..., :3]], -1))`` and the model
-output stays 3 channels. Both losses are registered for ``.keras`` saving. All inputs are in the domain
+output stays 3 channels. ``AsymmetricSMAPE(slope=None)`` takes λ per element from a seventh channel of
+``y_true`` instead (``concatenate([gt, noisy, λ], -1)``): the training of a network whose input carries λ
+(``models.network_input``), where each patch has its own λ. Both losses are registered for ``.keras`` saving. All inputs are in the domain
 the network is trained in (log(1 + x) branch colour, or the final colour for joint fine-tuning).
 """
 
@@ -35,6 +37,8 @@ SMAPE_EPS = 0.01  # the report's constant; keeps the ratio finite where out and 
 
 
 def _check_slope(slope) -> float:
+    if not isinstance(slope, (int, float)) and ops.is_tensor(slope):
+        return slope  # a per-element map, from the data: checked where it is drawn
     if isinstance(slope, bool) or not isinstance(slope, (int, float)) or not slope >= 1.0:
         raise ValueError(f"asymmetric SMAPE slope must be a number >= 1, received {slope!r}")
     return float(slope)
@@ -86,23 +90,25 @@ class SMAPE(keras.losses.Loss):
 @keras.saving.register_keras_serializable(package="kpcn")
 class AsymmetricSMAPE(keras.losses.Loss):
     """Asymmetric SMAPE with slope λ >= 1. ``y_true`` is (B, H, W, 6): gt in channels 0..2, noisy in 3..5;
-    ``y_pred`` is (B, H, W, 3)."""
+    with ``slope=None`` it is (B, H, W, 7) and channel 6 is λ per element. ``y_pred`` is (B, H, W, 3)."""
 
-    def __init__(self, slope: float = 2.0, name: str = "asymmetric_smape",
+    def __init__(self, slope: float | None = 2.0, name: str = "asymmetric_smape",
                  reduction: str = "sum_over_batch_size", dtype=None):
         super().__init__(name=name, reduction=reduction, dtype=dtype)
-        self.slope = _check_slope(slope)
+        self.slope = None if slope is None else _check_slope(slope)
 
     def call(self, y_true, y_pred):
         channels = y_true.shape[-1]
-        if channels != 6:
+        expected = 6 if self.slope is not None else 7
+        if channels != expected:
             raise ValueError(
-                "AsymmetricSMAPE expects y_true with 6 channels (gt then noisy), "
-                f"received shape {tuple(y_true.shape)}"
+                f"AsymmetricSMAPE(slope={self.slope}) expects y_true with {expected} channels (gt, noisy"
+                f"{'' if self.slope is not None else ', slope'}), received shape {tuple(y_true.shape)}"
             )
         gt = y_true[..., :3]
-        noisy = y_true[..., 3:]
-        values = smape_elementwise(gt, y_pred) * asymmetric_weight(noisy, gt, y_pred, self.slope)
+        noisy = y_true[..., 3:6]
+        slope = self.slope if self.slope is not None else y_true[..., 6:7]
+        values = smape_elementwise(gt, y_pred) * asymmetric_weight(noisy, gt, y_pred, slope)
         return _per_sample_mean(values)
 
     def get_config(self):

@@ -1,8 +1,16 @@
 """Branch denoising networks: vanilla KPCN, residual KPAL and direct-prediction DPCN (seed report §2.2, §3.4).
 
-A branch network (diffuse or specular) maps ``features`` (B, H, W, in_channels), channels last, any H and W,
-whose channels 0..2 are the noisy branch colour in the log domain log(1 + x), to the filtered colour in the same
-domain, (B, H, W, 3). Architectures (``ModelConfig.arch``):
+A branch network (diffuse or specular) maps its input (B, H, W, ``input_channels``), channels last, any H and W,
+to the filtered colour in the log domain log(1 + x), (B, H, W, 3). The input is the ``in_channels`` features of
+``prep.features`` (channels 0..2 the noisy branch colour), then the conditioning channels the configuration asks
+for, appended by :func:`network_input` (the one place that knows them):
+
+- ``branch_channels``: two one-hot channels, (1, 0) for diffuse and (0, 1) for specular, so that one shared
+  network serves both branches (seed report §3.4.5) and knows which it is filtering;
+- ``slope_channel``: one channel holding log(λ) of the asymmetric loss slope λ >= 1, per pixel (0 for λ = 1),
+  so that one network serves a range of λ chosen at inference (Vogels et al. 2018 §5.3).
+
+Architectures (``ModelConfig.arch``):
 
 - ``"kpcn"``: Bako et al.'s plain stack: ``depth`` convolutions (``conv_size``, ``width`` filters, ReLU), then a
   1x1 convolution to k*k logits and ``KernelApply`` on the noisy colour. The default depth 7 plus the head
@@ -27,93 +35,57 @@ and ``keras.models.load_model`` work without ``custom_objects`` once ``kpcn_kera
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from typing import Optional
-
 import keras
+import numpy as np
 
-from kpcn_keras.layers import KernelApply, TakeChannels, check_kernel_size, softmax_kernels
+from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, ModelConfig
+from kpcn_keras.layers import FinalColour, KernelApply, TakeChannels, softmax_kernels
 from prep.errors import OptionError
-from prep.features import LOG_COLOUR_MAX
+from prep.features import BRANCHES, LOG_COLOUR_MAX
 
 __all__ = [
     "ARCHS",
     "COLOUR_CHANNELS",
     "ModelConfig",
     "build_branch_model",
+    "build_final_model",
     "build_kernel_model",
     "load_model",
+    "network_input",
     "receptive_radius",
     "trunk_radius",
 ]
 
-ARCHS = ("kpcn", "kpal", "dpcn")
-COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
+FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
 
 
-@dataclass
-class ModelConfig:
-    """Architecture of one branch network. ``batchnorm=None`` means: True for kpal, False otherwise.
+def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.ndarray:
+    """``features`` (..., H, W, in_channels) with the conditioning channels of ``cfg`` appended (float32).
 
-    ``depth`` counts trunk convolutions for kpcn/dpcn and residual blocks for kpal. ``dropout`` is the drop
-    rate (the report's keep probability 0.7 is ``dropout=0.3``); it is applied after every trunk
-    convolution when > 0. ``kernel_size`` is the predicted kernel's side (odd; paper 21) and is ignored by
-    dpcn.
+    ``slope``: λ >= 1 for a network with a slope channel, a number or a per-pixel array broadcastable to
+    (..., H, W); it must be None for a network without one (the network would not know it was asked).
     """
-
-    arch: str = "kpcn"
-    in_channels: int = 27
-    width: int = 32
-    depth: int = 7
-    conv_size: int = 3
-    kernel_size: int = 13
-    dropout: float = 0.0
-    batchnorm: Optional[bool] = None
-
-    def __post_init__(self):
-        if self.arch not in ARCHS:
-            raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
-        for field in ("in_channels", "width", "depth", "conv_size", "kernel_size"):
-            value = getattr(self, field)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise OptionError(field, f"must be an integer, received {value!r}")
-        if self.in_channels < COLOUR_CHANNELS:
-            raise OptionError(
-                "in_channels", f"must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), received {self.in_channels}"
-            )
-        if self.width < 1:
-            raise OptionError("width", f"must be >= 1, received {self.width}")
-        if self.depth < 1:
-            raise OptionError("depth", f"must be >= 1, received {self.depth}")
-        if self.conv_size < 1 or self.conv_size % 2 == 0:
-            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
-        try:
-            check_kernel_size(self.kernel_size)
-        except ValueError as exc:
-            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
-        if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)):
-            raise OptionError("dropout", f"must be a number in [0, 1), received {self.dropout!r}")
-        if not 0.0 <= float(self.dropout) < 1.0:
-            raise OptionError("dropout", f"must be in [0, 1), received {self.dropout!r}")
-        self.dropout = float(self.dropout)
-        if self.batchnorm is None:
-            self.batchnorm = self.arch == "kpal"
-        elif not isinstance(self.batchnorm, bool):
-            raise OptionError("batchnorm", f"must be a bool or None, received {self.batchnorm!r}")
-
-    def to_dict(self) -> dict:
-        """Plain JSON-able dict; ``batchnorm`` is resolved (never None)."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
-        """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise OptionError("model", f"has unknown ModelConfig keys {unknown}; known keys are {sorted(names)}")
-        return cls(**d)
+    features = np.asarray(features, np.float32)
+    if features.shape[-1] != cfg.in_channels:
+        raise ValueError(f"expected {cfg.in_channels} feature channels, received shape {features.shape}")
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, received {branch!r}")
+    if cfg.slope_channel != (slope is not None):
+        raise OptionError("slope", "is needed by a network trained with a slope input channel" if cfg.slope_channel
+                          else "is only for a network trained with a slope input channel (--slope-input)")
+    extra = []
+    if cfg.branch_channels:
+        extra += [np.float32(branch == b) for b in BRANCHES]
+    if slope is not None:
+        slope = np.asarray(slope, np.float64)
+        if not np.all(np.isfinite(slope)) or np.any(slope < 1.0):
+            raise OptionError("slope", f"must be finite and >= 1, received {slope if slope.ndim == 0 else slope.min()}")
+        extra.append(np.log(slope).astype(np.float32))
+    if not extra:
+        return features
+    spatial = features.shape[:-1]
+    planes = [np.broadcast_to(np.asarray(e, np.float32), spatial)[..., None] for e in extra]
+    return np.concatenate([features] + planes, axis=-1)
 
 
 def trunk_radius(cfg: ModelConfig) -> int:
@@ -174,7 +146,7 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse") -> keras.Model:
     """Functional model: input ``features`` (None, None, cfg.in_channels) -> filtered colour (None, None, 3)."""
     if not isinstance(cfg, ModelConfig):
         raise TypeError(f"cfg must be a ModelConfig, received {type(cfg).__name__}")
-    features = keras.Input(shape=(None, None, cfg.in_channels), name="features")
+    features = keras.Input(shape=(None, None, cfg.input_channels), name="features")
     colour = TakeChannels(0, COLOUR_CHANNELS, name="noisy_colour")(features)
     x = _trunk(features, cfg)
     if cfg.arch == "dpcn":
@@ -191,6 +163,22 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse") -> keras.Model:
         )(x)
         out = KernelApply(cfg.kernel_size, name="kernel_apply")([colour, logits])
     return keras.Model(features, out, name=name)
+
+
+def build_final_model(networks: dict, input_channels: int, name: str = "final") -> keras.Model:
+    """A model of the whole denoiser: inputs ``diffuse_input`` and ``specular_input`` (each branch's network
+    input) and ``albedo`` (the noisy albedo) -> the final linear colour, ``networks[branch]`` applied to each
+    branch (the same model twice for a shared network; or any callable building a symbolic graph, such as
+    ``multiscale.multiscale_output``) and the branch transforms inverted (``FinalColour``).
+
+    Joint fine-tuning trains it on the final colour (seed report §2.3.2); the networks are nested models, so
+    each can be taken out again by name (``model.get_layer("diffuse")``).
+    """
+    inputs = {b: keras.Input(shape=(None, None, input_channels), name=FINAL_INPUTS[b]) for b in BRANCHES}
+    albedo = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="albedo")
+    colours = [networks[branch](inputs[branch]) for branch in BRANCHES]
+    out = FinalColour(name="final_colour")(colours + [albedo])
+    return keras.Model({**{FINAL_INPUTS[b]: inputs[b] for b in BRANCHES}, "albedo": albedo}, out, name=name)
 
 
 def build_kernel_model(model: keras.Model) -> keras.Model:

@@ -2,13 +2,21 @@
 
 :class:`Run` is the one owner of a run folder's layout::
 
-    <run>/config.json                 the run record: training config, shard set, versions, command, results
-    <run>/timings.json                seconds per branch (the one file that differs between identical runs)
-    <run>/<component>.keras           a finished network (``diffuse``, ``specular``)
-    <run>/checkpoints/<component>.keras   the network being trained, with its optimizer and training state
-    <run>/log-<component>.csv         loss and validation loss per epoch
+    <run>/config.json                 the run record: training config, shard set, versions, command, phases,
+                                      components, results
+    <run>/timings.json                seconds per phase (the one file that differs between identical runs)
+    <run>/<phase>.keras               what a finished training phase trained (one file per phase)
+    <run>/checkpoints/<phase>.keras   the phase being trained, with its optimizer and training state
+    <run>/log.csv                     loss and validation loss per epoch, every phase in one numbering
+    <run>/loss.png                    the log as a curve, phases shaded
     <run>/eval/                       ``kpcn evaluate``'s report
+    <run>/figures/                    ``kpcn figures``' PNGs
     <run>/.lock                       held by the one process that trains into the run
+
+A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``), and
+``compositor`` for a multiscale run. The record's ``components`` maps each to the phase file that holds its
+latest weights and the path of nested model names to it inside that file (joint fine-tuning trains both branch networks as
+parts of one model, so its file holds both): :meth:`Run.load_component` is how anything reads one.
 
 The record stores the shard set's folder relative to the run folder, and no field names the run itself,
 so a run folder can be renamed or used from any working directory.
@@ -59,18 +67,27 @@ class Run:
     def eval_dir(self) -> Path:
         return self.dir / "eval"
 
-    def model_path(self, component: str) -> Path:
-        return self.dir / f"{component}.keras"
+    @property
+    def figures_dir(self) -> Path:
+        return self.dir / "figures"
+
+    def model_path(self, phase: str) -> Path:
+        return self.dir / f"{phase}.keras"
 
     @property
     def checkpoint_dir(self) -> Path:
         return self.dir / "checkpoints"
 
-    def checkpoint_path(self, component: str) -> Path:
-        return self.checkpoint_dir / f"{component}.keras"
+    def checkpoint_path(self, phase: str) -> Path:
+        return self.checkpoint_dir / f"{phase}.keras"
 
-    def log_path(self, component: str) -> Path:
-        return self.dir / f"log-{component}.csv"
+    @property
+    def log_path(self) -> Path:
+        return self.dir / "log.csv"
+
+    @property
+    def loss_curve_path(self) -> Path:
+        return self.dir / "loss.png"
 
     def lock(self):
         return exclusive_lock(self.dir, "run folder")
@@ -89,10 +106,14 @@ class Run:
         if not self.record_path.is_file():
             raise KpcnError(f"{self.dir}: not a run folder (no {RECORD}); train one with 'kpcn train'")
         record = read_json(self.record_path, "run record", keys=("train", "shards", "results"))
+        if "phases" not in record:
+            raise KpcnError(f"{self.record_path}: a run made by an older kpcn (no training phases); train it again")
         try:
             ModelConfig.from_dict(record["train"]["model"])
             record["shards"]["set_dir"]
-        except (KeyError, TypeError, ValueError) as exc:
+            for entry in record["components"].values():
+                entry["file"]
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise KpcnError(f"{self.record_path}: the run record is damaged ({type(exc).__name__}: {exc})") from None
         return record
 
@@ -104,6 +125,18 @@ class Run:
 
     def relative(self, path: str | os.PathLike) -> str:
         return os.path.relpath(os.path.abspath(path), os.path.abspath(self.dir))
+
+    def load_component(self, record: dict, name: str, *, compile: bool = False) -> keras.Model:
+        """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``compositor``) of the run,
+        read from the phase file the record names; KpcnError if the run has not trained it."""
+        entry = record["components"].get(name)
+        if entry is None:
+            trained = ", ".join(sorted(record["components"])) or "none yet"
+            raise KpcnError(f"{self.dir}: the run has no finished {name} network (finished: {trained})")
+        model = load_model(self.dir / entry["file"], compile=compile)
+        for name in entry.get("layers", []):
+            model = model.get_layer(name)
+        return model
 
     def shard_set(self, record: dict) -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""

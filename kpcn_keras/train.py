@@ -1,175 +1,152 @@
-"""Training the diffuse and specular branch networks from a shard set (seed report §2.3).
+"""Training a denoiser from a shard set, in phases (seed report §2.2–2.3, §3.1, §3.4.5).
 
-The run folder's layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
+A run trains, in this order (:meth:`TrainConfig.phases`), one command for all of them:
+
+=================  ================================================  ==========================================
+phase              trains                                            on
+=================  ================================================  ==========================================
+``diffuse``,       one branch network each (``--branches``)          the branch's reference, log domain
+``specular``
+``shared``         one network for both branches (``--shared``)      both branches' patches, each with its
+                   with a one-hot branch input                       branch's reference
+``joint``          both branch networks at once, fine-tuned at       the final colour (remodulated diffuse +
+                   ``joint_learning_rate`` (``--joint-steps`` > 0)   specular), linear
+``compositor``     the multiscale scale compositor, the branch       the final colour, through the three-level
+                   networks frozen (``--compositor alpha|kernel``)   pyramid of both branches
+=================  ================================================  ==========================================
+
+Every phase has its own Adam optimizer (exponential learning-rate decay, gradient-norm clipping) and its own
+checkpoint; the CSV log numbers epochs across phases, so it and ``loss.png`` show one continuous run, and the
+record (``config.json``) lists every phase with its epochs and the components it produced. The run folder's
+layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 
 - **Inputs first, record second.** The shard set must be complete and every shard's SHA-256 must match
   its manifest, the options must fit the data, and the run folder must be writable, before
   ``config.json`` is written; a command refused for bad input leaves no run behind.
-- **Exact resume.** After every epoch the model, its optimizer and the training state (epochs done, the
-  model configuration, the loss history) are written as one ``.keras`` file (``run.save_model``), so
-  the model and its epoch count cannot disagree. Running the same command again continues from it and
-  ends with the same bytes as an uninterrupted run (the CSV log is cut back to the checkpoint's epochs).
+- **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
+  (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
+  model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
+  command again continues from the first unfinished phase and ends with the same bytes as an uninterrupted
+  run (the CSV log is cut back to the checkpoint's epochs).
 - **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
   another architecture under an existing run is an error that says which.
+- **Divergence stops at the batch** (Keras's ``TerminateOnNaN(raise_error=True)``); the last good
+  checkpoint stays.
 - **One trainer per run**: the run's lock is held while training.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import csv
 import hashlib
 import json
-import math
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import keras
 import numpy as np
 
+from kpcn_keras.config import LOCATION_FIELDS, CompositorConfig, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
-from kpcn_keras.models import ModelConfig, build_branch_model
+from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model
+from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_output
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
 from prep.errors import KpcnError, OptionError
+from prep.features import BRANCHES
 from prep.files import atomic_path, atomic_write_json, check_writable, read_json
 from prep.shards import ShardSet
 
-BRANCHES = ("diffuse", "specular")
-
-# "cpu" (the TrainConfig defaults) trains a useful model on a 2-core CPU in minutes; "paper" is the
-# report's setting for a GPU (28-layer residual KPAL trunk, 21x21 kernels, batch 12, lr 1e-4, keep 0.7).
-PRESETS = {
-    "cpu": {},
-    "paper": {
-        "model": {"arch": "kpal", "width": 100, "depth": 13, "kernel_size": 21, "dropout": 0.3},
-        "batch_size": 12,
-        "steps": 60000,
-        "steps_per_epoch": 1000,
-        "learning_rate": 1e-4,
-        "decay_steps": 60000,
-        "decay_rate": 0.1,
-    },
-}
+# ---------------------------------------------------------------- what each phase trains
 
 
-# Fields that say where the data is, not what is trained: a run is the same run wherever it is read from.
-_LOCATION_FIELDS = ("set_name", "shards_root")
+def _network_names(cfg: TrainConfig) -> dict[str, str]:
+    """branch -> the component that denoises it."""
+    return {b: "shared" if cfg.shared else b for b in BRANCHES}
 
 
-@dataclass
-class TrainConfig:
-    """Configuration of ``kpcn train``; every field is saved in the run's config.json.
+def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Model:
+    """A new model for ``phase``, from the components earlier phases finished."""
+    model_cfg = ModelConfig.from_dict(cfg.model)
+    if not phase.trains_on_final_colour:
+        keras.utils.set_random_seed(cfg.seed + [p.name for p in cfg.phases()].index(phase.name))
+        return build_branch_model(model_cfg, name=phase.name)
+    names = _network_names(cfg)
+    nets = {name: run.load_component(record, name) for name in set(names.values())}
+    for name, net in nets.items():
+        check_architecture(net, model_cfg, run.dir / record["components"][name]["file"])
+    if phase.name == "joint":
+        return build_final_model({b: nets[names[b]] for b in BRANCHES}, model_cfg.input_channels, name="joint")
+    keras.utils.set_random_seed(cfg.seed + len(cfg.phases()))
+    comp_cfg = CompositorConfig.from_dict(cfg.compositor)
+    compositor = build_compositor(comp_cfg)
+    # one graph for both branches: they share the compositor (and a shared network its frozen wrapper)
+    frozen = {name: InferenceOnly(net, name=f"{name}_denoiser") for name, net in nets.items()}
+    pyramids = {b: (lambda x, b=b: multiscale_output(x, frozen[names[b]], comp_cfg, compositor, prefix=f"{b}_"))
+                for b in BRANCHES}
+    return build_final_model(pyramids, model_cfg.input_channels, name="multiscale")
 
-    The defaults are the "cpu" preset: a 7-layer, 32-wide vanilla KPCN with 13x13 kernels (the
-    ModelConfig defaults), 1200 steps of batch 8 per branch. The run folder is not part of it
-    (:class:`kpcn_keras.run.Run` owns that), so a renamed run folder resumes.
-    """
 
-    set_name: str = "default"
-    shards_root: str = "shards"
-    preset: str = "cpu"
-    model: dict = field(default_factory=dict)
-    branches: tuple[str, ...] = BRANCHES
-    steps: int = 1200
-    steps_per_epoch: int = 50
-    batch_size: int = 8
-    learning_rate: float = 1e-3
-    decay_steps: int = 1200
-    decay_rate: float = 0.3
-    clipnorm: float = 1.0
-    loss: str = "smape"
-    slope: float = 2.0
-    val_batches: int = 8
-    seed: int = 0
+def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
+    """The record's entries of the components a finished ``phase`` holds (see ``run.Run``)."""
+    file = f"{phase.name}.keras"
+    if not phase.trains_on_final_colour:
+        return {phase.name: {"file": file, "phase": phase.name}}
+    if phase.name == "joint":
+        return {name: {"file": file, "layers": [name], "phase": phase.name} for name in set(_network_names(cfg).values())}
+    return {"compositor": {"file": file, "layers": ["compositor"], "phase": phase.name}}
 
-    def __post_init__(self):
-        self.branches = tuple(self.branches)
-        if not self.branches or any(b not in BRANCHES for b in self.branches):
-            raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, got {list(self.branches)}")
-        if self.loss not in ("smape", "asymmetric"):
-            raise OptionError("loss", f"must be 'smape' or 'asymmetric', got {self.loss!r}")
-        for name in ("steps", "steps_per_epoch", "batch_size", "decay_steps", "val_batches"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise OptionError(name, f"must be an integer >= 1, got {value!r}")
-        checks = {
-            "learning_rate": (0 < self.learning_rate < math.inf, "> 0 and finite"),
-            "clipnorm": (0 < self.clipnorm < math.inf, "> 0 and finite"),
-            "decay_rate": (0 < self.decay_rate <= 1, "in (0, 1]"),
-            "slope": (1 <= self.slope < math.inf, ">= 1 and finite"),
-            "seed": (self.seed >= 0, ">= 0"),
-        }
-        for name, (ok, bound) in checks.items():
-            if not ok:
-                raise OptionError(name, f"must be {bound}, got {getattr(self, name)!r}")
-        self.model = ModelConfig(**self.model).to_dict()  # validates and fills defaults
 
-    @classmethod
-    def from_preset(cls, preset: str | None = None, **overrides) -> "TrainConfig":
-        """The preset's values (None: the default preset), then ``overrides`` (None values ignored;
-        ``model`` keys merged)."""
-        preset = cls.preset if preset is None else preset
-        if preset not in PRESETS:
-            raise OptionError("preset", f"must be one of {sorted(PRESETS)}, got {preset!r}")
-        values = json.loads(json.dumps(PRESETS[preset]))
-        values["model"] = {**values.get("model", {}), **(overrides.pop("model", None) or {})}
-        values.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(preset=preset, **values)
+def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
+    schedule = keras.optimizers.schedules.ExponentialDecay(phase.learning_rate, cfg.decay_steps, cfg.decay_rate)
+    if cfg.loss == "asymmetric":
+        loss = AsymmetricSMAPE(None if cfg.slope_input else cfg.slope)
+    else:
+        loss = SMAPE()
+    # a fixed name: Keras numbers unnamed optimizers per process (adam, adam_1, ...), and the name is
+    # saved with the model and its variables, so two identical runs would otherwise differ in bytes
+    model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
 
-    @property
-    def set_dir(self) -> Path:
-        return Path(self.shards_root) / self.set_name
 
-    @property
-    def epoch_steps(self) -> int:
-        """Steps per epoch (one checkpoint each): steps_per_epoch, or all steps if fewer."""
-        return min(self.steps_per_epoch, self.steps)
+def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
+    """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in."""
+    source = "final" if phase.trains_on_final_colour else "both" if phase.name == "shared" else phase.name
+    common = dict(source=source, model=ModelConfig.from_dict(cfg.model), batch_size=cfg.batch_size,
+                  loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
+                  slope=cfg.slope, slope_range=cfg.slope_range)
+    train = ShardPatches(paths["train"], steps=(phase.epochs - epochs_done) * phase.epoch_steps,
+                         seed=cfg.seed, offset=epochs_done * phase.epoch_steps, augment=cfg.augment, **common)
+    val = None
+    if paths["val"]:
+        val = ShardPatches(paths["val"], shuffle=False, **common)
+        val.steps = min(val.steps, cfg.val_batches)
+    return train, val
 
-    @property
-    def epochs(self) -> int:
-        return math.ceil(self.steps / self.epoch_steps)
 
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["branches"] = list(self.branches)
-        return d
-
-    def identity(self) -> dict:
-        """The fields that make two runs the same run (everything but where the data is read from)."""
-        return {k: v for k, v in self.to_dict().items() if k not in _LOCATION_FIELDS}
+# ---------------------------------------------------------------- checkpoints, log, record
 
 
 class _Checkpoint(keras.callbacks.Callback):
     """After every epoch: the model, its optimizer and the training state, as one atomic .keras file."""
 
-    def __init__(self, path: Path, cfg: TrainConfig, history: list[dict]):
+    def __init__(self, path: Path, cfg: TrainConfig, phase: Phase, history: list[dict]):
         super().__init__()
-        self.path, self.cfg, self.history = path, cfg, history
+        self.path, self.cfg, self.phase, self.history = path, cfg, phase, history
 
     def on_epoch_end(self, epoch, logs=None):
-        logs = {k: float(v) for k, v in (logs or {}).items()}
-        if not np.isfinite(logs.get("loss", 0.0)):
-            return  # keep the last good checkpoint; train_branch reports the divergence
-        self.history.append({"epoch": epoch, **logs})
-        save_model(self.model, self.path, _state(self.cfg, epoch + 1, self.history))
+        self.history.append({"epoch": epoch, **{k: float(v) for k, v in (logs or {}).items()}})
+        done = epoch + 1 - self.phase.first_epoch
+        save_model(self.model, self.path, _state(self.cfg, self.phase, done, self.history))
 
 
-def _state(cfg: TrainConfig, epochs_done: int, history: list[dict]) -> dict:
-    return {"epochs_done": epochs_done, "model": cfg.model, "train": _identity_key(cfg), "history": history}
+def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]) -> dict:
+    return {"phase": phase.name, "epochs_done": epochs_done, "model": cfg.model, "train": _identity_key(cfg),
+            "history": history}
 
 
 def _identity_key(cfg: TrainConfig) -> str:
     return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _compile(model: keras.Model, cfg: TrainConfig) -> None:
-    schedule = keras.optimizers.schedules.ExponentialDecay(cfg.learning_rate, cfg.decay_steps, cfg.decay_rate)
-    loss = AsymmetricSMAPE(cfg.slope) if cfg.loss == "asymmetric" else SMAPE()
-    # a fixed name: Keras numbers unnamed optimizers per process (adam, adam_1, ...), and the name is
-    # saved with the model and its variables, so two identical runs would otherwise differ in bytes
-    model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
 
 
 def _check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
@@ -190,7 +167,7 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
     """The run's record: read and compared if the run exists, else created (inputs are checked by now)."""
     if run.has_record():
         record = run.read_record()
-        old = {k: v for k, v in record["train"].items() if k not in _LOCATION_FIELDS}
+        old = {k: v for k, v in record["train"].items() if k not in LOCATION_FIELDS}
         diff = sorted(k for k in set(old) | set(cfg.identity()) if old.get(k) != cfg.identity().get(k))
         if diff:
             raise KpcnError(
@@ -217,83 +194,124 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
         },
         "versions": {"keras": keras.__version__, "torch": torch.__version__, "numpy": np.__version__},
         "command": " ".join(["kpcn"] + sys.argv[1:]),
+        "phases": {p.name: {"status": "pending", **_phase_plan(p)} for p in cfg.phases()},
+        "components": {},
         "results": {},
     }
     run.write_record(record)
     return record
 
 
-def _resume_log(path: Path, epochs_done: int) -> None:
-    """Cut the CSV log back to its header and the ``epochs_done`` rows the checkpoint has seen (a kill
-    after the log row but before the checkpoint would otherwise leave that epoch twice)."""
+def _phase_plan(phase: Phase) -> dict:
+    return {"first_epoch": phase.first_epoch, "epochs": phase.epochs, "steps": phase.steps,
+            "learning_rate": phase.learning_rate}
+
+
+def _cut_log(path: Path, rows: int) -> None:
+    """Cut the CSV log back to its header and its first ``rows`` epochs (a kill after a log row but before
+    its checkpoint would otherwise leave that epoch twice); no rows, no file."""
     if not path.is_file():
         return
-    lines = path.read_bytes().splitlines(keepends=True)[: 1 + epochs_done]  # bytes: keeps CSVLogger's \r\n
+    if rows == 0:
+        path.unlink()
+        return
+    lines = path.read_bytes().splitlines(keepends=True)[: 1 + rows]  # bytes: keeps CSVLogger's \r\n
     with atomic_path(path) as tmp:
         tmp.write_bytes(b"".join(lines))
 
 
-def train_branch(cfg: TrainConfig, run: Run, branch: str, paths: dict, *, verbose="auto") -> keras.Model:
-    """Train (or resume, or reuse) one branch network of ``run``; returns the finished model."""
-    model_cfg = ModelConfig.from_dict(cfg.model)
-    final = run.model_path(branch)
+def read_log(path: Path) -> list[dict]:
+    """The CSV log's rows (``epoch``, ``loss``, ``val_loss``, ... as strings); [] before the first epoch."""
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def loss_curve_png(run: Run, record: dict) -> Path:
+    """``loss.png``: training and validation loss per epoch of the whole run, each phase shaded and named."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_log(run.log_path)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for key, style in (("loss", "-"), ("val_loss", "--")):
+        points = [(int(r["epoch"]) + 1, float(r[key])) for r in rows if r.get(key) not in (None, "", "NA")]
+        if points:
+            ax.plot(*zip(*points), style, label=key.replace("_", " "))
+    for i, (name, plan) in enumerate(record["phases"].items()):
+        a = plan["first_epoch"] + 0.5
+        ax.axvspan(a, a + plan["epochs"], color=f"C{i % 10}", alpha=0.08)
+        ax.text(a + 0.1, 1.0, name, transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+    ax.set_xlabel("epoch (all phases)")
+    ax.set_ylabel("loss (SMAPE; final colour in joint and compositor)")
+    ax.set_yscale("log")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    with atomic_path(run.loss_curve_path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
+    plt.close(fig)
+    return run.loss_curve_path
+
+
+# ---------------------------------------------------------------- the loop
+
+
+def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto") -> None:
+    """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written."""
+    final = run.model_path(phase.name)
     if final.is_file():
-        model = load_model(final)
-        check_architecture(model, model_cfg, final)
-        return model
-    ckpt = run.checkpoint_path(branch)
-    initial_epoch, history = 0, []
+        return  # written once, after its last epoch: the phase is done (the record may lag after a kill)
+    ckpt = run.checkpoint_path(phase.name)
+    epochs_done, history = 0, []
     if ckpt.is_file():
         state = read_state(ckpt)
         if state is None or "epochs_done" not in state:
-            raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the {branch} branch")
-        if state.get("model") != cfg.model or state.get("train") != _identity_key(cfg):
+            raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the "
+                            f"{phase.name} phase")
+        if (state.get("model") != cfg.model or state.get("train") != _identity_key(cfg)
+                or state.get("phase", phase.name) != phase.name):
             raise KpcnError(
                 f"{ckpt}: checkpoint of another configuration (model {state.get('model')}); the run asks for "
-                f"{cfg.model}. Remove the checkpoint to restart the {branch} branch, or choose another --run"
+                f"{cfg.model}. Remove the checkpoint to restart the {phase.name} phase, or choose another --run"
             )
         model = load_model(ckpt)
-        check_architecture(model, model_cfg, ckpt)
-        initial_epoch, history = int(state["epochs_done"]), list(state.get("history", []))
-        _resume_log(run.log_path(branch), initial_epoch)
-        print(f"[{branch}] resuming from {ckpt} after epoch {initial_epoch}")
+        if not phase.trains_on_final_colour:
+            check_architecture(model, ModelConfig.from_dict(cfg.model), ckpt)
+        epochs_done, history = int(state["epochs_done"]), list(state.get("history", []))
+        print(f"[{phase.name}] resuming from {ckpt} after epoch {epochs_done}")
     else:
-        run.log_path(branch).unlink(missing_ok=True)  # a log without a checkpoint holds no epoch we keep
-        keras.utils.set_random_seed(cfg.seed + BRANCHES.index(branch))
-        model = build_branch_model(model_cfg, name=branch)
-        _compile(model, cfg)
+        model = _build(cfg, run, record, phase)
+        _compile(model, cfg, phase)
+    _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
-    target = "reference+noisy" if cfg.loss == "asymmetric" else "reference"
-    spe = cfg.epoch_steps
-    train = ShardPatches(
-        paths["train"], branch, cfg.batch_size, steps=(cfg.epochs - initial_epoch) * spe,
-        seed=cfg.seed, offset=initial_epoch * spe, target=target,
-    )
-    val = None
-    if paths["val"]:
-        val = ShardPatches(paths["val"], branch, cfg.batch_size, shuffle=False, target=target)
-        val.steps = min(val.steps, cfg.val_batches)
+    train, val = _data(cfg, phase, paths, epochs_done)
     callbacks = [
-        keras.callbacks.CSVLogger(str(run.log_path(branch)), append=True),
-        _Checkpoint(ckpt, cfg, history),
-        keras.callbacks.TerminateOnNaN(),
+        keras.callbacks.TerminateOnNaN(raise_error=True),  # first: nothing else sees a non-finite epoch
+        keras.callbacks.CSVLogger(str(run.log_path), append=True),
+        _Checkpoint(ckpt, cfg, phase, history),
     ]
-    if initial_epoch < cfg.epochs:
-        # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
-        # across epochs only without its own shuffling (and with one worker), which makes resume exact
-        model.fit(train, epochs=cfg.epochs, initial_epoch=initial_epoch, steps_per_epoch=spe,
-                  validation_data=val, callbacks=callbacks, verbose=verbose, shuffle=False)
-        if model.stop_training:  # only TerminateOnNaN stops a run early
+    if epochs_done < phase.epochs:
+        try:
+            # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
+            # across epochs only without its own shuffling (and with one worker), which makes resume exact
+            model.fit(train, epochs=phase.first_epoch + phase.epochs, initial_epoch=phase.first_epoch + epochs_done,
+                      steps_per_epoch=phase.epoch_steps, validation_data=val, callbacks=callbacks,
+                      verbose=verbose, shuffle=False)
+        except RuntimeError as exc:
+            if "NaN or Inf loss" not in str(exc):
+                raise
             raise KpcnError(
-                f"training the {branch} branch diverged (non-finite loss); the last good checkpoint is {ckpt}. "
+                f"training the {phase.name} phase diverged (non-finite loss); the last good checkpoint is {ckpt}. "
                 "Lower the learning rate (--lr) under a new --run, or resume this one as it is."
-            )
+            ) from None
     save_model(model, final)
-    return model
 
 
 def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
-    """Train every configured branch into the run folder ``run_dir``; returns it."""
+    """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it."""
     keras_backend = keras.backend.backend()
     if keras_backend != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras_backend!r}")
@@ -305,23 +323,18 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
         run.remove_temporaries()
         record = _open_record(run, cfg, manifest, sset)
         timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
-        for branch in cfg.branches:
-            if branch in record["results"] and run.model_path(branch).is_file():
+        for phase in cfg.phases():
+            if record["phases"][phase.name]["status"] == "done" and run.model_path(phase.name).is_file():
                 continue
             start = time.perf_counter()
-            train_branch(cfg, run, branch, paths, verbose=verbose)
-            log = _read_log(run.log_path(branch))
-            record["results"][branch] = {"last_epoch": log[-1] if log else {}}
-            timings[branch] = round(time.perf_counter() - start, 1)  # the session that finished it
+            train_phase(cfg, run, record, phase, paths, verbose=verbose)
+            rows = [r for r in read_log(run.log_path)
+                    if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
+            record["phases"][phase.name]["status"] = "done"
+            record["components"].update(_components(cfg, phase))
+            record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}
+            timings[phase.name] = round(time.perf_counter() - start, 1)  # the session that finished it
             atomic_write_json(run.timings_path, timings)
             run.write_record(record)
+            loss_curve_png(run, record)
     return run.dir
-
-
-def _read_log(path: Path) -> list[dict]:
-    import csv
-
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))

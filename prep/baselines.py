@@ -1,4 +1,6 @@
-"""Classical denoisers to compare the networks with, at the same input spp."""
+"""Denoisers to compare the networks with, at the same input spp: non-local means (always there) and Intel
+Open Image Denoise (the yardstick users hold up; the optional ``pyoidn`` package, ``pip install '.[oidn]'``).
+"""
 
 from __future__ import annotations
 
@@ -23,3 +25,29 @@ def nlm_denoise(colour: np.ndarray, variance: np.ndarray) -> np.ndarray:
         log_c, h=0.8 * sigma, sigma=sigma, patch_size=5, patch_distance=6, fast_mode=True, channel_axis=-1
     )
     return np.expm1(out).astype(np.float32)
+
+
+def oidn_available() -> bool:
+    """Whether Intel Open Image Denoise can run here (the optional ``pyoidn`` package is installed)."""
+    import importlib.util
+
+    return importlib.util.find_spec("pyoidn") is not None
+
+
+def oidn_denoise(aovs: dict[str, np.ndarray]) -> np.ndarray:
+    """Intel Open Image Denoise's ``RT`` filter, high quality, on the HDR colour with the albedo and normal
+    layers of the same render as its auxiliary inputs (OIDN prefilters them: they are noisy too).
+
+    OIDN wants non-negative linear HDR colour, albedo in [0, 1] and normals in [-1, 1]; the layers are
+    clipped to that. ImportError (naming the package) if ``pyoidn`` is not installed.
+    """
+    try:
+        import pyoidn
+    except ImportError:
+        raise ImportError("Intel Open Image Denoise needs the optional package pyoidn: pip install '.[oidn]'") from None
+
+    def layer(name, lo, hi):
+        return np.ascontiguousarray(np.clip(np.nan_to_num(aovs[name]), lo, hi), dtype=np.float32)
+
+    colour = layer("default", 0.0, np.finfo(np.float32).max)
+    return pyoidn.denoise(colour, albedo=layer("albedo", 0.0, 1.0), normal=layer("normal", -1.0, 1.0), hdr=True)

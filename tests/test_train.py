@@ -38,9 +38,13 @@ def test_run_folder_records_how_it_was_made(tmp_path):
     assert record["shards"]["set_dir"] == "../../shards/s"  # relative to the run: the tree can move
     assert set(record["results"]) == {"diffuse", "specular"}
     assert record["shards"]["split"]["val"] == ["a-001", "b-001"]
-    log = (run_dir / "log-diffuse.csv").read_text().splitlines()
-    assert log[0].startswith("epoch") and len(log) == 1 + 3
+    assert {name: (p["first_epoch"], p["epochs"], p["status"]) for name, p in record["phases"].items()} == \
+        {"diffuse": (0, 3, "done"), "specular": (3, 3, "done")}
+    assert record["components"] == {b: {"file": f"{b}.keras", "phase": b} for b in ("diffuse", "specular")}
+    log = (run_dir / "log.csv").read_text().splitlines()
+    assert log[0].startswith("epoch") and [int(row.split(",")[0]) for row in log[1:]] == list(range(6))
     assert np.isfinite(float(log[-1].split(",")[1]))
+    assert (run_dir / "loss.png").read_bytes().startswith(b"\x89PNG")
 
 
 def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
@@ -48,7 +52,7 @@ def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
     run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
     model = keras.models.load_model(run_dir / "checkpoints" / "specular.keras")
     assert model.loss.slope == 4.0
-    losses = [float(line.split(",")[1]) for line in (run_dir / "log-specular.csv").read_text().splitlines()[1:]]
+    losses = [float(line.split(",")[1]) for line in (run_dir / "log.csv").read_text().splitlines()[1:]]
     assert losses and all(np.isfinite(losses))
 
 

@@ -1,0 +1,350 @@
+"""The configuration dataclasses of training and of the networks, and the presets (no keras, no torch).
+
+Each default is written once, here; the command line fills these from the options a user gave and never
+retypes a default. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import operator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from prep.errors import OptionError
+from prep.features import BRANCHES
+
+ARCHS = ("kpcn", "kpal", "dpcn")
+COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
+BRANCH_CHANNELS = len(BRANCHES)  # one-hot branch indicator of a shared network
+
+
+def check_kernel_size(k) -> int:
+    """Return ``k`` as an int if it is a positive odd integer, else raise ValueError naming the value."""
+    try:
+        value = operator.index(k)  # ints and numpy integers; rejects floats and strings
+    except TypeError:
+        value = None
+    if value is None or isinstance(k, bool) or value < 1 or value % 2 == 0:
+        raise ValueError(f"kernel size must be a positive odd integer, received {k!r}")
+    return value
+
+
+@dataclass
+class ModelConfig:
+    """Architecture of one branch network. ``batchnorm=None`` means: True for kpal, False otherwise.
+
+    ``depth`` counts trunk convolutions for kpcn/dpcn and residual blocks for kpal. ``dropout`` is the drop
+    rate (the report's keep probability 0.7 is ``dropout=0.3``); it is applied after every trunk
+    convolution when > 0. ``kernel_size`` is the predicted kernel's side (odd; paper 21) and is ignored by
+    dpcn.
+    """
+
+    arch: str = "kpcn"
+    in_channels: int = 27
+    width: int = 32
+    depth: int = 7
+    conv_size: int = 3
+    kernel_size: int = 13
+    dropout: float = 0.0
+    batchnorm: Optional[bool] = None
+    branch_channels: bool = False
+    slope_channel: bool = False
+
+    def __post_init__(self):
+        if self.arch not in ARCHS:
+            raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
+        for name in ("in_channels", "width", "depth", "conv_size", "kernel_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise OptionError(name, f"must be an integer, received {value!r}")
+        if self.in_channels < COLOUR_CHANNELS:
+            raise OptionError(
+                "in_channels", f"must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), received {self.in_channels}"
+            )
+        if self.width < 1:
+            raise OptionError("width", f"must be >= 1, received {self.width}")
+        if self.depth < 1:
+            raise OptionError("depth", f"must be >= 1, received {self.depth}")
+        if self.conv_size < 1 or self.conv_size % 2 == 0:
+            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
+        try:
+            check_kernel_size(self.kernel_size)
+        except ValueError as exc:
+            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
+        if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)):
+            raise OptionError("dropout", f"must be a number in [0, 1), received {self.dropout!r}")
+        if not 0.0 <= float(self.dropout) < 1.0:
+            raise OptionError("dropout", f"must be in [0, 1), received {self.dropout!r}")
+        self.dropout = float(self.dropout)
+        if self.batchnorm is None:
+            self.batchnorm = self.arch == "kpal"
+        elif not isinstance(self.batchnorm, bool):
+            raise OptionError("batchnorm", f"must be a bool or None, received {self.batchnorm!r}")
+        for flag in ("branch_channels", "slope_channel"):
+            if not isinstance(getattr(self, flag), bool):
+                raise OptionError(flag, f"must be a bool, received {getattr(self, flag)!r}")
+
+    @property
+    def input_channels(self) -> int:
+        """Channels of the network input: the features, then the conditioning channels."""
+        return self.in_channels + BRANCH_CHANNELS * self.branch_channels + self.slope_channel
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able dict; ``batchnorm`` is resolved (never None)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise OptionError("model", f"has unknown ModelConfig keys {unknown}; known keys are {sorted(names)}")
+        return cls(**d)
+
+
+COMPOSITOR_KINDS = ("alpha", "kernel")
+
+
+@dataclass
+class CompositorConfig:
+    """The multiscale module: compositor ``kind`` ("alpha": Vogels' scale compositor, "kernel": the
+    report's kernel-predicting one, §3.1.1), pyramid ``levels`` (>= 2), the compositor network (``depth``
+    conv layers in all, the last the 1x1 head(s); ``width`` filters of ``conv_size``), the kernel
+    compositor's upsampling kernel side ``kernel_size`` (odd, in coarse pixels) and the α regulariser
+    weight ``gamma`` (>= 0)."""
+
+    kind: str = "alpha"
+    levels: int = 3
+    width: int = 32
+    depth: int = 6
+    conv_size: int = 3
+    kernel_size: int = 5
+    gamma: float = 0.01
+
+    def __post_init__(self):
+        if self.kind not in COMPOSITOR_KINDS:
+            # the option a user types is --compositor KIND
+            raise OptionError("compositor", f"must be one of {COMPOSITOR_KINDS}, received {self.kind!r}")
+        for name in ("levels", "width", "depth", "conv_size", "kernel_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise OptionError(name, f"must be an integer, received {value!r}")
+        if self.levels < 2:
+            raise OptionError("levels", f"must be >= 2 (one level is the denoiser alone), received {self.levels}")
+        if self.width < 1:
+            raise OptionError("width", f"must be >= 1, received {self.width}")
+        if self.depth < 1:
+            raise OptionError("depth", f"must be >= 1 (the head alone), received {self.depth}")
+        if self.conv_size < 1 or self.conv_size % 2 == 0:
+            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
+        try:
+            check_kernel_size(self.kernel_size)
+        except ValueError as exc:
+            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
+        gamma = self.gamma
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma < math.inf:
+            raise OptionError("gamma", f"must be a finite number >= 0, received {gamma!r}")
+        self.gamma = float(gamma)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able dict."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CompositorConfig":
+        """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise OptionError(
+                "compositor", f"has unknown CompositorConfig keys {unknown}; known keys are {sorted(names)}"
+            )
+        return cls(**d)
+
+
+# "cpu" (the TrainConfig defaults) trains a useful model on a 2-core CPU in minutes. The paper presets are
+# for a GPU: "kpcn-paper" is Bako et al. 2017's vanilla network (9 layers: 8 hidden 5x5 convolutions of 100
+# filters and the kernel head; 21x21 kernels), "kpal-paper" the report's 28-layer residual network (§2.2:
+# batch norm, keep probability 0.7). Both train as the report did (§2.3.2, §3.5.2): batch 12, lr 1e-4 with
+# exponential decay, 60000 steps per branch, then 10000 steps of joint fine-tuning at 1e-6.
+_PAPER_TRAINING = {
+    "batch_size": 12,
+    "steps": 60000,
+    "steps_per_epoch": 1000,
+    "learning_rate": 1e-4,
+    "decay_steps": 60000,
+    "decay_rate": 0.1,
+    "joint_steps": 10000,
+    "joint_learning_rate": 1e-6,
+}
+PRESETS = {
+    "cpu": {},
+    "kpcn-paper": {
+        "model": {"arch": "kpcn", "width": 100, "depth": 8, "conv_size": 5, "kernel_size": 21},
+        **_PAPER_TRAINING,
+    },
+    "kpal-paper": {
+        "model": {"arch": "kpal", "width": 100, "depth": 13, "conv_size": 3, "kernel_size": 21, "dropout": 0.3},
+        **_PAPER_TRAINING,
+    },
+}
+
+# Fields that say where the data is, not what is trained: a run is the same run wherever it is read from.
+LOCATION_FIELDS = ("set_name", "shards_root")
+# What a network's input carries besides the features: set from the training options, never by hand.
+_CONDITIONING = ("branch_channels", "slope_channel")
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One training phase of a run: what it trains (``name``, see the module docstring) and how long."""
+
+    name: str
+    steps: int
+    learning_rate: float
+    first_epoch: int  # of the run's one epoch numbering (the CSV log's)
+    epoch_steps: int
+
+    @property
+    def epochs(self) -> int:
+        return math.ceil(self.steps / self.epoch_steps)
+
+    @property
+    def trains_on_final_colour(self) -> bool:
+        return self.name in ("joint", "compositor")
+
+
+@dataclass
+class TrainConfig:
+    """Configuration of ``kpcn train``; every field is saved in the run's config.json.
+
+    The defaults are the "cpu" preset: a 7-layer, 32-wide vanilla KPCN with 13x13 kernels (the
+    ModelConfig defaults), 1200 steps of batch 8 per branch, augmentation on. ``steps``, ``learning_rate``,
+    ``decay_steps`` and ``decay_rate`` are per branch phase; the joint and compositor phases have their own
+    steps and learning rates and share the decay. ``compositor`` is None (no multiscale) or the
+    ``kpcn_keras.multiscale.CompositorConfig`` fields (``{"kind": "alpha"}`` at least). With
+    ``slope_input`` the network gets λ as an input channel and learns the asymmetric loss for every λ in
+    ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
+    is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.
+    """
+
+    set_name: str = "default"
+    shards_root: str = "shards"
+    preset: str = "cpu"
+    model: dict = field(default_factory=dict)
+    branches: tuple[str, ...] = BRANCHES
+    shared: bool = False
+    steps: int = 1200
+    steps_per_epoch: int = 50
+    batch_size: int = 8
+    learning_rate: float = 1e-3
+    decay_steps: int = 1200
+    decay_rate: float = 0.3
+    clipnorm: float = 1.0
+    loss: str = "smape"
+    slope: float = 2.0
+    slope_input: bool = False
+    slope_range: tuple[float, float] = (1.0, 8.0)
+    augment: bool = True
+    joint_steps: int = 0
+    joint_learning_rate: float = 1e-4
+    compositor: dict | None = None
+    compositor_steps: int = 600
+    compositor_learning_rate: float = 1e-3
+    val_batches: int = 8
+    seed: int = 0
+
+    def __post_init__(self):
+        self.branches = tuple(self.branches)
+        self.slope_range = tuple(float(s) for s in self.slope_range)
+        if not self.branches or any(b not in BRANCHES for b in self.branches):
+            raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, got {list(self.branches)}")
+        if self.loss not in ("smape", "asymmetric"):
+            raise OptionError("loss", f"must be 'smape' or 'asymmetric', got {self.loss!r}")
+        for name in ("steps", "steps_per_epoch", "batch_size", "decay_steps", "val_batches", "compositor_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise OptionError(name, f"must be an integer >= 1, got {value!r}")
+        if isinstance(self.joint_steps, bool) or not isinstance(self.joint_steps, int) or self.joint_steps < 0:
+            raise OptionError("joint_steps", f"must be an integer >= 0, got {self.joint_steps!r}")
+        for name in ("shared", "slope_input", "augment"):
+            if not isinstance(getattr(self, name), bool):
+                raise OptionError(name, f"must be true or false, got {getattr(self, name)!r}")
+        lo, hi = self.slope_range if len(self.slope_range) == 2 else (0.0, 0.0)
+        checks = {
+            "learning_rate": (0 < self.learning_rate < math.inf, "> 0 and finite"),
+            "joint_learning_rate": (0 < self.joint_learning_rate < math.inf, "> 0 and finite"),
+            "compositor_learning_rate": (0 < self.compositor_learning_rate < math.inf, "> 0 and finite"),
+            "clipnorm": (0 < self.clipnorm < math.inf, "> 0 and finite"),
+            "decay_rate": (0 < self.decay_rate <= 1, "in (0, 1]"),
+            "slope": (1 <= self.slope < math.inf, ">= 1 and finite"),
+            "slope_range": (1 <= lo < hi < math.inf, "two numbers 1 <= low < high"),
+            "seed": (self.seed >= 0, ">= 0"),
+        }
+        for name, (ok, bound) in checks.items():
+            if not ok:
+                raise OptionError(name, f"must be {bound}, got {getattr(self, name)!r}")
+        if self.slope_input and self.loss != "asymmetric":
+            raise OptionError("slope_input", "needs --loss asymmetric (λ is the asymmetric loss's slope)")
+        whole = set(self.branches) == set(BRANCHES)
+        if self.shared and not whole:
+            raise OptionError("shared", f"trains one network for both branches; --branches {','.join(self.branches)} "
+                              "leaves one out")
+        for name, wanted in (("joint_steps", self.joint_steps > 0), ("compositor", self.compositor is not None)):
+            if wanted and not whole:
+                raise OptionError(name, f"trains on the final colour, which needs both branches; got --branches "
+                                  f"{','.join(self.branches)}")
+        if self.compositor is not None:
+            self.compositor = CompositorConfig.from_dict(self.compositor).to_dict()
+        user = {k: v for k, v in self.model.items() if k not in _CONDITIONING}
+        self.model = ModelConfig(**user, branch_channels=self.shared, slope_channel=self.slope_input).to_dict()
+
+    @classmethod
+    def from_preset(cls, preset: str | None = None, **overrides) -> "TrainConfig":
+        """The preset's values (None: the default preset), then ``overrides`` (None values ignored;
+        ``model`` and ``compositor`` keys merged)."""
+        preset = cls.preset if preset is None else preset
+        if preset not in PRESETS:
+            raise OptionError("preset", f"must be one of {', '.join(PRESETS)}, got {preset!r}")
+        values = json.loads(json.dumps(PRESETS[preset]))
+        values["model"] = {**values.get("model", {}), **(overrides.pop("model", None) or {})}
+        compositor = overrides.pop("compositor", None)
+        if compositor:
+            values["compositor"] = {**(values.get("compositor") or {}), **compositor}
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(preset=preset, **values)
+
+    @property
+    def set_dir(self) -> Path:
+        return Path(self.shards_root) / self.set_name
+
+    def phases(self) -> list[Phase]:
+        """The run's phases in training order, each with its place in the run's epoch numbering."""
+        plan = [(b, self.steps, self.learning_rate) for b in (("shared",) if self.shared else self.branches)]
+        if self.joint_steps:
+            plan.append(("joint", self.joint_steps, self.joint_learning_rate))
+        if self.compositor is not None:
+            plan.append(("compositor", self.compositor_steps, self.compositor_learning_rate))
+        phases, first = [], 0
+        for name, steps, lr in plan:
+            phase = Phase(name, steps, lr, first, min(self.steps_per_epoch, steps))
+            phases.append(phase)
+            first += phase.epochs
+        return phases
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["branches"] = list(self.branches)
+        d["slope_range"] = list(self.slope_range)
+        return d
+
+    def identity(self) -> dict:
+        """The fields that make two runs the same run (everything but where the data is read from)."""
+        return {k: v for k, v in self.to_dict().items() if k not in LOCATION_FIELDS}
+
+

@@ -1,0 +1,203 @@
+"""``kpcn figures``: the seed report's figures, drawn from a run's own networks on one frame.
+
+Written into ``<run>/figures/`` (``Run.figures_dir``), each as a PNG, for the frame given (default: the
+run's first held-out scene at its lowest sample count):
+
+=====================  ===================================================================================
+file                   what (seed report figure)
+=====================  ===================================================================================
+``kernels.png``        per branch, the kernel predicted at a chosen pixel beside the input crop around it
+                       and the reference crop, with the filtered value (Fig. 2); not for dpcn, which
+                       predicts colour directly
+``multiscale.png``     input | without the compositor | with it | reference, relMSE in the captions
+                       (Fig. 15); a multiscale run only
+``alpha.png``          the compositor's α maps, per branch and per scale, finest first (Fig. 16); a
+                       multiscale run only
+``slopes.png``         the same frame denoised at a sweep of λ (Fig. 17); a run trained with
+                       ``--slope-input`` only (a network trained at one λ has nothing to sweep)
+=====================  ===================================================================================
+
+The chosen pixel defaults to the pixel of the highest noisy-colour variance at least a kernel radius from
+the border: where a kernel has the most to do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import keras
+import numpy as np
+
+from kpcn_keras.denoise import Denoiser
+from kpcn_keras.models import build_kernel_model, network_input
+from kpcn_keras.multiscale import build_alpha_model
+from kpcn_keras.run import Run
+from prep import exr, features, metrics
+from prep.errors import KpcnError, OptionError
+from prep.features import BRANCHES
+from prep.files import atomic_path
+
+DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
+    _pyplot().close(fig)
+    return path
+
+
+def _to_numpy(x) -> np.ndarray:
+    return np.asarray(keras.ops.convert_to_numpy(x))
+
+
+def choose_pixel(aovs: dict, radius: int) -> tuple[int, int]:
+    """(y, x) of the highest colour variance at least ``radius`` from every border."""
+    var = np.asarray(aovs["colorVariance"], np.float64)
+    h, w = var.shape
+    if h <= 2 * radius or w <= 2 * radius:
+        raise KpcnError(f"the frame ({w}x{h}) is smaller than one {2 * radius + 1}-pixel kernel")
+    inner = var[radius : h - radius, radius : w - radius]
+    y, x = np.unravel_index(np.argmax(inner), inner.shape)
+    return int(y) + radius, int(x) + radius
+
+
+def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel=None) -> Path | None:
+    """``kernels.png`` (Fig. 2); None for a run whose networks predict no kernels."""
+    cfg = den.model_config
+    if cfg.arch == "dpcn":
+        return None
+    k, r = cfg.kernel_size, cfg.kernel_size // 2
+    y, x = pixel if pixel is not None else choose_pixel(aovs, r)
+    h, w = aovs["default"].shape[:2]
+    if not (r <= y < h - r and r <= x < w - r):
+        raise OptionError("pixel", f"must be at least {r} pixels from the border of the {w}x{h} frame, got {y},{x}")
+    plt = _pyplot()
+    fig, axes = plt.subplots(len(BRANCHES), 4, figsize=(10, 2.7 * len(BRANCHES)), squeeze=False)
+    # the network sees a window of its receptive radius around the pixel: enough for this pixel's kernel
+    m = den.margin
+    ya, yb, xa, xb = max(y - m, 0), min(y + m + 1, h), max(x - m, 0), min(x + m + 1, w)
+    for row, branch in zip(axes, BRANCHES):
+        net = den.networks["shared" if cfg.branch_channels else branch]
+        feats = network_input(features.branch_features(aovs, branch)[ya:yb, xa:xb], cfg, branch, den.slope)
+        kernels = _to_numpy(build_kernel_model(net).predict_on_batch(feats[None]))[0]
+        kernel = kernels[y - ya, x - xa].reshape(k, k)
+        colour = features.branch_colour(aovs, branch)
+        crop = colour[y - r : y + r + 1, x - r : x + r + 1]
+        filtered = float((kernel[..., None] * crop).sum(axis=(0, 1)).mean())
+        panels = [(f"{branch} input (log) around ({y},{x})", crop.mean(-1), "magma"),
+                  (f"kernel {k}x{k}, max weight {kernel.max():.3f}", kernel, "viridis")]
+        if ref is not None:
+            ref_colour = features.branch_colour(ref, branch)
+            panels.append(("reference (log)", ref_colour[y - r : y + r + 1, x - r : x + r + 1].mean(-1), "magma"))
+        for ax, (title, image, cmap) in zip(row, panels):
+            ax.imshow(image, cmap=cmap, interpolation="nearest")
+            ax.set_title(title, fontsize=8)
+        row[0].plot([r], [r], "c+", markersize=12)
+        row[-1].axis("off")
+        row[-1].text(0.0, 0.5, f"filtered pixel (log, mean of RGB): {filtered:.3f}\n"
+                     f"input pixel: {crop[r, r].mean():.3f}", fontsize=9, va="center")
+        for ax in row[:-1]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("predicted kernels (seed report Fig. 2)", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _caption(name: str, image: np.ndarray, ref: dict | None) -> str:
+    return name if ref is None else f"{name}\nrelMSE {metrics.relmse(image, ref['default']):.4f}"
+
+
+def multiscale_figure(den: Denoiser, plain: Denoiser, aovs: dict, ref: dict | None, path: Path) -> Path:
+    """``multiscale.png`` (Fig. 15): the run with and without its compositor, side by side."""
+    from kpcn_keras.denoise import side_by_side_png
+
+    without = plain(aovs)["default"]
+    with_ = den(aovs)["default"]
+    panels = [("input", aovs["default"]), (_caption("without multiscale", without, ref), without),
+              (_caption("with multiscale", with_, ref), with_)]
+    if ref is not None:
+        panels.append(("reference", ref["default"]))
+    return side_by_side_png(path, panels, title="multiscale (seed report Fig. 15)")
+
+
+def alpha_figure(den: Denoiser, aovs: dict, path: Path) -> Path:
+    """``alpha.png`` (Fig. 16): α of every compositor application, per branch, finest scale first."""
+    plt = _pyplot()
+    rows = []
+    for branch in BRANCHES:
+        feats = network_input(features.branch_features(aovs, branch), den.model_config, branch, den.slope)
+        alphas = build_alpha_model(den.models[branch]).predict_on_batch(feats[None])
+        rows.append((branch, [_to_numpy(a)[0, ..., 0] for a in alphas]))
+    cols = 1 + len(rows[0][1])
+    fig, axes = plt.subplots(len(rows), cols, figsize=(3 * cols, 3 * len(rows)), squeeze=False)
+    for ax_row, (branch, alphas) in zip(axes, rows):
+        ax_row[0].imshow(metrics.tonemap(aovs[branch]), interpolation="nearest")
+        ax_row[0].set_title(f"{branch} input", fontsize=9)
+        for i, (ax, alpha) in enumerate(zip(ax_row[1:], alphas)):
+            im = ax.imshow(alpha, vmin=0, vmax=1, cmap="gray", interpolation="nearest")
+            ax.set_title(f"α, scale 1/{2 ** i}: mean {alpha.mean():.2f}", fontsize=9)
+        fig.colorbar(im, ax=ax_row[-1], fraction=0.046)
+        for ax in ax_row:
+            ax.axis("off")
+    fig.suptitle("compositor α: 1 takes the coarse scale's low frequencies (seed report Fig. 16)", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def slope_figure(run_dir, aovs: dict, ref: dict | None, path: Path, slopes, tile: int) -> Path:
+    """``slopes.png`` (Fig. 17): one frame denoised at every λ of ``slopes``."""
+    from kpcn_keras.denoise import side_by_side_png
+
+    panels = [("input", aovs["default"])]
+    for slope in slopes:
+        out = Denoiser(run_dir, tile=tile, slope=slope)(aovs)["default"]
+        panels.append((_caption(f"λ = {slope:g}", out, ref), out))
+    if ref is not None:
+        panels.append(("reference", ref["default"]))
+    return side_by_side_png(path, panels, title="asymmetric loss slope λ at inference (seed report Fig. 17)")
+
+
+def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=None,
+                 slopes=DEFAULT_SLOPES, tile: int | None = None) -> dict[str, Path]:
+    """Every figure the run can show, for ``frame`` = (noisy EXR, reference EXR or None); returns name -> path."""
+    from kpcn_keras.denoise import DEFAULT_TILE
+    from kpcn_keras.evaluate import held_out_pairs
+
+    tile = DEFAULT_TILE if tile is None else tile
+    if frame is None:
+        pairs = held_out_pairs(run_dir)
+        if not pairs:
+            raise KpcnError(f"{run_dir}: no held-out scenes; give a noisy render")
+        frame = min(pairs, key=lambda pair: exr.parse_render_filename(pair[0]))  # (scene, spp)
+    noisy_path, ref_path = frame
+    aovs = exr.read_aovs(noisy_path)
+    ref = exr.read_aovs(ref_path, variances=False) if ref_path else None
+    train = Run(run_dir).read_record()["train"]
+    slope = train["slope"] if train["model"]["slope_channel"] else None  # its validation λ
+    den = Denoiser(run_dir, tile=tile, slope=slope)
+    out_dir = den.run.figures_dir
+    written = {}
+    kernels = kernel_figure(den, aovs, ref, out_dir / "kernels.png", pixel)
+    if kernels:
+        written["kernels"] = kernels
+    if den.compositor is not None:
+        plain = Denoiser(run_dir, tile=tile, slope=slope, multiscale=False)
+        written["multiscale"] = multiscale_figure(den, plain, aovs, ref, out_dir / "multiscale.png")
+        written["alpha"] = alpha_figure(den, aovs, out_dir / "alpha.png")
+    if slope is not None:
+        written["slopes"] = slope_figure(run_dir, aovs, ref, out_dir / "slopes.png", slopes, tile)
+    return written
+
+
+__all__ = ["DEFAULT_SLOPES", "choose_pixel", "make_figures"]

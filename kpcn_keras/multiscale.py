@@ -1,0 +1,620 @@
+"""Multiscale denoising: a trained branch denoiser applied to an image pyramid, blended by a learned scale
+compositor (seed report §2.2.1, §3.1, §3.1.1; Vogels et al. 2018).
+
+The denoiser is any single-frame branch model (``models.build_branch_model``): features (B, H, W, C),
+C >= 27 in the ``prep.features`` layout (channels 0..2 the noisy log colour, then conditioning channels),
+to log colour (B, H, W, 3), any H and W. :func:`build_multiscale_model` wraps it into a model with the same
+input and output:
+
+1. **Padding.** The features are padded at the bottom and right by edge replication to a multiple of
+   ``alignment(cfg)`` = 2**(levels-1), and the output is cropped back, so any H and W work (65 x 65 patches).
+2. **Pyramid** (``FeatureDownsample``, once per level): 2x2 average pooling of every channel, then the
+   channels adjusted so that a level's features approximate those computed from pooled buffers:
+
+   - gradients (``dx_*``, ``dy_*``) x 2: a forward difference across a coarse pixel spans two fine pixels
+     (exact for a linear ramp, away from the last row and column where a gradient is 0 by convention);
+   - relative variances (``relvar_*``, f = log(1 + v)): the variance of a mean of 4 independent samples
+     is the mean variance / 4, so f -> log1p(mean(expm1(f)) / 4), the mean over the 2x2 block taken in
+     the variance domain (for a constant block this is log1p(expm1(f) / 4)), evaluated stably for f up to
+     the features' 300;
+   - colour and conditioning channels (index >= 27: branch one-hot, λ map): plain averages.
+
+   Channel roles come from ``prep.features.FEATURE_NAMES``.
+3. **Denoising.** The same denoiser object (shared weights) filters every level. It is wrapped in
+   ``InferenceOnly``: frozen (``trainable = False``; the report trains the compositor alone, §2.2.1) and
+   always run with ``training=False``, so its dropout stays off and its batch norm uses moving statistics
+   while the compositor trains.
+4. **Composition**, coarsest to finest, ONE compositor network (shared weights) for every adjacent pair:
+   o_{L-1} = d_{L-1}; o_l = blend(d_l, o_{l+1}); the output is o_0. The compositor (``build_compositor``, a
+   nested functional model named ``"compositor"``) sees concat(d_l, U o_{l+1}) (6 channels), runs
+   ``depth - 1`` conv + ReLU layers of ``width`` filters and a 1x1 head α = sigmoid(.) in [0, 1]:
+
+       o = f + α (U c - U D f)                          kind "alpha"   (ScaleBlend)
+       o = f + α (U'c - U D f),  U'c[p] = Σ_j w_p[j] c[floor(p/2) + j]   kind "kernel"
+
+   with f = d_l, c = o_{l+1}, U the 2x2 nearest upsampling, D the 2x2 average pooling, all in the log
+   colour domain. The kernel compositor has a second 1x1 head of kernel_size² logits; w_p is their
+   softmax (``layers.softmax_kernels``) and j runs over the kernel's offsets in coarse pixels, edge
+   replicated. Since (U c)[p + 2j] = c[floor(p/2) + j], U'c is a dilation-2 kernel application on U c
+   (``DilatedKernelApply``). Both heads start at zero: α = 0.5 and box kernels.
+5. **α regulariser** (§3.1): γ · max(0.5 - mean(α), 0) per application of the compositor (levels - 1
+   terms), mean over the whole α batch at its (padded) level resolution. ``AlphaRegulariser`` adds it
+   with ``add_loss``, so ``model.fit`` minimises the compiled loss plus these terms; it does not change α.
+
+Tiled inference: :func:`multiscale_radius` bounds the receptive radius R in fine pixels. A tile's input
+must start at a multiple of ``alignment(cfg)`` (so that it pools the image's own 2x2 blocks) and reach at
+least R pixels past the kept region on every inner side; the kept pixels then equal an untiled run up to
+float rounding (the end of a tile's input needs no alignment).
+
+Every layer here uses ``keras.ops`` only and is registered (package ``kpcn``), so ``.keras`` files load
+without ``custom_objects`` once this module is imported. One compositor shared by two branches must live in
+one functional graph (:func:`multiscale_output`), not in two nested multiscale models: Keras 3.15 saves a
+layer shared by two nested models once and then cannot load the file.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import keras
+from keras import ops
+
+from kpcn_keras.config import CompositorConfig
+from kpcn_keras.layers import KernelApply, apply_kernels, softmax_kernels
+from prep.features import FEATURE_NAMES, NUM_FEATURES
+
+__all__ = [
+    "ALIGN",
+    "AlphaRegulariser",
+    "CompositorConfig",
+    "CropLike",
+    "DilatedKernelApply",
+    "Downsample2x",
+    "FeatureDownsample",
+    "InferenceOnly",
+    "PadToMultiple",
+    "ScaleBlend",
+    "Upsample2x",
+    "alignment",
+    "build_alpha_model",
+    "build_compositor",
+    "build_multiscale_model",
+    "compositor_of",
+    "compositor_trunk_radius",
+    "denoiser_of",
+    "feature_runs",
+    "multiscale_output",
+    "multiscale_radius",
+]
+
+COLOUR_CHANNELS = 3  # the denoiser's output, and the compositor's colour inputs
+ALPHA_TARGET = 0.5  # the report's threshold of the α regulariser (§3.1)
+# relvar pooling: up to here the direct log1p/expm1 form is used (it keeps small values accurate, where the
+# max-shifted form cancels); expm1 overflows float32 near 88.7, so larger values take the shifted form
+_RELVAR_DIRECT_MAX = 20.0
+
+
+# ---------------------------------------------------------------- configuration (CompositorConfig: kpcn_keras.config)
+
+
+def alignment(cfg: CompositorConfig) -> int:
+    """2**(levels - 1): the pyramid's coarsest pixel in fine pixels. Tiles must start at multiples of it."""
+    return 2 ** (cfg.levels - 1)
+
+
+ALIGN = alignment(CompositorConfig())
+
+
+def compositor_trunk_radius(cfg: CompositorConfig) -> int:
+    """Chebyshev radius of the compositor's heads on its inputs, in pixels of the pair's fine level."""
+    return (cfg.depth - 1) * (cfg.conv_size // 2)
+
+
+def multiscale_radius(denoiser_radius: int, cfg: CompositorConfig) -> int:
+    """A bound R (fine pixels) on the receptive radius of ``build_multiscale_model(denoiser, cfg)`` given the
+    denoiser's radius r (``models.receptive_radius``): output pixel p depends only on input pixels q with
+    max(|qy - py|, |qx - px|) <= R.
+
+    Per axis, let e_l bound how far the fine pixels that o_l[P] depends on reach past the 2**l fine pixels
+    of level-l pixel P. The top level is the denoiser alone: e_{L-1} = r 2**(L-1). At the pair (l, l+1),
+    with t the compositor trunk radius and r_k = kernel_size // 2 (0 for "alpha"):
+
+    - the fine path (compositor and U D on d_l, each d_l on features within r): (max(t, 1) + r) 2**l;
+    - the coarse path: the coarse pixels read, floor(Q/2) for |Q - P| <= t (U c into the compositor) and
+      floor(P/2) + j for |j| <= r_k (the kernel), cover level-l pixels within max(t + 1, 2 r_k + 1) of P,
+      and each reaches e_{l+1} further: max(t + 1, 2 r_k + 1) 2**l + e_{l+1}.
+
+    e_l is the larger of the two and R = e_0. The coarse path always dominates, so
+    R = r 2**(L-1) + max(t + 1, 2 r_k + 1) (2**(L-1) - 1). Bottom/right edge padding adds nothing (a padded
+    pixel copies one nearer to p). The test suite checks that the bound holds and is reached, and that tiles
+    aligned to ``alignment(cfg)`` with margins R reproduce an untiled run.
+    """
+    if isinstance(denoiser_radius, bool) or not isinstance(denoiser_radius, int) or denoiser_radius < 0:
+        raise ValueError(f"denoiser_radius must be an integer >= 0, received {denoiser_radius!r}")
+    t = compositor_trunk_radius(cfg)
+    r_k = cfg.kernel_size // 2 if cfg.kind == "kernel" else 0
+    coarse = max(t + 1, 2 * r_k + 1)
+    reach = denoiser_radius * 2 ** (cfg.levels - 1)
+    for level in reversed(range(cfg.levels - 1)):
+        scale = 2**level
+        reach = max((max(t, 1) + denoiser_radius) * scale, coarse * scale + reach)
+    return reach
+
+
+# ---------------------------------------------------------------- feature layout
+
+
+def _role(name: str) -> str:
+    if name.startswith("relvar"):
+        return "relvar"
+    if name.startswith(("dx_", "dy_")):
+        return "gradient"
+    return "plain"
+
+
+def feature_runs(channels: int) -> tuple[tuple[int, int, str], ...]:
+    """The (start, stop, role) runs of ``channels`` input channels, role "plain", "gradient" or "relvar"
+    from ``prep.features.FEATURE_NAMES``; channels past the 27 features (conditioning) are "plain"."""
+    if channels < NUM_FEATURES:
+        raise ValueError(f"the feature pyramid needs >= {NUM_FEATURES} channels, received {channels}")
+    roles = [_role(name) for name in FEATURE_NAMES] + ["plain"] * (channels - NUM_FEATURES)
+    runs, start = [], 0
+    for role, group in itertools.groupby(roles):
+        stop = start + len(list(group))
+        runs.append((start, stop, role))
+        start = stop
+    return tuple(runs)
+
+
+# ---------------------------------------------------------------- ops
+
+
+def _shape_str(shape) -> str:
+    return str(tuple(shape))
+
+
+def _check_even(layer, shape) -> None:
+    """Static dims may be None (unknown); runtime dims are ints on torch."""
+    h, w = shape[1], shape[2]
+    if (h is not None and h % 2) or (w is not None and w % 2):
+        raise ValueError(
+            f"{type(layer).__name__} {layer.name!r} needs an even height and width, received shape "
+            f"{_shape_str(shape)}"
+        )
+
+
+def _quads(x):
+    """The four pixels of every 2x2 block, (B, H/2, W/2, C) each: top-left, top-right, bottom-left, bottom-right."""
+    return x[:, 0::2, 0::2], x[:, 0::2, 1::2], x[:, 1::2, 0::2], x[:, 1::2, 1::2]
+
+
+def _mean4(a, b, c, d):
+    # one fixed summation order; four equal values average to exactly their value, so D(U c) == c bit for bit
+    return ((a + b) + (c + d)) * 0.25
+
+
+def _downsample(x):
+    return _mean4(*_quads(x))
+
+
+def _upsample(x):
+    return ops.repeat(ops.repeat(x, 2, axis=1), 2, axis=2)
+
+
+def _pool_relvar(a, b, c, d):
+    """log1p(mean(expm1(f)) / 4) over the four quads, finite with finite gradients for any finite f."""
+    capped = [ops.expm1(ops.minimum(q, _RELVAR_DIRECT_MAX)) for q in (a, b, c, d)]
+    direct = ops.log1p(((capped[0] + capped[1]) + (capped[2] + capped[3])) * 0.0625)
+    # log(mean(e^f)/4 + 3/4) with e^m factored out; m >= 0 keeps exp(-m) <= 1, and the max is a constant
+    # for the gradient (the expression does not depend on it)
+    m = ops.stop_gradient(ops.maximum(ops.maximum(ops.maximum(a, b), ops.maximum(c, d)), 0.0))
+    shifted_sum = (ops.exp(a - m) + ops.exp(b - m)) + (ops.exp(c - m) + ops.exp(d - m))
+    shifted = m + ops.log(shifted_sum * 0.0625 + 0.75 * ops.exp(-m))
+    return ops.where(m > _RELVAR_DIRECT_MAX, shifted, direct)
+
+
+def _positive_int(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, received {value!r}")
+    return value
+
+
+def _round_up(n, m):
+    return None if n is None else -(-n // m) * m
+
+
+def _ceil_div(n, m):
+    return None if n is None else -(-n // m)
+
+
+# ---------------------------------------------------------------- layers
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class PadToMultiple(keras.layers.Layer):
+    """(B, H, W, C) -> (B, H', W', C), H' and W' the next multiples of ``multiple``, padded at the bottom and
+    right by replicating the last row / column (a constant image stays constant)."""
+
+    def __init__(self, multiple: int, **kwargs):
+        super().__init__(**kwargs)
+        self.multiple = _positive_int("multiple", multiple)
+        self.input_spec = keras.layers.InputSpec(ndim=4)
+
+    def call(self, x):
+        h, w = ops.shape(x)[1], ops.shape(x)[2]
+        pad_h, pad_w = -h % self.multiple, -w % self.multiple
+        if pad_h:
+            x = ops.concatenate([x, ops.repeat(x[:, -1:], pad_h, axis=1)], axis=1)
+        if pad_w:
+            x = ops.concatenate([x, ops.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
+        return x
+
+    def compute_output_shape(self, input_shape):
+        b, h, w, c = input_shape
+        return (b, _round_up(h, self.multiple), _round_up(w, self.multiple), c)
+
+    def get_config(self):
+        config = super().get_config()
+        config["multiple"] = self.multiple
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class CropLike(keras.layers.Layer):
+    """Inputs ``[x (B, H', W', C), reference (B, H, W, *)]`` -> x[:, :ceil(H/factor), :ceil(W/factor)]: undoes
+    ``PadToMultiple`` at the level whose pixels are ``factor`` reference pixels wide."""
+
+    def __init__(self, factor: int = 1, **kwargs):
+        super().__init__(**kwargs)
+        self.factor = _positive_int("factor", factor)
+        self.input_spec = [keras.layers.InputSpec(ndim=4), keras.layers.InputSpec(ndim=4)]
+
+    def _target(self, shape):
+        return _ceil_div(shape[1], self.factor), _ceil_div(shape[2], self.factor)
+
+    def _check(self, x_shape, ref_shape):
+        th, tw = self._target(ref_shape)
+        for have, want in ((x_shape[1], th), (x_shape[2], tw)):
+            if have is not None and want is not None and have < want:
+                raise ValueError(
+                    f"CropLike(factor={self.factor}) cannot crop shape {_shape_str(x_shape)} to the size of "
+                    f"reference shape {_shape_str(ref_shape)}: it is too small"
+                )
+
+    def build(self, input_shape):
+        self._check(*input_shape)
+
+    def call(self, inputs):
+        x, reference = inputs
+        self._check(ops.shape(x), ops.shape(reference))
+        th, tw = self._target(ops.shape(reference))
+        return x[:, :th, :tw]
+
+    def compute_output_shape(self, input_shape):
+        x_shape, ref_shape = input_shape
+        th, tw = self._target(ref_shape)
+        return (x_shape[0], th, tw, x_shape[3])
+
+    def get_config(self):
+        config = super().get_config()
+        config["factor"] = self.factor
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class Upsample2x(keras.layers.Layer):
+    """U: 2x2 nearest-neighbour upsampling, (B, H, W, C) -> (B, 2H, 2W, C)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.input_spec = keras.layers.InputSpec(ndim=4)
+
+    def call(self, x):
+        return _upsample(x)
+
+    def compute_output_shape(self, input_shape):
+        b, h, w, c = input_shape
+        return (b, None if h is None else 2 * h, None if w is None else 2 * w, c)
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class Downsample2x(keras.layers.Layer):
+    """D: 2x2 average pooling, (B, H, W, C) -> (B, H/2, W/2, C); H and W must be even."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.input_spec = keras.layers.InputSpec(ndim=4)
+
+    def build(self, input_shape):
+        _check_even(self, input_shape)
+
+    def call(self, x):
+        _check_even(self, ops.shape(x))
+        return _downsample(x)
+
+    def compute_output_shape(self, input_shape):
+        _check_even(self, input_shape)
+        b, h, w, c = input_shape
+        return (b, _ceil_div(h, 2), _ceil_div(w, 2), c)
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class FeatureDownsample(Downsample2x):
+    """One pyramid step of a feature image (B, H, W, C >= 27) -> (B, H/2, W/2, C): 2x2 average pooling with
+    the per-role adjustments of the module docstring (gradients x 2, relative variances divided by 4 in the
+    variance domain, everything else averaged). H and W must be even."""
+
+    def build(self, input_shape):
+        super().build(input_shape)
+        channels = input_shape[-1]
+        if channels is None or channels < NUM_FEATURES:
+            raise ValueError(
+                f"FeatureDownsample {self.name!r} needs >= {NUM_FEATURES} feature channels (prep.features "
+                f"layout), received shape {_shape_str(input_shape)}"
+            )
+        self._runs = feature_runs(channels)
+        self.input_spec = keras.layers.InputSpec(ndim=4, axes={-1: channels})
+
+    def call(self, x):
+        _check_even(self, ops.shape(x))
+        quads = _quads(x)
+        mean = _mean4(*quads)
+        parts = []
+        for start, stop, role in self._runs:
+            if role == "relvar":
+                parts.append(_pool_relvar(*(q[..., start:stop] for q in quads)))
+            elif role == "gradient":
+                parts.append(mean[..., start:stop] * 2.0)
+            else:
+                parts.append(mean[..., start:stop])
+        return ops.concatenate(parts, axis=-1)
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class ScaleBlend(keras.layers.Layer):
+    """Inputs ``[fine f (B, H, W, C), coarse_up (B, H, W, C), alpha (B, H, W, 1 or C)]`` ->
+    f + alpha (coarse_up - U D f): the fine image's 2x2 block means replaced, by the fraction alpha, with the
+    upsampled coarse image (U c for Vogels' compositor, U'c for the kernel one). H and W must be even.
+    alpha = 0 returns f exactly; alpha = 1 gives D(out) = c for coarse_up = U c."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.input_spec = [keras.layers.InputSpec(ndim=4)] * 3
+
+    def build(self, input_shape):
+        if len(input_shape) != 3:
+            raise ValueError(f"ScaleBlend expects [fine, coarse_up, alpha], received {len(input_shape)} inputs")
+        fine, coarse_up, alpha = input_shape
+        _check_even(self, fine)
+        if tuple(fine[1:]) != tuple(coarse_up[1:]) or alpha[-1] not in (1, fine[-1], None):
+            raise ValueError(
+                "ScaleBlend expects fine and coarse_up of one shape and alpha with 1 or their channels, received "
+                f"shapes {_shape_str(fine)}, {_shape_str(coarse_up)}, {_shape_str(alpha)}"
+            )
+
+    def call(self, inputs):
+        fine, coarse_up, alpha = inputs
+        _check_even(self, ops.shape(fine))
+        return fine + alpha * (coarse_up - _upsample(_downsample(fine)))
+
+    def compute_output_shape(self, input_shape):
+        _check_even(self, input_shape[0])
+        return tuple(input_shape[0])
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class DilatedKernelApply(KernelApply):
+    """Inputs ``[colour (B, H, W, C), logits (B, H, W, k*k)]`` -> (B, H, W, C): like ``KernelApply`` with the
+    taps ``dilation`` pixels apart (edge-replicated). On colour = U c with dilation 2 this is the kernel
+    compositor's upsampling U'c[p] = Σ_j w_p[j] c[floor(p/2) + j]."""
+
+    def __init__(self, kernel_size: int, dilation: int = 2, **kwargs):
+        super().__init__(kernel_size, **kwargs)
+        self.dilation = _positive_int("dilation", dilation)
+
+    def call(self, inputs):
+        colour, logits = inputs
+        return apply_kernels(colour, softmax_kernels(logits), self.kernel_size, self.dilation)
+
+    def get_config(self):
+        config = super().get_config()
+        config["dilation"] = self.dilation
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class AlphaRegulariser(keras.layers.Layer):
+    """Identity on an α map (B, H, W, 1) that adds ``gamma * max(0.5 - mean(α), 0)`` to the model's losses
+    (report §3.1: it keeps α from collapsing to 0, i.e. to the fine image alone). The gradient is -gamma / N
+    on each of the N α values while their mean is below 0.5, and 0 above."""
+
+    def __init__(self, gamma: float, **kwargs):
+        super().__init__(**kwargs)
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma < math.inf:
+            raise ValueError(f"gamma must be a finite number >= 0, received {gamma!r}")
+        self.gamma = float(gamma)
+        self.input_spec = keras.layers.InputSpec(ndim=4, axes={-1: 1})
+
+    def call(self, alpha):
+        self.add_loss(self.gamma * ops.relu(ALPHA_TARGET - ops.mean(alpha)))
+        return alpha
+
+    def compute_output_shape(self, input_shape):
+        return tuple(input_shape)
+
+    def get_config(self):
+        config = super().get_config()
+        config["gamma"] = self.gamma
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class InferenceOnly(keras.layers.Wrapper):
+    """Applies the wrapped layer (a trained denoiser) with ``training=False`` whatever mode the caller runs
+    in, so its dropout is off and its batch norm uses moving statistics while another part trains; a
+    Functional model would otherwise pass ``fit``'s ``training=True`` down to it. Not trainable unless
+    ``trainable=True`` is given; the flag is set on the wrapped layer too (it is the same object)."""
+
+    def __init__(self, layer, trainable: bool = False, **kwargs):
+        super().__init__(layer, trainable=trainable, **kwargs)
+        self.trainable = trainable  # again, now that the wrapped layer is tracked, so the flag reaches it
+
+    def call(self, inputs):
+        return self.layer(inputs, training=False)
+
+    def compute_output_shape(self, input_shape):
+        return self.layer.compute_output_shape(input_shape)
+
+
+# ---------------------------------------------------------------- models
+
+
+def build_compositor(cfg: CompositorConfig) -> keras.Model:
+    """The scale compositor network, named "compositor": inputs ``fine`` and ``coarse_up`` (None, None, 3)
+    -> α (None, None, 1) for kind "alpha", [α, kernel logits (None, None, kernel_size²)] for "kernel"."""
+    if not isinstance(cfg, CompositorConfig):
+        raise TypeError(f"cfg must be a CompositorConfig, received {type(cfg).__name__}")
+    fine = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="fine")
+    coarse_up = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="coarse_up")
+    x = keras.layers.Concatenate(name="stack")([fine, coarse_up])
+    for i in range(cfg.depth - 1):
+        x = keras.layers.Conv2D(cfg.width, cfg.conv_size, padding="same", activation="relu", name=f"conv{i}")(x)
+    # zero heads: α = 0.5 (the regulariser's threshold, an even blend) and box kernels at the start
+    alpha = keras.layers.Conv2D(
+        1, 1, activation="sigmoid", kernel_initializer="zeros", bias_initializer="zeros", name="alpha"
+    )(x)
+    outputs = alpha
+    if cfg.kind == "kernel":
+        logits = keras.layers.Conv2D(
+            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name="kernel_logits"
+        )(x)
+        outputs = [alpha, logits]
+    return keras.Model([fine, coarse_up], outputs, name="compositor")
+
+
+def _check_compositor(compositor, cfg: CompositorConfig) -> None:
+    if not isinstance(compositor, keras.Model) or compositor.name != "compositor":
+        raise ValueError(f"compositor must be a keras.Model named 'compositor', received {compositor!r}")
+    want = [(None, None, None, 1)] + ([(None, None, None, cfg.kernel_size**2)] if cfg.kind == "kernel" else [])
+    have = [tuple(t.shape) for t in compositor.outputs]
+    if have != want:
+        raise ValueError(
+            f"compositor outputs {have} do not fit a {cfg.kind!r} compositor with kernel_size "
+            f"{cfg.kernel_size}: expected {want}"
+        )
+
+
+def _check_denoiser(denoiser) -> int:
+    """The denoiser's input channel count, after checking its input and output shapes."""
+    if not isinstance(denoiser, keras.Model):
+        raise TypeError(f"denoiser must be a keras.Model, received {type(denoiser).__name__}")
+    in_shape, out_shape = denoiser.input_shape, denoiser.output_shape
+    if not (isinstance(in_shape, tuple) and len(in_shape) == 4 and in_shape[-1] and in_shape[-1] >= NUM_FEATURES):
+        raise ValueError(
+            f"denoiser {denoiser.name!r} must take one (B, H, W, C >= {NUM_FEATURES}) feature input, "
+            f"received input shape {in_shape}"
+        )
+    if not (isinstance(out_shape, tuple) and len(out_shape) == 4 and out_shape[-1] == COLOUR_CHANNELS):
+        raise ValueError(
+            f"denoiser {denoiser.name!r} must output (B, H, W, {COLOUR_CHANNELS}) colour, received output "
+            f"shape {out_shape}"
+        )
+    return in_shape[-1]
+
+
+def multiscale_output(features, denoiser, cfg: CompositorConfig, compositor: keras.Model, prefix: str = ""):
+    """The multiscale graph on a symbolic ``features`` tensor (B, H, W, C) -> symbolic log colour (B, H, W, 3),
+    for building one functional model in which several branches share a compositor (and possibly a
+    denoiser). ``denoiser``: a model (wrapped here in a new ``InferenceOnly`` named ``prefix + "denoiser"``)
+    or an ``InferenceOnly`` to share. Layer names start with ``prefix``.
+
+    Why not nest two multiscale models that share a compositor: Keras 3 (3.15) writes a layer shared by two
+    nested models once and then cannot load the .keras file; layers shared within one functional graph
+    load fine.
+    """
+    if not isinstance(cfg, CompositorConfig):
+        raise TypeError(f"cfg must be a CompositorConfig, received {type(cfg).__name__}")
+    frozen = denoiser if isinstance(denoiser, InferenceOnly) else None
+    channels = _check_denoiser(frozen.layer if frozen else denoiser)
+    if features.shape[-1] != channels:
+        raise ValueError(f"denoiser takes {channels} channels, received features of shape {tuple(features.shape)}")
+    _check_compositor(compositor, cfg)
+    if frozen is None:
+        frozen = InferenceOnly(denoiser, name=f"{prefix}denoiser")
+
+    level_features = [PadToMultiple(alignment(cfg), name=f"{prefix}pad")(features)]
+    for level in range(1, cfg.levels):
+        level_features.append(FeatureDownsample(name=f"{prefix}pyramid{level}")(level_features[-1]))
+    denoised = [frozen(x) for x in level_features]
+
+    out = denoised[-1]
+    for level in reversed(range(cfg.levels - 1)):
+        coarse_up = Upsample2x(name=f"{prefix}upsample{level}")(out)
+        heads = compositor([denoised[level], coarse_up])
+        if cfg.kind == "kernel":
+            alpha, logits = heads
+            coarse_up = DilatedKernelApply(cfg.kernel_size, 2, name=f"{prefix}coarse_kernels{level}")(
+                [coarse_up, logits]
+            )
+        else:
+            alpha = heads
+        alpha = AlphaRegulariser(cfg.gamma, name=f"{prefix}alpha_reg{level}")(alpha)
+        out = ScaleBlend(name=f"{prefix}blend{level}")([denoised[level], coarse_up, alpha])
+    return CropLike(name=f"{prefix}crop")([out, features])
+
+
+def build_multiscale_model(
+    denoiser: keras.Model,
+    cfg: CompositorConfig,
+    name: str = "multiscale",
+    *,
+    compositor: keras.Model | None = None,
+) -> keras.Model:
+    """Functional model: input ``features`` (None, None, C), C the denoiser's input channels (>= 27) ->
+    log colour (None, None, 3), through the pyramid, the denoiser at every level and the compositor.
+
+    ``compositor``: an existing compositor (``build_compositor``, or one loaded from a run); a new one by
+    default. To share one between branches inside a larger model, build that model with
+    :func:`multiscale_output` instead of nesting two of these (see there). The denoiser is frozen
+    (``denoiser.trainable`` becomes False) and always runs in inference mode (``InferenceOnly``).
+    """
+    channels = _check_denoiser(denoiser)
+    if not isinstance(cfg, CompositorConfig):
+        raise TypeError(f"cfg must be a CompositorConfig, received {type(cfg).__name__}")
+    if compositor is None:
+        compositor = build_compositor(cfg)
+    features = keras.Input(shape=(None, None, channels), name="features")
+    out = multiscale_output(features, denoiser, cfg, compositor)
+    return keras.Model(features, out, name=name)
+
+
+def compositor_of(model: keras.Model) -> keras.Model:
+    """The nested compositor of a multiscale model (its weights can be saved or inspected alone)."""
+    try:
+        layer = model.get_layer("compositor")
+    except ValueError:
+        raise ValueError(f"model {model.name!r} has no layer named 'compositor' (not a multiscale model)") from None
+    return layer
+
+
+def denoiser_of(model: keras.Model) -> keras.Model:
+    """The denoiser a multiscale model wraps (the same object that was passed in, or its loaded copy)."""
+    try:
+        wrapper = model.get_layer("denoiser")
+    except ValueError:
+        wrapper = None
+    if not isinstance(wrapper, InferenceOnly):
+        raise ValueError(f"model {model.name!r} has no InferenceOnly layer named 'denoiser' (not a multiscale model)")
+    return wrapper.layer
+
+
+def build_alpha_model(model: keras.Model) -> keras.Model:
+    """Model sharing ``model``'s weights that returns the α maps, finest first: α_l (B, ceil(H/2**l),
+    ceil(W/2**l), 1) for l = 0 .. levels-2, the blend weight of level l with level l+1 (for figures)."""
+    regs = [layer for layer in model.layers if isinstance(layer, AlphaRegulariser)]
+    if not regs:
+        raise ValueError(f"model {model.name!r} has no AlphaRegulariser layers (not a multiscale model)")
+    # model.layers is in graph order and each finer pair reads the coarser pair's output: coarsest first
+    maps = [CropLike(2**level)([reg.output, model.input]) for level, reg in enumerate(reversed(regs))]
+    return keras.Model(model.input, maps, name=f"{model.name}_alpha")
