@@ -43,14 +43,15 @@ LOSS_TARGETS = ("reference", "reference+noisy")
 
 
 class ShardPatches(keras.utils.PyDataset):
-    """Batches ``(x, y)`` of one training phase (module docstring).
+    """Batches ``(x, y)`` of one training phase (module docstring), for the network ``model`` (its
+    conditioning channels; default: a network without any).
 
     ``steps`` batches are served (default: one pass); ``offset`` skips that many batches of the stream
     (resume); ``shuffle=False`` serves patches in shard order without augmentation (validation).
     """
 
-    def __init__(self, paths, source: str, model: ModelConfig, batch_size: int, steps: int | None = None, *,
-                 shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
+    def __init__(self, paths, source: str, batch_size: int, steps: int | None = None, *,
+                 model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
                  augment: bool = False, slope: float = 2.0, slope_range: tuple[float, float] = (1.0, 8.0),
                  **kwargs):
         super().__init__(**kwargs)
@@ -63,6 +64,7 @@ class ShardPatches(keras.utils.PyDataset):
         self.paths = [str(p) for p in paths]
         if not self.paths:
             raise ShardError(f"no shards given for the {source} patches")
+        model = ModelConfig() if model is None else model
         self.source, self.model, self.batch_size, self.shuffle, self.seed = source, model, batch_size, shuffle, seed
         self.offset, self.loss_target = offset, loss_target
         self.augment = augment and shuffle

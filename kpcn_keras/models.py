@@ -127,41 +127,48 @@ def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool):
     return x
 
 
-def _trunk(features, cfg: ModelConfig):
+def _trunk(features, cfg: ModelConfig, prefix: str):
     if cfg.arch in ("kpcn", "dpcn"):
         x = features
         for i in range(cfg.depth):
-            x = _conv_unit(x, cfg, f"trunk{i:02d}", activate=True)
+            x = _conv_unit(x, cfg, f"{prefix}trunk{i:02d}", activate=True)
         return x
-    x = _conv_unit(features, cfg, "stem", activate=True)
+    x = _conv_unit(features, cfg, f"{prefix}stem", activate=True)
     for i in range(cfg.depth):
-        y = _conv_unit(x, cfg, f"res{i:02d}a", activate=True)
-        y = _conv_unit(y, cfg, f"res{i:02d}b", activate=False)
-        x = keras.layers.Add(name=f"res{i:02d}_add")([x, y])
-        x = keras.layers.ReLU(name=f"res{i:02d}_relu")(x)
+        y = _conv_unit(x, cfg, f"{prefix}res{i:02d}a", activate=True)
+        y = _conv_unit(y, cfg, f"{prefix}res{i:02d}b", activate=False)
+        x = keras.layers.Add(name=f"{prefix}res{i:02d}_add")([x, y])
+        x = keras.layers.ReLU(name=f"{prefix}res{i:02d}_relu")(x)
     return x
 
 
 def build_branch_model(cfg: ModelConfig, name: str = "diffuse") -> keras.Model:
-    """Functional model: input ``features`` (None, None, cfg.in_channels) -> filtered colour (None, None, 3)."""
+    """Functional model: input ``features`` (None, None, cfg.input_channels) -> filtered colour (None, None, 3).
+
+    Every layer's name starts with the model's (``diffuse_trunk00_conv``): Keras's torch backend registers a
+    model's torch parameters by variable path, and two nested networks with equal paths (diffuse and
+    specular in one joint model) would leave one network's gradients out of ``zero_grad``, so they would
+    accumulate from step to step.
+    """
     if not isinstance(cfg, ModelConfig):
         raise TypeError(f"cfg must be a ModelConfig, received {type(cfg).__name__}")
+    p = f"{name}_"
     features = keras.Input(shape=(None, None, cfg.input_channels), name="features")
-    colour = TakeChannels(0, COLOUR_CHANNELS, name="noisy_colour")(features)
-    x = _trunk(features, cfg)
+    colour = TakeChannels(0, COLOUR_CHANNELS, name=f"{p}noisy_colour")(features)
+    x = _trunk(features, cfg, p)
     if cfg.arch == "dpcn":
         correction = keras.layers.Conv2D(
-            COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", name="correction"
+            COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}correction"
         )(x)
-        out = keras.layers.Add(name="colour_sum")([colour, correction])
+        out = keras.layers.Add(name=f"{p}colour_sum")([colour, correction])
         # a kernel output is a convex combination of the input colour and stays in its range by itself;
         # a direct prediction is clamped to it, else one extreme pixel maps back to inf (exp(c) - 1)
-        out = keras.layers.ReLU(max_value=LOG_COLOUR_MAX, name="colour_out")(out)
+        out = keras.layers.ReLU(max_value=LOG_COLOUR_MAX, name=f"{p}colour_out")(out)
     else:
         logits = keras.layers.Conv2D(
-            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name="kernel_logits"
+            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}kernel_logits"
         )(x)
-        out = KernelApply(cfg.kernel_size, name="kernel_apply")([colour, logits])
+        out = KernelApply(cfg.kernel_size, name=f"{p}kernel_apply")([colour, logits])
     return keras.Model(features, out, name=name)
 
 

@@ -472,22 +472,26 @@ class InferenceOnly(keras.layers.Wrapper):
 
 def build_compositor(cfg: CompositorConfig) -> keras.Model:
     """The scale compositor network, named "compositor": inputs ``fine`` and ``coarse_up`` (None, None, 3)
-    -> α (None, None, 1) for kind "alpha", [α, kernel logits (None, None, kernel_size²)] for "kernel"."""
+    -> α (None, None, 1) for kind "alpha", [α, kernel logits (None, None, kernel_size²)] for "kernel".
+
+    Its layer names start with ``compositor_``, unlike any branch network's (``models.build_branch_model``
+    says why names must not repeat within one trained model)."""
     if not isinstance(cfg, CompositorConfig):
         raise TypeError(f"cfg must be a CompositorConfig, received {type(cfg).__name__}")
-    fine = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="fine")
-    coarse_up = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="coarse_up")
-    x = keras.layers.Concatenate(name="stack")([fine, coarse_up])
+    p = "compositor_"
+    fine = keras.Input(shape=(None, None, COLOUR_CHANNELS), name=f"{p}fine")
+    coarse_up = keras.Input(shape=(None, None, COLOUR_CHANNELS), name=f"{p}coarse_up")
+    x = keras.layers.Concatenate(name=f"{p}stack")([fine, coarse_up])
     for i in range(cfg.depth - 1):
-        x = keras.layers.Conv2D(cfg.width, cfg.conv_size, padding="same", activation="relu", name=f"conv{i}")(x)
+        x = keras.layers.Conv2D(cfg.width, cfg.conv_size, padding="same", activation="relu", name=f"{p}conv{i}")(x)
     # zero heads: α = 0.5 (the regulariser's threshold, an even blend) and box kernels at the start
     alpha = keras.layers.Conv2D(
-        1, 1, activation="sigmoid", kernel_initializer="zeros", bias_initializer="zeros", name="alpha"
+        1, 1, activation="sigmoid", kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}alpha"
     )(x)
     outputs = alpha
     if cfg.kind == "kernel":
         logits = keras.layers.Conv2D(
-            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name="kernel_logits"
+            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}kernel_logits"
         )(x)
         outputs = [alpha, logits]
     return keras.Model([fine, coarse_up], outputs, name="compositor")

@@ -88,6 +88,16 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
     return build_final_model(pyramids, model_cfg.input_channels, name="multiscale")
 
 
+def _check_registered(model: keras.Model) -> None:
+    """RuntimeError unless every trainable weight is a torch parameter of ``model``: Keras's torch backend
+    zeroes only those gradients between steps, and keys them by variable path, so two weights with one
+    path would leave one accumulating its gradients for ever (``models.build_branch_model``)."""
+    registered = {id(p) for p in model.parameters()}
+    missing = [w.path for w in model.trainable_weights if id(w.value) not in registered]
+    if missing:
+        raise RuntimeError(f"model {model.name!r}: weights not registered with torch (repeated paths?): {missing[:4]}")
+
+
 def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     """The record's entries of the components a finished ``phase`` holds (see ``run.Run``)."""
     file = f"{phase.name}.keras"
@@ -112,7 +122,7 @@ def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
 def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
     """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in."""
     source = "final" if phase.trains_on_final_colour else "both" if phase.name == "shared" else phase.name
-    common = dict(source=source, model=ModelConfig.from_dict(cfg.model), batch_size=cfg.batch_size,
+    common = dict(source=source, batch_size=cfg.batch_size, model=ModelConfig.from_dict(cfg.model),
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range)
     train = ShardPatches(paths["train"], steps=(phase.epochs - epochs_done) * phase.epoch_steps,
@@ -285,6 +295,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     else:
         model = _build(cfg, run, record, phase)
         _compile(model, cfg, phase)
+    _check_registered(model)
     _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
     train, val = _data(cfg, phase, paths, epochs_done)

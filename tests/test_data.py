@@ -41,7 +41,7 @@ def test_resumed_stream_equals_the_uninterrupted_one(train_paths):
 
 
 def test_targets_and_pickling(train_paths):
-    ds = ShardPatches(train_paths, "diffuse", batch_size=4, shuffle=False, target="reference+noisy")
+    ds = ShardPatches(train_paths, "diffuse", batch_size=4, shuffle=False, loss_target="reference+noisy")
     ds[0]  # opens the files in this process
     clone = pickle.loads(pickle.dumps(ds))
     x, y = clone[0]

@@ -450,7 +450,7 @@ def test_alpha_regulariser_is_part_of_the_fit_loss():
 def test_multiscale_loss_is_smape_plus_one_term_per_compositor_application(levels):
     gamma, bias = 0.5, -1.0
     model = multiscale("alpha", levels=levels, gamma=gamma)
-    head = compositor_of(model).get_layer("alpha")
+    head = compositor_of(model).get_layer("compositor_alpha")
     head.kernel.assign(np.zeros(head.kernel.shape, np.float32))
     head.bias.assign(np.full(head.bias.shape, bias, np.float32))
     x = features((2, 12, 12))
@@ -496,7 +496,7 @@ def test_odd_sizes_come_back_full_size_with_alpha_maps_per_level(kind):
 
 def test_alpha_model_is_finest_first_and_shares_weights():
     model = multiscale("kernel", levels=3)
-    head = compositor_of(model).get_layer("alpha")
+    head = compositor_of(model).get_layer("compositor_alpha")
     head.kernel.assign(np.zeros(head.kernel.shape, np.float32))
     head.bias.assign(np.array([0.8], np.float32))
     maps = [to_np(a) for a in build_alpha_model(model)(features((2, 17, 9)))]
@@ -506,7 +506,7 @@ def test_alpha_model_is_finest_first_and_shares_weights():
 
 def test_alpha_zero_returns_the_single_scale_denoiser_exactly():
     model = multiscale("alpha")
-    head = compositor_of(model).get_layer("alpha")
+    head = compositor_of(model).get_layer("compositor_alpha")
     head.kernel.assign(np.zeros(head.kernel.shape, np.float32))
     head.bias.assign(np.array([-200.0], np.float32))  # sigmoid underflows to exactly 0
     x = features((2, 24, 16), seed=4)  # multiples of the alignment: no padding
