@@ -9,8 +9,9 @@ RUN    ?= default
 RENDER_ARGS ?=
 SHARD_ARGS  ?=
 TRAIN_ARGS  ?=
+COMPARE_ARGS ?=
 
-.PHONY: venv render shards train evaluate test clean
+.PHONY: venv render shards train evaluate compare test clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -32,6 +33,10 @@ train: shards
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)
+
+# every configuration for the same training seconds (COMPARE_ARGS="--budget 60"): reports/compare.{md,json,png}
+compare: shards
+	$(KPCN) compare --set $(SET) $(COMPARE_ARGS)
 
 test: $(KPCN)
 	$(BIN)/python -m pytest -q

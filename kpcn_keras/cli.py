@@ -1,6 +1,6 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, denoise, evaluate, figures, bench. Each fills its stage's config dataclass from the
+Subcommands: render, shards, train, denoise, evaluate, figures, bench, compare. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
 ``render`` and ``shards`` never import keras or torch.
 
@@ -164,6 +164,17 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from kpcn_keras.compare import compare, format_report
+    from kpcn_keras.config import CompareConfig
+
+    cfg = CompareConfig(**_given(args, CompareConfig))
+    record = compare(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto")
+    print(format_report(record))
+    print(f"report: {cfg.out_dir}/compare.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from prep.render import RenderConfig  # light: no numba kernels until a render runs
     from prep.shards import ShardConfig
@@ -293,6 +304,23 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeats", type=int, help=d("repeats"))
     b.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
     b.set_defaults(func=cmd_bench)
+
+    from kpcn_keras.config import CompareConfig
+
+    c = parser("compare", help="train every configuration for the same seconds, then compare accuracy and cost "
+               "on held-out frames; writes reports/compare.{md,json,png}")
+    d = lambda name: f"(default: {_default(CompareConfig, name)})"  # noqa: E731
+    c.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
+    c.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
+    c.add_argument("--runs", dest="runs_root", help=f"folder of the comparison's runs, reused when run again "
+                   f"{d('runs_root')}")
+    c.add_argument("--budget", type=float, help=f"seconds of training per configuration {d('budget')}")
+    c.add_argument("--configurations", type=_csv, help=f"comma-separated {d('configurations')}")
+    c.add_argument("--frame", type=int, help=f"side of the crop whose inference is timed {d('frame')}")
+    c.add_argument("--repeats", type=int, help=f"timed calls per row, the median is reported {d('repeats')}")
+    c.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
+    c.add_argument("--seed", type=int, help=d("seed"))
+    c.set_defaults(func=cmd_compare)
     return p
 
 

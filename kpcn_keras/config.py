@@ -348,3 +348,54 @@ class TrainConfig:
         return {k: v for k, v in self.to_dict().items() if k not in LOCATION_FIELDS}
 
 
+def _all_configurations() -> tuple[str, ...]:
+    # the table is data in kpcn_keras.compare, written once there; that module imports keras only inside
+    # its functions, so this stays as light as the rest of this module
+    from kpcn_keras.compare import CONFIGURATIONS
+
+    return tuple(CONFIGURATIONS)
+
+
+@dataclass
+class CompareConfig:
+    """Configuration of ``kpcn compare`` (kpcn_keras/compare.py): each of ``configurations`` trained for
+    ``budget`` seconds on the shard set ``<shards_root>/<set_name>`` into ``runs_root``, measured on the
+    set's held-out frames, reported in ``out_dir``; ``frame`` is the side of the crop whose inference is
+    timed, ``repeats`` how many timed calls the median is of, ``seed`` the training seed of every run."""
+
+    set_name: str = "default"
+    shards_root: str = "shards"
+    runs_root: str = "runs/compare"
+    out_dir: str = "reports"
+    budget: float = 180
+    configurations: tuple[str, ...] = field(default_factory=_all_configurations)
+    frame: int = 256
+    repeats: int = 5
+    seed: int = 0
+
+    def __post_init__(self):
+        known = _all_configurations()
+        if isinstance(self.configurations, str):
+            self.configurations = tuple(c.strip() for c in self.configurations.split(",") if c.strip())
+        self.configurations = tuple(self.configurations)
+        if not self.set_name or not isinstance(self.set_name, str) or "/" in self.set_name \
+                or self.set_name in (".", ".."):
+            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        for name in ("shards_root", "runs_root", "out_dir"):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
+        budget = self.budget
+        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < math.inf:
+            raise OptionError("budget", f"must be a number of seconds > 0, got {budget!r}")
+        self.budget = float(budget)
+        unknown = [c for c in self.configurations if c not in known]
+        if unknown or not self.configurations:
+            found = f"has unknown {', '.join(map(repr, unknown))}" if unknown else "is empty"
+            raise OptionError("configurations", f"{found}; the known ones are {', '.join(known)}")
+        repeated = sorted({c for c in self.configurations if self.configurations.count(c) > 1})
+        if repeated:
+            raise OptionError("configurations", f"names {', '.join(repeated)} more than once")
+        for name, low in (("frame", 1), ("repeats", 1), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")

@@ -1,0 +1,544 @@
+"""``kpcn compare``: accuracy against cost of every configuration, each trained for the same seconds here.
+
+The contract:
+
+- **Configurations** are :data:`CONFIGURATIONS` (name -> what it is, preset, TrainConfig overrides), the one
+  place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
+  rates and phases; only their steps (and the decay) are cut to the budget, and the report says so.
+- **One shard set, one budget.** Every configuration trains on ``<shards_root>/<set_name>`` for
+  ``budget`` seconds of training steps into its own run folder
+  ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``. Seconds become steps by probing
+  (:func:`probe_configuration`): two trainings of :data:`PROBE_STEPS` steps in every phase, in scratch runs
+  (one epoch per phase, one validation batch), give each phase's marginal seconds per step
+  (:func:`seconds_per_step`); :func:`budget_steps` shares the budget out between the phases. The probes and
+  the steps are kept in ``plan.json`` beside the runs, so the same command run again reuses them and
+  resumes (``train`` refuses a run of another configuration, and fresh probes would give other steps);
+  training itself is deterministic given the steps. Model building, validation and checkpoints are not
+  steps and come on top: the report gives the seconds each run actually trained (its ``timings.json``).
+- **Measured on the held-out frames** of the set (every validation scene at every input spp), the same
+  frames for every row: the mean over frames of relMSE, DSSIM and relSE p99.9 (``prep.metrics``) of every
+  trained run (``denoise.Denoiser``, multiscale runs with their compositor), of the raw input, of non-local
+  means and of Intel Open Image Denoise (the row to beat; "not installed" without ``pyoidn``). Parameters:
+  the component networks' ``count_params()``. Milliseconds per frame: the median of ``repeats`` whole
+  denoiser calls on a ``frame`` x ``frame`` crop of the first held-out render, after a warm-up: inference
+  only, on this CPU, with the torch thread count recorded.
+- **Writes** ``<out_dir>/compare.md`` (the table, the date, the machine, the rules above),
+  ``compare.json`` (every number, the plan, per-frame metrics) and ``compare.png`` (relMSE against ms per
+  frame, log axes), each atomically.
+
+This module imports keras and torch only inside the functions that train or denoise, so ``kpcn --help``
+and :class:`kpcn_keras.config.CompareConfig` (whose default list of configurations is this table) stay light.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import shutil
+import statistics
+import time
+from datetime import date, datetime
+from pathlib import Path
+
+from kpcn_keras.config import PRESETS, CompareConfig, TrainConfig
+from prep.errors import KpcnError
+from prep.files import atomic_path, atomic_write_text, check_writable, exclusive_lock, read_json
+
+# name -> (what it is, preset, TrainConfig overrides). A joint_steps or compositor entry only says that the
+# phase exists: every step count is set by the budget.
+CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
+    "cpu": ("the default (cpu preset)", "cpu", {}),
+    "kpcn-paper": ("Bako et al. 2017's network and training", "kpcn-paper", {}),
+    "kpal-paper": ("the report's residual network and training", "kpal-paper", {}),
+    "dpcn": ("cpu, predicting the colour directly instead of kernels", "cpu", {"model": {"arch": "dpcn"}}),
+    "shared": ("cpu, one network for both branches", "cpu", {"shared": True}),
+    "joint": ("cpu, then both branches fine-tuned together on the final colour", "cpu", {"joint_steps": 1}),
+    "multiscale-alpha": ("cpu + Vogels' scale compositor", "cpu", {"compositor": {"kind": "alpha"}}),
+    "multiscale-kernel": ("cpu + the kernel-predicting compositor", "cpu", {"compositor": {"kind": "kernel"}}),
+    "asymmetric": ("cpu, asymmetric loss instead of SMAPE", "cpu", {"loss": "asymmetric", "slope": 2.0}),
+    "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
+}
+
+PROBE_STEPS = (2, 8)
+# The branch networks are the denoiser; joint fine-tuning and the compositor refine it, so they get the
+# smaller share. Without either, the branch phases get the whole budget: every row trains as long.
+BRANCH_SHARE = 0.8
+BRANCH_PHASES = ("diffuse", "specular", "shared")
+FINAL_PHASES = ("joint", "compositor")
+PLAN = "plan.json"
+
+
+# ---------------------------------------------------------------- seconds to steps
+
+
+def seconds_per_step(probes: dict[int, dict[str, float]]) -> dict[str, float]:
+    """Each phase's marginal seconds per step from two probes ``{steps: {phase: seconds}}``: the difference
+    of their times over the difference of their steps (building, loading and saving cancel out).
+
+    A difference that is not positive (the machine was busier during the shorter probe) falls back to the
+    longer probe's mean seconds per step, which overestimates a step, so the budget is never overrun by it.
+    """
+    if len(probes) != 2:
+        raise ValueError(f"expected two probes, got {sorted(probes)}")
+    (a, short), (b, long) = sorted((int(k), v) for k, v in probes.items())
+    out = {}
+    for phase, seconds in long.items():
+        marginal = (seconds - short[phase]) / (b - a)
+        out[phase] = marginal if marginal > 0 else seconds / b
+    return out
+
+
+def budget_shares(phases) -> dict[str, float]:
+    """The fraction of the budget each phase gets: :data:`BRANCH_SHARE` for the branch phases together
+    (all of it without a joint or compositor phase), the rest split evenly between the others."""
+    branch = [p for p in phases if p in BRANCH_PHASES]
+    final = [p for p in phases if p in FINAL_PHASES]
+    if not branch or len(branch) + len(final) != len(list(phases)):
+        raise ValueError(f"unknown or missing phases in {list(phases)}")
+    branch_total = BRANCH_SHARE if final else 1.0
+    shares = {p: branch_total / len(branch) for p in branch}
+    shares.update({p: (1.0 - branch_total) / len(final) for p in final})
+    return shares
+
+
+def budget_steps(budget: float, per_step: dict[str, float]) -> dict[str, int]:
+    """TrainConfig step fields that fill ``budget`` seconds, given each phase's seconds per step.
+
+    The branch phases run the same ``steps`` (one TrainConfig field), chosen so that they take their
+    share together: steps = floor(share x budget / sum of their seconds per step); a shared network's one
+    phase thus gets about twice the steps of each separate branch. ``joint_steps`` and ``compositor_steps``
+    = floor(share x budget / seconds per step). ``decay_steps`` = ``steps``: the learning rate decays by
+    ``decay_rate`` over the branch training, as it does in the presets. At least 1 of each.
+    """
+    shares = budget_shares(per_step)
+    branch = [p for p in per_step if p in BRANCH_PHASES]
+    branch_share = sum(shares[p] for p in branch)
+    steps = _whole_steps(branch_share * budget / sum(per_step[p] for p in branch))
+    out = {"steps": steps, "decay_steps": steps}
+    for phase in FINAL_PHASES:
+        if phase in per_step:
+            out[f"{phase}_steps"] = _whole_steps(shares[phase] * budget / per_step[phase])
+    return out
+
+
+def _whole_steps(x: float) -> int:
+    # the nudge keeps a whole number of steps in exact arithmetic (0.2 x 100 s / 0.5 s) from rounding to one less
+    return max(1, math.floor(x * (1 + 1e-12)))
+
+
+# ---------------------------------------------------------------- configurations
+
+
+def train_config(name: str, cfg: CompareConfig, overrides: dict | None = None) -> TrainConfig:
+    """The TrainConfig of configuration ``name`` on ``cfg``'s shard set, before its steps are set;
+    ``overrides`` apply to every configuration after its own (``model`` merged)."""
+    _, preset, own = CONFIGURATIONS[name]
+    overrides = dict(overrides or {})
+    values = {**own, **overrides}
+    values["model"] = {**own.get("model", {}), **(overrides.get("model") or {})}
+    return TrainConfig.from_preset(preset, set_name=cfg.set_name, shards_root=cfg.shards_root, seed=cfg.seed,
+                                   **values)
+
+
+def with_steps(base: TrainConfig, steps: dict[str, int]) -> TrainConfig:
+    return dataclasses.replace(base, **steps)
+
+
+def _probe_fields(base: TrainConfig, n: int) -> dict:
+    # one epoch per phase, so the epoch's validation and checkpoint are fixed costs and cancel out
+    fields = {"steps": n, "decay_steps": n, "steps_per_epoch": n, "val_batches": 1, "compositor_steps": n}
+    if base.joint_steps:
+        fields["joint_steps"] = n
+    return fields
+
+
+def describe(name: str, cfg: TrainConfig) -> str:
+    """What the configuration is, for the report: the table's phrase, then the network it trains."""
+    phrase, preset, _ = CONFIGURATIONS[name]
+    m = cfg.model
+    unit = "residual blocks" if m["arch"] == "kpal" else "convolutions"
+    net = f"{m['arch'].upper()}, {m['depth']} {unit} of {m['width']} {m['conv_size']}×{m['conv_size']} filters"
+    if m["batchnorm"]:
+        net += ", batch norm"
+    if m["arch"] != "dpcn":
+        net += f", {m['kernel_size']}×{m['kernel_size']} kernels"
+    if m["dropout"]:
+        net += f", dropout {m['dropout']:g}"
+    net += f", batch {cfg.batch_size}, lr {cfg.learning_rate:g}"
+    if cfg.joint_steps:
+        net += f", joint lr {cfg.joint_learning_rate:g}"
+    if cfg.compositor:
+        net += f", {cfg.compositor['levels']} levels"
+    if cfg.loss == "asymmetric":
+        net += f", λ = {cfg.slope:g}"
+    scaled = " (scaled to the budget)" if preset != TrainConfig.preset else ""
+    return f"{phrase}{scaled}: {net}"
+
+
+# ---------------------------------------------------------------- probing and training
+
+
+def _group_dir(cfg: CompareConfig) -> Path:
+    # budget and seed in the name: another budget is another set of runs, not a clash with these
+    return Path(cfg.runs_root) / f"{cfg.set_name}-{cfg.budget:g}s-seed{cfg.seed}"
+
+
+def _probe_once(base: TrainConfig, n: int, run_dir: Path) -> dict[str, float]:
+    """Seconds of each phase of a scratch training of ``n`` steps per phase.
+
+    Phases are timed by the modification times of the phase files train() writes at the end of each
+    phase (timings.json rounds to 0.1 s, which is most of a short probe's difference).
+    """
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import train
+
+    cfg = with_steps(base, _probe_fields(base, n))
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    start = time.time()
+    train(cfg, run_dir, verbose=0)
+    run, seconds, last = Run(run_dir), {}, start
+    for phase in cfg.phases():
+        end = run.model_path(phase.name).stat().st_mtime
+        seconds[phase.name] = end - last
+        last = end
+    shutil.rmtree(run_dir)
+    return seconds
+
+
+def probe_configuration(base: TrainConfig, scratch: Path) -> dict[str, dict[str, float]]:
+    """``{steps: {phase: seconds}}`` of the :data:`PROBE_STEPS` probes of ``base``, in scratch runs."""
+    return {str(n): _probe_once(base, n, scratch / f"probe-{n}") for n in PROBE_STEPS}
+
+
+def _fmt_phases(values: dict, fmt: str) -> str:
+    return ", ".join(f"{k} {fmt.format(v)}" for k, v in values.items())
+
+
+def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose="auto", log=print) -> dict:
+    """Probe (or reuse the plan of) and train every configuration; returns ``name -> plan entry``."""
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import train
+    from prep.shards import ShardSet
+
+    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    group = _group_dir(cfg)
+    check_writable(group, "runs folder (--runs)", directory=True)
+    plans = {}
+    with exclusive_lock(group, "comparison folder"):
+        scratch = group / "probes"
+        if scratch.exists():
+            shutil.rmtree(scratch)  # what a killed comparison's probes left
+        plan_path = group / PLAN
+        stored = read_json(plan_path, "comparison plan") if plan_path.is_file() else {}
+        warmed = False
+        for name in cfg.configurations:
+            base = train_config(name, cfg, overrides)
+            run_dir = group / name
+            key = {"train": base.identity(), "budget": cfg.budget, "content_key": manifest["content_key"]}
+            entry = stored.get(name)
+            if entry is not None and {k: entry.get(k) for k in key} == key:
+                log(f"[{name}] steps from {plan_path}: {_fmt_phases(entry['phase_steps'], '{}')}")
+            else:
+                if Run(run_dir).has_record():
+                    raise KpcnError(f"{run_dir}: trained for other settings than this comparison's (another "
+                                    f"configuration or shard set); choose another --runs or remove {run_dir}")
+                if not warmed:
+                    # the process's first training pays one-time costs (imports, first kernels) that
+                    # would otherwise land in the shorter probe and shrink the difference
+                    log(f"[{name}] warming up with a {PROBE_STEPS[0]}-step training")
+                    _probe_once(base, PROBE_STEPS[0], scratch / "warm-up")
+                    warmed = True
+                probes = probe_configuration(base, scratch)
+                per_step = seconds_per_step(probes)
+                steps = budget_steps(cfg.budget, per_step)
+                planned = with_steps(base, steps)
+                entry = {**key, "probes": probes, "seconds_per_step": per_step,
+                         "shares": budget_shares(per_step), "steps": steps,
+                         "phase_steps": {p.name: p.steps for p in planned.phases()}}
+                for n, seconds in probes.items():
+                    log(f"[{name}] probe of {n} steps: {_fmt_phases(seconds, '{:.2f} s')}")
+                log(f"[{name}] seconds per step: {_fmt_phases(per_step, '{:.4f}')}; for {cfg.budget:g} s: "
+                    f"{_fmt_phases(entry['phase_steps'], '{}')} steps")
+                stored[name] = entry
+                atomic_write_text(plan_path, json.dumps(stored, indent=2) + "\n")
+            log(f"[{name}] training into {run_dir}")
+            train(with_steps(base, entry["steps"]), run_dir, verbose=verbose)
+            plans[name] = {**entry, "run": str(run_dir)}
+        if scratch.exists():
+            shutil.rmtree(scratch)
+    return plans
+
+
+# ---------------------------------------------------------------- measuring
+
+
+def _crop(aovs: dict, side: int) -> dict:
+    h, w = aovs["default"].shape[:2]
+    y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    return {k: v[y0:y0 + side, x0:x0 + side].copy() for k, v in aovs.items()}
+
+
+def _median_ms(fn, repeats: int) -> tuple[float, list[float]]:
+    fn()  # warm-up: per-shape setup is not inference
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        samples.append(1e3 * (time.perf_counter() - start))
+    return statistics.median(samples), samples
+
+
+def _scores(outputs: list, frames: list[dict]) -> dict:
+    from prep import metrics
+
+    per_frame = [{"frame": f["name"], "relmse": metrics.relmse(x, f["reference"]),
+                  "dssim": metrics.dssim(x, f["reference"]), "relse_p999": metrics.relse_p999(x, f["reference"])}
+                 for x, f in zip(outputs, frames)]
+    means = {m: float(sum(p[m] for p in per_frame) / len(per_frame)) for m in ("relmse", "dssim", "relse_p999")}
+    return {**means, "frames": per_frame}
+
+
+def _training_seconds(run_dir: Path) -> float:
+    from kpcn_keras.run import Run
+
+    timings = read_json(Run(run_dir).timings_path, "run timings")
+    return float(sum(timings.values()))
+
+
+def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], dict]:
+    """The report's rows (trained configurations, then raw input, NLM, OIDN) and what was timed."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.evaluate import held_out_pairs
+    from prep import baselines, exr
+
+    pairs = held_out_pairs(next(iter(plans.values()))["run"])
+    if not pairs:
+        raise KpcnError(f"{cfg.shards_root}/{cfg.set_name}: no held-out scenes to compare on")
+    frames = []
+    for noisy_path, ref_path in pairs:
+        scene, spp = exr.parse_render_filename(noisy_path)
+        frames.append({"name": f"{scene} {spp} spp", "noisy": exr.read_aovs(noisy_path),
+                       "reference": exr.read_aovs(ref_path, variances=False)["default"]})
+    crop = _crop(frames[0]["noisy"], cfg.frame)
+    h, w = crop["default"].shape[:2]
+    timed = {"frame": frames[0]["name"], "width": w, "height": h}
+    rows = []
+    for name, plan in plans.items():
+        denoiser = Denoiser(plan["run"])
+        denoiser.warm_up()
+        scores = _scores([denoiser(f["noisy"])["default"] for f in frames], frames)
+        ms, samples = _median_ms(lambda: denoiser(crop), cfg.repeats)
+        networks = list(denoiser.networks.values()) + ([denoiser.compositor] if denoiser.compositor else [])
+        train_cfg = TrainConfig(**read_json(Path(plan["run"]) / "config.json", "run record")["train"])
+        rows.append({"name": name, "kind": "network", "what": describe(name, train_cfg), "run": plan["run"],
+                     "phase_steps": plan["phase_steps"], "training_seconds": _training_seconds(Path(plan["run"])),
+                     "parameters": int(sum(n.count_params() for n in networks)), "ms_per_frame": ms,
+                     "ms_samples": samples, **scores})
+        log(f"[{name}] held-out relMSE {scores['relmse']:.4f}, DSSIM {scores['dssim']:.4f}, relSE p99.9 "
+            f"{scores['relse_p999']:.4f}; {ms:.1f} ms per {w}×{h} frame")
+    rows.append({"name": "raw input", "kind": "input", "what": "the noisy render itself",
+                 **_scores([f["noisy"]["default"] for f in frames], frames)})
+
+    def nlm(aovs):
+        return baselines.nlm_denoise(aovs["default"], aovs["colorVariance"])
+
+    baseline_rows = [("NLM", "scikit-image non-local means on the colour, told the render's noise level", nlm)]
+    oidn_here = baselines.oidn_available()
+    if oidn_here:
+        baseline_rows.append(("OIDN", "Intel Open Image Denoise, RT filter with albedo and normal (pretrained)",
+                              baselines.oidn_denoise))
+    for name, what, fn in baseline_rows:
+        scores = _scores([fn(f["noisy"]) for f in frames], frames)
+        ms, samples = _median_ms(lambda: fn(crop), cfg.repeats)
+        rows.append({"name": name, "kind": "baseline", "available": True, "what": what, "ms_per_frame": ms,
+                     "ms_samples": samples, **scores})
+        log(f"[{name}] held-out relMSE {scores['relmse']:.4f}; {ms:.1f} ms per {w}×{h} frame")
+    if not oidn_here:
+        rows.append({"name": "OIDN", "kind": "baseline", "available": False,
+                     "what": "Intel Open Image Denoise: not installed (pip install '.[oidn]')"})
+        log("[OIDN] not installed (pip install '.[oidn]')")
+    return rows, timed
+
+
+# ---------------------------------------------------------------- the command
+
+
+def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str | None = None, verbose="auto",
+            log=print) -> dict:
+    """Run the comparison (see the module docstring); writes the three reports and returns the record.
+
+    ``overrides``: TrainConfig fields applied to every configuration after its own (a smaller network for
+    a quick look or a test); they are part of the plan's key and of the record. ``command``: the command
+    line that asked, for the report.
+    """
+    import keras
+    import torch
+
+    out = Path(cfg.out_dir)
+    for name in ("compare.md", "compare.json", "compare.png"):
+        check_writable(out / name, "report (--out)")
+    load_before = os.getloadavg()
+    started = datetime.now().isoformat(timespec="seconds")
+    log(f"compare: {len(cfg.configurations)} configurations, {cfg.budget:g} s of training each, "
+        f"shard set {Path(cfg.shards_root) / cfg.set_name}")
+    plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
+    rows, timed = measure(cfg, plans, log=log)
+    from prep.shards import ShardSet
+
+    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    record = {
+        "date": date.today().isoformat(),
+        "command": command,
+        "started": started,
+        "finished": datetime.now().isoformat(timespec="seconds"),
+        "config": {**dataclasses.asdict(cfg), "configurations": list(cfg.configurations)},
+        "overrides": overrides or {},
+        "shards": {"set_dir": str(Path(cfg.shards_root) / cfg.set_name), "content_key": manifest["content_key"],
+                   "held_out_frames": len(rows[0]["frames"])},
+        "rules": {"probe_steps": list(PROBE_STEPS), "branch_share": BRANCH_SHARE},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads(),
+                    "load_average_before": list(load_before), "load_average_after": list(os.getloadavg())},
+        "timed": timed,
+        "plans": plans,
+        "rows": rows,
+    }
+    atomic_write_text(out / "compare.json", json.dumps(record, indent=2) + "\n")
+    atomic_write_text(out / "compare.md", format_report(record))
+    scatter_png(record, out / "compare.png")
+    return record
+
+
+def best(record: dict) -> dict:
+    """The trained configuration with the lowest held-out relMSE."""
+    return min((r for r in record["rows"] if r["kind"] == "network"), key=lambda r: r["relmse"])
+
+
+def _num(value, fmt="{:.4f}") -> str:
+    return "—" if value is None else fmt.format(value)
+
+
+def _ms(value) -> str:
+    return "—" if value is None else f"{value:.0f}" if value >= 100 else f"{value:.1f}"
+
+
+def format_report(record: dict) -> str:
+    """compare.md: the table, the best configuration, and what the numbers are."""
+    cfg, machine, timed = record["config"], record["machine"], record["timed"]
+    frame = f"{timed['width']}×{timed['height']}"
+    top = best(record)
+    lines = [
+        f"# Every configuration under one training budget ({record['date']})",
+        "",
+        (f"`{record['command']}`: e" if record.get("command") else "E") + "ach configuration trained for "
+        f"{cfg['budget']:g} s on this machine on the shard set `{record['shards']['set_dir']}` (content key "
+        f"`{record['shards']['content_key'][:12]}`), then measured on the same {record['shards']['held_out_frames']} "
+        "held-out frames (every validation scene at every input spp): all rows share one shard set and one budget.",
+        "",
+        f"| configuration | what it is | steps per phase | training s | held-out relMSE | DSSIM | relSE p99.9 "
+        f"| parameters | ms / {frame} frame |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in record["rows"]:
+        if r.get("available") is False:
+            lines.append(f"| {r['name']} | {r['what']} |" + " — |" * 7)
+            continue
+        relmse = _num(r["relmse"])
+        if r is top:
+            relmse = f"**{relmse}**"
+        steps = _fmt_phases(r["phase_steps"], "{}") if "phase_steps" in r else "—"
+        params = f"{r['parameters']:,}" if "parameters" in r else "—"
+        lines.append(f"| {r['name']} | {r['what']} | {steps} | {_num(r.get('training_seconds'), '{:.0f}')} | "
+                     f"{relmse} | {_num(r['dssim'])} | {_num(r['relse_p999'])} | {params} | "
+                     f"{_ms(r.get('ms_per_frame'))} |")
+    oidn = next(r for r in record["rows"] if r["name"] == "OIDN")
+    verdict = f"**Best by held-out relMSE: `{top['name']}`** ({top['relmse']:.4f})"
+    if oidn.get("available"):
+        ratio = top["relmse"] / oidn["relmse"]
+        verdict += (f", {ratio:.2f}× the relMSE of OIDN ({oidn['relmse']:.4f}), the row to beat: "
+                    + ("it beats OIDN." if ratio < 1 else "OIDN is still ahead."))
+    else:
+        verdict += "; OIDN, the row to beat, is not installed here."
+    paper = [n for n in cfg["configurations"] if CONFIGURATIONS[n][1] != TrainConfig.preset]
+    lines += ["", verdict, ""]
+    lines.append(
+        f"- **Same budget.** Each configuration's phases were timed by two scratch trainings of "
+        f"{' and '.join(map(str, record['rules']['probe_steps']))} steps per phase (one validation batch); a "
+        "phase's seconds per step is the difference of the two over the difference of the steps. The branch "
+        f"phases get {100 * record['rules']['branch_share']:.0f} % of the budget (all of it without joint "
+        "fine-tuning or a compositor) and run the same steps, so a shared network's one phase gets about twice "
+        "the steps of each separate branch; joint fine-tuning or the compositor gets the rest. The learning "
+        "rate decays over the branch steps. Building, validation and checkpoints come on top: *training s* is "
+        "what the run's phases took (its `timings.json`); the probes are not counted.")
+    if paper:
+        lengths = {CONFIGURATIONS[n][1]: (PRESETS[CONFIGURATIONS[n][1]]["steps"],
+                                          PRESETS[CONFIGURATIONS[n][1]]["joint_steps"]) for n in paper}
+        if len(set(lengths.values())) == 1:
+            full = "{} steps per branch and {} joint steps".format(*next(iter(lengths.values())))
+        else:
+            full = ", ".join(f"{p}: {s} steps per branch and {j} joint" for p, (s, j) in sorted(lengths.items()))
+        lines.append(f"- **Scaled to the budget:** {' and '.join(paper)} keep their presets' networks, batch, learning "
+                     f"rates and phases; only the steps (and the decay) are cut to the budget, far below the "
+                     f"papers' GPU training ({full}).")
+    lines.append(
+        f"- **ms per frame** is inference only: one whole denoiser call (features, both branches, compositor, "
+        f"back to colour; for NLM and OIDN their call) on a {frame} crop of `{timed['frame']}`, the median of "
+        f"{cfg['repeats']} after a warm-up, on this CPU with {machine['torch_threads']} torch threads.")
+    if record.get("overrides"):
+        lines.append(f"- **Every configuration overridden** with `{json.dumps(record['overrides'])}` (TrainConfig "
+                     "fields, after the configuration's own).")
+    load_b, load_a = machine["load_average_before"][0], machine["load_average_after"][0]
+    lines.append(
+        f"- **Machine:** {machine['cpus']} CPUs, load average {load_b:.2f} before and {load_a:.2f} after; "
+        f"{machine['platform']}, Python {machine['python']}, torch {machine['torch']}, keras {machine['keras']}. "
+        "The probes that set the steps are timings too: on a busy machine the budgets are not the same.")
+    lines.append(
+        "- **Metrics** (`prep/metrics.py`, as in `kpcn evaluate`): the mean over the held-out frames of relMSE, "
+        "DSSIM and relSE p99.9 (the 99.9th percentile of the per-pixel relative squared error). `compare.json` "
+        "has every frame's values, the probes and the steps; `compare.png` plots relMSE against ms per frame.")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def scatter_png(record: dict, path: Path) -> Path:
+    """relMSE against ms per frame, log axes, each point labelled; the raw input's relMSE is a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    styles = {"network": dict(marker="o", color="C0"), "NLM": dict(marker="s", color="C2"),
+              "OIDN": dict(marker="*", color="C3", s=160)}
+    plotted, legend = 0, {"network": "trained configuration", "NLM": "non-local means", "OIDN": "Open Image Denoise"}
+    for r in record["rows"]:
+        if r["kind"] == "input":
+            ax.axhline(r["relmse"], color="grey", linestyle="--", linewidth=1)
+            ax.annotate("raw input", (0.01, r["relmse"]), xycoords=("axes fraction", "data"), va="bottom",
+                        fontsize=8, color="grey")
+            continue
+        if r.get("available") is False:
+            continue
+        kind = "network" if r["kind"] == "network" else r["name"]
+        ax.scatter([r["ms_per_frame"]], [r["relmse"]], zorder=3, label=legend.pop(kind, None), **styles[kind])
+        # staggered: configurations that tie on both axes would print their names over each other
+        ax.annotate(r["name"], (r["ms_per_frame"], r["relmse"]), textcoords="offset points",
+                    xytext=(5, 4 - 10 * (plotted % 4)), fontsize=8)
+        plotted += 1
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    t = record["timed"]
+    ax.set_xlabel(f"ms per {t['width']}×{t['height']} frame (inference, this CPU)")
+    ax.set_ylabel("held-out relMSE")
+    ax.set_title(f"{record['config']['budget']:g} s of training each, {record['date']}", fontsize=10)
+    ax.grid(True, which="both", alpha=0.2)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
+    plt.close(fig)
+    return Path(path)

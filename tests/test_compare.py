@@ -1,0 +1,197 @@
+"""``kpcn compare``: seconds of budget become steps by a rule checked by hand, every configuration of the
+table is a valid training, unknown names are one-line errors, and a tiny comparison writes reports whose
+numbers an independent float64 computation from the EXRs reproduces.
+
+The end-to-end comparison replaces the probe trainings' timings with fixed ones, so the steps (and with
+them every trained weight) do not depend on how busy the machine is; the real probing is tested apart.
+"""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
+from kpcn_keras import compare as cmp
+from kpcn_keras.config import PRESETS, CompareConfig
+from prep import exr
+from prep.errors import OptionError
+from prep.shards import ShardSet
+
+OVERRIDES = {"model": TINY_MODEL, "batch_size": 2, "val_batches": 1}
+BUDGET = 2.0
+FAKE_SECONDS_PER_STEP = 0.05
+
+
+def test_budget_steps_match_a_hand_computation():
+    # 0.2 x 100 / 0.5 is 39.99999999999999 in floating point: still 40 steps
+    assert cmp.budget_steps(100.0, {"diffuse": 0.1, "specular": 0.15, "joint": 0.5})["joint_steps"] == 40
+    # separate branches + joint: 80 % of 100 s over 0.1 + 0.15 s per step of the pair, 20 % over 0.5 s
+    assert cmp.budget_steps(100.0, {"diffuse": 0.1, "specular": 0.15, "joint": 0.5}) == \
+        {"steps": 320, "decay_steps": 320, "joint_steps": 40}
+    # no joint or compositor phase: the branches get the whole budget
+    assert cmp.budget_steps(100.0, {"diffuse": 0.1, "specular": 0.15}) == {"steps": 400, "decay_steps": 400}
+    # a shared network's one phase gets all of the branch share: twice the steps of each separate branch
+    assert cmp.budget_steps(100.0, {"shared": 0.125}) == {"steps": 800, "decay_steps": 800}
+    assert cmp.budget_steps(100.0, {"shared": 0.2, "compositor": 0.3}) == \
+        {"steps": 400, "decay_steps": 400, "compositor_steps": 66}  # floor(20 / 0.3)
+    # never below one step, however slow
+    assert cmp.budget_steps(1.0, {"diffuse": 9.0, "specular": 9.0, "compositor": 9.0}) == \
+        {"steps": 1, "decay_steps": 1, "compositor_steps": 1}
+
+
+def test_shares_and_seconds_per_step_from_two_probes():
+    assert cmp.budget_shares(["diffuse", "specular"]) == {"diffuse": 0.5, "specular": 0.5}
+    assert cmp.budget_shares(["shared", "joint"]) == pytest.approx({"shared": 0.8, "joint": 0.2})
+    probes = {"2": {"diffuse": 1.25, "joint": 3.0}, "8": {"diffuse": 1.85, "joint": 6.0}}
+    assert cmp.seconds_per_step(probes) == pytest.approx({"diffuse": 0.6 / 6, "joint": 3.0 / 6})
+    # a longer probe that ran faster than the shorter one: its mean per step, an overestimate
+    assert cmp.seconds_per_step({"2": {"diffuse": 2.0}, "8": {"diffuse": 1.6}}) == pytest.approx({"diffuse": 0.2})
+
+
+def test_every_configuration_is_a_training_with_the_phases_it_names():
+    cfg = CompareConfig()
+    assert cfg.configurations == tuple(cmp.CONFIGURATIONS)
+    phases = {name: [p.name for p in cmp.train_config(name, cfg).phases()] for name in cmp.CONFIGURATIONS}
+    assert phases["cpu"] == phases["dpcn"] == phases["asymmetric"] == ["diffuse", "specular"]
+    assert phases["shared"] == ["shared"]
+    assert phases["joint"] == phases["kpcn-paper"] == phases["kpal-paper"] == ["diffuse", "specular", "joint"]
+    assert phases["multiscale-alpha"] == phases["multiscale-kernel"] == ["diffuse", "specular", "compositor"]
+    for name in ("kpcn-paper", "kpal-paper"):
+        base = cmp.train_config(name, cfg)
+        planned = cmp.with_steps(base, cmp.budget_steps(cfg.budget, {p: 1.0 for p in phases[name]}))
+        # the preset's network and training; only the steps and the decay follow the budget
+        assert {k: planned.model[k] for k in PRESETS[name]["model"]} == PRESETS[name]["model"]
+        assert (planned.batch_size, planned.learning_rate, planned.joint_learning_rate) == \
+            (PRESETS[name]["batch_size"], PRESETS[name]["learning_rate"], PRESETS[name]["joint_learning_rate"])
+        assert planned.steps == planned.decay_steps < PRESETS[name]["steps"]
+        assert "scaled to the budget" in cmp.describe(name, planned)
+    assert "scaled" not in cmp.describe("cpu", cmp.train_config("cpu", cfg))
+
+
+def test_unknown_configuration_is_a_one_line_error_listing_the_known_ones(tmp_path):
+    with pytest.raises(OptionError) as err:
+        CompareConfig(configurations=("cpu", "kpcn-papr"))
+    assert err.value.option == "configurations" and "'kpcn-papr'" in str(err.value)
+    assert all(name in str(err.value) for name in cmp.CONFIGURATIONS)
+    for bad in ({"budget": 0}, {"budget": float("inf")}, {"repeats": 0}, {"configurations": ("cpu", "cpu")}):
+        with pytest.raises(OptionError, match=next(iter(bad))):
+            CompareConfig(**bad)
+    res = kpcn("compare", "--configurations", "cpu,kpcn-papr", cwd=tmp_path)
+    assert_one_line_error(res, "--configurations", "'kpcn-papr'", "kpal-paper", "multiscale-kernel")
+    assert not any(tmp_path.iterdir())
+
+
+def test_probes_time_every_phase_in_scratch_runs(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = CompareConfig(set_name="s", shards_root=shard_cfg.out_root)
+    base = cmp.train_config("joint", cfg, OVERRIDES)
+    probes = cmp.probe_configuration(base, tmp_path / "scratch")
+    assert sorted(probes) == sorted(str(n) for n in cmp.PROBE_STEPS)
+    for seconds in probes.values():
+        assert list(seconds) == ["diffuse", "specular", "joint"] and all(s > 0 for s in seconds.values())
+    assert not any((tmp_path / "scratch").iterdir())
+    assert set(cmp.budget_steps(10.0, cmp.seconds_per_step(probes))) == {"steps", "decay_steps", "joint_steps"}
+
+
+def _fake_probe(base, n, run_dir):
+    return {p.name: 0.5 + FAKE_SECONDS_PER_STEP * n for p in base.phases()}
+
+
+@pytest.fixture(scope="module")
+def compared(tmp_path_factory):
+    """A comparison of cpu and shared, tiny networks, on the tiny shard set, probes' timings fixed."""
+    tmp = tmp_path_factory.mktemp("compare")
+    shard_cfg = build_tiny_shards(tmp)
+    cfg = CompareConfig(set_name="s", shards_root=shard_cfg.out_root, runs_root=str(tmp / "runs"),
+                        out_dir=str(tmp / "reports"), budget=BUDGET, configurations=("cpu", "shared"),
+                        repeats=2, frame=32)
+    lines = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cmp, "_probe_once", _fake_probe)
+        record = cmp.compare(cfg, overrides=OVERRIDES, verbose=0, log=lines.append)
+    return tmp, cfg, record, lines
+
+
+def _table(md: str) -> dict[str, list[str]]:
+    rows = [line for line in md.splitlines() if line.startswith("| ")]
+    return {cells[0]: cells for cells in ([c.strip() for c in r.strip("|").split("|")] for r in rows[1:])}
+
+
+def _relmse64(x, r) -> float:
+    x, r = np.asarray(x, np.float64), np.asarray(r, np.float64)
+    return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
+
+
+@pytest.mark.slow
+def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduces(compared):
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.models import ModelConfig, build_branch_model
+
+    tmp, cfg, record, lines = compared
+    out = tmp / "reports"
+    md = (out / "compare.md").read_text()
+    assert json.loads((out / "compare.json").read_text()) == json.loads(json.dumps(record))
+    assert (out / "compare.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [r["name"] for r in record["rows"]] == ["cpu", "shared", "raw input", "NLM", "OIDN"]
+
+    # the budget rule on the fixed probe timings: 2 s over 0.05 s per step of each of the two branches,
+    # and all of it for the shared network's one phase
+    steps = {"cpu": {"diffuse": 20, "specular": 20}, "shared": {"shared": 40}}
+    for name, expected in steps.items():
+        assert record["plans"][name]["phase_steps"] == expected
+        trained = json.loads((tmp / "runs" / "s-2s-seed0" / name / "config.json").read_text())["train"]
+        assert trained["steps"] == trained["decay_steps"] == max(expected.values())
+    assert any(line.startswith("[cpu] seconds per step: diffuse 0.0500, specular 0.0500") for line in lines)
+
+    table = _table(md)
+    manifest = ShardSet(tmp / "shards" / "s").complete_manifest()
+    pairs = ShardSet(tmp / "shards" / "s").pairs(manifest, "val")
+    assert len(pairs) == record["shards"]["held_out_frames"] >= 1
+    noisy = [exr.read_aovs(a) for a, _ in pairs]
+    refs = [exr.read_aovs(b, variances=False)["default"] for _, b in pairs]
+    raw = float(np.mean([_relmse64(x["default"], r) for x, r in zip(noisy, refs)]))
+    row = record["rows"][2]
+    assert row["relmse"] == pytest.approx(raw, rel=1e-12)
+    assert table["raw input"][4] == f"{raw:.4f}"
+    cpu = record["rows"][0]
+    denoiser = Denoiser(cpu["run"])
+    assert cpu["relmse"] == pytest.approx(
+        np.mean([_relmse64(denoiser(x)["default"], r) for x, r in zip(noisy, refs)]), rel=1e-6)
+    branch = build_branch_model(ModelConfig(**TINY_MODEL)).count_params()
+    shared = build_branch_model(ModelConfig(**TINY_MODEL, branch_channels=True)).count_params()
+    assert (cpu["parameters"], record["rows"][1]["parameters"]) == (2 * branch, shared)
+    assert table["cpu"][7] == f"{2 * branch:,}"
+    assert table["cpu"][2] == "diffuse 20, specular 20" and table["shared"][2] == "shared 40"
+
+    winner = min(record["rows"][:2], key=lambda r: r["relmse"])["name"]
+    assert f"Best by held-out relMSE: `{winner}`" in md
+    assert table[winner][4].startswith("**")
+    assert "ms / 32×32 frame" in md and f"{record['machine']['torch_threads']} torch threads" in md
+    assert "one shard set and one budget" in md
+
+
+def test_oidn_row_is_measured_when_installed_and_says_so_when_not(compared, monkeypatch):
+    from prep import baselines
+
+    tmp, cfg, record, _ = compared
+    oidn = record["rows"][-1]
+    if baselines.oidn_available():
+        assert oidn["available"] and oidn["relmse"] > 0 and len(oidn["frames"]) == len(record["rows"][2]["frames"])
+        assert _table((tmp / "reports" / "compare.md").read_text())["OIDN"][4] == f"{oidn['relmse']:.4f}"
+    else:
+        assert not oidn["available"]
+
+    monkeypatch.setattr(baselines, "oidn_available", lambda: False)
+    lines = []
+    again = cmp.compare(dataclasses.replace(cfg, out_dir=str(tmp / "without-oidn")),
+                        overrides=OVERRIDES, verbose=0, log=lines.append)
+    row = _table((tmp / "without-oidn" / "compare.md").read_text())["OIDN"]
+    assert "not installed" in row[1] and set(row[2:]) == {"—"}
+    assert again["rows"][-1] == {"name": "OIDN", "kind": "baseline", "available": False, "what": row[1]}
+    assert "OIDN, the row to beat, is not installed" in (tmp / "without-oidn" / "compare.md").read_text()
+    # the same settings again: the plan is reused and the runs are done, so nothing is probed or retrained
+    assert any(line.startswith("[cpu] steps from ") for line in lines)
+    assert not any("probe" in line for line in lines)
+    assert [r["relmse"] for r in again["rows"][:3]] == [r["relmse"] for r in record["rows"][:3]]
