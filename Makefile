@@ -34,8 +34,10 @@ train: shards
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)
 
-# every configuration for the same training seconds (COMPARE_ARGS="--budget 60"): reports/compare.{md,json,png}
+# every configuration for the same training seconds (COMPARE_ARGS="--budget 60"): reports/compare.{md,json,png};
+# with Intel Open Image Denoise (the optional extra pyoidn) as the row to beat
 compare: shards
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) compare --set $(SET) $(COMPARE_ARGS)
 
 test: $(KPCN)

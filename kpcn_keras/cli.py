@@ -220,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, help=d("seed"))
     s.set_defaults(func=cmd_shards)
 
-    from kpcn_keras.config import PRESETS, TrainConfig
+    from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PRESETS, CompositorConfig, TrainConfig
 
     t = parser("train", help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
     d = lambda name: f"(default: {_default(TrainConfig, name)})"  # noqa: E731
@@ -245,7 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--compositor", help="alpha or kernel: add the multiscale compositor phase (default: none)")
     g.add_argument("--compositor-steps", type=int, help=d("compositor_steps"))
     g.add_argument("--compositor-lr", dest="compositor_learning_rate", type=float, help=d("compositor_learning_rate"))
-    g.add_argument("--gamma", type=float, help="weight of the compositor's α regulariser (default: 0.01)")
+    g.add_argument("--gamma", type=float, help=f"weight of the compositor's α regulariser "
+                   f"(default: {_default(CompositorConfig, 'gamma')})")
     g = t.add_argument_group("optimisation")
     g.add_argument("--batch-size", type=int, help=d("batch_size"))
     g.add_argument("--lr", dest="learning_rate", type=float, help=f"initial learning rate {d('learning_rate')}")
@@ -267,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--run", required=True, help="run folder with diffuse.keras and specular.keras")
     n.add_argument("-o", "--output", default=None, help="output EXR (default: <input stem>-denoised.exr beside it)")
     n.add_argument("--reference", default=None, help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
-    n.add_argument("--tile", type=int, help="tile size in pixels, bounds memory (default: 256)")
+    n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
     n.add_argument("--no-png", action="store_true", default=False)
@@ -278,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
                    "each reference is the same scene's render with the most samples in the same folder")
     e.add_argument("--out", default=None, help="report folder (default: <run>/eval)")
-    e.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
+    e.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     e.add_argument("--no-baseline", action="store_true", default=False)
     e.set_defaults(func=cmd_evaluate)
 
@@ -288,8 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
                    "at its lowest spp); its reference is the same scene's render with the most samples beside it")
     f.add_argument("--pixel", type=_csv_ints, help="y,x of the kernel figure's pixel (default: the noisiest)")
-    f.add_argument("--slopes", type=_csv_floats, help="the λ of the sweep (default: 1,2,4,8)")
-    f.add_argument("--tile", type=int, help="tile size in pixels (default: 256)")
+    slopes = ",".join(f"{s:g}" for s in DEFAULT_SLOPES)
+    f.add_argument("--slopes", type=_csv_floats, help=f"the λ of the sweep (default: {slopes})")
+    f.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     f.set_defaults(func=cmd_figures)
 
     from prep.render.bench import RenderBenchConfig

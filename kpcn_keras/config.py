@@ -18,6 +18,8 @@ from prep.errors import OptionError
 from prep.features import BRANCHES
 
 ARCHS = ("kpcn", "kpal", "dpcn")
+DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
+DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
 COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
 BRANCH_CHANNELS = len(BRANCHES)  # one-hot branch indicator of a shared network
 
@@ -31,6 +33,34 @@ def check_kernel_size(k) -> int:
     if value is None or isinstance(k, bool) or value < 1 or value % 2 == 0:
         raise ValueError(f"kernel size must be a positive odd integer, received {k!r}")
     return value
+
+
+def _check_network(cfg, *integers: str) -> None:
+    """The fields every convolutional network config has (``width``, ``depth``, ``conv_size``,
+    ``kernel_size``) and ``integers``: OptionError naming the field and echoing the value."""
+    for name in integers + ("width", "depth", "conv_size", "kernel_size"):
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise OptionError(name, f"must be an integer, received {value!r}")
+    if cfg.width < 1:
+        raise OptionError("width", f"must be >= 1, received {cfg.width}")
+    if cfg.depth < 1:
+        raise OptionError("depth", f"must be >= 1, received {cfg.depth}")
+    if cfg.conv_size < 1 or cfg.conv_size % 2 == 0:
+        raise OptionError("conv_size", f"must be a positive odd integer, received {cfg.conv_size}")
+    try:
+        check_kernel_size(cfg.kernel_size)
+    except ValueError as exc:
+        raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
+
+
+def _strict_from_dict(cls, d: dict, option: str):
+    """``cls(**d)``, but an unknown key is an OptionError naming ``option`` (a typo would pass silently)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise OptionError(option, f"has unknown {cls.__name__} keys {unknown}; known keys are {sorted(names)}")
+    return cls(**d)
 
 
 @dataclass
@@ -57,24 +87,11 @@ class ModelConfig:
     def __post_init__(self):
         if self.arch not in ARCHS:
             raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
-        for name in ("in_channels", "width", "depth", "conv_size", "kernel_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise OptionError(name, f"must be an integer, received {value!r}")
+        _check_network(self, "in_channels")
         if self.in_channels < COLOUR_CHANNELS:
             raise OptionError(
                 "in_channels", f"must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), received {self.in_channels}"
             )
-        if self.width < 1:
-            raise OptionError("width", f"must be >= 1, received {self.width}")
-        if self.depth < 1:
-            raise OptionError("depth", f"must be >= 1, received {self.depth}")
-        if self.conv_size < 1 or self.conv_size % 2 == 0:
-            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
-        try:
-            check_kernel_size(self.kernel_size)
-        except ValueError as exc:
-            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
         if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)):
             raise OptionError("dropout", f"must be a number in [0, 1), received {self.dropout!r}")
         if not 0.0 <= float(self.dropout) < 1.0:
@@ -100,11 +117,7 @@ class ModelConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
         """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise OptionError("model", f"has unknown ModelConfig keys {unknown}; known keys are {sorted(names)}")
-        return cls(**d)
+        return _strict_from_dict(cls, d, "model")
 
 
 COMPOSITOR_KINDS = ("alpha", "kernel")
@@ -130,22 +143,9 @@ class CompositorConfig:
         if self.kind not in COMPOSITOR_KINDS:
             # the option a user types is --compositor KIND
             raise OptionError("compositor", f"must be one of {COMPOSITOR_KINDS}, received {self.kind!r}")
-        for name in ("levels", "width", "depth", "conv_size", "kernel_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise OptionError(name, f"must be an integer, received {value!r}")
+        _check_network(self, "levels")
         if self.levels < 2:
             raise OptionError("levels", f"must be >= 2 (one level is the denoiser alone), received {self.levels}")
-        if self.width < 1:
-            raise OptionError("width", f"must be >= 1, received {self.width}")
-        if self.depth < 1:
-            raise OptionError("depth", f"must be >= 1 (the head alone), received {self.depth}")
-        if self.conv_size < 1 or self.conv_size % 2 == 0:
-            raise OptionError("conv_size", f"must be a positive odd integer, received {self.conv_size}")
-        try:
-            check_kernel_size(self.kernel_size)
-        except ValueError as exc:
-            raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
         gamma = self.gamma
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma < math.inf:
             raise OptionError("gamma", f"must be a finite number >= 0, received {gamma!r}")
@@ -158,13 +158,7 @@ class CompositorConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "CompositorConfig":
         """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise OptionError(
-                "compositor", f"has unknown CompositorConfig keys {unknown}; known keys are {sorted(names)}"
-            )
-        return cls(**d)
+        return _strict_from_dict(cls, d, "compositor")
 
 
 # "cpu" (the TrainConfig defaults) trains a useful model on a 2-core CPU in minutes. The paper presets are
@@ -227,7 +221,7 @@ class TrainConfig:
     ModelConfig defaults), 1200 steps of batch 8 per branch, augmentation on. ``steps``, ``learning_rate``,
     ``decay_steps`` and ``decay_rate`` are per branch phase; the joint and compositor phases have their own
     steps and learning rates and share the decay. ``compositor`` is None (no multiscale) or the
-    ``kpcn_keras.multiscale.CompositorConfig`` fields (``{"kind": "alpha"}`` at least). With
+    ``CompositorConfig`` fields (``{"kind": "alpha"}`` at least). With
     ``slope_input`` the network gets λ as an input channel and learns the asymmetric loss for every λ in
     ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.

@@ -22,6 +22,7 @@ from pathlib import Path
 import keras
 import numpy as np
 
+from kpcn_keras.config import DEFAULT_TILE
 from kpcn_keras.models import network_input, receptive_radius
 from kpcn_keras.multiscale import CompositorConfig, alignment, build_multiscale_model, multiscale_radius
 from kpcn_keras.run import Run, check_architecture
@@ -30,7 +31,6 @@ from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import atomic_path, check_writable
 
-DEFAULT_TILE = 256
 
 
 class Denoiser:
@@ -54,7 +54,7 @@ class Denoiser:
         self.slope = slope
         names = {b: "shared" if self.model_config.branch_channels else b for b in BRANCHES}
         networks = {}
-        for name in sorted(set(names.values())):
+        for name in dict.fromkeys(names.values()):
             networks[name] = self.run.load_component(self.record, name)
             check_architecture(networks[name], self.model_config, self.run.dir / self.record["components"][name]["file"])
         self.networks = networks

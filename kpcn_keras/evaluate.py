@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.denoise import DEFAULT_TILE, Denoiser, side_by_side_png
+from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.denoise import Denoiser, side_by_side_png
 from kpcn_keras.run import Run
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError

@@ -28,6 +28,7 @@ from pathlib import Path
 import keras
 import numpy as np
 
+from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import build_kernel_model, network_input
 from kpcn_keras.multiscale import build_alpha_model
@@ -36,8 +37,6 @@ from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import atomic_path
-
-DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)
 
 
 def _pyplot():
@@ -169,12 +168,10 @@ def slope_figure(run_dir, aovs: dict, ref: dict | None, path: Path, slopes, tile
 
 
 def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=None,
-                 slopes=DEFAULT_SLOPES, tile: int | None = None) -> dict[str, Path]:
+                 slopes=DEFAULT_SLOPES, tile: int = DEFAULT_TILE) -> dict[str, Path]:
     """Every figure the run can show, for ``frame`` = (noisy EXR, reference EXR or None); returns name -> path."""
-    from kpcn_keras.denoise import DEFAULT_TILE
     from kpcn_keras.evaluate import held_out_pairs
 
-    tile = DEFAULT_TILE if tile is None else tile
     if frame is None:
         pairs = held_out_pairs(run_dir)
         if not pairs:
@@ -200,4 +197,4 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
     return written
 
 
-__all__ = ["DEFAULT_SLOPES", "choose_pixel", "make_figures"]
+__all__ = ["choose_pixel", "make_figures"]

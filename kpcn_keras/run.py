@@ -29,6 +29,7 @@ more entry of the same zip, so the model and its epoch count can never disagree 
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import zipfile
@@ -195,8 +196,14 @@ def read_state(path: str | os.PathLike) -> dict | None:
         raise KpcnError(f"{path}: not a readable .keras file ({type(exc).__name__}: {exc})") from None
 
 
+# the modules whose registered layers and losses a run's .keras files name: loading needs them imported
+_REGISTERING = ("kpcn_keras.layers", "kpcn_keras.losses", "kpcn_keras.multiscale")
+
+
 def load_model(path: str | os.PathLike, *, compile: bool = True) -> keras.Model:
     """``keras.models.load_model`` with errors that name the file: missing, or damaged (and how)."""
+    for module in _REGISTERING:
+        importlib.import_module(module)
     path = Path(path)
     if not path.is_file():
         raise KpcnError(f"{path}: no such model file")

@@ -73,7 +73,7 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
         keras.utils.set_random_seed(cfg.seed + [p.name for p in cfg.phases()].index(phase.name))
         return build_branch_model(model_cfg, name=phase.name)
     names = _network_names(cfg)
-    nets = {name: run.load_component(record, name) for name in set(names.values())}
+    nets = {name: run.load_component(record, name) for name in dict.fromkeys(names.values())}
     for name, net in nets.items():
         check_architecture(net, model_cfg, run.dir / record["components"][name]["file"])
     if phase.name == "joint":
@@ -104,7 +104,8 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     if not phase.trains_on_final_colour:
         return {phase.name: {"file": file, "phase": phase.name}}
     if phase.name == "joint":
-        return {name: {"file": file, "layers": [name], "phase": phase.name} for name in set(_network_names(cfg).values())}
+        networks = dict.fromkeys(_network_names(cfg).values())  # ordered: the record is compared byte for byte
+        return {name: {"file": file, "layers": [name], "phase": phase.name} for name in networks}
     return {"compositor": {"file": file, "layers": ["compositor"], "phase": phase.name}}
 
 
