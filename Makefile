@@ -11,7 +11,7 @@ SHARD_ARGS  ?=
 TRAIN_ARGS  ?=
 COMPARE_ARGS ?=
 
-.PHONY: venv render shards train evaluate compare test clean
+.PHONY: venv render shards train evaluate figures compare test clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -30,9 +30,13 @@ shards: render
 train: shards
 	$(KPCN) train --set $(SET) --run runs/$(RUN) $(TRAIN_ARGS)
 	$(KPCN) evaluate --run runs/$(RUN)
+	$(KPCN) figures --run runs/$(RUN)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)
+
+figures: $(KPCN)
+	$(KPCN) figures --run runs/$(RUN)
 
 # every configuration for the same training seconds (COMPARE_ARGS="--budget 60"): reports/compare.{md,json,png};
 # with Intel Open Image Denoise (the optional extra pyoidn) as the row to beat

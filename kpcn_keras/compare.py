@@ -8,9 +8,11 @@ The contract:
 - **One shard set, one budget.** Every configuration trains on ``<shards_root>/<set_name>`` for
   ``budget`` seconds of training steps into its own run folder
   ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``. Seconds become steps by probing
-  (:func:`probe_configuration`): two trainings of :data:`PROBE_STEPS` steps in every phase, in scratch runs
-  (one epoch per phase, one validation batch), give each phase's marginal seconds per step
-  (:func:`seconds_per_step`); :func:`budget_steps` shares the budget out between the phases. The probes and
+  (:func:`probe_configuration`): a scratch training of :data:`PROBE_STEPS` steps in every phase times each
+  training step itself (a Keras callback), and the median of a phase's steps after the first
+  :data:`PROBE_SKIP` (which pay one-time costs) is its seconds per step (:func:`seconds_per_step`); phase
+  set-up, shard checksums, validation and checkpoints are not in it, so the noise of a busy machine around
+  a short training cannot land in it. :func:`budget_steps` shares the budget out between the phases. The probes and
   the steps are kept in ``plan.json`` beside the runs, so the same command run again reuses them and
   resumes (``train`` refuses a run of another configuration, and fresh probes would give other steps);
   training itself is deterministic given the steps. Model building, validation and checkpoints are not
@@ -62,7 +64,8 @@ CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
     "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
 }
 
-PROBE_STEPS = (2, 8)
+PROBE_STEPS = 10
+PROBE_SKIP = 2  # the first steps of a phase build the optimizer and warm torch up
 # The branch networks are the denoiser; joint fine-tuning and the compositor refine it, so they get the
 # smaller share. Without either, the branch phases get the whole budget: every row trains as long.
 BRANCH_SHARE = 0.8
@@ -74,20 +77,14 @@ PLAN = "plan.json"
 # ---------------------------------------------------------------- seconds to steps
 
 
-def seconds_per_step(probes: dict[int, dict[str, float]]) -> dict[str, float]:
-    """Each phase's marginal seconds per step from two probes ``{steps: {phase: seconds}}``: the difference
-    of their times over the difference of their steps (building, loading and saving cancel out).
-
-    A difference that is not positive (the machine was busier during the shorter probe) falls back to the
-    longer probe's mean seconds per step, which overestimates a step, so the budget is never overrun by it.
-    """
-    if len(probes) != 2:
-        raise ValueError(f"expected two probes, got {sorted(probes)}")
-    (a, short), (b, long) = sorted((int(k), v) for k, v in probes.items())
+def seconds_per_step(step_times: dict[str, list[float]]) -> dict[str, float]:
+    """Each phase's seconds per step: the median of its timed steps after the first :data:`PROBE_SKIP`
+    (a median, so one step that the machine delayed does not move it)."""
     out = {}
-    for phase, seconds in long.items():
-        marginal = (seconds - short[phase]) / (b - a)
-        out[phase] = marginal if marginal > 0 else seconds / b
+    for phase, times in step_times.items():
+        if len(times) <= PROBE_SKIP:
+            raise ValueError(f"phase {phase}: {len(times)} timed steps, need more than {PROBE_SKIP}")
+        out[phase] = statistics.median(times[PROBE_SKIP:])
     return out
 
 
@@ -148,7 +145,7 @@ def with_steps(base: TrainConfig, steps: dict[str, int]) -> TrainConfig:
 
 
 def _probe_fields(base: TrainConfig, n: int) -> dict:
-    # one epoch per phase, so the epoch's validation and checkpoint are fixed costs and cancel out
+    # one epoch per phase and one validation batch: the probe wants the steps, not what comes around them
     fields = {"steps": n, "decay_steps": n, "steps_per_epoch": n, "val_batches": 1, "compositor_steps": n}
     if base.joint_steps:
         fields["joint_steps"] = n
@@ -186,32 +183,41 @@ def _group_dir(cfg: CompareConfig) -> Path:
     return Path(cfg.runs_root) / f"{cfg.set_name}-{cfg.budget:g}s-seed{cfg.seed}"
 
 
-def _probe_once(base: TrainConfig, n: int, run_dir: Path) -> dict[str, float]:
-    """Seconds of each phase of a scratch training of ``n`` steps per phase.
+def _step_timer(phases: list[str], times: dict[str, list[float]]):
+    """A Keras callback appending the seconds of every training step to ``times[phase]``; each ``fit`` of
+    a fresh training is the next phase of ``phases``."""
+    import keras
 
-    Phases are timed by the modification times of the phase files train() writes at the end of each
-    phase (timings.json rounds to 0.1 s, which is most of a short probe's difference).
-    """
-    from kpcn_keras.run import Run
+    class StepTimer(keras.callbacks.Callback):
+        def __init__(self):
+            super().__init__()
+            self.fits = 0
+
+        def on_train_begin(self, logs=None):
+            self.phase = phases[self.fits]
+            self.fits += 1
+
+        def on_train_batch_begin(self, batch, logs=None):
+            self.start = time.perf_counter()
+
+        def on_train_batch_end(self, batch, logs=None):
+            times.setdefault(self.phase, []).append(time.perf_counter() - self.start)
+
+    return StepTimer()
+
+
+def probe_configuration(base: TrainConfig, scratch: Path) -> dict[str, list[float]]:
+    """``{phase: [seconds of each step]}`` of a scratch training of ``base``, :data:`PROBE_STEPS` steps in
+    every phase (one epoch each, one validation batch)."""
     from kpcn_keras.train import train
 
-    cfg = with_steps(base, _probe_fields(base, n))
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    start = time.time()
-    train(cfg, run_dir, verbose=0)
-    run, seconds, last = Run(run_dir), {}, start
-    for phase in cfg.phases():
-        end = run.model_path(phase.name).stat().st_mtime
-        seconds[phase.name] = end - last
-        last = end
-    shutil.rmtree(run_dir)
-    return seconds
-
-
-def probe_configuration(base: TrainConfig, scratch: Path) -> dict[str, dict[str, float]]:
-    """``{steps: {phase: seconds}}`` of the :data:`PROBE_STEPS` probes of ``base``, in scratch runs."""
-    return {str(n): _probe_once(base, n, scratch / f"probe-{n}") for n in PROBE_STEPS}
+    cfg = with_steps(base, _probe_fields(base, PROBE_STEPS))
+    if scratch.exists():
+        shutil.rmtree(scratch)
+    times: dict[str, list[float]] = {}
+    train(cfg, scratch, verbose=0, callbacks=[_step_timer([p.name for p in cfg.phases()], times)])
+    shutil.rmtree(scratch)
+    return times
 
 
 def _fmt_phases(values: dict, fmt: str) -> str:
@@ -234,7 +240,6 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
             shutil.rmtree(scratch)  # what a killed comparison's probes left
         plan_path = group / PLAN
         stored = read_json(plan_path, "comparison plan") if plan_path.is_file() else {}
-        warmed = False
         for name in cfg.configurations:
             base = train_config(name, cfg, overrides)
             run_dir = group / name
@@ -246,21 +251,13 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
                 if Run(run_dir).has_record():
                     raise KpcnError(f"{run_dir}: trained for other settings than this comparison's (another "
                                     f"configuration or shard set); choose another --runs or remove {run_dir}")
-                if not warmed:
-                    # the process's first training pays one-time costs (imports, first kernels) that
-                    # would otherwise land in the shorter probe and shrink the difference
-                    log(f"[{name}] warming up with a {PROBE_STEPS[0]}-step training")
-                    _probe_once(base, PROBE_STEPS[0], scratch / "warm-up")
-                    warmed = True
-                probes = probe_configuration(base, scratch)
+                probes = probe_configuration(base, scratch / name)
                 per_step = seconds_per_step(probes)
                 steps = budget_steps(cfg.budget, per_step)
                 planned = with_steps(base, steps)
                 entry = {**key, "probes": probes, "seconds_per_step": per_step,
                          "shares": budget_shares(per_step), "steps": steps,
                          "phase_steps": {p.name: p.steps for p in planned.phases()}}
-                for n, seconds in probes.items():
-                    log(f"[{name}] probe of {n} steps: {_fmt_phases(seconds, '{:.2f} s')}")
                 log(f"[{name}] seconds per step: {_fmt_phases(per_step, '{:.4f}')}; for {cfg.budget:g} s: "
                     f"{_fmt_phases(entry['phase_steps'], '{}')} steps")
                 stored[name] = entry
@@ -399,7 +396,7 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
         "overrides": overrides or {},
         "shards": {"set_dir": str(Path(cfg.shards_root) / cfg.set_name), "content_key": manifest["content_key"],
                    "held_out_frames": len(rows[0]["frames"])},
-        "rules": {"probe_steps": list(PROBE_STEPS), "branch_share": BRANCH_SHARE},
+        "rules": {"probe_steps": PROBE_STEPS, "probe_skip": PROBE_SKIP, "branch_share": BRANCH_SHARE},
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads(),
                     "load_average_before": list(load_before), "load_average_after": list(os.getloadavg())},
@@ -466,9 +463,9 @@ def format_report(record: dict) -> str:
     paper = [n for n in cfg["configurations"] if CONFIGURATIONS[n][1] != TrainConfig.preset]
     lines += ["", verdict, ""]
     lines.append(
-        f"- **Same budget.** Each configuration's phases were timed by two scratch trainings of "
-        f"{' and '.join(map(str, record['rules']['probe_steps']))} steps per phase (one validation batch); a "
-        "phase's seconds per step is the difference of the two over the difference of the steps. The branch "
+        f"- **Same budget.** Each configuration's phases were timed by a scratch training of "
+        f"{record['rules']['probe_steps']} steps per phase, every step timed by a callback; a phase's seconds "
+        f"per step is the median of its steps after the first {record['rules']['probe_skip']}. The branch "
         f"phases get {100 * record['rules']['branch_share']:.0f} % of the budget (all of it without joint "
         "fine-tuning or a compositor) and run the same steps, so a shared network's one phase gets about twice "
         "the steps of each separate branch; joint fine-tuning or the compositor gets the rest. The learning "

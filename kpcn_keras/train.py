@@ -270,8 +270,10 @@ def loss_curve_png(run: Run, record: dict) -> Path:
 # ---------------------------------------------------------------- the loop
 
 
-def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto") -> None:
-    """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written."""
+def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto",
+                callbacks=()) -> None:
+    """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written. ``callbacks``:
+    more Keras callbacks for its ``fit`` (after the run's own)."""
     final = run.model_path(phase.name)
     if final.is_file():
         return  # written once, after its last epoch: the phase is done (the record may lag after a kill)
@@ -304,6 +306,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         keras.callbacks.TerminateOnNaN(raise_error=True),  # first: nothing else sees a non-finite epoch
         keras.callbacks.CSVLogger(str(run.log_path), append=True),
         _Checkpoint(ckpt, cfg, phase, history),
+        *callbacks,
     ]
     if epochs_done < phase.epochs:
         try:
@@ -322,8 +325,9 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     save_model(model, final)
 
 
-def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
-    """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it."""
+def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()) -> Path:
+    """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it. ``callbacks`` are passed
+    to every phase's ``fit`` (a benchmark's step timer)."""
     keras_backend = keras.backend.backend()
     if keras_backend != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras_backend!r}")
@@ -339,7 +343,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto") -> Path:
             if record["phases"][phase.name]["status"] == "done" and run.model_path(phase.name).is_file():
                 continue
             start = time.perf_counter()
-            train_phase(cfg, run, record, phase, paths, verbose=verbose)
+            train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
             rows = [r for r in read_log(run.log_path)
                     if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
             record["phases"][phase.name]["status"] = "done"

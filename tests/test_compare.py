@@ -41,13 +41,16 @@ def test_budget_steps_match_a_hand_computation():
         {"steps": 1, "decay_steps": 1, "compositor_steps": 1}
 
 
-def test_shares_and_seconds_per_step_from_two_probes():
+def test_shares_and_seconds_per_step_from_timed_steps():
     assert cmp.budget_shares(["diffuse", "specular"]) == {"diffuse": 0.5, "specular": 0.5}
     assert cmp.budget_shares(["shared", "joint"]) == pytest.approx({"shared": 0.8, "joint": 0.2})
-    probes = {"2": {"diffuse": 1.25, "joint": 3.0}, "8": {"diffuse": 1.85, "joint": 6.0}}
-    assert cmp.seconds_per_step(probes) == pytest.approx({"diffuse": 0.6 / 6, "joint": 3.0 / 6})
-    # a longer probe that ran faster than the shorter one: its mean per step, an overestimate
-    assert cmp.seconds_per_step({"2": {"diffuse": 2.0}, "8": {"diffuse": 1.6}}) == pytest.approx({"diffuse": 0.2})
+    # the first PROBE_SKIP steps (optimizer built, torch warming up) are left out; a median is robust to
+    # one step the machine delayed
+    steps = {"diffuse": [3.0, 0.5, 0.1, 0.12, 0.11, 2.0], "joint": [9.0, 9.0, 0.4, 0.5, 0.6]}
+    assert cmp.PROBE_SKIP == 2
+    assert cmp.seconds_per_step(steps) == pytest.approx({"diffuse": 0.115, "joint": 0.5})
+    with pytest.raises(ValueError, match="diffuse"):
+        cmp.seconds_per_step({"diffuse": [1.0, 1.0]})
 
 
 def test_every_configuration_is_a_training_with_the_phases_it_names():
@@ -83,20 +86,20 @@ def test_unknown_configuration_is_a_one_line_error_listing_the_known_ones(tmp_pa
     assert not any(tmp_path.iterdir())
 
 
-def test_probes_time_every_phase_in_scratch_runs(tmp_path):
+def test_probes_time_every_step_of_every_phase_in_a_scratch_run(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = CompareConfig(set_name="s", shards_root=shard_cfg.out_root)
     base = cmp.train_config("joint", cfg, OVERRIDES)
     probes = cmp.probe_configuration(base, tmp_path / "scratch")
-    assert sorted(probes) == sorted(str(n) for n in cmp.PROBE_STEPS)
-    for seconds in probes.values():
-        assert list(seconds) == ["diffuse", "specular", "joint"] and all(s > 0 for s in seconds.values())
-    assert not any((tmp_path / "scratch").iterdir())
+    assert list(probes) == ["diffuse", "specular", "joint"]
+    assert all(len(times) == cmp.PROBE_STEPS and min(times) > 0 for times in probes.values())
+    assert not (tmp_path / "scratch").exists()
     assert set(cmp.budget_steps(10.0, cmp.seconds_per_step(probes))) == {"steps", "decay_steps", "joint_steps"}
 
 
-def _fake_probe(base, n, run_dir):
-    return {p.name: 0.5 + FAKE_SECONDS_PER_STEP * n for p in base.phases()}
+def _fake_probe(base, scratch):
+    return {p.name: [1.0] * cmp.PROBE_SKIP + [FAKE_SECONDS_PER_STEP] * (cmp.PROBE_STEPS - cmp.PROBE_SKIP)
+            for p in base.phases()}
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +112,7 @@ def compared(tmp_path_factory):
                         repeats=2, frame=32)
     lines = []
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(cmp, "_probe_once", _fake_probe)
+        mp.setattr(cmp, "probe_configuration", _fake_probe)
         record = cmp.compare(cfg, overrides=OVERRIDES, verbose=0, log=lines.append)
     return tmp, cfg, record, lines
 
