@@ -160,12 +160,17 @@ def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduc
     assert table["raw input"][4] == f"{raw:.4f}"
     cpu = record["rows"][0]
     denoiser = Denoiser(cpu["run"])
-    assert cpu["relmse"] == pytest.approx(
-        np.mean([_relmse64(denoiser(x)["default"], r) for x, r in zip(noisy, refs)]), rel=1e-6)
+    cpu_frames = [_relmse64(denoiser(x)["default"], r) for x, r in zip(noisy, refs)]
+    assert cpu["relmse"] == pytest.approx(np.mean(cpu_frames), rel=1e-6)
+    from prep import baselines
+
+    if baselines.oidn_available():
+        oidn_frames = [_relmse64(baselines.oidn_denoise(x), r) for x, r in zip(noisy, refs)]
+        assert table["cpu"][7] == f"{sum(c < o for c, o in zip(cpu_frames, oidn_frames))}/{len(refs)}"
     branch = build_branch_model(ModelConfig(**TINY_MODEL)).count_params()
     shared = build_branch_model(ModelConfig(**TINY_MODEL, branch_channels=True)).count_params()
     assert (cpu["parameters"], record["rows"][1]["parameters"]) == (2 * branch, shared)
-    assert table["cpu"][7] == f"{2 * branch:,}"
+    assert table["cpu"][8] == f"{2 * branch:,}"
     assert table["cpu"][2] == "diffuse 20, specular 20" and table["shared"][2] == "shared 40"
 
     winner = min(record["rows"][:2], key=lambda r: r["relmse"])["name"]
