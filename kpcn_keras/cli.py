@@ -265,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     n = parser("denoise", help="denoise one EXR in the AOV layout")
     n.add_argument("input")
-    n.add_argument("--run", required=True, help="run folder with diffuse.keras and specular.keras")
+    n.add_argument("--run", required=True, help="a run folder that finished training (kpcn train)")
     n.add_argument("-o", "--output", default=None, help="output EXR (default: <input stem>-denoised.exr beside it)")
     n.add_argument("--reference", default=None, help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
     n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
