@@ -98,8 +98,12 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
         if ref is not None:
             ref_colour = features.branch_colour(ref, branch)
             panels.append(("reference (log)", ref_colour[y - r : y + r + 1, x - r : x + r + 1].mean(-1), "magma"))
+        # the input and reference crops share one colour scale, so they can be compared by eye
+        crops = [image for _, image, cmap in panels if cmap == "magma"]
+        lo, hi = min(c.min() for c in crops), max(c.max() for c in crops)
         for ax, (title, image, cmap) in zip(row, panels):
-            ax.imshow(image, cmap=cmap, interpolation="nearest")
+            scale = {"vmin": lo, "vmax": hi} if cmap == "magma" else {}
+            ax.imshow(image, cmap=cmap, interpolation="nearest", **scale)
             ax.set_title(title, fontsize=8)
         row[0].plot([r], [r], "c+", markersize=12)
         row[-1].axis("off")
