@@ -47,7 +47,7 @@ from pathlib import Path
 
 from kpcn_keras.config import PRESETS, CompareConfig, TrainConfig
 from prep.errors import KpcnError
-from prep.files import atomic_path, atomic_write_text, check_writable, exclusive_lock, read_json
+from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, read_json, save_png
 
 # name -> (what it is, preset, TrainConfig overrides). A joint_steps or compositor entry only says that the
 # phase exists: every step count is set by the budget.
@@ -512,10 +512,7 @@ def format_report(record: dict) -> str:
 
 def scatter_png(record: dict, path: Path) -> Path:
     """relMSE against ms per frame, log axes, each point labelled; the raw input's relMSE is a line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7.5, 5))
     styles = {"network": dict(marker="o", color="C0"), "NLM": dict(marker="s", color="C2"),
@@ -544,7 +541,4 @@ def scatter_png(record: dict, path: Path) -> Path:
     ax.grid(True, which="both", alpha=0.2)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
-    plt.close(fig)
-    return Path(path)
+    return save_png(fig, path)

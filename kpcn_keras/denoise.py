@@ -29,7 +29,7 @@ from kpcn_keras.run import Run, check_architecture
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import atomic_path, check_writable
+from prep.files import check_writable, pyplot, save_png
 
 
 
@@ -112,10 +112,7 @@ class Denoiser:
 
 def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
     """Tonemapped panels in a row with their captions (``prep.metrics.tonemap``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from prep.metrics import tonemap
 
@@ -129,11 +126,7 @@ def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], tit
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    return path
+    return save_png(fig, path)
 
 
 def default_output(input_path: str | os.PathLike) -> Path:

@@ -36,23 +36,7 @@ from kpcn_keras.run import Run
 from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import atomic_path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
-    _pyplot().close(fig)
-    return path
+from prep.files import pyplot, save_png
 
 
 def _to_numpy(x) -> np.ndarray:
@@ -80,7 +64,7 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
     h, w = aovs["default"].shape[:2]
     if not (r <= y < h - r and r <= x < w - r):
         raise OptionError("pixel", f"must be at least {r} pixels from the border of the {w}x{h} frame, got {y},{x}")
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(len(BRANCHES), 4, figsize=(10, 2.7 * len(BRANCHES)), squeeze=False)
     # the network sees a window of its receptive radius around the pixel: enough for this pixel's kernel
     m = den.margin
@@ -114,7 +98,7 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
             ax.set_yticks([])
     fig.suptitle("predicted kernels (seed report Fig. 2)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def _caption(name: str, image: np.ndarray, ref: dict | None) -> str:
@@ -136,7 +120,7 @@ def multiscale_figure(den: Denoiser, plain: Denoiser, aovs: dict, ref: dict | No
 
 def alpha_figure(den: Denoiser, aovs: dict, path: Path) -> Path:
     """``alpha.png`` (Fig. 16): α of every compositor application, per branch, finest scale first."""
-    plt = _pyplot()
+    plt = pyplot()
     rows = []
     for branch in BRANCHES:
         feats = network_input(features.branch_features(aovs, branch), den.model_config, branch, den.slope)
@@ -155,7 +139,7 @@ def alpha_figure(den: Denoiser, aovs: dict, path: Path) -> Path:
             ax.axis("off")
     fig.suptitle("compositor α: 1 takes the coarse scale's low frequencies (seed report Fig. 16)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def slope_figure(run_dir, aovs: dict, ref: dict | None, path: Path, slopes, tile: int) -> Path:

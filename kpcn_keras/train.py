@@ -55,7 +55,7 @@ from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_ou
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import atomic_path, atomic_write_json, check_writable, read_json
+from prep.files import atomic_path, atomic_write_json, check_writable, pyplot, read_json, save_png
 from prep.shards import ShardSet
 
 # ---------------------------------------------------------------- what each phase trains
@@ -241,10 +241,7 @@ def read_log(path: Path) -> list[dict]:
 
 def loss_curve_png(run: Run, record: dict) -> Path:
     """``loss.png``: training and validation loss per epoch of the whole run, each phase shaded and named."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = read_log(run.log_path)
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -261,10 +258,7 @@ def loss_curve_png(run: Run, record: dict) -> Path:
     ax.set_yscale("log")
     ax.legend(loc="upper right")
     fig.tight_layout()
-    with atomic_path(run.loss_curve_path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png", metadata={"Software": None})
-    plt.close(fig)
-    return run.loss_curve_path
+    return save_png(fig, run.loss_curve_path)
 
 
 # ---------------------------------------------------------------- the loop

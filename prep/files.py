@@ -196,3 +196,23 @@ def exclusive_lock(folder: str | os.PathLike, what: str):
         yield folder
     finally:
         os.close(fd)
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (no display needed), imported only when a figure is drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_png(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
+    """Write the matplotlib figure ``fig`` to ``path`` as PNG through :func:`atomic_path` and close it. No
+    "Software" stamp: the same figure gives the same bytes whatever matplotlib version drew it."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png", metadata={"Software": None})
+    pyplot().close(fig)
+    return path

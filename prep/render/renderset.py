@@ -173,13 +173,11 @@ CONTACT_SHEET = "contact-sheet.png"
 def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
     """``<out_dir>/contact-sheet.png``: the reference render of every scene, one row per family (the
     same bytes for the same renders: no metadata that changes between runs)."""
-    import matplotlib
+    from prep.files import pyplot, save_png
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from prep.exr import read_aovs
-    from prep.files import atomic_path
     from prep.metrics import tonemap
 
     rows: dict[str, list[tuple[str, Path]]] = {}
@@ -194,8 +192,4 @@ def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
             axes[i, j].imshow(tonemap(read_aovs(path, variances=False)["default"]), interpolation="nearest")
             axes[i, j].set_title(name, fontsize=8)
     fig.tight_layout()
-    target = out_dir / CONTACT_SHEET
-    with atomic_path(target) as tmp:
-        fig.savefig(tmp, dpi=80, metadata={"Software": None})
-    plt.close(fig)
-    return target
+    return save_png(fig, out_dir / CONTACT_SHEET, dpi=80)
