@@ -1,6 +1,6 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, denoise, evaluate, figures, bench, compare. Each fills its stage's config dataclass from the
+Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
 ``render`` and ``shards`` never import keras or torch.
 
@@ -113,6 +113,17 @@ def cmd_train(args) -> int:
     cfg = TrainConfig.from_preset(given.pop("preset", None), **given)
     run_dir = train(cfg, args.run, verbose=0 if args.quiet else "auto")
     print(f"run: {run_dir}")
+    return 0
+
+
+def cmd_resample(args) -> int:
+    from kpcn_keras.config import ResampleConfig
+    from kpcn_keras.resample import resample
+
+    cfg = ResampleConfig(**_given(args, ResampleConfig))
+    loop = resample(cfg, args.run, verbose=0 if args.quiet else "auto", progress=not args.quiet,
+                    command=" ".join(["kpcn"] + sys.argv[1:]))
+    print(f"{len(loop['rounds'])} rounds; records: {os.path.join(args.run, 'resample', 'rounds.json')}")
     return 0
 
 
@@ -262,6 +273,23 @@ def build_parser() -> argparse.ArgumentParser:
                    "permutations of the training patches")
     g.add_argument("--seed", type=int, help=d("seed"))
     t.set_defaults(func=cmd_train)
+
+    from kpcn_keras.config import ResampleConfig
+
+    m = parser("resample", help="error-based resampling rounds: new patches where the run's denoiser errs, "
+               "then more training on every round (resumes by itself)")
+    d = lambda name: f"(default: {_default(ResampleConfig, name)})"  # noqa: E731
+    m.add_argument("--run", required=True, help="a run folder that finished training (kpcn train)")
+    m.add_argument("--rounds", type=int, help=f"error rounds in all; a rerun with more adds rounds {d('rounds')}")
+    m.add_argument("--metric", help=f"per-pixel error of the error maps: smape or relmse {d('metric')}")
+    m.add_argument("--error-weight", type=float, help="share of the error PDF in the mix with the variance PDF; "
+                   f"0 draws from the variance PDF alone {d('error_weight')}")
+    m.add_argument("--patches-per-image", type=int, help="new patches per training input per round "
+                   "(default: as many as the shard set's round 0)")
+    m.add_argument("--round-steps", type=int, help=f"training steps per network per round {d('round_steps')}")
+    m.add_argument("--round-decay", type=float, help="a patch of round j weighs DECAY**(k-j) in round k; 1: all "
+                   f"alike {d('round_decay')}")
+    m.set_defaults(func=cmd_resample)
 
     n = parser("denoise", help="denoise one EXR in the AOV layout")
     n.add_argument("input")

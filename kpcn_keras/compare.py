@@ -289,16 +289,6 @@ def _median_ms(fn, repeats: int) -> tuple[float, list[float]]:
     return statistics.median(samples), samples
 
 
-def _scores(outputs: list, frames: list[dict]) -> dict:
-    from prep import metrics
-
-    per_frame = [{"frame": f["name"], "relmse": metrics.relmse(x, f["reference"]),
-                  "dssim": metrics.dssim(x, f["reference"]), "relse_p999": metrics.relse_p999(x, f["reference"])}
-                 for x, f in zip(outputs, frames)]
-    means = {m: float(sum(p[m] for p in per_frame) / len(per_frame)) for m in ("relmse", "dssim", "relse_p999")}
-    return {**means, "frames": per_frame}
-
-
 def _training_seconds(run_dir: Path) -> float:
     from kpcn_keras.run import Run
 
@@ -309,17 +299,12 @@ def _training_seconds(run_dir: Path) -> float:
 def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], dict]:
     """The report's rows (trained configurations, then raw input, NLM, OIDN) and what was timed."""
     from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.evaluate import held_out_pairs
-    from prep import baselines, exr
+    from kpcn_keras.evaluate import frame_scores, held_out_frames
+    from prep import baselines
 
-    pairs = held_out_pairs(next(iter(plans.values()))["run"])
-    if not pairs:
+    frames = held_out_frames(next(iter(plans.values()))["run"])
+    if not frames:
         raise KpcnError(f"{cfg.shards_root}/{cfg.set_name}: no held-out scenes to compare on")
-    frames = []
-    for noisy_path, ref_path in pairs:
-        scene, spp = exr.parse_render_filename(noisy_path)
-        frames.append({"name": f"{scene} {spp} spp", "noisy": exr.read_aovs(noisy_path),
-                       "reference": exr.read_aovs(ref_path, variances=False)["default"]})
     crop = _crop(frames[0]["noisy"], cfg.frame)
     h, w = crop["default"].shape[:2]
     timed = {"frame": frames[0]["name"], "width": w, "height": h}
@@ -327,7 +312,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
     for name, plan in plans.items():
         denoiser = Denoiser(plan["run"])
         denoiser.warm_up()
-        scores = _scores([denoiser(f["noisy"])["default"] for f in frames], frames)
+        scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
         ms, samples = _median_ms(lambda: denoiser(crop), cfg.repeats)
         networks = list(denoiser.networks.values()) + ([denoiser.compositor] if denoiser.compositor else [])
         train_cfg = TrainConfig(**read_json(Path(plan["run"]) / "config.json", "run record")["train"])
@@ -338,7 +323,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
         log(f"[{name}] held-out relMSE {scores['relmse']:.4f}, DSSIM {scores['dssim']:.4f}, relSE p99.9 "
             f"{scores['relse_p999']:.4f}; {ms:.1f} ms per {w}×{h} frame")
     rows.append({"name": "raw input", "kind": "input", "what": "the noisy render itself",
-                 **_scores([f["noisy"]["default"] for f in frames], frames)})
+                 **frame_scores([f["noisy"]["default"] for f in frames], frames)})
 
     def nlm(aovs):
         return baselines.nlm_denoise(aovs["default"], aovs["colorVariance"])
@@ -349,7 +334,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
         baseline_rows.append(("OIDN", "Intel Open Image Denoise, RT filter with albedo and normal (pretrained)",
                               baselines.oidn_denoise))
     for name, what, fn in baseline_rows:
-        scores = _scores([fn(f["noisy"]) for f in frames], frames)
+        scores = frame_scores([fn(f["noisy"]) for f in frames], frames)
         ms, samples = _median_ms(lambda: fn(crop), cfg.repeats)
         rows.append({"name": name, "kind": "baseline", "available": True, "what": what, "ms_per_frame": ms,
                      "ms_samples": samples, **scores})

@@ -196,13 +196,26 @@ _CONDITIONING = ("branch_channels", "slope_channel")
 
 @dataclass(frozen=True)
 class Phase:
-    """One training phase of a run: what it trains (``name``, see the module docstring) and how long."""
+    """One training phase of a run: what it trains and how long.
+
+    ``name`` names its files; ``network`` is what it trains (``diffuse``, ``specular``, ``shared``, ``joint``,
+    ``compositor``; default: the name). A phase of the resample loop (``kpcn_keras.resample``) ``continues``
+    the finished phase of that name (its weights and its optimizer, learning-rate schedule included) on
+    the shard rounds 0..``rounds``; every other phase builds a new model and reads round 0.
+    """
 
     name: str
     steps: int
     learning_rate: float
     first_epoch: int  # of the run's one epoch numbering (the CSV log's)
     epoch_steps: int
+    network: str = ""
+    rounds: int = 0
+    continues: Optional[str] = None
+
+    @property
+    def component(self) -> str:
+        return self.network or self.name
 
     @property
     def epochs(self) -> int:
@@ -210,7 +223,7 @@ class Phase:
 
     @property
     def trains_on_final_colour(self) -> bool:
-        return self.name in ("joint", "compositor")
+        return self.component in ("joint", "compositor")
 
 
 @dataclass
@@ -393,3 +406,55 @@ class CompareConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
+
+
+@dataclass
+class ResampleConfig:
+    """Configuration of ``kpcn resample`` (kpcn_keras/resample.py), the error-based resampling loop of seed
+    report §3.3.2, continuing a finished run.
+
+    ``rounds`` error rounds; in each, ``patches_per_image`` new patches per training input (None: as many as
+    the shard set's round 0 cut) are drawn from ``error_weight`` × the PDF of the run's ``metric`` error
+    map + (1 − ``error_weight``) × the variance PDF (0: the variance PDF alone, a control), then every
+    branch network trains ``round_steps`` more steps on all rounds so far, a patch of round j weighing
+    ``round_decay`` ** (k − j) in round k (1: every patch alike; < 1: the newest rounds count more).
+    """
+
+    rounds: int = 3
+    metric: str = "smape"
+    error_weight: float = 0.5
+    patches_per_image: Optional[int] = None
+    round_steps: int = 400
+    round_decay: float = 1.0
+
+    def __post_init__(self):
+        from prep.sampling import ERROR_METRICS
+
+        for name, low in (("rounds", 1), ("round_steps", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
+        ppi = self.patches_per_image
+        if ppi is not None and (isinstance(ppi, bool) or not isinstance(ppi, int) or ppi < 1):
+            raise OptionError("patches_per_image", f"must be an integer >= 1, got {ppi!r}")
+        if self.metric not in ERROR_METRICS:
+            raise OptionError("metric", f"must be one of {', '.join(ERROR_METRICS)}, got {self.metric!r}")
+        for name, ok, bound in (("error_weight", 0.0 <= _number(self.error_weight) <= 1.0, "in [0, 1]"),
+                                ("round_decay", 0.0 < _number(self.round_decay) <= 1.0, "in (0, 1]")):
+            if not ok:
+                raise OptionError(name, f"must be a number {bound}, got {getattr(self, name)!r}")
+        self.error_weight, self.round_decay = float(self.error_weight), float(self.round_decay)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def identity(self) -> dict:
+        """What must agree for a rerun to continue the same loop (``rounds`` may grow: more rounds)."""
+        return {k: v for k, v in self.to_dict().items() if k != "rounds"}
+
+
+def _number(value) -> float:
+    """``value`` as a float for a range check; NaN (outside every range) for what is not a number."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    return float(value)

@@ -21,7 +21,10 @@ for a network with a slope channel, λ log-uniform in ``slope_range``. A validat
 
 Files are opened lazily, once per process, so a dataset object can be pickled into workers. Batch ``i`` is
 a pure function of (seed, offset + i): patches are visited in a fresh seeded permutation every pass over
-the data, so a resumed run sees exactly the batches that an uninterrupted run would have seen.
+the data, so a resumed run sees exactly the batches that an uninterrupted run would have seen. With
+``weights`` (one per shard: the resample loop's weighting of rounds) each batch is instead drawn with
+replacement, a patch with probability proportional to its shard's weight, from a generator seeded by
+(seed, offset + i).
 """
 
 from __future__ import annotations
@@ -47,13 +50,14 @@ class ShardPatches(keras.utils.PyDataset):
     conditioning channels; default: a network without any).
 
     ``steps`` batches are served (default: one pass); ``offset`` skips that many batches of the stream
-    (resume); ``shuffle=False`` serves patches in shard order without augmentation (validation).
+    (resume); ``shuffle=False`` serves patches in shard order without augmentation (validation);
+    ``weights`` (one per path, > 0) draws training patches in proportion to them.
     """
 
     def __init__(self, paths, source: str, batch_size: int, steps: int | None = None, *,
                  model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
                  augment: bool = False, slope: float = 2.0, slope_range: tuple[float, float] = (1.0, 8.0),
-                 **kwargs):
+                 weights=None, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -78,6 +82,13 @@ class ShardPatches(keras.utils.PyDataset):
         branches = range(len(BRANCHES)) if source == "both" else [BRANCHES.index(source) if source in BRANCHES else -1]
         self.index = np.array([(b, s, i) for b in branches for s, n in enumerate(counts) for i in range(n)],
                               dtype=np.int64)
+        self.probabilities = None
+        if weights is not None:
+            weights = np.asarray(weights, dtype=np.float64)
+            if weights.shape != (len(self.paths),) or not np.all(np.isfinite(weights)) or np.any(weights <= 0):
+                raise ValueError(f"weights must be {len(self.paths)} finite numbers > 0 (one per shard), got {weights}")
+            per_patch = weights[self.index[:, 1]]
+            self.probabilities = per_patch / per_patch.sum()
         if len(self.index) < batch_size:
             raise ShardError(f"{len(self.index)} patches in {len(self.paths)} shard(s), fewer than batch_size={batch_size}")
         per_pass = len(self.index) // batch_size if shuffle else -(-len(self.index) // batch_size)
@@ -91,6 +102,9 @@ class ShardPatches(keras.utils.PyDataset):
         if not self.shuffle:
             return self.index[i * self.batch_size : (i + 1) * self.batch_size]
         step = self.offset + i
+        if self.probabilities is not None:
+            rng = np.random.default_rng([self.seed, step, 2])
+            return self.index[rng.choice(len(self.index), self.batch_size, p=self.probabilities)]
         per_pass = len(self.index) // self.batch_size
         epoch, within = divmod(step, per_pass)
         order = np.random.default_rng([self.seed, epoch]).permutation(len(self.index))

@@ -50,6 +50,29 @@ def held_out_pairs(run_dir: str | Path) -> list[tuple[str, str]]:
     return [(str(a), str(b)) for a, b in sset.pairs(sset.complete_manifest(), "val")]
 
 
+def held_out_frames(run_dir: str | Path) -> list[dict]:
+    """The run's held-out frames read once: ``name`` ("<scene> <spp> spp"), ``noisy`` AOVs, ``reference`` colour."""
+    frames = []
+    for noisy_path, ref_path in held_out_pairs(run_dir):
+        scene, spp = exr.parse_render_filename(noisy_path)
+        frames.append({"name": f"{scene} {spp} spp", "noisy": exr.read_aovs(noisy_path),
+                       "reference": exr.read_aovs(ref_path, variances=False)["default"]})
+    return frames
+
+
+SCORES = ("relmse", "dssim", "relse_p999")
+
+
+def frame_scores(outputs: list[np.ndarray], frames: list[dict]) -> dict:
+    """relMSE, DSSIM and relSE p99.9 of each output against its frame's reference, and their means over the
+    frames (the numbers compare and resample report)."""
+    per_frame = [{"frame": f["name"], "relmse": metrics.relmse(x, f["reference"]),
+                  "dssim": metrics.dssim(x, f["reference"]), "relse_p999": metrics.relse_p999(x, f["reference"])}
+                 for x, f in zip(outputs, frames)]
+    means = {m: float(sum(p[m] for p in per_frame) / len(per_frame)) for m in SCORES}
+    return {**means, "frames": per_frame}
+
+
 def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
     """Each noisy render with the reference of its scene: the same folder's render with the most samples."""
     pairs = []

@@ -11,6 +11,8 @@
     <run>/loss.png                    the log as a curve, phases shaded
     <run>/eval/                       ``kpcn evaluate``'s report
     <run>/figures/                    ``kpcn figures``' PNGs
+    <run>/resample/rounds.json        ``kpcn resample``: one record per error round (and the run before them)
+    <run>/resample/round-<k>.png      the map that drove round k's draw on one training render, its new patches
     <run>/.lock                       held by the one process that trains into the run
 
 A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``), and
@@ -71,6 +73,17 @@ class Run:
     @property
     def figures_dir(self) -> Path:
         return self.dir / "figures"
+
+    @property
+    def resample_dir(self) -> Path:
+        return self.dir / "resample"
+
+    @property
+    def resample_record_path(self) -> Path:
+        return self.resample_dir / "rounds.json"
+
+    def resample_png(self, round_name: str) -> Path:
+        return self.resample_dir / f"{round_name}.png"
 
     def model_path(self, phase: str) -> Path:
         return self.dir / f"{phase}.keras"

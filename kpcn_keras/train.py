@@ -67,7 +67,16 @@ def _network_names(cfg: TrainConfig) -> dict[str, str]:
 
 
 def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Model:
-    """A new model for ``phase``, from the components earlier phases finished."""
+    """The compiled model ``phase`` starts from: the finished phase it continues, or a new model built from
+    the components earlier phases finished."""
+    if phase.continues:
+        return load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
+    model = _new_model(cfg, run, record, phase)
+    _compile(model, cfg, phase)
+    return model
+
+
+def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Model:
     model_cfg = ModelConfig.from_dict(cfg.model)
     if not phase.trains_on_final_colour:
         keras.utils.set_random_seed(cfg.seed + [p.name for p in cfg.phases()].index(phase.name))
@@ -102,8 +111,8 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     """The record's entries of the components a finished ``phase`` holds (see ``run.Run``)."""
     file = f"{phase.name}.keras"
     if not phase.trains_on_final_colour:
-        return {phase.name: {"file": file, "phase": phase.name}}
-    if phase.name == "joint":
+        return {phase.component: {"file": file, "phase": phase.name}}
+    if phase.component == "joint":
         networks = dict.fromkeys(_network_names(cfg).values())  # ordered: the record is compared byte for byte
         return {name: {"file": file, "layers": [name], "phase": phase.name} for name in networks}
     return {"compositor": {"file": file, "layers": ["compositor"], "phase": phase.name}}
@@ -121,13 +130,16 @@ def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
 
 
 def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
-    """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in."""
-    source = "final" if phase.trains_on_final_colour else "both" if phase.name == "shared" else phase.name
+    """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in.
+    ``paths``: split -> shard paths, and optionally ``train_weights``, one per training shard."""
+    network = phase.component
+    source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
     common = dict(source=source, batch_size=cfg.batch_size, model=ModelConfig.from_dict(cfg.model),
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range)
     train = ShardPatches(paths["train"], steps=(phase.epochs - epochs_done) * phase.epoch_steps,
-                         seed=cfg.seed, offset=epochs_done * phase.epoch_steps, augment=cfg.augment, **common)
+                         seed=cfg.seed, offset=epochs_done * phase.epoch_steps, augment=cfg.augment,
+                         weights=paths.get("train_weights"), **common)
     val = None
     if paths["val"]:
         val = ShardPatches(paths["val"], shuffle=False, **common)
@@ -160,15 +172,17 @@ def _identity_key(cfg: TrainConfig) -> str:
     return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
+def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     """Everything a run needs from its shard set, checked before the run folder is touched; returns the
-    manifest and ``split -> shard paths``."""
+    manifest and ``split -> shard paths`` of round 0 (the variance round: a run's own phases train on it;
+    error rounds are the resample loop's)."""
     manifest = sset.complete_manifest()
     if manifest.get("features") is not None and len(manifest["features"]) != cfg.model["in_channels"]:
         raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
-    paths = {split: [e.path for e in sset.verified_shards(split, manifest)] for split in ("train", "val")}
-    patches = sum(s["patches"] for r in manifest["rounds"].values() for s in r["shards"] if s["split"] == "train")
+    entries = {split: sset.verified_shards(split, manifest, rounds=[0]) for split in ("train", "val")}
+    paths = {split: [e.path for e in found] for split, found in entries.items()}
+    patches = sum(e.patches for e in entries["train"])
     if patches < cfg.batch_size:
         raise OptionError("batch_size", f"{cfg.batch_size} exceeds the {patches} training patches of {sset.dir}")
     return manifest, paths
@@ -205,7 +219,7 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
         },
         "versions": {"keras": keras.__version__, "torch": torch.__version__, "numpy": np.__version__},
         "command": " ".join(["kpcn"] + sys.argv[1:]),
-        "phases": {p.name: {"status": "pending", **_phase_plan(p)} for p in cfg.phases()},
+        "phases": {p.name: phase_plan(p) for p in cfg.phases()},
         "components": {},
         "results": {},
     }
@@ -213,9 +227,13 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
     return record
 
 
-def _phase_plan(phase: Phase) -> dict:
-    return {"first_epoch": phase.first_epoch, "epochs": phase.epochs, "steps": phase.steps,
+def phase_plan(phase: Phase) -> dict:
+    """A phase's entry in the record before it is trained (a continuing phase also says what it continues)."""
+    plan = {"status": "pending", "first_epoch": phase.first_epoch, "epochs": phase.epochs, "steps": phase.steps,
             "learning_rate": phase.learning_rate}
+    if phase.continues:
+        plan.update(continues=phase.continues, rounds=phase.rounds)
+    return plan
 
 
 def _cut_log(path: Path, rows: int) -> None:
@@ -291,7 +309,6 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         print(f"[{phase.name}] resuming from {ckpt} after epoch {epochs_done}")
     else:
         model = _build(cfg, run, record, phase)
-        _compile(model, cfg, phase)
     _check_registered(model)
     _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
@@ -319,6 +336,21 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     save_model(model, final)
 
 
+def finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float) -> None:
+    """Mark ``phase`` done in the record (its components now come from its file), with its last epoch and
+    the seconds this session spent on it (timings.json); redraw loss.png."""
+    rows = [r for r in read_log(run.log_path)
+            if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
+    record["phases"][phase.name]["status"] = "done"
+    record["components"].update(_components(cfg, phase))
+    record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}
+    timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
+    timings[phase.name] = round(seconds, 1)  # the session that finished it
+    atomic_write_json(run.timings_path, timings)
+    run.write_record(record)
+    loss_curve_png(run, record)
+
+
 def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()) -> Path:
     """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it. ``callbacks`` are passed
     to every phase's ``fit`` (a benchmark's step timer)."""
@@ -327,24 +359,15 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras_backend!r}")
     run = Run(run_dir)
     sset = ShardSet(cfg.set_dir)
-    manifest, paths = _check_inputs(cfg, sset)
+    manifest, paths = check_inputs(cfg, sset)
     check_writable(run.dir, "run folder (--run)", directory=True)
     with run.lock():
         run.remove_temporaries()
         record = _open_record(run, cfg, manifest, sset)
-        timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
         for phase in cfg.phases():
             if record["phases"][phase.name]["status"] == "done" and run.model_path(phase.name).is_file():
                 continue
             start = time.perf_counter()
             train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
-            rows = [r for r in read_log(run.log_path)
-                    if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
-            record["phases"][phase.name]["status"] = "done"
-            record["components"].update(_components(cfg, phase))
-            record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}
-            timings[phase.name] = round(time.perf_counter() - start, 1)  # the session that finished it
-            atomic_write_json(run.timings_path, timings)
-            run.write_record(record)
-            loss_curve_png(run, record)
+            finish_phase(cfg, run, record, phase, time.perf_counter() - start)
     return run.dir

@@ -4,6 +4,11 @@ A per-pixel importance map (variance-based, or a model's error map for error-bas
 a PDF over patch positions: the importance summed over each P x P window, normalised, and mixed
 with a uniform PDF so that flat regions are still seen. Positions are drawn without replacement,
 in the order of successive sampling (each draw from the PDF renormalised over what is left).
+
+Error-based rounds (§3.3.2) take the importance from ``error_map`` (a denoised image's per-pixel
+SMAPE or relMSE against its reference) through the same ``patch_pdf`` as the variance importance,
+blend the two with ``mix_pdfs``, and remove the positions earlier rounds cut with
+``exclude_positions`` before drawing.
 """
 
 from __future__ import annotations
@@ -11,8 +16,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from prep.metrics import RELMSE_EPS, SMAPE_EPS
+
 # Keeps the variance ratio finite on black pixels; the same constant as the relative-variance features.
 IMPORTANCE_EPS = 0.01
+# Per-pixel error maps for error-based rounds; the terms of the metrics of the same names (prep.metrics).
+ERROR_METRICS = ("smape", "relmse")
 
 
 def variance_importance(aovs: dict[str, np.ndarray], colour_weight: float = 1.0, normal_weight: float = 1.0) -> np.ndarray:
@@ -57,6 +66,74 @@ def _window_sums(image, size):
                 s += rows[y + i, x]
             out[y, x] = s
     return out
+
+
+@numba.njit(cache=True)
+def _error_pixels(output, reference, relative_squared, eps):
+    """Mean over the last axis of the per-element error term; float64 (H, W).
+
+    Inputs are float64 (H, W, C); ``relative_squared`` selects (x - r)^2 / (r^2 + eps), else
+    |x - r| / (|x| + |r| + eps). In float64 every finite float32 input gives a finite term: |x - r| is at
+    most 2 * 3.4e38 and its square 4.6e77, divided by at least eps, far below float64's 1.8e308.
+    """
+    h, w, c = output.shape
+    out = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            s = 0.0
+            for k in range(c):
+                a = output[y, x, k]
+                b = reference[y, x, k]
+                d = a - b
+                if relative_squared:
+                    s += d * d / (b * b + eps)
+                else:
+                    s += abs(d) / (abs(a) + abs(b) + eps)
+            out[y, x] = s / c
+    return out
+
+
+def error_map(output: np.ndarray, reference: np.ndarray, metric: str = "smape") -> np.ndarray:
+    """Per-pixel error of a denoised colour image against its reference; float64 (H, W), finite, >= 0.
+
+    ``output`` and ``reference`` are (H, W, 3) linear HDR colour. Each pixel is the mean over the three
+    channels of the element term of ``metric`` (one of ERROR_METRICS), the terms of prep.metrics:
+    "smape": |x - r| / (|x| + |r| + SMAPE_EPS); "relmse": (x - r)^2 / (r^2 + RELMSE_EPS). So the map's
+    mean is the image's SMAPE or relMSE. Computed in float64: finite for any finite float32 input. A
+    float64 input large enough to overflow (relMSE beyond ~1e154 in magnitude) is an error rather than an
+    infinite pixel that ``patch_pdf`` would silently zero.
+
+    Error-based rounds (seed report §3.3.2) turn it into a patch PDF with ``patch_pdf``, exactly as the
+    variance importance is (then ``mix_pdfs`` with the variance PDF).
+
+    Raises ValueError for an unknown metric, shapes that differ or are not (H, W, 3), and any NaN or
+    infinite value in either input (a diverged model's output must not become a PDF quietly).
+    """
+    if metric not in ERROR_METRICS:
+        raise ValueError(f"metric must be one of {ERROR_METRICS}, got {metric!r}")
+    output = np.asarray(output)
+    reference = np.asarray(reference)
+    if output.shape != reference.shape:
+        raise ValueError(f"output and reference shapes differ: {output.shape} vs {reference.shape}")
+    if output.ndim != 3 or output.shape[-1] != 3:
+        raise ValueError(f"output and reference must be (H, W, 3) colour images, got shape {output.shape}")
+    arrays = {}
+    for name, image in (("output", output), ("reference", reference)):
+        image = np.ascontiguousarray(image, dtype=np.float64)
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        if bad:
+            raise ValueError(f"{name} has {bad} non-finite values (NaN or inf) of {image.size}")
+        arrays[name] = image
+    relative_squared = metric == "relmse"
+    eps = RELMSE_EPS if relative_squared else SMAPE_EPS
+    errors = _error_pixels(arrays["output"], arrays["reference"], relative_squared, float(eps))
+    overflowed = int(np.count_nonzero(~np.isfinite(errors)))
+    if overflowed:
+        raise ValueError(
+            f"{metric} error overflows float64 at {overflowed} pixels: float64 inputs too large in magnitude "
+            f"(any finite float32 input is safe)"
+        )
+    return errors
 
 
 def patch_pdf(importance: np.ndarray, patch_size: int, uniform_mix: float = 0.1) -> np.ndarray:
@@ -115,3 +192,41 @@ def draw_positions(pdf: np.ndarray, count: int, rng: np.random.Generator) -> np.
     chosen = chosen[np.argsort(keys[chosen], kind="stable")]
     ys, xs = np.unravel_index(chosen, pdf.shape)
     return np.stack([ys, xs], axis=1).astype(np.int32)
+
+
+def exclude_positions(pdf: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """A float64 copy of ``pdf`` with ``positions`` at probability 0 and the rest renormalised to sum to 1.
+
+    ``positions`` are (m, 2) integer top-left positions (y, x), as ``draw_positions`` returns them:
+    the patches earlier rounds cut, so that a new round never draws them again. The remaining positions
+    keep their ratios. A position may repeat (harmless); an empty array returns the PDF unchanged.
+    Raises ValueError if a position lies outside the PDF or if no probability mass is left.
+    """
+    pdf = np.array(pdf, dtype=np.float64)  # a copy: the caller's PDF is left alone
+    if pdf.ndim != 2:
+        raise ValueError(f"pdf must be 2-D (positions y, x), got shape {pdf.shape}")
+    if np.any(~np.isfinite(pdf)) or np.any(pdf < 0):
+        raise ValueError("pdf must be finite and non-negative")
+    positions = np.asarray(positions)
+    if positions.size == 0:
+        return pdf
+    if positions.ndim != 2 or positions.shape[1] != 2 or not np.issubdtype(positions.dtype, np.integer):
+        raise ValueError(f"positions must be (m, 2) integers (y, x), got {positions.dtype} {positions.shape}")
+    ys, xs = positions[:, 0], positions[:, 1]
+    outside = (ys < 0) | (ys >= pdf.shape[0]) | (xs < 0) | (xs >= pdf.shape[1])
+    if np.any(outside):
+        first = tuple(int(v) for v in positions[np.argmax(outside)])
+        raise ValueError(
+            f"{int(outside.sum())} of {len(positions)} positions lie outside the pdf's shape {pdf.shape}, "
+            f"first (y, x) = {first}"
+        )
+    pdf_mass = pdf > 0
+    pdf[ys, xs] = 0.0
+    total = pdf.sum()
+    if not total > 0.0:
+        distinct = len({(int(y), int(x)) for y, x in zip(ys, xs)})
+        raise ValueError(
+            f"no probability mass left after excluding {distinct} distinct positions ({len(positions)} given) "
+            f"from a {pdf.shape} pdf of {int(np.count_nonzero(pdf_mass))} positions with non-zero probability"
+        )
+    return pdf / total

@@ -2,9 +2,19 @@
 
 A shard set is the folder ``<out_root>/<set>/``; :class:`ShardSet` is the one owner of its layout::
 
-    <set>/manifest.json             sources (with SHA-256), split, configuration, every shard (with SHA-256)
+    <set>/manifest.json             sources (with SHA-256), split, configuration, every round and shard (with SHA-256)
     <set>/.lock                     held by the one process that writes the set
     <set>/round-<k>/shard-<i>.h5    up to ``patches_per_shard`` patches of one split (train or val)
+    <set>/round-<k>/plan.npz        an error round's positions, drawn before its shards are cut (k >= 1)
+
+**Rounds.** ``round-000`` is cut by ``kpcn shards`` from each input's variance PDF (:func:`build_shards`),
+from every input of both splits. Round k >= 1 is an *error round* (seed report §3.3.2,
+:func:`build_error_round`): from every training input, positions drawn from the PDF of a model's per-pixel
+error mixed with the variance PDF, never at a position an earlier round used; its manifest entry keeps
+its provenance (the model's files with their SHA-256, the error metric, the mix weight). Every round goes
+through the same per-image step (:func:`round_pdf` → :func:`draw` → :class:`ImagePatches` → a shard) and the
+same writer. A round's entry has a ``status``; readers take only complete rounds, so a set whose round k
+is being written stays usable with rounds 0..k-1. Held-out scenes are never resampled.
 
 Each shard stores one patch per chunk (gzip + shuffle + Fletcher-32 checksums), in these datasets
 (N patches, P = patch size, channels last, float32):
@@ -56,6 +66,7 @@ import os
 import re
 import shutil
 import sys
+import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,9 +111,22 @@ class ShardError(KpcnError, ValueError):
     """A shard or shard set that cannot be used; the message names the file and what was found."""
 
 
+ROUND_RE = re.compile(r"^round-(\d{3,})$")
+PLAN = "plan.npz"
+
+
 def round_name(k: int) -> str:
-    """The folder of sampling round ``k``: ``round-000`` is variance sampling, later rounds error-based."""
+    """The folder (and manifest key) of sampling round ``k``: ``round-000`` is variance sampling, later rounds
+    error-based. The one place a round's name is made; :func:`round_index` reads it back."""
     return f"round-{int(k):03d}"
+
+
+def round_index(name: str) -> int:
+    """Inverse of :func:`round_name`."""
+    match = ROUND_RE.match(name)
+    if not match:
+        raise ShardError(f"{name!r} is not a round name (round-NNN)")
+    return int(match.group(1))
 
 
 def shard_name(i: int) -> str:
@@ -246,19 +270,33 @@ class ShardSet:
             )
         return manifest
 
-    def entries(self, manifest: dict, split: str) -> list[ShardEntry]:
-        """The shards of ``split`` that ``manifest`` lists, every round, in order."""
+    @staticmethod
+    def complete_rounds(manifest: dict) -> list[int]:
+        """The rounds of ``manifest`` whose shards are all written, in order. (A round entry without a status
+        was written before rounds had one: it is as complete as the set.)"""
+        return sorted(round_index(name) for name, rnd in manifest["rounds"].items()
+                      if rnd.get("status", manifest["status"]) == "complete")
+
+    def entries(self, manifest: dict, split: str, rounds=None) -> list[ShardEntry]:
+        """The shards of ``split`` that ``manifest`` lists in ``rounds`` (default: every complete round), in order."""
+        rounds = self.complete_rounds(manifest) if rounds is None else sorted(rounds)
+        names = [round_name(k) for k in rounds]
+        missing = [n for n in names if n not in manifest["rounds"]]
+        if missing:
+            raise ShardError(f"{self.manifest_path}: the set has no {', '.join(missing)} "
+                             f"(its rounds: {', '.join(sorted(manifest['rounds'])) or 'none'})")
         return [
             ShardEntry(self.resolve(s["path"]), name, s["split"], int(s["patches"]), s["sha256"])
-            for name, rnd in sorted(manifest["rounds"].items())
-            for s in rnd["shards"]
+            for name in names
+            for s in manifest["rounds"][name]["shards"]
             if s["split"] == split
         ]
 
-    def verified_shards(self, split: str, manifest: dict | None = None) -> list[ShardEntry]:
-        """The shards of ``split`` of a complete set, each present with the SHA-256 the manifest lists."""
+    def verified_shards(self, split: str, manifest: dict | None = None, rounds=None) -> list[ShardEntry]:
+        """The shards of ``split`` in ``rounds`` (default: every complete round) of a complete set, each present
+        with the SHA-256 the manifest lists."""
         manifest = manifest or self.complete_manifest()
-        entries = self.entries(manifest, split)
+        entries = self.entries(manifest, split, rounds)
         for entry in entries:
             if not entry.path.is_file():
                 raise ShardError(f"{entry.path}: listed in {self.manifest_path} but missing; "
@@ -369,8 +407,8 @@ def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
 
 @dataclass
 class ImagePatches:
-    """The patches that one input render gives to one round: positions drawn from a PDF, and the
-    full-image datasets they are cut from. Every round (variance or error PDF) goes through this."""
+    """The patches that one input render gives to one round: the positions drawn for it (:func:`draw`), and
+    the full-image datasets they are cut from. Every round (variance or error PDF) goes through this."""
 
     source_id: int
     round: int
@@ -380,11 +418,9 @@ class ImagePatches:
     images: dict[str, np.ndarray]
 
     @classmethod
-    def draw(cls, noisy: dict, reference: dict, pdf: np.ndarray, count: int, rng: np.random.Generator, *,
-             source_id: int, round: int, patch_size: int) -> "ImagePatches":
-        positions = sampling.draw_positions(pdf, count, rng)
-        return cls(source_id, round, patch_size, positions, pdf[positions[:, 0], positions[:, 1]],
-                   image_datasets(noisy, reference))
+    def at(cls, noisy: dict, reference: dict, positions: np.ndarray, pdf: np.ndarray, *, source_id: int, round: int,
+           patch_size: int) -> "ImagePatches":
+        return cls(source_id, round, patch_size, positions, pdf, image_datasets(noisy, reference))
 
     def cut(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """Patches ``start:stop`` (in drawing order) with their provenance datasets."""
@@ -399,16 +435,39 @@ class ImagePatches:
         return out
 
 
+def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
+    """A round's PDF over the patch positions of one input: its variance PDF (seed report §2.1), and in an
+    error round (§3.3.2) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
+    window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""
+    importance = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
+    pdf = sampling.patch_pdf(importance, config.patch_size, config.uniform_mix)
+    if error is None or error_weight == 0.0:
+        return pdf
+    return sampling.mix_pdfs(sampling.patch_pdf(error, config.patch_size, config.uniform_mix), pdf, error_weight)
+
+
+def round_rng(config: ShardConfig, source_id: int, k: int) -> np.random.Generator:
+    """The generator of one input's draw in round ``k``. Round 0 keeps the (seed, source) stream it has
+    always had, so sets cut before rounds existed are still the sets this code cuts."""
+    key = [config.seed, source_id] if k == 0 else [config.seed, source_id, k]
+    return np.random.default_rng(np.random.SeedSequence(key))
+
+
+def draw(pdf: np.ndarray, count: int, config: ShardConfig, source_id: int, k: int,
+         used: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` positions of one input for round ``k`` (without replacement, never one of ``used``: the
+    positions earlier rounds took from it) and each one's probability under the round's PDF (``pdf`` with
+    ``used`` removed and renormalised)."""
+    if used is not None and len(used):
+        pdf = sampling.exclude_positions(pdf, used)
+    positions = sampling.draw_positions(pdf, count, round_rng(config, source_id, k))
+    return positions, pdf[positions[:, 0], positions[:, 1]]
+
+
 def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_id: int) -> ImagePatches:
-    """Round 0 of one input: ``patches_per_image`` positions from its variance PDF (seed report §2.1)."""
-    pdf = sampling.patch_pdf(
-        sampling.variance_importance(noisy, config.colour_weight, config.normal_weight),
-        config.patch_size,
-        config.uniform_mix,
-    )
-    rng = np.random.default_rng(np.random.SeedSequence([config.seed, source_id]))
-    return ImagePatches.draw(noisy, reference, pdf, config.patches_per_image, rng, source_id=source_id, round=0,
-                             patch_size=config.patch_size)
+    """Round 0 of one input: ``patches_per_image`` positions from its variance PDF."""
+    positions, pdf = draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
+    return ImagePatches.at(noisy, reference, positions, pdf, source_id=source_id, round=0, patch_size=config.patch_size)
 
 
 # ---------------------------------------------------------------- shard files
@@ -473,6 +532,26 @@ class _ShardSpec:
         return sum(b - a for _, a, b in self.pieces)
 
 
+def _shard_specs(streams: list[tuple[str, int, int]], per_shard: int) -> list[_ShardSpec]:
+    """The shards of one round: ``streams`` lists (split, source id, patches) in order; each split's patches
+    fill shards of ``per_shard`` in that order, an input spanning consecutive shards."""
+    shards: list[_ShardSpec] = []
+    for split_name in SPLITS:
+        current: _ShardSpec | None = None
+        for split, source_id, count in streams:
+            if split != split_name:
+                continue
+            start = 0
+            while start < count:
+                if current is None or current.patches == per_shard:
+                    current = _ShardSpec(len(shards), split_name, [])
+                    shards.append(current)
+                take = min(count - start, per_shard - current.patches)
+                current.pieces.append((source_id, start, start + take))
+                start += take
+    return shards
+
+
 @dataclass
 class _Plan:
     """Everything ``build_shards`` will write, decided (and checked) before anything is."""
@@ -491,7 +570,7 @@ def _plan(config: ShardConfig, sset: ShardSet) -> _Plan:
     split = split_scenes(list(renders), config.val_fraction, config.val_scenes)
     p = config.patch_size
     sources: list[dict] = []
-    streams: dict[str, list[tuple[int, int]]] = {s: [] for s in SPLITS}
+    streams: list[tuple[str, int, int]] = []
     for split_name in SPLITS:
         for scene in split[split_name]:
             ref = renders[scene]["reference"]
@@ -515,25 +594,12 @@ def _plan(config: ShardConfig, sset: ShardSet) -> _Plan:
                         f"{config.patches_per_image} exceeds the {positions} distinct {p}x{p} patch positions of "
                         f"{src.path} ({size[1]}x{size[0]}); patches are drawn without replacement",
                     )
-                streams[split_name].append((len(sources), config.patches_per_image))
+                streams.append((split_name, len(sources), config.patches_per_image))
                 sources.append(_source_record(sset, src, "input", split_name, config.patches_per_image))
-    shards: list[_ShardSpec] = []
-    per = config.patches_per_shard
-    for split_name in SPLITS:
-        current: _ShardSpec | None = None
-        for source_id, count in streams[split_name]:
-            start = 0
-            while start < count:
-                if current is None or current.patches == per:
-                    current = _ShardSpec(len(shards), split_name, [])
-                    shards.append(current)
-                take = min(count - start, per - current.patches)
-                current.pieces.append((source_id, start, start + take))
-                start += take
     config_hash = config.content_hash()
     identity = [{k: s[k] for k in ("scene", "spp", "role", "split", "sha256", "patches")} for s in sources]
     key = hashlib.sha256(json.dumps([FORMAT, config_hash, identity], sort_keys=True).encode()).hexdigest()[:16]
-    return _Plan(config_hash, key, split, sources, shards)
+    return _Plan(config_hash, key, split, sources, _shard_specs(streams, config.patches_per_shard))
 
 
 def _source_record(sset: ShardSet, src: Source, role: str, split: str, patches: int) -> dict:
@@ -592,11 +658,10 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
     """Cut round 0 of a shard set from a folder of renders; returns the manifest.
 
     Deterministic for a given config and renders. A rerun with the same renders keeps every shard that is
-    whole (SHA-256 as listed) and writes the rest, so an interrupted run resumes; a rerun after the
-    renders changed rebuilds the set; another configuration over an existing set is an error.
+    whole (SHA-256 as listed) and writes the rest, so an interrupted run resumes, and keeps the set's
+    error rounds; a rerun after the renders changed rebuilds the set (error rounds included); another
+    configuration over an existing set is an error.
     """
-    from tqdm import tqdm
-
     sset = ShardSet(config.set_dir)
     check_writable(sset.dir, "shard set folder (--out)", directory=True)
     plan = _plan(config, sset)
@@ -608,56 +673,78 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
             previous = None
             for old_round in sorted(sset.dir.glob("round-*")):
                 shutil.rmtree(old_round)
-        round_dir = sset.round_dir(0)
-        round_dir.mkdir(parents=True, exist_ok=True)
         remove_temporaries(sset.dir)
-        remove_temporaries(round_dir)
-        listed = {s["path"]: s["sha256"] for s in (previous or {}).get("rounds", {}).get(round_name(0), {}).get("shards", [])}
+        first = round_name(0)
+        rounds = dict((previous or {}).get("rounds", {}))
+        listed = rounds.pop(first, {}).get("shards", [])
+        manifest = {
+            "format": FORMAT,
+            "status": "building",
+            "set": config.set_name,
+            "config": config.to_dict(),
+            "config_hash": plan.config_hash,
+            "content_key": plan.content_key,
+            "features": list(features.FEATURE_NAMES),
+            "constants": {"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS},
+            "patch_size": config.patch_size,
+            "split": plan.split,
+            "sources": plan.sources,
+            "rounds": {first: {"kind": "variance", "status": "building", "patches_per_image": config.patches_per_image,
+                               "shards": listed}, **rounds},
+        }
 
-        entries: dict[int, dict] = {}
-        todo = []
-        for spec in plan.shards:
+        def positions_of(source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
+            return draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
+
+        _write_round(sset, config, manifest, 0, plan.shards, positions_of, config.command, progress)
+        manifest["rounds"][first]["status"] = "complete"
+        manifest["status"] = "complete"
+        atomic_write_json(sset.manifest_path, manifest)
+    return manifest
+
+
+def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, specs: list[_ShardSpec],
+                 positions_of, command: str, progress: bool) -> None:
+    """Write the shards of round ``k`` (``specs``) that are not already whole, the set's lock held.
+
+    ``positions_of(source id, noisy AOVs)`` gives an input's positions and their PDF values (the round's
+    draw). A shard listed in the round's manifest entry with a matching SHA-256 is kept; the others are
+    (re)written, each atomically, the manifest rewritten after each. Extra shard files are removed.
+    """
+    from tqdm import tqdm
+
+    entry = manifest["rounds"][round_name(k)]
+    round_dir = sset.round_dir(k)
+    round_dir.mkdir(parents=True, exist_ok=True)
+    remove_temporaries(round_dir)
+    listed = {s["path"]: s["sha256"] for s in entry["shards"]}
+    written: dict[int, dict] = {}
+    todo = []
+    for spec in specs:
+        path = round_dir / shard_name(spec.index)
+        rel = sset.relative(path)
+        if rel in listed and path.is_file() and sha256_file(path) == listed[rel]:
+            written[spec.index] = _entry(sset, path, spec, listed[rel])
+        else:
+            todo.append(spec)
+    for extra in round_dir.glob("shard-*.h5"):
+        match = SHARD_RE.match(extra.name)
+        if match and int(match.group(1)) >= len(specs):
+            extra.unlink()
+    entry["shards"] = [written[i] for i in sorted(written)]
+
+    attrs = _shard_attrs(config, manifest, command)
+    images = _ImageCache(sset, manifest["sources"], k, config.patch_size, positions_of)
+    with tqdm(total=len(todo), desc=f"shards {round_name(k)}", unit="shard", disable=not progress) as bar:
+        for spec in todo:
+            patches = [images.get(source_id).cut(a, b) for source_id, a, b in spec.pieces]
+            arrays = {name: np.concatenate([p[name] for p in patches]) for name in patches[0]}
             path = round_dir / shard_name(spec.index)
-            rel = sset.relative(path)
-            if rel in listed and path.is_file() and sha256_file(path) == listed[rel]:
-                entries[spec.index] = _entry(sset, path, spec, listed[rel])
-            else:
-                todo.append(spec)
-        for extra in round_dir.glob("shard-*.h5"):
-            match = SHARD_RE.match(extra.name)
-            if match and int(match.group(1)) >= len(plan.shards):
-                extra.unlink()
-
-        def manifest(status: str) -> dict:
-            return {
-                "format": FORMAT,
-                "status": status,
-                "set": config.set_name,
-                "config": config.to_dict(),
-                "config_hash": plan.config_hash,
-                "content_key": plan.content_key,
-                "features": list(features.FEATURE_NAMES),
-                "constants": {"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS},
-                "patch_size": config.patch_size,
-                "split": plan.split,
-                "sources": plan.sources,
-                "rounds": {round_name(0): {"shards": [entries[i] for i in sorted(entries)]}},
-            }
-
-        attrs = _shard_attrs(config, plan)
-        images = _ImageCache(sset, config, plan.sources)
-        with tqdm(total=len(todo), desc="shards", unit="shard", disable=not progress) as bar:
-            for spec in todo:
-                patches = [images.get(source_id).cut(a, b) for source_id, a, b in spec.pieces]
-                arrays = {name: np.concatenate([p[name] for p in patches]) for name in patches[0]}
-                path = round_dir / shard_name(spec.index)
-                write_shard(path, arrays, {**attrs, "split": spec.split})
-                entries[spec.index] = _entry(sset, path, spec, sha256_file(path))
-                atomic_write_json(sset.manifest_path, manifest("building"))
-                bar.update(1)
-        final = manifest("complete")
-        atomic_write_json(sset.manifest_path, final)
-    return final
+            write_shard(path, arrays, {**attrs, "split": spec.split})
+            written[spec.index] = _entry(sset, path, spec, sha256_file(path))
+            entry["shards"] = [written[i] for i in sorted(written)]
+            atomic_write_json(sset.manifest_path, manifest)
+            bar.update(1)
 
 
 def _entry(sset: ShardSet, path: Path, spec: _ShardSpec, sha256: str) -> dict:
@@ -668,55 +755,271 @@ class _ImageCache:
     """The :class:`ImagePatches` of the input being cut (an input spans at most a few consecutive shards),
     and the reference it was read with."""
 
-    def __init__(self, sset: ShardSet, config: ShardConfig, sources: list[dict]):
-        self.sset, self.config, self.sources = sset, config, sources
+    def __init__(self, sset: ShardSet, sources: list[dict], k: int, patch_size: int, positions_of):
+        self.sset, self.sources, self.k, self.patch_size, self.positions_of = sset, sources, k, patch_size, positions_of
         self.current: ImagePatches | None = None
         self.reference: tuple[str, dict] | None = None
 
     def get(self, source_id: int) -> ImagePatches:
         if self.current is None or self.current.source_id != source_id:
             src = self.sources[source_id]
-            ref_src = next(s for s in self.sources if s["scene"] == src["scene"] and s["role"] == "reference")
-            if self.reference is None or self.reference[0] != ref_src["path"]:
-                self.reference = (ref_src["path"], exr.read_aovs(self.sset.resolve(ref_src["path"]), variances=False))
+            ref_path = _reference_of(self.sources, src)["path"]
+            if self.reference is None or self.reference[0] != ref_path:
+                self.reference = (ref_path, exr.read_aovs(self.sset.resolve(ref_path), variances=False))
             noisy = exr.read_aovs(self.sset.resolve(src["path"]))
             self.current = None  # free the previous image before the next is cut
-            self.current = variance_patches(noisy, self.reference[1], self.config, source_id)
+            positions, pdf = self.positions_of(source_id, noisy)
+            self.current = ImagePatches.at(noisy, self.reference[1], positions, pdf, source_id=source_id,
+                                           round=self.k, patch_size=self.patch_size)
         return self.current
 
 
-def _shard_attrs(config: ShardConfig, plan: _Plan) -> dict:
+def _reference_of(sources: list[dict], src: dict) -> dict:
+    return next(s for s in sources if s["scene"] == src["scene"] and s["role"] == "reference")
+
+
+def _shard_attrs(config: ShardConfig, manifest: dict, command: str) -> dict:
     return {
         "format": FORMAT,
         "patch_size": config.patch_size,
         "features": json.dumps(list(features.FEATURE_NAMES)),
         "transforms": "diffuse: log1p(diffuse / (albedo + ALBEDO_EPS)); specular: log1p(max(specular, 0))",
         "constants": json.dumps({"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS}),
-        "sources": json.dumps([{k: s[k] for k in ("scene", "spp", "path")} for s in plan.sources]),
+        "sources": json.dumps([{k: s[k] for k in ("scene", "spp", "path")} for s in manifest["sources"]]),
         "config": json.dumps(config.to_dict()),
-        "config_hash": plan.config_hash,
-        "content_key": plan.content_key,
-        "command": config.command or " ".join(sys.argv),
+        "config_hash": manifest["config_hash"],
+        "content_key": manifest["content_key"],
+        "command": command or " ".join(sys.argv),
     }
+
+
+# ---------------------------------------------------------------- error rounds (seed report §3.3.2)
+
+
+@dataclass(frozen=True)
+class ErrorRound:
+    """What error round ``index`` (>= 1) of a set is drawn with; all but ``command`` is its provenance.
+
+    ``patches_per_image`` new positions per training input, from ``error_weight`` times the PDF of the
+    ``metric`` error map (``prep.sampling.ERROR_METRICS``) of ``model``'s output plus the rest times the
+    variance PDF; ``model`` says what made the error maps (the caller's record: files with SHA-256). With
+    ``error_weight`` 0 no model is run: the round is drawn from the variance PDF alone (a control).
+    """
+
+    index: int
+    patches_per_image: int
+    error_weight: float
+    metric: str
+    model: dict
+    command: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        if isinstance(self.index, bool) or not isinstance(self.index, int) or self.index < 1:
+            raise OptionError("rounds", f"error rounds are numbered from 1, got {self.index!r}")
+        if isinstance(self.patches_per_image, bool) or not isinstance(self.patches_per_image, int) \
+                or self.patches_per_image < 1:
+            raise OptionError("patches_per_image", f"must be an integer >= 1, got {self.patches_per_image!r}")
+        if not 0.0 <= self.error_weight <= 1.0:
+            raise OptionError("error_weight", f"must be in [0, 1], got {self.error_weight!r}")
+        if self.metric not in sampling.ERROR_METRICS:
+            raise OptionError("metric", f"must be one of {', '.join(sampling.ERROR_METRICS)}, got {self.metric!r}")
+
+    def provenance(self) -> dict:
+        return {"patches_per_image": self.patches_per_image, "error_weight": float(self.error_weight),
+                "metric": self.metric, "model": self.model}
+
+
+@dataclass
+class RoundResult:
+    """What :func:`build_error_round` did: the manifest after it, the patches the round holds, seconds spent
+    on error maps (denoising included) and on shards in this call (0 for a round found complete), and the
+    map that drove the draw on one input (``figure``: source id, the map, whether it is an error map,
+    and the round's positions on that input)."""
+
+    manifest: dict
+    patches: int
+    seconds: dict
+    figure: dict
+
+
+def training_inputs(manifest: dict) -> list[int]:
+    """The source ids of the training inputs: the renders that error rounds resample."""
+    return [i for i, s in enumerate(manifest["sources"]) if s["role"] == "input" and s["split"] == "train"]
+
+
+def used_positions(sset: ShardSet, manifest: dict, rounds) -> dict[int, np.ndarray]:
+    """source id -> (n, 2) positions that the training shards of ``rounds`` took from it."""
+    found: dict[int, list[np.ndarray]] = defaultdict(list)
+    for entry in sset.verified_shards("train", manifest, rounds):
+        with open_shard(entry.path) as f:
+            source, position = f["source"][:], f["position"][:]
+        for sid in np.unique(source):
+            found[int(sid)].append(position[source == sid])
+    return {sid: np.concatenate(parts) for sid, parts in found.items()}
+
+
+def _read_plan(path: Path) -> dict:
+    with np.load(path) as z:
+        return {name: z[name] for name in z.files}
+
+
+def _write_plan(path: Path, plan: dict) -> None:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **plan)
+
+
+def build_error_round(set_dir: str | os.PathLike, rnd: ErrorRound, denoise=None, *, progress: bool = True) -> RoundResult:
+    """Write error round ``rnd.index`` of the complete set in ``set_dir``; returns what was done.
+
+    ``denoise(noisy AOVs) -> (H, W, 3)`` linear colour is the model whose error is measured against each
+    training input's reference (not called when ``rnd.error_weight`` is 0). Two steps, each resumable:
+    the positions of every training input are drawn and written as the round's plan (``plan.npz``), then
+    its shards are cut from the plan. Interrupted anywhere, the same call finishes the round: a plan whose
+    provenance matches is reused, whole shards are kept. A complete round of the same provenance is never
+    rebuilt; one of another provenance, or a gap in the rounds, is a ShardError.
+    """
+    sset = ShardSet(set_dir)
+    k, name = rnd.index, round_name(rnd.index)
+    with sset.lock():
+        manifest = sset.complete_manifest()
+        config = ShardConfig(**manifest["config"])
+        have = set(manifest["rounds"])
+        later = sorted(n for n in have if round_index(n) > k)
+        if later:
+            raise ShardError(f"{sset.dir}: has {', '.join(later)} beyond {name}; rounds are drawn in order")
+        before = list(range(k))
+        incomplete = [round_name(j) for j in before if j not in sset.complete_rounds(manifest)]
+        if incomplete:
+            raise ShardError(f"{sset.dir}: {name} needs every earlier round complete; {', '.join(incomplete)} "
+                             "is not (run the command that writes it again)")
+        entry = manifest["rounds"].get(name)
+        if entry is not None and entry.get("provenance") != rnd.provenance():
+            if entry.get("status") == "complete":
+                raise ShardError(
+                    f"{sset.round_dir(k)}: drawn with another model or settings ({_provenance_diff(entry, rnd)}); "
+                    f"remove {sset.round_dir(k)} and its entry, or continue on a copy of the set"
+                )
+            log.warning("%s: an unfinished %s of other settings; drawing it again", sset.dir, name)
+            entry = None
+        if entry is None and sset.round_dir(k).exists():
+            shutil.rmtree(sset.round_dir(k))
+        seconds = {"error_maps": 0.0, "shards": 0.0}
+        plan_path = sset.round_dir(k) / PLAN
+        plan = None
+        if entry is not None and plan_path.is_file() and sha256_file(plan_path) == entry["plan"]["sha256"]:
+            plan = _read_plan(plan_path)
+        if entry is not None and entry["status"] == "complete":
+            return RoundResult(manifest, _round_patches(entry), seconds, _figure(plan))
+        if plan is None:
+            start = time.perf_counter()
+            plan = _draw_error_round(sset, manifest, config, rnd, denoise, progress)
+            seconds["error_maps"] = time.perf_counter() - start
+            _write_plan(plan_path, plan)
+            entry = {"kind": "error", "status": "building", "provenance": rnd.provenance(),
+                     "plan": {"path": sset.relative(plan_path), "sha256": sha256_file(plan_path)}, "shards": []}
+            manifest["rounds"][name] = entry
+            atomic_write_json(sset.manifest_path, manifest)
+        start = time.perf_counter()
+        inputs = training_inputs(manifest)
+        specs = _shard_specs([("train", sid, rnd.patches_per_image) for sid in inputs], config.patches_per_shard)
+        by_source = {int(sid): np.flatnonzero(plan["source"] == sid) for sid in inputs}
+
+        def positions_of(source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
+            rows = by_source[source_id]
+            return plan["position"][rows], plan["pdf"][rows]
+
+        _write_round(sset, config, manifest, k, specs, positions_of, rnd.command, progress)
+        entry["status"] = "complete"
+        atomic_write_json(sset.manifest_path, manifest)
+        seconds["shards"] = time.perf_counter() - start
+    return RoundResult(manifest, _round_patches(entry), seconds, _figure(plan))
+
+
+def _draw_error_round(sset: ShardSet, manifest: dict, config: ShardConfig, rnd: ErrorRound, denoise,
+                      progress: bool) -> dict:
+    """The plan of an error round: every training input's positions (and PDF values), and the map that
+    drove the draw on the input where it is largest on average (for the round's figure)."""
+    from tqdm import tqdm
+
+    inputs = training_inputs(manifest)
+    used = used_positions(sset, manifest, range(rnd.index))
+    uses_model = rnd.error_weight > 0.0
+    if uses_model and denoise is None:
+        raise ValueError("an error round with error_weight > 0 needs a denoise function")
+    p = config.patch_size
+    for sid in inputs:  # before any denoising: the positions left must hold the round
+        src = manifest["sources"][sid]
+        h, w = exr.read_header(sset.resolve(src["path"]))
+        left = (h - p + 1) * (w - p + 1) - len(np.unique(used.get(sid, np.empty((0, 2))), axis=0))
+        if rnd.patches_per_image > left:
+            raise OptionError("patches_per_image", f"{rnd.patches_per_image} exceeds the {left} patch positions of "
+                              f"{src['path']} that earlier rounds left unused")
+    sources, positions, pdfs = [], [], []
+    figure = {"figure_source": -1, "figure_mean": -np.inf}
+    for sid in tqdm(inputs, desc=f"error maps {round_name(rnd.index)}", unit="image", disable=not progress):
+        src = manifest["sources"][sid]
+        noisy = exr.read_aovs(sset.resolve(src["path"]))
+        if uses_model:
+            reference = exr.read_aovs(sset.resolve(_reference_of(manifest["sources"], src)["path"]), variances=False)
+            drive = sampling.error_map(np.asarray(denoise(noisy)), reference["default"], rnd.metric)
+        else:
+            drive = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
+        pos, pdf = draw(round_pdf(noisy, config, drive if uses_model else None, rnd.error_weight),
+                        rnd.patches_per_image, config, sid, rnd.index, used.get(sid))
+        sources.append(np.full(len(pos), sid, np.int32))
+        positions.append(pos)
+        pdfs.append(pdf)
+        mean = float(np.mean(drive))
+        if mean > figure["figure_mean"]:
+            figure = {"figure_source": sid, "figure_mean": mean, "figure_map": drive.astype(np.float32)}
+    return {"source": np.concatenate(sources), "position": np.concatenate(positions).astype(np.int32),
+            "pdf": np.concatenate(pdfs), "figure_source": np.int32(figure["figure_source"]),
+            "figure_map": figure["figure_map"], "figure_is_error": np.bool_(uses_model)}
+
+
+def _figure(plan: dict | None) -> dict:
+    if plan is None:
+        return {}
+    sid = int(plan["figure_source"])
+    return {"source": sid, "map": plan["figure_map"], "is_error": bool(plan["figure_is_error"]),
+            "positions": plan["position"][plan["source"] == sid]}
+
+
+def _round_patches(entry: dict) -> int:
+    return sum(s["patches"] for s in entry["shards"])
+
+
+def _provenance_diff(entry: dict, rnd: ErrorRound) -> str:
+    old, new = entry.get("provenance") or {}, rnd.provenance()
+    return ", ".join(f"{k} {old.get(k)!r} vs {new[k]!r}" for k in new if old.get(k) != new[k]) or "unknown"
 
 
 __all__ = [
     "FORMAT",
     "MANIFEST",
     "PATCH_DATASETS",
+    "ErrorRound",
     "ImagePatches",
+    "RoundResult",
     "ShardConfig",
     "ShardEntry",
     "ShardError",
     "ShardSet",
+    "build_error_round",
     "build_shards",
     "discover_renders",
+    "draw",
     "image_datasets",
     "open_shard",
+    "round_index",
     "round_name",
+    "round_pdf",
     "shard_name",
     "shard_paths",
     "split_scenes",
+    "training_inputs",
+    "used_positions",
     "variance_patches",
     "write_shard",
 ]

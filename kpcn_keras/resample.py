@@ -1,0 +1,249 @@
+"""``kpcn resample``: grow a run's training set where its denoiser still fails, and keep training on it
+(seed report §3.3.2, in the manner of DAgger's dataset aggregation).
+
+For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a run whose training finished:
+
+1. **Error maps and new patches.** The run's current denoiser (:class:`kpcn_keras.denoise.Denoiser`, tiled as
+   ``kpcn denoise``) denoises every training input; ``prep.shards.build_error_round`` turns each per-pixel
+   error map against the reference into a patch PDF, mixes it with the variance PDF, draws new positions that
+   no earlier round used, and writes ``shards/<set>/round-<k>/`` with the round's provenance (the model files
+   and their SHA-256, the metric, the mix weight). With ``error_weight`` 0 no model runs: the round is drawn
+   from the variance PDF alone, the control of the experiment (``kpcn_keras.resample_study``).
+2. **Training.** Every branch network of the run (``diffuse`` and ``specular``, or ``shared``) continues from
+   its latest file, optimizer and learning-rate schedule included, for ``round_steps`` steps on the training
+   patches of rounds 0..k, as one more phase of the run (``<network>-round-<k>``: its own checkpoints, rows of
+   ``log.csv``, band of ``loss.png``; the record's components then point at it, so ``kpcn denoise``,
+   ``evaluate`` and ``figures`` use the newest networks).
+3. **Measure.** Held-out relMSE and DSSIM (the set's validation frames, never resampled); one printed line;
+   the round's entry in the run record (``resample``) and in ``<run>/resample/rounds.json``, and
+   ``<run>/resample/round-<k>.png``: the map that drove the draw on one training render (the one with the
+   largest mean) with the round's new patches drawn over it, beside the render with every round's patches.
+
+**Resume.** The run's lock is held throughout. Interrupted anywhere, the same command goes on: a round whose
+shards are incomplete is finished from its plan (or drawn again if its plan was not written), a complete round
+is never rebuilt or duplicated, and training continues from the phase's checkpoint, ending with the weights an
+uninterrupted loop ends with. A rerun with more ``--rounds`` adds rounds; other settings are refused.
+Seconds are those of the session that did the work.
+
+Runs with joint fine-tuning or a compositor are refused: their final-colour phases would have to be redone
+after every round, which this loop does not do.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import Phase, ResampleConfig, TrainConfig
+from prep.errors import KpcnError
+from prep.files import atomic_write_json, check_writable, pyplot, save_png, sha256_file
+from prep.shards import ErrorRound, ShardSet, build_error_round, round_name
+
+
+def base_phases(train_cfg: TrainConfig) -> list[Phase]:
+    """The run's own phases; KpcnError unless each trains one branch network."""
+    phases = train_cfg.phases()
+    final = [p.name for p in phases if p.trains_on_final_colour]
+    if final:
+        raise KpcnError(
+            f"kpcn resample continues the branch networks; this run also has {', '.join(final)} phase(s), "
+            "which would have to be redone after every round. Resample a run without --joint-steps and "
+            "--compositor"
+        )
+    return phases
+
+
+def round_phases(train_cfg: TrainConfig, cfg: ResampleConfig, k: int) -> list[Phase]:
+    """The phases of round ``k``: each branch network continues its previous phase on rounds 0..k."""
+    base = base_phases(train_cfg)
+    epoch_steps = min(train_cfg.steps_per_epoch, cfg.round_steps)
+    first = sum(p.epochs for p in base) + (k - 1) * len(base) * -(-cfg.round_steps // epoch_steps)
+    phases = []
+    for p in base:
+        done = p.steps + (k - 1) * cfg.round_steps  # the optimizer's iterations when the phase starts
+        lr = p.learning_rate * train_cfg.decay_rate ** (done / train_cfg.decay_steps)  # ExponentialDecay's
+        phase = Phase(f"{p.name}-{round_name(k)}", cfg.round_steps, lr, first, epoch_steps, network=p.component, rounds=k,
+                      continues=p.name if k == 1 else f"{p.name}-{round_name(k - 1)}")
+        phases.append(phase)
+        first += phase.epochs
+    return phases
+
+
+def round_weights(entries, k: int, decay: float) -> list[float] | None:
+    """One weight per training shard of rounds 0..k: ``decay`` ** (k − j) for round j (None when every
+    patch weighs the same)."""
+    if decay == 1.0:
+        return None
+    from prep.shards import round_index
+
+    return [decay ** (k - round_index(e.round)) for e in entries]
+
+
+def _model_provenance(run, record: dict) -> dict:
+    """What makes the error maps: each component's file and its SHA-256."""
+    return {name: {"file": entry["file"], "sha256": sha256_file(run.dir / entry["file"])}
+            for name, entry in sorted(record["components"].items())}
+
+
+def _check_loop(record: dict, cfg: ResampleConfig, run) -> dict:
+    """The record's ``resample`` entry (created if new); KpcnError if it was started with other settings."""
+    loop = record.setdefault("resample", {"config": cfg.to_dict(), "rounds": {}})
+    old = {k: v for k, v in loop["config"].items() if k != "rounds"}
+    if old != cfg.identity():
+        differ = sorted(k for k in cfg.identity() if old.get(k) != cfg.identity()[k])
+        raise KpcnError(f"{run.record_path}: its resample loop was started with other settings (differs in "
+                        f"{', '.join(differ)}); continue it with those, or resample a copy of the run")
+    loop["config"] = cfg.to_dict()
+    return loop
+
+
+def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progress: bool = True, command: str = "",
+             log=print) -> dict:
+    """Run (or resume) the loop on the finished run ``run_dir``; returns the record's ``resample`` entry."""
+    import keras
+
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.evaluate import frame_scores, held_out_frames
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import check_inputs, finish_phase, phase_plan, train_phase
+
+    if keras.backend.backend() != "torch":
+        raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
+    run = Run(run_dir)
+    record = run.read_record()
+    train_cfg = TrainConfig(**record["train"])
+    base = base_phases(train_cfg)
+    unfinished = [p.name for p in base if record["phases"].get(p.name, {}).get("status") != "done"]
+    if unfinished:
+        raise KpcnError(f"{run.dir}: training has not finished ({', '.join(unfinished)}); run 'kpcn train' "
+                        "with the same options first")
+    sset = run.shard_set(record)
+    manifest, _ = check_inputs(train_cfg, sset)
+    if manifest["content_key"] != record["shards"]["content_key"]:
+        raise KpcnError(f"{sset.dir}: the shard set changed since {run.dir} was trained (its renders or options)")
+    patches_per_image = cfg.patches_per_image or int(manifest["config"]["patches_per_image"])
+    check_writable(run.resample_dir, "resample folder", directory=True)
+    frames = held_out_frames(run.dir)
+    if not frames:
+        raise KpcnError(f"{sset.dir}: no held-out scenes to measure the rounds on")
+
+    with run.lock():
+        run.remove_temporaries()
+        record = run.read_record()  # what the lock holder before us left
+        loop = _check_loop(record, cfg, run)
+
+        def measure() -> dict:
+            denoiser = Denoiser(run.dir)
+            return frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
+
+        if "before" not in loop:
+            start = time.perf_counter()
+            scores = measure()
+            loop["before"] = {"relmse": scores["relmse"], "dssim": scores["dssim"],
+                              "steps": base[0].steps, "patches": _train_patches(sset, 0),
+                              "seconds": {"evaluation": round(time.perf_counter() - start, 2)}}
+            run.write_record(record)
+            _write_rounds(run, loop)
+        previous = loop["before"]
+        for k in range(1, cfg.rounds + 1):
+            name = round_name(k)
+            entry = loop["rounds"].setdefault(name, {"status": "shards", "seconds": {}})
+            if entry["status"] == "done":
+                previous = entry
+                continue
+            seconds = entry["seconds"]
+            if entry["status"] == "shards":
+                rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric,
+                                 _model_provenance(run, record) if cfg.error_weight > 0 else {}, command=command)
+                denoise = None
+                if cfg.error_weight > 0:
+                    denoiser = Denoiser(run.dir)
+                    denoise = lambda aovs: denoiser(aovs)["default"]  # noqa: E731
+                result = build_error_round(sset.dir, rnd, denoise, progress=progress)
+                for key, value in result.seconds.items():
+                    seconds[key] = round(seconds.get(key, 0.0) + value, 2)
+                entry.update(status="training", patches=result.patches)
+                if result.figure:
+                    entry["png"] = run.relative(round_png(run, sset, result, k, cfg))
+                run.write_record(record)
+            manifest = sset.complete_manifest()
+            train_entries = sset.verified_shards("train", manifest, rounds=range(k + 1))
+            paths = {"train": [e.path for e in train_entries],
+                     "val": [e.path for e in sset.verified_shards("val", manifest, rounds=[0])],
+                     "train_weights": round_weights(train_entries, k, cfg.round_decay)}
+            for phase in round_phases(train_cfg, cfg, k):
+                if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
+                    continue
+                record["phases"].setdefault(phase.name, phase_plan(phase))
+                start = time.perf_counter()
+                train_phase(train_cfg, run, record, phase, paths, verbose=verbose)
+                elapsed = time.perf_counter() - start
+                seconds["training"] = round(seconds.get("training", 0.0) + elapsed, 2)
+                finish_phase(train_cfg, run, record, phase, elapsed)
+            start = time.perf_counter()
+            scores = measure()
+            seconds["evaluation"] = round(time.perf_counter() - start, 2)
+            entry.update(status="done", round=k, relmse=scores["relmse"], dssim=scores["dssim"],
+                         steps=cfg.round_steps, total_steps=base[0].steps + k * cfg.round_steps,
+                         total_patches=sum(e.patches for e in train_entries))
+            run.write_record(record)
+            _write_rounds(run, loop)
+            log(round_line(name, entry, previous))
+            previous = entry
+    return loop
+
+
+def _train_patches(sset: ShardSet, k: int) -> int:
+    return sum(e.patches for e in sset.verified_shards("train", rounds=range(k + 1)))
+
+
+def _write_rounds(run, loop: dict) -> None:
+    """``<run>/resample/rounds.json``: the settings, the run before the rounds, and every round so far."""
+    atomic_write_json(run.resample_record_path, loop)
+
+
+def round_line(name: str, entry: dict, previous: dict) -> str:
+    """The one line printed per round."""
+    s = entry["seconds"]
+    return (f"[{name}] +{entry['patches']} patches ({entry['total_patches']} in all), {entry['steps']} steps per "
+            f"network ({entry['total_steps']} in all): held-out relMSE {previous['relmse']:.4f} → "
+            f"{entry['relmse']:.4f}, DSSIM {previous['dssim']:.4f} → {entry['dssim']:.4f}; error maps "
+            f"{s.get('error_maps', 0.0):.1f} s, shards {s.get('shards', 0.0):.1f} s, training "
+            f"{s.get('training', 0.0):.1f} s")
+
+
+def round_png(run, sset: ShardSet, result, k: int, cfg: ResampleConfig) -> Path:
+    """``round-<k>.png``: the map that drove the draw on one training render with the round's new patches
+    outlined (left), and the render with the patches of every round so far (right), like Fig. 3 of the report."""
+    from matplotlib.patches import Rectangle
+
+    from prep import exr
+    from prep.metrics import tonemap
+    from prep.shards import used_positions
+
+    plt = pyplot()
+    fig_info = result.figure
+    manifest = result.manifest
+    source = manifest["sources"][fig_info["source"]]
+    p = int(manifest["patch_size"])
+    noisy = exr.read_aovs(sset.resolve(source["path"]), variances=False)["default"]
+    earlier = used_positions(sset, manifest, range(k)).get(fig_info["source"], np.empty((0, 2)))
+    h, w = noisy.shape[:2]
+    scale = 4.0 / max(h, w)
+    fig, axes = plt.subplots(1, 2, figsize=(2 * w * scale + 1.2, h * scale + 0.9))
+    what = f"{cfg.metric} error" if fig_info["is_error"] else "variance importance"
+    shown = axes[0].imshow(np.log10(fig_info["map"] + 1e-6), cmap="magma", interpolation="nearest")
+    fig.colorbar(shown, ax=axes[0], fraction=0.046, pad=0.02, label=f"log10 {what}")
+    axes[0].set_title(f"{what}, {round_name(k)} patches", fontsize=9)
+    axes[1].imshow(tonemap(noisy), interpolation="nearest")
+    axes[1].set_title(f"{Path(source['path']).name}: earlier rounds (white), {round_name(k)} (cyan)", fontsize=9)
+    for ax, layers in ((axes[0], [(fig_info["positions"], "cyan")]),
+                       (axes[1], [(earlier, "white"), (fig_info["positions"], "cyan")])):
+        for positions, colour in layers:
+            for y, x in positions:
+                ax.add_patch(Rectangle((x - 0.5, y - 0.5), p, p, fill=False, edgecolor=colour, linewidth=0.6))
+        ax.axis("off")
+    fig.tight_layout()
+    return save_png(fig, run.resample_png(round_name(k)))
