@@ -9,9 +9,11 @@ RUN    ?= default
 RENDER_ARGS ?=
 SHARD_ARGS  ?=
 TRAIN_ARGS  ?=
+RESAMPLE_ARGS ?=
+STUDY_ARGS  ?=
 COMPARE_ARGS ?=
 
-.PHONY: venv render shards train evaluate figures compare test clean
+.PHONY: venv render shards train resample resample-study evaluate figures compare test clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -31,6 +33,17 @@ train: shards
 	$(KPCN) train --set $(SET) --run runs/$(RUN) $(TRAIN_ARGS)
 	$(KPCN) evaluate --run runs/$(RUN)
 	$(KPCN) figures --run runs/$(RUN)
+
+# error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
+resample: shards
+	$(KPCN) train --set $(SET) --run runs/$(RUN) $(TRAIN_ARGS)
+	$(KPCN) resample --run runs/$(RUN) $(RESAMPLE_ARGS)
+	$(KPCN) evaluate --run runs/$(RUN)
+	$(KPCN) figures --run runs/$(RUN)
+
+# error rounds against variance sampling alone, several seeds: reports/resample.{md,json,png}
+resample-study: shards
+	$(KPCN) resample-study --set $(SET) $(STUDY_ARGS)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

@@ -1,6 +1,6 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare. Each fills its stage's config dataclass from the
+Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
 ``render`` and ``shards`` never import keras or torch.
 
@@ -186,6 +186,18 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_resample_study(args) -> int:
+    from kpcn_keras.config import ResampleStudyConfig
+    from kpcn_keras.resample_study import format_report, study
+
+    cfg = ResampleStudyConfig(**_given(args, ResampleStudyConfig))
+    record = study(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto",
+                   progress=not args.quiet)
+    print(format_report(record))
+    print(f"report: {cfg.out_dir}/resample.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from prep.render import RenderConfig  # light: no numba kernels until a render runs
     from prep.shards import ShardConfig
@@ -351,6 +363,27 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
     c.add_argument("--seed", type=int, help=d("seed"))
     c.set_defaults(func=cmd_compare)
+
+    from kpcn_keras.config import ResampleStudyConfig
+
+    y = parser("resample-study", help="error rounds against variance sampling alone, at equal steps and equal "
+               "wall time, over several seeds; writes reports/resample.{md,json,png}")
+    d = lambda name: f"(default: {_default(ResampleStudyConfig, name)})"  # noqa: E731
+    y.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
+    y.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
+    y.add_argument("--runs", dest="runs_root", help=f"folder of the study's runs and shard copies, reused when run "
+                   f"again {d('runs_root')}")
+    y.add_argument("--seeds", type=_csv_ints, help=f"training seeds, comma-separated {d('seeds')}")
+    y.add_argument("--arms", type=_csv, help=f"comma-separated {d('arms')}")
+    y.add_argument("--base-steps", type=int, help=f"steps per network of each seed's base run {d('base_steps')}")
+    y.add_argument("--rounds", type=int, help=d("rounds"))
+    y.add_argument("--round-steps", type=int, help=f"steps per network per round {d('round_steps')}")
+    y.add_argument("--patches-per-image", type=int, help=f"new patches per training input per round {d('patches_per_image')}")
+    y.add_argument("--error-weight", type=float, help="share of the error PDF in the error arm's mix (default: "
+                   f"{_default(ResampleConfig, 'error_weight')})")
+    y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")
+    y.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
+    y.set_defaults(func=cmd_resample_study)
     return p
 
 

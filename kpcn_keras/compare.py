@@ -357,9 +357,6 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
     a quick look or a test); they are part of the plan's key and of the record. ``command``: the command
     line that asked, for the report.
     """
-    import keras
-    import torch
-
     out = Path(cfg.out_dir)
     for name in ("compare.md", "compare.json", "compare.png"):
         check_writable(out / name, "report (--out)")
@@ -382,9 +379,7 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
         "shards": {"set_dir": str(Path(cfg.shards_root) / cfg.set_name), "content_key": manifest["content_key"],
                    "held_out_frames": len(rows[0]["frames"])},
         "rules": {"probe_steps": PROBE_STEPS, "probe_skip": PROBE_SKIP, "branch_share": BRANCH_SHARE},
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads(),
-                    "load_average_before": list(load_before), "load_average_after": list(os.getloadavg())},
+        "machine": machine_record(load_before),
         "timed": timed,
         "plans": plans,
         "rows": rows,
@@ -393,6 +388,16 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
     atomic_write_text(out / "compare.md", format_report(record))
     scatter_png(record, out / "compare.png")
     return record
+
+
+def machine_record(load_before) -> dict:
+    """What a report says about where it was measured: CPUs, versions, torch threads, load before and after."""
+    import keras
+    import torch
+
+    return {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+            "torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads(),
+            "load_average_before": list(load_before), "load_average_after": list(os.getloadavg())}
 
 
 def best(record: dict) -> dict:

@@ -418,6 +418,7 @@ class ResampleConfig:
     map + (1 − ``error_weight``) × the variance PDF (0: the variance PDF alone, a control), then every
     branch network trains ``round_steps`` more steps on all rounds so far, a patch of round j weighing
     ``round_decay`` ** (k − j) in round k (1: every patch alike; < 1: the newest rounds count more).
+    ``patches_per_image`` 0 adds no patches: the rounds only train longer on round 0 (the other control).
     """
 
     rounds: int = 3
@@ -435,8 +436,8 @@ class ResampleConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
         ppi = self.patches_per_image
-        if ppi is not None and (isinstance(ppi, bool) or not isinstance(ppi, int) or ppi < 1):
-            raise OptionError("patches_per_image", f"must be an integer >= 1, got {ppi!r}")
+        if ppi is not None and (isinstance(ppi, bool) or not isinstance(ppi, int) or ppi < 0):
+            raise OptionError("patches_per_image", f"must be an integer >= 0, got {ppi!r}")
         if self.metric not in ERROR_METRICS:
             raise OptionError("metric", f"must be one of {', '.join(ERROR_METRICS)}, got {self.metric!r}")
         for name, ok, bound in (("error_weight", 0.0 <= _number(self.error_weight) <= 1.0, "in [0, 1]"),
@@ -458,3 +459,56 @@ def _number(value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return math.nan
     return float(value)
+
+
+def _study_arms() -> tuple[str, ...]:
+    from kpcn_keras.resample_study import ARMS  # the table is data there, as compare's configurations are
+
+    return tuple(ARMS)
+
+
+@dataclass
+class ResampleStudyConfig:
+    """Configuration of ``kpcn resample-study`` (kpcn_keras/resample_study.py): for each of ``seeds``, a run
+    trained ``base_steps`` per network on ``<shards_root>/<set_name>``, then each of ``arms`` continues it for
+    ``rounds`` rounds of ``round_steps`` (adding ``patches_per_image`` per training input where the arm adds
+    any), in ``runs_root``; reports in ``out_dir``. ``error_weight`` and ``metric`` None take
+    :class:`ResampleConfig`'s."""
+
+    set_name: str = "default"
+    shards_root: str = "shards"
+    runs_root: str = "runs/resample-study"
+    out_dir: str = "reports"
+    seeds: tuple[int, ...] = (0, 1, 2)
+    arms: tuple[str, ...] = field(default_factory=_study_arms)
+    base_steps: int = 600
+    rounds: int = 3
+    round_steps: int = 200
+    patches_per_image: int = 8
+    error_weight: Optional[float] = None
+    metric: Optional[str] = None
+
+    def __post_init__(self):
+        self.seeds, self.arms = tuple(self.seeds), tuple(self.arms)
+        if not self.set_name or "/" in self.set_name or self.set_name in (".", ".."):
+            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds) or any(
+                isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in self.seeds):
+            raise OptionError("seeds", f"must be distinct integers >= 0, got {list(self.seeds)}")
+        known = _study_arms()
+        if not self.arms or any(a not in known for a in self.arms) or len(set(self.arms)) != len(self.arms):
+            raise OptionError("arms", f"must be distinct names among {', '.join(known)}, got {list(self.arms)}")
+        for name, low in (("base_steps", 1), ("patches_per_image", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
+        self.loop(0.0)  # the loop's own checks of rounds, round_steps, error_weight, metric
+
+    def loop(self, error_weight: float | None = None, patches_per_image: int | None = None) -> ResampleConfig:
+        """The resample loop of one arm: the study's settings, the arm's error weight and patches."""
+        given = {"metric": self.metric}
+        weight = self.error_weight if error_weight is None else error_weight
+        return ResampleConfig(rounds=self.rounds, round_steps=self.round_steps,
+                              patches_per_image=self.patches_per_image if patches_per_image is None else patches_per_image,
+                              **({"error_weight": weight} if weight is not None else {}),
+                              **{k: v for k, v in given.items() if v is not None})

@@ -55,8 +55,9 @@ def base_phases(train_cfg: TrainConfig) -> list[Phase]:
     return phases
 
 
-def round_phases(train_cfg: TrainConfig, cfg: ResampleConfig, k: int) -> list[Phase]:
-    """The phases of round ``k``: each branch network continues its previous phase on rounds 0..k."""
+def round_phases(train_cfg: TrainConfig, cfg: ResampleConfig, k: int, newest: int) -> list[Phase]:
+    """The phases of round ``k``: each branch network continues its previous phase on rounds 0..``newest``
+    (``k``, or 0 when the loop adds no patches)."""
     base = base_phases(train_cfg)
     epoch_steps = min(train_cfg.steps_per_epoch, cfg.round_steps)
     first = sum(p.epochs for p in base) + (k - 1) * len(base) * -(-cfg.round_steps // epoch_steps)
@@ -64,8 +65,8 @@ def round_phases(train_cfg: TrainConfig, cfg: ResampleConfig, k: int) -> list[Ph
     for p in base:
         done = p.steps + (k - 1) * cfg.round_steps  # the optimizer's iterations when the phase starts
         lr = p.learning_rate * train_cfg.decay_rate ** (done / train_cfg.decay_steps)  # ExponentialDecay's
-        phase = Phase(f"{p.name}-{round_name(k)}", cfg.round_steps, lr, first, epoch_steps, network=p.component, rounds=k,
-                      continues=p.name if k == 1 else f"{p.name}-{round_name(k - 1)}")
+        phase = Phase(f"{p.name}-{round_name(k)}", cfg.round_steps, lr, first, epoch_steps, network=p.component,
+                      rounds=newest, continues=p.name if k == 1 else f"{p.name}-{round_name(k - 1)}")
         phases.append(phase)
         first += phase.epochs
     return phases
@@ -123,7 +124,9 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
     manifest, _ = check_inputs(train_cfg, sset)
     if manifest["content_key"] != record["shards"]["content_key"]:
         raise KpcnError(f"{sset.dir}: the shard set changed since {run.dir} was trained (its renders or options)")
-    patches_per_image = cfg.patches_per_image or int(manifest["config"]["patches_per_image"])
+    patches_per_image = cfg.patches_per_image
+    if patches_per_image is None:
+        patches_per_image = int(manifest["config"]["patches_per_image"])
     check_writable(run.resample_dir, "resample folder", directory=True)
     frames = held_out_frames(run.dir)
     if not frames:
@@ -154,6 +157,8 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
                 previous = entry
                 continue
             seconds = entry["seconds"]
+            if entry["status"] == "shards" and patches_per_image == 0:  # no new patches: only train longer
+                entry.update(status="training", patches=0)
             if entry["status"] == "shards":
                 rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric,
                                  _model_provenance(run, record) if cfg.error_weight > 0 else {}, command=command)
@@ -169,11 +174,12 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
                     entry["png"] = run.relative(round_png(run, sset, result, k, cfg))
                 run.write_record(record)
             manifest = sset.complete_manifest()
-            train_entries = sset.verified_shards("train", manifest, rounds=range(k + 1))
+            rounds = range(k + 1) if patches_per_image else [0]
+            train_entries = sset.verified_shards("train", manifest, rounds=rounds)
             paths = {"train": [e.path for e in train_entries],
                      "val": [e.path for e in sset.verified_shards("val", manifest, rounds=[0])],
                      "train_weights": round_weights(train_entries, k, cfg.round_decay)}
-            for phase in round_phases(train_cfg, cfg, k):
+            for phase in round_phases(train_cfg, cfg, k, rounds[-1]):
                 if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
                     continue
                 record["phases"].setdefault(phase.name, phase_plan(phase))

@@ -152,6 +152,30 @@ class Run:
             model = model.get_layer(name)
         return model
 
+    def fork(self, dest: str | os.PathLike, sset: ShardSet | None = None) -> "Run":
+        """A copy of this run in ``dest`` (so that two experiments can continue it apart), trained on ``sset``
+        (default: the same shard set), which must hold the same content. Written under a temporary name and
+        renamed, so ``dest`` is whole or absent; an existing ``dest`` is returned as it is."""
+        import shutil
+
+        new = Run(dest)
+        if new.has_record():
+            return new
+        record = self.read_record()
+        if sset is not None:
+            if sset.complete_manifest()["content_key"] != record["shards"]["content_key"]:
+                raise KpcnError(f"{sset.dir}: not the shard set {self.dir} was trained on")
+        else:
+            sset = self.shard_set(record)
+        for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed fork's
+            shutil.rmtree(stale)
+        tmp = new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}")
+        shutil.copytree(self.dir, tmp, ignore=shutil.ignore_patterns(".*"))
+        record["shards"]["set_dir"] = os.path.relpath(os.path.abspath(sset.dir), os.path.abspath(new.dir))
+        Run(tmp).write_record(record)
+        os.replace(tmp, new.dir)
+        return new
+
     def shard_set(self, record: dict) -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""
         return ShardSet(os.path.normpath(self.dir / record["shards"]["set_dir"]))

@@ -308,6 +308,44 @@ class ShardSet:
                 )
         return entries
 
+    def fork(self, dest: str | os.PathLike, rounds=(0,)) -> "ShardSet":
+        """A new set in ``dest`` holding ``rounds`` of this complete set (hard links where the file system allows,
+        else copies; shard files are never written in place, so the two sets cannot change each other's) and a
+        manifest listing only them, with source paths rebased; later rounds are the new set's own. A ``dest``
+        that already holds a complete fork of the same set is returned as it is."""
+        manifest = self.complete_manifest()
+        new = ShardSet(dest)
+        if new.manifest_path.is_file():
+            found = new.complete_manifest()
+            if found["content_key"] != manifest["content_key"]:
+                raise ShardError(f"{new.dir}: holds another shard set; remove it or choose another folder")
+            return new
+        names = [round_name(k) for k in rounds]
+        check_writable(new.dir, "shard set folder", directory=True)
+        with new.lock():
+            remove_temporaries(new.dir)
+            forked = json.loads(json.dumps(manifest))
+            forked["rounds"] = {}
+            for name in names:
+                if name not in manifest["rounds"]:
+                    raise ShardError(f"{self.manifest_path}: has no {name} to fork")
+                (new.dir / name).mkdir(parents=True, exist_ok=True)
+                shards = []
+                for s in manifest["rounds"][name]["shards"]:
+                    target = new.dir / name / self.resolve(s["path"]).name
+                    if not target.is_file():
+                        with atomic_path(target) as tmp:
+                            try:
+                                os.link(self.resolve(s["path"]), tmp)
+                            except OSError:
+                                shutil.copyfile(self.resolve(s["path"]), tmp)
+                    shards.append({**s, "path": new.relative(target)})
+                forked["rounds"][name] = {**manifest["rounds"][name], "shards": shards}
+            for source in forked["sources"]:
+                source["path"] = new.relative(self.resolve(source["path"]))
+            atomic_write_json(new.manifest_path, forked)
+        return new
+
     def pairs(self, manifest: dict, split: str) -> list[tuple[Path, Path]]:
         """(noisy input, reference) render paths of the scenes of ``split``."""
         refs = {s["scene"]: self.resolve(s["path"]) for s in manifest["sources"] if s["role"] == "reference"}

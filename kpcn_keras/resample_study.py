@@ -1,0 +1,275 @@
+"""``kpcn resample-study``: does error-based resampling (seed report §3.3.2) beat variance sampling alone?
+
+The report proposed the loop and never measured it. For each seed of
+:class:`kpcn_keras.config.ResampleStudyConfig`:
+
+1. **A base run** of the default (cpu) preset, ``base_steps`` per network, on the shard set (round 0: the
+   variance-PDF patches of ``kpcn shards``), with the training seed ``seed``:
+   ``<runs_root>/<set>-seed<seed>/base``.
+2. **Each arm** (:data:`ARMS`) continues a copy of it (``Run.fork``) with ``kpcn resample``'s loop, for the same
+   ``rounds`` × ``round_steps`` steps per network: ``continue`` adds no patches (variance sampling only, trained
+   as long); ``variance`` adds ``patches_per_image`` per training input each round from the variance PDF
+   (the same amount of new data, drawn without the model); ``error`` adds as many from the error PDF mixed
+   with the variance PDF. An arm that adds patches writes its rounds in its own copy of the shard set
+   (``ShardSet.fork``: round 0 hard-linked), under ``<runs_root>/shards/``.
+3. **Equal wall time.** An arm's cost is what its rounds spent on error maps, shards and training (held-out
+   measuring is not a cost); the costliest arm's cost after ``rounds`` rounds is the budget, and every other
+   arm runs more rounds until it has spent as much (at most :data:`MAX_ROUNDS_FACTOR` × ``rounds``).
+
+Reported (``reports/resample.{md,json,png}``), on the set's held-out frames (never resampled): relMSE and DSSIM
+at equal steps (after ``rounds`` rounds) and at equal wall time (linear in time between the measured rounds,
+from the base run's error at time 0), per seed and as a mean; the paired differences between arms per seed,
+and whether their sign holds in every seed (else the difference is within seed noise). Everything is resumable:
+the same command reuses finished runs and rounds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import statistics
+from datetime import date, datetime
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import ResampleStudyConfig, TrainConfig
+from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, save_png
+
+# name -> (what it is, the loop's settings besides the study's)
+ARMS: dict[str, tuple[str, dict]] = {
+    "continue": ("no new patches: round 0 (variance-PDF sampling only), trained as long",
+                 {"patches_per_image": 0, "error_weight": 0.0}),
+    "variance": ("new patches each round from the variance PDF alone", {"error_weight": 0.0}),
+    "error": ("new patches each round from the error PDF mixed with the variance PDF", {}),
+}
+MAX_ROUNDS_FACTOR = 3
+REPORT = ("resample.md", "resample.json", "resample.png")
+# the differences the report tests, (a, b): is a better than b?
+PAIRS = (("error", "continue"), ("error", "variance"), ("variance", "continue"))
+SCORES = ("relmse", "dssim")
+
+
+def cumulative_cost(loop: dict) -> list[float]:
+    """Seconds spent by the end of each round (error maps, shards, training), from 0 before round 1."""
+    total, out = 0.0, [0.0]
+    for entry in _rounds(loop):
+        s = entry["seconds"]
+        total += s.get("error_maps", 0.0) + s.get("shards", 0.0) + s.get("training", 0.0)
+        out.append(total)
+    return out
+
+
+def _rounds(loop: dict) -> list[dict]:
+    return [loop["rounds"][k] for k in sorted(loop["rounds"]) if loop["rounds"][k].get("status") == "done"]
+
+
+def curve(loop: dict, score: str) -> tuple[list[int], list[float], list[float]]:
+    """(steps per network, cumulative seconds, score) before round 1 and after each round."""
+    rounds = _rounds(loop)
+    steps = [loop["before"]["steps"]] + [e["total_steps"] for e in rounds]
+    values = [loop["before"][score]] + [e[score] for e in rounds]
+    return steps, cumulative_cost(loop), values
+
+
+def at_time(loop: dict, score: str, seconds: float) -> float:
+    """The score at ``seconds`` of cost, linear between the measured rounds (NaN past the last one)."""
+    _, times, values = curve(loop, score)
+    if seconds > times[-1] + 1e-9:
+        return float("nan")
+    return float(np.interp(seconds, times, values))
+
+
+def _run_arms(cfg: ResampleStudyConfig, seed: int, sset, *, verbose, progress: bool, command: str, log) -> dict:
+    """The base run of ``seed`` and every arm's loop, extended to equal wall time; arm -> loop record."""
+    from kpcn_keras.resample import resample
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import train
+
+    seed_dir = Path(cfg.runs_root) / f"{cfg.set_name}-seed{seed}"
+    base_cfg = TrainConfig.from_preset(None, set_name=cfg.set_name, shards_root=cfg.shards_root, seed=seed,
+                                       steps=cfg.base_steps)
+    log(f"[seed {seed}] base run: {cfg.base_steps} steps per network → {seed_dir / 'base'}")
+    base = Run(train(base_cfg, seed_dir / "base", verbose=verbose))
+    loops, configs = {}, {}
+    for arm in cfg.arms:
+        configs[arm] = cfg.loop(**ARMS[arm][1])
+        arm_set = sset
+        if configs[arm].patches_per_image:
+            arm_set = sset.fork(Path(cfg.runs_root) / "shards" / f"{cfg.set_name}-seed{seed}-{arm}")
+        run = base.fork(seed_dir / arm, arm_set)
+        say = (lambda line, arm=arm: log(f"[seed {seed}, {arm}] {line}"))
+        loops[arm] = resample(configs[arm], run.dir, verbose=verbose, progress=progress, command=command, log=say)
+    budget = max(cumulative_cost(loop)[cfg.rounds] for loop in loops.values())
+    for arm, loop in loops.items():
+        rounds = len(_rounds(loop))
+        while cumulative_cost(loop)[-1] < budget and rounds < MAX_ROUNDS_FACTOR * cfg.rounds:
+            rounds += 1
+            say = (lambda line, arm=arm: log(f"[seed {seed}, {arm}, equal time] {line}"))
+            loop = resample(dataclasses.replace(configs[arm], rounds=rounds), seed_dir / arm, verbose=verbose,
+                            progress=progress, command=command, log=say)
+        loops[arm] = loop
+    return {"budget_seconds": budget, "loops": loops}
+
+
+def summarise(cfg: ResampleStudyConfig, seeds: dict) -> dict:
+    """Per arm and seed: the scores at equal steps (round ``rounds``) and at equal wall time (the seed's
+    budget); per pair of arms, the paired differences and whether their sign holds in every seed."""
+    k = cfg.rounds
+    table = {}
+    for arm in cfg.arms:
+        table[arm] = {}
+        for score in SCORES:
+            steps = [_rounds(seeds[s]["loops"][arm])[k - 1][score] for s in cfg.seeds]
+            timed = [at_time(seeds[s]["loops"][arm], score, seeds[s]["budget_seconds"]) for s in cfg.seeds]
+            table[arm][score] = {"equal_steps": steps, "equal_time": timed}
+    before = {score: [seeds[s]["loops"][cfg.arms[0]]["before"][score] for s in cfg.seeds] for score in SCORES}
+    pairs = []
+    for a, b in PAIRS:
+        if a not in cfg.arms or b not in cfg.arms:
+            continue
+        for score in SCORES:
+            for when in ("equal_steps", "equal_time"):
+                d = [x - y for x, y in zip(table[a][score][when], table[b][score][when])]
+                pairs.append({"a": a, "b": b, "score": score, "when": when, "differences": d,
+                              "mean": _mean(d), "verdict": verdict(d)})
+    return {"before": before, "table": table, "pairs": pairs}
+
+
+def verdict(differences: list[float]) -> str:
+    """'better' / 'worse' when every seed's difference (a − b, lower is better) has that sign, else 'seed noise'."""
+    d = [x for x in differences if np.isfinite(x)]
+    if len(d) < len(differences) or not d:
+        return "not measured"
+    if all(x < 0 for x in d):
+        return "better"
+    if all(x > 0 for x in d):
+        return "worse"
+    return "within seed noise"
+
+
+def _mean(values) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(statistics.fmean(finite)) if finite else float("nan")
+
+
+def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progress: bool = True, log=print) -> dict:
+    """Run (or resume) the study of the module docstring; writes the three reports, returns the record."""
+    from kpcn_keras.compare import machine_record
+    from prep.shards import ShardSet
+
+    out = Path(cfg.out_dir)
+    for name in REPORT:
+        check_writable(out / name, "report (--out)")
+    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    manifest = sset.complete_manifest()
+    load_before = os.getloadavg()
+    started = datetime.now().isoformat(timespec="seconds")
+    seeds = {}
+    with exclusive_lock(cfg.runs_root, "study folder"):
+        for seed in cfg.seeds:
+            seeds[seed] = _run_arms(cfg, seed, sset, verbose=verbose, progress=progress, command=command, log=log)
+    record = {
+        "date": date.today().isoformat(),
+        "command": command,
+        "started": started,
+        "finished": datetime.now().isoformat(timespec="seconds"),
+        "config": dataclasses.asdict(cfg),
+        "arms": {arm: ARMS[arm][0] for arm in cfg.arms},
+        "loop": {arm: cfg.loop(**ARMS[arm][1]).to_dict() for arm in cfg.arms},
+        "shards": {"set_dir": str(sset.dir), "content_key": manifest["content_key"],
+                   "training_inputs": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "train"),
+                   "held_out_frames": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "val")},
+        "machine": machine_record(load_before),
+        "seeds": {str(s): v for s, v in seeds.items()},
+        "summary": summarise(cfg, seeds),
+    }
+    atomic_write_text(out / "resample.json", json.dumps(record, indent=2) + "\n")
+    atomic_write_text(out / "resample.md", format_report(record))
+    curves_png(record, out / "resample.png")
+    return record
+
+
+def _fmt(values, fmt="{:.4f}") -> str:
+    return " / ".join("—" if not np.isfinite(v) else fmt.format(v) for v in values)
+
+
+def format_report(record: dict) -> str:
+    """resample.md: what ran, the two tables, the paired differences and their verdicts."""
+    cfg, summary = record["config"], record["summary"]
+    seeds = ", ".join(str(s) for s in cfg["seeds"])
+    loop_any = next(iter(record["loop"].values()))
+    lines = [
+        f"# Error-based resampling against variance sampling ({record['date']})",
+        "",
+        (f"`{record['command']}`" if record.get("command") else "kpcn resample-study") +
+        f" on the shard set `{record['shards']['set_dir']}` ({record['shards']['training_inputs']} training inputs, "
+        f"{record['shards']['held_out_frames']} held-out frames), seeds {seeds}. Each seed trains a base run "
+        f"({cfg['base_steps']} steps per network, cpu preset), then each arm continues a copy of it for "
+        f"{cfg['rounds']} rounds of {cfg['round_steps']} steps per network; arms that add patches add "
+        f"{cfg['patches_per_image']} per training input per round (error metric {loop_any['metric']}, error "
+        f"weight {record['loop'].get('error', loop_any)['error_weight']:g}).",
+        "",
+        "| arm | what it is |",
+        "|---|---|",
+        *[f"| {arm} | {what} |" for arm, what in record["arms"].items()],
+        "",
+        f"Before the rounds (the base runs): held-out relMSE {_fmt(summary['before']['relmse'])}, DSSIM "
+        f"{_fmt(summary['before']['dssim'])} (per seed).",
+        "",
+    ]
+    for when, title in (("equal_steps", f"At equal training steps (after {cfg['rounds']} rounds)"),
+                        ("equal_time", "At equal wall time (the costliest arm's seconds after "
+                                       f"{cfg['rounds']} rounds; error maps, shards and training count)")):
+        budgets = _fmt([record["seeds"][str(s)]["budget_seconds"] for s in cfg["seeds"]], "{:.0f}")
+        lines += [f"## {title}", ""]
+        if when == "equal_time":
+            lines += [f"Budget per seed: {budgets} s.", ""]
+        lines += ["| arm | held-out relMSE per seed | mean | DSSIM per seed | mean |", "|---|---|---|---|---|"]
+        for arm, scores in summary["table"].items():
+            r, d = scores["relmse"][when], scores["dssim"][when]
+            lines.append(f"| {arm} | {_fmt(r)} | {_mean(r):.4f} | {_fmt(d)} | {_mean(d):.4f} |")
+        lines.append("")
+        lines += ["| comparison | score | difference per seed (lower: the first is better) | mean | verdict |",
+                  "|---|---|---|---|---|"]
+        for pair in summary["pairs"]:
+            if pair["when"] == when:
+                lines.append(f"| {pair['a']} − {pair['b']} | {pair['score']} | {_fmt(pair['differences'], '{:+.4f}')} | "
+                             f"{pair['mean']:+.4f} | {pair['verdict']} |")
+        lines.append("")
+    m = record["machine"]
+    lines += [
+        "A difference is called better or worse only when it has the same sign in every seed; otherwise it is "
+        "within seed noise. Seconds are this machine's "
+        f"({m['cpus']} CPUs, torch {m['torch']} on {m['torch_threads']} threads; load average "
+        f"{m['load_average_before'][0]:.1f} before, {m['load_average_after'][0]:.1f} after), from "
+        f"{record['started']} to {record['finished']}. Raw numbers: `resample.json`; curves: `resample.png`.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def curves_png(record: dict, path: Path) -> Path:
+    """Held-out relMSE against training steps and against wall time, one colour per arm, one line per seed."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    arms = list(record["arms"])
+    for i, arm in enumerate(arms):
+        for j, seed in enumerate(record["config"]["seeds"]):
+            loop = record["seeds"][str(seed)]["loops"][arm]
+            steps, times, values = curve(loop, "relmse")
+            label = arm if j == 0 else None
+            axes[0].plot(steps, values, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
+            axes[1].plot(times, values, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
+    for seed in record["config"]["seeds"]:
+        axes[1].axvline(record["seeds"][str(seed)]["budget_seconds"], color="grey", lw=0.6, ls=":")
+    axes[0].set_xlabel("training steps per network")
+    axes[1].set_xlabel("seconds of error maps, shards and training after the base run (dotted: budgets)")
+    for ax in axes:
+        ax.set_ylabel("held-out relMSE")
+        ax.set_yscale("log")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Resampling rounds, seeds {', '.join(map(str, record['config']['seeds']))}", fontsize=10)
+    fig.tight_layout()
+    return save_png(fig, path)
