@@ -96,7 +96,8 @@ def _check_loop(record: dict, cfg: ResampleConfig, run) -> dict:
         differ = sorted(k for k in cfg.identity() if old.get(k) != cfg.identity()[k])
         raise KpcnError(f"{run.record_path}: its resample loop was started with other settings (differs in "
                         f"{', '.join(differ)}); continue it with those, or resample a copy of the run")
-    loop["config"] = cfg.to_dict()
+    # the most rounds ever asked for: a rerun asking for fewer finds the loop as it is
+    loop["config"] = {**cfg.to_dict(), "rounds": max(cfg.rounds, loop["config"]["rounds"])}
     return loop
 
 
