@@ -352,15 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
     c = parser("compare", help="train every configuration for the same seconds, then compare accuracy and cost "
                "on held-out frames; writes reports/compare.{md,json,png}")
     d = lambda name: f"(default: {_default(CompareConfig, name)})"  # noqa: E731
-    c.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
-    c.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
-    c.add_argument("--runs", dest="runs_root", help=f"folder of the comparison's runs, reused when run again "
-                   f"{d('runs_root')}")
+    _experiment_folders(c, d, "the comparison's runs")
     c.add_argument("--budget", type=float, help=f"seconds of training per configuration {d('budget')}")
     c.add_argument("--configurations", type=_csv, help=f"comma-separated {d('configurations')}")
     c.add_argument("--frame", type=int, help=f"side of the crop whose inference is timed {d('frame')}")
     c.add_argument("--repeats", type=int, help=f"timed calls per row, the median is reported {d('repeats')}")
-    c.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
     c.add_argument("--seed", type=int, help=d("seed"))
     c.set_defaults(func=cmd_compare)
 
@@ -369,10 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     y = parser("resample-study", help="error rounds against variance sampling alone, at equal steps and equal "
                "wall time, over several seeds; writes reports/resample.{md,json,png}")
     d = lambda name: f"(default: {_default(ResampleStudyConfig, name)})"  # noqa: E731
-    y.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
-    y.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
-    y.add_argument("--runs", dest="runs_root", help=f"folder of the study's runs and shard copies, reused when run "
-                   f"again {d('runs_root')}")
+    _experiment_folders(y, d, "the study's runs and shard copies")
     y.add_argument("--seeds", type=_csv_ints, help=f"training seeds, comma-separated {d('seeds')}")
     y.add_argument("--arms", type=_csv, help=f"comma-separated {d('arms')}")
     y.add_argument("--base-steps", type=int, help=f"steps per network of each seed's base run {d('base_steps')}")
@@ -382,9 +375,17 @@ def build_parser() -> argparse.ArgumentParser:
     y.add_argument("--error-weight", type=float, help="share of the error PDF in the error arm's mix (default: "
                    f"{_default(ResampleConfig, 'error_weight')})")
     y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")
-    y.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
     y.set_defaults(func=cmd_resample_study)
     return p
+
+
+def _experiment_folders(p: argparse.ArgumentParser, d, runs: str) -> None:
+    """--set, --shards, --runs and --out of a command that trains runs of its own (compare, resample-study);
+    ``d(name)`` is the help text of a field's default."""
+    p.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
+    p.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
+    p.add_argument("--runs", dest="runs_root", help=f"folder of {runs}, reused when run again {d('runs_root')}")
+    p.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
 
 
 def _flags(parser: argparse.ArgumentParser, command: str) -> dict[str, str]:

@@ -14,7 +14,8 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
    patches of rounds 0..k, as one more phase of the run (``<network>-round-<k>``: its own checkpoints, rows of
    ``log.csv``, band of ``loss.png``; the record's components then point at it, so ``kpcn denoise``,
    ``evaluate`` and ``figures`` use the newest networks).
-3. **Measure.** Held-out relMSE and DSSIM (the set's validation frames, never resampled); one printed line;
+3. **Measure.** Held-out relMSE and DSSIM (the set's validation frames, never resampled; the means and each
+   frame's); one printed line;
    the round's entry in the run record (``resample``) and in ``<run>/resample/rounds.json``, and
    ``<run>/resample/round-<k>.png``: the map that drove the draw on one training render (the one with the
    largest mean) with the round's new patches drawn over it, beside the render with every round's patches.
@@ -145,7 +146,7 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         if "before" not in loop:
             start = time.perf_counter()
             scores = measure()
-            loop["before"] = {"relmse": scores["relmse"], "dssim": scores["dssim"],
+            loop["before"] = {"relmse": scores["relmse"], "dssim": scores["dssim"], "frames": scores["frames"],
                               "steps": base[0].steps, "patches": _train_patches(sset, 0),
                               "seconds": {"evaluation": round(time.perf_counter() - start, 2)}}
             run.write_record(record)
@@ -194,7 +195,7 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
             seconds["evaluation"] = round(time.perf_counter() - start, 2)
             entry.update(status="done", round=k, relmse=scores["relmse"], dssim=scores["dssim"],
                          steps=cfg.round_steps, total_steps=base[0].steps + k * cfg.round_steps,
-                         total_patches=sum(e.patches for e in train_entries))
+                         total_patches=sum(e.patches for e in train_entries), frames=scores["frames"])
             run.write_record(record)
             _write_rounds(run, loop)
             log(round_line(name, entry, previous))

@@ -19,7 +19,8 @@ The report proposed the loop and never measured it. For each seed of
 Reported (``reports/resample.{md,json,png}``), on the set's held-out frames (never resampled): relMSE and DSSIM
 at equal steps (after ``rounds`` rounds) and at equal wall time (linear in time between the measured rounds,
 from the base run's error at time 0), per seed and as a mean; the paired differences between arms per seed,
-and whether their sign holds in every seed (else the difference is within seed noise). Everything is resumable:
+and whether their sign holds in every seed (else the difference is within seed noise); and frame by frame
+(:func:`frame_test`), since a mean relMSE over frames can be carried by one frame. Everything is resumable:
 the same command reuses finished runs and rounds.
 """
 
@@ -81,6 +82,19 @@ def at_time(loop: dict, score: str, seconds: float) -> float:
     return float(np.interp(seconds, times, values))
 
 
+def frame_scores_at(loop: dict, score: str, *, rounds: int | None = None, seconds: float | None = None) -> np.ndarray:
+    """Each held-out frame's score after ``rounds`` rounds, or at ``seconds`` of cost (linear between the
+    measured rounds, NaN past the last one), in the loop's frame order."""
+    rows = [loop["before"]] + _rounds(loop)
+    values = np.array([[f[score] for f in row["frames"]] for row in rows], dtype=np.float64)
+    if rounds is not None:
+        return values[rounds]
+    times = cumulative_cost(loop)
+    if seconds > times[-1] + 1e-9:
+        return np.full(values.shape[1], np.nan)
+    return np.array([np.interp(seconds, times, column) for column in values.T])
+
+
 def _run_arms(cfg: ResampleStudyConfig, seed: int, sset, *, verbose, progress: bool, command: str, log) -> dict:
     """The base run of ``seed`` and every arm's loop, extended to equal wall time; arm -> loop record."""
     from kpcn_keras.resample import resample
@@ -125,6 +139,11 @@ def summarise(cfg: ResampleStudyConfig, seeds: dict) -> dict:
             timed = [at_time(seeds[s]["loops"][arm], score, seeds[s]["budget_seconds"]) for s in cfg.seeds]
             table[arm][score] = {"equal_steps": steps, "equal_time": timed}
     before = {score: [seeds[s]["loops"][cfg.arms[0]]["before"][score] for s in cfg.seeds] for score in SCORES}
+
+    def frames(arm: str, score: str, when: str) -> np.ndarray:  # every (seed, frame), seeds in order
+        at = {"equal_steps": lambda s: {"rounds": k}, "equal_time": lambda s: {"seconds": seeds[s]["budget_seconds"]}}
+        return np.concatenate([frame_scores_at(seeds[s]["loops"][arm], score, **at[when](s)) for s in cfg.seeds])
+
     pairs = []
     for a, b in PAIRS:
         if a not in cfg.arms or b not in cfg.arms:
@@ -133,8 +152,24 @@ def summarise(cfg: ResampleStudyConfig, seeds: dict) -> dict:
             for when in ("equal_steps", "equal_time"):
                 d = [x - y for x, y in zip(table[a][score][when], table[b][score][when])]
                 pairs.append({"a": a, "b": b, "score": score, "when": when, "differences": d,
-                              "mean": _mean(d), "verdict": verdict(d)})
+                              "mean": _mean(d), "verdict": verdict(d), **frame_test(frames(a, score, when),
+                                                                                   frames(b, score, when))})
     return {"before": before, "table": table, "pairs": pairs}
+
+
+def frame_test(a: np.ndarray, b: np.ndarray) -> dict:
+    """Frame by frame (every seed's held-out frames): how many are lower under ``a``, the two-sided sign-test
+    p-value of that count (ties and unmeasured frames left out), and the geometric mean of a / b. A mean
+    over frames can be carried by one frame (relMSE on a caustic); these cannot."""
+    from scipy.stats import binomtest
+
+    measured = np.isfinite(a) & np.isfinite(b)
+    ok = measured & (a != b)
+    lower, n = int(np.sum(a[ok] < b[ok])), int(np.sum(ok))
+    positive = measured & (a > 0) & (b > 0)  # ties count here, as ratio 1
+    ratio = float(np.exp(np.mean(np.log(a[positive] / b[positive])))) if positive.any() else float("nan")
+    return {"frames_lower": lower, "frames_compared": n,
+            "sign_test_p": float(binomtest(lower, n).pvalue) if n else float("nan"), "geomean_ratio": ratio}
 
 
 def verdict(differences: list[float]) -> str:
@@ -231,17 +266,22 @@ def format_report(record: dict) -> str:
             r, d = scores["relmse"][when], scores["dssim"][when]
             lines.append(f"| {arm} | {_fmt(r)} | {_mean(r):.4f} | {_fmt(d)} | {_mean(d):.4f} |")
         lines.append("")
-        lines += ["| comparison | score | difference per seed (lower: the first is better) | mean | verdict |",
-                  "|---|---|---|---|---|"]
+        lines += ["| comparison | score | difference of the means per seed (lower: the first is better) | mean | "
+                  "verdict | frames lower under the first | sign test p | geometric mean ratio |",
+                  "|---|---|---|---|---|---|---|---|"]
         for pair in summary["pairs"]:
             if pair["when"] == when:
                 lines.append(f"| {pair['a']} − {pair['b']} | {pair['score']} | {_fmt(pair['differences'], '{:+.4f}')} | "
-                             f"{pair['mean']:+.4f} | {pair['verdict']} |")
+                             f"{pair['mean']:+.4f} | {pair['verdict']} | {pair['frames_lower']} of "
+                             f"{pair['frames_compared']} | {pair['sign_test_p']:.3g} | {pair['geomean_ratio']:.3f} |")
         lines.append("")
     m = record["machine"]
     lines += [
-        "A difference is called better or worse only when it has the same sign in every seed; otherwise it is "
-        "within seed noise. Seconds are this machine's "
+        "A difference of the means is called better or worse only when it has the same sign in every seed; "
+        "otherwise it is within seed noise. The frame columns compare every seed's held-out frames one by one: "
+        "how many are lower under the first arm, the two-sided sign-test p-value of that count (frames of one "
+        "seed are not independent draws, so read it as a guide), and the geometric mean of the ratio of the two "
+        "arms' scores (below 1: the first is lower), which no single frame can carry. Seconds are this machine's "
         f"({m['cpus']} CPUs, torch {m['torch']} on {m['torch_threads']} threads; load average "
         f"{m['load_average_before'][0]:.1f} before, {m['load_average_after'][0]:.1f} after), from "
         f"{record['started']} to {record['finished']}. Raw numbers: `resample.json`; curves: `resample.png`.",
@@ -250,26 +290,34 @@ def format_report(record: dict) -> str:
     return "\n".join(lines)
 
 
+def _geomean_curve(loop: dict) -> list[float]:
+    rows = [loop["before"]] + _rounds(loop)
+    return [float(np.exp(np.mean(np.log([max(f["relmse"], 1e-12) for f in row["frames"]])))) for row in rows]
+
+
 def curves_png(record: dict, path: Path) -> Path:
-    """Held-out relMSE against training steps and against wall time, one colour per arm, one line per seed."""
+    """Held-out relMSE (top: the mean over frames; bottom: their geometric mean, which no single frame can
+    carry) against training steps (left) and wall time (right); one colour per arm, one line per seed."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    arms = list(record["arms"])
-    for i, arm in enumerate(arms):
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharex="col")
+    for i, arm in enumerate(record["arms"]):
         for j, seed in enumerate(record["config"]["seeds"]):
             loop = record["seeds"][str(seed)]["loops"][arm]
             steps, times, values = curve(loop, "relmse")
             label = arm if j == 0 else None
-            axes[0].plot(steps, values, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
-            axes[1].plot(times, values, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
+            for row, ys in enumerate((values, _geomean_curve(loop))):
+                axes[row, 0].plot(steps, ys, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
+                axes[row, 1].plot(times, ys, "o-", color=f"C{i}", alpha=0.8, markersize=3, label=label)
     for seed in record["config"]["seeds"]:
-        axes[1].axvline(record["seeds"][str(seed)]["budget_seconds"], color="grey", lw=0.6, ls=":")
-    axes[0].set_xlabel("training steps per network")
-    axes[1].set_xlabel("seconds of error maps, shards and training after the base run (dotted: budgets)")
-    for ax in axes:
-        ax.set_ylabel("held-out relMSE")
-        ax.set_yscale("log")
-        ax.legend(fontsize=8)
+        for ax in axes[:, 1]:
+            ax.axvline(record["seeds"][str(seed)]["budget_seconds"], color="grey", lw=0.6, ls=":")
+    axes[1, 0].set_xlabel("training steps per network")
+    axes[1, 1].set_xlabel("seconds of error maps, shards and training after the base run (dotted: budgets)")
+    for row, what in enumerate(("mean", "geometric mean")):
+        for ax in axes[row]:
+            ax.set_ylabel(f"held-out relMSE, {what} over frames")
+            ax.set_yscale("log")
+            ax.legend(fontsize=8)
     fig.suptitle(f"Resampling rounds, seeds {', '.join(map(str, record['config']['seeds']))}", fontsize=10)
     fig.tight_layout()
     return save_png(fig, path)

@@ -329,18 +329,17 @@ class ShardSet:
             for name in names:
                 if name not in manifest["rounds"]:
                     raise ShardError(f"{self.manifest_path}: has no {name} to fork")
-                (new.dir / name).mkdir(parents=True, exist_ok=True)
-                shards = []
-                for s in manifest["rounds"][name]["shards"]:
-                    target = new.dir / name / self.resolve(s["path"]).name
+                entry = forked["rounds"][name] = json.loads(json.dumps(manifest["rounds"][name]))
+                for listed in entry["shards"] + ([entry["plan"]] if "plan" in entry else []):
+                    source = self.resolve(listed["path"])
+                    target = new.dir / name / source.name
                     if not target.is_file():
                         with atomic_path(target) as tmp:
                             try:
-                                os.link(self.resolve(s["path"]), tmp)
+                                os.link(source, tmp)
                             except OSError:
-                                shutil.copyfile(self.resolve(s["path"]), tmp)
-                    shards.append({**s, "path": new.relative(target)})
-                forked["rounds"][name] = {**manifest["rounds"][name], "shards": shards}
+                                shutil.copyfile(source, tmp)
+                    listed["path"] = new.relative(target)
             for source in forked["sources"]:
                 source["path"] = new.relative(self.resolve(source["path"]))
             atomic_write_json(new.manifest_path, forked)

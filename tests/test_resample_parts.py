@@ -19,7 +19,7 @@ from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, check
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
-from kpcn_keras.resample_study import at_time, cumulative_cost, verdict
+from kpcn_keras.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
 from kpcn_keras.run import Run
 from kpcn_keras.train import check_inputs, train
 from prep.errors import KpcnError
@@ -283,6 +283,29 @@ def test_scores_at_equal_time_interpolate_linearly_between_rounds(seconds, relms
 ])
 def test_a_difference_is_a_verdict_only_when_every_seed_agrees(differences, want):
     assert verdict(differences) == want
+
+
+def test_each_frames_score_is_read_per_round_and_interpolated_in_time():
+    loop = hand_made_loop()
+    for row, values in ((loop["before"], (1.0, 3.0)), (loop["rounds"]["round-001"], (0.6, 3.0)),
+                        (loop["rounds"]["round-002"], (0.2, 5.0))):
+        row["frames"] = [{"frame": f"f{i}", "relmse": v} for i, v in enumerate(values)]
+    np.testing.assert_array_equal(frame_scores_at(loop, "relmse", rounds=2), [0.2, 5.0])
+    # 6 s is half way from round 1 (4 s) to round 2 (8 s)
+    np.testing.assert_allclose(frame_scores_at(loop, "relmse", seconds=6.0), [0.4, 4.0], rtol=1e-12)
+    assert np.isnan(frame_scores_at(loop, "relmse", seconds=9.0)).all()
+
+
+def test_the_frame_test_counts_lower_frames_and_takes_the_geometric_mean_of_the_ratios():
+    a = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 1.0, np.nan])
+    b = np.array([2.0, 4.0, 6.0, 8.0, 2.5, 1.0, 1.0])
+    found = frame_test(a, b)
+    # the tie (1 vs 1) and the unmeasured frame are left out: 4 of 5 lower under a
+    assert (found["frames_lower"], found["frames_compared"]) == (4, 5)
+    # two-sided sign test of 4 of 5: P(X <= 1) + P(X >= 4) = (1 + 5 + 5 + 1) / 32
+    assert found["sign_test_p"] == pytest.approx(12 / 32)
+    ratios = np.array([0.5, 0.5, 0.5, 0.5, 2.0, 1.0])
+    assert found["geomean_ratio"] == pytest.approx(float(np.prod(ratios) ** (1 / 6)))
 
 
 # ---------------------------------------------------------------- the study through the command line
