@@ -270,7 +270,7 @@ def loss_curve_png(run: Run, record: dict) -> Path:
     for i, (name, plan) in enumerate(record["phases"].items()):
         a = plan["first_epoch"] + 0.5
         ax.axvspan(a, a + plan["epochs"], color=f"C{i % 10}", alpha=0.08)
-        ax.text(a + 0.1, 1.0, name, transform=ax.get_xaxis_transform(), va="top", fontsize=8)
+        ax.text(a + 0.1, 0.98, name, transform=ax.get_xaxis_transform(), va="top", rotation=90, fontsize=7)
     ax.set_xlabel("epoch (all phases)")
     ax.set_ylabel("loss (SMAPE; final colour in joint and compositor)")
     ax.set_yscale("log")
