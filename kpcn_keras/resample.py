@@ -107,10 +107,9 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
     """Run (or resume) the loop on the finished run ``run_dir``; returns the record's ``resample`` entry."""
     import keras
 
-    from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.evaluate import frame_scores, held_out_frames
+    from kpcn_keras.evaluate import held_out_frames
     from kpcn_keras.run import Run
-    from kpcn_keras.train import check_inputs, finish_phase, phase_plan, train_phase
+    from kpcn_keras.train import check_inputs
 
     if keras.backend.backend() != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
@@ -138,16 +137,10 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         run.remove_temporaries()
         record = run.read_record()  # what the lock holder before us left
         loop = _check_loop(record, cfg, run)
-
-        def measure() -> dict:
-            denoiser = Denoiser(run.dir)
-            return frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
-
         if "before" not in loop:
             start = time.perf_counter()
-            scores = measure()
-            loop["before"] = {"relmse": scores["relmse"], "dssim": scores["dssim"], "frames": scores["frames"],
-                              "steps": base[0].steps, "patches": _train_patches(sset, 0),
+            loop["before"] = {**_scores(run, frames), "steps": base[0].steps,
+                              "patches": sum(e.patches for e in sset.entries(manifest, "train", [0])),
                               "seconds": {"evaluation": round(time.perf_counter() - start, 2)}}
             run.write_record(record)
             _write_rounds(run, loop)
@@ -155,56 +148,79 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         for k in range(1, cfg.rounds + 1):
             name = round_name(k)
             entry = loop["rounds"].setdefault(name, {"status": "shards", "seconds": {}})
-            if entry["status"] == "done":
-                previous = entry
-                continue
-            seconds = entry["seconds"]
-            if entry["status"] == "shards" and patches_per_image == 0:  # no new patches: only train longer
-                entry.update(status="training", patches=0)
-            if entry["status"] == "shards":
-                rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric,
-                                 _model_provenance(run, record) if cfg.error_weight > 0 else {}, command=command)
-                denoise = None
-                if cfg.error_weight > 0:
-                    denoiser = Denoiser(run.dir)
-                    denoise = lambda aovs: denoiser(aovs)["default"]  # noqa: E731
-                result = build_error_round(sset.dir, rnd, denoise, progress=progress)
-                for key, value in result.seconds.items():
-                    seconds[key] = round(seconds.get(key, 0.0) + value, 2)
-                entry.update(status="training", patches=result.patches)
-                if result.figure:
-                    entry["png"] = run.relative(round_png(run, sset, result, k, cfg))
-                run.write_record(record)
-            manifest = sset.complete_manifest()
-            rounds = range(k + 1) if patches_per_image else [0]
-            train_entries = sset.verified_shards("train", manifest, rounds=rounds)
-            paths = {"train": [e.path for e in train_entries],
-                     "val": [e.path for e in sset.verified_shards("val", manifest, rounds=[0])],
-                     "train_weights": round_weights(train_entries, k, cfg.round_decay)}
-            for phase in round_phases(train_cfg, cfg, k, rounds[-1]):
-                if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
-                    continue
-                record["phases"].setdefault(phase.name, phase_plan(phase))
+            if entry["status"] != "done":
+                if entry["status"] == "shards":
+                    _new_patches(run, record, sset, cfg, k, patches_per_image, command, progress)
+                total_patches = _train_round(run, record, sset, train_cfg, cfg, k, patches_per_image > 0, verbose)
                 start = time.perf_counter()
-                train_phase(train_cfg, run, record, phase, paths, verbose=verbose)
-                elapsed = time.perf_counter() - start
-                seconds["training"] = round(seconds.get("training", 0.0) + elapsed, 2)
-                finish_phase(train_cfg, run, record, phase, elapsed)
-            start = time.perf_counter()
-            scores = measure()
-            seconds["evaluation"] = round(time.perf_counter() - start, 2)
-            entry.update(status="done", round=k, relmse=scores["relmse"], dssim=scores["dssim"],
-                         steps=cfg.round_steps, total_steps=base[0].steps + k * cfg.round_steps,
-                         total_patches=sum(e.patches for e in train_entries), frames=scores["frames"])
-            run.write_record(record)
-            _write_rounds(run, loop)
-            log(round_line(name, entry, previous))
+                entry.update(status="done", round=k, **_scores(run, frames), steps=cfg.round_steps,
+                             total_steps=base[0].steps + k * cfg.round_steps, total_patches=total_patches)
+                entry["seconds"]["evaluation"] = round(time.perf_counter() - start, 2)
+                run.write_record(record)
+                _write_rounds(run, loop)
+                log(round_line(name, entry, previous))
             previous = entry
     return loop
 
 
-def _train_patches(sset: ShardSet, k: int) -> int:
-    return sum(e.patches for e in sset.verified_shards("train", rounds=range(k + 1)))
+def _scores(run, frames: list[dict]) -> dict:
+    """Held-out relMSE and DSSIM of the run's current networks: the means and every frame's."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.evaluate import frame_scores
+
+    denoiser = Denoiser(run.dir)
+    scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
+    return {"relmse": scores["relmse"], "dssim": scores["dssim"], "frames": scores["frames"]}
+
+
+def _new_patches(run, record: dict, sset: ShardSet, cfg: ResampleConfig, k: int, patches_per_image: int,
+                 command: str, progress: bool) -> None:
+    """Step 1 of round ``k``: its shards (none when the loop adds no patches) and its picture; the round's
+    entry then says ``training``."""
+    from kpcn_keras.denoise import Denoiser
+
+    entry = record["resample"]["rounds"][round_name(k)]
+    patches = 0
+    if patches_per_image:
+        denoise = None
+        if cfg.error_weight > 0:
+            denoiser = Denoiser(run.dir)
+            denoise = lambda aovs: denoiser(aovs)["default"]  # noqa: E731
+        model = _model_provenance(run, record) if cfg.error_weight > 0 else {}
+        rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric, model, command=command)
+        result = build_error_round(sset.dir, rnd, denoise, progress=progress)
+        for key, value in result.seconds.items():
+            entry["seconds"][key] = round(entry["seconds"].get(key, 0.0) + value, 2)
+        if result.figure:
+            entry["png"] = run.relative(round_png(run, sset, result, k, cfg))
+        patches = result.patches
+    entry.update(status="training", patches=patches)
+    run.write_record(record)
+
+
+def _train_round(run, record: dict, sset: ShardSet, train_cfg: TrainConfig, cfg: ResampleConfig, k: int,
+                 adds_patches: bool, verbose) -> int:
+    """Step 2 of round ``k``: every branch network continues on rounds 0..k (round 0 alone when the loop
+    adds no patches); returns the training patches it read."""
+    from kpcn_keras.train import finish_phase, phase_plan, train_phase
+
+    manifest = sset.complete_manifest()
+    rounds = list(range(k + 1)) if adds_patches else [0]
+    train_entries = sset.verified_shards("train", manifest, rounds=rounds)
+    paths = {"train": [e.path for e in train_entries],
+             "val": [e.path for e in sset.verified_shards("val", manifest, rounds=[0])],
+             "train_weights": round_weights(train_entries, k, cfg.round_decay)}
+    seconds = record["resample"]["rounds"][round_name(k)]["seconds"]
+    for phase in round_phases(train_cfg, cfg, k, rounds[-1]):
+        if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
+            continue
+        record["phases"].setdefault(phase.name, phase_plan(phase))
+        start = time.perf_counter()
+        train_phase(train_cfg, run, record, phase, paths, verbose=verbose)
+        elapsed = time.perf_counter() - start
+        seconds["training"] = round(seconds.get("training", 0.0) + elapsed, 2)
+        finish_phase(train_cfg, run, record, phase, elapsed)
+    return sum(e.patches for e in train_entries)
 
 
 def _write_rounds(run, loop: dict) -> None:

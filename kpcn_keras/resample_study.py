@@ -321,7 +321,7 @@ def curves_png(record: dict, path: Path) -> Path:
         for ax in axes[:, 1]:
             ax.axvline(record["seeds"][str(seed)]["budget_seconds"], color="grey", lw=0.6, ls=":")
     axes[1, 0].set_xlabel("training steps per network")
-    axes[1, 1].set_xlabel("seconds of error maps, shards and training after the base run (dotted: budgets)")
+    axes[1, 1].set_xlabel("seconds after the base run: error maps, shards, training (dotted: budgets)")
     for row, what in enumerate(("mean", "geometric mean")):
         for ax in axes[row]:
             ax.set_ylabel(f"held-out relMSE, {what} over frames")

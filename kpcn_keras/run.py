@@ -107,8 +107,9 @@ class Run:
         return exclusive_lock(self.dir, "run folder")
 
     def remove_temporaries(self) -> None:
-        """Remove what killed trainers left (hold :meth:`lock`; ``eval/`` is evaluate's, which takes no lock)."""
-        for folder in (self.dir, self.checkpoint_dir):
+        """Remove what killed trainers and resample loops left (hold :meth:`lock`; ``eval/`` and ``figures/``
+        belong to evaluate and figures, which take no lock)."""
+        for folder in (self.dir, self.checkpoint_dir, self.resample_dir):
             if folder.is_dir():
                 remove_temporaries(folder)
 

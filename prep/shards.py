@@ -919,6 +919,7 @@ def build_error_round(set_dir: str | os.PathLike, rnd: ErrorRound, denoise=None,
     sset = ShardSet(set_dir)
     k, name = rnd.index, round_name(rnd.index)
     with sset.lock():
+        remove_temporaries(sset.dir)  # a manifest write that a kill cut short
         manifest = sset.complete_manifest()
         config = ShardConfig(**manifest["config"])
         have = set(manifest["rounds"])

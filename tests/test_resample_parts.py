@@ -150,6 +150,25 @@ def test_bad_shard_weights_are_refused(two_round_set, bad):
         ShardPatches(paths, "diffuse", 2, 3, shuffle=True, weights=weights)
 
 
+def test_an_error_round_removes_what_a_killed_writer_left_in_the_set(tmp_path):
+    sset = tiny_set(tmp_path)
+    stale = sset.dir / ".manifest.json.tmp-1-deadbeef.json"  # a manifest write cut short by a kill
+    stale.write_text("{")
+    variance_round(sset.dir)
+    assert not stale.exists()
+    assert sorted(manifest_of(sset.dir)["rounds"]) == ["round-000", "round-001"]
+
+
+def test_a_run_removes_what_a_killed_resample_loop_left(tiny_run, tmp_path):
+    run = Run(tiny_run).fork(tmp_path / "r")
+    run.resample_dir.mkdir()
+    stale = run.resample_dir / ".rounds.json.tmp-1-deadbeef.json"
+    stale.write_text("{")
+    with run.lock():
+        run.remove_temporaries()
+    assert not stale.exists()
+
+
 # ---------------------------------------------------------------- forked shard sets and runs
 
 
