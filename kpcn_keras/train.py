@@ -338,7 +338,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
 
 def finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float) -> None:
     """Mark ``phase`` done in the record (its components now come from its file), with its last epoch and
-    the seconds this session spent on it (timings.json); redraw loss.png."""
+    the seconds this session spent on it (timings.json), after redrawing loss.png."""
     rows = [r for r in read_log(run.log_path)
             if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
     record["phases"][phase.name]["status"] = "done"
@@ -347,8 +347,9 @@ def finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds
     timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
     timings[phase.name] = round(seconds, 1)  # the session that finished it
     atomic_write_json(run.timings_path, timings)
-    run.write_record(record)
     loss_curve_png(run, record)
+    # last: the record is what says the phase is done, so a kill before it redraws loss.png on the rerun
+    run.write_record(record)
 
 
 def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()) -> Path:
