@@ -202,7 +202,7 @@ def _train_round(run, record: dict, sset: ShardSet, train_cfg: TrainConfig, cfg:
                  adds_patches: bool, verbose) -> int:
     """Step 2 of round ``k``: every branch network continues on rounds 0..k (round 0 alone when the loop
     adds no patches); returns the training patches it read."""
-    from kpcn_keras.train import finish_phase, phase_plan, train_phase
+    from kpcn_keras.train import run_phase
 
     manifest = sset.complete_manifest()
     rounds = list(range(k + 1)) if adds_patches else [0]
@@ -212,14 +212,8 @@ def _train_round(run, record: dict, sset: ShardSet, train_cfg: TrainConfig, cfg:
              "train_weights": round_weights(train_entries, k, cfg.round_decay)}
     seconds = record["resample"]["rounds"][round_name(k)]["seconds"]
     for phase in round_phases(train_cfg, cfg, k, rounds[-1]):
-        if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
-            continue
-        record["phases"].setdefault(phase.name, phase_plan(phase))
-        start = time.perf_counter()
-        train_phase(train_cfg, run, record, phase, paths, verbose=verbose)
-        elapsed = time.perf_counter() - start
+        elapsed = run_phase(train_cfg, run, record, phase, paths, verbose=verbose)
         seconds["training"] = round(seconds.get("training", 0.0) + elapsed, 2)
-        finish_phase(train_cfg, run, record, phase, elapsed)
     return sum(e.patches for e in train_entries)
 
 

@@ -219,7 +219,7 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
         },
         "versions": {"keras": keras.__version__, "torch": torch.__version__, "numpy": np.__version__},
         "command": " ".join(["kpcn"] + sys.argv[1:]),
-        "phases": {p.name: phase_plan(p) for p in cfg.phases()},
+        "phases": {p.name: _phase_plan(p) for p in cfg.phases()},
         "components": {},
         "results": {},
     }
@@ -227,7 +227,7 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
     return record
 
 
-def phase_plan(phase: Phase) -> dict:
+def _phase_plan(phase: Phase) -> dict:
     """A phase's entry in the record before it is trained (a continuing phase also says what it continues)."""
     plan = {"status": "pending", "first_epoch": phase.first_epoch, "epochs": phase.epochs, "steps": phase.steps,
             "learning_rate": phase.learning_rate}
@@ -336,7 +336,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     save_model(model, final)
 
 
-def finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float) -> None:
+def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float) -> None:
     """Mark ``phase`` done in the record (its components now come from its file), with its last epoch and
     the seconds this session spent on it (timings.json), after redrawing loss.png."""
     rows = [r for r in read_log(run.log_path)
@@ -366,9 +366,20 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
         run.remove_temporaries()
         record = _open_record(run, cfg, manifest, sset)
         for phase in cfg.phases():
-            if record["phases"][phase.name]["status"] == "done" and run.model_path(phase.name).is_file():
-                continue
-            start = time.perf_counter()
-            train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
-            finish_phase(cfg, run, record, phase, time.perf_counter() - start)
+            run_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
     return run.dir
+
+
+def run_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto",
+              callbacks=()) -> float:
+    """Train ``phase`` of ``run`` unless the record says it is done (listing it first if it is not yet
+    listed), then mark it done; returns the seconds this call trained (0 for a done phase). The run's lock
+    must be held."""
+    if record["phases"].get(phase.name, {}).get("status") == "done" and run.model_path(phase.name).is_file():
+        return 0.0
+    record["phases"].setdefault(phase.name, _phase_plan(phase))
+    start = time.perf_counter()
+    train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
+    seconds = time.perf_counter() - start
+    _finish_phase(cfg, run, record, phase, seconds)
+    return seconds
