@@ -12,8 +12,9 @@ TRAIN_ARGS  ?=
 RESAMPLE_ARGS ?=
 STUDY_ARGS  ?=
 COMPARE_ARGS ?=
+BENCH_ARGS  ?=
 
-.PHONY: venv render shards train resample resample-study evaluate figures compare test clean
+.PHONY: venv render shards train resample resample-study evaluate figures compare bench test clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -56,6 +57,12 @@ figures: $(KPCN)
 compare: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) compare --set $(SET) $(COMPARE_ARGS)
+
+# what accuracy costs in time: reports/accuracy_time.{md,json,png} (BENCH_ARGS="--full" for the full ladder);
+# with Intel Open Image Denoise (the optional extra pyoidn) as the curve to beat
+bench: shards
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(KPCN) bench --set $(SET) $(BENCH_ARGS)
 
 test: $(KPCN)
 	$(BIN)/python -m pytest -q

@@ -128,13 +128,25 @@ def cmd_resample(args) -> int:
 
 
 def cmd_denoise(args) -> int:
-    from kpcn_keras.denoise import denoise_file
+    from kpcn_keras.denoise import denoise_files
 
-    report = denoise_file(args.input, args.run, args.output, args.reference, png=not args.no_png,
+    def frame(report):
+        print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else "")
+              + f" ({report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
+
+    batch = denoise_files(args.inputs, args.run, args.output, args.reference, png=not args.no_png, on_frame=frame,
                           **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
-    print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
-    print(f"denoised in {report['seconds']:.2f} s")
-    if "metrics" in report:
+    frames = batch["frames"]
+    if batch["skipped"]:
+        print(f"skipped {len(batch['skipped'])} earlier outputs or temporaries: {', '.join(batch['skipped'])}")
+    startup = "?" if batch["startup_s"] is None else f"{batch['startup_s']:.2f} s"
+    print(f"start-up {startup}, model load {batch['load_s']:.2f} s, warm-up {batch['warmup_s']:.2f} s "
+          f"({batch['threads']} thread{'s' if batch['threads'] != 1 else ''})")
+    per_frame = sorted(f["seconds"] for f in frames)[len(frames) // 2]
+    print(f"denoised {len(frames)} frame{'s' if len(frames) > 1 else ''} in {sum(f['seconds'] for f in frames):.2f} s"
+          + (f" (median {per_frame * 1000:.0f} ms a frame)" if len(frames) > 1 else ""))
+    if "metrics" in frames[0]:
+        report = frames[0]
         print(f"{'':10s} " + " ".join(f"{m:>10s}" for m in report["metrics"]))
         for label, key in (("input", "input_metrics"), ("denoised", "metrics")):
             print(f"{label:10s} " + " ".join(f"{v:10.5f}" for v in report[key].values()))
@@ -166,13 +178,36 @@ def cmd_figures(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from prep.render.bench import RenderBenchConfig, bench_render, format_report
+    from prep.render.bench import RenderBenchConfig
 
-    cfg = RenderBenchConfig(**_given(args, RenderBenchConfig))
-    record = bench_render(cfg, progress=not args.quiet)
-    print(format_report(record))
-    print(f"report: {cfg.out_dir}/render.md")
+    if args.what == "render":
+        from prep.render.bench import bench_render, format_report
+
+        for dest in sorted(d for d in _BENCH_ACCURACY_OPTIONS if d in args):
+            raise OptionError(dest, "is an option of 'kpcn bench' (accuracy against time), not of 'kpcn bench render'")
+        cfg = RenderBenchConfig(**_given(args, RenderBenchConfig))
+        record = bench_render(cfg, progress=not args.quiet)
+        print(format_report(record))
+        print(f"report: {cfg.out_dir}/render.md")
+        return 0
+    from kpcn_keras.bench import REPORT, bench
+    from kpcn_keras.config import BenchConfig
+
+    for dest in sorted(d for d in _BENCH_RENDER_OPTIONS if d in args):
+        raise OptionError(dest, "is an option of 'kpcn bench render', not of 'kpcn bench' (accuracy against time)")
+    given = _given(args, BenchConfig)
+    if "large_frame" in given and len(given["large_frame"]) != 2:
+        raise OptionError("large_frame", f"must be WIDTH,HEIGHT, got {list(given['large_frame'])}")
+    cfg = BenchConfig(**given)
+    bench(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto",
+          progress=not args.quiet)
+    print(f"report: {cfg.out_dir}/{REPORT}.md, {REPORT}.json and {REPORT}.png")
     return 0
+
+
+_BENCH_RENDER_OPTIONS = {"width", "height", "spp"}
+_BENCH_ACCURACY_OPTIONS = {"set_name", "shards_root", "runs_root", "full", "raw_spp", "input_spp", "budget",
+                           "budget_fractions", "configurations", "presets", "large_frame", "seed"}
 
 
 def cmd_compare(args) -> int:
@@ -209,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     def parser(name, **kw):
         p.get_default("subcommands")[name] = sub.add_parser(name, argument_default=argparse.SUPPRESS, **kw)
+        # every command computes (numba, torch or both); prep/threads.py makes the count hold for both
+        p.get_default("subcommands")[name].add_argument(
+            "--threads", type=int, help="threads for numba and torch (default: every core this process may use)")
         return p.get_default("subcommands")[name]
 
     r = parser("render", help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")
@@ -303,11 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
                    f"alike {d('round_decay')}")
     m.set_defaults(func=cmd_resample)
 
-    n = parser("denoise", help="denoise one EXR in the AOV layout")
-    n.add_argument("input")
+    n = parser("denoise", help="denoise EXRs in the AOV layout: files, or every render in a folder, in one process")
+    n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
+                   "but earlier *-denoised.exr outputs)")
     n.add_argument("--run", required=True, help="a run folder that finished training (kpcn train)")
-    n.add_argument("-o", "--output", default=None, help="output EXR (default: <input stem>-denoised.exr beside it)")
-    n.add_argument("--reference", default=None, help="reference EXR: prints MSE, relMSE, SMAPE, DSSIM, PSNR")
+    n.add_argument("-o", "--output", default=None, help="output EXR, or a folder for <input stem>-denoised.exr "
+                   "(a folder with several inputs; default: beside each input)")
+    n.add_argument("--reference", default=None, help="reference EXR of a single input: prints MSE, relMSE, SMAPE, "
+                   "DSSIM, PSNR")
     n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
@@ -336,15 +377,33 @@ def build_parser() -> argparse.ArgumentParser:
 
     from prep.render.bench import RenderBenchConfig
 
-    b = parser("bench", help="measure what a stage costs; writes reports/<what>.{md,json}")
+    from kpcn_keras.config import BENCH_PRESETS, BenchConfig
+
+    b = parser("bench", help="what accuracy costs in time: reports/accuracy_time.{md,json,png} (or, with 'render', "
+               "the path tracer's samples per second: reports/render.{md,json})")
+    d = lambda name: f"(default: {_default(BenchConfig, name)})"  # noqa: E731
+    b.add_argument("what", nargs="?", choices=["accuracy", "render"], default="accuracy",
+                   help="accuracy (the default): error against time per frame of raw Monte Carlo, our denoisers "
+                   "and the baselines, equal-error spp, training cost, stage costs; render: samples per second "
+                   "per scene family, specialised against all-effects kernels")
+    _experiment_folders(b, d, "the bench's trained runs")
+    b.add_argument("--full", action="store_true", help="the full ladder (every spp, five times the training); "
+                   "default: the reduced one, under 45 minutes on a 2-core CPU")
+    b.add_argument("--raw-spp", type=_csv_ints, help="raw Monte Carlo spp, comma-separated (default: the ladder's)")
+    b.add_argument("--input-spp", type=_csv_ints, help="spp the denoisers get, comma-separated (default: the ladder's)")
+    b.add_argument("--budget", type=float, help="training seconds of every configuration (default: the ladder's)")
+    b.add_argument("--budget-fractions", type=_csv_floats, help="the presets' training-cost curve, fractions of "
+                   "--budget (default: the ladder's)")
+    b.add_argument("--configurations", type=_csv, help="configurations of kpcn compare to train and measure "
+                   "(default: the ladder's)")
+    b.add_argument("--presets", type=_csv, help=f"presets of the training-cost curve (default: {','.join(BENCH_PRESETS)})")
+    b.add_argument("--large-frame", type=_csv_ints, help=f"WIDTH,HEIGHT of the frame timed against OIDN {d('large_frame')}")
+    b.add_argument("--repeats", type=int, help=f"timed calls per stage cost {d('repeats')}")
+    b.add_argument("--seed", type=int, help=d("seed"))
     d = lambda name: f"(default: {_default(RenderBenchConfig, name)})"  # noqa: E731
-    b.add_argument("what", choices=["render"], help="render: samples per second per scene family, "
-                                                    "specialised against all-effects kernels")
-    b.add_argument("--width", type=int, help=d("width"))
-    b.add_argument("--height", type=int, help=d("height"))
-    b.add_argument("--spp", type=int, help=d("spp"))
-    b.add_argument("--repeats", type=int, help=d("repeats"))
-    b.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
+    b.add_argument("--width", type=int, help=f"bench render: {d('width')}")
+    b.add_argument("--height", type=int, help=f"bench render: {d('height')}")
+    b.add_argument("--spp", type=int, help=f"bench render: {d('spp')}")
     b.set_defaults(func=cmd_bench)
 
     from kpcn_keras.config import CompareConfig
@@ -400,6 +459,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     args.flags = _flags(parser, args.command)
     try:
+        from prep.threads import set_threads
+
+        set_threads(getattr(args, "threads", None))
         return args.func(args)
     except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):

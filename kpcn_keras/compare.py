@@ -62,6 +62,9 @@ CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
     "multiscale-kernel": ("cpu + the kernel-predicting compositor", "cpu", {"compositor": {"kind": "kernel"}}),
     "asymmetric": ("cpu, asymmetric loss instead of SMAPE", "cpu", {"loss": "asymmetric", "slope": 2.0}),
     "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
+    "kernel-5": ("cpu with 5×5 kernels", "cpu", {"model": {"kernel_size": 5}}),
+    "kernel-21": ("cpu with the papers' 21×21 kernels", "cpu", {"model": {"kernel_size": 21}}),
+    "kpal": ("cpu-sized residual network", "cpu", {"model": {"arch": "kpal", "depth": 3}}),
 }
 
 PROBE_STEPS = 10
@@ -224,8 +227,13 @@ def _fmt_phases(values: dict, fmt: str) -> str:
     return ", ".join(f"{k} {fmt.format(v)}" for k, v in values.items())
 
 
-def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose="auto", log=print) -> dict:
-    """Probe (or reuse the plan of) and train every configuration; returns ``name -> plan entry``."""
+def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose="auto", log=print,
+                   probes: dict | None = None) -> dict:
+    """Probe (or reuse the plan of) and train every configuration; returns ``name -> plan entry``.
+
+    ``probes``: ``name -> {"train": identity, "probes": step times}`` of probes already made (another budget's
+    plan entries): a configuration of the same identity takes its steps from them instead of probing again.
+    """
     from kpcn_keras.run import Run
     from kpcn_keras.train import train
     from prep.shards import ShardSet
@@ -251,11 +259,15 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
                 if Run(run_dir).has_record():
                     raise KpcnError(f"{run_dir}: trained for other settings than this comparison's (another "
                                     f"configuration or shard set); choose another --runs or remove {run_dir}")
-                probes = probe_configuration(base, scratch / name)
-                per_step = seconds_per_step(probes)
+                known = (probes or {}).get(name)
+                if known is not None and known["train"] == key["train"]:
+                    times = known["probes"]
+                else:
+                    times = probe_configuration(base, scratch / name)
+                per_step = seconds_per_step(times)
                 steps = budget_steps(cfg.budget, per_step)
                 planned = with_steps(base, steps)
-                entry = {**key, "probes": probes, "seconds_per_step": per_step,
+                entry = {**key, "probes": times, "seconds_per_step": per_step,
                          "shares": budget_shares(per_step), "steps": steps,
                          "phase_steps": {p.name: p.steps for p in planned.phases()}}
                 log(f"[{name}] seconds per step: {_fmt_phases(per_step, '{:.4f}')}; for {cfg.budget:g} s: "

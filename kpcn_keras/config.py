@@ -512,3 +512,93 @@ class ResampleStudyConfig:
                               patches_per_image=self.patches_per_image if patches_per_image is None else patches_per_image,
                               **({"error_weight": weight} if weight is not None else {}),
                               **{k: v for k, v in given.items() if v is not None})
+
+
+# The ladders of ``kpcn bench`` (kpcn_keras/bench.py). "reduced", the default, finishes in under 45 minutes
+# on a 2-core CPU; "full" (--full) measures every spp up to half the references' and trains five times longer.
+# raw_spp: the raw Monte Carlo curve; input_spp: what the denoisers get; budget: training seconds of every
+# configuration; budget_fractions: the training-cost curve of the presets, as fractions of the budget.
+BENCH_LADDERS = {
+    "reduced": {"raw_spp": (2, 4, 8, 16, 32, 64, 128), "input_spp": (4, 16, 64), "budget": 120.0,
+                "budget_fractions": (1 / 3, 1.0),
+                "configurations": ("cpu", "kernel-5", "kernel-21", "kpal", "dpcn", "multiscale-alpha")},
+    "full": {"raw_spp": (2, 4, 8, 16, 32, 64, 128, 256), "input_spp": (2, 4, 8, 16, 32, 64, 128),
+             "budget": 600.0, "budget_fractions": (1 / 9, 1 / 3, 1.0),
+             "configurations": ("cpu", "kernel-5", "kernel-21", "kpal", "dpcn", "multiscale-alpha",
+                                "multiscale-kernel", "shared", "joint")},
+}
+BENCH_PRESETS = ("cpu", "kpcn-paper", "kpal-paper")  # the training-cost curve: error against training seconds
+
+
+@dataclass
+class BenchConfig:
+    """Configuration of ``kpcn bench`` (kpcn_keras/bench.py): the held-out scenes of the shard set
+    ``<shards_root>/<set_name>`` rendered at every spp of a ladder, denoised by each configuration trained
+    for ``budget`` seconds in ``runs_root`` and by the baselines; reports in ``out_dir``. ``full`` picks the
+    full ladder of :data:`BENCH_LADDERS`; ``raw_spp``, ``input_spp``, ``budget``, ``budget_fractions``,
+    ``configurations`` and ``presets`` None take the ladder's (presets: :data:`BENCH_PRESETS`).
+    ``large_frame`` (width, height) is the frame whose inference time and memory are measured against
+    Intel Open Image Denoise; ``repeats`` how many timed calls a stage cost is the best or median of."""
+
+    set_name: str = "default"
+    shards_root: str = "shards"
+    runs_root: str = "runs/bench"
+    out_dir: str = "reports"
+    full: bool = False
+    raw_spp: Optional[tuple[int, ...]] = None
+    input_spp: Optional[tuple[int, ...]] = None
+    budget: Optional[float] = None
+    budget_fractions: Optional[tuple[float, ...]] = None
+    configurations: Optional[tuple[str, ...]] = None
+    presets: Optional[tuple[str, ...]] = None
+    large_frame: tuple[int, int] = (1920, 1080)
+    repeats: int = 3
+    seed: int = 0
+
+    def __post_init__(self):
+        ladder = BENCH_LADDERS["full" if self.full else "reduced"]
+        for name in ("raw_spp", "input_spp", "budget", "budget_fractions", "configurations"):
+            if getattr(self, name) is None:
+                setattr(self, name, ladder[name])
+        if self.presets is None:
+            self.presets = BENCH_PRESETS
+        if not self.set_name or not isinstance(self.set_name, str) or "/" in self.set_name \
+                or self.set_name in (".", ".."):
+            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        for name in ("raw_spp", "input_spp"):
+            values = tuple(getattr(self, name))
+            if not values or any(isinstance(v, bool) or not isinstance(v, int) or v < 2 for v in values) \
+                    or len(set(values)) != len(values):
+                raise OptionError(name, f"must be distinct sample counts >= 2, got {list(values)}")
+            setattr(self, name, tuple(sorted(values)))
+        if len(self.raw_spp) < 2:
+            raise OptionError("raw_spp", f"needs at least two sample counts for a curve, got {list(self.raw_spp)}")
+        budget = self.budget
+        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < math.inf:
+            raise OptionError("budget", f"must be a number of seconds > 0, got {budget!r}")
+        self.budget = float(budget)
+        fractions = tuple(self.budget_fractions)
+        if not fractions or any(not 0 < f <= 1 for f in fractions):
+            raise OptionError("budget_fractions", f"must be fractions in (0, 1], got {list(fractions)}")
+        self.budget_fractions = tuple(sorted(set(fractions)))
+        known = _all_configurations()
+        for name in ("configurations", "presets"):
+            values = getattr(self, name)
+            values = tuple(c.strip() for c in values.split(",") if c.strip()) if isinstance(values, str) \
+                else tuple(values)
+            unknown = [c for c in values if c not in known]
+            if unknown or len(set(values)) != len(values):
+                raise OptionError(name, f"must be distinct names among {', '.join(known)}, got {list(values)}")
+            setattr(self, name, values)
+        if not self.configurations:
+            raise OptionError("configurations", "must name at least one configuration")
+        w, h = self.large_frame
+        for name, value, low in (("large_frame", w, 1), ("large_frame", h, 1), ("repeats", self.repeats, 1),
+                                 ("seed", self.seed, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise OptionError(name, f"must be integers >= {low}, got {value!r}")
+        self.large_frame = (w, h)
+
+    def budgets(self) -> tuple[float, ...]:
+        """The training budgets of the runs: the presets' curve, whose largest is the budget itself."""
+        return tuple(sorted({round(self.budget * f, 3) for f in self.budget_fractions} | {self.budget}))

@@ -39,7 +39,7 @@ import numpy as np
 from kpcn_keras import augment
 from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
 from prep.features import BRANCHES
-from prep.shards import ShardError, open_shard
+from prep.shards import ShardError, branch_datasets, open_shard, read_patch
 
 SOURCES = BRANCHES + ("both", "final")
 LOSS_TARGETS = ("reference", "reference+noisy")
@@ -119,7 +119,7 @@ class ShardPatches(keras.utils.PyDataset):
     def _read(self, shard: int, patch: int, names) -> dict[str, np.ndarray]:
         f = self._handles()[shard]
         try:
-            return {name: f[name][patch] for name in names}
+            return read_patch(f, names, patch)
         except OSError as exc:  # a chunk whose Fletcher-32 checksum fails, or a damaged file
             raise ShardError(
                 f"{self.paths[shard]}: cannot read patch {patch} ({exc}); run 'kpcn shards' again to rebuild it"
@@ -159,7 +159,7 @@ class ShardPatches(keras.utils.PyDataset):
             reference, noisy = data["reference"], data["noisy"]
         else:
             branch = BRANCHES[branch_id]
-            data = self._read(shard, patch, [f"{branch}/features", f"{branch}/reference", f"{branch}/noisy"])
+            data = self._read(shard, patch, branch_datasets(branch))
             x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
             reference, noisy = data[f"{branch}/reference"], data[f"{branch}/noisy"]
         y = [augment.augment_colour(reference, aug)]

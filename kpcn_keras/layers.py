@@ -9,7 +9,9 @@ softmax over the taps and applied to the noisy colour of the same pixel's k x k 
 where tap t = i*k + j is row-major, (i, j) = (k//2, k//2) is the centre, and the colour is padded by k//2 on
 each side by edge replication (a constant image stays constant at its borders; zero padding would darken
 them). Everything is written with ``keras.ops`` so the layer is backend-agnostic; the project runs it on
-torch. No epsilon is needed: after max subtraction the softmax denominator is >= 1.
+torch, where ``KernelApply`` takes a fused fast path (:func:`kernel_apply`, same result up to float
+rounding; the tests hold both paths to the same float64 reference). No epsilon is needed: after max
+subtraction the softmax denominator is >= 1.
 """
 
 from __future__ import annotations
@@ -23,10 +25,12 @@ from prep.features import ALBEDO_EPS
 
 __all__ = [
     "FinalColour",
+    "FusedConv2D",
     "KernelApply",
     "TakeChannels",
     "apply_kernels",
     "check_kernel_size",
+    "kernel_apply",
     "pad_edge",
     "softmax_kernels",
 ]
@@ -36,8 +40,17 @@ def softmax_kernels(logits):
     """Softmax over the last axis (the k*k taps), max-subtracted so logits like +-1e4 stay finite.
 
     Equal logits give exactly uniform weights. The max is a constant for the gradient (the softmax is
-    invariant to it), which also avoids the tie-breaking subgradient of ``max``.
+    invariant to it), which also avoids the tie-breaking subgradient of ``max``. On torch this is
+    ``ops.softmax`` (torch's fused softmax, max-subtracted internally): one pass instead of four ops over
+    k*k channels (k=21, 256 x 256: 47 ms against 132 ms).
     """
+    if keras.backend.backend() == "torch":
+        return ops.softmax(logits, axis=-1)
+    return _softmax_kernels_ops(logits)
+
+
+def _softmax_kernels_ops(logits):
+    """``softmax_kernels`` spelled out in ``keras.ops`` (the path of other backends; tested equal)."""
     # ops.* rather than operators, so numpy arrays and symbolic KerasTensors are accepted too
     shifted = ops.subtract(logits, ops.stop_gradient(ops.max(logits, axis=-1, keepdims=True)))
     e = ops.exp(shifted)
@@ -71,7 +84,8 @@ def apply_kernels(colour, weights, k: int, dilation: int = 1):
     (k=13, 8 x 65 x 65, forward + backward) it beat stacking the shifted views into a (B, H, W, k*k, C)
     tensor and contracting with einsum/matmul (0.11 s vs 0.13-0.17 s), and it never materialises the stack.
     The weights are split with ``unstack`` rather than sliced per tap: on torch each slice's backward
-    allocates a full-size zero gradient, which made the sliced loop three times slower.
+    allocates a full-size zero gradient, which made the sliced loop three times slower. ``KernelApply``
+    on torch uses the faster :func:`kernel_apply` instead; this loop is the path of other backends.
     """
     k = check_kernel_size(k)
     d = dilation if isinstance(dilation, int) and not isinstance(dilation, bool) else 0
@@ -92,12 +106,165 @@ def apply_kernels(colour, weights, k: int, dilation: int = 1):
     return out
 
 
+# Bytes of colour patches gathered per row block of the torch path, so that a block's softmaxed weights
+# and patches are still cached (2 MiB L2 per core, 32 MiB shared L3) when they are contracted. Measured
+# (k=21, 256 x 256): 2 / 4 / 8 MiB blocks 40 / 31 / 33 ms; larger blocks fall out of cache and slow down.
+KERNEL_BLOCK_BYTES = 4 * 2**20
+
+
+def kernel_apply(colour, logits, k: int, dilation: int = 1):
+    """``apply_kernels(colour, softmax_kernels(logits), k, dilation)``: (B, H, W, C), (B, H, W, k*k) -> (B, H, W, C).
+
+    On the torch backend with concrete tensors this is a fused, row-blocked torch implementation
+    (``_TorchKernelApply``) with a hand-written backward; anything else (other backends, symbolic
+    tensors) takes the ``keras.ops`` path. The two agree to float rounding (tested, values and gradients).
+
+    Why this form (issue 9; 2-core CPU shared with other jobs, so best of several alternating repeats;
+    1 x 256 x 256 inference, k=13 / k=21):
+
+    - the ``keras.ops`` path (four-op softmax + loop over k*k shifted channels-last slices): 51 / 294 ms;
+    - the same loop after one fused softmax: 44 / 147 ms (the softmax alone: 3 / ~8 ms);
+    - weights transposed to channels-first planes, one contiguous plane per tap: 37 / 151 ms, and its
+      autograd backward is far worse (17 s at k=21, 8 x 65 x 65);
+    - ``F.unfold`` of the whole image + einsum: 292 / 697 ms (a k*k*C copy per pixel, out of cache);
+    - per kernel row, a matmul against a width-unfolded view: 53 / 160 ms;
+    - ``torch.compile`` (inductor, CPU) of softmax + gathered weighted sum: 60 / 204 ms, 18 s to compile;
+    - row blocks of ``KERNEL_BLOCK_BYTES`` (softmax + gathered patches + einsum while cached): 13 / 31 ms,
+      shipped. Through plain autograd its backward lost to the baseline (8 x 65 x 65 forward + backward,
+      k=13: 98 vs 60 ms; k=21: 1.2 s vs 0.21 s), hence the hand-written backward.
+
+    Re-measured with ``stage_costs.kernel_application_cost`` (best of 9): inference 71 -> 13.6 ms (k=13)
+    and 220 -> 30 ms (k=21); 8 x 65 x 65 forward + backward 73 -> 18.5 ms and 313 -> 57 ms. The memory
+    floor (every logit read once: 0.6 / 1.6 ms at the 74 GB/s ``torch.sum`` reached) is out of reach on
+    this CPU: the block softmax alone, the k*k exponentials, costs 4.2 / 8.9 ms.
+    """
+    k = check_kernel_size(k)
+    d = dilation if isinstance(dilation, int) and not isinstance(dilation, bool) else 0
+    if d < 1:
+        raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
+    if keras.backend.backend() == "torch" and not _is_symbolic(colour) and not _is_symbolic(logits):
+        import torch
+
+        colour = ops.convert_to_tensor(colour)
+        logits = ops.convert_to_tensor(logits, dtype=colour.dtype)
+        if isinstance(colour, torch.Tensor) and colour.device.type != "meta":
+            return _torch_kernel_apply(colour, logits, k, d)
+    return apply_kernels(colour, softmax_kernels(logits), k, d)
+
+
+def _is_symbolic(x) -> bool:
+    return isinstance(x, keras.KerasTensor)
+
+
+def _torch_kernel_apply(colour, logits, k: int, d: int):
+    import torch.nn.functional as F
+
+    if colour.ndim != 4 or logits.ndim != 4 or logits.shape[:3] != colour.shape[:3] or logits.shape[3] != k * k:
+        raise ValueError(
+            f"kernel_apply(k={k}) expects colour (B, H, W, C) and logits (B, H, W, {k * k}) of the same B, H, W, "
+            f"received {tuple(colour.shape)} and {tuple(logits.shape)}"
+        )
+    r = (k // 2) * d
+    # replicate padding works on the trailing dims, hence the round trip through channels first;
+    # F.pad's own backward folds the border gradient back onto the edge pixels
+    padded = F.pad(colour.permute(0, 3, 1, 2), (r, r, r, r), mode="replicate").permute(0, 2, 3, 1).contiguous()
+    return _TorchKernelApply.apply(padded, logits.contiguous(), k, d)
+
+
+def _block_rows(batch: int, width: int, channels: int, taps: int, itemsize: int) -> int:
+    return max(1, KERNEL_BLOCK_BYTES // max(1, batch * width * channels * taps * itemsize))
+
+
+def _patches(padded, y0: int, y1: int, k: int, d: int):
+    """Colour patches of output rows [y0, y1): (B, y1 - y0, W, C, k*k), tap t = i*k + j (a copy)."""
+    span = (k - 1) * d + 1
+    rows = padded[:, y0 : y1 + span - 1]
+    view = rows.unfold(1, span, 1)[..., ::d].unfold(2, span, 1)[..., ::d]  # (B, h, W, C, k_i, k_j)
+    b, h, w, c = view.shape[:4]
+    return view.reshape(b, h, w, c, k * k)
+
+
+def _torch_kernel_function():
+    import torch
+
+    class TorchKernelApply(torch.autograd.Function):
+        """Softmax + per-pixel weighted sum over row blocks, on edge-padded colour (B, H + 2r, W + 2r, C).
+
+        Per block the logits are softmaxed (one fused op, channels last, so each pixel's k*k logits are
+        contiguous) and contracted with the block's gathered patches by one batched matmul (einsum)
+        while both are cached. The backward recomputes the block softmax instead of storing the weights:
+        with q_t = g . patch_t and sum_t w_t q_t = g . out,
+            dL/dlogit_t = w_t (q_t - g . out),   dL/dpatch_t = w_t g  (summed back onto the colour by fold).
+        """
+
+        @staticmethod
+        def forward(ctx, padded, logits, k, d):
+            b, h, w, _ = logits.shape
+            c = padded.shape[-1]
+            out = padded.new_empty((b, h, w, c))
+            step = _block_rows(b, w, c, k * k, padded.element_size())
+            for y0 in range(0, h, step):
+                y1 = min(h, y0 + step)
+                weights = torch.softmax(logits[:, y0:y1], dim=-1)
+                out[:, y0:y1] = torch.einsum("bhwt,bhwct->bhwc", weights, _patches(padded, y0, y1, k, d))
+            ctx.save_for_backward(padded, logits, out)
+            ctx.kernel = (k, d)
+            return out
+
+        @staticmethod
+        @torch.autograd.function.once_differentiable
+        def backward(ctx, grad):
+            padded, logits, out = ctx.saved_tensors
+            k, d = ctx.kernel
+            b, h, w, taps = logits.shape
+            c = padded.shape[-1]
+            grad = grad.contiguous()
+            grad_logits = torch.empty_like(logits) if ctx.needs_input_grad[1] else None
+            grad_padded = None
+            if ctx.needs_input_grad[1]:
+                g_dot_out = (grad * out).sum(-1, keepdim=True)
+                step = _block_rows(b, w, c, taps, padded.element_size())
+                for y0 in range(0, h, step):
+                    y1 = min(h, y0 + step)
+                    weights = torch.softmax(logits[:, y0:y1], dim=-1)
+                    q = torch.einsum("bhwc,bhwct->bhwt", grad[:, y0:y1], _patches(padded, y0, y1, k, d))
+                    grad_logits[:, y0:y1] = weights * (q - g_dot_out[:, y0:y1])
+            if ctx.needs_input_grad[0]:
+                # only where the colour is itself computed (the multiscale compositor); a whole-image pass
+                weights = torch.softmax(logits, dim=-1)
+                per_tap = grad.permute(0, 3, 1, 2)[:, :, None] * weights.permute(0, 3, 1, 2)[:, None]
+                folded = torch.nn.functional.fold(
+                    per_tap.reshape(b, c * taps, h * w), padded.shape[1:3], k, dilation=d
+                )
+                grad_padded = folded.permute(0, 2, 3, 1)
+            return grad_padded, grad_logits, None, None
+
+    return TorchKernelApply
+
+
+class _LazyFunction:
+    """Builds the autograd Function on first use, so importing this module does not import torch."""
+
+    def __init__(self, factory):
+        self._factory = factory
+        self._function = None
+
+    def apply(self, *args):
+        if self._function is None:
+            self._function = self._factory()
+        return self._function.apply(*args)
+
+
+_TorchKernelApply = _LazyFunction(_torch_kernel_function)
+
+
 @keras.saving.register_keras_serializable(package="kpcn")
 class KernelApply(keras.layers.Layer):
     """Inputs ``[colour (B, H, W, C), logits (B, H, W, k*k)]`` -> (B, H, W, C): softmax the logits over the
     taps and filter the colour with the resulting per-pixel k x k kernels (edge-replicated borders).
 
-    ``kernel_size`` must be a positive odd integer. The layer has no weights.
+    ``kernel_size`` must be a positive odd integer. The layer has no weights. It runs :func:`kernel_apply`
+    (on torch a fused row-blocked path with its own backward; see there for what it beat).
     """
 
     def __init__(self, kernel_size: int, **kwargs):
@@ -123,7 +290,7 @@ class KernelApply(keras.layers.Layer):
 
     def call(self, inputs):
         colour, logits = inputs
-        return apply_kernels(colour, softmax_kernels(logits), self.kernel_size)
+        return kernel_apply(colour, logits, self.kernel_size)
 
     def compute_output_shape(self, input_shape):
         colour_shape, _ = input_shape
@@ -133,6 +300,43 @@ class KernelApply(keras.layers.Layer):
         config = super().get_config()
         config["kernel_size"] = self.kernel_size
         return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class FusedConv2D(keras.layers.Conv2D):
+    """``keras.layers.Conv2D`` whose torch path hands the bias to the convolution itself.
+
+    Keras adds the bias after the convolution as a separate broadcast op, a second pass over every
+    activation (on the channels-last memory torch keeps them in, 2.4 ms per layer at 256 x 256 and 19 of
+    the branch model's 83 ms). With ``data_format="channels_first"``, stride 1, no dilation or groups and
+    "same" padding of an odd kernel (or "valid"), the torch backend calls ``torch.nn.functional.conv2d``
+    with the bias directly: the same mkldnn kernel and bit-identical outputs, one pass less (cpu preset,
+    256 x 256 frame 91 -> 65 ms; 8 x 65 x 65 training step 78 -> 68 ms). The bias gradient is then summed
+    inside the convolution's backward, in another order: equal to float rounding, so a model trains like
+    its ``Conv2D`` twin but not bit for bit (1.7e-8 apart in the weights after 5 Adam steps). Anything else
+    (other backends, layouts, strides) runs the Keras implementation. Weights and config are Conv2D's.
+    """
+
+    def _torch_fast_path(self) -> bool:
+        return (
+            keras.backend.backend() == "torch"
+            and self.data_format == "channels_first"
+            and tuple(self.strides) == (1, 1)
+            and tuple(self.dilation_rate) == (1, 1)
+            and self.groups == 1
+            and (self.padding == "valid" or (self.padding == "same" and all(s % 2 == 1 for s in self.kernel_size)))
+            and getattr(self, "lora_rank", None) is None  # LoRA adds to the kernel in Keras's own call
+        )
+
+    def call(self, inputs):
+        if not self._torch_fast_path() or _is_symbolic(inputs):
+            return super().call(inputs)
+        import torch.nn.functional as F
+
+        kernel = ops.convert_to_tensor(self.kernel).permute(3, 2, 0, 1)  # (kh, kw, in, out) -> (out, in, kh, kw)
+        bias = ops.convert_to_tensor(self.bias) if self.use_bias else None
+        padding = tuple(s // 2 for s in self.kernel_size) if self.padding == "same" else 0
+        return self.activation(F.conv2d(ops.convert_to_tensor(inputs), kernel, bias, padding=padding))
 
 
 @keras.saving.register_keras_serializable(package="kpcn")

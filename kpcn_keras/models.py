@@ -28,6 +28,17 @@ Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/
 all-equal logits, i.e. a uniform k x k box filter (a sensible smoother rather than noise), and an untrained
 DPCN returns its input unchanged. Gradients still reach the trunk from the second step on.
 
+Layout: the contract is channels last, but the convolutions run channels first inside (one ``Permute``
+after the input, one after each 1x1 head). Keras's torch backend wraps every channels-last convolution in
+two copies (to NCHW, then back to torch's channels-last memory format) and a transpose of its output; a
+channels-first convolution on the permuted input is handed the same memory unchanged, torch keeps the
+activations in channels-last memory format throughout, and the permute back at the head is free. Measured
+on 2 CPU threads, cpu preset trunk: 8 x 65 x 65 forward + backward 48.6 -> 40.5 ms (plain torch 38.5),
+outputs bit-identical. The convolutions are ``layers.FusedConv2D``, which on torch passes the bias to the
+convolution instead of adding it in a second pass (outputs bit-identical too; frame 91 -> 65 ms). Models saved
+before (channels-last Keras ``Conv2D``) load and run unchanged; ``build_branch_model(...,
+data_format="channels_last")`` still builds that layout.
+
 Models contain only built-in Keras layers and the registered ``kpcn>`` layers, so ``model.save("x.keras")``
 and ``keras.models.load_model`` work without ``custom_objects`` once ``kpcn_keras.layers`` is imported
 (importing this module does that; ``load_model`` below is a convenience).
@@ -39,7 +50,7 @@ import keras
 import numpy as np
 
 from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, ModelConfig
-from kpcn_keras.layers import FinalColour, KernelApply, TakeChannels, softmax_kernels
+from kpcn_keras.layers import FinalColour, FusedConv2D, KernelApply, TakeChannels, softmax_kernels
 from prep.errors import OptionError
 from prep.features import BRANCHES, LOG_COLOUR_MAX
 
@@ -57,6 +68,10 @@ __all__ = [
 ]
 
 FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
+TRUNK_FORMAT = "channels_first"  # the convolutions' layout inside a branch model (see the module docstring)
+DATA_FORMATS = ("channels_first", "channels_last")  # "channels_last": the layout of models saved before
+TO_CHANNELS_FIRST = (3, 1, 2)  # keras.layers.Permute dims: (H, W, C) -> (C, H, W)
+TO_CHANNELS_LAST = (2, 3, 1)  # and back
 
 
 def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.ndarray:
@@ -109,17 +124,23 @@ def receptive_radius(cfg: ModelConfig) -> int:
     return max(t, cfg.kernel_size // 2)
 
 
-def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool):
+def _conv_class(data_format: str):
+    """The convolution layer of a layout: ``FusedConv2D`` channels first, Keras's own for the old layout."""
+    return FusedConv2D if data_format == "channels_first" else keras.layers.Conv2D
+
+
+def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str):
     """Conv -> [BN] -> [ReLU] -> [Dropout]. The conv has no bias when batch norm follows (BN's beta is it)."""
-    x = keras.layers.Conv2D(
+    x = _conv_class(data_format)(
         cfg.width,
         cfg.conv_size,
         padding="same",
         use_bias=not cfg.batchnorm,
+        data_format=data_format,
         name=f"{name}_conv",
     )(x)
     if cfg.batchnorm:
-        x = keras.layers.BatchNormalization(name=f"{name}_bn")(x)
+        x = keras.layers.BatchNormalization(axis=1 if data_format == "channels_first" else -1, name=f"{name}_bn")(x)
     if activate:
         x = keras.layers.ReLU(name=f"{name}_relu")(x)
     if cfg.dropout > 0.0:
@@ -127,47 +148,62 @@ def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool):
     return x
 
 
-def _trunk(features, cfg: ModelConfig, prefix: str):
+def _trunk(features, cfg: ModelConfig, prefix: str, data_format: str):
     if cfg.arch in ("kpcn", "dpcn"):
         x = features
         for i in range(cfg.depth):
-            x = _conv_unit(x, cfg, f"{prefix}trunk{i:02d}", activate=True)
+            x = _conv_unit(x, cfg, f"{prefix}trunk{i:02d}", activate=True, data_format=data_format)
         return x
-    x = _conv_unit(features, cfg, f"{prefix}stem", activate=True)
+    x = _conv_unit(features, cfg, f"{prefix}stem", activate=True, data_format=data_format)
     for i in range(cfg.depth):
-        y = _conv_unit(x, cfg, f"{prefix}res{i:02d}a", activate=True)
-        y = _conv_unit(y, cfg, f"{prefix}res{i:02d}b", activate=False)
+        y = _conv_unit(x, cfg, f"{prefix}res{i:02d}a", activate=True, data_format=data_format)
+        y = _conv_unit(y, cfg, f"{prefix}res{i:02d}b", activate=False, data_format=data_format)
         x = keras.layers.Add(name=f"{prefix}res{i:02d}_add")([x, y])
         x = keras.layers.ReLU(name=f"{prefix}res{i:02d}_relu")(x)
     return x
 
 
-def build_branch_model(cfg: ModelConfig, name: str = "diffuse") -> keras.Model:
+def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: str = TRUNK_FORMAT) -> keras.Model:
     """Functional model: input ``features`` (None, None, cfg.input_channels) -> filtered colour (None, None, 3).
 
     Every layer's name starts with the model's (``diffuse_trunk00_conv``): Keras's torch backend registers a
     model's torch parameters by variable path, and two nested networks with equal paths (diffuse and
     specular in one joint model) would leave one network's gradients out of ``zero_grad``, so they would
     accumulate from step to step.
+
+    ``data_format`` is the convolutions' layout inside (the input and output stay channels last):
+    ``TRUNK_FORMAT`` by default, ``"channels_last"`` for the layout of models saved before issue 9 (same
+    weights, same outputs; it exists to test that they still load and agree).
     """
     if not isinstance(cfg, ModelConfig):
         raise TypeError(f"cfg must be a ModelConfig, received {type(cfg).__name__}")
+    if data_format not in DATA_FORMATS:
+        raise ValueError(f"data_format must be one of {DATA_FORMATS}, received {data_format!r}")
+    first = data_format == "channels_first"
     p = f"{name}_"
     features = keras.Input(shape=(None, None, cfg.input_channels), name="features")
     colour = TakeChannels(0, COLOUR_CHANNELS, name=f"{p}noisy_colour")(features)
-    x = _trunk(features, cfg, p)
+    x = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{p}to_channels_first")(features) if first else features
+    x = _trunk(x, cfg, p, data_format)
     if cfg.arch == "dpcn":
-        correction = keras.layers.Conv2D(
-            COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}correction"
+        correction = _conv_class(data_format)(
+            COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", data_format=data_format,
+            name=f"{p}correction",
         )(x)
+        if first:
+            correction = keras.layers.Permute(TO_CHANNELS_LAST, name=f"{p}correction_last")(correction)
         out = keras.layers.Add(name=f"{p}colour_sum")([colour, correction])
         # a kernel output is a convex combination of the input colour and stays in its range by itself;
         # a direct prediction is clamped to it, else one extreme pixel maps back to inf (exp(c) - 1)
         out = keras.layers.ReLU(max_value=LOG_COLOUR_MAX, name=f"{p}colour_out")(out)
     else:
-        logits = keras.layers.Conv2D(
-            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", name=f"{p}kernel_logits"
+        logits = _conv_class(data_format)(
+            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", data_format=data_format,
+            name=f"{p}kernel_logits",
         )(x)
+        if first:
+            # a free view: torch already holds the logits in channels-last memory, each pixel's taps contiguous
+            logits = keras.layers.Permute(TO_CHANNELS_LAST, name=f"{p}logits_last")(logits)
         out = KernelApply(cfg.kernel_size, name=f"{p}kernel_apply")([colour, logits])
     return keras.Model(features, out, name=name)
 

@@ -61,7 +61,7 @@ import keras
 from keras import ops
 
 from kpcn_keras.config import CompositorConfig
-from kpcn_keras.layers import KernelApply, apply_kernels, softmax_kernels
+from kpcn_keras.layers import KernelApply, kernel_apply
 from prep.features import FEATURE_NAMES, NUM_FEATURES
 
 __all__ = [
@@ -415,7 +415,7 @@ class DilatedKernelApply(KernelApply):
 
     def call(self, inputs):
         colour, logits = inputs
-        return apply_kernels(colour, softmax_kernels(logits), self.kernel_size, self.dilation)
+        return kernel_apply(colour, logits, self.kernel_size, self.dilation)
 
     def get_config(self):
         config = super().get_config()

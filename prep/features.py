@@ -27,6 +27,9 @@ the range above for any finite input (arithmetic is float64; the bounds are thos
 input). Negative variances (a renderer's rounding) count as 0.
 
 The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
+
+:func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
+kernel but the constants: the tests hold the kernel to it, and ``prep.stage_costs`` times the two.
 """
 
 from __future__ import annotations
@@ -52,7 +55,11 @@ BRANCHES = ("diffuse", "specular")
 assert len(FEATURE_NAMES) == NUM_FEATURES
 
 
-@numba.njit(cache=True, parallel=True)
+# Serial on purpose: one 256x256 branch is ~3 ms of work, and with parallel=True the thread start and
+# barriers cost more than they save, by 5x in the median when another process holds a core (measured:
+# median 30 ms parallel against 7 ms serial for both branches). Callers that cut many images (kpcn shards)
+# get their parallelism from images, not from pixels.
+@numba.njit(cache=True, nogil=True)
 def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo, out):
     """Fill ``out`` (H, W, 27) for one branch; colour is linear, albedo divided when divide_albedo."""
     h, w = depth.shape
@@ -68,7 +75,7 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
     nrm = np.empty((h, w, 3))
     alb = np.empty((h, w, 3))
     dep = np.empty((h, w))
-    for y in numba.prange(h):
+    for y in range(h):
         for x in range(w):
             vc = max(float(colour_var[y, x]), 0.0)
             sq_c = 0.0
@@ -100,7 +107,7 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
             out[y, x, 26] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
 
     # pass 2: values and forward differences (0 on the last column / row)
-    for y in numba.prange(h):
+    for y in range(h):
         for x in range(w):
             xn = min(x + 1, w - 1)
             yn = min(y + 1, h - 1)
@@ -125,20 +132,57 @@ def branch_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
     h, w = aovs["depth"].shape
     out = np.empty((h, w, NUM_FEATURES), dtype=np.float32)
-    f64 = lambda name: np.ascontiguousarray(aovs[name], dtype=np.float64)  # noqa: E731
-    _features_kernel(
-        f64(branch),
-        f64(f"{branch}Variance"),
-        f64("albedo"),
-        f64("albedoVariance"),
-        f64("normal"),
-        f64("normalVariance"),
-        f64("depth"),
-        f64("depthVariance"),
-        branch == "diffuse",
-        out,
-    )
+    names = (branch, f"{branch}Variance", "albedo", "albedoVariance", "normal", "normalVariance", "depth",
+             "depthVariance")
+    # The kernel widens each value to float64 itself: float32 renders (what prep.exr reads) go in without a
+    # float64 copy of every layer; anything else is widened here, so at most two specialisations compile.
+    dtype = np.float32 if all(aovs[n].dtype == np.float32 for n in names) else np.float64
+    _features_kernel(*(np.ascontiguousarray(aovs[n], dtype=dtype) for n in names), branch == "diffuse", out)
     return out
+
+
+def reference_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
+    """The (H, W, 27) features of ``branch`` in float64, by whole-array numpy from the table in the module
+    docstring: the reference that :func:`branch_features` is tested (and timed) against."""
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+    f64 = {name: np.asarray(image, np.float64) for name, image in aovs.items()}
+    a = np.clip(f64["albedo"], 0.0, 1.0)
+    n = np.clip(f64["normal"], -1.0, 1.0)
+    depth = np.maximum(f64["depth"], 0.0)
+    dmax = depth.max()
+    scale = 1.0 / dmax if dmax > 0 else 0.0
+    d = depth * scale
+    x = f64[branch]
+    var = np.maximum(f64[f"{branch}Variance"], 0.0)[..., None]
+    if branch == "diffuse":
+        x = x / (a + ALBEDO_EPS)
+        var = var / (a + ALBEDO_EPS) ** 2
+    x = np.maximum(x, 0.0)
+    c = np.log1p(x)
+    v_c = np.mean(var / (1.0 + x) ** 2, axis=-1)
+
+    def dx(img):
+        out = np.zeros_like(img)
+        out[:, :-1] = img[:, 1:] - img[:, :-1]
+        return out
+
+    def dy(img):
+        out = np.zeros_like(img)
+        out[:-1] = img[1:] - img[:-1]
+        return out
+
+    def relvar(v, mean_square):
+        return np.log1p(np.maximum(v, 0.0) / (mean_square + REL_EPS))[..., None]
+
+    return np.concatenate(
+        [c, dx(c), dx(n), dx(a), dx(d)[..., None], dy(c), dy(n), dy(a), dy(d)[..., None],
+         relvar(v_c, np.mean(c * c, axis=-1)),
+         relvar(f64["normalVariance"], np.mean(n * n, axis=-1)),
+         relvar(f64["albedoVariance"], np.mean(a * a, axis=-1)),
+         relvar(np.maximum(f64["depthVariance"], 0.0) * scale**2, d * d)],
+        axis=-1,
+    )
 
 
 def branch_colour(aovs: dict[str, np.ndarray], branch: str, albedo: np.ndarray | None = None) -> np.ndarray:

@@ -16,8 +16,9 @@ through the same per-image step (:func:`round_pdf` → :func:`draw` → :class:`
 same writer. A round's entry has a ``status``; readers take only complete rounds, so a set whose round k
 is being written stays usable with rounds 0..k-1. Held-out scenes are never resampled.
 
-Each shard stores one patch per chunk (gzip + shuffle + Fletcher-32 checksums), in these datasets
-(N patches, P = patch size, channels last, float32):
+Each shard stores one patch per HDF5 chunk, uncompressed, each chunk with a Fletcher-32 checksum (the layout
+:data:`SHARD_LAYOUT`; why not gzip, lzf or float16: :data:`LAYOUTS`), in these datasets (N patches,
+P = patch size, channels last, float32):
 
 =======================  ===============  ===============================================
 dataset                  shape            content
@@ -52,8 +53,8 @@ Guarantees, by construction:
   done.
 - **Bad input is found before anything is written**: every render's header (layers, size) and the options
   against every image are checked first.
-- **Bounded memory**: a shard is assembled from one image at a time; no more than one shard's patches
-  are held.
+- **Bounded memory**: a shard is assembled from one image at a time; no more than two shards' patches
+  are held (one being cut while the previous one is written).
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ import shutil
 import sys
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -105,6 +107,39 @@ PATCH_DATASETS = {
 }
 # A shard is assembled in memory before it is written; this bounds that memory.
 MAX_SHARD_BYTES = 2 << 30
+# Every chunk carries a Fletcher-32 checksum, so a damaged chunk is an error when read, not silent garbage.
+# Measured: ~40 % of the HDF5 time of an uncompressed write (~10 % of `kpcn shards` end to end) and 60 % of
+# a batch read's (1.8 against 0.75 ms for 8 patches); a price kept: shards outlive the run that wrote them.
+FLETCHER32 = True
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How a shard's datasets are stored: HDF5 filters, patches per chunk, and the storage type of the
+    patch datasets (readers get float32 whatever it is: :func:`read_patch`)."""
+
+    name: str
+    compression: str | None = None
+    compression_opts: int | None = None
+    shuffle: bool = False
+    patches_per_chunk: int = 1
+    dtype: str = "float32"
+
+
+# The layouts `prep.stage_costs.shard_layout_costs` measures side by side (README "Shards" has the numbers).
+# gzip (what shards were written with before) and lzf compress slower than the uncompressed bytes are
+# written and hashed (SHA-256, for the manifest), and a training batch reads 4-8x slower from them. Several
+# patches per chunk make a random patch read its whole chunk. float16 halves the bytes but not the time
+# (the conversion), rounds the features at 5e-4 relative where the tests hold shards to the float64
+# features at 1e-6, and overflows linear colours above 65504.
+LAYOUTS = {
+    "gzip": Layout("gzip", compression="gzip", compression_opts=1, shuffle=True),
+    "lzf": Layout("lzf", compression="lzf", shuffle=True),
+    "none": Layout("none"),
+    "none-8": Layout("none-8", patches_per_chunk=8),
+    "float16": Layout("float16", dtype="float16"),
+}
+SHARD_LAYOUT = LAYOUTS["none"]
 
 
 class ShardError(KpcnError, ValueError):
@@ -136,6 +171,17 @@ def shard_name(i: int) -> str:
 def patch_bytes(patch_size: int) -> int:
     """Bytes of one patch of every dataset in memory (float32)."""
     return 4 * patch_size * patch_size * sum(PATCH_DATASETS.values())
+
+
+def empty_patches(count: int, patch_size: int) -> dict[str, np.ndarray]:
+    """Uninitialised arrays of ``count`` patches of every dataset of the shard layout, to cut patches into."""
+    out = {name: np.empty((count, patch_size, patch_size, channels), np.float32)
+           for name, channels in PATCH_DATASETS.items()}
+    out["source"] = np.empty(count, np.int32)
+    out["position"] = np.empty((count, 2), np.int32)
+    out["round"] = np.empty(count, np.int32)
+    out["pdf"] = np.empty(count, np.float64)
+    return out
 
 
 @dataclass
@@ -461,15 +507,24 @@ class ImagePatches:
 
     def cut(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """Patches ``start:stop`` (in drawing order) with their provenance datasets."""
+        out = empty_patches(stop - start, self.patch_size)
+        self.cut_into(start, stop, out, 0)
+        return out
+
+    def cut_into(self, start: int, stop: int, out: dict[str, np.ndarray], at: int) -> None:
+        """Patches ``start:stop`` into rows ``at:`` of ``out`` (:func:`empty_patches`): a shard's arrays are
+        filled in place, never stacked and concatenated (that copying was a tenth of the writer's time)."""
         p = self.patch_size
         pos = self.positions[start:stop]
-        out = {name: np.stack([image[y : y + p, x : x + p] for y, x in pos]).astype(np.float32)
-               for name, image in self.images.items()}
-        out["source"] = np.full(len(pos), self.source_id, dtype=np.int32)
-        out["position"] = pos.astype(np.int32)
-        out["round"] = np.full(len(pos), self.round, dtype=np.int32)
-        out["pdf"] = self.pdf[start:stop].astype(np.float64)
-        return out
+        rows = slice(at, at + len(pos))
+        for name, image in self.images.items():
+            target = out[name]
+            for k, (y, x) in enumerate(pos):
+                target[at + k] = image[y : y + p, x : x + p]
+        out["source"][rows] = self.source_id
+        out["position"][rows] = pos
+        out["round"][rows] = self.round
+        out["pdf"][rows] = self.pdf[start:stop]
 
 
 def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
@@ -510,17 +565,37 @@ def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_i
 # ---------------------------------------------------------------- shard files
 
 
-def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict) -> None:
-    """Write one shard atomically: a per-process temporary name, ``complete`` attribute last, then rename."""
+def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout: Layout = SHARD_LAYOUT) -> None:
+    """Write one shard atomically: a per-process temporary name, ``complete`` attribute last, then rename.
+    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.stage_costs``)."""
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             for name, data in patches.items():
-                chunks = (1,) + data.shape[1:] if data.ndim > 1 else (min(len(data), 1024),)
-                f.create_dataset(name, data=data, chunks=chunks, compression="gzip", compression_opts=1,
-                                 shuffle=True, fletcher32=True)
+                if data.ndim > 1:
+                    chunks = (min(len(data), layout.patches_per_chunk),) + data.shape[1:]
+                    if name in PATCH_DATASETS:
+                        data = data.astype(layout.dtype, copy=False)
+                else:
+                    chunks = (min(len(data), 1024),)
+                f.create_dataset(name, data=data, chunks=chunks, compression=layout.compression,
+                                 compression_opts=layout.compression_opts, shuffle=layout.shuffle,
+                                 fletcher32=FLETCHER32)
             for key, value in attrs.items():
                 f.attrs[key] = value
             f.attrs["complete"] = True
+
+
+def branch_datasets(branch: str) -> list[str]:
+    """The datasets a training batch of one branch reads per patch (``kpcn_keras.data``; timed by
+    ``prep.stage_costs``)."""
+    return [f"{branch}/features", f"{branch}/reference", f"{branch}/noisy"]
+
+
+def read_patch(f: h5py.File, names, patch: int) -> dict[str, np.ndarray]:
+    """Patch ``patch`` of the datasets ``names`` of an open shard, float32 whatever the storage type: the one
+    read a training batch makes per patch (``kpcn_keras.data``, timed by ``prep.stage_costs``). OSError
+    (a chunk whose checksum fails) is the caller's to name."""
+    return {name: np.asarray(f[name][patch], dtype=np.float32) for name in names}
 
 
 def open_shard(path: str | os.PathLike) -> h5py.File:
@@ -772,16 +847,40 @@ def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, sp
 
     attrs = _shard_attrs(config, manifest, command)
     images = _ImageCache(sset, manifest["sources"], k, config.patch_size, positions_of)
-    with tqdm(total=len(todo), desc=f"shards {round_name(k)}", unit="shard", disable=not progress) as bar:
-        for spec in todo:
-            patches = [images.get(source_id).cut(a, b) for source_id, a, b in spec.pieces]
-            arrays = {name: np.concatenate([p[name] for p in patches]) for name in patches[0]}
-            path = round_dir / shard_name(spec.index)
-            write_shard(path, arrays, {**attrs, "split": spec.split})
-            written[spec.index] = _entry(sset, path, spec, sha256_file(path))
-            entry["shards"] = [written[i] for i in sorted(written)]
-            atomic_write_json(sset.manifest_path, manifest)
-            bar.update(1)
+
+    def write_and_hash(spec: _ShardSpec, arrays: dict[str, np.ndarray]) -> tuple[_ShardSpec, Path, str]:
+        path = round_dir / shard_name(spec.index)
+        write_shard(path, arrays, {**attrs, "split": spec.split})
+        return spec, path, sha256_file(path)
+
+    def record(job) -> None:
+        spec, path, sha256 = job.result()
+        written[spec.index] = _entry(sset, path, spec, sha256)
+        entry["shards"] = [written[i] for i in sorted(written)]
+        atomic_write_json(sset.manifest_path, manifest)
+        bar.update(1)
+
+    # Two shard buffers, reused: one is cut into while the other is written and hashed by a second thread
+    # (h5py, file I/O and hashlib release the GIL, and so does the numba features kernel), so the bytes'
+    # cost (write, fsync, SHA-256: most of the time once nothing is compressed) overlaps the cutting. A
+    # buffer is reused only after its shard's job is done; the manifest is written in shard order, from
+    # this thread, after each shard's checksum is known, as before.
+    most = max((spec.patches for spec in todo), default=0)
+    buffers = [empty_patches(most, config.patch_size) for _ in range(min(2, len(todo)))]
+    with tqdm(total=len(todo), desc=f"shards {round_name(k)}", unit="shard", disable=not progress) as bar, \
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="kpcn-shard-writer") as writer:
+        pending = None
+        for n, spec in enumerate(todo):
+            arrays = {name: buffer[: spec.patches] for name, buffer in buffers[n % 2].items()}
+            at = 0
+            for source_id, a, b in spec.pieces:
+                images.get(source_id).cut_into(a, b, arrays, at)
+                at += b - a
+            if pending is not None:
+                record(pending)
+            pending = writer.submit(write_and_hash, spec, arrays)
+        if pending is not None:
+            record(pending)
 
 
 def _entry(sset: ShardSet, path: Path, spec: _ShardSpec, sha256: str) -> dict:
@@ -1039,17 +1138,23 @@ __all__ = [
     "PATCH_DATASETS",
     "ErrorRound",
     "ImagePatches",
+    "LAYOUTS",
+    "Layout",
+    "SHARD_LAYOUT",
     "RoundResult",
     "ShardConfig",
     "ShardEntry",
     "ShardError",
     "ShardSet",
     "build_error_round",
+    "branch_datasets",
     "build_shards",
     "discover_renders",
     "draw",
+    "empty_patches",
     "image_datasets",
     "open_shard",
+    "read_patch",
     "round_index",
     "round_name",
     "round_pdf",

@@ -8,11 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from prep import features as _features
+
 os.environ.setdefault("KERAS_BACKEND", "torch")
 
 FIXTURES = Path(__file__).parent / "fixtures"
 REPO = Path(__file__).resolve().parents[1]
 TINY_MODEL = {"width": 6, "depth": 3, "kernel_size": 5}
+# the float64 features the numba kernel is held to; it lives in the package, where the benchmark times it
+reference_features = _features.reference_features
 
 
 @pytest.fixture
@@ -63,49 +67,6 @@ def build_tiny_shards(tmp_path: Path, **kw):
     cfg = shards.ShardConfig(**values)
     shards.build_shards(cfg, progress=False)
     return cfg
-
-
-def reference_features(aovs: dict, branch: str) -> np.ndarray:
-    """float64 numpy evaluation of the feature table in prep/features.py (no numba, nothing shared)."""
-    from prep.features import ALBEDO_EPS, REL_EPS
-
-    f64 = {name: np.asarray(image, np.float64) for name, image in aovs.items()}
-    a = np.clip(f64["albedo"], 0.0, 1.0)
-    n = np.clip(f64["normal"], -1.0, 1.0)
-    depth = np.maximum(f64["depth"], 0.0)
-    dmax = depth.max()
-    scale = 1.0 / dmax if dmax > 0 else 0.0
-    d = depth * scale
-    x = f64[branch]
-    var = np.maximum(f64[f"{branch}Variance"], 0.0)[..., None]
-    if branch == "diffuse":
-        x = x / (a + ALBEDO_EPS)
-        var = var / (a + ALBEDO_EPS) ** 2
-    x = np.maximum(x, 0.0)
-    c = np.log1p(x)
-    v_c = np.mean(var / (1.0 + x) ** 2, axis=-1)
-
-    def dx(img):
-        out = np.zeros_like(img)
-        out[:, :-1] = img[:, 1:] - img[:, :-1]
-        return out
-
-    def dy(img):
-        out = np.zeros_like(img)
-        out[:-1] = img[1:] - img[:-1]
-        return out
-
-    def relvar(v, mean_square):
-        return np.log1p(np.maximum(v, 0.0) / (mean_square + REL_EPS))[..., None]
-
-    return np.concatenate(
-        [c, dx(c), dx(n), dx(a), dx(d)[..., None], dy(c), dy(n), dy(a), dy(d)[..., None],
-         relvar(v_c, np.mean(c * c, axis=-1)),
-         relvar(f64["normalVariance"], np.mean(n * n, axis=-1)),
-         relvar(f64["albedoVariance"], np.mean(a * a, axis=-1)),
-         relvar(np.maximum(f64["depthVariance"], 0.0) * scale**2, d * d)],
-        axis=-1,
-    )
 
 
 def _corner_form_factor(a, b, h):

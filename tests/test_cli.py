@@ -122,3 +122,43 @@ def test_corrupt_exr_gives_one_line_and_no_library_output(tmp_path, tiny_run):
     res = kpcn("denoise", "bad.exr", "--run", tiny_run, cwd=tmp_path)
     assert_one_line_error(res, "bad.exr")
     assert checksums(tmp_path) == before
+
+
+# --- kpcn denoise of many frames (issue 9) ---
+
+def test_denoise_many_inputs_into_a_folder_and_refuses_a_file_output(tmp_path, tiny_run):
+    for name in ("a.exr", "b.exr"):
+        exr.write_aovs(tmp_path / "in" / name, random_aovs(12, 14))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in/a.exr", "in/b.exr", "--run", tiny_run, "-o", "one.exr", cwd=tmp_path)
+    assert_one_line_error(res, "--output", "one.exr", "folder")
+    assert checksums(tmp_path) == before
+    res = kpcn("--quiet", "denoise", "in", "--run", tiny_run, "-o", "out", "--threads", "1", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "a-denoised.exr", "a-denoised.png", "b-denoised.exr", "b-denoised.png"]
+    assert "model load" in res.stdout and "warm-up" in res.stdout and "(1 thread)" in res.stdout
+    # a second run over the folder beside the inputs skips nothing silently: earlier outputs are named
+    res = kpcn("denoise", "out", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    assert res.returncode == 2 and "no renders to denoise" in res.stderr
+
+
+def test_denoise_batch_stopped_by_a_bad_frame_keeps_the_outputs_before_it(tmp_path, tiny_run):
+    exr.write_aovs(tmp_path / "a.exr", random_aovs(12, 12))
+    data = (tmp_path / "a.exr").read_bytes()
+    (tmp_path / "b.exr").write_bytes(data[: len(data) - 200])  # header intact, pixels cut off
+    res = kpcn("denoise", "a.exr", "b.exr", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    assert "b.exr" in lines[0] and "a-denoised.exr" in lines[0]  # names the bad frame and what was written
+    assert "wrote a-denoised.exr" in res.stdout
+    assert exr.read_aovs(tmp_path / "a-denoised.exr", variances=False)["default"].shape == (12, 12, 3)
+    assert not (tmp_path / "b-denoised.exr").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
+
+
+def test_denoise_reference_is_for_one_input(tmp_path, tiny_run):
+    for name in ("a.exr", "b.exr"):
+        exr.write_aovs(tmp_path / name, random_aovs(12, 12))
+    res = kpcn("denoise", "a.exr", "b.exr", "--run", tiny_run, "--reference", "a.exr", cwd=tmp_path)
+    assert_one_line_error(res, "--reference", "one input")

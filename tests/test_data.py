@@ -55,3 +55,15 @@ def test_bad_arguments_are_echoed(train_paths):
         ShardPatches(train_paths, "glossy", batch_size=2)
     with pytest.raises(ShardError, match="fewer than batch_size=99"):
         ShardPatches(train_paths, "diffuse", batch_size=99)
+
+
+def test_a_damaged_chunk_is_an_error_naming_the_shard(train_paths):
+    path = train_paths[0]
+    with open_shard(path) as f:
+        chunk = f["diffuse/features"].id.get_chunk_info(0)
+    data = bytearray(path.read_bytes())
+    data[chunk.byte_offset + 10] ^= 0xFF  # the file keeps its size; its Fletcher-32 no longer matches
+    path.write_bytes(bytes(data))
+    ds = ShardPatches([path], "diffuse", batch_size=1, shuffle=False)
+    with pytest.raises(ShardError, match=f"{path.name}: cannot read patch 0"):
+        ds[0]

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from conftest import random_aovs, reference_features
+from conftest import random_aovs
 from prep import features
+from prep.features import reference_features
 
 
 @pytest.mark.parametrize("branch", ["diffuse", "specular"])
@@ -52,3 +53,10 @@ def test_colour_transforms_invert():
 def test_unknown_branch_is_named():
     with pytest.raises(ValueError, match="'glossy'"):
         features.branch_features(random_aovs(4, 4), "glossy")
+
+
+def test_float32_and_float64_renders_give_the_same_features():
+    aovs = random_aovs(11, 13, seed=9)
+    wide = {name: image.astype(np.float64) for name, image in aovs.items()}
+    for branch in features.BRANCHES:
+        np.testing.assert_array_equal(features.branch_features(aovs, branch), features.branch_features(wide, branch))

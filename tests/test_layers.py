@@ -3,7 +3,17 @@
 import numpy as np
 import pytest
 
-from kpcn_keras.layers import KernelApply, TakeChannels, apply_kernels, pad_edge, softmax_kernels
+from kpcn_keras import layers as layers_module
+from kpcn_keras.layers import (
+    FusedConv2D,
+    KernelApply,
+    TakeChannels,
+    _softmax_kernels_ops,
+    apply_kernels,
+    kernel_apply,
+    pad_edge,
+    softmax_kernels,
+)
 
 import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 import torch  # noqa: E402
@@ -145,3 +155,85 @@ def test_take_channels_validates():
         TakeChannels(3, 3)
     with pytest.raises(ValueError, match="at least 6 channels"):
         TakeChannels(0, 6)(x)
+
+
+# ---------------------------------------------------------------- torch fast path (issue 9)
+
+
+@pytest.mark.parametrize("k,d,h,w", [(3, 1, 5, 7), (5, 2, 6, 9), (13, 1, 9, 4), (5, 1, 3, 2)])
+def test_torch_path_equals_keras_ops_path_with_gradients(k, d, h, w):
+    """The fused torch path and the keras.ops path (other backends') agree, values and both gradients."""
+    rng = np.random.default_rng(k + d + h)
+    colour = torch.tensor(rng.normal(size=(2, h, w, 3)), dtype=torch.float64, requires_grad=True)
+    logits = torch.tensor(rng.normal(size=(2, h, w, k * k)) * 3.0, dtype=torch.float64, requires_grad=True)
+    fast = kernel_apply(colour, logits, k, d)
+    generic = apply_kernels(colour, _softmax_kernels_ops(logits), k, d)
+    np.testing.assert_allclose(to_np(fast), to_np(generic), rtol=1e-12, atol=1e-12)
+    g = torch.tensor(rng.normal(size=(2, h, w, 3)), dtype=torch.float64)
+    for a, b in zip(torch.autograd.grad(fast, (colour, logits), g), torch.autograd.grad(generic, (colour, logits), g)):
+        np.testing.assert_allclose(to_np(a), to_np(b), rtol=1e-10, atol=1e-12)
+
+
+def test_torch_path_is_taken_and_gradchecks_with_dilation(monkeypatch):
+    calls = []
+    original = layers_module._torch_kernel_apply
+    monkeypatch.setattr(layers_module, "_torch_kernel_apply", lambda *a: calls.append(a[2:]) or original(*a))
+    rng = np.random.default_rng(5)
+    colour = torch.tensor(rng.normal(size=(1, 4, 5, 3)), dtype=torch.float64, requires_grad=True)
+    logits = torch.tensor(rng.normal(size=(1, 4, 5, 9)), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda c, z: kernel_apply(c, z, 3, 2), (colour, logits))
+    KernelApply(3)([colour.detach().float(), logits.detach().float()])
+    assert calls and calls[0] == (3, 2) and calls[-1] == (3, 1)
+
+
+def test_softmax_kernels_equals_ops_formulation_and_survives_extremes():
+    logits = np.random.default_rng(6).normal(size=(2, 3, 4, 25)).astype(np.float32) * 1e4
+    np.testing.assert_allclose(to_np(softmax_kernels(logits)), to_np(_softmax_kernels_ops(logits)), atol=1e-6)
+    assert np.isfinite(to_np(softmax_kernels(logits))).all()
+
+
+def test_row_blocks_do_not_change_the_result(monkeypatch):
+    """One row per block and the whole image in one block give the same output and logit gradient."""
+    rng = np.random.default_rng(7)
+    colour = torch.tensor(rng.normal(size=(2, 7, 6, 3)), dtype=torch.float32)
+    logits = torch.tensor(rng.normal(size=(2, 7, 6, 25)), dtype=torch.float32)
+    results = []
+    for budget in (1, 2**40):
+        monkeypatch.setattr(layers_module, "KERNEL_BLOCK_BYTES", budget)
+        z = logits.clone().requires_grad_(True)
+        out = kernel_apply(colour, z, 5)
+        results.append((to_np(out), to_np(torch.autograd.grad(out.square().sum(), z)[0])))
+    for a, b in zip(*results):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_kernel_apply_rejects_mismatched_shapes_and_dilation():
+    with pytest.raises(ValueError, match=r"\(1, 4, 4, 25\)"):
+        kernel_apply(torch.zeros(1, 4, 4, 3), torch.zeros(1, 4, 4, 25), 3)
+    with pytest.raises(ValueError, match="0"):
+        kernel_apply(torch.zeros(1, 4, 4, 3), torch.zeros(1, 4, 4, 9), 3, 0)
+
+
+@pytest.mark.parametrize("kw", [dict(kernel_size=3, padding="same"), dict(kernel_size=1, padding="same"),
+                                dict(kernel_size=3, padding="valid", use_bias=False),
+                                dict(kernel_size=2, padding="same"), dict(kernel_size=3, strides=2)])
+def test_fused_conv_equals_keras_conv_values_and_gradients(kw):
+    """FusedConv2D's torch path (odd "same", "valid") and its fallbacks (even "same", strides) match Conv2D."""
+    rng = np.random.default_rng(8)
+    ours = FusedConv2D(4, data_format="channels_first", **kw)
+    theirs = keras.layers.Conv2D(4, data_format="channels_first", **kw)
+    x = torch.tensor(rng.normal(size=(2, 3, 7, 6)), dtype=torch.float32, requires_grad=True)
+    ours.build(x.shape)
+    theirs.build(x.shape)
+    assert ours._torch_fast_path() == (kw["kernel_size"] % 2 == 1 and "strides" not in kw)
+    weights = [rng.normal(size=tuple(w.shape)).astype(np.float32) for w in theirs.weights]
+    ours.set_weights(weights)
+    theirs.set_weights(weights)
+    a, b = ours(x), theirs(x)
+    np.testing.assert_allclose(to_np(a), to_np(b), rtol=1e-5, atol=1e-5)
+    params = lambda layer: [x] + [w.value for w in layer.trainable_weights]  # noqa: E731
+    for ga, gb in zip(torch.autograd.grad(a.square().sum(), params(ours)),
+                      torch.autograd.grad(b.square().sum(), params(theirs))):
+        np.testing.assert_allclose(to_np(ga), to_np(gb), rtol=1e-4, atol=1e-4)
+    clone = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(ours))
+    assert type(clone) is FusedConv2D and clone.get_config() == ours.get_config()

@@ -179,6 +179,30 @@ def test_save_load_round_trip(arch, tmp_path):
     assert [type(layer) for layer in loaded.layers] == [type(layer) for layer in model.layers]
 
 
+@pytest.mark.parametrize("arch", ARCHS)
+def test_channels_last_saved_models_load_and_agree_with_the_channels_first_layout(arch, tmp_path):
+    """A model saved with the old channels-last convolutions loads and runs as before, and the default
+    (channels-first inside) model with its weights gives the same output; batch norm in training mode too."""
+    cfg = tiny(arch, batchnorm=True) if arch != "kpal" else tiny(arch)
+    old = build_branch_model(cfg, data_format="channels_last")
+    assert all(getattr(layer, "data_format", "channels_last") == "channels_last" for layer in old.layers)
+    randomise(old, seed=8)
+    old.save(tmp_path / "old.keras")
+    loaded = keras.models.load_model(tmp_path / "old.keras")
+    new = build_branch_model(cfg)
+    assert {layer.data_format for layer in new.layers if hasattr(layer, "data_format")} == {"channels_first"}
+    new.set_weights(loaded.get_weights())
+    x = features((2, 9, 11, 27), seed=9)
+    np.testing.assert_array_equal(predict(loaded, x), predict(old, x))
+    np.testing.assert_allclose(predict(new, x), predict(old, x), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(to_np(new(x, training=True)), to_np(old(x, training=True)), rtol=1e-5, atol=1e-5)
+
+
+def test_bad_data_format_raises_with_value():
+    with pytest.raises(ValueError, match="'nhwc'"):
+        build_branch_model(tiny("kpcn"), data_format="nhwc")
+
+
 @pytest.mark.parametrize("arch", ["kpcn", "kpal"])
 def test_kernel_model_sums_to_one_and_reproduces_output(arch, tmp_path):
     cfg = tiny(arch)

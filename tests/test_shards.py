@@ -90,13 +90,21 @@ def test_other_configuration_over_existing_shards_is_refused(tmp_path, render_se
 def test_interrupted_write_leaves_nothing_a_reader_accepts(tmp_path):
     out = tmp_path / "killed"
     out.mkdir()
+    # uncompressed shards are written too fast to be caught mid-write by timing alone: every dataset
+    # is held back a while, so the kill lands inside the writer whatever the machine
     script = f"""
-import numpy as np, sys
+import time, h5py, numpy as np, sys
 sys.path.insert(0, {str(REPO)!r})
 from pathlib import Path
 from prep import shards
+create = h5py.Group.create_dataset
+def slow_create(self, *args, **kwargs):
+    out = create(self, *args, **kwargs)
+    time.sleep(0.5)
+    return out
+h5py.Group.create_dataset = slow_create
 rng = np.random.default_rng(0)
-arrays = {{name: rng.normal(size=(400, 65, 65, c)).astype(np.float32) for name, c in shards.PATCH_DATASETS.items()}}
+arrays = {{name: rng.normal(size=(40, 65, 65, c)).astype(np.float32) for name, c in shards.PATCH_DATASETS.items()}}
 print('ready', flush=True)
 shards.write_shard(Path({str(out)!r}) / 'shard-00000.h5', arrays, {{'format': shards.FORMAT}})
 """
@@ -161,3 +169,36 @@ def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
     with shards.open_shard(shards.shard_paths(cfg.set_dir, "train")[0]) as f:
         assert f["diffuse/features"].shape == (10, 32, 32, 27)
         assert np.isfinite(f["diffuse/features"][()]).all()
+
+
+def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_detected(tmp_path):
+    rng = np.random.default_rng(1)
+    arrays = shards.empty_patches(3, 8)
+    for name, data in arrays.items():
+        data[...] = rng.normal(size=data.shape) if data.dtype.kind == "f" else rng.integers(0, 9, data.shape)
+    path = tmp_path / "shard-00000.h5"
+    shards.write_shard(path, arrays, {"format": shards.FORMAT})
+    with shards.open_shard(path) as f:
+        dset = f["diffuse/features"]
+        assert dset.chunks == (1, 8, 8, features.NUM_FEATURES) and dset.compression is None and dset.fletcher32
+        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 1)["diffuse/features"],
+                                      arrays["diffuse/features"][1])
+        chunk = dset.id.get_chunk_info(1)
+    data = bytearray(path.read_bytes())
+    data[chunk.byte_offset + 100] ^= 0xFF  # one byte of patch 1's features, the file's size unchanged
+    path.write_bytes(bytes(data))
+    with shards.open_shard(path) as f:
+        np.testing.assert_array_equal(f["diffuse/features"][0], arrays["diffuse/features"][0])
+        with pytest.raises(OSError):
+            shards.read_patch(f, ["diffuse/features"], 1)
+
+
+def test_cut_into_a_shard_buffer_equals_cut(tmp_path):
+    noisy, reference = random_aovs(30, 33, seed=5), random_aovs(30, 33, seed=6, variances=False)
+    image = shards.variance_patches(noisy, reference, config(tmp_path, patch_size=8, patches_per_image=6), 4)
+    out = shards.empty_patches(9, 8)
+    image.cut_into(2, 6, out, 5)
+    want = image.cut(2, 6)
+    for name, data in want.items():
+        np.testing.assert_array_equal(out[name][5:9], data, err_msg=name)
+    assert (want["source"] == 4).all() and want["diffuse/features"].dtype == np.float32
