@@ -169,7 +169,7 @@ def test_torch_path_equals_keras_ops_path_with_gradients(k, d, h, w):
     fast = kernel_apply(colour, logits, k, d)
     generic = apply_kernels(colour, _softmax_kernels_ops(logits), k, d)
     np.testing.assert_allclose(to_np(fast), to_np(generic), rtol=1e-12, atol=1e-12)
-    g = torch.tensor(rng.normal(size=(2, h, w, 3)), dtype=torch.float64)
+    g = torch.tensor(rng.normal(size=(2, h, w, 3)), dtype=torch.float64, device=fast.device)  # Keras's device
     for a, b in zip(torch.autograd.grad(fast, (colour, logits), g), torch.autograd.grad(generic, (colour, logits), g)):
         np.testing.assert_allclose(to_np(a), to_np(b), rtol=1e-10, atol=1e-12)
 
