@@ -58,6 +58,7 @@ SHARD_READ_BATCHES = 20
 SHARD_LAYOUT_IMAGES = 4  # (noisy, reference) pairs whose patches are written in every shard layout
 SHARD_WRITE_PATCHES = 8  # patches per image of the end-to-end shard build (the set's own has more)
 OURS = "cpu"  # the configuration of the headline: the default preset
+INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the default, and the fast configuration
 
 # Every figure a bench record must have: a dotted path into the JSON, where "*" means every element.
 SCHEMA = (
@@ -78,7 +79,8 @@ SCHEMA = (
     "stages.kernel_application.*.k", "stages.kernel_application.*.seconds",
     "stages.kernel_application.*.floor_seconds", "stages.kernel_application.*.ratio",
     "stages.inference.load_s", "stages.inference.warm_up_s", "stages.inference.frame_ms",
-    "stages.inference.large.ours_s", "stages.inference.large.peak_rss_mb",
+    "stages.inference.configurations", "stages.inference.large.ours_s", "stages.inference.large.wall_s",
+    "stages.inference.large.peak_rss_mb",
 )
 
 
@@ -429,7 +431,8 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     stages["kernel_application"] = [net_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
                                                                       repeats=cfg.repeats) for k in KERNEL_SIZES]
     log("stage costs: inference")
-    stages["inference"] = inference_cost(cfg, ours, inputs[(scenes[0]["name"], cfg.input_spp[0])])
+    stages["repeats"] = cfg.repeats
+    stages["inference"] = inference_cost(cfg, plans.get(cfg.budget, {}), inputs[(scenes[0]["name"], cfg.input_spp[0])])
     return stages
 
 
@@ -475,52 +478,80 @@ def _tile_to(aovs: dict, width: int, height: int) -> dict:
     return out
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports kilobytes
+def _alternating_best(fns: dict, frame: dict, repeats: int) -> dict:
+    """Best seconds of each of ``fns`` on ``frame``, called in turn ``repeats`` times after one warm-up call
+    each, so that a slow spell of a shared machine hits them alike."""
+    for fn in fns.values():
+        fn(frame)
+    best = {name: math.inf for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn(frame)
+            best[name] = min(best[name], time.perf_counter() - start)
+    return best
 
 
-def inference_cost(cfg: BenchConfig, plan: dict | None, aovs: dict) -> dict:
-    """Start-up of our denoiser (load, warm-up), a frame of the held-out size and a ``large_frame`` against
-    OIDN, and the process's peak resident memory after the large frame."""
+def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
+    """``kpcn denoise`` of ``frame`` (written to an EXR in ``scratch``) in a process of its own, as a user runs
+    it: its wall time, start-up included, what it printed about itself, and its peak resident memory."""
+    import sys
+
+    from prep import exr
+
+    scratch.mkdir(parents=True, exist_ok=True)
+    h, w = frame["default"].shape[:2]
+    path = scratch / f"frame-{w}x{h}-00004spp.exr"
+    exr.write_aovs(path, frame)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    start = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "denoise", str(path), "--run", run,
+                          "-o", str(scratch) + os.sep, "--no-png"], capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if res.returncode != 0:
+        raise KpcnError(f"kpcn denoise {path} failed: {res.stderr.strip()[-500:]}")
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return {"frame": [w, h], "wall_s": seconds, "printed": res.stdout.strip().splitlines()[-2:],
+            "peak_rss_mb": peak / 1024.0 if peak > before else None}  # Linux reports kilobytes
+
+
+def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
+    """Start-up of our denoiser (load, warm-up), then, for each configuration of :data:`INFERENCE`
+    that was trained, a frame of the held-out size and a ``large_frame`` against OIDN (alternating, best of
+    ``repeats``), and ``kpcn denoise`` of the large frame as a command (its wall time and peak memory)."""
     from kpcn_keras.denoise import Denoiser
     from prep import baselines
 
-    if plan is None:
+    if OURS not in plans:
         raise KpcnError(f"the bench's inference costs are those of the {OURS!r} configuration: add it to "
                         "--configurations")
     start = time.perf_counter()
-    denoiser = Denoiser(plan["run"])
-    load_s = time.perf_counter() - start
+    denoiser = Denoiser(plans[OURS]["run"])
+    out = {"load_s": time.perf_counter() - start}
     start = time.perf_counter()
     denoiser.warm_up()
-    warm_up_s = time.perf_counter() - start
+    out["warm_up_s"] = time.perf_counter() - start
     oidn = baselines.oidn_available()
-
-    def best(fn, frame, repeats):
-        fn(frame)
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            fn(frame)
-            times.append(time.perf_counter() - start)
-        return min(times)
-
-    h, w = aovs["default"].shape[:2]
-    ours_frame = best(lambda a: denoiser(a), aovs, cfg.repeats)
-    out = {"load_s": load_s, "warm_up_s": warm_up_s, "frame": [w, h], "frame_ms": 1e3 * ours_frame,
-           "oidn_frame_ms": 1e3 * best(baselines.oidn_denoise, aovs, cfg.repeats) if oidn else None}
-    if oidn:
-        out["frame_ratio"] = out["frame_ms"] / out["oidn_frame_ms"]
     large = _tile_to(aovs, *cfg.large_frame)
-    rss_before = _peak_rss_mb()
-    start = time.perf_counter()
-    denoiser(large)
-    ours_s = time.perf_counter() - start
-    out["large"] = {"frame": list(cfg.large_frame), "ours_s": ours_s, "peak_rss_mb": _peak_rss_mb(),
-                    "peak_rss_before_mb": rss_before, "tile": denoiser.tile}
-    if oidn:
-        out["large"]["oidn_s"] = best(baselines.oidn_denoise, large, 1)
-        out["large"]["ratio"] = ours_s / out["large"]["oidn_s"]
+    h, w = aovs["default"].shape[:2]
+    out["frame"] = [w, h]
+    out["configurations"] = {}
+    for name in (n for n in INFERENCE if n in plans):
+        d = denoiser if name == OURS else Denoiser(plans[name]["run"])
+        fns = {"ours": lambda a, d=d: d(a), **({"oidn": baselines.oidn_denoise} if oidn else {})}
+        small = _alternating_best(fns, aovs, cfg.repeats)
+        big = _alternating_best(fns, large, cfg.repeats)
+        row = {"frame_ms": 1e3 * small["ours"], "large_s": big["ours"], "tile": d.tile}
+        if oidn:
+            row.update(oidn_frame_ms=1e3 * small["oidn"], frame_ratio=small["ours"] / small["oidn"],
+                       oidn_large_s=big["oidn"], large_ratio=big["ours"] / big["oidn"])
+        out["configurations"][name] = row
+    ours = out["configurations"][OURS]
+    out["frame_ms"], out["oidn_frame_ms"], out["frame_ratio"] = (ours["frame_ms"], ours.get("oidn_frame_ms"),
+                                                                 ours.get("frame_ratio"))
+    out["large"] = {"frame": list(cfg.large_frame), "ours_s": ours["large_s"], "oidn_s": ours.get("oidn_large_s"),
+                    "ratio": ours.get("large_ratio"), "tile": ours["tile"],
+                    **denoise_command_cost(plans[OURS]["run"], large, Path(cfg.runs_root) / "large-frame")}
     return out
 
 
@@ -687,17 +718,19 @@ def _stage_lines(st: dict) -> list[str]:
     for ka in st["kernel_application"]:
         lines.append(f"| kernel application k={ka['k']} | {1e3 * ka['seconds']:.1f} ms | bandwidth floor "
                      f"{1e3 * ka['floor_seconds']:.1f} ms | {ka['ratio']:.2f}× |")
-    oidn = inf.get("oidn_frame_ms")
-    lines.append(f"| denoise a {inf['frame'][0]}×{inf['frame'][1]} frame | {inf['frame_ms']:.0f} ms | "
-                 f"OIDN {_f(oidn, '{:.0f} ms')} | {_f(inf.get('frame_ratio'), '{:.2f}×')} |")
     lg = inf["large"]
-    lines.append(f"| denoise a {lg['frame'][0]}×{lg['frame'][1]} frame | {lg['ours_s']:.2f} s | "
-                 f"OIDN {_f(lg.get('oidn_s'), '{:.2f} s')} | {_f(lg.get('ratio'), '{:.2f}×')} |")
+    for name, row in inf["configurations"].items():
+        lines.append(f"| denoise a {inf['frame'][0]}×{inf['frame'][1]} frame, {name} | {row['frame_ms']:.0f} ms | "
+                     f"OIDN {_f(row.get('oidn_frame_ms'), '{:.0f} ms')} | {_f(row.get('frame_ratio'), '{:.2f}×')} |")
+        lines.append(f"| denoise a {lg['frame'][0]}×{lg['frame'][1]} frame, {name} | {row['large_s']:.2f} s | "
+                     f"OIDN {_f(row.get('oidn_large_s'), '{:.2f} s')} | {_f(row.get('large_ratio'), '{:.2f}×')} |")
     lines += [
         "",
-        f"Denoiser start-up: loading the run {inf['load_s']:.2f} s, warm-up {inf['warm_up_s']:.2f} s (paid once per "
-        f"process). Peak resident memory of the whole process after the large frame: {lg['peak_rss_mb']:.0f} MB "
-        f"({lg['peak_rss_before_mb']:.0f} MB before it).",
+        f"Frames alternate between our denoiser and OIDN, best of {st.get('repeats', '?')} each. Denoiser start-up: "
+        f"loading the run {inf['load_s']:.2f} s, warm-up {inf['warm_up_s']:.2f} s (paid once per process). "
+        f"`kpcn denoise` of the {lg['frame'][0]}×{lg['frame'][1]} frame as a command ({OURS}, tiles of {lg['tile']} "
+        f"pixels): {lg['wall_s']:.1f} s in all, start-up included, peak resident memory "
+        f"{_f(lg['peak_rss_mb'], '{:.0f} MB')}; it printed: {' / '.join(lg['printed'])}",
         "",
     ]
     sl, sw = st["shard_layouts"], st["shard_write"]

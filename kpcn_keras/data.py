@@ -45,6 +45,19 @@ SOURCES = BRANCHES + ("both", "final")
 LOSS_TARGETS = ("reference", "reference+noisy")
 
 
+class _Datasets(dict):
+    """The datasets of one open shard by name, each looked up once: h5py's name lookup cost about a fifth of
+    reading a training batch (1.1 of 6 ms for 8 patches)."""
+
+    def __init__(self, file: h5py.File):
+        super().__init__()
+        self.file = file
+
+    def __missing__(self, name: str):
+        self[name] = self.file[name]
+        return self[name]
+
+
 class ShardPatches(keras.utils.PyDataset):
     """Batches ``(x, y)`` of one training phase (module docstring), for the network ``model`` (its
     conditioning channels; default: a network without any).
@@ -93,7 +106,7 @@ class ShardPatches(keras.utils.PyDataset):
             raise ShardError(f"{len(self.index)} patches in {len(self.paths)} shard(s), fewer than batch_size={batch_size}")
         per_pass = len(self.index) // batch_size if shuffle else -(-len(self.index) // batch_size)
         self.steps = per_pass if steps is None else int(steps)
-        self._files: dict[int, list[h5py.File]] = {}
+        self._files: dict[int, list[_Datasets]] = {}
 
     def __len__(self):
         return self.steps
@@ -110,10 +123,10 @@ class ShardPatches(keras.utils.PyDataset):
         order = np.random.default_rng([self.seed, epoch]).permutation(len(self.index))
         return self.index[order[within * self.batch_size : (within + 1) * self.batch_size]]
 
-    def _handles(self) -> list[h5py.File]:
+    def _handles(self) -> list[_Datasets]:
         pid = os.getpid()
         if pid not in self._files:
-            self._files = {pid: [open_shard(p) for p in self.paths]}
+            self._files = {pid: [_Datasets(open_shard(p)) for p in self.paths]}
         return self._files[pid]
 
     def _read(self, shard: int, patch: int, names) -> dict[str, np.ndarray]:

@@ -591,8 +591,9 @@ def branch_datasets(branch: str) -> list[str]:
     return [f"{branch}/features", f"{branch}/reference", f"{branch}/noisy"]
 
 
-def read_patch(f: h5py.File, names, patch: int) -> dict[str, np.ndarray]:
-    """Patch ``patch`` of the datasets ``names`` of an open shard, float32 whatever the storage type: the one
+def read_patch(f, names, patch: int) -> dict[str, np.ndarray]:
+    """Patch ``patch`` of the datasets ``names`` of an open shard (an h5py File, or a mapping of its datasets
+    by name), float32 whatever the storage type: the one
     read a training batch makes per patch (``kpcn_keras.data``, timed by ``prep.stage_costs``). OSError
     (a chunk whose checksum fails) is the caller's to name."""
     return {name: np.asarray(f[name][patch], dtype=np.float32) for name in names}
