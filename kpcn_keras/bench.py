@@ -755,15 +755,23 @@ def plot_png(record: dict, path: Path) -> Path:
     """Error against seconds per frame (log axes), one curve per method, for relMSE, DSSIM and relSE p99.9;
     and the presets' held-out relMSE against training seconds."""
     plt = pyplot()
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 10))
     panels = (("relmse", "relMSE (geometric mean over scenes)"), ("dssim", "DSSIM (mean over scenes)"),
               ("relse_p999", "relSE p99.9 (geometric mean over scenes)"))
-    styles = {"raw": dict(color="black", lw=2, marker="o"), "baseline": dict(ls="--", marker="s")}
+    # fixed styles for the yardsticks, and a colour of its own for each network (tab20 has enough)
+    fixed = {"raw Monte Carlo": dict(color="black", lw=2, marker="o"), "OIDN": dict(color="crimson", ls="--", marker="s"),
+             "NLM": dict(color="grey", ls="--", marker="s")}
+    networks = [m["name"] for m in record["methods"] if m["name"] not in fixed]
+    # tab10 without its red and grey (OIDN's and NLM's), then tab20's light shades
+    colours = [plt.cm.tab10.colors[i] for i in (0, 1, 2, 4, 5, 6, 8, 9)] + list(plt.cm.tab20.colors[1::2])
+
+    def colour(name):
+        return colours[networks.index(name) % len(colours)] if name in networks else None
     for ax, (key, label) in zip(axes.ravel(), panels):
-        for i, method in enumerate(record["methods"]):
+        for method in record["methods"]:
             xs = [p["seconds"] for p in method["points"]]
             ys = [p[key] for p in method["points"]]
-            style = styles.get(method["kind"], dict(marker="^"))
+            style = fixed.get(method["name"]) or dict(marker="^", color=colour(method["name"]))
             ax.plot(xs, ys, label=method["name"], markersize=4, alpha=0.85, **style)
             for p in method["points"] if method["kind"] != "raw" else method["points"][::2]:
                 ax.annotate(str(p["spp"]), (p["seconds"], p[key]), fontsize=6, alpha=0.7)
@@ -771,17 +779,19 @@ def plot_png(record: dict, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("seconds per frame: render + denoise (points: spp)")
         ax.set_ylabel(label)
-    axes[0, 0].legend(fontsize=7, ncol=2)
     ax = axes[1, 1]
     for preset in dict.fromkeys(r["preset"] for r in record["training"]):
         rows = [r for r in record["training"] if r["preset"] == preset]
-        ax.plot([r["training_seconds"] for r in rows], [r["relmse"] for r in rows], "o-", label=preset)
+        ax.plot([r["training_seconds"] for r in rows], [r["relmse"] for r in rows], "o-", label=preset,
+                color=colour(preset))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("training seconds (this machine)")
     ax.set_ylabel("held-out relMSE (geometric mean)")
     ax.set_title("training cost of the presets", fontsize=9)
     ax.legend(fontsize=8)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.suptitle(f"{record['command'] or 'kpcn bench'} ({record['date']})", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=min(6, len(labels)), fontsize=8, frameon=False)
     return save_png(fig, path)
