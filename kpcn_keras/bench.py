@@ -39,7 +39,7 @@ import dataclasses
 import json
 import math
 import os
-import resource
+import re
 import statistics
 import subprocess
 import time
@@ -494,7 +494,8 @@ def _alternating_best(fns: dict, frame: dict, repeats: int) -> dict:
 
 def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
     """``kpcn denoise`` of ``frame`` (written to an EXR in ``scratch``) in a process of its own, as a user runs
-    it: its wall time, start-up included, what it printed about itself, and its peak resident memory."""
+    it: its wall time, start-up included, what it printed about itself, and the peak resident memory it
+    printed (its own: a parent's rusage of children would count the bench's size, copied at fork)."""
     import sys
 
     from prep import exr
@@ -503,16 +504,15 @@ def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
     h, w = frame["default"].shape[:2]
     path = scratch / f"frame-{w}x{h}-00004spp.exr"
     exr.write_aovs(path, frame)
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     start = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "denoise", str(path), "--run", run,
                           "-o", str(scratch) + os.sep, "--no-png"], capture_output=True, text=True)
     seconds = time.perf_counter() - start
     if res.returncode != 0:
         raise KpcnError(f"kpcn denoise {path} failed: {res.stderr.strip()[-500:]}")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return {"frame": [w, h], "wall_s": seconds, "printed": res.stdout.strip().splitlines()[-2:],
-            "peak_rss_mb": peak / 1024.0 if peak > before else None}  # Linux reports kilobytes
+    printed = res.stdout.strip().splitlines()
+    peak = [float(m.group(1)) for m in map(re.compile(r"^peak memory (\d+) MB").match, printed) if m]
+    return {"frame": [w, h], "wall_s": seconds, "printed": printed[-3:], "peak_rss_mb": peak[0] if peak else None}
 
 
 def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
@@ -729,7 +729,8 @@ def _stage_lines(st: dict) -> list[str]:
         f"Frames alternate between our denoiser and OIDN, best of {st.get('repeats', '?')} each. Denoiser start-up: "
         f"loading the run {inf['load_s']:.2f} s, warm-up {inf['warm_up_s']:.2f} s (paid once per process). "
         f"`kpcn denoise` of the {lg['frame'][0]}×{lg['frame'][1]} frame as a command ({OURS}, tiles of {lg['tile']} "
-        f"pixels): {lg['wall_s']:.1f} s in all, start-up included, peak resident memory "
+        f"pixels): {lg['wall_s']:.1f} s in all, start-up included (its one frame also pays the convolutions' "
+        f"set-up at the tiles' sizes, which the best-of times above leave out), peak resident memory "
         f"{_f(lg['peak_rss_mb'], '{:.0f} MB')}; it printed: {' / '.join(lg['printed'])}",
         "",
     ]

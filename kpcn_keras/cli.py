@@ -142,6 +142,8 @@ def cmd_denoise(args) -> int:
     startup = "?" if batch["startup_s"] is None else f"{batch['startup_s']:.2f} s"
     print(f"start-up {startup}, model load {batch['load_s']:.2f} s, warm-up {batch['warmup_s']:.2f} s "
           f"({batch['threads']} thread{'s' if batch['threads'] != 1 else ''})")
+    if batch["peak_memory_mb"] is not None:
+        print(f"peak memory {batch['peak_memory_mb']:.0f} MB")
     per_frame = sorted(f["seconds"] for f in frames)[len(frames) // 2]
     print(f"denoised {len(frames)} frame{'s' if len(frames) > 1 else ''} in {sum(f['seconds'] for f in frames):.2f} s"
           + (f" (median {per_frame * 1000:.0f} ms a frame)" if len(frames) > 1 else ""))

@@ -239,6 +239,18 @@ def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
     return outputs
 
 
+def peak_memory_mb() -> float | None:
+    """This process's peak resident memory in MB (Linux ``VmHWM``), or None where it cannot be read.
+    Not ``getrusage``: its maxrss carries over the parent's resident size through fork and exec."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def process_age() -> float | None:
     """Seconds since this process started (Linux ``/proc``), or None where that cannot be read: the
     start-up (interpreter and imports) that precedes a call."""
@@ -297,8 +309,9 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     outputs written before it are complete (each is written atomically) and are named in the message.
     ``on_frame(report)`` is called after each frame (progress).
 
-    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "frames", "skipped"}``: the seconds from process
-    start to this call (None off Linux), of loading the networks and of the warm-up; torch's thread count;
+    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "peak_memory_mb", "frames", "skipped"}``: the
+    seconds from process start to this call (None off Linux), of loading the networks and of the warm-up;
+    torch's thread count; the process's peak resident memory at the end (:func:`peak_memory_mb`);
     one :func:`denoise_frame` report per input, in order; the folder entries skipped (earlier outputs).
     """
     startup = process_age()
@@ -339,6 +352,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
 
         threads = torch.get_num_threads()
     return {"startup_s": startup, "load_s": loaded - begin, "warmup_s": warm - loaded, "threads": threads,
+            "peak_memory_mb": peak_memory_mb(),
             "frames": frames, "skipped": [str(p) for p in skipped]}
 
 

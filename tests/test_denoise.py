@@ -60,6 +60,9 @@ def test_a_batch_equals_each_frame_alone(tiny_run, tmp_path):
     assert [f["input"] for f in batch["frames"]] == [str(tmp_path / "in" / n) for n in names]
     assert batch["skipped"] == [str(tmp_path / "in" / "old-denoised.exr")]
     assert batch["load_s"] > 0 and batch["warmup_s"] > 0 and all(f["seconds"] > 0 for f in batch["frames"])
+    # the peak resident memory is this process's own high-water mark: at least what it holds now
+    status = dict(line.split(":", 1) for line in open("/proc/self/status"))
+    assert batch["peak_memory_mb"] >= int(status["VmRSS"].split()[0]) / 1024 * 0.9
     for name in names:
         alone = denoise_file(tmp_path / "in" / name, tiny_run, tmp_path / "alone" / name, png=False)
         assert alone["output"] == str(tmp_path / "alone" / name)
