@@ -163,23 +163,26 @@ class ShardPatches(keras.utils.PyDataset):
         return x, np.stack([s[1] for s in samples])
 
     def _sample(self, branch_id: int, shard: int, patch: int, aug, slope):
+        with_noisy = self.loss_target == "reference+noisy"  # else the noisy colour is not read at all
         if self.source == "final":
-            names = [f"{b}/features" for b in BRANCHES] + ["albedo", "reference", "noisy"]
+            names = [f"{b}/features" for b in BRANCHES] + ["albedo", "reference"] + (["noisy"] if with_noisy else [])
             data = self._read(shard, patch, names)
             x = {FINAL_INPUTS[b]: network_input(augment.augment_features(data[f"{b}/features"], aug),
                                                 self.model, b, slope) for b in BRANCHES}
             x["albedo"] = augment.augment_colour(data["albedo"], aug)
-            reference, noisy = data["reference"], data["noisy"]
+            reference, noisy = data["reference"], data.get("noisy")
         else:
             branch = BRANCHES[branch_id]
-            data = self._read(shard, patch, branch_datasets(branch))
+            names = branch_datasets(branch)
+            data = self._read(shard, patch, names if with_noisy else [n for n in names if n != f"{branch}/noisy"])
             x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
-            reference, noisy = data[f"{branch}/reference"], data[f"{branch}/noisy"]
-        y = [augment.augment_colour(reference, aug)]
-        if self.loss_target == "reference+noisy":
-            y.append(augment.augment_colour(noisy, aug))
-            if slope is not None:
-                y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
+            reference, noisy = data[f"{branch}/reference"], data.get(f"{branch}/noisy")
+        y = augment.augment_colour(reference, aug)
+        if not with_noisy:
+            return x, y
+        y = [y, augment.augment_colour(noisy, aug)]
+        if slope is not None:
+            y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
         return x, np.concatenate(y, axis=-1).astype(np.float32)
 
     def __getstate__(self):
