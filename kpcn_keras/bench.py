@@ -24,10 +24,12 @@ The contract:
 - **Training cost**: each preset of ``presets`` trained for each of :meth:`BenchConfig.budgets`, its held-out
   scores against the seconds its phases took.
 - **Stage costs** (:func:`stage_costs`): render samples per second; features (numba against the float64 numpy
-  reference and the EXR decode); shard layouts (write patches/s, bytes, batch read); reading a training
-  batch against a training step; a Keras training step against the same network in plain torch; kernel
-  application against the memory-bandwidth floor (k = 13, 21); inference start-up, a 256x256 frame and a
-  ``large_frame`` frame against OIDN, with the process's peak memory.
+  reference and the EXR decode); shard layouts side by side (write patches/s, bytes, batch read) and
+  ``kpcn shards`` end to end; reading a training batch against a training step; a Keras training step
+  against the same network in plain torch; kernel application against the memory-bandwidth floor (k = 13,
+  21); inference start-up, then a frame of the held-out size and a ``large_frame`` frame against OIDN for
+  the default and the fast configuration (:data:`INFERENCE`), and ``kpcn denoise`` of the large frame as a
+  command with its own peak memory.
 - **Writes** ``accuracy_time.json`` (every number, the command, the date, the machine and what else was
   running), ``accuracy_time.md`` and ``accuracy_time.png`` in ``out_dir``, each atomically. :data:`SCHEMA`
   lists the figures a record must have; :func:`missing_figures` checks one.
