@@ -101,7 +101,9 @@ class Denoiser:
                 y1, x1 = min(y0 + t, h), min(x0 + t, w)
                 ya, xa = max(y0 - m, 0), max(x0 - m, 0)
                 yb, xb = min(y1 + m, h), min(x1 + m, w)
-                pred = model.predict_on_batch(feats[None, ya:yb, xa:xb])
+                # a contiguous tile: a strided view reaches torch as a strided tensor, and the trunk's
+                # convolutions and the kernel layer then run on (and copy) other layouts
+                pred = model.predict_on_batch(np.ascontiguousarray(feats[None, ya:yb, xa:xb]))
                 pred = keras.ops.convert_to_numpy(pred)[0]
                 out[y0:y1, x0:x1] = pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
         return out
