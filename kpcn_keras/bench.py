@@ -59,6 +59,7 @@ KERNEL_SIZES = (13, 21)  # the kernel sizes whose application is measured agains
 SHARD_READ_BATCHES = 20
 SHARD_LAYOUT_IMAGES = 4  # (noisy, reference) pairs whose patches are written in every shard layout
 SHARD_WRITE_PATCHES = 8  # patches per image of the end-to-end shard build (the set's own has more)
+GEOMEAN_FLOOR = 1e-300  # an error of exactly 0 (a perfect frame) counts as this in a geometric mean
 OURS = "cpu"  # the configuration of the headline: the default preset
 INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the default, and the fast configuration
 
@@ -141,7 +142,7 @@ def render_seconds_at(spp, seconds, n: float) -> float:
 
 def geometric_mean(values) -> float:
     values = np.asarray(values, np.float64)
-    return float(np.exp(np.mean(np.log(np.maximum(values, 1e-300)))))
+    return float(np.exp(np.mean(np.log(np.maximum(values, GEOMEAN_FLOOR)))))
 
 
 def summarise(frames: list[dict]) -> dict:
@@ -318,14 +319,13 @@ def train_runs(cfg: BenchConfig, *, overrides: dict | None, verbose, log) -> dic
 def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log) -> tuple[list[dict], list[dict]]:
     """The error-against-time methods of the trained runs at the budget, and the training-cost rows."""
     from kpcn_keras.compare import _training_seconds, describe
-    from kpcn_keras.config import TrainConfig
     from kpcn_keras.denoise import Denoiser
 
     methods, training = [], []
     for budget, runs in plans.items():
         for name, plan in runs.items():
             run = Path(plan["run"])
-            train_cfg = TrainConfig(**read_json(run / "config.json", "run record")["train"])
+            train_cfg = _train_config(plan)
             variants = [(name, True)] + ([(f"{name} (compositor off)", False)] if train_cfg.compositor else [])
             for label, multiscale in variants:
                 start = time.perf_counter()
@@ -422,9 +422,8 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
                                                         patches_per_image=SHARD_WRITE_PATCHES,
                                                         patch_size=manifest["patch_size"], seed=cfg.seed)
     log("stage costs: a training step, Keras and plain torch")
-    ours = plans[cfg.budget].get(OURS) if cfg.budget in plans else None
-    model_config = _model_config(ours)
-    batch = _train_batch_size(ours)
+    ours = _train_config(plans.get(cfg.budget, {}).get(OURS))
+    model_config, batch = ModelConfig.from_dict(ours.model), ours.batch_size
     stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
     stages["shard_read"] = shard_read_cost(sset, manifest, model_config, batch, cfg.seed)
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
@@ -438,18 +437,15 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     return stages
 
 
-def _model_config(plan: dict | None) -> ModelConfig:
-    if plan is None:
-        return ModelConfig()
-    return ModelConfig.from_dict(read_json(Path(plan["run"]) / "config.json", "run record")["train"]["model"])
-
-
-def _train_batch_size(plan: dict | None) -> int:
+def _train_config(plan: dict | None):
+    """The training configuration of a planned run, or the default one where the run is not in the bench."""
     from kpcn_keras.config import TrainConfig
+    from kpcn_keras.run import Run
 
     if plan is None:
-        return TrainConfig().batch_size
-    return int(read_json(Path(plan["run"]) / "config.json", "run record")["train"]["batch_size"])
+        return TrainConfig()
+    run = Run(plan["run"])
+    return run.train_config(run.read_record())
 
 
 def shard_read_cost(sset, manifest, model_config: ModelConfig, batch_size: int, seed: int) -> dict:

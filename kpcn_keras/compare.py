@@ -327,7 +327,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
         scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
         ms, samples = _median_ms(lambda: denoiser(crop), cfg.repeats)
         networks = list(denoiser.networks.values()) + ([denoiser.compositor] if denoiser.compositor else [])
-        train_cfg = TrainConfig(**read_json(Path(plan["run"]) / "config.json", "run record")["train"])
+        train_cfg = denoiser.run.train_config(denoiser.record)
         rows.append({"name": name, "kind": "network", "what": describe(name, train_cfg), "run": plan["run"],
                      "phase_steps": plan["phase_steps"], "training_seconds": _training_seconds(Path(plan["run"])),
                      "parameters": int(sum(n.count_params() for n in networks)), "ms_per_frame": ms,

@@ -115,7 +115,7 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
     run = Run(run_dir)
     record = run.read_record()
-    train_cfg = TrainConfig(**record["train"])
+    train_cfg = run.train_config(record)
     base = base_phases(train_cfg)
     unfinished = [p.name for p in base if record["phases"].get(p.name, {}).get("status") != "done"]
     if unfinished:

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import keras
 
+from kpcn_keras.config import TrainConfig
 from kpcn_keras.models import ModelConfig, build_branch_model
 from prep.errors import KpcnError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries
@@ -137,6 +138,9 @@ class Run:
 
     def model_config(self, record: dict) -> ModelConfig:
         return ModelConfig.from_dict(record["train"]["model"])
+
+    def train_config(self, record: dict) -> TrainConfig:
+        return TrainConfig(**record["train"])
 
     def relative(self, path: str | os.PathLike) -> str:
         return os.path.relpath(os.path.abspath(path), os.path.abspath(self.dir))
