@@ -180,12 +180,16 @@ def cmd_figures(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    from kpcn_keras.config import BenchConfig
     from prep.render.bench import RenderBenchConfig
 
+    # an option of one bench that the other does not have (both have --out and --repeats)
+    render_only, accuracy_only = ({f.name for f in dataclasses.fields(a)} - {f.name for f in dataclasses.fields(b)}
+                                  for a, b in ((RenderBenchConfig, BenchConfig), (BenchConfig, RenderBenchConfig)))
     if args.what == "render":
         from prep.render.bench import bench_render, format_report
 
-        for dest in sorted(d for d in _BENCH_ACCURACY_OPTIONS if d in args):
+        for dest in sorted(d for d in accuracy_only if d in args):
             raise OptionError(dest, "is an option of 'kpcn bench' (accuracy against time), not of 'kpcn bench render'")
         cfg = RenderBenchConfig(**_given(args, RenderBenchConfig))
         record = bench_render(cfg, progress=not args.quiet)
@@ -193,9 +197,8 @@ def cmd_bench(args) -> int:
         print(f"report: {cfg.out_dir}/render.md")
         return 0
     from kpcn_keras.bench import REPORT, bench
-    from kpcn_keras.config import BenchConfig
 
-    for dest in sorted(d for d in _BENCH_RENDER_OPTIONS if d in args):
+    for dest in sorted(d for d in render_only if d in args):
         raise OptionError(dest, "is an option of 'kpcn bench render', not of 'kpcn bench' (accuracy against time)")
     given = _given(args, BenchConfig)
     if "large_frame" in given and len(given["large_frame"]) != 2:
@@ -205,11 +208,6 @@ def cmd_bench(args) -> int:
           progress=not args.quiet)
     print(f"report: {cfg.out_dir}/{REPORT}.md, {REPORT}.json and {REPORT}.png")
     return 0
-
-
-_BENCH_RENDER_OPTIONS = {"width", "height", "spp"}
-_BENCH_ACCURACY_OPTIONS = {"set_name", "shards_root", "runs_root", "full", "raw_spp", "input_spp", "budget",
-                           "budget_fractions", "configurations", "presets", "large_frame", "seed"}
 
 
 def cmd_compare(args) -> int:
