@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Optional
 
 from prep.errors import OptionError
+from prep.files import check_set_name
 from prep.features import BRANCHES
 
 ARCHS = ("kpcn", "kpal", "dpcn")
@@ -385,9 +386,7 @@ class CompareConfig:
         if isinstance(self.configurations, str):
             self.configurations = tuple(c.strip() for c in self.configurations.split(",") if c.strip())
         self.configurations = tuple(self.configurations)
-        if not self.set_name or not isinstance(self.set_name, str) or "/" in self.set_name \
-                or self.set_name in (".", ".."):
-            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        check_set_name(self.set_name)
         for name in ("shards_root", "runs_root", "out_dir"):
             if not isinstance(getattr(self, name), str) or not getattr(self, name):
                 raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
@@ -490,8 +489,7 @@ class ResampleStudyConfig:
 
     def __post_init__(self):
         self.seeds, self.arms = tuple(self.seeds), tuple(self.arms)
-        if not self.set_name or "/" in self.set_name or self.set_name in (".", ".."):
-            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        check_set_name(self.set_name)
         if not self.seeds or len(set(self.seeds)) != len(self.seeds) or any(
                 isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in self.seeds):
             raise OptionError("seeds", f"must be distinct integers >= 0, got {list(self.seeds)}")
@@ -562,9 +560,7 @@ class BenchConfig:
                 setattr(self, name, ladder[name])
         if self.presets is None:
             self.presets = BENCH_PRESETS
-        if not self.set_name or not isinstance(self.set_name, str) or "/" in self.set_name \
-                or self.set_name in (".", ".."):
-            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        check_set_name(self.set_name)
         for name in ("raw_spp", "input_spp"):
             values = tuple(getattr(self, name))
             if not values or any(isinstance(v, bool) or not isinstance(v, int) or v < 2 for v in values) \

@@ -173,8 +173,7 @@ class ShardPatches(keras.utils.PyDataset):
             reference, noisy = data["reference"], data.get("noisy")
         else:
             branch = BRANCHES[branch_id]
-            names = branch_datasets(branch)
-            data = self._read(shard, patch, names if with_noisy else [n for n in names if n != f"{branch}/noisy"])
+            data = self._read(shard, patch, branch_datasets(branch, noisy=with_noisy))
             x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
             reference, noisy = data[f"{branch}/reference"], data.get(f"{branch}/noisy")
         y = augment.augment_colour(reference, aug)

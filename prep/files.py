@@ -7,7 +7,8 @@ with errors that name them.
   in one step. A kill at any point leaves either the old file or the new one, never a mixture.
 - :func:`exclusive_lock` serialises the writers of one folder (a render set, a shard set, a run): a
   second command on the same folder waits for the first, then finds its work done.
-- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts.
+- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts;
+  :func:`check_set_name` refuses a set name that is not one plain folder.
 - :func:`read_json` turns a missing or broken record into one line naming the file and what it is.
 
 Dot-files in a folder (``.lock``, temporaries) are this module's; no reader takes them for data.
@@ -25,7 +26,7 @@ import secrets
 from contextlib import contextmanager
 from pathlib import Path
 
-from prep.errors import KpcnError
+from prep.errors import KpcnError, OptionError
 
 log = logging.getLogger("kpcn")
 
@@ -128,6 +129,14 @@ def sha256_file(path: str | os.PathLike) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def check_set_name(name) -> str:
+    """``name`` if it can name a set's folder under a root (one plain path component), else OptionError
+    ``set_name`` echoing it: a render set, a shard set and every command that reads one share this rule."""
+    if not name or not isinstance(name, str) or "/" in name or name in (".", ".."):
+        raise OptionError("set_name", f"must be a plain folder name, got {name!r}")
+    return name
 
 
 def check_writable(path: str | os.PathLike, what: str, *, directory: bool = False) -> Path:

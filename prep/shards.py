@@ -81,6 +81,7 @@ from prep.errors import KpcnError, OptionError
 from prep.files import (
     atomic_path,
     atomic_write_json,
+    check_set_name,
     check_writable,
     exclusive_lock,
     read_json,
@@ -205,8 +206,7 @@ class ShardConfig:
 
     def __post_init__(self):
         self.val_scenes = tuple(self.val_scenes)
-        if not self.set_name or "/" in self.set_name or self.set_name in (".", ".."):
-            raise OptionError("set_name", f"must be a plain folder name, got {self.set_name!r}")
+        check_set_name(self.set_name)
         checks = {
             "patch_size": (self.patch_size >= 1, ">= 1"),
             "patches_per_image": (self.patches_per_image >= 1, ">= 1"),
@@ -585,10 +585,11 @@ def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout:
             f.attrs["complete"] = True
 
 
-def branch_datasets(branch: str) -> list[str]:
+def branch_datasets(branch: str, noisy: bool = False) -> list[str]:
     """The datasets a training batch of one branch reads per patch (``kpcn_keras.data``; timed by
-    ``prep.stage_costs``)."""
-    return [f"{branch}/features", f"{branch}/reference", f"{branch}/noisy"]
+    ``prep.stage_costs``): the features and the reference, and the noisy colour for a loss that uses it
+    (``noisy``: the asymmetric loss)."""
+    return [f"{branch}/features", f"{branch}/reference"] + ([f"{branch}/noisy"] if noisy else [])
 
 
 def read_patch(f, names, patch: int) -> dict[str, np.ndarray]:

@@ -42,7 +42,7 @@ from prep.files import sha256_file
 
 # Batches read per repeat by shard_layout_costs: one batch is a handful of reads, too few to time alone.
 BATCHES_PER_REPEAT = 4
-# The training source whose batch read is timed (the cpu preset's first phase).
+# The training source whose batch read is timed (the cpu preset's first phase, SMAPE: no noisy colour).
 READ_BRANCH = "diffuse"
 # max_rel_error divides by max(|value|, this): the smallest normal float16, below which float16 keeps an
 # absolute (not relative) precision, so rounding to float16 is within 2**-11 on this scale everywhere.

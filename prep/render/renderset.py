@@ -15,7 +15,7 @@ import numpy as np
 
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
-from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json, remove_temporaries
+from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
 from prep.render.frame import _check_int, render
 
@@ -41,8 +41,7 @@ class RenderConfig:
         self.families = tuple(self.families) if not isinstance(self.families, str) else self.families
 
     def validate(self) -> None:
-        if not self.set_name or "/" in self.set_name or self.set_name in (".", ".."):
-            raise OptionError("set_name", f"must be a plain directory name, got {self.set_name!r}")
+        check_set_name(self.set_name)
         if isinstance(self.families, str):
             raise OptionError("families", f"must be a tuple of names, got the string {self.families!r}")
         if not self.families:
