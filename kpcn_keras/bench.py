@@ -429,8 +429,10 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
     stages["shard_read"]["ratio"] = stages["shard_read"]["batch_s"] / stages["train_step"]["keras_s"]
     log("stage costs: kernel application")
+    bandwidth = net_costs.memory_bandwidth()  # one floor for every kernel size of the report
     stages["kernel_application"] = [net_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
-                                                                      repeats=cfg.repeats) for k in KERNEL_SIZES]
+                                                                      repeats=cfg.repeats, bandwidth=bandwidth)
+                                    for k in KERNEL_SIZES]
     log("stage costs: inference")
     stages["repeats"] = cfg.repeats
     stages["inference"] = inference_cost(cfg, plans.get(cfg.budget, {}), inputs[(scenes[0]["name"], cfg.input_spp[0])])
