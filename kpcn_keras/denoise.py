@@ -210,11 +210,11 @@ def collect_inputs(paths) -> tuple[list[Path], list[Path]]:
     return inputs, skipped
 
 
-def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
+def plan_outputs(inputs: list[Path], output=None, reference=None) -> list[Path]:
     """The output EXR of each input: beside it by default; ``output`` a file for one input, or a folder
     (existing, ending in ``/``, or, with several inputs, to be created) that takes every
     ``<stem>-denoised.exr``. Refuses, before any work, an ``output`` that must be a folder but names a file,
-    an output that is an input, and two inputs that would write the same output."""
+    an output that is an input or the ``reference``, and two inputs that would write the same output."""
     if output is not None:
         # Path() drops a trailing slash, which is how a user says "a folder" for one input
         as_folder = os.fspath(output).endswith(("/", os.sep)) or Path(output).is_dir()
@@ -234,10 +234,11 @@ def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
             raise KpcnError(f"{seen[key]} and {src} would both be written to {out}; denoise them "
                             "in separate commands or rename one" if seen[key] != src else f"{src} is given twice")
         seen[key] = src
+    protected = [("input", Path(src)) for src in inputs] + ([("reference", Path(reference))] if reference else [])
     for out in outputs:
-        for src in inputs:
-            if out.exists() and os.path.samefile(out, src):
-                raise KpcnError(f"--output {out} is the input file {src} itself; choose another -o")
+        for label, src in protected:
+            if out.exists() and src.exists() and os.path.samefile(out, src):
+                raise KpcnError(f"--output {out} is the {label} file {src} itself; choose another -o")
     return outputs
 
 
@@ -320,9 +321,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
     if reference is not None and len(inputs) != 1:
         raise OptionError("reference", f"is for one input, got {len(inputs)}; 'kpcn evaluate' compares many")
-    outputs = plan_outputs(inputs, output)
-    if reference is not None and Path(reference).exists() and outputs[0].exists() and os.path.samefile(outputs[0], reference):
-        raise KpcnError(f"--output {outputs[0]} is the reference file itself; choose another -o")
+    outputs = plan_outputs(inputs, output, reference)
     ref_size = exr.read_header(reference, variances=False) if reference is not None else None
     for src in inputs:
         size = exr.read_header(src)

@@ -60,11 +60,16 @@ def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_pa
     assert exr.read_aovs(out, variances=False)["default"].shape == (20, 24, 3)
 
 
-def test_denoise_refuses_an_output_that_is_its_input(tmp_path, tiny_run):
+def test_denoise_refuses_an_output_that_is_its_input_or_its_reference(tmp_path, tiny_run):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
     before = checksums(tmp_path)
     res = kpcn("denoise", "in.exr", "--run", tiny_run, "-o", "./in.exr", cwd=tmp_path)
     assert_one_line_error(res, "in.exr", "input")
+    assert checksums(tmp_path) == before
+    exr.write_aovs(tmp_path / "ref.exr", random_aovs(12, 12, variances=False))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "ref.exr", "-o", "./ref.exr", cwd=tmp_path)
+    assert_one_line_error(res, "ref.exr", "reference file")
     assert checksums(tmp_path) == before
 
 
