@@ -74,6 +74,13 @@ def pad_edge(x, r: int):
     return ops.concatenate([left, x, right], axis=2)
 
 
+def _check_dilation(dilation) -> int:
+    """``dilation`` if it is a positive integer (not a bool), else ValueError echoing it."""
+    if isinstance(dilation, bool) or not isinstance(dilation, int) or dilation < 1:
+        raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
+    return dilation
+
+
 def apply_kernels(colour, weights, k: int, dilation: int = 1):
     """Filter ``colour`` (B, H, W, C) with normalised per-pixel ``weights`` (B, H, W, k*k); returns (B, H, W, C).
 
@@ -88,9 +95,7 @@ def apply_kernels(colour, weights, k: int, dilation: int = 1):
     on torch uses the faster :func:`kernel_apply` instead; this loop is the path of other backends.
     """
     k = check_kernel_size(k)
-    d = dilation if isinstance(dilation, int) and not isinstance(dilation, bool) else 0
-    if d < 1:
-        raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
+    d = _check_dilation(dilation)
     r = k // 2
     h = ops.shape(colour)[1]
     w = ops.shape(colour)[2]
@@ -139,9 +144,7 @@ def kernel_apply(colour, logits, k: int, dilation: int = 1):
     this CPU: the block softmax alone, the k*k exponentials, costs 4.2 / 8.9 ms.
     """
     k = check_kernel_size(k)
-    d = dilation if isinstance(dilation, int) and not isinstance(dilation, bool) else 0
-    if d < 1:
-        raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
+    d = _check_dilation(dilation)
     if keras.backend.backend() == "torch" and not _is_symbolic(colour) and not _is_symbolic(logits):
         import torch
 
