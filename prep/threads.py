@@ -69,7 +69,8 @@ def set_threads(n: int | None = None) -> int:
 
 def apply_to_torch() -> None:
     """Set torch's intra-op count to the requested one, if torch is imported and a count was requested.
-    Safe to call any number of times (kpcn_keras calls it after importing torch)."""
+    Safe to call any number of times. :func:`set_threads` calls it; a torch imported afterwards starts at
+    the count through ``OMP_NUM_THREADS``, so nothing needs to call it again."""
     torch = sys.modules.get("torch")
     if torch is not None and _requested is not None and torch.get_num_threads() != _requested:
         torch.set_num_threads(_requested)
