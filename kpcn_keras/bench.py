@@ -58,7 +58,6 @@ REPORT = "accuracy_time"
 KERNEL_SIZES = (13, 21)  # the kernel sizes whose application is measured against the bandwidth floor
 SHARD_READ_BATCHES = 20
 SHARD_LAYOUT_IMAGES = 4  # (noisy, reference) pairs whose patches are written in every shard layout
-SHARD_WRITE_PATCHES = 8  # patches per image of the end-to-end shard build (the set's own has more)
 GEOMEAN_FLOOR = 1e-300  # an error of exactly 0 (a perfect frame) counts as this in a geometric mean
 OURS = "cpu"  # the configuration of the headline: the default preset
 INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the default, and the fast configuration
@@ -77,6 +76,7 @@ SCHEMA = (
     "stages.render.samples_per_s",
     "stages.features.numba_s", "stages.features.numpy_s", "stages.features.exr_decode_s",
     "stages.shard_layouts.layouts", "stages.shard_layouts.default", "stages.shard_write.patches_per_s",
+    "stages.shard_write.sync_s",
     "stages.shard_read.batch_s", "stages.shard_read.step_s", "stages.shard_read.ratio",
     "stages.train_step.keras_s", "stages.train_step.torch_s", "stages.train_step.ratio",
     "stages.kernel_application.*.k", "stages.kernel_application.*.seconds",
@@ -416,11 +416,8 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     stages["shard_layouts"] = prep_costs.shard_layout_costs(train_pairs[:SHARD_LAYOUT_IMAGES], scratch,
                                                             repeats=cfg.repeats, seed=cfg.seed,
                                                             patch_size=manifest["patch_size"])
-    render_dir = Path(val_pairs[0][0]).parent
     log("stage costs: kpcn shards end to end")
-    stages["shard_write"] = prep_costs.shard_write_cost(render_dir.parent, render_dir.name, scratch,
-                                                        patches_per_image=SHARD_WRITE_PATCHES,
-                                                        patch_size=manifest["patch_size"], seed=cfg.seed)
+    stages["shard_write"] = shards_command_cost(manifest["config"], Path(cfg.runs_root) / "shards-command")
     log("stage costs: a training step, Keras and plain torch")
     ours = _train_config(plans.get(cfg.budget, {}).get(OURS))
     model_config, batch = ModelConfig.from_dict(ours.model), ours.batch_size
@@ -490,6 +487,50 @@ def _alternating_best(fns: dict, frame: dict, repeats: int) -> dict:
             fn(frame)
             best[name] = min(best[name], time.perf_counter() - start)
     return best
+
+
+def shards_command_cost(config: dict, scratch: Path) -> dict:
+    """``kpcn shards`` of the bench's render set with the shard set's own options (a ``ShardConfig`` as a
+    dict), into a fresh set under ``scratch``, in a process of its own as a user runs it: its wall time,
+    start-up included, with the thread count it got (shards are cut by that many processes); then the
+    time ``sync`` takes after it, since the command leaves the last of its bytes to the system to write."""
+    import shutil
+    import sys
+
+    from prep import threads
+    from prep.shards import SHARD_LAYOUT, ShardConfig, ShardSet, round_name
+
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir(parents=True)
+    given = ShardConfig(**config)
+    workers = threads.requested() or threads.default_threads()
+    options = {"threads": workers, "set": given.set_name, "renders": given.render_root, "out": str(scratch),
+               "patch-size": given.patch_size, "patches-per-image": given.patches_per_image,
+               "patches-per-shard": given.patches_per_shard, "val-fraction": given.val_fraction,
+               "seed": given.seed}
+    if given.val_scenes:
+        options["val-scenes"] = ",".join(given.val_scenes)
+    if given.input_spp is not None:
+        options["input-spp"] = given.input_spp
+    args = [a for k, v in options.items() for a in (f"--{k}", str(v))]
+    os.sync()  # the disk owes nothing from before
+    start = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "shards", *args], capture_output=True,
+                         text=True)
+    seconds = time.perf_counter() - start
+    if res.returncode != 0:
+        raise KpcnError(f"kpcn shards {' '.join(args)} failed: {res.stderr.strip()[-500:]}")
+    start = time.perf_counter()
+    os.sync()
+    sync_s = time.perf_counter() - start
+    sset = ShardSet(scratch / given.set_name)
+    listed = sset.complete_manifest()["rounds"][round_name(0)]["shards"]
+    count = sum(s["patches"] for s in listed)
+    size = sum(sset.resolve(s["path"]).stat().st_size for s in listed)
+    shutil.rmtree(scratch)
+    return {"command": f"kpcn shards {' '.join(args)}", "patches": count, "shards": len(listed),
+            "seconds": seconds, "patches_per_s": count / seconds, "sync_s": sync_s, "bytes_per_patch": size / count,
+            "workers": workers, "layout": SHARD_LAYOUT.name}
 
 
 def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
@@ -736,11 +777,13 @@ def _stage_lines(st: dict) -> list[str]:
     ]
     sl, sw = st["shard_layouts"], st["shard_write"]
     lines += [
-        f"`kpcn shards` end to end ({sw['layout']} layout, {sw['patches']} patches of this set): "
-        f"{sw['patches_per_s']:.0f} patches/s, {sw['bytes_per_patch'] / 2**20:.2f} MB per patch.",
+        f"`kpcn shards` of this render set as a command ({sw['layout']} layout, {sw['workers']} worker processes, "
+        f"{sw['patches']} patches in {sw['shards']} shards): {sw['seconds']:.2f} s, start-up included, "
+        f"{sw['patches_per_s']:.0f} patches/s, {sw['bytes_per_patch'] / 2**20:.2f} MB per patch; the `sync` after "
+        f"it (the bytes the system had yet to put on disk) took {sw['sync_s']:.2f} s more. Command: `{sw['command']}`.",
         "",
         f"Shard layouts, side by side on {sl['patches']} patches ({sl['patch_size']}×{sl['patch_size']}); writing "
-        f"includes the SHA-256 of the file; a batch is {sl['batch_size']} random patches; the shipped one is "
+        f"includes the file's checksum; a batch is {sl['batch_size']} random patches; the shipped one is "
         f"**{sl['default']}**:",
         "",
         "| layout | write patches/s | MB per patch | read a batch | largest relative error |",

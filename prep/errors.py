@@ -19,6 +19,9 @@ class OptionError(KpcnError, ValueError):
         self.option = option
         self.detail = detail
 
+    def __reduce__(self):  # raised in a worker process, it is pickled back to the caller
+        return type(self), (self.option, self.detail)
+
 
 class InputFileError(KpcnError, ValueError):
     """A file a scene reads (an image texture, an environment map) that cannot be read or holds no usable

@@ -2,7 +2,7 @@
 
 A shard set is the folder ``<out_root>/<set>/``; :class:`ShardSet` is the one owner of its layout::
 
-    <set>/manifest.json             sources (with SHA-256), split, configuration, every round and shard (with SHA-256)
+    <set>/manifest.json             sources (with SHA-256), split, configuration, every round and shard (with its CRC-32)
     <set>/.lock                     held by the one process that writes the set
     <set>/round-<k>/shard-<i>.h5    up to ``patches_per_shard`` patches of one split (train or val)
     <set>/round-<k>/plan.npz        an error round's positions, drawn before its shards are cut (k >= 1)
@@ -48,13 +48,16 @@ Guarantees, by construction:
 - **Nothing half-done is taken for done.** Shards are written with ``prep.files.atomic_path`` and marked
   ``complete`` inside; the manifest is rewritten after every shard with ``status: "building"`` and marked
   ``"complete"`` last. Readers (:meth:`ShardSet.verified_shards`) accept only a complete manifest and shards
-  whose SHA-256 matches it.
+  whose checksum matches it (:data:`SHARD_CHECKSUMS`). That check, not an fsync, is what makes a shard safe
+  against a power cut (:func:`write_shard`).
 - **One writer per set.** ``build_shards`` holds the set's lock; a second one waits, then finds the work
   done.
 - **Bad input is found before anything is written**: every render's header (layers, size) and the options
   against every image are checked first.
-- **Bounded memory**: a shard is assembled from one image at a time; no more than two shards' patches
-  are held (one being cut while the previous one is written).
+- **Bounded memory**: a shard is assembled from one image at a time; each worker process holds one
+  shard's patches (:func:`shard_workers` of them: the thread count).
+- **Parallel, and the same files**: shards are cut and written by worker processes, one shard at a time
+  each; which process writes a shard, and how many there are, changes none of its bytes.
 """
 
 from __future__ import annotations
@@ -63,26 +66,28 @@ import dataclasses
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
 import re
 import shutil
 import sys
 import time
 from collections import defaultdict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from prep import exr, features, sampling
+from prep import exr, features, sampling, threads
 from prep.errors import KpcnError, OptionError
 from prep.files import (
     atomic_path,
     atomic_write_json,
     check_set_name,
     check_writable,
+    crc32_file,
     exclusive_lock,
     read_json,
     remove_temporaries,
@@ -108,35 +113,43 @@ PATCH_DATASETS = {
 }
 # A shard is assembled in memory before it is written; this bounds that memory.
 MAX_SHARD_BYTES = 2 << 30
-# Every chunk carries a Fletcher-32 checksum, so a damaged chunk is an error when read, not silent garbage.
-# Measured: ~40 % of the HDF5 time of an uncompressed write (~10 % of `kpcn shards` end to end) and 60 % of
-# a batch read's (1.8 against 0.75 ms for 8 patches); a price kept: shards outlive the run that wrote them.
-FLETCHER32 = True
+# A shard's checksum, listed in the manifest and checked by every reader and by the next run, is there to
+# find a torn or damaged shard, which CRC-32 does at 6.4 GB/s here against SHA-256's 1.9 (hashing a set of
+# ~2.8 GB was a quarter of `kpcn shards` once shards were uncompressed). Sources and plans keep SHA-256: it
+# names what a set was made from. The first algorithm is the one written; sets written before list SHA-256,
+# which still verifies.
+SHARD_CHECKSUMS = {"crc32": crc32_file, "sha256": sha256_file}
 
 
 @dataclass(frozen=True)
 class Layout:
-    """How a shard's datasets are stored: HDF5 filters, patches per chunk, and the storage type of the
-    patch datasets (readers get float32 whatever it is: :func:`read_patch`)."""
+    """How a shard's datasets are stored: HDF5 filters, patches per chunk (``None``: no chunks, each dataset
+    one contiguous block, where a patch is one contiguous run of bytes), a Fletcher-32 checksum per chunk, and
+    the storage type of the patch datasets (readers get float32 whatever it is: :func:`read_patch`)."""
 
     name: str
     compression: str | None = None
     compression_opts: int | None = None
     shuffle: bool = False
-    patches_per_chunk: int = 1
+    patches_per_chunk: int | None = 1
+    fletcher32: bool = True
     dtype: str = "float32"
 
 
 # The layouts `prep.stage_costs.shard_layout_costs` measures side by side (README "Shards" has the numbers).
 # gzip (what shards were written with before) and lzf compress slower than the uncompressed bytes are
-# written and hashed (SHA-256, for the manifest), and a training batch reads 4-8x slower from them. Several
+# written and hashed (for the manifest), and a training batch reads 4-8x slower from them. Several
 # patches per chunk make a random patch read its whole chunk. float16 halves the bytes but not the time
 # (the conversion), rounds the features at 5e-4 relative where the tests hold shards to the float64
-# features at 1e-6, and overflows linear colours above 65504.
+# features at 1e-6, and overflows linear colours above 65504. Contiguous datasets (no chunks, so no
+# Fletcher-32) read a batch ~4x faster but write slower: HDF5 spends ~3x the system time on them. The
+# chunked ones keep a Fletcher-32 checksum per chunk, so a chunk damaged after the manifest's check is an
+# error when read, not silent garbage: ~40 % of the HDF5 time of a write and 60 % of a batch read's.
 LAYOUTS = {
     "gzip": Layout("gzip", compression="gzip", compression_opts=1, shuffle=True),
     "lzf": Layout("lzf", compression="lzf", shuffle=True),
     "none": Layout("none"),
+    "contiguous": Layout("contiguous", patches_per_chunk=None, fletcher32=False),
     "none-8": Layout("none-8", patches_per_chunk=8),
     "float16": Layout("float16", dtype="float16"),
 }
@@ -267,7 +280,11 @@ class ShardEntry:
     round: str
     split: str
     patches: int
-    sha256: str
+    checksum: tuple[str, str]  # (algorithm of SHARD_CHECKSUMS, hex digest)
+
+    def intact(self) -> bool:
+        """Whether the file's checksum is still the listed one."""
+        return shard_intact(self.path, self.checksum)
 
 
 class ShardSet:
@@ -332,7 +349,7 @@ class ShardSet:
             raise ShardError(f"{self.manifest_path}: the set has no {', '.join(missing)} "
                              f"(its rounds: {', '.join(sorted(manifest['rounds'])) or 'none'})")
         return [
-            ShardEntry(self.resolve(s["path"]), name, s["split"], int(s["patches"]), s["sha256"])
+            ShardEntry(self.resolve(s["path"]), name, s["split"], int(s["patches"]), listed_checksum(s))
             for name in names
             for s in manifest["rounds"][name]["shards"]
             if s["split"] == split
@@ -340,16 +357,16 @@ class ShardSet:
 
     def verified_shards(self, split: str, manifest: dict | None = None, rounds=None) -> list[ShardEntry]:
         """The shards of ``split`` in ``rounds`` (default: every complete round) of a complete set, each present
-        with the SHA-256 the manifest lists."""
+        with the checksum the manifest lists."""
         manifest = manifest or self.complete_manifest()
         entries = self.entries(manifest, split, rounds)
         for entry in entries:
             if not entry.path.is_file():
                 raise ShardError(f"{entry.path}: listed in {self.manifest_path} but missing; "
                                  "run 'kpcn shards' again to rebuild it")
-            if sha256_file(entry.path) != entry.sha256:
+            if not entry.intact():
                 raise ShardError(
-                    f"{entry.path}: its SHA-256 differs from the one in {self.manifest_path} (the file changed "
+                    f"{entry.path}: its checksum ({entry.checksum[0]}) differs from the one in {self.manifest_path} (the file changed "
                     "after it was written); run 'kpcn shards' again to rebuild it"
                 )
         return entries
@@ -567,19 +584,24 @@ def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_i
 
 def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout: Layout = SHARD_LAYOUT) -> None:
     """Write one shard atomically: a per-process temporary name, ``complete`` attribute last, then rename.
-    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.stage_costs``)."""
-    with atomic_path(path) as tmp:
+    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.stage_costs``).
+
+    Not fsync'ed (``atomic_path(durable=False)``): waiting for the disk was most of ``kpcn shards`` (a set
+    is ~1.2 MB a patch; this disk takes ~430 MB/s), and a shard needs no fsync to be safe, since its
+    checksum is in the manifest and checked by every reader and by the next run, which writes a torn shard
+    again (the manifest itself is written durably)."""
+    with atomic_path(path, durable=False) as tmp:
         with h5py.File(tmp, "w") as f:
             for name, data in patches.items():
-                if data.ndim > 1:
-                    chunks = (min(len(data), layout.patches_per_chunk),) + data.shape[1:]
-                    if name in PATCH_DATASETS:
-                        data = data.astype(layout.dtype, copy=False)
-                else:
-                    chunks = (min(len(data), 1024),)
-                f.create_dataset(name, data=data, chunks=chunks, compression=layout.compression,
-                                 compression_opts=layout.compression_opts, shuffle=layout.shuffle,
-                                 fletcher32=FLETCHER32)
+                if name in PATCH_DATASETS:
+                    data = data.astype(layout.dtype, copy=False)
+                if layout.patches_per_chunk is None:
+                    f.create_dataset(name, data=data)
+                    continue
+                per_chunk = layout.patches_per_chunk if data.ndim > 1 else 1024
+                f.create_dataset(name, data=data, chunks=(min(len(data), per_chunk),) + data.shape[1:],
+                                 compression=layout.compression, compression_opts=layout.compression_opts,
+                                 shuffle=layout.shuffle, fletcher32=layout.fletcher32)
             for key, value in attrs.items():
                 f.attrs[key] = value
             f.attrs["complete"] = True
@@ -768,11 +790,14 @@ def _previous_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict
     return None
 
 
-def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
+def build_shards(config: ShardConfig, *, progress: bool = True, workers: int | None = None) -> dict:
     """Cut round 0 of a shard set from a folder of renders; returns the manifest.
 
+    ``workers``: processes that cut and write the shards (default :func:`shard_workers`); the set's files
+    are the same for any number.
+
     Deterministic for a given config and renders. A rerun with the same renders keeps every shard that is
-    whole (SHA-256 as listed) and writes the rest, so an interrupted run resumes, and keeps the set's
+    whole (checksum as listed) and writes the rest, so an interrupted run resumes, and keeps the set's
     error rounds; a rerun after the renders changed rebuilds the set (error rounds included); another
     configuration over an existing set is an error.
     """
@@ -807,10 +832,8 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
                                "shards": listed}, **rounds},
         }
 
-        def positions_of(source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
-            return draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
-
-        _write_round(sset, config, manifest, 0, plan.shards, positions_of, config.command, progress)
+        _write_round(sset, config, manifest, 0, plan.shards, _RoundDraw(config, 0), config.command, progress,
+                     workers)
         manifest["rounds"][first]["status"] = "complete"
         manifest["status"] = "complete"
         atomic_write_json(sset.manifest_path, manifest)
@@ -818,12 +841,14 @@ def build_shards(config: ShardConfig, *, progress: bool = True) -> dict:
 
 
 def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, specs: list[_ShardSpec],
-                 positions_of, command: str, progress: bool) -> None:
+                 draw_of: "_RoundDraw", command: str, progress: bool, workers: int | None) -> None:
     """Write the shards of round ``k`` (``specs``) that are not already whole, the set's lock held.
 
-    ``positions_of(source id, noisy AOVs)`` gives an input's positions and their PDF values (the round's
-    draw). A shard listed in the round's manifest entry with a matching SHA-256 is kept; the others are
-    (re)written, each atomically, the manifest rewritten after each. Extra shard files are removed.
+    ``draw_of`` gives an input's positions and their PDF values (the round's draw). A shard listed in the
+    round's manifest entry with a matching checksum is kept; the others are (re)written, each atomically, the
+    manifest rewritten after each. Extra shard files are removed. The shards are cut and written by
+    ``workers`` processes (None: :func:`shard_workers`; 1: this one), :class:`_RoundWriter`; a shard's bytes
+    do not depend on which process wrote it, nor on how many there were.
     """
     from tqdm import tqdm
 
@@ -831,13 +856,13 @@ def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, sp
     round_dir = sset.round_dir(k)
     round_dir.mkdir(parents=True, exist_ok=True)
     remove_temporaries(round_dir)
-    listed = {s["path"]: s["sha256"] for s in entry["shards"]}
+    listed = {s["path"]: listed_checksum(s) for s in entry["shards"]}
     written: dict[int, dict] = {}
     todo = []
     for spec in specs:
         path = round_dir / shard_name(spec.index)
         rel = sset.relative(path)
-        if rel in listed and path.is_file() and sha256_file(path) == listed[rel]:
+        if rel in listed and path.is_file() and shard_intact(path, listed[rel]):
             written[spec.index] = _entry(sset, path, spec, listed[rel])
         else:
             todo.append(spec)
@@ -847,69 +872,171 @@ def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, sp
             extra.unlink()
     entry["shards"] = [written[i] for i in sorted(written)]
 
-    attrs = _shard_attrs(config, manifest, command)
-    images = _ImageCache(sset, manifest["sources"], k, config.patch_size, positions_of)
+    writer = _RoundWriter(str(sset.dir), manifest["sources"], k, config.patch_size, draw_of,
+                          _shard_attrs(config, manifest, command))
 
-    def write_and_hash(spec: _ShardSpec, arrays: dict[str, np.ndarray]) -> tuple[_ShardSpec, Path, str]:
-        path = round_dir / shard_name(spec.index)
-        write_shard(path, arrays, {**attrs, "split": spec.split})
-        return spec, path, sha256_file(path)
-
-    def record(job) -> None:
-        spec, path, sha256 = job.result()
-        written[spec.index] = _entry(sset, path, spec, sha256)
+    def record(spec: _ShardSpec, checksum: tuple[str, str]) -> None:
+        written[spec.index] = _entry(sset, round_dir / shard_name(spec.index), spec, checksum)
         entry["shards"] = [written[i] for i in sorted(written)]
         atomic_write_json(sset.manifest_path, manifest)
         bar.update(1)
 
-    # Two shard buffers, reused: one is cut into while the other is written and hashed by a second thread
-    # (h5py, file I/O and hashlib release the GIL, and so does the numba features kernel), so the bytes'
-    # cost (write, fsync, SHA-256: most of the time once nothing is compressed) overlaps the cutting. A
-    # buffer is reused only after its shard's job is done; the manifest is written in shard order, from
-    # this thread, after each shard's checksum is known, as before.
-    most = max((spec.patches for spec in todo), default=0)
-    buffers = [empty_patches(most, config.patch_size) for _ in range(min(2, len(todo)))]
-    with tqdm(total=len(todo), desc=f"shards {round_name(k)}", unit="shard", disable=not progress) as bar, \
-            ThreadPoolExecutor(max_workers=1, thread_name_prefix="kpcn-shard-writer") as writer:
-        pending = None
-        for n, spec in enumerate(todo):
-            arrays = {name: buffer[: spec.patches] for name, buffer in buffers[n % 2].items()}
-            at = 0
-            for source_id, a, b in spec.pieces:
-                images.get(source_id).cut_into(a, b, arrays, at)
-                at += b - a
-            if pending is not None:
-                record(pending)
-            pending = writer.submit(write_and_hash, spec, arrays)
-        if pending is not None:
-            record(pending)
+    workers = min(shard_workers() if workers is None else _check_workers(workers), len(todo))
+    with tqdm(total=len(todo), desc=f"shards {round_name(k)}", unit="shard", disable=not progress) as bar:
+        if workers <= 1:
+            for spec in todo:
+                record(spec, writer.write(spec))
+            return
+        pool = ProcessPoolExecutor(workers, mp_context=_worker_context(), initializer=_start_worker,
+                                   initargs=(writer, os.getpid()))
+        try:
+            jobs = {pool.submit(_write_in_worker, spec): spec for spec in todo}
+            for job in as_completed(jobs):
+                record(jobs[job], job.result())
+        finally:
+            # on an error or an interrupt, shards not yet started are not started; the temporary file of one
+            # being written is removed by its worker (atomic_path), or by the next run (remove_temporaries)
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _entry(sset: ShardSet, path: Path, spec: _ShardSpec, sha256: str) -> dict:
-    return {"path": sset.relative(path), "split": spec.split, "patches": spec.patches, "sha256": sha256}
+def _check_workers(workers) -> int:
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise OptionError("workers", f"must be an integer >= 1, got {workers!r}")
+    return workers
 
 
-class _ImageCache:
-    """The :class:`ImagePatches` of the input being cut (an input spans at most a few consecutive shards),
-    and the reference it was read with."""
+def shard_workers() -> int:
+    """How many processes cut and write shards: the thread count the user set (``prep.threads``), else 1.
+    Processes, not threads: writing HDF5 holds the GIL, and the rest of a shard's work needs it too."""
+    return threads.requested() or 1
 
-    def __init__(self, sset: ShardSet, sources: list[dict], k: int, patch_size: int, positions_of):
-        self.sset, self.sources, self.k, self.patch_size, self.positions_of = sset, sources, k, patch_size, positions_of
-        self.current: ImagePatches | None = None
-        self.reference: tuple[str, dict] | None = None
 
-    def get(self, source_id: int) -> ImagePatches:
-        if self.current is None or self.current.source_id != source_id:
+@dataclass(frozen=True)
+class _RoundDraw:
+    """An input's positions in round ``k`` and each one's PDF value: drawn from the variance PDF in round 0
+    (:func:`round_pdf`, :func:`draw`), looked up in the error round's plan (source id -> (positions, pdf))
+    otherwise. A value, not a closure, so that worker processes can be given it."""
+
+    config: ShardConfig
+    k: int
+    plan: dict[int, tuple[np.ndarray, np.ndarray]] | None = None
+
+    def __call__(self, source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
+        if self.plan is None:
+            return draw(round_pdf(noisy, self.config), self.config.patches_per_image, self.config, source_id, self.k)
+        return self.plan[source_id]
+
+
+@dataclass
+class _RoundWriter:
+    """Cuts and writes one shard of a round at a time: what each worker process is started with.
+
+    It keeps, between shards, the :class:`ImagePatches` of the input it cut last (an input spans at most a
+    few consecutive shards) with its reference, and one shard buffer (reused: allocating it per shard
+    costs its page faults each time)."""
+
+    set_dir: str
+    sources: list[dict]
+    k: int
+    patch_size: int
+    draw_of: _RoundDraw
+    attrs: dict
+    _current: ImagePatches | None = field(default=None, repr=False)
+    _reference: tuple[str, dict] | None = field(default=None, repr=False)
+    _buffer: dict[str, np.ndarray] | None = field(default=None, repr=False)
+
+    def __getstate__(self):
+        return {**self.__dict__, "_current": None, "_reference": None, "_buffer": None}
+
+    def write(self, spec: _ShardSpec) -> tuple[str, str]:
+        """Cut shard ``spec``, write it atomically; returns its checksum (:func:`shard_checksum`)."""
+        if self._buffer is None or len(self._buffer["source"]) < spec.patches:
+            self._buffer = None
+            self._buffer = empty_patches(spec.patches, self.patch_size)
+        arrays = {name: buffer[: spec.patches] for name, buffer in self._buffer.items()}
+        at = 0
+        for source_id, a, b in spec.pieces:
+            self._image(source_id).cut_into(a, b, arrays, at)
+            at += b - a
+        path = ShardSet(self.set_dir).round_dir(self.k) / shard_name(spec.index)
+        write_shard(path, arrays, {**self.attrs, "split": spec.split})
+        return shard_checksum(path)
+
+    def _image(self, source_id: int) -> ImagePatches:
+        if self._current is None or self._current.source_id != source_id:
+            sset = ShardSet(self.set_dir)
             src = self.sources[source_id]
             ref_path = _reference_of(self.sources, src)["path"]
-            if self.reference is None or self.reference[0] != ref_path:
-                self.reference = (ref_path, exr.read_aovs(self.sset.resolve(ref_path), variances=False))
-            noisy = exr.read_aovs(self.sset.resolve(src["path"]))
-            self.current = None  # free the previous image before the next is cut
-            positions, pdf = self.positions_of(source_id, noisy)
-            self.current = ImagePatches.at(noisy, self.reference[1], positions, pdf, source_id=source_id,
-                                           round=self.k, patch_size=self.patch_size)
-        return self.current
+            if self._reference is None or self._reference[0] != ref_path:
+                self._reference = None
+                self._reference = (ref_path, exr.read_aovs(sset.resolve(ref_path), variances=False))
+            noisy = exr.read_aovs(sset.resolve(src["path"]))
+            self._current = None  # free the previous image before the next is cut
+            positions, pdf = self.draw_of(source_id, noisy)
+            self._current = ImagePatches.at(noisy, self._reference[1], positions, pdf, source_id=source_id,
+                                            round=self.k, patch_size=self.patch_size)
+        return self._current
+
+
+_worker: _RoundWriter | None = None
+
+
+def _worker_context():
+    """fork where torch is not loaded (``kpcn shards``: prep never imports it), spawn where it is (an error
+    round cut by ``kpcn resample``). A forked worker starts in milliseconds with everything imported; a
+    spawned one imports and loads the features kernel again (~0.6 s of CPU each, a sixth of a default set
+    here), but a fork copies torch's thread pools half-made. The workers run no parallel region of numba's
+    or anyone's, so the idle OpenMP threads of ``prep.threads`` that a fork leaves behind are never waited on."""
+    return multiprocessing.get_context("spawn" if "torch" in sys.modules else "fork")
+
+
+def _start_worker(writer: _RoundWriter, parent: int) -> None:
+    global _worker
+    _die_with(parent)
+    _worker = writer
+    threads.set_threads(1)  # one process per core already
+
+
+def _die_with(parent: int) -> None:
+    """End this worker when ``parent`` ends, however it ends: a killed ``kpcn shards`` leaves no worker
+    writing on (Linux's PR_SET_PDEATHSIG; elsewhere a worker ends when the pool's pipe breaks)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # it ended before the request was made
+        os._exit(1)
+
+
+def _write_in_worker(spec: _ShardSpec) -> str:
+    return _worker.write(spec)
+
+
+def _entry(sset: ShardSet, path: Path, spec: _ShardSpec, checksum: tuple[str, str]) -> dict:
+    algorithm, digest = checksum
+    return {"path": sset.relative(path), "split": spec.split, "patches": spec.patches, algorithm: digest}
+
+
+def shard_checksum(path: Path) -> tuple[str, str]:
+    """(algorithm, hex digest) of a shard file, as a manifest lists it: :data:`SHARD_CHECKSUMS`'s first."""
+    algorithm = next(iter(SHARD_CHECKSUMS))
+    return algorithm, SHARD_CHECKSUMS[algorithm](path)
+
+
+def listed_checksum(listed: dict) -> tuple[str, str]:
+    """(algorithm, hex digest) of a manifest's shard entry (a set of any version of this format)."""
+    for algorithm in SHARD_CHECKSUMS:
+        if algorithm in listed:
+            return algorithm, listed[algorithm]
+    raise ShardError(f"shard entry {listed.get('path', listed)!r} lists no checksum ({', '.join(SHARD_CHECKSUMS)})")
+
+
+def shard_intact(path: Path, checksum: tuple[str, str]) -> bool:
+    algorithm, digest = checksum
+    return SHARD_CHECKSUMS[algorithm](path) == digest
 
 
 def _reference_of(sources: list[dict], src: dict) -> dict:
@@ -1007,7 +1134,8 @@ def _write_plan(path: Path, plan: dict) -> None:
             np.savez(f, **plan)
 
 
-def build_error_round(set_dir: str | os.PathLike, rnd: ErrorRound, denoise=None, *, progress: bool = True) -> RoundResult:
+def build_error_round(set_dir: str | os.PathLike, rnd: ErrorRound, denoise=None, *, progress: bool = True,
+                      workers: int | None = None) -> RoundResult:
     """Write error round ``rnd.index`` of the complete set in ``set_dir``; returns what was done.
 
     ``denoise(noisy AOVs) -> (H, W, 3)`` linear colour is the model whose error is measured against each
@@ -1062,13 +1190,9 @@ def build_error_round(set_dir: str | os.PathLike, rnd: ErrorRound, denoise=None,
         start = time.perf_counter()
         inputs = training_inputs(manifest)
         specs = _shard_specs([("train", sid, rnd.patches_per_image) for sid in inputs], config.patches_per_shard)
-        by_source = {int(sid): np.flatnonzero(plan["source"] == sid) for sid in inputs}
-
-        def positions_of(source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
-            rows = by_source[source_id]
-            return plan["position"][rows], plan["pdf"][rows]
-
-        _write_round(sset, config, manifest, k, specs, positions_of, rnd.command, progress)
+        rows = {int(sid): np.flatnonzero(plan["source"] == sid) for sid in inputs}
+        drawn = {sid: (plan["position"][r], plan["pdf"][r]) for sid, r in rows.items()}
+        _write_round(sset, config, manifest, k, specs, _RoundDraw(config, k, drawn), rnd.command, progress, workers)
         entry["status"] = "complete"
         atomic_write_json(sset.manifest_path, manifest)
         seconds["shards"] = time.perf_counter() - start

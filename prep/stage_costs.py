@@ -13,14 +13,14 @@ function                               measures
                                        the float64 numpy reference of the same formulas
                                        (``prep.features.reference_features``)
 :func:`shard_layout_costs`             patches cut once from (noisy, reference) pairs, then written in
-                                       every layout of ``prep.shards.LAYOUTS`` (write + SHA-256, as
+                                       every layout of ``prep.shards.LAYOUTS`` (write + checksum, as
                                        ``kpcn shards`` does per shard), their bytes, the read of a
                                        training batch, and that each reads back what was written
-:func:`shard_write_cost`               ``build_shards`` end to end on a render set (what ``kpcn shards``
-                                       does, without the process start)
 =====================================  ==================================================================
 
-Scratch: :func:`shard_layout_costs` and :func:`shard_write_cost` write only inside a fresh folder under
+``kpcn shards`` end to end is timed as a command by ``kpcn_keras.bench.shards_command_cost``.
+
+Scratch: :func:`shard_layout_costs` writes only inside a fresh folder under
 ``out_dir`` (created if missing, not its parents) and remove it, and ``out_dir`` itself if they created it, also when they
 fail. Nothing else is written. Reads are of files just written, so from the page cache: what training
 sees on a machine whose memory holds the set.
@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 from prep import exr, features, shards
-from prep.files import sha256_file
 
 # Batches read per repeat by shard_layout_costs: one batch is a handful of reads, too few to time alone.
 BATCHES_PER_REPEAT = 4
@@ -144,7 +143,7 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
 
     Returns ``{"default": name of prep.shards.SHARD_LAYOUT, "patches": N, "patch_size", "batch_size",
     "repeats", "layouts": {name: {...}}}``, per layout: ``write_patches_per_s`` (``write_shard`` then the
-    file's SHA-256, as ``kpcn shards`` does per shard; best of ``repeats``), ``bytes_per_patch`` (file size
+    file's checksum, as ``kpcn shards`` does per shard; best of ``repeats``), ``bytes_per_patch`` (file size
     over N), ``read_batch_s`` (``batch_size`` random patches of the ``diffuse`` datasets, read one patch and
     dataset at a time by ``prep.shards.read_patch`` from files opened once: the training read; median over
     ``repeats`` x BATCHES_PER_REPEAT batches), ``dtype``, ``compression``, ``patches_per_chunk``,
@@ -179,7 +178,7 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
                 start = time.perf_counter()
                 with np.errstate(over="ignore"):  # float16 overflow is measured below, not warned about
                     shards.write_shard(path, patches, attrs, shards.LAYOUTS[name])
-                sha256_file(path)
+                shards.shard_checksum(path)
                 write_s[name].append(time.perf_counter() - start)
                 with shards.open_shard(path) as f:
                     for _ in range(BATCHES_PER_REPEAT):
@@ -215,28 +214,4 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
             "repeats": repeats, "layouts": result}
 
 
-def shard_write_cost(render_root, set_name: str, out_dir, *, patches_per_image: int = 32, patch_size: int = 65,
-                     patches_per_shard: int = 256, seed: int = 0) -> dict:
-    """``build_shards`` end to end (round 0, the shipped layout, every stage from EXR decode to the
-    manifest) on the render set ``render_root/set_name``, into a scratch folder under ``out_dir``.
-
-    Keys: ``patches``, ``shards``, ``seconds``, ``patches_per_s``, ``bytes_per_patch`` (all shard files over
-    the patches), ``layout`` (the name of ``prep.shards.SHARD_LAYOUT``). One run: it is the expensive one;
-    the process start and imports of ``kpcn shards`` are not in it.
-    """
-    _warm_features()
-    with _scratch(out_dir) as scratch:
-        config = shards.ShardConfig(set_name=set_name, render_root=str(render_root), out_root=str(scratch),
-                                    patch_size=patch_size, patches_per_image=patches_per_image,
-                                    patches_per_shard=patches_per_shard, seed=seed, command="stage_costs")
-        start = time.perf_counter()
-        manifest = shards.build_shards(config, progress=False)
-        seconds = time.perf_counter() - start
-        listed = manifest["rounds"][shards.round_name(0)]["shards"]
-        count = sum(s["patches"] for s in listed)
-        size = sum((config.set_dir / s["path"]).stat().st_size for s in listed)
-    return {"patches": count, "shards": len(listed), "seconds": seconds, "patches_per_s": count / seconds,
-            "bytes_per_patch": size / count, "layout": shards.SHARD_LAYOUT.name}
-
-
-__all__ = ["BATCHES_PER_REPEAT", "READ_BRANCH", "REL_ERROR_FLOOR", "feature_costs", "shard_layout_costs", "shard_write_cost"]
+__all__ = ["BATCHES_PER_REPEAT", "READ_BRANCH", "REL_ERROR_FLOOR", "feature_costs", "shard_layout_costs"]

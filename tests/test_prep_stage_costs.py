@@ -68,17 +68,6 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
     assert [p.name for p in out.iterdir()] == ["keep"]
 
 
-def test_shard_write_cost_runs_build_shards_end_to_end_in_scratch(tmp_path, renders):
-    out = tmp_path / "scratch"
-    got = stage_costs.shard_write_cost(tmp_path / "renders", "s", out, patches_per_image=4, patch_size=16,
-                                       patches_per_shard=3)
-    json.dumps(got)
-    assert got["patches"] == 2 * 4 and got["shards"] == 4 and got["layout"] == shards.SHARD_LAYOUT.name
-    finite_positive(got, ["seconds", "patches_per_s", "bytes_per_patch"])
-    assert got["patches_per_s"] == pytest.approx(got["patches"] / got["seconds"])
-    assert not out.exists()
-
-
 def test_no_deep_learning_import():
     import subprocess
 

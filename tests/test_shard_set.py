@@ -2,6 +2,8 @@
 (issue 5, defects 1, 2, 5 and 7)."""
 
 import json
+import pickle
+import shutil
 import subprocess
 import sys
 import tracemalloc
@@ -12,7 +14,7 @@ import pytest
 
 from conftest import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, shards
-from prep.errors import KpcnError
+from prep.errors import KpcnError, OptionError
 
 SHARD_ARGS = ("--set", "s", "--renders", "renders", "--out", "shards", "--patch-size", "8",
               "--patches-per-image", "12", "--patches-per-shard", "2", "--val-fraction", "0.5", "--seed", "5")
@@ -119,12 +121,79 @@ def test_a_shard_corrupted_at_the_same_size_is_refused_by_train_and_rebuilt_by_s
 
     res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
                "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
-    assert_one_line_error(res, "shard-00003.h5", "SHA-256")
+    assert_one_line_error(res, "shard-00003.h5", "checksum (crc32) differs")
     assert checksums(tmp_path) == corrupted  # nothing written, not even a run record
 
     res = kpcn("shards", *SHARD_ARGS, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert checksums(tmp_path / "shards") == whole
+
+
+# Cut by one process, then again by two: forked from a process without torch (as `kpcn shards` is) and
+# spawned from one with it (as an error round of `kpcn resample` is). 9 patches an image in shards of 4:
+# most inputs straddle shards, so both workers read some of the same renders.
+WORKER_BUILD = """
+import sys
+from prep import shards
+cfg = shards.ShardConfig(**{config!r})
+shards.build_shards(cfg, progress=False, workers=2)
+assert ("torch" in sys.modules) == {torch}, "the start method under test is not the one used"
+"""
+
+
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_a_set_cut_by_two_worker_processes_is_byte_for_byte_the_set_one_process_cuts(tmp_path, start):
+    make_renders(tmp_path / "renders" / "s")
+    cfg = config(tmp_path, patches_per_image=9, patches_per_shard=4, command="kpcn shards")
+    shards.build_shards(cfg, progress=False, workers=1)
+    alone = checksums(cfg.set_dir)
+    assert len([p for p in alone if p.endswith(".h5")]) == 10
+    shutil.rmtree(cfg.set_dir)
+    code = WORKER_BUILD.format(config=cfg.to_dict(), torch=start == "spawn")
+    if start == "spawn":
+        code = "import torch\n" + code
+    res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert checksums(cfg.set_dir) == alone
+
+
+def test_a_render_that_fails_to_decode_in_a_worker_stops_the_command_with_one_line_naming_it(tmp_path):
+    root = make_renders(tmp_path / "renders" / "s")
+    victim = root / exr.render_filename("a-000", 4)
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) * 6 // 10])  # the header reads (the plan's check); the pixels do not
+    res = kpcn("shards", *SHARD_ARGS, cwd=tmp_path)
+    assert_one_line_error(res, str(victim.relative_to(tmp_path)), "not a readable OpenEXR file")
+    assert not list((tmp_path / "shards").rglob(".*tmp*"))
+
+
+def test_an_option_error_raised_in_a_worker_reaches_the_caller_whole():
+    got = pickle.loads(pickle.dumps(OptionError("patches_per_image", "must be >= 1, got 0")))
+    assert (type(got), got.option, got.detail, str(got)) == (
+        OptionError, "patches_per_image", "must be >= 1, got 0", "patches_per_image must be >= 1, got 0")
+
+
+def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_path):
+    make_renders(tmp_path / "renders" / "s")
+    cfg = config(tmp_path)
+    manifest = shards.build_shards(cfg, progress=False)
+    for entry in manifest["rounds"]["round-000"]["shards"]:
+        del entry["crc32"]
+        entry["sha256"] = shards.sha256_file(cfg.set_dir / entry["path"])
+    (cfg.set_dir / "manifest.json").write_text(json.dumps(manifest))
+    before = checksums(cfg.set_dir)
+    sset = shards.ShardSet(cfg.set_dir)
+    assert {e.checksum[0] for e in sset.verified_shards("train")} == {"sha256"}
+    rerun = shards.build_shards(cfg, progress=False)
+    after = checksums(cfg.set_dir)
+    assert {k: v for k, v in after.items() if k.endswith(".h5")} == {k: v for k, v in before.items() if k.endswith(".h5")}
+    assert all("sha256" in e for e in rerun["rounds"]["round-000"]["shards"])  # kept, not rewritten
+    victim = sset.verified_shards("train")[0].path
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    with pytest.raises(shards.ShardError, match=r"checksum \(sha256\) differs"):
+        sset.verified_shards("train")
 
 
 def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(tmp_path):
@@ -144,7 +213,7 @@ def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tm
         cfg = config(tmp_path, out_root=str(tmp_path / f"shards-{i}"), patch_size=8,
                      patches_per_image=ppi, patches_per_shard=20, val_fraction=0.0)
         tracemalloc.start()
-        shards.build_shards(cfg, progress=False)
+        shards.build_shards(cfg, progress=False, workers=1)  # this process's memory is the one traced
         peaks[ppi] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         total[ppi] = 2 * ppi * shards.patch_bytes(8)
