@@ -42,6 +42,7 @@ import json
 import math
 import os
 import re
+import resource
 import statistics
 import subprocess
 import time
@@ -514,10 +515,14 @@ def shards_command_cost(config: dict, scratch: Path) -> dict:
         options["input-spp"] = given.input_spp
     args = [a for k, v in options.items() for a in (f"--{k}", str(v))]
     os.sync()  # the disk owes nothing from before
+    memory = _meminfo_mb()
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "shards", *args], capture_output=True,
                          text=True)
     seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime - children.ru_utime) + (after.ru_stime - children.ru_stime)
     if res.returncode != 0:
         raise KpcnError(f"kpcn shards {' '.join(args)} failed: {res.stderr.strip()[-500:]}")
     start = time.perf_counter()
@@ -530,7 +535,23 @@ def shards_command_cost(config: dict, scratch: Path) -> dict:
     shutil.rmtree(scratch)
     return {"command": f"kpcn shards {' '.join(args)}", "patches": count, "shards": len(listed),
             "seconds": seconds, "patches_per_s": count / seconds, "sync_s": sync_s, "bytes_per_patch": size / count,
-            "workers": workers, "layout": SHARD_LAYOUT.name}
+            "cpu_s": cpu_s, "workers": workers, "layout": SHARD_LAYOUT.name, "memory_mb_before": memory}
+
+
+def _meminfo_mb() -> dict:
+    """MemAvailable, Dirty and this process's resident size (MB), Linux; {} elsewhere. The share of memory
+    that may hold written-but-unflushed pages scales with what is available, so it says whether a command
+    that writes gigabytes ran at the speed of the page cache or of the disk."""
+    found = {}
+    for path, keys in (("/proc/meminfo", ("MemAvailable", "Dirty")), ("/proc/self/status", ("VmRSS",))):
+        try:
+            for line in Path(path).read_text().splitlines():
+                key, _, value = line.partition(":")
+                if key in keys:
+                    found[key] = int(value.split()[0]) / 1024.0  # kB
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
 
 
 def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
@@ -780,7 +801,10 @@ def _stage_lines(st: dict) -> list[str]:
         f"`kpcn shards` of this render set as a command ({sw['layout']} layout, {sw['workers']} worker processes, "
         f"{sw['patches']} patches in {sw['shards']} shards): {sw['seconds']:.2f} s, start-up included, "
         f"{sw['patches_per_s']:.0f} patches/s, {sw['bytes_per_patch'] / 2**20:.2f} MB per patch; the `sync` after "
-        f"it (the bytes the system had yet to put on disk) took {sw['sync_s']:.2f} s more. Command: `{sw['command']}`.",
+        f"it (the bytes the system had yet to put on disk) took {sw['sync_s']:.2f} s more; the command used "
+        f"{sw['cpu_s']:.1f} s of CPU; memory available before it "
+        f"{_f(sw['memory_mb_before'].get('MemAvailable'), '{:.0f} MB')}, the bench's own resident size "
+        f"{_f(sw['memory_mb_before'].get('VmRSS'), '{:.0f} MB')}. Command: `{sw['command']}`.",
         "",
         f"Shard layouts, side by side on {sl['patches']} patches ({sl['patch_size']}×{sl['patch_size']}); writing "
         f"includes the file's checksum; a batch is {sl['batch_size']} random patches; the shipped one is "
