@@ -134,6 +134,10 @@ def kernel_apply(colour, logits, k: int, dilation: int = 1):
     - ``F.unfold`` of the whole image + einsum: 292 / 697 ms (a k*k*C copy per pixel, out of cache);
     - per kernel row, a matmul against a width-unfolded view: 53 / 160 ms;
     - ``torch.compile`` (inductor, CPU) of softmax + gathered weighted sum: 60 / 204 ms, 18 s to compile;
+      of softmax + the k*k shifted-tap sum over the whole image: 22 / 59 ms, 42 / 104 s to compile;
+    - in the shipped row blocks, the gather of the patches alone (channels last or channels first) costs
+      more than the softmax and the contraction together; einsum, broadcast multiply + sum, ``vecdot``
+      and a batched matmul for the contraction: einsum wins;
     - row blocks of ``KERNEL_BLOCK_BYTES`` (softmax + gathered patches + einsum while cached): 13 / 31 ms,
       shipped. Through plain autograd its backward lost to the baseline (8 x 65 x 65 forward + backward,
       k=13: 98 vs 60 ms; k=21: 1.2 s vs 0.21 s), hence the hand-written backward.
