@@ -233,6 +233,14 @@ def cmd_resample_study(args) -> int:
     return 0
 
 
+def _run_option(parser: argparse.ArgumentParser, **kwargs) -> None:
+    """``--run`` (the run folder), also spelled ``--run-dir``: launched by ``torchrun ... -m kpcn_keras.cli``,
+    our arguments pass through torchrun's own parser first, which takes ``--run`` for an ambiguous
+    abbreviation of its ``--run-path`` and stops; ``--run-dir`` it leaves alone (``tests/test_cli.py`` checks
+    every option of ours against torchrun's)."""
+    parser.add_argument("--run", "--run-dir", dest="run", **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from prep.render import RenderConfig  # light: no numba kernels until a render runs
     from prep.shards import ShardConfig
@@ -287,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = lambda name: f"(default: {_default(TrainConfig, name)})"  # noqa: E731
     t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
     t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
-    t.add_argument("--run", default="runs/default", help="run folder, created or resumed (default: runs/default)")
+    _run_option(t, default="runs/default", help="run folder, created or resumed (default: runs/default)")
     t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
     g = t.add_argument_group("network (each branch, or the shared one)")
     g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm) or dpcn (direct prediction)")
@@ -329,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     m = parser("resample", help="error-based resampling rounds: new patches where the run's denoiser errs, "
                "then more training on every round (resumes by itself)")
     d = lambda name: f"(default: {_default(ResampleConfig, name)})"  # noqa: E731
-    m.add_argument("--run", required=True, help="a run folder that finished training (kpcn train)")
+    _run_option(m, required=True, help="a run folder that finished training (kpcn train)")
     m.add_argument("--rounds", type=int, help=f"error rounds in all; a rerun with more adds rounds {d('rounds')}")
     m.add_argument("--metric", help=f"per-pixel error of the error maps: smape or relmse {d('metric')}")
     m.add_argument("--error-weight", type=float, help="share of the error PDF in the mix with the variance PDF; "
@@ -344,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     n = parser("denoise", help="denoise EXRs in the AOV layout: files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
-    n.add_argument("--run", required=True, help="a run folder that finished training (kpcn train)")
+    _run_option(n, required=True, help="a run folder that finished training (kpcn train)")
     n.add_argument("-o", "--output", default=None, help="output EXR, or a folder for <input stem>-denoised.exr "
                    "(a folder with several inputs; default: beside each input)")
     n.add_argument("--reference", default=None, help="reference EXR of a single input: prints MSE, relMSE, SMAPE, "
@@ -356,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.set_defaults(func=cmd_denoise)
 
     e = parser("evaluate", help="compare a run with the raw input and NLM on held-out scenes")
-    e.add_argument("--run", required=True)
+    _run_option(e, required=True)
     e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
                    "each reference is the same scene's render with the most samples in the same folder")
     e.add_argument("--out", default=None, help="report folder (default: <run>/eval)")
@@ -366,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = parser("figures", help="draw the report's figures from a run: kernels, α maps, with and without "
                "multiscale, a λ sweep (into <run>/figures)")
-    f.add_argument("--run", required=True)
+    _run_option(f, required=True)
     f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
                    "at its lowest spp); its reference is the same scene's render with the most samples beside it")
     f.add_argument("--pixel", type=_csv_ints, help="y,x of the kernel figure's pixel (default: the noisiest)")

@@ -167,3 +167,41 @@ def test_denoise_reference_is_for_one_input(tmp_path, tiny_run):
         exr.write_aovs(tmp_path / name, random_aovs(12, 12))
     res = kpcn("denoise", "a.exr", "b.exr", "--run", tiny_run, "--reference", "a.exr", cwd=tmp_path)
     assert_one_line_error(res, "--reference", "one input")
+
+
+def _actions(parser) -> list:
+    import argparse
+
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found += _actions(sub)
+        elif action.option_strings:
+            found.append(action)
+    return found
+
+
+def test_torchrun_passes_every_option_of_ours_through_to_the_command():
+    """torchrun parses the whole command line before it starts ours, and stops at any argument that is an
+    abbreviation of two of its options: `--run` is one (`--run-path`, `--run_path`), so every option of
+    ours has a spelling that is not (`--run-dir`)."""
+    from torch.distributed.run import get_args_parser
+
+    from kpcn_keras.cli import build_parser
+
+    torchrun = get_args_parser()
+    theirs = {s for action in torchrun._actions for s in action.option_strings}
+
+    def ambiguous(option):
+        return sum(t.startswith(option) for t in theirs if t != option) > 1
+
+    blocked = sorted({"/".join(a.option_strings) for a in _actions(build_parser())
+                      if all(ambiguous(o) for o in a.option_strings)})
+    assert blocked == []
+    ours = ["train", "--set", "t", "--run-dir", "runs/x", "--steps", "2"]
+    args = torchrun.parse_args(["--standalone", "--nproc-per-node", "2", "-m", "kpcn_keras.cli", *ours])
+    assert (args.module, args.training_script, args.training_script_args) == (True, "kpcn_keras.cli", ours)
+    assert build_parser().parse_args(ours).run == "runs/x"
+    with pytest.raises(SystemExit):  # what the issue met: argparse's "ambiguous option", an exit
+        torchrun.parse_args(["--standalone", "-m", "kpcn_keras.cli", "train", "--run", "runs/x"])
