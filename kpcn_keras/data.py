@@ -25,6 +25,14 @@ the data, so a resumed run sees exactly the batches that an uninterrupted run wo
 ``weights`` (one per shard: the resample loop's weighting of rounds) each batch is instead drawn with
 replacement, a patch with probability proportional to its shard's weight, from a generator seeded by
 (seed, offset + i).
+
+**Data-parallel training** (``rank`` of ``world`` processes): batch ``i`` of the stream is a *global* batch
+of ``world * batch_size`` patches, drawn, augmented and given λ exactly as one process with that batch
+size would; process ``rank`` reads and serves its own ``batch_size`` of them, the ``rank``-th slice. So in
+one pass over the data no two processes read the same patch, each pass is reshuffled with the seed, and
+the processes' batches put together are the one-process batch, bit for bit: with equal slices, the mean of
+their gradients is the gradient of that batch. A validation stream is not split: every process reads all
+of it, so each reports the same validation loss.
 """
 
 from __future__ import annotations
@@ -64,13 +72,14 @@ class ShardPatches(keras.utils.PyDataset):
 
     ``steps`` batches are served (default: one pass); ``offset`` skips that many batches of the stream
     (resume); ``shuffle=False`` serves patches in shard order without augmentation (validation);
-    ``weights`` (one per path, > 0) draws training patches in proportion to them.
+    ``weights`` (one per path, > 0) draws training patches in proportion to them; ``rank`` and ``world``:
+    this process's slice of each global batch of ``world * batch_size`` (module docstring).
     """
 
     def __init__(self, paths, source: str, batch_size: int, steps: int | None = None, *,
                  model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
                  augment: bool = False, slope: float = 2.0, slope_range: tuple[float, float] = (1.0, 8.0),
-                 weights=None, **kwargs):
+                 weights=None, rank: int = 0, world: int = 1, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -78,12 +87,19 @@ class ShardPatches(keras.utils.PyDataset):
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if isinstance(world, bool) or not isinstance(world, int) or world < 1:
+            raise ValueError(f"world must be an integer >= 1, got {world!r}")
+        if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world:
+            raise ValueError(f"rank must be an integer in [0, {world}), got {rank!r}")
         self.paths = [str(p) for p in paths]
         if not self.paths:
             raise ShardError(f"no shards given for the {source} patches")
         model = ModelConfig() if model is None else model
         self.source, self.model, self.batch_size, self.shuffle, self.seed = source, model, batch_size, shuffle, seed
         self.offset, self.loss_target = offset, loss_target
+        self.rank, self.world = rank, world
+        # a validation stream is read whole by every process: each reports the same validation loss
+        self.global_batch = batch_size * world if shuffle else batch_size
         self.augment = augment and shuffle
         self.slope, self.slope_range = slope, tuple(slope_range)
         counts = []
@@ -102,26 +118,36 @@ class ShardPatches(keras.utils.PyDataset):
                 raise ValueError(f"weights must be {len(self.paths)} finite numbers > 0 (one per shard), got {weights}")
             per_patch = weights[self.index[:, 1]]
             self.probabilities = per_patch / per_patch.sum()
-        if len(self.index) < batch_size:
-            raise ShardError(f"{len(self.index)} patches in {len(self.paths)} shard(s), fewer than batch_size={batch_size}")
-        per_pass = len(self.index) // batch_size if shuffle else -(-len(self.index) // batch_size)
+        if len(self.index) < self.global_batch:
+            processes = f" x {world} processes" if self.global_batch > batch_size else ""
+            raise ShardError(f"{len(self.index)} patches in {len(self.paths)} shard(s), fewer than "
+                             f"batch_size={batch_size}{processes}")
+        per_pass = len(self.index) // self.global_batch if shuffle else -(-len(self.index) // self.global_batch)
         self.steps = per_pass if steps is None else int(steps)
         self._files: dict[int, list[_Datasets]] = {}
 
     def __len__(self):
         return self.steps
 
-    def _patch_ids(self, i: int) -> np.ndarray:
+    def _global_ids(self, i: int) -> np.ndarray:
+        """(branch, shard, patch) of every patch of global batch ``i``, in order."""
+        g = self.global_batch
         if not self.shuffle:
-            return self.index[i * self.batch_size : (i + 1) * self.batch_size]
+            return self.index[i * g : (i + 1) * g]
         step = self.offset + i
         if self.probabilities is not None:
             rng = np.random.default_rng([self.seed, step, 2])
-            return self.index[rng.choice(len(self.index), self.batch_size, p=self.probabilities)]
-        per_pass = len(self.index) // self.batch_size
+            return self.index[rng.choice(len(self.index), g, p=self.probabilities)]
+        per_pass = len(self.index) // g
         epoch, within = divmod(step, per_pass)
         order = np.random.default_rng([self.seed, epoch]).permutation(len(self.index))
-        return self.index[order[within * self.batch_size : (within + 1) * self.batch_size]]
+        return self.index[order[within * g : (within + 1) * g]]
+
+    def _mine(self) -> slice:
+        """This process's slice of a global batch."""
+        if not self.shuffle:
+            return slice(None)
+        return slice(self.rank * self.batch_size, (self.rank + 1) * self.batch_size)
 
     def _handles(self) -> list[_Datasets]:
         pid = os.getpid()
@@ -149,12 +175,15 @@ class ShardPatches(keras.utils.PyDataset):
     def __getitem__(self, i):
         if not 0 <= i < self.steps:
             raise IndexError(f"batch {i} out of range [0, {self.steps})")
-        ids = self._patch_ids(i)
-        # one generator per batch number: what a patch gets does not depend on which batches ran before
+        ids = self._global_ids(i)
+        # one generator per batch number: what a patch gets does not depend on which batches ran before,
+        # nor on which process reads it (the whole global batch draws, each process keeps its slice)
         rng = np.random.default_rng([self.seed, self.offset + i, 1])
         augs = [augment.draw(rng) if self.augment else augment.IDENTITY for _ in ids]
         slopes = self._slopes(rng, len(ids))
-        samples = [self._sample(b, s, p, aug, slope) for (b, s, p), aug, slope in zip(ids, augs, slopes)]
+        mine = self._mine()
+        samples = [self._sample(b, s, p, aug, slope)
+                   for (b, s, p), aug, slope in zip(ids[mine], augs[mine], slopes[mine])]
         x = samples[0][0]
         if isinstance(x, dict):
             x = {k: np.stack([s[0][k] for s in samples]) for k in x}

@@ -67,3 +67,52 @@ def test_a_damaged_chunk_is_an_error_naming_the_shard(train_paths):
     ds = ShardPatches([path], "diffuse", batch_size=1, shuffle=False)
     with pytest.raises(ShardError, match=f"{path.name}: cannot read patch 0"):
         ds[0]
+
+
+def _provenance(ds, i) -> list[tuple[int, int, int]]:
+    """(branch, shard, patch) of every patch that process ``ds`` reads for batch ``i`` (the stream's own
+    choice: reading it back from the batch would need the augmentation's inverse)."""
+    return [(int(b), int(s), int(p)) for b, s, p in ds._global_ids(i)[ds._mine()]]
+
+
+@pytest.mark.parametrize("source,weighted", [("diffuse", False), ("both", False), ("diffuse", True)])
+def test_two_processes_batches_put_together_are_the_one_process_batch_and_never_share_a_patch(
+        train_paths, source, weighted):
+    kw = dict(seed=4, augment=True, steps=9, weights=[1.0, 3.0, 2.0][: len(train_paths)] if weighted else None)
+    one = ShardPatches(train_paths, source, batch_size=4, **kw)
+    ranks = [ShardPatches(train_paths, source, batch_size=2, rank=r, world=2, **kw) for r in range(2)]
+    assert len(ranks[0]) == len(ranks[1]) == len(one)
+    per_pass = len(one.index) // 4
+    read = [[], []]
+    for i in range(len(one)):
+        x, y = one[i]
+        parts = [ds[i] for ds in ranks]
+        np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), x)  # augmentation included
+        np.testing.assert_array_equal(np.concatenate([p[1] for p in parts]), y)
+        for r, ds in enumerate(ranks):
+            read[r].append(_provenance(ds, i))
+    if not weighted:  # drawing without replacement: within a pass, the ranks' patches are disjoint
+        for start in range(0, len(one) - per_pass + 1, per_pass):
+            mine = [{q for batch in read[r][start:start + per_pass] for q in batch} for r in range(2)]
+            assert not mine[0] & mine[1]
+            assert len(mine[0]) + len(mine[1]) == 4 * per_pass
+
+
+def test_a_validation_stream_is_read_whole_by_every_process(train_paths):
+    one = ShardPatches(train_paths, "specular", batch_size=3, shuffle=False)
+    other = ShardPatches(train_paths, "specular", batch_size=3, shuffle=False, rank=1, world=2)
+    assert len(one) == len(other)
+    for i in range(len(one)):
+        np.testing.assert_array_equal(one[i][0], other[i][0])
+
+
+@pytest.mark.parametrize("rank,world,named", [(2, 2, "rank"), (-1, 2, "rank"), (0, 0, "world"), (0, True, "world")])
+def test_a_rank_outside_the_world_is_refused_naming_the_value(train_paths, rank, world, named):
+    bad = rank if named == "rank" else world
+    with pytest.raises(ValueError, match=rf"^{named} .*got {bad!r}$"):
+        ShardPatches(train_paths, "diffuse", batch_size=2, rank=rank, world=world)
+
+
+def test_a_global_batch_larger_than_the_shards_is_refused_saying_so(train_paths):
+    with pytest.raises(ShardError, match="batch_size=4 x 4 processes"):
+        ShardPatches(train_paths, "diffuse", batch_size=4, world=4)
