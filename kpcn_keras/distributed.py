@@ -1,0 +1,126 @@
+"""Data-parallel training over ``torch.distributed`` (issue 10): the one owner of the process group.
+
+``torchrun`` starts one process per device (or per core share) and tells each where it stands through the
+environment: ``RANK`` and ``WORLD_SIZE`` (this process among all of them, over every machine),
+``LOCAL_RANK`` (among those of its machine), ``MASTER_ADDR`` and ``MASTER_PORT`` (the rendezvous).
+:func:`from_environment` reads them into a :class:`World`; with none set, the world is this one process
+and nothing here does anything.
+
+Gradients are averaged by a hook on every trainable weight (:func:`average_gradients`), not by wrapping
+the model in ``DistributedDataParallel``: Keras owns the model, its ``fit`` loop, its optimizer and the
+``.keras`` files, and a hook leaves all of them as they are. Keras's torch trainer calls ``backward()``
+and then ``optimizer.apply(gradients)``; each weight's hook runs once its gradient is complete, so by the
+time ``apply`` (gradient clipping included) sees the gradients they are the mean over the processes. Every
+process runs the same graph, so the hooks, and their collective calls, fire in the same order in each.
+With each process's batch the same size (``kpcn_keras.data.ShardPatches``' slices), the mean of their
+gradients of a batch-mean loss is the gradient of the whole global batch.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+ENVIRONMENT = ("RANK", "WORLD_SIZE", "LOCAL_RANK")
+
+
+@dataclass(frozen=True)
+class World:
+    """Where this process stands: ``rank`` of ``size`` processes, ``local_rank`` on its machine."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    def __post_init__(self):
+        for name, value, low in (("size", self.size, 1), ("rank", self.rank, 0), ("local_rank", self.local_rank, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        if self.rank >= self.size:
+            raise ValueError(f"rank must be below size ({self.size}), got {self.rank}")
+
+    @property
+    def distributed(self) -> bool:
+        return self.size > 1
+
+    @property
+    def writer(self) -> bool:
+        """Whether this process writes what a run keeps (checkpoints, logs, config.json): rank 0 alone."""
+        return self.rank == 0
+
+
+def from_environment(environ=None) -> World:
+    """The :class:`World` the launcher's variables describe (``os.environ`` by default); ValueError naming
+    the variable and what it held when one is not a number, or when some are set and others not."""
+    environ = os.environ if environ is None else environ
+    given = {name: environ.get(name) for name in ENVIRONMENT}
+    if all(v is None for v in given.values()):
+        return World()
+    missing = [name for name, v in given.items() if v is None]
+    if missing:
+        raise ValueError(f"{', '.join(missing)} not set while {', '.join(n for n in ENVIRONMENT if n not in missing)} "
+                         "is: start the processes with torchrun, which sets all of them")
+    values = {}
+    for name, text in given.items():
+        try:
+            values[name] = int(text)
+        except ValueError:
+            raise ValueError(f"{name} must be an integer, got {text!r}") from None
+    return World(rank=values["RANK"], size=values["WORLD_SIZE"], local_rank=values["LOCAL_RANK"])
+
+
+def backend() -> str:
+    """nccl where CUDA is, gloo otherwise (this CPU machine)."""
+    import torch
+
+    return "nccl" if torch.cuda.is_available() else "gloo"
+
+
+def start(world: World) -> None:
+    """Join the process group of ``world`` (the rendezvous at ``MASTER_ADDR``:``MASTER_PORT``); nothing for
+    one process, or when already joined. On CUDA each process takes the device of its ``local_rank``."""
+    if not world.distributed:
+        return
+    import torch
+    import torch.distributed as dist
+
+    if dist.is_initialized():
+        return
+    if backend() == "nccl":
+        torch.cuda.set_device(world.local_rank)
+    dist.init_process_group(backend(), rank=world.rank, world_size=world.size)
+
+
+def average_gradients(model, world: World) -> list:
+    """Make every trainable weight of the Keras ``model`` (torch backend) have, after each backward pass,
+    the mean of its gradient over the processes of ``world`` (module docstring). Returns the hooks' handles
+    (``handle.remove()`` undoes one); none for one process. Call it for every model built: the hooks belong
+    to the weights' tensors."""
+    if not world.distributed:
+        return []
+    import torch.distributed as dist
+
+    size = world.size
+
+    def mean_over_processes(param) -> None:
+        dist.all_reduce(param.grad)
+        param.grad.div_(size)
+
+    return [weight.value.register_post_accumulate_grad_hook(mean_over_processes)
+            for weight in model.trainable_weights]
+
+
+def broadcast_weights(model, world: World) -> None:
+    """Give every process rank 0's weights (and non-trainable state): the processes start a phase equal,
+    whatever their own initialisation or checkpoint read gave them."""
+    if not world.distributed:
+        return
+    import torch
+    import torch.distributed as dist
+
+    with torch.no_grad():
+        for weight in model.weights:
+            dist.broadcast(weight.value.data, src=0)
+
+
+__all__ = ["ENVIRONMENT", "World", "average_gradients", "backend", "broadcast_weights", "from_environment", "start"]

@@ -1,0 +1,111 @@
+"""Data-parallel training (issue 10): the launcher's environment read into a World, and gradients averaged
+over processes so that two processes on halves of a batch train what one process trains on all of it."""
+
+import os
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from kpcn_keras import distributed
+
+# One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
+# batch of 4), or, with WORLD_SIZE unset, the one-process run on the whole batch. Each rank initialises
+# from its own seed: broadcast_weights must make them start equal.
+STEPS = """
+import sys
+import numpy as np
+import keras, torch
+from kpcn_keras import distributed
+from kpcn_keras.config import ModelConfig
+from kpcn_keras.losses import SMAPE
+from kpcn_keras.models import build_branch_model
+
+world = distributed.from_environment()
+distributed.start(world)
+torch.set_num_threads(1)
+keras.utils.set_random_seed(7 + world.rank)
+cfg = ModelConfig(width=6, depth=2, kernel_size=3)
+model = build_branch_model(cfg)
+distributed.broadcast_weights(model, world)
+distributed.average_gradients(model, world)
+model.compile(optimizer=keras.optimizers.Adam(1e-2), loss=SMAPE())
+rng = np.random.default_rng(0)
+x = rng.uniform(0, 2, (4, 12, 12, cfg.input_channels)).astype("float32")
+y = rng.uniform(0, 2, (4, 12, 12, 3)).astype("float32")
+per = 4 // world.size
+mine = slice(world.rank * per, (world.rank + 1) * per)
+for _ in range(3):
+    model.train_on_batch(x[mine], y[mine])
+np.savez(sys.argv[1], *[np.asarray(w.numpy()) for w in model.weights])
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _weights(path) -> list[np.ndarray]:
+    with np.load(path) as z:
+        return [z[k] for k in sorted(z.files, key=lambda k: int(k.split("_")[1]))]
+
+
+def test_two_gloo_processes_on_halves_of_a_batch_train_what_one_process_trains_on_all_of_it(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}
+    env["KERAS_BACKEND"] = "torch"
+    one = subprocess.run([sys.executable, "-c", STEPS, str(tmp_path / "one.npz")], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert one.returncode == 0, one.stderr[-3000:]
+    rendezvous = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": "2"}
+    procs = [subprocess.Popen([sys.executable, "-c", STEPS, str(tmp_path / f"rank{r}.npz")], cwd=REPO,
+                              env={**env, **rendezvous, "RANK": str(r), "LOCAL_RANK": str(r)},
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
+    for p in procs:
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-3000:]
+    single, rank0, rank1 = (_weights(tmp_path / f"{n}.npz") for n in ("one", "rank0", "rank1"))
+    assert len(single) == len(rank0) > 2
+    for a, b in zip(rank0, rank1):
+        np.testing.assert_array_equal(a, b)  # one all-reduced gradient, the same update in both
+    for a, b in zip(rank0, single):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)  # sums in another order: float rounding only
+    initial = _weights_of_seed_7_untrained(tmp_path, env)
+    assert any(not np.allclose(a, b) for a, b in zip(initial, single))  # it trained
+
+
+def _weights_of_seed_7_untrained(tmp_path, env) -> list[np.ndarray]:
+    code = STEPS.replace("for _ in range(3):", "for _ in range(0):")
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "init.npz")], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return _weights(tmp_path / "init.npz")
+
+
+def test_the_world_is_read_from_the_launchers_variables():
+    assert distributed.from_environment({}) == distributed.World(0, 1, 0)
+    got = distributed.from_environment({"RANK": "3", "WORLD_SIZE": "4", "LOCAL_RANK": "1"})
+    assert (got.rank, got.size, got.local_rank, got.distributed, got.writer) == (3, 4, 1, True, False)
+    assert distributed.World().writer and not distributed.World().distributed
+
+
+@pytest.mark.parametrize("environ,needle", [
+    ({"RANK": "0"}, "WORLD_SIZE, LOCAL_RANK not set"),
+    ({"RANK": "one", "WORLD_SIZE": "2", "LOCAL_RANK": "0"}, "RANK must be an integer, got 'one'"),
+    ({"RANK": "2", "WORLD_SIZE": "2", "LOCAL_RANK": "0"}, "rank must be below size (2), got 2"),
+    ({"RANK": "0", "WORLD_SIZE": "0", "LOCAL_RANK": "0"}, "size must be an integer >= 1, got 0"),
+])
+def test_a_malformed_launcher_environment_is_refused_naming_what_it_held(environ, needle):
+    with pytest.raises(ValueError) as err:
+        distributed.from_environment(environ)
+    assert needle in str(err.value)
+
+
+def test_one_process_installs_nothing():
+    assert distributed.average_gradients(object(), distributed.World()) == []
+    distributed.broadcast_weights(object(), distributed.World())
+    distributed.start(distributed.World())
