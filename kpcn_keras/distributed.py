@@ -91,6 +91,19 @@ def start(world: World) -> None:
     dist.init_process_group(backend(), rank=world.rank, world_size=world.size)
 
 
+def stop(world: World) -> None:
+    """Leave the process group :func:`start` joined, every process together. Left to the interpreter's
+    exit, gloo's threads can be torn down mid-call and the process aborts ("terminate called without an
+    active exception")."""
+    if not world.distributed:
+        return
+    import torch.distributed as dist
+
+    if dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
+
+
 def average_gradients(model, world: World) -> list:
     """Make every trainable weight of the Keras ``model`` (torch backend) have, after each backward pass,
     the mean of its gradient over the processes of ``world`` (module docstring). Returns the hooks' handles
@@ -110,6 +123,28 @@ def average_gradients(model, world: World) -> list:
             for weight in model.trainable_weights]
 
 
+def barrier(world: World) -> None:
+    """Wait until every process of ``world`` is here (rank 0 has written what the others read next)."""
+    if world.distributed:
+        import torch.distributed as dist
+
+        dist.barrier()
+
+
+def mean_over_processes(values: dict[str, float], world: World) -> dict[str, float]:
+    """``values`` averaged over the processes of ``world`` (each passes its own, same keys in the same
+    order): an epoch's training loss of each process is the mean over its slices, so their mean is the
+    loss of the global batches."""
+    if not world.distributed or not values:
+        return dict(values)
+    import torch
+    import torch.distributed as dist
+
+    tensor = torch.tensor(list(values.values()), dtype=torch.float64)
+    dist.all_reduce(tensor)
+    return {k: float(v) / world.size for k, v in zip(values, tensor.tolist())}
+
+
 def broadcast_weights(model, world: World) -> None:
     """Give every process rank 0's weights (and non-trainable state): the processes start a phase equal,
     whatever their own initialisation or checkpoint read gave them."""
@@ -123,4 +158,5 @@ def broadcast_weights(model, world: World) -> None:
             dist.broadcast(weight.value.data, src=0)
 
 
-__all__ = ["ENVIRONMENT", "World", "average_gradients", "backend", "broadcast_weights", "from_environment", "start"]
+__all__ = ["ENVIRONMENT", "World", "average_gradients", "backend", "barrier", "broadcast_weights", "from_environment",
+           "mean_over_processes", "start", "stop"]

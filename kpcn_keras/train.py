@@ -42,11 +42,13 @@ import hashlib
 import json
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import keras
 import numpy as np
 
+from kpcn_keras import distributed
 from kpcn_keras.config import LOCATION_FIELDS, CompositorConfig, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
@@ -129,9 +131,11 @@ def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
     model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
 
 
-def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
+def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int, world: distributed.World):
     """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in.
-    ``paths``: split -> shard paths, and optionally ``train_weights``, one per training shard."""
+    ``paths``: split -> shard paths, and optionally ``train_weights``, one per training shard. Over several
+    processes the training stream is this process's slice of each batch (``cfg.batch_size`` is the global
+    batch); validation is read whole by each."""
     network = phase.component
     source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
     common = dict(source=source, batch_size=cfg.batch_size, model=ModelConfig.from_dict(cfg.model),
@@ -139,7 +143,8 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
                   slope=cfg.slope, slope_range=cfg.slope_range)
     train = ShardPatches(paths["train"], steps=(phase.epochs - epochs_done) * phase.epoch_steps,
                          seed=cfg.seed, offset=epochs_done * phase.epoch_steps, augment=cfg.augment,
-                         weights=paths.get("train_weights"), **common)
+                         weights=paths.get("train_weights"), rank=world.rank, world=world.size,
+                         **{**common, "batch_size": cfg.batch_size // world.size})
     val = None
     if paths["val"]:
         val = ShardPatches(paths["val"], shuffle=False, **common)
@@ -148,6 +153,21 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int):
 
 
 # ---------------------------------------------------------------- checkpoints, log, record
+
+
+class _MeanOverProcesses(keras.callbacks.Callback):
+    """First of all the callbacks: an epoch's training logs become their mean over the processes, what one
+    process on the global batches would have logged (validation, read whole by each, is the same in all)."""
+
+    def __init__(self, world: distributed.World):
+        super().__init__()
+        self.world = world
+
+    def on_epoch_end(self, epoch, logs=None):
+        if logs is None:
+            return
+        train = {k: float(v) for k, v in logs.items() if not k.startswith("val_")}
+        logs.update(distributed.mean_over_processes(train, self.world))
 
 
 class _Checkpoint(keras.callbacks.Callback):
@@ -283,9 +303,11 @@ def loss_curve_png(run: Run, record: dict) -> Path:
 
 
 def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto",
-                callbacks=()) -> None:
+                callbacks=(), world: distributed.World = distributed.World()) -> None:
     """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written. ``callbacks``:
-    more Keras callbacks for its ``fit`` (after the run's own)."""
+    more Keras callbacks for its ``fit`` (after the run's own). Over several processes (``world``) each
+    starts from rank 0's weights, gradients are averaged, and only rank 0 writes (the checkpoint, the log,
+    the model)."""
     final = run.model_path(phase.name)
     if final.is_file():
         return  # written once, after its last epoch: the phase is done (the record may lag after a kill)
@@ -306,17 +328,22 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         if not phase.trains_on_final_colour:
             check_architecture(model, ModelConfig.from_dict(cfg.model), ckpt)
         epochs_done, history = int(state["epochs_done"]), list(state.get("history", []))
-        print(f"[{phase.name}] resuming from {ckpt} after epoch {epochs_done}")
+        if world.writer:
+            print(f"[{phase.name}] resuming from {ckpt} after epoch {epochs_done}")
     else:
         model = _build(cfg, run, record, phase)
     _check_registered(model)
-    _cut_log(run.log_path, phase.first_epoch + epochs_done)
+    distributed.broadcast_weights(model, world)
+    distributed.average_gradients(model, world)
+    if world.writer:
+        _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
-    train, val = _data(cfg, phase, paths, epochs_done)
+    train, val = _data(cfg, phase, paths, epochs_done, world)
+    writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True), _Checkpoint(ckpt, cfg, phase, history)]
     callbacks = [
-        keras.callbacks.TerminateOnNaN(raise_error=True),  # first: nothing else sees a non-finite epoch
-        keras.callbacks.CSVLogger(str(run.log_path), append=True),
-        _Checkpoint(ckpt, cfg, phase, history),
+        _MeanOverProcesses(world),
+        keras.callbacks.TerminateOnNaN(raise_error=True),  # before the writers: they never see a non-finite epoch
+        *(writes if world.writer else []),
         *callbacks,
     ]
     if epochs_done < phase.epochs:
@@ -325,7 +352,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
             # across epochs only without its own shuffling (and with one worker), which makes resume exact
             model.fit(train, epochs=phase.first_epoch + phase.epochs, initial_epoch=phase.first_epoch + epochs_done,
                       steps_per_epoch=phase.epoch_steps, validation_data=val, callbacks=callbacks,
-                      verbose=verbose, shuffle=False)
+                      verbose=verbose if world.writer else 0, shuffle=False)
         except RuntimeError as exc:
             if "NaN or Inf loss" not in str(exc):
                 raise
@@ -333,16 +360,21 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
                 f"training the {phase.name} phase diverged (non-finite loss); the last good checkpoint is {ckpt}. "
                 "Lower the learning rate (--lr) under a new --run, or resume this one as it is."
             ) from None
-    save_model(model, final)
+    if world.writer:
+        save_model(model, final)
 
 
-def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float) -> None:
+def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float,
+                  world: distributed.World = distributed.World()) -> None:
     """Mark ``phase`` done in the record (its components now come from its file), with its last epoch and
-    the seconds this session spent on it (timings.json), after redrawing loss.png."""
-    rows = [r for r in read_log(run.log_path)
-            if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
+    the seconds this session spent on it (timings.json), after redrawing loss.png. Only rank 0 writes; the
+    other processes update their copy of the record, which their next phases read."""
     record["phases"][phase.name]["status"] = "done"
     record["components"].update(_components(cfg, phase))
+    if not world.writer:
+        return
+    rows = [r for r in read_log(run.log_path)
+            if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
     record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}
     timings = read_json(run.timings_path, "run timings") if run.timings_path.is_file() else {}
     timings[phase.name] = round(seconds, 1)  # the session that finished it
@@ -352,26 +384,45 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
     run.write_record(record)
 
 
-def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()) -> Path:
+def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=(),
+          world: distributed.World | None = None) -> Path:
     """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it. ``callbacks`` are passed
-    to every phase's ``fit`` (a benchmark's step timer)."""
+    to every phase's ``fit`` (a benchmark's step timer).
+
+    ``world``: the processes of a data-parallel run (default: what torchrun's variables say, else this
+    process alone; ``kpcn_keras.distributed``). ``cfg.batch_size`` is the global batch, split evenly
+    between them; rank 0 holds the run's lock and writes everything, the others wait for it between
+    phases. A killed run resumes with the same command, with any number of processes."""
     keras_backend = keras.backend.backend()
     if keras_backend != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras_backend!r}")
+    world = distributed.from_environment() if world is None else world
+    if cfg.batch_size % world.size:
+        raise OptionError("batch_size", f"{cfg.batch_size} does not split evenly over {world.size} processes")
     run = Run(run_dir)
     sset = ShardSet(cfg.set_dir)
     manifest, paths = check_inputs(cfg, sset)
     check_writable(run.dir, "run folder (--run)", directory=True)
-    with run.lock():
-        run.remove_temporaries()
-        record = _open_record(run, cfg, manifest, sset)
+    distributed.start(world)
+    if world.distributed and world.writer:
+        print(f"data-parallel: {world.size} processes ({distributed.backend()}), {cfg.batch_size // world.size} "
+              f"patches each of every batch of {cfg.batch_size}")
+    with run.lock() if world.writer else nullcontext():
+        if world.writer:
+            run.remove_temporaries()
+            record = _open_record(run, cfg, manifest, sset)
+        distributed.barrier(world)
+        if not world.writer:
+            record = run.read_record()
         for phase in cfg.phases():
-            run_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
+            run_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks, world=world)
+            distributed.barrier(world)  # the phase's file is written before any process builds on it
+    distributed.stop(world)
     return run.dir
 
 
 def run_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto",
-              callbacks=()) -> float:
+              callbacks=(), world: distributed.World = distributed.World()) -> float:
     """Train ``phase`` of ``run`` unless the record says it is done (listing it first if it is not yet
     listed), then mark it done; returns the seconds this call trained (0 for a done phase). The run's lock
     must be held."""
@@ -379,7 +430,7 @@ def run_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dic
         return 0.0
     record["phases"].setdefault(phase.name, _phase_plan(phase))
     start = time.perf_counter()
-    train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks)
+    train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks, world=world)
     seconds = time.perf_counter() - start
-    _finish_phase(cfg, run, record, phase, seconds)
+    _finish_phase(cfg, run, record, phase, seconds, world)
     return seconds

@@ -41,6 +41,7 @@ mine = slice(world.rank * per, (world.rank + 1) * per)
 for _ in range(3):
     model.train_on_batch(x[mine], y[mine])
 np.savez(sys.argv[1], *[np.asarray(w.numpy()) for w in model.weights])
+distributed.stop(world)
 """
 
 
@@ -109,3 +110,35 @@ def test_one_process_installs_nothing():
     assert distributed.average_gradients(object(), distributed.World()) == []
     distributed.broadcast_weights(object(), distributed.World())
     distributed.start(distributed.World())
+
+
+TRAIN = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
+         "--steps", "3", "--batch-size", "4", "--threads", "1")
+
+
+def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_path):
+    """The documented launch line, on 2 gloo processes, against `kpcn train` alone: the same networks
+    (float rounding apart), the same logged losses, and one set of files, written by rank 0."""
+    from conftest import build_tiny_shards, kpcn
+    from kpcn_keras.run import Run, load_model
+
+    build_tiny_shards(tmp_path)
+    alone = kpcn(*TRAIN, "--run-dir", "runs/one", cwd=tmp_path)
+    assert alone.returncode == 0, alone.stderr[-3000:]
+    env = {k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}
+    launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+              "-m", "kpcn_keras.cli", *TRAIN, "--run-dir", "runs/two"]
+    res = subprocess.run(launch, cwd=tmp_path, env={**env, "PYTHONPATH": str(REPO)}, capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "data-parallel: 2 processes (gloo), 2 patches each of every batch of 4" in res.stdout
+    one, two = Run(tmp_path / "runs" / "one"), Run(tmp_path / "runs" / "two")
+    assert sorted(p.name for p in two.dir.iterdir()) == sorted(p.name for p in one.dir.iterdir())
+    assert not [p for p in two.dir.rglob("*") if ".tmp-" in p.name]
+    for name in ("diffuse", "specular"):
+        a, b = load_model(one.model_path(name)), load_model(two.model_path(name))
+        for wa, wb in zip(a.weights, b.weights, strict=True):
+            np.testing.assert_allclose(np.asarray(wb.numpy()), np.asarray(wa.numpy()), rtol=1e-4, atol=1e-6)
+    log_one, log_two = (np.genfromtxt(r.log_path, delimiter=",", names=True) for r in (one, two))
+    for column in ("loss", "val_loss"):
+        np.testing.assert_allclose(log_two[column], log_one[column], rtol=1e-4)
