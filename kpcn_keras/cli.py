@@ -100,6 +100,7 @@ def cmd_shards(args) -> int:
 
 def cmd_train(args) -> int:
     from kpcn_keras.config import ModelConfig, TrainConfig
+    from kpcn_keras.distributed import from_environment
     from kpcn_keras.train import train
 
     given = _given(args, TrainConfig)
@@ -112,7 +113,8 @@ def cmd_train(args) -> int:
         given["compositor"] = {"kind": args.compositor, **compositor}
     cfg = TrainConfig.from_preset(given.pop("preset", None), **given)
     run_dir = train(cfg, args.run, verbose=0 if args.quiet else "auto")
-    print(f"run: {run_dir}")
+    if from_environment().writer:  # one line for a data-parallel run, not one per process
+        print(f"run: {run_dir}")
     return 0
 
 

@@ -21,6 +21,8 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+from prep.processes import die_with_parent
+
 ENVIRONMENT = ("RANK", "WORLD_SIZE", "LOCAL_RANK")
 
 
@@ -86,6 +88,9 @@ def start(world: World) -> None:
 
     if dist.is_initialized():
         return
+    # a launcher killed outright (a cancelled job) would leave its processes waiting on each other, rank 0
+    # holding the run's lock
+    die_with_parent(os.getppid())
     if backend() == "nccl":
         torch.cuda.set_device(world.local_rank)
     dist.init_process_group(backend(), rank=world.rank, world_size=world.size)

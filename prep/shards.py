@@ -93,6 +93,7 @@ from prep.files import (
     remove_temporaries,
     sha256_file,
 )
+from prep.processes import die_with_parent
 
 log = logging.getLogger("kpcn")
 
@@ -992,23 +993,9 @@ def _worker_context():
 
 def _start_worker(writer: _RoundWriter, parent: int) -> None:
     global _worker
-    _die_with(parent)
+    die_with_parent(parent)  # a killed `kpcn shards` leaves no worker writing on
     _worker = writer
     threads.set_threads(1)  # one process per core already
-
-
-def _die_with(parent: int) -> None:
-    """End this worker when ``parent`` ends, however it ends: a killed ``kpcn shards`` leaves no worker
-    writing on (Linux's PR_SET_PDEATHSIG; elsewhere a worker ends when the pool's pipe breaks)."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-    import signal
-
-    PR_SET_PDEATHSIG = 1
-    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() != parent:  # it ended before the request was made
-        os._exit(1)
 
 
 def _write_in_worker(spec: _ShardSpec) -> str:

@@ -142,3 +142,46 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     log_one, log_two = (np.genfromtxt(r.log_path, delimiter=",", names=True) for r in (one, two))
     for column in ("loss", "val_loss"):
         np.testing.assert_allclose(log_two[column], log_one[column], rtol=1e-4)
+
+
+# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_interrupts.py)
+RESUMABLE = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
+             "--steps", "200", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
+
+
+def _torchrun(*args) -> list[str]:
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+            "-m", "kpcn_keras.cli", *args]
+
+
+def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_files(tmp_path):
+    """Every process of the run killed at once (as a cancelled job is) after its first checkpoint; the same
+    launch line again finishes it, and every file equals an uninterrupted two-process run's byte for byte."""
+    import signal
+    import time
+
+    from conftest import build_tiny_shards, checksums
+
+    env = {**{k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}, "PYTHONPATH": str(REPO)}
+    trees = {}
+    for name in ("whole", "killed"):
+        root = tmp_path / name
+        build_tiny_shards(root)
+        if name == "killed":
+            proc = subprocess.Popen(_torchrun(*RESUMABLE), cwd=root, env=env, start_new_session=True,
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            first = root / "runs" / "r" / "checkpoints" / "diffuse.keras"
+            deadline = time.monotonic() + 300
+            while not first.is_file() and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert proc.poll() is None, "the run ended before its first checkpoint: nothing was killed"
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+            assert not (root / "runs" / "r" / "diffuse.keras").exists()
+        res = subprocess.run(_torchrun(*RESUMABLE), cwd=root, env=env, capture_output=True, text=True,
+                             timeout=600)
+        assert res.returncode == 0, res.stderr[-3000:]
+        if name == "killed":
+            assert "[diffuse] resuming from" in res.stdout
+        trees[name] = {k: v for k, v in checksums(root / "runs").items() if not k.endswith("timings.json")}
+    assert trees["killed"] == trees["whole"]
