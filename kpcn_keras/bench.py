@@ -496,6 +496,7 @@ def shards_command_cost(set_dir: Path, scratch: Path) -> dict:
     import shutil
     import sys
 
+    from kpcn_keras.cli import command_line
     from prep import threads
     from prep.shards import SHARD_LAYOUT, ShardConfig, ShardSet, round_name
 
@@ -503,15 +504,10 @@ def shards_command_cost(set_dir: Path, scratch: Path) -> dict:
     scratch.mkdir(parents=True)
     given = ShardConfig(**ShardSet(set_dir).complete_manifest()["config"])
     workers = threads.requested() or threads.default_threads()
-    options = {"threads": workers, "set": given.set_name, "renders": given.render_root, "out": str(scratch),
-               "patch-size": given.patch_size, "patches-per-image": given.patches_per_image,
-               "patches-per-shard": given.patches_per_shard, "val-fraction": given.val_fraction,
-               "seed": given.seed}
-    if given.val_scenes:
-        options["val-scenes"] = ",".join(given.val_scenes)
-    if given.input_spp is not None:
-        options["input-spp"] = given.input_spp
-    args = [a for k, v in options.items() for a in (f"--{k}", str(v))]
+    # the options that differ from the defaults (some fields have no flag; command_line refuses those)
+    default = dataclasses.asdict(ShardConfig())
+    options = {k: v for k, v in dataclasses.asdict(given).items() if k != "command" and v != default[k]}
+    args = command_line("shards", {"threads": workers, **options, "out_root": str(scratch)})
     os.sync()  # the disk owes nothing from before
     memory = _meminfo_mb()
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -540,16 +536,10 @@ def _meminfo_mb() -> dict:
     """MemAvailable, Dirty and this process's resident size (MB), Linux; {} elsewhere. The share of memory
     that may hold written-but-unflushed pages scales with what is available, so it says whether a command
     that writes gigabytes ran at the speed of the page cache or of the disk."""
-    found = {}
-    for path, keys in (("/proc/meminfo", ("MemAvailable", "Dirty")), ("/proc/self/status", ("VmRSS",))):
-        try:
-            for line in Path(path).read_text().splitlines():
-                key, _, value = line.partition(":")
-                if key in keys:
-                    found[key] = int(value.split()[0]) / 1024.0  # kB
-        except (OSError, ValueError, IndexError):
-            continue
-    return found
+    from prep.processes import proc_megabytes
+
+    return {**proc_megabytes("/proc/meminfo", ("MemAvailable", "Dirty")),
+            **proc_megabytes("/proc/self/status", ("VmRSS",))}
 
 
 def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:

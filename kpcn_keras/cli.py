@@ -463,6 +463,23 @@ def _flags(parser: argparse.ArgumentParser, command: str) -> dict[str, str]:
     return {a.dest: max(a.option_strings, key=len) for a in sub._actions if a.option_strings}
 
 
+def command_line(command: str, values: dict) -> list[str]:
+    """The arguments of ``kpcn <command>`` that give ``values`` (dest -> value; None and empty sequences are
+    left out, other sequences comma-joined as the options read them), each under the flag this parser gives
+    it, so that a caller never retypes the flags. ValueError for a value the command has no option for."""
+    flags = _flags(build_parser(), command)
+    unknown = sorted(set(values) - set(flags))
+    if unknown:
+        raise ValueError(f"kpcn {command} has no option for {unknown}")
+    args = []
+    for dest, value in values.items():
+        if isinstance(value, (list, tuple)):
+            value = ",".join(map(str, value)) or None
+        if value is not None:
+            args += [flags[dest], str(value)]
+    return args
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="kpcn: %(message)s")
     parser = build_parser()

@@ -245,13 +245,9 @@ def plan_outputs(inputs: list[Path], output=None, reference=None) -> list[Path]:
 def peak_memory_mb() -> float | None:
     """This process's peak resident memory in MB (Linux ``VmHWM``), or None where it cannot be read.
     Not ``getrusage``: its maxrss carries over the parent's resident size through fork and exec."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
+    from prep.processes import proc_megabytes
+
+    return proc_megabytes("/proc/self/status", ("VmHWM",)).get("VmHWM")
 
 
 def process_age() -> float | None:

@@ -131,20 +131,24 @@ def read_json(path: str | os.PathLike, what: str, keys: tuple[str, ...] = ()):
     return value
 
 
+def _blocks(path: str | os.PathLike, size: int = 1 << 22):
+    """The bytes of the file ``path`` in blocks of ``size``: a checksum of a file of any size in bounded memory."""
+    with open(path, "rb") as f:
+        yield from iter(lambda: f.read(size), b"")
+
+
 def sha256_file(path: str | os.PathLike) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
+    for block in _blocks(path):
+        h.update(block)
     return h.hexdigest()
 
 
 def crc32_file(path: str | os.PathLike) -> str:
     """The file's CRC-32 (zlib's), 8 hex digits: finds torn and damaged files, not tampering."""
     crc = 0
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            crc = zlib.crc32(block, crc)
+    for block in _blocks(path):
+        crc = zlib.crc32(block, crc)
     return f"{crc:08x}"
 
 

@@ -998,7 +998,7 @@ def _start_worker(writer: _RoundWriter, parent: int) -> None:
     threads.set_threads(1)  # one process per core already
 
 
-def _write_in_worker(spec: _ShardSpec) -> str:
+def _write_in_worker(spec: _ShardSpec) -> tuple[str, str]:
     return _worker.write(spec)
 
 

@@ -205,3 +205,15 @@ def test_torchrun_passes_every_option_of_ours_through_to_the_command():
     assert build_parser().parse_args(ours).run == "runs/x"
     with pytest.raises(SystemExit):  # what the issue met: argparse's "ambiguous option", an exit
         torchrun.parse_args(["--standalone", "-m", "kpcn_keras.cli", "train", "--run", "runs/x"])
+
+
+def test_a_command_line_built_from_values_parses_back_to_them():
+    from kpcn_keras.cli import build_parser, command_line
+
+    values = {"set_name": "s", "render_root": "r", "patch_size": 16, "val_scenes": ("a", "b"), "input_spp": 4,
+              "out_root": "x", "seed": 3}
+    args = build_parser().parse_args(["shards", *command_line("shards", {**values, "val_fraction": None})])
+    assert {k: getattr(args, k) for k in values} == values
+    assert not hasattr(args, "val_fraction")  # None is left out, so the command's default holds
+    with pytest.raises(ValueError, match="uniform_mix"):  # a field without a flag
+        command_line("shards", {"uniform_mix": 0.2})

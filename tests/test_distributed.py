@@ -45,6 +45,17 @@ distributed.stop(world)
 """
 
 
+def _launcher_free_env(**extra) -> dict:
+    """This process's environment without a launcher's variables (a test may run under one), and ``extra``."""
+    return {**{k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}, **extra}
+
+
+def _torchrun(*args) -> list[str]:
+    """The documented launch line on 2 processes of this machine, for ``kpcn <args>``."""
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+            "-m", "kpcn_keras.cli", *args]
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -57,8 +68,7 @@ def _weights(path) -> list[np.ndarray]:
 
 
 def test_two_gloo_processes_on_halves_of_a_batch_train_what_one_process_trains_on_all_of_it(tmp_path):
-    env = {k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}
-    env["KERAS_BACKEND"] = "torch"
+    env = _launcher_free_env(KERAS_BACKEND="torch")
     one = subprocess.run([sys.executable, "-c", STEPS, str(tmp_path / "one.npz")], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=300)
     assert one.returncode == 0, one.stderr[-3000:]
@@ -125,11 +135,8 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     build_tiny_shards(tmp_path)
     alone = kpcn(*TRAIN, "--run-dir", "runs/one", cwd=tmp_path)
     assert alone.returncode == 0, alone.stderr[-3000:]
-    env = {k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}
-    launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-              "-m", "kpcn_keras.cli", *TRAIN, "--run-dir", "runs/two"]
-    res = subprocess.run(launch, cwd=tmp_path, env={**env, "PYTHONPATH": str(REPO)}, capture_output=True,
-                         text=True, timeout=600)
+    res = subprocess.run(_torchrun(*TRAIN, "--run-dir", "runs/two"), cwd=tmp_path,
+                         env=_launcher_free_env(PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "data-parallel: 2 processes (gloo), 2 patches each of every batch of 4" in res.stdout
     one, two = Run(tmp_path / "runs" / "one"), Run(tmp_path / "runs" / "two")
@@ -149,11 +156,6 @@ RESUMABLE = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--dep
              "--steps", "200", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
 
 
-def _torchrun(*args) -> list[str]:
-    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-            "-m", "kpcn_keras.cli", *args]
-
-
 def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_files(tmp_path):
     """Every process of the run killed at once (as a cancelled job is) after its first checkpoint; the same
     launch line again finishes it, and every file equals an uninterrupted two-process run's byte for byte."""
@@ -162,7 +164,7 @@ def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_file
 
     from conftest import build_tiny_shards, checksums
 
-    env = {**{k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}, "PYTHONPATH": str(REPO)}
+    env = _launcher_free_env(PYTHONPATH=str(REPO))
     trees = {}
     for name in ("whole", "killed"):
         root = tmp_path / name
