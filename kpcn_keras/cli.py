@@ -47,6 +47,31 @@ def _given(args, cls) -> dict:
     return {k: v for k, v in vars(args).items() if k in names}
 
 
+# options that change no byte a command writes: left out of the command line a set records, so that a set
+# cut in parts, or with another thread count, holds the same files as one cut in one go
+_UNRECORDED = ("threads", "part", "quiet")
+
+
+def _recorded_command(args) -> str:
+    """The command line as the files it writes record it: ``kpcn`` and its arguments less :data:`_UNRECORDED`
+    (each found as the parser finds it: ``--threads 2``, ``--threads=2``, an abbreviation)."""
+    actions = {**args.parser._option_string_actions,
+               **args.parser.get_default("subcommands")[args.command]._option_string_actions}
+    kept, skip = [], 0
+    for token in args.argv:
+        if skip:
+            skip -= 1
+            continue
+        flag = token.split("=", 1)[0]
+        found = [a for option, a in actions.items() if option == flag] or \
+            [a for option, a in actions.items() if flag.startswith("--") and option.startswith(flag)]
+        if token.startswith("-") and len(found) == 1 and found[0].dest in _UNRECORDED:
+            skip = 0 if "=" in token or found[0].nargs == 0 else 1
+            continue
+        kept.append(token)
+    return " ".join(["kpcn"] + kept)
+
+
 def _default(cls, name: str) -> str:
     """A dataclass field's default, for help texts."""
     f = next(f for f in dataclasses.fields(cls) if f.name == name)
@@ -55,6 +80,7 @@ def _default(cls, name: str) -> str:
 
 
 def cmd_render(args) -> int:
+    from prep.parts import Part
     from prep.render import RenderConfig, render_set
 
     if "scene" in args:
@@ -63,8 +89,9 @@ def cmd_render(args) -> int:
         if dest in args:
             raise OptionError(dest, "is for one scene file: it needs --scene FILE")
     cfg = RenderConfig(**_given(args, RenderConfig))
-    paths = render_set(cfg, progress=not args.quiet)
-    print(f"{len(paths)} renders in {cfg.out_root}/{cfg.set_name}")
+    part = Part.chosen(getattr(args, "part", None))
+    paths = render_set(cfg, progress=not args.quiet, part=part)
+    print(f"{len(paths)} renders in {cfg.out_root}/{cfg.set_name}" + ("" if part.whole else f" (part {part})"))
     return 0
 
 
@@ -74,7 +101,7 @@ def cmd_render_scene(args) -> int:
     from prep.render.scenefile import render_scene_file
 
     shared = {"width", "height", "seed", "out_root"}  # the options that also mean something with --scene
-    for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared):
+    for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared | {"part"}):
         if dest in args:
             raise OptionError(dest, "is for a built-in scene set, not for --scene FILE (use --spp)")
     overrides = {k: getattr(args, k) for k in ("spp", "seed", "width", "height") if k in args}
@@ -86,10 +113,15 @@ def cmd_render_scene(args) -> int:
 
 
 def cmd_shards(args) -> int:
+    from prep.parts import Part
     from prep.shards import ShardConfig, build_shards, round_name
 
-    cfg = ShardConfig(**_given(args, ShardConfig), command=" ".join(["kpcn"] + sys.argv[1:]))
-    manifest = build_shards(cfg, progress=not args.quiet)
+    cfg = ShardConfig(**_given(args, ShardConfig), command=_recorded_command(args))
+    part = Part.chosen(getattr(args, "part", None))
+    manifest = build_shards(cfg, progress=not args.quiet, part=part)
+    if manifest["status"] != "complete":
+        print(f"part {part} of {cfg.set_dir} written; its manifest is written by the last part to finish")
+        return 0
     shards = manifest["rounds"][round_name(0)]["shards"]
     for split in ("train", "val"):
         n = sum(s["patches"] for s in shards if s["split"] == split)
@@ -124,7 +156,7 @@ def cmd_resample(args) -> int:
 
     cfg = ResampleConfig(**_given(args, ResampleConfig))
     loop = resample(cfg, args.run, verbose=0 if args.quiet else "auto", progress=not args.quiet,
-                    command=" ".join(["kpcn"] + sys.argv[1:]))
+                    command=_recorded_command(args))
     print(f"{len(loop['rounds'])} rounds; records: {os.path.join(args.run, 'resample', 'rounds.json')}")
     return 0
 
@@ -206,7 +238,7 @@ def cmd_bench(args) -> int:
     if "large_frame" in given and len(given["large_frame"]) != 2:
         raise OptionError("large_frame", f"must be WIDTH,HEIGHT, got {list(given['large_frame'])}")
     cfg = BenchConfig(**given)
-    bench(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto",
+    bench(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto",
           progress=not args.quiet)
     print(f"report: {cfg.out_dir}/{REPORT}.md, {REPORT}.json and {REPORT}.png")
     return 0
@@ -217,7 +249,7 @@ def cmd_compare(args) -> int:
     from kpcn_keras.config import CompareConfig
 
     cfg = CompareConfig(**_given(args, CompareConfig))
-    record = compare(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto")
+    record = compare(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto")
     print(format_report(record))
     print(f"report: {cfg.out_dir}/compare.md")
     return 0
@@ -228,7 +260,7 @@ def cmd_resample_study(args) -> int:
     from kpcn_keras.resample_study import format_report, study
 
     cfg = ResampleStudyConfig(**_given(args, ResampleStudyConfig))
-    record = study(cfg, command=" ".join(["kpcn"] + sys.argv[1:]), verbose=0 if args.quiet else "auto",
+    record = study(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto",
                    progress=not args.quiet)
     print(format_report(record))
     print(f"report: {cfg.out_dir}/resample.md")
@@ -275,6 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "of a set; --spp, --seed, --width, --height override its [render] table")
     r.add_argument("--spp", type=int, help="with --scene: samples per pixel (default: the file's)")
     r.add_argument("--no-png", action="store_true", help="with --scene: no tonemapped PNG beside the EXR")
+    _part_option(r, "renders")
     r.set_defaults(func=cmd_render)
 
     s = parser("shards", help="cut 65x65 patches of a render folder into HDF5 shards")
@@ -289,6 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--val-scenes", type=_csv, help="explicit held-out scenes (comma-separated)")
     s.add_argument("--input-spp", type=int, help="use only inputs of this spp (default: every input)")
     s.add_argument("--seed", type=int, help=d("seed"))
+    _part_option(s, "shards")
     s.set_defaults(func=cmd_shards)
 
     from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PRESETS, CompositorConfig, TrainConfig
@@ -448,6 +482,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _part_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--part", help=f"write only part i of N of the {what} (1 <= i <= N; e.g. 1/4), the last part "
+                        "to finish merging the record (default: RANK of WORLD_SIZE under torchrun, else all)")
+
+
 def _experiment_folders(p: argparse.ArgumentParser, d, runs: str) -> None:
     """--set, --shards, --runs and --out of a command that trains runs of its own (compare, resample-study);
     ``d(name)`` is the help text of a field's default."""
@@ -480,15 +519,33 @@ def command_line(command: str, values: dict) -> list[str]:
     return args
 
 
+# the commands that divide their work between the processes torchrun starts (each its rank's share)
+SPLIT_COMMANDS = ("render", "shards", "train")
+
+
+def _check_launcher(command: str) -> None:
+    """Refuse to run a command that does not split its work as one of several processes of a launcher:
+    each would do all of it, one after the other behind the folder's lock."""
+    from prep.parts import Part
+
+    part = Part.from_environment()
+    if not part.whole and command not in SPLIT_COMMANDS:
+        raise KpcnError(f"kpcn {command} runs as one process, not as part {part} of a launcher's processes "
+                        f"(RANK, WORLD_SIZE); only {', '.join(SPLIT_COMMANDS)} split their work: run it "
+                        "without torchrun")
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="kpcn: %(message)s")
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv, args.parser = (sys.argv[1:] if argv is None else list(argv)), parser
     args.flags = _flags(parser, args.command)
     try:
         from prep.threads import set_threads
 
         set_threads(getattr(args, "threads", None))
+        _check_launcher(args.command)
         return args.func(args)
     except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):

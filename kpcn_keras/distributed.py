@@ -21,9 +21,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+from prep.parts import LOCAL_RANK, RANK, WORLD_SIZE, LaunchError, launcher_variables
 from prep.processes import die_with_parent
 
-ENVIRONMENT = ("RANK", "WORLD_SIZE", "LOCAL_RANK")
+ENVIRONMENT = (RANK, WORLD_SIZE, LOCAL_RANK)
 
 
 @dataclass(frozen=True)
@@ -52,23 +53,16 @@ class World:
 
 
 def from_environment(environ=None) -> World:
-    """The :class:`World` the launcher's variables describe (``os.environ`` by default); ValueError naming
-    the variable and what it held when one is not a number, or when some are set and others not."""
-    environ = os.environ if environ is None else environ
-    given = {name: environ.get(name) for name in ENVIRONMENT}
-    if all(v is None for v in given.values()):
+    """The :class:`World` the launcher's variables describe (``os.environ`` by default); a ValueError
+    (``prep.parts.LaunchError``, one line on the command line) naming the variable and what it held when
+    one is not a number, or when some are set and others not."""
+    values = launcher_variables(ENVIRONMENT, environ)
+    if values is None:
         return World()
-    missing = [name for name, v in given.items() if v is None]
-    if missing:
-        raise ValueError(f"{', '.join(missing)} not set while {', '.join(n for n in ENVIRONMENT if n not in missing)} "
-                         "is: start the processes with torchrun, which sets all of them")
-    values = {}
-    for name, text in given.items():
-        try:
-            values[name] = int(text)
-        except ValueError:
-            raise ValueError(f"{name} must be an integer, got {text!r}") from None
-    return World(rank=values["RANK"], size=values["WORLD_SIZE"], local_rank=values["LOCAL_RANK"])
+    try:
+        return World(rank=values[RANK], size=values[WORLD_SIZE], local_rank=values[LOCAL_RANK])
+    except ValueError as exc:
+        raise LaunchError(f"{exc} ({', '.join(f'{k}={v}' for k, v in values.items())})") from None
 
 
 def backend() -> str:

@@ -303,14 +303,14 @@ def loss_curve_png(run: Run, record: dict) -> Path:
 
 
 def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dict, *, verbose="auto",
-                callbacks=(), world: distributed.World = distributed.World()) -> None:
-    """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written. ``callbacks``:
-    more Keras callbacks for its ``fit`` (after the run's own). Over several processes (``world``) each
-    starts from rank 0's weights, gradients are averaged, and only rank 0 writes (the checkpoint, the log,
-    the model)."""
+                callbacks=(), world: distributed.World = distributed.World()) -> int:
+    """Train (or resume) one phase of ``run``; when it returns, ``<phase>.keras`` is written. Returns the
+    steps it trained. ``callbacks``: more Keras callbacks for its ``fit`` (after the run's own). Over several
+    processes (``world``) each starts from rank 0's weights, gradients are averaged, and only rank 0 writes
+    (the checkpoint, the log, the model)."""
     final = run.model_path(phase.name)
     if final.is_file():
-        return  # written once, after its last epoch: the phase is done (the record may lag after a kill)
+        return 0  # written once, after its last epoch: the phase is done (the record may lag after a kill)
     ckpt = run.checkpoint_path(phase.name)
     epochs_done, history = 0, []
     if ckpt.is_file():
@@ -362,6 +362,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
             ) from None
     if world.writer:
         save_model(model, final)
+    return max(phase.epochs - epochs_done, 0) * phase.epoch_steps
 
 
 def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float,
@@ -430,7 +431,10 @@ def run_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: dic
         return 0.0
     record["phases"].setdefault(phase.name, _phase_plan(phase))
     start = time.perf_counter()
-    train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks, world=world)
+    steps = train_phase(cfg, run, record, phase, paths, verbose=verbose, callbacks=callbacks, world=world)
     seconds = time.perf_counter() - start
+    if steps and world.writer:  # the throughput a user compares across machines and process counts
+        print(f"[{phase.name}] {steps} steps in {seconds:.1f} s: {steps / seconds:.2f} steps/s, "
+              f"{steps * cfg.batch_size / seconds:.1f} patches/s (validation and saving included)")
     _finish_phase(cfg, run, record, phase, seconds, world)
     return seconds

@@ -186,22 +186,34 @@ def check_writable(path: str | os.PathLike, what: str, *, directory: bool = Fals
     return path
 
 
-def remove_temporaries(folder: str | os.PathLike) -> int:
+def temporary_target(path: str | os.PathLike) -> str | None:
+    """The name of the file that the temporary ``path`` of :func:`atomic_path` was to replace (None if
+    ``path`` is not one)."""
+    name = Path(path).name
+    return name[1:name.index(_TEMP_MARK)] if is_temporary(name) else None
+
+
+def remove_temporaries(folder: str | os.PathLike, targets=None) -> int:
     """Remove the temporary files that killed writers left in ``folder``; returns how many.
 
-    Call only while holding the folder's :func:`exclusive_lock`: then no live writer owns one.
+    Call only while holding the lock of every writer of ``folder`` whose temporaries it removes: then no
+    live writer owns one. ``targets``: only the temporaries of these file names (a part of a stage removes
+    those of its own files while other parts write theirs); None: all of them.
     """
     count = 0
     for path in Path(folder).iterdir():
-        if is_temporary(path) and path.is_file():
+        if (is_temporary(path) and path.is_file()
+                and (targets is None or temporary_target(path) in targets)):
             path.unlink()
             count += 1
     return count
 
 
 @contextmanager
-def exclusive_lock(folder: str | os.PathLike, what: str):
+def exclusive_lock(folder: str | os.PathLike, what: str, name: str = LOCK_NAME):
     """Hold the lock of ``folder`` (created if needed) for the block; ``what`` names it in messages.
+    ``name``: another lock of the same folder (``.lock-part-1-of-2``: a part of a split stage, which writes
+    its own files while the other parts write theirs); it must start with ``.lock``.
 
     A second holder waits, saying for whom. The lock is an advisory ``flock`` on ``folder/.lock``: the
     kernel releases it when its process dies, so a killed command never leaves a stale lock. A flock
@@ -211,7 +223,9 @@ def exclusive_lock(folder: str | os.PathLike, what: str):
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+        if not name.startswith(LOCK_NAME):
+            raise ValueError(f"a lock's name starts with {LOCK_NAME!r}, got {name!r}")
+        fd = os.open(folder / name, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as exc:
         raise KpcnError(f"{what} {folder}: cannot lock ({exc.strerror or exc})") from None
     try:

@@ -93,12 +93,14 @@ from prep.files import (
     remove_temporaries,
     sha256_file,
 )
+from prep.parts import Part
 from prep.processes import die_with_parent
 
 log = logging.getLogger("kpcn")
 
 FORMAT = "kpcn-shard/2"
 MANIFEST = "manifest.json"
+PARTS = "parts"
 SHARD_RE = re.compile(r"^shard-(\d{5})\.h5$")
 SPLITS = ("train", "val")
 PATCH_DATASETS = {
@@ -301,8 +303,16 @@ class ShardSet:
     def round_dir(self, k: int) -> Path:
         return self.dir / round_name(k)
 
-    def lock(self):
-        return exclusive_lock(self.dir, "shard set")
+    def lock(self, part: Part = Part()):
+        """The set's lock (held to change the manifest), or the lock of ``part`` (held while it writes its shards)."""
+        return exclusive_lock(self.dir, "shard set" if part.whole else f"part {part} of shard set", part.lock_name)
+
+    def part_record_path(self, part: Part) -> Path:
+        """Where ``part`` of a split ``kpcn shards`` lists the shards it wrote, until the merge."""
+        return self.dir / PARTS / f"{part.label}.json"
+
+    def part_records(self) -> list[Path]:
+        return sorted((self.dir / PARTS).glob("part-*-of-*.json"))
 
     def relative(self, path: str | os.PathLike) -> str:
         """``path`` as stored in the manifest: relative to the set folder, so the tree can move."""
@@ -330,7 +340,8 @@ class ShardSet:
         if manifest["status"] != "complete":
             raise ShardError(
                 f"{self.manifest_path}: the shard set is incomplete (status {manifest['status']!r}: 'kpcn shards' "
-                "was interrupted or is still running); run it again to finish the set"
+                "was interrupted, is still running, or has parts of a split still to run); run it again to "
+                "finish the set"
             )
         return manifest
 
@@ -791,73 +802,159 @@ def _previous_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict
     return None
 
 
-def build_shards(config: ShardConfig, *, progress: bool = True, workers: int | None = None) -> dict:
+def build_shards(config: ShardConfig, *, progress: bool = True, workers: int | None = None,
+                 part: Part = Part()) -> dict:
     """Cut round 0 of a shard set from a folder of renders; returns the manifest.
 
     ``workers``: processes that cut and write the shards (default :func:`shard_workers`); the set's files
     are the same for any number.
 
+    ``part``: write only this part's share of the shards (``prep.parts``; a contiguous run of them), under
+    the part's own lock, listing them in ``parts/<part>.json``; the part that finishes last (each checks,
+    under the set's lock) merges the lists into the manifest, which is then byte for byte the one a single
+    process writes. Until then the returned manifest has ``status: "building"``.
+
     Deterministic for a given config and renders. A rerun with the same renders keeps every shard that is
-    whole (checksum as listed) and writes the rest, so an interrupted run resumes, and keeps the set's
-    error rounds; a rerun after the renders changed rebuilds the set (error rounds included); another
-    configuration over an existing set is an error.
+    whole (checksum as listed in the manifest or in any part's list) and writes the rest, so an interrupted
+    run resumes, with any split, and keeps the set's error rounds; a rerun after the renders changed
+    rebuilds the set (error rounds included); another configuration over an existing set is an error.
     """
     sset = ShardSet(config.set_dir)
     check_writable(sset.dir, "shard set folder (--out)", directory=True)
     plan = _plan(config, sset)
     with sset.lock():
-        previous = _previous_manifest(sset, config, plan)
-        if previous is not None and previous.get("content_key") != plan.content_key:
-            log.warning("%s: renders changed since the set was written (%s); rebuilding it", sset.dir,
-                        _source_changes(previous.get("sources", []), plan.sources))
-            previous = None
-            for old_round in sorted(sset.dir.glob("round-*")):
-                shutil.rmtree(old_round)
-        remove_temporaries(sset.dir)
-        first = round_name(0)
-        rounds = dict((previous or {}).get("rounds", {}))
-        listed = rounds.pop(first, {}).get("shards", [])
-        manifest = {
-            "format": FORMAT,
-            "status": "building",
-            "set": config.set_name,
-            "config": config.to_dict(),
-            "config_hash": plan.config_hash,
-            "content_key": plan.content_key,
-            "features": list(features.FEATURE_NAMES),
-            "constants": {"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS},
-            "patch_size": config.patch_size,
-            "split": plan.split,
-            "sources": plan.sources,
-            "rounds": {first: {"kind": "variance", "status": "building", "patches_per_image": config.patches_per_image,
-                               "shards": listed}, **rounds},
-        }
+        manifest = _open_manifest(sset, config, plan)
+    mine = [plan.shards[i] for i in part.block(len(plan.shards))]
+    with sset.lock(part):
+        record = manifest if part.whole else {**manifest, "rounds": {
+            **manifest["rounds"], round_name(0): {**manifest["rounds"][round_name(0)], "shards": []}}}
+        record_path = sset.manifest_path if part.whole else sset.part_record_path(part)
+        _write_round(sset, config, record, 0, mine, _RoundDraw(config, 0), config.command, progress, workers,
+                     listed=_listed_round_zero(sset, manifest), shards_in_round=len(plan.shards),
+                     record_path=record_path)
+        if not part.whole:
+            record["status"] = "complete"
+            atomic_write_json(record_path, record)
+    with sset.lock():
+        return _merge_round_zero(sset, manifest, record, part, len(plan.shards))
 
-        _write_round(sset, config, manifest, 0, plan.shards, _RoundDraw(config, 0), config.command, progress,
-                     workers)
-        manifest["rounds"][first]["status"] = "complete"
-        manifest["status"] = "complete"
+
+def _open_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict:
+    """The manifest this run builds round 0 into, the set's lock held: the set's error rounds and round 0's
+    listed shards are kept when the renders are the same; the set is emptied when they changed. A new
+    manifest is written at once (``status: "building"``), so that a part starting later finds the set as
+    this one left it rather than rebuilding it again."""
+    previous = _previous_manifest(sset, config, plan)
+    if previous is not None and previous.get("content_key") != plan.content_key:
+        log.warning("%s: renders changed since the set was written (%s); rebuilding it", sset.dir,
+                    _source_changes(previous.get("sources", []), plan.sources))
+        previous = None
+        for old in [*sorted(sset.dir.glob("round-*")), sset.dir / PARTS]:
+            if old.is_dir():
+                shutil.rmtree(old)
+    remove_temporaries(sset.dir)
+    first = round_name(0)
+    rounds = dict((previous or {}).get("rounds", {}))
+    listed = rounds.pop(first, {}).get("shards", [])
+    manifest = {
+        "format": FORMAT,
+        "status": "building",
+        "set": config.set_name,
+        "config": config.to_dict(),
+        "config_hash": plan.config_hash,
+        "content_key": plan.content_key,
+        "features": list(features.FEATURE_NAMES),
+        "constants": {"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS},
+        "patch_size": config.patch_size,
+        "split": plan.split,
+        "sources": plan.sources,
+        "rounds": {first: {"kind": "variance", "status": "building", "patches_per_image": config.patches_per_image,
+                           "shards": listed}, **rounds},
+    }
+    if previous is None:
         atomic_write_json(sset.manifest_path, manifest)
     return manifest
 
 
-def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, specs: list[_ShardSpec],
-                 draw_of: "_RoundDraw", command: str, progress: bool, workers: int | None) -> None:
-    """Write the shards of round ``k`` (``specs``) that are not already whole, the set's lock held.
+def _listed_round_zero(sset: ShardSet, manifest: dict) -> dict[str, tuple[str, str]]:
+    """Round 0's shards that the manifest or any part's list (of any split of the work, with the same
+    renders and options) gives a checksum for: stored path -> checksum. Each is kept only if the file still
+    has it, so a list left by a killed or stale part is safe to take."""
+    entries = list(manifest["rounds"][round_name(0)]["shards"])
+    for path in sset.part_records():
+        try:
+            other = read_json(path, "shard part list", keys=("content_key", "rounds"))
+        except KpcnError as exc:  # derived data: its shards are checked again or written again
+            log.warning("%s; ignoring it", exc)
+            continue
+        if other["content_key"] == manifest["content_key"]:
+            entries += other["rounds"].get(round_name(0), {}).get("shards", [])
+    return {s["path"]: listed_checksum(s) for s in entries}
 
-    ``draw_of`` gives an input's positions and their PDF values (the round's draw). A shard listed in the
-    round's manifest entry with a matching checksum is kept; the others are (re)written, each atomically, the
-    manifest rewritten after each. Extra shard files are removed. The shards are cut and written by
+
+def _merge_round_zero(sset: ShardSet, manifest: dict, record: dict, part: Part, count: int) -> dict:
+    """Finish round 0, the set's lock held, once every part of the split of ``part`` has listed its shards
+    (at once for the whole work): the manifest lists them all, in order, and is marked complete, and the
+    parts' lists are removed. Returns the manifest, still ``building`` while parts are missing."""
+    first = round_name(0)
+    if part.whole:
+        shards = record["rounds"][first]["shards"]
+    else:
+        done = {}
+        for path in sset.part_records():
+            other = read_json(path, "shard part list", keys=("content_key", "rounds", "status"))
+            if other["content_key"] == manifest["content_key"] and other["status"] == "complete":
+                done[path.name] = other["rounds"][first]["shards"]
+        labels = [Part(i, part.count).label for i in range(part.count)]
+        missing = [str(Part(i, part.count)) for i, label in enumerate(labels) if f"{label}.json" not in done]
+        current = sset.read_manifest() if sset.manifest_path.is_file() else manifest
+        if missing and current["status"] == "complete" and current.get("content_key") == manifest["content_key"]:
+            sset.part_record_path(part).unlink(missing_ok=True)
+            return current  # a part run again on a finished set: it found its shards whole
+        if missing:
+            log.info("%s: part %s written; the set is complete once part%s %s %s", sset.dir, part,
+                     "s" if len(missing) > 1 else "", ", ".join(missing), "are" if len(missing) > 1 else "is")
+            return manifest
+        shards = [s for label in labels for s in done[f"{label}.json"]]
+        # error rounds drawn meanwhile would be another run's; the rounds listed now are the set's
+        manifest = {**manifest, "rounds": {**current.get("rounds", {}), **{first: manifest["rounds"][first]}}}
+    if len(shards) != count:
+        raise ShardError(f"{sset.dir}: the parts list {len(shards)} shards of round 0, the set has {count}")
+    manifest["rounds"][first] = {**manifest["rounds"][first], "shards": shards, "status": "complete"}
+    manifest["status"] = "complete"
+    atomic_write_json(sset.manifest_path, manifest)
+    if (sset.dir / PARTS).is_dir():
+        shutil.rmtree(sset.dir / PARTS)
+    return manifest
+
+
+def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, specs: list[_ShardSpec],
+                 draw_of: "_RoundDraw", command: str, progress: bool, workers: int | None, *,
+                 listed: dict[str, tuple[str, str]] | None = None, shards_in_round: int | None = None,
+                 record_path: Path | None = None) -> None:
+    """Write the shards of round ``k`` (``specs``) that are not already whole, the lock of their writer held.
+
+    ``draw_of`` gives an input's positions and their PDF values (the round's draw). A shard whose checksum
+    ``listed`` gives (stored path -> checksum; default: the round's manifest entry) and whose file still
+    has it is kept; the others are (re)written, each atomically, and ``manifest`` is rewritten to
+    ``record_path`` (default: the set's manifest) after each. Shard files numbered past the round's
+    ``shards_in_round`` (default: ``len(specs)``) are removed. The shards are cut and written by
     ``workers`` processes (None: :func:`shard_workers`; 1: this one), :class:`_RoundWriter`; a shard's bytes
     do not depend on which process wrote it, nor on how many there were.
     """
     from tqdm import tqdm
 
     entry = manifest["rounds"][round_name(k)]
+    record_path = sset.manifest_path if record_path is None else record_path
     round_dir = sset.round_dir(k)
     round_dir.mkdir(parents=True, exist_ok=True)
-    remove_temporaries(round_dir)
-    listed = {s["path"]: listed_checksum(s) for s in entry["shards"]}
+    shards_in_round = len(specs) if shards_in_round is None else shards_in_round
+    # other parts of a split may be writing theirs
+    remove_temporaries(round_dir, None if len(specs) == shards_in_round else {shard_name(s.index) for s in specs})
+    if record_path.parent.is_dir():
+        remove_temporaries(record_path.parent, targets={record_path.name})
+    if listed is None:
+        listed = {s["path"]: listed_checksum(s) for s in entry["shards"]}
     written: dict[int, dict] = {}
     todo = []
     for spec in specs:
@@ -869,9 +966,10 @@ def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, sp
             todo.append(spec)
     for extra in round_dir.glob("shard-*.h5"):
         match = SHARD_RE.match(extra.name)
-        if match and int(match.group(1)) >= len(specs):
-            extra.unlink()
+        if match and int(match.group(1)) >= shards_in_round:
+            extra.unlink(missing_ok=True)  # parts of a split find the same extras
     entry["shards"] = [written[i] for i in sorted(written)]
+    atomic_write_json(record_path, manifest)
 
     writer = _RoundWriter(str(sset.dir), manifest["sources"], k, config.patch_size, draw_of,
                           _shard_attrs(config, manifest, command))
@@ -879,7 +977,7 @@ def _write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, sp
     def record(spec: _ShardSpec, checksum: tuple[str, str]) -> None:
         written[spec.index] = _entry(sset, round_dir / shard_name(spec.index), spec, checksum)
         entry["shards"] = [written[i] for i in sorted(written)]
-        atomic_write_json(sset.manifest_path, manifest)
+        atomic_write_json(record_path, manifest)
         bar.update(1)
 
     workers = min(shard_workers() if workers is None else _check_workers(workers), len(todo))

@@ -69,6 +69,19 @@ def build_tiny_shards(tmp_path: Path, **kw):
     return cfg
 
 
+def launcher_free_env(**extra) -> dict:
+    """This process's environment without a launcher's variables (a test may run under one), and ``extra``."""
+    from prep.parts import LOCAL_RANK, RANK, WORLD_SIZE
+
+    return {**{k: v for k, v in os.environ.items() if k not in (RANK, WORLD_SIZE, LOCAL_RANK)}, **extra}
+
+
+def torchrun(*args) -> list[str]:
+    """The documented launch line on 2 processes of this machine, for ``kpcn <args>``."""
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+            "-m", "kpcn_keras.cli", *args]
+
+
 def _corner_form_factor(a, b, h):
     """Form factor from a differential area to a parallel a x b rectangle at height h whose corner is
     straight above it (standard closed form)."""

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, launcher_free_env, torchrun
 from kpcn_keras import distributed
 
 # One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
@@ -45,17 +45,6 @@ distributed.stop(world)
 """
 
 
-def _launcher_free_env(**extra) -> dict:
-    """This process's environment without a launcher's variables (a test may run under one), and ``extra``."""
-    return {**{k: v for k, v in os.environ.items() if k not in distributed.ENVIRONMENT}, **extra}
-
-
-def _torchrun(*args) -> list[str]:
-    """The documented launch line on 2 processes of this machine, for ``kpcn <args>``."""
-    return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-            "-m", "kpcn_keras.cli", *args]
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -68,7 +57,7 @@ def _weights(path) -> list[np.ndarray]:
 
 
 def test_two_gloo_processes_on_halves_of_a_batch_train_what_one_process_trains_on_all_of_it(tmp_path):
-    env = _launcher_free_env(KERAS_BACKEND="torch")
+    env = launcher_free_env(KERAS_BACKEND="torch")
     one = subprocess.run([sys.executable, "-c", STEPS, str(tmp_path / "one.npz")], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=300)
     assert one.returncode == 0, one.stderr[-3000:]
@@ -126,23 +115,27 @@ TRAIN = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth",
          "--steps", "3", "--batch-size", "4", "--threads", "1")
 
 
+EVERY_PHASE = ("--joint-steps", "2", "--compositor", "alpha", "--compositor-steps", "2")
+
+
 def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_path):
-    """The documented launch line, on 2 gloo processes, against `kpcn train` alone: the same networks
-    (float rounding apart), the same logged losses, and one set of files, written by rank 0."""
+    """The documented launch line, on 2 gloo processes, against `kpcn train` alone, through every phase
+    (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
+    losses, and one set of files, written by rank 0."""
     from conftest import build_tiny_shards, kpcn
     from kpcn_keras.run import Run, load_model
 
     build_tiny_shards(tmp_path)
-    alone = kpcn(*TRAIN, "--run-dir", "runs/one", cwd=tmp_path)
+    alone = kpcn(*TRAIN, *EVERY_PHASE, "--run-dir", "runs/one", cwd=tmp_path)
     assert alone.returncode == 0, alone.stderr[-3000:]
-    res = subprocess.run(_torchrun(*TRAIN, "--run-dir", "runs/two"), cwd=tmp_path,
-                         env=_launcher_free_env(PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)
+    res = subprocess.run(torchrun(*TRAIN, *EVERY_PHASE, "--run-dir", "runs/two"), cwd=tmp_path,
+                         env=launcher_free_env(PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "data-parallel: 2 processes (gloo), 2 patches each of every batch of 4" in res.stdout
     one, two = Run(tmp_path / "runs" / "one"), Run(tmp_path / "runs" / "two")
     assert sorted(p.name for p in two.dir.iterdir()) == sorted(p.name for p in one.dir.iterdir())
     assert not [p for p in two.dir.rglob("*") if ".tmp-" in p.name]
-    for name in ("diffuse", "specular"):
+    for name in ("diffuse", "specular", "joint", "compositor"):
         a, b = load_model(one.model_path(name)), load_model(two.model_path(name))
         for wa, wb in zip(a.weights, b.weights, strict=True):
             np.testing.assert_allclose(np.asarray(wb.numpy()), np.asarray(wa.numpy()), rtol=1e-4, atol=1e-6)
@@ -164,13 +157,13 @@ def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_file
 
     from conftest import build_tiny_shards, checksums
 
-    env = _launcher_free_env(PYTHONPATH=str(REPO))
+    env = launcher_free_env(PYTHONPATH=str(REPO))
     trees = {}
     for name in ("whole", "killed"):
         root = tmp_path / name
         build_tiny_shards(root)
         if name == "killed":
-            proc = subprocess.Popen(_torchrun(*RESUMABLE), cwd=root, env=env, start_new_session=True,
+            proc = subprocess.Popen(torchrun(*RESUMABLE), cwd=root, env=env, start_new_session=True,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             first = root / "runs" / "r" / "checkpoints" / "diffuse.keras"
             deadline = time.monotonic() + 300
@@ -180,7 +173,7 @@ def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_file
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(timeout=60)
             assert not (root / "runs" / "r" / "diffuse.keras").exists()
-        res = subprocess.run(_torchrun(*RESUMABLE), cwd=root, env=env, capture_output=True, text=True,
+        res = subprocess.run(torchrun(*RESUMABLE), cwd=root, env=env, capture_output=True, text=True,
                              timeout=600)
         assert res.returncode == 0, res.stderr[-3000:]
         if name == "killed":

@@ -6,6 +6,7 @@ long it took in ``timings.json`` (the one file that differs between runs). This 
 
 from __future__ import annotations
 
+import logging
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -17,7 +18,10 @@ from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
+from prep.parts import Part
 from prep.render.frame import _check_int, render
+
+log = logging.getLogger("kpcn")
 
 
 @dataclass
@@ -78,29 +82,67 @@ def render_seed(seed: int, family: str, index: int, spp: int) -> int:
 
 # config fields that change the pixels of files already on disk
 _PIXEL_FIELDS = ("width", "height", "seed")
+_TIMINGS = "timings.json"
 
 
-def render_set(config: RenderConfig, progress: bool = True) -> list[Path]:
+@dataclass(frozen=True)
+class _Render:
+    family: str
+    index: int
+    spp: int
+    seed: int
+    name: str  # the EXR's file name
+
+
+def _renders(config: RenderConfig) -> list[_Render]:
+    """Every render of the set, scene by scene (families x per_family), inputs by sample count, then the reference."""
+    out = []
+    for fam in config.families:
+        for index in range(config.per_family):
+            name = make_scene(fam, index, config.seed).name
+            for spp in sorted(config.input_spp) + [reference_spp(config, fam)]:
+                out.append(_Render(fam, index, spp, render_seed(config.seed, fam, index, spp),
+                                   render_filename(name, spp)))
+    return out
+
+
+def render_set(config: RenderConfig, progress: bool = True, part: Part = Part()) -> list[Path]:
     """Render every scene of ``config`` (families x per_family) at each input_spp and at its family's
     reference count (:func:`reference_spp`).
 
     Writes ``<out_root>/<set_name>/<scene>-<spp>spp.exr`` (each with its own seed, see
-    :func:`render_seed`), skipping files that exist so an interrupted run
-    resumes, and ``config.json`` (the config, each scene's ``to_dict()`` and its seeds) beside them,
-    rewritten atomically after every scene; seconds per render go to ``timings.json``. Holds the
-    set's lock. Returns the EXR paths, input then reference per scene. Raises OptionError if the
-    directory holds a set made with a different width, height or seed.
+    :func:`render_seed`), skipping files that exist so an interrupted run resumes, seconds per render to
+    ``timings.json``, and, once every render is there, ``config.json`` (the config, each scene's
+    ``to_dict()`` and its seeds) and the contact sheet. A new set's ``config.json`` holds its config (no
+    scenes) from the start, so that a rerun with other pixels is refused. Returns the EXR paths this call
+    is responsible for, input then reference per scene. Raises OptionError if the directory holds a set
+    made with a different width, height or seed.
+
+    ``part``: render only this part's share (``prep.parts``: balanced by sample count), under the part's own
+    lock, its seconds to ``timings.<part>.json``; the part that finds every render there (each looks, under
+    the set's lock, when it is done) writes ``config.json``, ``timings.json`` and the contact sheet, the same
+    files as one process (``timings.json`` apart, the one file that differs between runs anyway).
     """
     config.validate()
     out_dir = Path(config.out_root) / config.set_name
     check_writable(out_dir, "render set folder (--out)", directory=True)
+    renders = _renders(config)
     with exclusive_lock(out_dir, "render set"):
-        remove_temporaries(out_dir)
-        return _render_set_locked(config, out_dir, progress)
+        _open_record(config, out_dir)
+    mine = [renders[i] for i in part.balanced([r.spp for r in renders])]
+    times_name = _TIMINGS if part.whole else f"timings.{part.label}.json"
+    with exclusive_lock(out_dir, "render set" if part.whole else f"part {part} of render set", part.lock_name):
+        remove_temporaries(out_dir, targets={r.name for r in mine} | {times_name})
+        _render_all(config, out_dir, mine, out_dir / times_name, progress)
+    with exclusive_lock(out_dir, "render set"):
+        _finish(config, out_dir, renders, part)
+    return [out_dir / r.name for r in mine]
 
 
-def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> list[Path]:
-    meta_path, times_path = out_dir / "config.json", out_dir / "timings.json"
+def _open_record(config: RenderConfig, out_dir: Path) -> None:
+    """Refuse a folder holding a set of other pixels; give a new set its ``config.json`` (no scenes yet)."""
+    remove_temporaries(out_dir, targets={"config.json", _TIMINGS, CONTACT_SHEET})
+    meta_path = out_dir / "config.json"
     if meta_path.exists():
         old_cfg = read_json(meta_path, "render set record", keys=("config",))["config"]
         changed = [k for k in _PIXEL_FIELDS if k in old_cfg and old_cfg[k] != getattr(config, k)]
@@ -112,58 +154,67 @@ def _render_set_locked(config: RenderConfig, out_dir: Path, progress: bool) -> l
                 + "; this config has " + ", ".join(f"{k}={getattr(config, k)!r}" for k in changed)
                 + ": use another set_name or remove the directory",
             )
+    else:
+        atomic_write_json(meta_path, {"config": _config_record(config), "scenes": []})
+
+
+def _config_record(config: RenderConfig) -> dict:
+    record = asdict(config)
+    record["families"] = list(config.families)
+    record["input_spp"] = list(config.input_spp)
+    return record
+
+
+def _render_all(config: RenderConfig, out_dir: Path, renders: list[_Render], times_path: Path,
+                progress: bool) -> None:
+    """Render each of ``renders`` whose file is not there yet, its seconds recorded in ``times_path``."""
     times = read_json(times_path, "render timings") if times_path.exists() else {}
+    from tqdm import tqdm
 
-    jobs = []
-    for fam in config.families:
-        for index in range(config.per_family):
-            jobs.append((fam, index))
-    meta = {"config": asdict(config), "scenes": []}
-    meta["config"]["families"] = list(config.families)
-    meta["config"]["input_spp"] = list(config.input_spp)
-    paths: list[Path] = []
+    with tqdm(total=len(renders), unit="render", desc=config.set_name, disable=not progress) as bar:
+        scene = {}  # the scene of the last render: a scene's renders come one after another
+        for r in renders:
+            path = out_dir / r.name
+            bar.set_postfix_str(r.name)
+            if not path.exists():
+                if (r.family, r.index) not in scene:
+                    scene = {(r.family, r.index): make_scene(r.family, r.index, config.seed)}
+                t0 = time.perf_counter()
+                layers = render(scene[r.family, r.index], r.spp, r.seed, config.width, config.height)
+                write_aovs(path, layers)
+                times[path.name] = round(time.perf_counter() - t0, 3)
+                atomic_write_json(times_path, times)
+            bar.update(1)
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=(len(config.input_spp) + 1) * len(jobs), unit="render", desc=config.set_name)
-    try:
-        for fam, index in jobs:
-            scene = make_scene(fam, index, config.seed)
-            counts = sorted(config.input_spp) + [reference_spp(config, fam)]
-            seeds = {spp: render_seed(config.seed, fam, index, spp) for spp in counts}
-            record = {
-                "name": scene.name,
-                "family": fam,
-                "index": index,
-                "seeds": {str(spp): seed for spp, seed in seeds.items()},
-                "files": {},
-                "scene": scene.to_dict(),
-            }
-            for spp, seed in seeds.items():
-                path = out_dir / render_filename(scene.name, spp)
-                if bar is not None:
-                    bar.set_postfix_str(f"{scene.name} {spp}spp")
-                if not path.exists():
-                    t0 = time.perf_counter()
-                    layers = render(scene, spp, seed, config.width, config.height)
-                    write_aovs(path, layers)
-                    times[path.name] = round(time.perf_counter() - t0, 3)
-                    atomic_write_json(times_path, times)
-                record["files"][str(spp)] = path.name
-                paths.append(path)
-                if bar is not None:
-                    bar.update(1)
-            meta["scenes"].append(record)
-            atomic_write_json(meta_path, meta)
-    finally:
-        if bar is not None:
-            bar.close()
-    atomic_write_json(meta_path, meta)
-    contact_sheet(out_dir, [(r["family"], r["name"], out_dir / r["files"][str(reference_spp(config, r["family"]))])
-                            for r in meta["scenes"]])
-    return paths
+def _finish(config: RenderConfig, out_dir: Path, renders: list[_Render], part: Part) -> None:
+    """Once every render of the set is there: ``config.json`` with every scene, the parts' seconds folded
+    into ``timings.json``, and the contact sheet. The set's lock held."""
+    missing = [r.name for r in renders if not (out_dir / r.name).exists()]
+    if missing:
+        log.info("%s: part %s rendered; %d render%s of other parts still to come (%s%s); the last part to "
+                 "finish writes config.json", out_dir, part, len(missing), "s" if len(missing) > 1 else "",
+                 ", ".join(missing[:3]), ", ..." if len(missing) > 3 else "")
+        return
+    meta = {"config": _config_record(config), "scenes": []}
+    for r in renders:
+        if not meta["scenes"] or (meta["scenes"][-1]["family"], meta["scenes"][-1]["index"]) != (r.family, r.index):
+            scene = make_scene(r.family, r.index, config.seed)
+            meta["scenes"].append({"name": scene.name, "family": r.family, "index": r.index, "seeds": {},
+                                   "files": {}, "scene": scene.to_dict()})
+        meta["scenes"][-1]["seeds"][str(r.spp)] = r.seed
+        meta["scenes"][-1]["files"][str(r.spp)] = r.name
+    atomic_write_json(out_dir / "config.json", meta)
+    part_times = sorted(out_dir.glob("timings.part-*-of-*.json"))
+    if part_times:
+        times = read_json(out_dir / _TIMINGS, "render timings") if (out_dir / _TIMINGS).exists() else {}
+        for path in part_times:
+            times.update(read_json(path, "render timings"))
+        atomic_write_json(out_dir / _TIMINGS, times)
+        for path in part_times:
+            path.unlink()
+    contact_sheet(out_dir, [(s["family"], s["name"], out_dir / s["files"][str(reference_spp(config, s["family"]))])
+                            for s in meta["scenes"]])
 
 
 CONTACT_SHEET = "contact-sheet.png"
