@@ -97,6 +97,7 @@ def cmd_render(args) -> int:
 
 def cmd_render_scene(args) -> int:
     """``kpcn render --scene FILE``: one scene file (prep/render/scenefile.py) to one EXR and a PNG."""
+    from prep.parts import Part
     from prep.render import RenderConfig
     from prep.render.scenefile import render_scene_file
 
@@ -104,6 +105,10 @@ def cmd_render_scene(args) -> int:
     for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared | {"part"}):
         if dest in args:
             raise OptionError(dest, "is for a built-in scene set, not for --scene FILE (use --spp)")
+    part = Part.from_environment()
+    if not part.whole:
+        raise KpcnError(f"kpcn render --scene renders one file, as one process, not as part {part} of a "
+                        "launcher's processes: run it without torchrun")
     overrides = {k: getattr(args, k) for k in ("spp", "seed", "width", "height") if k in args}
     report = render_scene_file(args.scene, getattr(args, "out_root", None), overrides=overrides,
                                png="no_png" not in args)

@@ -151,3 +151,6 @@ def test_a_command_that_does_not_split_refuses_to_run_as_one_of_several_processe
     err = capsys.readouterr().err
     assert "kpcn resample runs as one process, not as part 2/2" in err and "Traceback" not in err
     assert not (tmp_path / "runs").exists()
+    assert main(["render", "--scene", str(REPO / "scenes/example.toml"), "--out", str(tmp_path / "x.exr")]) == 2
+    assert "renders one file, as one process, not as part 2/2" in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
