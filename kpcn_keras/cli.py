@@ -47,14 +47,15 @@ def _given(args, cls) -> dict:
     return {k: v for k, v in vars(args).items() if k in names}
 
 
-# options that change no byte a command writes: left out of the command line a set records, so that a set
-# cut in parts, or with another thread count, holds the same files as one cut in one go
-_UNRECORDED = ("threads", "part", "quiet")
+# options that change no byte of the data a command writes: left out of the command line that shards record,
+# so that a set cut in parts, or with another thread count, holds the same files as one cut in one go
+# (reports keep them: how many threads ran is part of what they measured)
+DATA_INVARIANT = ("threads", "part", "quiet")
 
 
-def _recorded_command(args) -> str:
-    """The command line as the files it writes record it: ``kpcn`` and its arguments less :data:`_UNRECORDED`
-    (each found as the parser finds it: ``--threads 2``, ``--threads=2``, an abbreviation)."""
+def _command_line(args, leave_out=()) -> str:
+    """The command as it was typed, ``kpcn`` and its arguments, less the options whose dest is in
+    ``leave_out`` (each found as the parser finds it: ``--threads 2``, ``--threads=2``, an abbreviation)."""
     actions = {**args.parser._option_string_actions,
                **args.parser.get_default("subcommands")[args.command]._option_string_actions}
     kept, skip = [], 0
@@ -65,7 +66,7 @@ def _recorded_command(args) -> str:
         flag = token.split("=", 1)[0]
         found = [a for option, a in actions.items() if option == flag] or \
             [a for option, a in actions.items() if flag.startswith("--") and option.startswith(flag)]
-        if token.startswith("-") and len(found) == 1 and found[0].dest in _UNRECORDED:
+        if token.startswith("-") and len(found) == 1 and found[0].dest in leave_out:
             skip = 0 if "=" in token or found[0].nargs == 0 else 1
             continue
         kept.append(token)
@@ -121,7 +122,7 @@ def cmd_shards(args) -> int:
     from prep.parts import Part
     from prep.shards import ShardConfig, build_shards, round_name
 
-    cfg = ShardConfig(**_given(args, ShardConfig), command=_recorded_command(args))
+    cfg = ShardConfig(**_given(args, ShardConfig), command=_command_line(args, DATA_INVARIANT))
     part = Part.chosen(getattr(args, "part", None))
     manifest = build_shards(cfg, progress=not args.quiet, part=part)
     if manifest["status"] != "complete":
@@ -161,7 +162,7 @@ def cmd_resample(args) -> int:
 
     cfg = ResampleConfig(**_given(args, ResampleConfig))
     loop = resample(cfg, args.run, verbose=0 if args.quiet else "auto", progress=not args.quiet,
-                    command=_recorded_command(args))
+                    command=_command_line(args, DATA_INVARIANT))
     print(f"{len(loop['rounds'])} rounds; records: {os.path.join(args.run, 'resample', 'rounds.json')}")
     return 0
 
@@ -243,7 +244,7 @@ def cmd_bench(args) -> int:
     if "large_frame" in given and len(given["large_frame"]) != 2:
         raise OptionError("large_frame", f"must be WIDTH,HEIGHT, got {list(given['large_frame'])}")
     cfg = BenchConfig(**given)
-    bench(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto",
+    bench(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto",
           progress=not args.quiet)
     print(f"report: {cfg.out_dir}/{REPORT}.md, {REPORT}.json and {REPORT}.png")
     return 0
@@ -254,7 +255,7 @@ def cmd_compare(args) -> int:
     from kpcn_keras.config import CompareConfig
 
     cfg = CompareConfig(**_given(args, CompareConfig))
-    record = compare(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto")
+    record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
     print(format_report(record))
     print(f"report: {cfg.out_dir}/compare.md")
     return 0
@@ -265,7 +266,7 @@ def cmd_resample_study(args) -> int:
     from kpcn_keras.resample_study import format_report, study
 
     cfg = ResampleStudyConfig(**_given(args, ResampleStudyConfig))
-    record = study(cfg, command=_recorded_command(args), verbose=0 if args.quiet else "auto",
+    record = study(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto",
                    progress=not args.quiet)
     print(format_report(record))
     print(f"report: {cfg.out_dir}/resample.md")

@@ -908,7 +908,9 @@ def _merge_round_zero(sset: ShardSet, manifest: dict, record: dict, part: Part, 
         labels = [Part(i, part.count).label for i in range(part.count)]
         missing = [str(Part(i, part.count)) for i, label in enumerate(labels) if f"{label}.json" not in done]
         current = sset.read_manifest() if sset.manifest_path.is_file() else manifest
-        if missing and current["status"] == "complete" and current.get("content_key") == manifest["content_key"]:
+        if current.get("content_key") != manifest["content_key"]:
+            current = manifest  # rebuilt from other renders meanwhile: nothing of it is this set's
+        if missing and current["status"] == "complete":
             sset.part_record_path(part).unlink(missing_ok=True)
             return current  # a part run again on a finished set: it found its shards whole
         if missing:
@@ -916,8 +918,8 @@ def _merge_round_zero(sset: ShardSet, manifest: dict, record: dict, part: Part, 
                      "s" if len(missing) > 1 else "", ", ".join(missing), "are" if len(missing) > 1 else "is")
             return manifest
         shards = [s for label in labels for s in done[f"{label}.json"]]
-        # error rounds drawn meanwhile would be another run's; the rounds listed now are the set's
-        manifest = {**manifest, "rounds": {**current.get("rounds", {}), **{first: manifest["rounds"][first]}}}
+        # the set's error rounds as the manifest lists them now, round 0 as the parts wrote it
+        manifest = {**manifest, "rounds": {**current["rounds"], first: manifest["rounds"][first]}}
     if len(shards) != count:
         raise ShardError(f"{sset.dir}: the parts list {len(shards)} shards of round 0, the set has {count}")
     manifest["rounds"][first] = {**manifest["rounds"][first], "shards": shards, "status": "complete"}

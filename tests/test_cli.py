@@ -217,3 +217,14 @@ def test_a_command_line_built_from_values_parses_back_to_them():
     assert not hasattr(args, "val_fraction")  # None is left out, so the command's default holds
     with pytest.raises(ValueError, match="uniform_mix"):  # a field without a flag
         command_line("shards", {"uniform_mix": 0.2})
+
+
+def test_shards_record_their_command_without_the_options_that_change_no_byte():
+    from kpcn_keras import cli
+
+    argv = ["-q", "shards", "--set", "t", "--threads=2", "--part", "1/2", "--seed", "3", "--thr", "1"]
+    parser = cli.build_parser()
+    args = parser.parse_args(argv)
+    args.argv, args.parser = argv, parser
+    assert cli._command_line(args, cli.DATA_INVARIANT) == "kpcn shards --set t --seed 3"
+    assert cli._command_line(args) == "kpcn " + " ".join(argv)  # a report keeps every option
