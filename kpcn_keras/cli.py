@@ -294,7 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.get_default("subcommands")[name] = sub.add_parser(name, argument_default=argparse.SUPPRESS, **kw)
         # every command computes (numba, torch or both); prep/threads.py makes the count hold for both
         p.get_default("subcommands")[name].add_argument(
-            "--threads", type=int, help="threads for numba and torch (default: every core this process may use)")
+            "--threads", type=int, help="threads for numba and torch (default: every core this process may use; under torchrun, "
+            "its share of them)")
         return p.get_default("subcommands")[name]
 
     r = parser("render", help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")

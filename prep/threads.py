@@ -1,6 +1,7 @@
 """The one owner of the process's thread count: what the user sets is what numba and torch use.
 
-Contract: after :func:`set_threads` (``n`` threads, default :func:`default_threads`), every later numba
+Contract: after :func:`set_threads` (``n`` threads, default :func:`default_threads`: every core, or this
+process's share of them under a launcher), every later numba
 parallel call of the calling thread and every torch op of the process run on ``n`` threads, whatever order
 the two libraries are imported or first used in. ``kpcn --threads N`` calls it once, before any command.
 This module never imports torch (prep stays free of the deep-learning stack): it sets torch's count only if
@@ -27,16 +28,27 @@ import os
 import sys
 
 from prep.errors import OptionError
+from prep.parts import LOCAL_WORLD_SIZE, launcher_variables
 
 _requested: int | None = None
 
 
-def default_threads() -> int:
+def pool_size() -> int:
     """All the cores numba may use: the CPUs this process is allowed to run on (``os.sched_getaffinity``,
     which is ``os.cpu_count()`` outside a restricted container), or ``NUMBA_NUM_THREADS`` if set."""
     import numba
 
     return int(numba.config.NUMBA_NUM_THREADS)
+
+
+def default_threads() -> int:
+    """The threads of a process not told otherwise: every core of :func:`pool_size`, or, when a launcher
+    started several processes on this machine (torchrun's ``LOCAL_WORLD_SIZE``), an even share of them,
+    so that they do not fight over the cores."""
+    local = launcher_variables((LOCAL_WORLD_SIZE,))
+    if local is None or local[LOCAL_WORLD_SIZE] < 1:
+        return pool_size()
+    return max(1, pool_size() // local[LOCAL_WORLD_SIZE])
 
 
 def requested() -> int | None:
@@ -53,9 +65,9 @@ def set_threads(n: int | None = None) -> int:
     global _requested
     import numba
 
-    most = default_threads()
+    most = pool_size()
     if n is None:
-        n = most
+        n = default_threads()
     if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= most:
         raise OptionError("threads", f"must be an integer from 1 to {most} (the cores this process may use), got {n!r}")
     # for a torch imported later (it sizes its OpenMP and MKL pools from these) and for child processes

@@ -30,8 +30,9 @@ print(torch.get_num_threads(), numba.get_num_threads())
 """
 
 
-def _run(code: str) -> tuple[int, int]:
-    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
+def _run(code: str, **extra) -> tuple[int, int]:
+    leave = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS", "LOCAL_WORLD_SIZE")
+    env = {**{k: v for k, v in os.environ.items() if k not in leave}, **extra}
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr
     torch_n, numba_n = map(int, res.stdout.split()[-2:])
@@ -54,6 +55,14 @@ def test_the_default_is_every_core():
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert cores == os.cpu_count()  # no restricted affinity on the machines this runs on
     assert _run(code) == (cores, cores)
+
+
+@pytest.mark.parametrize("local", [2, 64])
+def test_the_default_under_a_launcher_is_this_processs_share_of_the_cores(local):
+    """torchrun's LOCAL_WORLD_SIZE processes on one machine each take an even share, at least one core."""
+    code = PRANGE + "from prep import threads\nthreads.set_threads()\nimport torch\n" + CHECK
+    share = max(1, os.cpu_count() // local)
+    assert _run(code, LOCAL_WORLD_SIZE=str(local)) == (share, share)
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: numba's reset cannot be seen")
