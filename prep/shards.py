@@ -6,6 +6,8 @@ A shard set is the folder ``<out_root>/<set>/``; :class:`ShardSet` is the one ow
     <set>/.lock                     held by the one process that writes the set
     <set>/round-<k>/shard-<i>.h5    up to ``patches_per_shard`` patches of one split (train or val)
     <set>/round-<k>/plan.npz        an error round's positions, drawn before its shards are cut (k >= 1)
+    <set>/parts/part-<i>-of-<N>.json   round 0's shards that part i of N wrote (``prep.parts``), until the merge
+    <set>/.lock-part-<i>-of-<N>     held by the process that writes part i of N
 
 **Rounds.** ``round-000`` is cut by ``kpcn shards`` from each input's variance PDF (:func:`build_shards`),
 from every input of both splits. Round k >= 1 is an *error round* (seed report §3.3.2,
@@ -50,8 +52,9 @@ Guarantees, by construction:
   ``"complete"`` last. Readers (:meth:`ShardSet.verified_shards`) accept only a complete manifest and shards
   whose checksum matches it (:data:`SHARD_CHECKSUMS`). That check, not an fsync, is what makes a shard safe
   against a power cut (:func:`write_shard`).
-- **One writer per set.** ``build_shards`` holds the set's lock; a second one waits, then finds the work
-  done.
+- **One writer per set, or per part.** ``build_shards`` holds the set's lock; a second one waits, then
+  finds the work done. Split in parts (``build_shards(part=)``), each part holds its own lock while it
+  writes its shards, and the set's lock only to open the manifest and, last, to merge the parts' lists.
 - **Bad input is found before anything is written**: every render's header (layers, size) and the options
   against every image are checked first.
 - **Bounded memory**: a shard is assembled from one image at a time; each worker process holds one

@@ -1,7 +1,14 @@
 """Render sets: :func:`render_set` renders families x per_family built-in scenes at a ladder of input
 sample counts (each with its own seed) and one reference count into ``<out_root>/<set_name>/``, and
 records what it did in ``config.json`` (reproducible: the same command writes the same bytes) and how
-long it took in ``timings.json`` (the one file that differs between runs). This module owns that folder.
+long it took in ``timings.json`` (the one file that differs between runs). This module owns that folder::
+
+    <set>/<scene>-<spp>spp.exr             every input and reference render
+    <set>/config.json                      the config, and once every render is there, every scene and its seeds
+    <set>/timings.json                     seconds per render
+    <set>/timings.part-<i>-of-<N>.json     a part's seconds (``prep.parts``), until the last part folds them in
+    <set>/contact-sheet.png                the references, one row per family
+    <set>/.lock, .lock-part-<i>-of-<N>     the set's lock (its records), a part's lock (its renders)
 """
 
 from __future__ import annotations
@@ -17,8 +24,8 @@ import numpy as np
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
-from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
 from prep.parts import Part
+from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
 from prep.render.frame import _check_int, render
 
 log = logging.getLogger("kpcn")
@@ -85,6 +92,10 @@ _PIXEL_FIELDS = ("width", "height", "seed")
 _TIMINGS = "timings.json"
 
 
+def _part_timings(label: str) -> str:
+    return f"timings.{label}.json"
+
+
 @dataclass(frozen=True)
 class _Render:
     family: str
@@ -119,7 +130,7 @@ def render_set(config: RenderConfig, progress: bool = True, part: Part = Part())
     made with a different width, height or seed.
 
     ``part``: render only this part's share (``prep.parts``: balanced by sample count), under the part's own
-    lock, its seconds to ``timings.<part>.json``; the part that finds every render there (each looks, under
+    lock, its seconds to ``timings.part-<i>-of-<N>.json``; the part that finds every render there (each looks, under
     the set's lock, when it is done) writes ``config.json``, ``timings.json`` and the contact sheet, the same
     files as one process (``timings.json`` apart, the one file that differs between runs anyway).
     """
@@ -130,7 +141,7 @@ def render_set(config: RenderConfig, progress: bool = True, part: Part = Part())
     with exclusive_lock(out_dir, "render set"):
         _open_record(config, out_dir)
     mine = [renders[i] for i in part.balanced([r.spp for r in renders])]
-    times_name = _TIMINGS if part.whole else f"timings.{part.label}.json"
+    times_name = _TIMINGS if part.whole else _part_timings(part.label)
     with exclusive_lock(out_dir, "render set" if part.whole else f"part {part} of render set", part.lock_name):
         remove_temporaries(out_dir, targets={r.name for r in mine} | {times_name})
         _render_all(config, out_dir, mine, out_dir / times_name, progress)
@@ -205,7 +216,7 @@ def _finish(config: RenderConfig, out_dir: Path, renders: list[_Render], part: P
         meta["scenes"][-1]["seeds"][str(r.spp)] = r.seed
         meta["scenes"][-1]["files"][str(r.spp)] = r.name
     atomic_write_json(out_dir / "config.json", meta)
-    part_times = sorted(out_dir.glob("timings.part-*-of-*.json"))
+    part_times = sorted(out_dir.glob(_part_timings("part-*-of-*")))
     if part_times:
         times = read_json(out_dir / _TIMINGS, "render timings") if (out_dir / _TIMINGS).exists() else {}
         for path in part_times:
