@@ -80,8 +80,19 @@ def _default(cls, name: str) -> str:
     return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
-def cmd_render(args) -> int:
+def _part(args):
+    """The part of the work this process does: ``--part``, else the launcher's. A process that a launcher
+    started dies with it: a cancelled job leaves no part writing on, holding its lock."""
     from prep.parts import Part
+    from prep.processes import die_with_parent
+
+    part = Part.chosen(getattr(args, "part", None))
+    if "part" not in args and not part.whole:
+        die_with_parent(os.getppid())
+    return part
+
+
+def cmd_render(args) -> int:
     from prep.render import RenderConfig, render_set
 
     if "scene" in args:
@@ -90,7 +101,7 @@ def cmd_render(args) -> int:
         if dest in args:
             raise OptionError(dest, "is for one scene file: it needs --scene FILE")
     cfg = RenderConfig(**_given(args, RenderConfig))
-    part = Part.chosen(getattr(args, "part", None))
+    part = _part(args)
     paths = render_set(cfg, progress=not args.quiet, part=part)
     print(f"{len(paths)} renders in {cfg.out_root}/{cfg.set_name}" + ("" if part.whole else f" (part {part})"))
     return 0
@@ -119,11 +130,10 @@ def cmd_render_scene(args) -> int:
 
 
 def cmd_shards(args) -> int:
-    from prep.parts import Part
     from prep.shards import ShardConfig, build_shards, round_name
 
     cfg = ShardConfig(**_given(args, ShardConfig), command=_command_line(args, DATA_INVARIANT))
-    part = Part.chosen(getattr(args, "part", None))
+    part = _part(args)
     manifest = build_shards(cfg, progress=not args.quiet, part=part)
     if manifest["status"] != "complete":
         print(f"part {part} of {cfg.set_dir} written; its manifest is written by the last part to finish")

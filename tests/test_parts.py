@@ -1,9 +1,13 @@
 """Offline stages split over processes (issue 10): ``kpcn render`` and ``kpcn shards`` in parts, by
 ``--part i/N`` or by torchrun's rank, write the same files as one process, whichever part ends last."""
 
+import fcntl
 import hashlib
+import os
 import shutil
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -140,6 +144,52 @@ def test_torchrun_splits_render_and_shards_over_its_processes(tmp_path, monkeypa
         out[args[0]] = res.stdout
     assert "(part 1/2)" in out["render"] and "(part 2/2)" in out["render"]  # each process took its rank's part
     assert "manifest: data/shards/t/manifest.json" in out["shards"]  # printed by the part that merged
+    assert _files(two / "data") == _files(one / "data")
+
+
+# a few seconds of work after start-up, so that a kill lands in the middle of it
+RENDER_SLOW = (*RENDER[:-4], "--reference-spp", "256", "--out", "data/renders")
+SHARDS_MANY = (*SHARDS[:-4], "--patches-per-shard", "1", "--seed", "3")
+
+
+def _lock_free(path: Path) -> bool:
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def test_a_killed_split_render_and_shards_resume_with_the_same_launch_line(tmp_path, monkeypatch):
+    """torchrun and both its processes killed at once (a cancelled job) once the first files are written:
+    no part goes on writing, and the same launch line again gives the files of one uninterrupted process."""
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir(), two.mkdir()
+    _kpcn(one, monkeypatch, *RENDER_SLOW)
+    _kpcn(one, monkeypatch, *SHARDS_MANY)
+    env = launcher_free_env(PYTHONPATH=str(REPO))
+    for args, folder, written in ((RENDER_SLOW, "data/renders/t", "*.exr"),
+                                  (SHARDS_MANY, "data/shards/t", "round-000/shard-*.h5")):
+        proc = subprocess.Popen(torchrun("-q", *args), cwd=two, env=env, start_new_session=True,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 300
+        while len(list((two / folder).glob(written))) < 2 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert proc.poll() is None, f"{args[0]} ended before the kill: nothing was killed"
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=60)
+        locks = [two / folder / f".lock-part-{i}-of-2" for i in (1, 2)]
+        deadline = time.monotonic() + 10  # the kernel ends them at once (PR_SET_PDEATHSIG)
+        while not all(_lock_free(lock) for lock in locks if lock.exists()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert all(_lock_free(lock) for lock in locks if lock.exists()), "a part outlived its launcher"
+        assert len(list((two / folder).glob(written))) < len(list((one / folder).glob(written)))
+        res = subprocess.run(torchrun("-q", *args), cwd=two, env=env, capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr[-3000:]
+    assert not [p for p in (two / "data").rglob("*") if ".tmp-" in p.name]
     assert _files(two / "data") == _files(one / "data")
 
 
