@@ -879,19 +879,33 @@ def _open_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict:
     return manifest
 
 
+def _part_lists(sset: ShardSet, content_key: str) -> dict[str, dict]:
+    """The parts' lists in the set (file name -> list) made from the same renders and options. A list that
+    cannot be read is derived data: it is left out with a warning, and its shards are checked or written
+    again."""
+    lists = {}
+    for path in sset.part_records():
+        try:
+            other = read_json(path, "shard part list", keys=("content_key", "rounds", "status"))
+        except KpcnError as exc:
+            log.warning("%s; ignoring it", exc)
+            continue
+        if other["content_key"] == content_key:
+            lists[path.name] = other
+    return lists
+
+
+def _round_zero_shards(listing: dict) -> list[dict]:
+    return listing["rounds"].get(round_name(0), {}).get("shards", [])
+
+
 def _listed_round_zero(sset: ShardSet, manifest: dict) -> dict[str, tuple[str, str]]:
     """Round 0's shards that the manifest or any part's list (of any split of the work, with the same
     renders and options) gives a checksum for: stored path -> checksum. Each is kept only if the file still
     has it, so a list left by a killed or stale part is safe to take."""
-    entries = list(manifest["rounds"][round_name(0)]["shards"])
-    for path in sset.part_records():
-        try:
-            other = read_json(path, "shard part list", keys=("content_key", "rounds"))
-        except KpcnError as exc:  # derived data: its shards are checked again or written again
-            log.warning("%s; ignoring it", exc)
-            continue
-        if other["content_key"] == manifest["content_key"]:
-            entries += other["rounds"].get(round_name(0), {}).get("shards", [])
+    entries = _round_zero_shards(manifest)
+    for other in _part_lists(sset, manifest["content_key"]).values():
+        entries = entries + _round_zero_shards(other)
     return {s["path"]: listed_checksum(s) for s in entries}
 
 
@@ -903,11 +917,8 @@ def _merge_round_zero(sset: ShardSet, manifest: dict, record: dict, part: Part, 
     if part.whole:
         shards = record["rounds"][first]["shards"]
     else:
-        done = {}
-        for path in sset.part_records():
-            other = read_json(path, "shard part list", keys=("content_key", "rounds", "status"))
-            if other["content_key"] == manifest["content_key"] and other["status"] == "complete":
-                done[path.name] = other["rounds"][first]["shards"]
+        done = {name: _round_zero_shards(other) for name, other in _part_lists(sset, manifest["content_key"]).items()
+                if other["status"] == "complete"}
         labels = [Part(i, part.count).label for i in range(part.count)]
         missing = [str(Part(i, part.count)) for i, label in enumerate(labels) if f"{label}.json" not in done]
         current = sset.read_manifest() if sset.manifest_path.is_file() else manifest

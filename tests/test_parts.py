@@ -147,6 +147,20 @@ def test_torchrun_splits_render_and_shards_over_its_processes(tmp_path, monkeypa
     assert _files(two / "data") == _files(one / "data")
 
 
+def test_a_damaged_part_list_is_left_out_and_blocks_no_merge(tmp_path, monkeypatch):
+    one, two = tmp_path / "one", tmp_path / "two"
+    one.mkdir()
+    _kpcn(one, monkeypatch, *RENDER)
+    shutil.copytree(one, two)
+    _kpcn(one, monkeypatch, *SHARDS)
+    _kpcn(two, monkeypatch, *SHARDS, "--part", "1/3")
+    stale = two / "data/shards/t/parts/part-1-of-3.json"
+    stale.write_text("{")  # a list of an earlier split, torn
+    _kpcn(two, monkeypatch, *SHARDS, "--part", "1/2")
+    _kpcn(two, monkeypatch, *SHARDS, "--part", "2/2")
+    assert _files(two / "data/shards/t") == _files(one / "data/shards/t")
+
+
 # a few seconds of work after start-up, so that a kill lands in the middle of it
 RENDER_SLOW = (*RENDER[:-4], "--reference-spp", "256", "--out", "data/renders")
 SHARDS_MANY = (*SHARDS[:-4], "--patches-per-shard", "1", "--seed", "3")
