@@ -114,11 +114,11 @@ def average_gradients(model, world: World) -> list:
 
     size = world.size
 
-    def mean_over_processes(param) -> None:
+    def average(param) -> None:
         dist.all_reduce(param.grad)
         param.grad.div_(size)
 
-    return [weight.value.register_post_accumulate_grad_hook(mean_over_processes)
+    return [weight.value.register_post_accumulate_grad_hook(average)
             for weight in model.trainable_weights]
 
 
