@@ -111,13 +111,19 @@ def test_render_and_shards_in_two_parts_write_the_files_of_one_process(tmp_path,
     assert manifest["config"]["command"] == "kpcn " + " ".join(SHARDS)  # no --part, --threads or -q
 
 
-def test_a_rerun_in_any_split_keeps_the_shards_a_part_listed_and_rewrites_a_damaged_one(tmp_path, monkeypatch):
+def _whole_set_and_a_third_of_one(tmp_path: Path, monkeypatch) -> tuple[Path, Path]:
+    """Two trees with the same renders: ``one`` with the whole shard set, ``two`` with part 1/3 of it."""
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir()
     _kpcn(one, monkeypatch, *RENDER)
     shutil.copytree(one, two)
     _kpcn(one, monkeypatch, *SHARDS)
     _kpcn(two, monkeypatch, *SHARDS, "--part", "1/3")
+    return one, two
+
+
+def test_a_rerun_in_any_split_keeps_the_shards_a_part_listed_and_rewrites_a_damaged_one(tmp_path, monkeypatch):
+    one, two = _whole_set_and_a_third_of_one(tmp_path, monkeypatch)
     sset = ShardSet(two / "data/shards/t")
     mine = sorted(sset.round_dir(0).glob("shard-*.h5"))
     assert len(mine) >= 2 and (sset.dir / "parts/part-1-of-3.json").is_file()
@@ -148,12 +154,7 @@ def test_torchrun_splits_render_and_shards_over_its_processes(tmp_path, monkeypa
 
 
 def test_a_damaged_part_list_is_left_out_and_blocks_no_merge(tmp_path, monkeypatch):
-    one, two = tmp_path / "one", tmp_path / "two"
-    one.mkdir()
-    _kpcn(one, monkeypatch, *RENDER)
-    shutil.copytree(one, two)
-    _kpcn(one, monkeypatch, *SHARDS)
-    _kpcn(two, monkeypatch, *SHARDS, "--part", "1/3")
+    one, two = _whole_set_and_a_third_of_one(tmp_path, monkeypatch)
     stale = two / "data/shards/t/parts/part-1-of-3.json"
     stale.write_text("{")  # a list of an earlier split, torn
     _kpcn(two, monkeypatch, *SHARDS, "--part", "1/2")
