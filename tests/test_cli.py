@@ -102,6 +102,29 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
     assert checksums(tmp_path) == before
 
 
+# --- a full disk (issue 20) ---
+
+def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_it(tmp_path, tiny_run, small_disk):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
+    args = ("denoise", "in.exr", "--run", tiny_run, "-o", "disk/out.exr")
+    assert_one_line_error(kpcn(*args, cwd=tmp_path), "disk/out.exr: cannot write (No space left on device)")
+    assert list(small_disk.path.iterdir()) == []
+    small_disk.grow()
+    res = kpcn(*args, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in small_disk.path.iterdir()) == ["out.exr", "out.png"]
+    assert exr.read_aovs(small_disk.path / "out.exr", variances=False)["default"].shape == (64, 64, 3)
+
+
+def test_denoise_refused_a_write_by_the_file_system_ends_in_one_line(tmp_path, tiny_run):
+    # the failure injected at write(2) without a mount: files may not grow past 64 kB
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, cwd=tmp_path, file_size_limit=64 << 10)
+    assert_one_line_error(res, "in-denoised.exr: cannot write (File too large)")
+    assert checksums(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == ["in.exr"]
+
+
 def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, tmp_path):
     # a ValueError from a bug is not the user's fault: it must surface as a traceback, not as exit 2
     from kpcn_keras import cli

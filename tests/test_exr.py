@@ -84,3 +84,21 @@ def test_render_file_names():
     assert exr.parse_render_filename("/x/cornell-001-00512spp.exr") == ("cornell-001", 512)
     with pytest.raises(exr.AOVError, match="spp.exr"):
         exr.parse_render_filename("cornell.exr")
+
+
+def test_a_write_the_file_system_refuses_is_an_error_naming_the_file_and_leaves_nothing(tmp_path):
+    # OpenEXR reports a failed write(2) as a RuntimeError naming the temporary file; files may not grow past
+    # 16 kB here (RLIMIT_FSIZE: EFBIG, as a full disk gives ENOSPC)
+    import resource
+
+    from prep.errors import KpcnError
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (16 << 10, hard))
+    try:
+        with pytest.raises(KpcnError) as raised:
+            exr.write_aovs(tmp_path / "x.exr", random_aovs(64, 64))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert str(raised.value) == f"{tmp_path / 'x.exr'}: cannot write (File too large)"
+    assert list(tmp_path.iterdir()) == []
