@@ -9,7 +9,9 @@ with errors that name them.
   (:func:`write_failure`), and leaves no temporary file.
 - :func:`exclusive_lock` serialises the writers of one folder (a render set, a shard set, a run): a
   second command on the same folder waits for the first, then finds its work done.
-- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts;
+- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts, and
+  :func:`check_outputs` one that would replace a file it reads (every command that writes files checks all
+  of them against all of its inputs, before any work);
   :func:`check_set_name` refuses a set name that is not one plain folder.
 - :func:`read_json` turns a missing or broken record into one line naming the file and what it is.
 
@@ -219,6 +221,41 @@ def check_writable(path: str | os.PathLike, what: str, *, directory: bool = Fals
     except OSError as exc:
         raise KpcnError(f"{what} {path}: cannot write in {ancestor} ({exc.strerror or exc})") from None
     return path
+
+
+def _identity(path: str | os.PathLike):
+    """What names one file: its device and inode where it exists (every link to it, any spelling of its path),
+    else its path with every symlink resolved."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return "path", os.path.realpath(path)
+    return "file", st.st_dev, st.st_ino
+
+
+def check_outputs(outputs, inputs, fix: str = "choose another output") -> None:
+    """Refuse, before any work, a command that would write a file over one it reads or write one file twice.
+
+    ``outputs`` and ``inputs``: ``(what, path)`` pairs, every file the command writes (its EXRs, PNGs,
+    reports) and every file it reads (inputs, references, models, a scene's textures), ``what`` naming each
+    in the message (``"--output"``, ``"side-by-side PNG"``; ``"input"``, ``"reference"``). Two paths are one
+    file when they resolve to it: the same inode (hard links, a symlink, ``./x`` and ``x``) or, for a file
+    not written yet, the same path once symlinks are resolved. ``fix`` ends the message (what to change).
+    """
+    outputs = [(what, Path(path)) for what, path in outputs]
+    read = {}
+    for what, path in inputs:
+        read.setdefault(_identity(path), (what, Path(path)))
+    written = {}
+    for what, path in outputs:
+        key = _identity(path)
+        if key in read:
+            label, src = read[key]
+            raise KpcnError(f"{what} {path} is the {label} file {src} itself; {fix}")
+        if key in written:
+            other_what, other = written[key]
+            raise KpcnError(f"{what} {path} and {other_what} {other} are the same file; {fix}")
+        written[key] = (what, path)
 
 
 def temporary_target(path: str | os.PathLike) -> str | None:

@@ -1,5 +1,6 @@
 """The command line as a user meets it: bad input gives one clear line and exit status 2."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -71,6 +72,43 @@ def test_denoise_refuses_an_output_that_is_its_input_or_its_reference(tmp_path, 
     res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "ref.exr", "-o", "./ref.exr", cwd=tmp_path)
     assert_one_line_error(res, "ref.exr", "reference file")
     assert checksums(tmp_path) == before
+
+
+def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_path, tiny_run, monkeypatch):
+    import json
+    import os
+
+    from kpcn_keras.denoise import denoise_files
+    from prep.errors import KpcnError
+
+    pp = tmp_path / "pp"
+    exr.write_aovs(pp / "frame.png", random_aovs(12, 12))  # an EXR named .png
+    exr.write_aovs(pp / "ref.png", random_aovs(12, 12, variances=False))
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    (tmp_path / "alias").symlink_to(pp)
+    os.link(tmp_path / "in.exr", tmp_path / "hard.exr")
+    model = Path(tiny_run) / json.loads((Path(tiny_run) / "config.json").read_text())["components"]["diffuse"]["file"]
+    before, models = checksums(tmp_path), checksums(tiny_run)
+    res = kpcn("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", cwd=tmp_path)
+    assert_one_line_error(res, "side-by-side PNG pp/frame.png is the input file pp/frame.png itself")
+    monkeypatch.chdir(tmp_path)
+    for inputs, output, reference, message in [
+        ("pp/frame.png", "alias/frame.exr", None, "side-by-side PNG alias/frame.png is the input file pp/frame.png"),
+        ("in.exr", "pp/ref.exr", "pp/ref.png", "side-by-side PNG pp/ref.png is the reference file pp/ref.png"),
+        ("hard.exr", "in.exr", None, "--output in.exr is the input file hard.exr"),  # a hard link of the input
+        ("in.exr", model, None, f"--output {model} is the diffuse model file {model}"),
+        ("in.exr", "out.png", None, "side-by-side PNG out.png and --output out.png are the same file"),
+    ]:
+        with pytest.raises(KpcnError, match="^" + re.escape(message)):
+            denoise_files([inputs], tiny_run, output, reference)
+    assert checksums(tmp_path) == before and checksums(tiny_run) == models
+
+
+def test_denoise_reference_that_is_a_folder_is_named_as_one(tmp_path, tiny_run):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    (tmp_path / "refs").mkdir()
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "refs", cwd=tmp_path)
+    assert_one_line_error(res, "--reference", "refs, a folder", "reference EXR file")
 
 
 # --- outputs are checked before the work starts (defect 6) ---

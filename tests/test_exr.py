@@ -28,6 +28,11 @@ def test_missing_layer_is_named(tmp_path):
     assert "normal" in str(err.value) and "albedoVariance" in str(err.value) and str(path) in str(err.value)
 
 
+def test_a_folder_read_as_a_render_is_named_as_a_folder(tmp_path):
+    with pytest.raises(exr.AOVError, match=f"^{tmp_path}: is a folder, expected an OpenEXR file$"):
+        exr.read_header(tmp_path)
+
+
 def test_reference_needs_no_variances_and_default_is_derived(tmp_path):
     aovs = random_aovs(8, 9, variances=False)
     del aovs["default"]
