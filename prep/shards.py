@@ -613,8 +613,8 @@ def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout:
     """
     with atomic_path(path, durable=False) as tmp:
         f = h5py.File(tmp, "w")
-        # every dataset stays open until the file is flushed: one closed on the way flushes its chunks then,
-        # where HDF5 can only print a failure, not raise it
+        # every dataset is held here until the file is closed: one freed with chunks unwritten writes them
+        # then, where HDF5 can only print a failure, not raise it
         datasets = []
         try:
             for name, data in patches.items():
