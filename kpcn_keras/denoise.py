@@ -12,8 +12,9 @@ Batches: :func:`denoise_files` loads a run and warms it up once, then denoises m
 every render in a folder) and reports start-up, load and warm-up apart from each frame's time; a frame's
 ``seconds`` never includes the model load. A frame of a batch is denoised exactly as alone (the same
 networks on the same tiles: bit-identical). ``denoise_file`` is the batch of one. Inputs and outputs are
-checked before anything is loaded: an output that is an input, or that could not be written, an input
-whose header lacks a layer. Each output is written atomically, so a batch stopped by a bad frame leaves
+checked before anything is loaded: a file it would write (an output EXR, its PNG) that is a file it reads
+(an input, the reference, the run's record or models) or another output, or that could not be written, an
+input whose header lacks a layer. Each output is written atomically, so a batch stopped by a bad frame leaves
 every earlier output whole. The default output is ``<input stem>-denoised.exr`` beside the input
 (:func:`default_output`); with several inputs ``-o`` is a folder.
 """
@@ -34,7 +35,7 @@ from kpcn_keras.run import Run, check_architecture
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import atomic_path, check_writable, pyplot, save_png
+from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
 
@@ -210,11 +211,12 @@ def collect_inputs(paths) -> tuple[list[Path], list[Path]]:
     return inputs, skipped
 
 
-def plan_outputs(inputs: list[Path], output=None, reference=None) -> list[Path]:
+def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
     """The output EXR of each input: beside it by default; ``output`` a file for one input, or a folder
     (existing, ending in ``/``, or, with several inputs, to be created) that takes every
     ``<stem>-denoised.exr``. Refuses, before any work, an ``output`` that must be a folder but names a file,
-    an output that is an input or the ``reference``, and two inputs that would write the same output."""
+    and two inputs that would write the same output (:func:`denoise_files` checks every file it writes
+    against every file it reads)."""
     if output is not None:
         # Path() drops a trailing slash, which is how a user says "a folder" for one input
         as_folder = os.fspath(output).endswith(("/", os.sep)) or Path(output).is_dir()
@@ -234,11 +236,6 @@ def plan_outputs(inputs: list[Path], output=None, reference=None) -> list[Path]:
             raise KpcnError(f"{seen[key]} and {src} would both be written to {out}; denoise them "
                             "in separate commands or rename one" if seen[key] != src else f"{src} is given twice")
         seen[key] = src
-    protected = [("input", Path(src)) for src in inputs] + ([("reference", Path(reference))] if reference else [])
-    for out in outputs:
-        for label, src in protected:
-            if out.exists() and src.exists() and os.path.samefile(out, src):
-                raise KpcnError(f"--output {out} is the {label} file {src} itself; choose another -o")
     return outputs
 
 
@@ -317,7 +314,14 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
     if reference is not None and len(inputs) != 1:
         raise OptionError("reference", f"is for one input, got {len(inputs)}; 'kpcn evaluate' compares many")
-    outputs = plan_outputs(inputs, output, reference)
+    if reference is not None and Path(reference).is_dir():
+        raise OptionError("reference", f"must be the input's reference EXR file, got {reference}, a folder")
+    outputs = plan_outputs(inputs, output)
+    run = Run(run_dir)
+    written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
+    read = [("input", src) for src in inputs] + ([("reference", reference)] if reference is not None else [])
+    check_outputs(written, read + run.read_files(run.read_record()),
+                  "choose another -o" + (" (or --no-png)" if png else ""))
     ref_size = exr.read_header(reference, variances=False) if reference is not None else None
     for src in inputs:
         size = exr.read_header(src)

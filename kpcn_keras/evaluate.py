@@ -5,7 +5,8 @@ squared error (relSE p99.9: the worst pixels, e.g. fireflies copied rather than 
 raw input, of the denoised frame, of non-local means and, when ``pyoidn`` is installed, of Intel Open Image
 Denoise (``prep.baselines``), plus seconds per frame, and writes ``<run>/eval/`` with ``report.md``,
 ``metrics.json`` (every metric of ``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | KPCN |
-reference). A baseline that is not installed has NaN in its columns.
+reference). A baseline that is not installed has NaN in its columns. Every file of the report is checked
+against every file the evaluation reads (renders, references, the run's models) before the run is loaded.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from kpcn_keras.denoise import Denoiser, side_by_side_png
 from kpcn_keras.run import Run
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError
-from prep.files import atomic_write_text, check_writable
+from prep.files import atomic_write_text, check_outputs, check_writable
 from prep.shards import discover_renders
 
 # (header, format, where the value is in a row: a top-level key, or (method, metric))
@@ -86,16 +87,29 @@ def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
     return pairs
 
 
+REPORT, METRICS = "report.md", "metrics.json"
+
+
+def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
+    """The side-by-side PNG of the evaluated render of ``scene`` at ``spp`` in the report folder."""
+    return out_dir / Path(exr.render_filename(scene, spp)).with_suffix(".png")
+
+
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              tile: int = DEFAULT_TILE, baseline: bool = True) -> list[dict]:
     """Evaluate a run on ``pairs`` (default: its held-out scenes); writes the report and returns the rows."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
-    denoiser = Denoiser(run.dir, tile=tile)
     pairs = pairs or held_out_pairs(run.dir)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
+    written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
+    written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
+    read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
+    check_outputs(written, read + run.read_files(run.read_record()),
+                  "choose another --out (a report folder takes one render of each name)")
+    denoiser = Denoiser(run.dir, tile=tile)
     denoiser.warm_up()
     rows = []
     for noisy_path, ref_path in pairs:
@@ -126,11 +140,11 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
                 row["oidn"] = metrics.all_metrics(oidn, ref)
                 panels.insert(2, (f"OIDN relMSE {row['oidn']['relmse']:.4f}", oidn))
         panels.append(("reference", ref))
-        row["png"] = str(side_by_side_png(out_dir / f"{scene}-{spp:05d}spp.png", panels, title=scene))
+        row["png"] = str(side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene))
         rows.append(row)
     table = format_table(rows)
-    atomic_write_text(out_dir / "metrics.json", json.dumps(rows, indent=2))
-    atomic_write_text(out_dir / "report.md", f"# Evaluation of {run.dir} ({date.today().isoformat()})\n\n{table}\n")
+    atomic_write_text(out_dir / METRICS, json.dumps(rows, indent=2))
+    atomic_write_text(out_dir / REPORT, f"# Evaluation of {run.dir} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 
 

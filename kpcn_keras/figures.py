@@ -18,7 +18,8 @@ file                   what (seed report figure)
 =====================  ===================================================================================
 
 The chosen pixel defaults to the pixel of the highest noisy-colour variance at least a kernel radius from
-the border: where a kernel has the most to do.
+the border: where a kernel has the most to do. Each of the four files is checked against every file the
+figures read (the frame, its reference, the run's models) before the run is loaded.
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ from kpcn_keras.run import Run
 from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import pyplot, save_png
+from prep.files import check_outputs, pyplot, save_png
+
+FIGURES = {name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes")}
 
 
 def _to_numpy(x) -> np.ndarray:
@@ -166,22 +169,27 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
             raise KpcnError(f"{run_dir}: no held-out scenes; give a noisy render")
         frame = min(pairs, key=lambda pair: exr.parse_render_filename(pair[0]))  # (scene, spp)
     noisy_path, ref_path = frame
+    run = Run(run_dir)
+    record = run.read_record()
+    read = [("input", noisy_path)] + ([("reference", ref_path)] if ref_path else []) + run.read_files(record)
+    check_outputs([("figure", run.figures_dir / name) for name in FIGURES.values()], read,
+                  f"give a render from outside {run.figures_dir}")
     aovs = exr.read_aovs(noisy_path)
     ref = exr.read_aovs(ref_path, variances=False) if ref_path else None
-    train = Run(run_dir).read_record()["train"]
+    train = record["train"]
     slope = train["slope"] if train["model"]["slope_channel"] else None  # its validation λ
     den = Denoiser(run_dir, tile=tile, slope=slope)
     out_dir = den.run.figures_dir
     written = {}
-    kernels = kernel_figure(den, aovs, ref, out_dir / "kernels.png", pixel)
+    kernels = kernel_figure(den, aovs, ref, out_dir / FIGURES["kernels"], pixel)
     if kernels:
         written["kernels"] = kernels
     if den.compositor is not None:
         plain = Denoiser(run_dir, tile=tile, slope=slope, multiscale=False)
-        written["multiscale"] = multiscale_figure(den, plain, aovs, ref, out_dir / "multiscale.png")
-        written["alpha"] = alpha_figure(den, aovs, out_dir / "alpha.png")
+        written["multiscale"] = multiscale_figure(den, plain, aovs, ref, out_dir / FIGURES["multiscale"])
+        written["alpha"] = alpha_figure(den, aovs, out_dir / FIGURES["alpha"])
     if slope is not None:
-        written["slopes"] = slope_figure(run_dir, aovs, ref, out_dir / "slopes.png", slopes, tile)
+        written["slopes"] = slope_figure(run_dir, aovs, ref, out_dir / FIGURES["slopes"], slopes, tile)
     return written
 
 

@@ -133,6 +133,12 @@ class Run:
             raise KpcnError(f"{self.record_path}: the run record is damaged ({type(exc).__name__}: {exc})") from None
         return record
 
+    def read_files(self, record: dict) -> list[tuple[str, Path]]:
+        """What denoising with the run reads of it, ``(what, path)``: its record and each component's model
+        file (for ``prep.files.check_outputs``)."""
+        return [("run record", self.record_path)] + [(f"{name} model", self.dir / entry["file"])
+                                                     for name, entry in record["components"].items()]
+
     def write_record(self, record: dict) -> None:
         atomic_write_json(self.record_path, record)
 

@@ -160,6 +160,8 @@ def _open(path: Path, **kwargs):
     """Run OpenEXR.File on ``path``; returns (header, channels); AOVError naming the file if unreadable."""
     import OpenEXR  # imported here so that modules using only the constants stay light
 
+    if path.is_dir():
+        raise AOVError(f"{path}: is a folder, expected an OpenEXR file")
     if not path.is_file():
         raise AOVError(f"{path}: no such file")
     try:

@@ -4,10 +4,14 @@ with errors that name them.
 - :func:`atomic_path` is the one atomic-write primitive: every EXR, HDF5 shard, ``.keras`` model and text
   record of the project is written under a temporary name beside its target (``.<name>.tmp-<pid>-<token>
   <suffix>``, unique per process, hidden from every reader), flushed to disk and renamed over the target
-  in one step. A kill at any point leaves either the old file or the new one, never a mixture.
+  in one step. A kill at any point leaves either the old file or the new one, never a mixture. A write
+  the file system refuses (a full disk) is one error, ``<file>: cannot write (<reason>)``
+  (:func:`write_failure`), and leaves no temporary file.
 - :func:`exclusive_lock` serialises the writers of one folder (a render set, a shard set, a run): a
   second command on the same folder waits for the first, then finds its work done.
-- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts;
+- :func:`check_writable` lets a command refuse an output it could not write *before* the work starts, and
+  :func:`check_outputs` one that would replace a file it reads (every command that writes files checks all
+  of them against all of its inputs, before any work);
   :func:`check_set_name` refuses a set name that is not one plain folder.
 - :func:`read_json` turns a missing or broken record into one line naming the file and what it is.
 
@@ -22,6 +26,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import secrets
 import zlib
 from contextlib import contextmanager
@@ -55,7 +60,8 @@ def atomic_path(path: str | os.PathLike, *, durable: bool = True):
 
     The temporary name keeps ``path``'s suffix (Keras and OpenEXR look at it). If the block raises, the
     temporary file is removed and ``path`` is left as it was. Failures of the file system (no space, no
-    permission, a parent that is a file) become a KpcnError naming ``path``.
+    permission, a parent that is a file) become a KpcnError naming ``path`` (:func:`write_failure`),
+    whether Python raised them or a library writing in the block (OpenEXR, HDF5) reported them.
 
     ``durable``: the file's bytes reach the disk (fsync) before the rename, so a power cut leaves the old
     file or the whole new one. Without it the rename is still atomic for every process, but after a power
@@ -72,11 +78,42 @@ def atomic_path(path: str | os.PathLike, *, durable: bool = True):
         os.replace(tmp, path)
         if durable:
             _fsync(path.parent, directory=True)
-    except OSError as exc:
-        raise KpcnError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+    except (OSError, RuntimeError) as exc:
+        failure = write_failure(path, exc)
+        if failure is None:
+            raise
+        raise failure from exc
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+# what the file system answers a write it refuses: the errors a user can fix (space, rights, a path)
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
+                 errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG)
+_HDF5_ERRNO = re.compile(r"\berrno = (\d+)")
+
+
+def write_failure(path: str | os.PathLike, exc: BaseException) -> KpcnError | None:
+    """The one error of a failed write of ``path``: ``<path>: cannot write (<the system's reason>)``.
+
+    An OSError gives its errno's reason. The libraries that write files report the system's refusal in
+    their own words: OpenEXR raises a RuntimeError ending in the reason ("... No space left on device."),
+    HDF5 (through h5py) an OSError or RuntimeError whose text holds ``errno = 28``; the reason is found in
+    the text. None for a RuntimeError that names no reason of the file system (a bug, not the disk).
+    """
+    code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
+    text = str(exc)
+    found = _HDF5_ERRNO.search(text)
+    if found and int(found.group(1)) in errno.errorcode:
+        code = int(found.group(1))  # h5py's OSError carries HDF5's long message as its strerror
+    if code is None:
+        code = next((c for c in _WRITE_ERRNOS if os.strerror(c) in text), None)
+    if code is not None:
+        return KpcnError(f"{path}: cannot write ({os.strerror(code)})")
+    if isinstance(exc, OSError):
+        return KpcnError(f"{path}: cannot write ({exc.strerror or exc})")
+    return None
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
@@ -184,6 +221,41 @@ def check_writable(path: str | os.PathLike, what: str, *, directory: bool = Fals
     except OSError as exc:
         raise KpcnError(f"{what} {path}: cannot write in {ancestor} ({exc.strerror or exc})") from None
     return path
+
+
+def _identity(path: str | os.PathLike):
+    """What names one file: its device and inode where it exists (every link to it, any spelling of its path),
+    else its path with every symlink resolved."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return "path", os.path.realpath(path)
+    return "file", st.st_dev, st.st_ino
+
+
+def check_outputs(outputs, inputs, fix: str = "choose another output") -> None:
+    """Refuse, before any work, a command that would write a file over one it reads or write one file twice.
+
+    ``outputs`` and ``inputs``: ``(what, path)`` pairs, every file the command writes (its EXRs, PNGs,
+    reports) and every file it reads (inputs, references, models, a scene's textures), ``what`` naming each
+    in the message (``"--output"``, ``"side-by-side PNG"``; ``"input"``, ``"reference"``). Two paths are one
+    file when they resolve to it: the same inode (hard links, a symlink, ``./x`` and ``x``) or, for a file
+    not written yet, the same path once symlinks are resolved. ``fix`` ends the message (what to change).
+    """
+    outputs = [(what, Path(path)) for what, path in outputs]
+    read = {}
+    for what, path in inputs:
+        read.setdefault(_identity(path), (what, Path(path)))
+    written = {}
+    for what, path in outputs:
+        key = _identity(path)
+        if key in read:
+            label, src = read[key]
+            raise KpcnError(f"{what} {path} is the {label} file {src} itself; {fix}")
+        if key in written:
+            other_what, other = written[key]
+            raise KpcnError(f"{what} {path} and {other_what} {other} are the same file; {fix}")
+        written[key] = (what, path)
 
 
 def temporary_target(path: str | os.PathLike) -> str | None:

@@ -82,6 +82,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+from h5py import h5s
 
 from prep import exr, features, sampling, threads
 from prep.errors import KpcnError, OptionError
@@ -604,22 +605,55 @@ def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout:
     Not fsync'ed (``atomic_path(durable=False)``): waiting for the disk was most of ``kpcn shards`` (a set
     is ~1.2 MB a patch; this disk takes ~430 MB/s), and a shard needs no fsync to be safe, since its
     checksum is in the manifest and checked by every reader and by the next run, which writes a torn shard
-    again (the manifest itself is written durably)."""
+    again (the manifest itself is written durably).
+
+    A write that fails (a full disk) is the KpcnError of ``atomic_path`` naming ``path``, and the HDF5 file
+    is closed before it is raised (:func:`_abandon`): HDF5 flushes an open file again whenever one of its
+    objects is freed, printing each failure, and at interpreter exit, where a failure can crash the process.
+    """
     with atomic_path(path, durable=False) as tmp:
-        with h5py.File(tmp, "w") as f:
+        f = h5py.File(tmp, "w")
+        # every dataset is held here until the file is closed: one freed with chunks unwritten writes them
+        # then, where HDF5 can only print a failure, not raise it
+        datasets = []
+        try:
             for name, data in patches.items():
-                if name in PATCH_DATASETS:
-                    data = data.astype(layout.dtype, copy=False)
-                if layout.patches_per_chunk is None:
-                    f.create_dataset(name, data=data)
-                    continue
-                per_chunk = layout.patches_per_chunk if data.ndim > 1 else 1024
-                f.create_dataset(name, data=data, chunks=(min(len(data), per_chunk),) + data.shape[1:],
-                                 compression=layout.compression, compression_opts=layout.compression_opts,
-                                 shuffle=layout.shuffle, fletcher32=layout.fletcher32)
+                data = np.ascontiguousarray(data.astype(layout.dtype, copy=False) if name in PATCH_DATASETS else data)
+                chunked = {} if layout.patches_per_chunk is None else dict(
+                    chunks=(min(len(data), layout.patches_per_chunk if data.ndim > 1 else 1024),) + data.shape[1:],
+                    compression=layout.compression, compression_opts=layout.compression_opts,
+                    shuffle=layout.shuffle, fletcher32=layout.fletcher32)
+                # created, then written: a write that fails leaves the dataset here to close (create_dataset's
+                # data= frees it inside h5py); flushed where freeing it flushed its chunks before, so the
+                # file's bytes are those that create_dataset(data=) writes
+                datasets.append(f.create_dataset(name, shape=data.shape, dtype=data.dtype, **chunked))
+                datasets[-1].id.write(h5s.ALL, h5s.ALL, data)
+                datasets[-1].flush()
             for key, value in attrs.items():
                 f.attrs[key] = value
             f.attrs["complete"] = True
+            f.flush()
+            datasets.clear()
+            f.close()
+        except BaseException:
+            _abandon(f, datasets)
+            raise
+
+
+def _abandon(f: h5py.File, datasets: list) -> None:
+    """Close an HDF5 file whose writing failed, with every object of it in ``datasets``, for good: its file
+    descriptor is pointed at ``/dev/null`` first, so the flushes that closing makes succeed (the temporary
+    file is removed anyway) and nothing of the file is left open for a later flush to fail on."""
+    if not f.id.valid:
+        datasets.clear()
+        return
+    null = os.open(os.devnull, os.O_RDWR)
+    try:
+        os.dup2(null, f.id.get_vfd_handle())
+    finally:
+        os.close(null)
+    datasets.clear()
+    f.close()
 
 
 def branch_datasets(branch: str, noisy: bool = False) -> list[str]:

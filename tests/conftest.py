@@ -125,11 +125,54 @@ def tiny_run(tmp_path_factory):
     return train(cfg, tmp / "runs" / "r", verbose=0)
 
 
-def kpcn(*args, cwd, timeout=300) -> subprocess.CompletedProcess:
-    """``kpcn -q ARGS`` as a user runs it, in a fresh process with a bare environment."""
+def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedProcess:
+    """``kpcn -q ARGS`` as a user runs it, in a fresh process with a bare environment.
+
+    ``file_size_limit`` (bytes): the process and its children may write no file larger (RLIMIT_FSIZE), so
+    a write past it fails in ``write(2)`` itself with EFBIG ("File too large"; Python ignores SIGXFSZ), as
+    on a full disk, for every library alike: a file system error at the write primitive, without root."""
+    def limit():
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit, file_size_limit))
+
     return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=limit if file_size_limit is not None else None,
                           env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch"})
+
+
+class SmallDisk:
+    """A folder on a tmpfs of its own, ``size`` bytes (64 kB: full after the first file of any size), and
+    :meth:`grow`, the space freed."""
+
+    def __init__(self, path: Path, size: str = "64k"):
+        self.path = path
+        path.mkdir(parents=True, exist_ok=True)
+        try:
+            res = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+                                 capture_output=True, text=True)
+            why = (res.stderr.strip() or f"exit {res.returncode}") if res.returncode else None
+        except OSError as exc:
+            why = str(exc)
+        if why:
+            pytest.skip(f"a full disk needs a small tmpfs, and mounting one is not permitted here (uid "
+                        f"{os.getuid()}: {why})")
+
+    def grow(self, size: str = "256m") -> None:
+        subprocess.run(["mount", "-o", f"remount,size={size}", str(self.path)], check=True)
+
+    def unmount(self) -> None:
+        subprocess.run(["umount", "--lazy", str(self.path)], check=True)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A full disk: :class:`SmallDisk` at ``tmp_path/disk`` (root only; the test is skipped, saying why,
+    where mounting is not permitted)."""
+    disk = SmallDisk(tmp_path / "disk")
+    yield disk
+    disk.unmount()
 
 
 def assert_one_line_error(res: subprocess.CompletedProcess, *needles: str) -> None:

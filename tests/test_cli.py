@@ -1,5 +1,6 @@
 """The command line as a user meets it: bad input gives one clear line and exit status 2."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +74,43 @@ def test_denoise_refuses_an_output_that_is_its_input_or_its_reference(tmp_path, 
     assert checksums(tmp_path) == before
 
 
+def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_path, tiny_run, monkeypatch):
+    import json
+    import os
+
+    from kpcn_keras.denoise import denoise_files
+    from prep.errors import KpcnError
+
+    pp = tmp_path / "pp"
+    exr.write_aovs(pp / "frame.png", random_aovs(12, 12))  # an EXR named .png
+    exr.write_aovs(pp / "ref.png", random_aovs(12, 12, variances=False))
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    (tmp_path / "alias").symlink_to(pp)
+    os.link(tmp_path / "in.exr", tmp_path / "hard.exr")
+    model = Path(tiny_run) / json.loads((Path(tiny_run) / "config.json").read_text())["components"]["diffuse"]["file"]
+    before, models = checksums(tmp_path), checksums(tiny_run)
+    res = kpcn("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", cwd=tmp_path)
+    assert_one_line_error(res, "side-by-side PNG pp/frame.png is the input file pp/frame.png itself")
+    monkeypatch.chdir(tmp_path)
+    for inputs, output, reference, message in [
+        ("pp/frame.png", "alias/frame.exr", None, "side-by-side PNG alias/frame.png is the input file pp/frame.png"),
+        ("in.exr", "pp/ref.exr", "pp/ref.png", "side-by-side PNG pp/ref.png is the reference file pp/ref.png"),
+        ("hard.exr", "in.exr", None, "--output in.exr is the input file hard.exr"),  # a hard link of the input
+        ("in.exr", model, None, f"--output {model} is the diffuse model file {model}"),
+        ("in.exr", "out.png", None, "side-by-side PNG out.png and --output out.png are the same file"),
+    ]:
+        with pytest.raises(KpcnError, match="^" + re.escape(message)):
+            denoise_files([inputs], tiny_run, output, reference)
+    assert checksums(tmp_path) == before and checksums(tiny_run) == models
+
+
+def test_denoise_reference_that_is_a_folder_is_named_as_one(tmp_path, tiny_run):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
+    (tmp_path / "refs").mkdir()
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "refs", cwd=tmp_path)
+    assert_one_line_error(res, "--reference", "refs, a folder", "reference EXR file")
+
+
 # --- outputs are checked before the work starts (defect 6) ---
 
 def test_denoise_output_under_a_file_is_refused_before_inference(tmp_path, tiny_run):
@@ -100,6 +138,29 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
     res = kpcn("shards", "--set", "s", "--renders", "renders", "--out", "afile", "--patch-size", "8", cwd=tmp_path)
     assert_one_line_error(res, "afile")
     assert checksums(tmp_path) == before
+
+
+# --- a full disk (issue 20) ---
+
+def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_it(tmp_path, tiny_run, small_disk):
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
+    args = ("denoise", "in.exr", "--run", tiny_run, "-o", "disk/out.exr")
+    assert_one_line_error(kpcn(*args, cwd=tmp_path), "disk/out.exr: cannot write (No space left on device)")
+    assert list(small_disk.path.iterdir()) == []
+    small_disk.grow()
+    res = kpcn(*args, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in small_disk.path.iterdir()) == ["out.exr", "out.png"]
+    assert exr.read_aovs(small_disk.path / "out.exr", variances=False)["default"].shape == (64, 64, 3)
+
+
+def test_denoise_refused_a_write_by_the_file_system_ends_in_one_line(tmp_path, tiny_run):
+    # the failure injected at write(2) without a mount: files may not grow past 64 kB
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", tiny_run, cwd=tmp_path, file_size_limit=64 << 10)
+    assert_one_line_error(res, "in-denoised.exr: cannot write (File too large)")
+    assert checksums(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == ["in.exr"]
 
 
 def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, tmp_path):

@@ -77,3 +77,27 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
             assert line[header.index(name)] == f"{value:.4f}"
     for name, key in zip(P999, ("raw", "denoised", "nlm")):
         assert cells[-1][header.index(name)] == f"{np.mean([r[key]['relse_p999'] for r in rows]):.4f}"
+
+
+def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_run, tmp_path, capsys):
+    import os
+
+    from conftest import checksums, random_aovs
+
+    for folder in ("a", "b"):
+        exr.write_aovs(tmp_path / folder / "x-00004spp.exr", random_aovs(16, 16))
+        exr.write_aovs(tmp_path / folder / "x-00064spp.exr", random_aovs(16, 16, variances=False))
+    (tmp_path / "linked").mkdir()
+    os.link(tmp_path / "a" / "x-00064spp.exr", tmp_path / "linked" / "metrics.json")
+    before = checksums(tmp_path)
+    a, b = (str(tmp_path / f / "x-00004spp.exr") for f in ("a", "b"))
+    # two renders of one name would write one PNG, the second over the first
+    assert main(["-q", "evaluate", "--run", str(tiny_run), a, b, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and f"the PNG of {b} {tmp_path}/out/x-00004spp.png and the PNG of {a} " \
+        f"{tmp_path}/out/x-00004spp.png are the same file" in err[0], err
+    # a report file that is a hard link of the reference
+    assert main(["-q", "evaluate", "--run", str(tiny_run), a, "--out", str(tmp_path / "linked")]) == 2
+    assert f"metrics {tmp_path}/linked/metrics.json is the reference file {tmp_path}/a/x-00064spp.exr itself" \
+        in capsys.readouterr().err
+    assert checksums(tmp_path) == before

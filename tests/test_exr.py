@@ -28,6 +28,11 @@ def test_missing_layer_is_named(tmp_path):
     assert "normal" in str(err.value) and "albedoVariance" in str(err.value) and str(path) in str(err.value)
 
 
+def test_a_folder_read_as_a_render_is_named_as_a_folder(tmp_path):
+    with pytest.raises(exr.AOVError, match=f"^{tmp_path}: is a folder, expected an OpenEXR file$"):
+        exr.read_header(tmp_path)
+
+
 def test_reference_needs_no_variances_and_default_is_derived(tmp_path):
     aovs = random_aovs(8, 9, variances=False)
     del aovs["default"]
@@ -84,3 +89,21 @@ def test_render_file_names():
     assert exr.parse_render_filename("/x/cornell-001-00512spp.exr") == ("cornell-001", 512)
     with pytest.raises(exr.AOVError, match="spp.exr"):
         exr.parse_render_filename("cornell.exr")
+
+
+def test_a_write_the_file_system_refuses_is_an_error_naming_the_file_and_leaves_nothing(tmp_path):
+    # OpenEXR reports a failed write(2) as a RuntimeError naming the temporary file; files may not grow past
+    # 16 kB here (RLIMIT_FSIZE: EFBIG, as a full disk gives ENOSPC)
+    import resource
+
+    from prep.errors import KpcnError
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (16 << 10, hard))
+    try:
+        with pytest.raises(KpcnError) as raised:
+            exr.write_aovs(tmp_path / "x.exr", random_aovs(64, 64))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert str(raised.value) == f"{tmp_path / 'x.exr'}: cannot write (File too large)"
+    assert list(tmp_path.iterdir()) == []

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import rect_form_factor
+from conftest import assert_one_line_error, checksums, kpcn, rect_form_factor
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -681,6 +681,24 @@ def test_render_set_writes_resumes_and_records(tmp_path):
         render_set(dataclasses.replace(cfg, families=("kitchen",)), progress=False)
     with pytest.raises(ValueError, match="reference_spp must exceed every input_spp"):
         render_set(dataclasses.replace(cfg, input_spp=(2, 8)), progress=False)
+
+
+def test_render_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_finishes_the_set(tmp_path, small_disk):
+    args = ("render", "--set", "s", "--out", "disk", "--families", "cornell", "--per-family", "1", "--width", "48",
+            "--height", "40", "--input-spp", "2", "--reference-spp", "4")
+    res = kpcn(*args, cwd=tmp_path)
+    assert_one_line_error(res, "disk/s/cornell-000-00002spp.exr: cannot write (No space left on device)")
+    # the set's record holds its config and no scene yet, as when a render is interrupted: a rerun resumes
+    assert sorted(p.name for p in (small_disk.path / "s").iterdir()) == [".lock", "config.json"]
+    assert json.loads((small_disk.path / "s" / "config.json").read_text())["scenes"] == []
+    small_disk.grow()
+    res = kpcn(*args, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    (tmp_path / "twin").mkdir()
+    assert kpcn(*args, cwd=tmp_path / "twin").returncode == 0
+    once = checksums(tmp_path / "twin" / "disk" / "s")
+    resumed = checksums(small_disk.path / "s")
+    assert once.pop("timings.json") and resumed.pop("timings.json") and resumed == once
 
 
 def test_prep_render_does_not_import_frameworks():

@@ -8,6 +8,7 @@ import dataclasses
 import inspect
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -435,3 +436,29 @@ def test_the_sky_example_is_lit_by_its_sky_alone():
     assert scene.environment_map.sky is not None and "emitter" not in scene.effects()
     layers = tiny_render(scene)
     assert layers["diffuse"].max() > 0  # the ground is lit, by the map as a light
+
+
+def test_render_never_writes_over_a_file_the_scene_reads(tmp_path, monkeypatch):
+    # the scene file, its image texture, its environment map and its OBJ mesh: the EXR and its PNG preview
+    # are each checked against every one of them, before anything is rendered
+    import matplotlib.image
+
+    (tmp_path / "tex").mkdir()
+    (tmp_path / "maps").mkdir()
+    matplotlib.image.imsave(tmp_path / "tex" / "wood.png", np.full((2, 2, 3), 200, dtype=np.uint8))
+    exr.write_aovs(tmp_path / "maps" / "sky.exr", {"default": np.full((4, 8, 3), 0.25, dtype=np.float32)})
+    shutil.copy(REPO / "scenes" / "torus.obj", tmp_path / "torus.obj")
+    text = (example_text().replace('texture = "uv"', 'texture = "image"\nimage = "tex/wood.png"')
+            .replace("albedo2 = [0.2, 0.2, 0.24]\n", "").replace("environment = [0.0, 0.0, 0.0]", "", 1)
+            + '\n[environment_map]\nimage = "maps/sky.exr"\n\n[[meshes]]\nobj = "torus.obj"\nmaterial = "floor"\n')
+    write(tmp_path / "s.toml", text)
+    before = checksums(tmp_path)
+    res = kpcn("render", "--scene", "s.toml", "--out", "tex/wood.exr", cwd=tmp_path)
+    assert_one_line_error(res, "PNG preview tex/wood.png is the materials.floor.image file tex/wood.png itself")
+    monkeypatch.chdir(tmp_path)
+    for out, message in [("maps/sky.exr", "output EXR (--out) maps/sky.exr is the environment_map.image file"),
+                         ("torus.obj", "output EXR (--out) torus.obj is the meshes[0].obj file torus.obj"),
+                         ("./s.toml", "output EXR (--out) s.toml is the scene file s.toml")]:
+        with pytest.raises(KpcnError, match="^" + re.escape(message)):
+            render_scene_file("s.toml", out, overrides=TINY)
+    assert checksums(tmp_path) == before

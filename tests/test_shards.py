@@ -1,5 +1,6 @@
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -10,8 +11,9 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import make_renders, random_aovs
+from conftest import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, features, shards
+from prep.files import is_temporary
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -202,3 +204,48 @@ def test_cut_into_a_shard_buffer_equals_cut(tmp_path):
     for name, data in want.items():
         np.testing.assert_array_equal(out[name][5:9], data, err_msg=name)
     assert (want["source"] == 4).all() and want["diffuse/features"].dtype == np.float32
+
+
+# --- a full disk (issue 20) ---
+
+SHARDS_ARGS = ("shards", "--set", "s", "--renders", "renders", "--patch-size", "16", "--patches-per-image", "7",
+               "--patches-per-shard", "5")
+
+
+def _temporaries(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if is_temporary(p)]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_shards_on_a_full_disk_end_in_one_line_and_a_rerun_with_space_finishes_the_set(tmp_path, small_disk,
+                                                                                        threads):
+    # 2 threads: the shards are written by worker processes, whose HDF5 errors cross back to the command
+    make_renders(tmp_path / "renders" / "s")
+    args = SHARDS_ARGS + ("--threads", threads)
+    res = kpcn(*args, "--out", "disk", cwd=tmp_path)
+    assert_one_line_error(res, "disk/s/round-000/shard-", "cannot write (No space left on device)")
+    assert _temporaries(small_disk.path) == []
+    small_disk.grow()
+    res = kpcn(*args, "--out", "disk", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert checksums(small_disk.path / "s") == _uninterrupted(tmp_path, *args, "--out", "disk")
+
+
+def _uninterrupted(tmp_path: Path, *args) -> dict[str, str]:
+    """The checksums of the shard set that ``kpcn ARGS`` writes in one go, in a copy of ``tmp_path``'s renders
+    (the same relative paths and command line, which the shards record)."""
+    twin = tmp_path / "twin"
+    shutil.copytree(tmp_path / "renders", twin / "renders")
+    assert kpcn(*args, cwd=twin).returncode == 0
+    return checksums(twin / args[args.index("--out") + 1] / "s")
+
+
+def test_shards_refused_a_write_by_the_file_system_end_in_one_line_and_resume(tmp_path):
+    # the same failure injected at write(2) without a mount: files may not grow past 64 kB
+    make_renders(tmp_path / "renders" / "s")
+    args = SHARDS_ARGS + ("--threads", 2, "--out", "out")
+    res = kpcn(*args, cwd=tmp_path, file_size_limit=64 << 10)
+    assert_one_line_error(res, "out/s/round-000/shard-", "cannot write (File too large)")
+    assert _temporaries(tmp_path / "out") == []
+    assert kpcn(*args, cwd=tmp_path).returncode == 0
+    assert checksums(tmp_path / "out" / "s") == _uninterrupted(tmp_path, *args)

@@ -160,7 +160,7 @@ from prep.files import read_input
 from prep.render import RenderConfig, render
 from prep.render.scene import Mesh, Scene
 
-__all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "render_scene_file"]
+__all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "read_scene", "render_scene_file"]
 
 SUFFIXES = (".toml", ".json")
 DEFAULT_FAMILY = "custom"
@@ -454,9 +454,10 @@ _OBJ_KEYS = ("obj", "translate", "scale", "rotate_y")
 _EXTRA_KEYS = {Mesh: _OBJ_KEYS}
 
 
-def _obj_meshes(data: dict, base: Path) -> None:
+def _obj_meshes(data: dict, base: Path, read: list) -> None:
     """Replace each ``[[meshes]]`` entry that names an ``obj`` file (relative to ``base``) by the
-    vertices and faces read from it, placed by ``translate``, ``scale`` and ``rotate_y``."""
+    vertices and faces read from it, placed by ``translate``, ``scale`` and ``rotate_y``; each file
+    read is added to ``read`` as (its key, its path)."""
     from prep.render.obj import ObjError, load_obj
 
     meshes = data.get("meshes")
@@ -482,6 +483,7 @@ def _obj_meshes(data: dict, base: Path) -> None:
             raise _Bad(f"{path}.scale = {_show(entry['scale'])}: scale must be > 0")
         rotate_y = _convert(entry.get("rotate_y", 0.0), float, f"{path}.rotate_y")
         obj_path = Path(name) if Path(name).is_absolute() else base / name
+        read.append((f"{path}.obj", obj_path))
         try:
             mesh = load_obj(obj_path, "", translate, scale, rotate_y)
         except ObjError as exc:
@@ -491,9 +493,9 @@ def _obj_meshes(data: dict, base: Path) -> None:
                      **rest}
 
 
-def _image_paths(data: dict, base: Path) -> None:
+def _image_paths(data: dict, base: Path, read: list) -> None:
     """Image textures and environment maps are named relative to the scene file: make each path one that
-    works from anywhere."""
+    works from anywhere, and add it to ``read`` as (its key, its path)."""
     tables = {}
     materials = data.get("materials")
     if isinstance(materials, dict):
@@ -506,6 +508,7 @@ def _image_paths(data: dict, base: Path) -> None:
             image = Path(table["image"]) if Path(table["image"]).is_absolute() else base / table["image"]
             if not image.is_file():
                 raise _Bad(f"{_join(path, 'image')} = {_show(table['image'])}: no such file {image}")
+            read.append((_join(path, "image"), image))
             parent[key] = {**table, "image": str(image)}
 
 
@@ -601,14 +604,22 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
 
     Raises :class:`SceneFileError` naming the file, the key path and the value found.
     """
+    scene, settings, _ = read_scene(path)
+    return scene, settings
+
+
+def read_scene(path) -> tuple[Scene, RenderSettings, list[tuple[str, Path]]]:
+    """:func:`load_scene`, and every file it read as (what, path): the scene file, then each OBJ mesh,
+    image texture and environment map under its key (``meshes[0].obj``), what a render must not write over."""
     path = Path(path)
     data = dict(_parse(path))
     render_table = data.pop("render", {})
+    read = [("scene", path)]
     try:
         if isinstance(data.get("meshes"), list):
             data["meshes"] = list(data["meshes"])
-            _obj_meshes(data, path.parent)
-        _image_paths(data, path.parent)
+            _obj_meshes(data, path.parent, read)
+        _image_paths(data, path.parent, read)
         scene = _build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
                        also_valid=("render",))
         _check_material_names(scene)
@@ -620,7 +631,7 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
         settings = _build(RenderSettings, render_table, "render")
     except _Bad as exc:
         raise SceneFileError(f"{path}: {exc}") from None
-    return scene, settings
+    return scene, settings, read
 
 
 # ------------------------------------------------------------------------------------------------
@@ -750,26 +761,24 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     """Render a scene file to one EXR in the AOV layout (``prep.exr.write_aovs``) and, with ``png``, a
     tonemapped PNG beside it. ``overrides`` (``spp``, ``seed``, ``width``, ... as given on the command
     line) replace the file's ``[render]`` values. The outputs are checked before rendering; an output that
-    is the scene file is refused. Returns ``{"output", "png" (if written), "seconds", "settings"}``.
+    is a file the scene reads (the scene file, a mesh, a texture) is refused. Returns ``{"output", "png" (if written), "seconds", "settings"}``.
 
     A render setting out of range raises OptionError when it came from ``overrides`` (the command line
     names the flag) and SceneFileError naming ``render.<key>`` when it came from the file.
     """
     from prep.exr import write_aovs
-    from prep.files import check_writable
+    from prep.files import check_outputs, check_writable
 
     scene_path = Path(scene_path)
     overrides = dict(overrides or {})
-    scene, settings = load_scene(scene_path)
+    scene, settings, read = read_scene(scene_path)
     unknown = set(overrides) - {f.name for f in dataclasses.fields(RenderSettings)}
     if unknown:
         raise ValueError(f"unknown render settings {sorted(unknown)}")
     settings = dataclasses.replace(settings, **overrides)
     output = Path(output) if output is not None else default_output(scene_path, settings.spp)
     outputs = [output] + ([png_path(output)] if png else [])
-    for out in outputs:
-        if out.resolve() == scene_path.resolve():
-            raise KpcnError(f"output {out}: is the scene file {scene_path}; choose another --out")
+    check_outputs(zip(("output EXR (--out)", "PNG preview"), outputs), read, "choose another --out")
     check_writable(output, "output EXR (--out)")
     if png:
         check_writable(outputs[1], "PNG preview")
