@@ -72,7 +72,9 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
     """The compiled model ``phase`` starts from: the finished phase it continues, or a new model built from
     the components earlier phases finished."""
     if phase.continues:
-        return load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
+        model = load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
+        run.check_model(record, run.model_path(phase.continues).name, model, phase.component)
+        return model
     model = _new_model(cfg, run, record, phase)
     _compile(model, cfg, phase)
     return model
@@ -374,6 +376,7 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
     record["components"].update(_components(cfg, phase))
     if not world.writer:
         return
+    run.record_model(record, run.model_path(phase.name).name, phase.component)
     rows = [r for r in read_log(run.log_path)
             if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
     record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from kpcn_keras.denoise import Denoiser
+from kpcn_keras.evaluate import evaluate
 from kpcn_keras.run import Run, load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep import exr
@@ -128,3 +130,63 @@ def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path,
     assert_one_line_error(res, which)
     assert "File not found" not in res.stderr
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
+
+
+BOTH = ("diffuse", "specular")
+
+
+def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_the_branch(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/specular.keras", "holds a diffuse network", "its specular network")
+    assert checksums(tmp_path) == before
+
+
+def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_path):
+    # the same branch, the same architecture, other weights: only the record's SHA-256 tells them apart
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    other = train(tiny_config(shard_cfg, branches=BOTH, seed=5), tmp_path / "runs" / "other", verbose=0)
+    assert Run(run_dir).read_record()["models"]["specular.keras"] == \
+        {"network": "specular", "sha256": checksums(run_dir)["specular.keras"]}
+    shutil.copyfile(other / "specular.keras", run_dir / "specular.keras")
+    with pytest.raises(KpcnError, match=r"specular\.keras: not the file this run wrote \(SHA-256 "
+                                        + checksums(other)["specular.keras"][:12]):
+        Denoiser(run_dir)
+
+
+def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_by_branch(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    del record["models"]
+    run.write_record(record)
+    aovs = random_aovs(8, 8)
+    assert np.isfinite(Denoiser(run_dir)(aovs)["default"]).all()
+    shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
+    with pytest.raises(KpcnError, match="specular.keras: holds a diffuse network"):
+        Denoiser(run_dir)
+
+
+@pytest.mark.parametrize("status", ["running", "pending"])
+def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_phase(tmp_path, status):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    record["phases"]["specular"]["status"] = status
+    run.write_record(record)
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/config.json", f"specular phase is unfinished (status '{status}')",
+                          "'kpcn train --run runs/r'")
+    with pytest.raises(KpcnError, match="specular phase is unfinished"):
+        evaluate(run_dir)
+    assert checksums(tmp_path) == before
+
