@@ -190,6 +190,22 @@ def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]
             "history": history}
 
 
+def _checkpoint_differences(state: dict, cfg: TrainConfig, phase: Phase) -> list[str]:
+    """What a checkpoint's training state says that ``phase`` of the run ``cfg`` does not, one item per
+    difference, each with both values: the phase, each model setting, and else the training options (a
+    checkpoint stores their hash, which covers the model)."""
+    differ = []
+    if state.get("phase", phase.name) != phase.name:
+        differ.append(f"it is the {state['phase']} phase's, this is the {phase.name} phase's")
+    model = state.get("model") if isinstance(state.get("model"), dict) else {}
+    differ += [f"model {k} {model.get(k)!r}, the run's {cfg.model.get(k)!r}"
+               for k in sorted(set(model) | set(cfg.model)) if model.get(k) != cfg.model.get(k)]
+    if not differ and state.get("train") != _identity_key(cfg):  # the hash covers the model too
+        differ.append(f"training options of hash {state.get('train')}, the run's {_identity_key(cfg)} (a "
+                      "checkpoint of another run)")
+    return differ
+
+
 def _identity_key(cfg: TrainConfig) -> str:
     return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
 
@@ -320,11 +336,11 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         if state is None or "epochs_done" not in state:
             raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the "
                             f"{phase.name} phase")
-        if (state.get("model") != cfg.model or state.get("train") != _identity_key(cfg)
-                or state.get("phase", phase.name) != phase.name):
+        differ = _checkpoint_differences(state, cfg, phase)
+        if differ:
             raise KpcnError(
-                f"{ckpt}: checkpoint of another configuration (model {state.get('model')}); the run asks for "
-                f"{cfg.model}. Remove the checkpoint to restart the {phase.name} phase, or choose another --run"
+                f"{ckpt}: checkpoint of another configuration ({'; '.join(differ)}). Remove the checkpoint to "
+                f"restart the {phase.name} phase, or choose another --run"
             )
         model = load_model(ckpt)
         if not phase.trains_on_final_colour:

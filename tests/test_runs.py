@@ -190,3 +190,27 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
         evaluate(run_dir)
     assert checksums(tmp_path) == before
 
+
+def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_and_nothing_that_agrees(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = tiny_config(shard_cfg, branches=BOTH)
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    (run_dir / "specular.keras").unlink()  # so that training goes back to the specular checkpoint
+    shutil.copyfile(run_dir / "checkpoints" / "diffuse.keras", run_dir / "checkpoints" / "specular.keras")
+    with pytest.raises(KpcnError) as err:
+        train(cfg, run_dir, verbose=0)
+    message = str(err.value)
+    assert "checkpoints/specular.keras: checkpoint of another configuration (it is the diffuse phase's, this " \
+           "is the specular phase's)" in message
+    assert "model" not in message and "{" not in message, message  # no setting that agrees is printed
+    assert not (run_dir / "specular.keras").exists()
+
+
+def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
+    run_dir = tmp_path / "runs" / "r"
+    shutil.copytree(other / "checkpoints", run_dir / "checkpoints")
+    with pytest.raises(KpcnError) as err:
+        train(tiny_config(shard_cfg), run_dir, verbose=0)
+    assert "(model width 6, the run's 4)" in str(err.value), str(err.value)
