@@ -20,9 +20,11 @@ checkpoint; the CSV log numbers epochs across phases, so it and ``loss.png`` sho
 record (``config.json``) lists every phase with its epochs and the components it produced. The run folder's
 layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 
-- **Inputs first, record second.** The shard set must be complete and every shard's SHA-256 must match
-  its manifest, the options must fit the data, and the run folder must be writable, before
-  ``config.json`` is written; a command refused for bad input leaves no run behind.
+- **Inputs first, record second.** The shard set must be complete, every shard's checksum must match
+  its manifest and the manifest's claims (patch size, counts, configuration) what the shards hold, every
+  source render still present must have the SHA-256 the manifest lists (``ShardSet.check_renders``), the
+  options must fit the data, and the run folder must be writable, before ``config.json`` is written; a
+  command refused for bad input leaves no run behind.
 - **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
@@ -219,6 +221,7 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
         raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
     entries = {split: sset.verified_shards(split, manifest, rounds=[0]) for split in ("train", "val")}
+    sset.check_renders(manifest)
     paths = {split: [e.path for e in found] for split, found in entries.items()}
     patches = sum(e.patches for e in entries["train"])
     if patches < cfg.batch_size:
