@@ -29,7 +29,7 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
   command again continues from the first unfinished phase and ends with the same bytes as an uninterrupted
-  run (the CSV log is cut back to the checkpoint's epochs).
+  run (the CSV log is cut back to the checkpoint's epochs; one holding fewer, emptied or cut, is refused).
 - **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
   another architecture under an existing run is an error that says which.
 - **Divergence stops at the batch** (Keras's ``TerminateOnNaN(raise_error=True)``); the last good
@@ -277,6 +277,25 @@ def _phase_plan(phase: Phase) -> dict:
     return plan
 
 
+def _check_log(run: Run, epochs: int) -> None:
+    """KpcnError naming the CSV log unless it holds the run's first ``epochs`` epochs (what the checkpoint and
+    the finished phases say were trained), numbered in order, each row whole: resuming on a log that was
+    emptied, cut or torn would lose those epochs from it and from ``loss.png`` for good. Refused rather than
+    rebuilt: the log is kept as Keras wrote it, and a rebuilt one could only claim to be that."""
+    try:
+        rows = read_log(run.log_path)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise KpcnError(f"{run.log_path}: unreadable training log ({type(exc).__name__}: {exc})") from None
+    bad = next((i for i, row in enumerate(rows[:epochs])
+                if row.get("epoch") != str(i) or None in row or any(v in (None, "") for v in row.values())), None)
+    if len(rows) < epochs or bad is not None:
+        found = f"{len(rows)} epochs" if bad is None else f"a damaged row for epoch {bad}"
+        raise KpcnError(
+            f"{run.log_path}: holds {found} where the run has trained {epochs} (it was emptied, cut or edited); "
+            f"resuming would lose them from the log and loss.png. Restore it, or train again under another --run"
+        )
+
+
 def _cut_log(path: Path, rows: int) -> None:
     """Cut the CSV log back to its header and its first ``rows`` epochs (a kill after a log row but before
     its checkpoint would otherwise leave that epoch twice); no rows, no file."""
@@ -331,6 +350,8 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     (the checkpoint, the log, the model)."""
     final = run.model_path(phase.name)
     if final.is_file():
+        if world.writer:
+            _check_log(run, phase.first_epoch + phase.epochs)  # what _finish_phase and loss.png read
         return 0  # written once, after its last epoch: the phase is done (the record may lag after a kill)
     ckpt = run.checkpoint_path(phase.name)
     epochs_done, history = 0, []
@@ -357,6 +378,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     distributed.broadcast_weights(model, world)
     distributed.average_gradients(model, world)
     if world.writer:
+        _check_log(run, phase.first_epoch + epochs_done)
         _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
     train, val = _data(cfg, phase, paths, epochs_done, world)
