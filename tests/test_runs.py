@@ -214,3 +214,17 @@ def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path
     with pytest.raises(KpcnError) as err:
         train(tiny_config(shard_cfg), run_dir, verbose=0)
     assert "(model width 6, the run's 4)" in str(err.value), str(err.value)
+
+
+def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resampled_on(tmp_path):
+    # a kill between a round's two branch phases leaves the diffuse network a round ahead of the specular
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    record["resample"] = {"config": {}, "rounds": {"round-001": {"status": "training", "seconds": {}}}}
+    run.write_record(record)
+    with pytest.raises(KpcnError, match=r"resample round-001 is unfinished \(status 'training'\); "
+                                        r"'kpcn resample --run .*' with the options it was started with resumes it"):
+        Denoiser(run_dir)
+    assert Denoiser(run_dir, resampling=True).record == record  # the loop's own use, mid-round
