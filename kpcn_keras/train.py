@@ -417,6 +417,8 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
     record["components"].update(_components(cfg, phase))
     if not world.writer:
         return
+    # rank 0 only: another process may get here before rank 0 has written the file, and its copy of the
+    # record, without the checksum, has its networks checked by their names (Run.check_model)
     run.record_model(record, run.model_path(phase.name).name, phase.component)
     rows = [r for r in read_log(run.log_path)
             if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
