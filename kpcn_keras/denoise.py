@@ -46,15 +46,17 @@ class Denoiser:
 
     ``slope``: λ for a run trained with a slope input channel (required there, refused elsewhere).
     ``multiscale=False`` leaves a multiscale run's compositor out (the single-scale networks alone: the
-    "without" of a with/without comparison).
+    "without" of a with/without comparison). The run must be finished and its files the ones it wrote
+    (``Run.finished_record``, ``Run.load_component``); ``resampling``: the resample loop's own use, between
+    the phases of its current round.
     """
 
     def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE, *, slope: float | None = None,
-                 multiscale: bool = True):
+                 multiscale: bool = True, resampling: bool = False):
         if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
             raise OptionError("tile", f"must be an integer >= 1 (pixels), got {tile!r}")
         self.run = Run(run_dir)
-        self.record = self.run.read_record()
+        self.record = self.run.finished_record(resampling=resampling)
         self.model_config = self.run.model_config(self.record)
         if self.model_config.slope_channel and slope is None:
             raise OptionError("slope", f"is needed: {self.run.dir} was trained with λ as an input, for λ in "

@@ -114,13 +114,9 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
     if keras.backend.backend() != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
     run = Run(run_dir)
-    record = run.read_record()
+    record = run.finished_record(resampling=True)
     train_cfg = run.train_config(record)
     base = base_phases(train_cfg)
-    unfinished = [p.name for p in base if record["phases"].get(p.name, {}).get("status") != "done"]
-    if unfinished:
-        raise KpcnError(f"{run.dir}: training has not finished ({', '.join(unfinished)}); run 'kpcn train' "
-                        "with the same options first")
     sset = run.shard_set(record)
     manifest, _ = check_inputs(train_cfg, sset)
     if manifest["content_key"] != record["shards"]["content_key"]:
@@ -168,7 +164,7 @@ def _scores(run, frames: list[dict]) -> dict:
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import frame_scores
 
-    denoiser = Denoiser(run.dir)
+    denoiser = Denoiser(run.dir, resampling=True)
     scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
     return {"relmse": scores["relmse"], "dssim": scores["dssim"], "frames": scores["frames"]}
 
@@ -184,7 +180,7 @@ def _new_patches(run, record: dict, sset: ShardSet, cfg: ResampleConfig, k: int,
     if patches_per_image:
         denoise = None
         if cfg.error_weight > 0:
-            denoiser = Denoiser(run.dir)
+            denoiser = Denoiser(run.dir, resampling=True)
             denoise = lambda aovs: denoiser(aovs)["default"]  # noqa: E731
         model = _model_provenance(run, record) if cfg.error_weight > 0 else {}
         rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric, model, command=command)

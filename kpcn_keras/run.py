@@ -23,6 +23,15 @@ parts of one model, so its file holds both): :meth:`Run.load_component` is how a
 The record stores the shard set's folder relative to the run folder, and no field names the run itself,
 so a run folder can be renamed or used from any working directory.
 
+**What a reader gets is what training wrote.** The record's ``models`` maps every finished phase file to its
+SHA-256 and the network it was trained as (:meth:`Run.record_model`); each network inside a file also carries
+its role as its model name (``diffuse``, ``specular``, ``shared``, ``compositor``: ``models.build_branch_model``
+names every layer after it). Every reader of a run's networks (denoise, evaluate, figures, compare, bench,
+resample) opens the record with :meth:`Run.finished_record` (refused while a phase or a resample round is
+unfinished, naming it and the command that resumes it) and reads each network with :meth:`Run.load_component`
+(refused when the file's checksum is not the recorded one, or the network in it is another branch's). A run
+written before the record held checksums has no ``models``: it still loads, checked by the model names alone.
+
 ``.keras`` files are written by :func:`save_model` through ``prep.files.atomic_path`` and made canonical:
 fixed zip timestamps and no save date, so the same weights give the same bytes (checksums of models mean
 something), and a checkpoint carries its training state (epochs done, model configuration, history) as one
@@ -42,7 +51,7 @@ import keras
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.models import ModelConfig, build_branch_model
 from prep.errors import KpcnError
-from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries
+from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
 from prep.shards import ShardSet
 
 RECORD = "config.json"
@@ -129,6 +138,8 @@ class Run:
             record["shards"]["set_dir"]
             for entry in record["components"].values():
                 entry["file"]
+            for entry in record.get("models", {}).values():
+                entry["sha256"], entry["network"]
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise KpcnError(f"{self.record_path}: the run record is damaged ({type(exc).__name__}: {exc})") from None
         return record
@@ -151,17 +162,65 @@ class Run:
     def relative(self, path: str | os.PathLike) -> str:
         return os.path.relpath(os.path.abspath(path), os.path.abspath(self.dir))
 
+    def finished_record(self, *, resampling: bool = False) -> dict:
+        """The record of a run whose networks may be used: KpcnError naming the first phase that is not done
+        (its status, and that ``kpcn train`` resumes it), or the first unfinished resample round (a kill
+        between its two branch phases leaves one network a round ahead), unless ``resampling`` (the loop's
+        own use, between the phases of the round it is training)."""
+        record = self.read_record()
+        for name, plan in record["phases"].items():
+            if plan.get("status") != "done":
+                raise KpcnError(
+                    f"{self.record_path}: the {name} phase is unfinished (status {plan.get('status')!r}); "
+                    f"'kpcn train --run {self.dir}' with the options it was started with resumes it "
+                    f"({record.get('command', 'kpcn train')})")
+        rounds = record.get("resample", {}).get("rounds", {})
+        for name, entry in rounds.items() if not resampling else ():
+            if entry.get("status") != "done":
+                raise KpcnError(
+                    f"{self.record_path}: resample {name} is unfinished (status {entry.get('status')!r}); "
+                    f"'kpcn resample --run {self.dir}' with the options it was started with resumes it")
+        return record
+
+    def record_model(self, record: dict, file: str, network: str) -> None:
+        """Note in ``record`` the model file ``file`` (relative to the run folder) that the run wrote: its
+        SHA-256 and the network it was trained as, what :meth:`load_component` checks it against."""
+        record.setdefault("models", {})[file] = {"network": network, "sha256": sha256_file(self.dir / file)}
+
     def load_component(self, record: dict, name: str, *, compile: bool = False) -> keras.Model:
         """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``compositor``) of the run,
-        read from the phase file the record names; KpcnError if the run has not trained it."""
+        read from the phase file the record names; KpcnError if the run has not trained it, if the file is
+        not the one the record lists (SHA-256), or if the network in it was trained for another branch."""
         entry = record["components"].get(name)
         if entry is None:
             trained = ", ".join(sorted(record["components"])) or "none yet"
             raise KpcnError(f"{self.dir}: the run has no finished {name} network (finished: {trained})")
-        model = load_model(self.dir / entry["file"], compile=compile)
-        for name in entry.get("layers", []):
-            model = model.get_layer(name)
+        path = self.dir / entry["file"]
+        model = load_model(path, compile=compile)
+        for layer in entry.get("layers", []):
+            try:
+                model = model.get_layer(layer)
+            except ValueError:
+                raise KpcnError(f"{path}: holds no {layer} network (it holds the model {model.name!r}); "
+                                f"not the file the run wrote") from None
+        self.check_model(record, entry["file"], model, name)
         return model
+
+    def check_model(self, record: dict, file: str, model: keras.Model, network: str) -> None:
+        """KpcnError naming the run's model file ``file`` unless ``model`` (read from it) is the ``network``
+        the run needs there and the file has the SHA-256 the record lists (a record without one, of a run
+        written before records held them, is checked by the network's name alone)."""
+        path = self.dir / file
+        if model.name != network:
+            raise KpcnError(f"{path}: holds a {model.name} network where the run needs its {network} network "
+                            f"(a copy of another phase's file?); restore the run's own file or train it again")
+        listed = record.get("models", {}).get(file)
+        if listed is not None:
+            found = sha256_file(path)
+            if found != listed["sha256"]:
+                raise KpcnError(f"{path}: not the file this run wrote (SHA-256 {found[:12]}…, the record "
+                                f"{self.record_path} lists {listed['sha256'][:12]}…); restore it or train "
+                                "the run again")
 
     def fork(self, dest: str | os.PathLike, sset: ShardSet | None = None) -> "Run":
         """A copy of this run in ``dest`` (so that two experiments can continue it apart), trained on ``sset``

@@ -20,14 +20,16 @@ checkpoint; the CSV log numbers epochs across phases, so it and ``loss.png`` sho
 record (``config.json``) lists every phase with its epochs and the components it produced. The run folder's
 layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 
-- **Inputs first, record second.** The shard set must be complete and every shard's SHA-256 must match
-  its manifest, the options must fit the data, and the run folder must be writable, before
-  ``config.json`` is written; a command refused for bad input leaves no run behind.
+- **Inputs first, record second.** The shard set must be complete, every shard's checksum must match
+  its manifest and the manifest's claims (patch size, counts, configuration) what the shards hold, every
+  source render still present must have the SHA-256 the manifest lists (``ShardSet.check_renders``), the
+  options must fit the data, and the run folder must be writable, before ``config.json`` is written; a
+  command refused for bad input leaves no run behind.
 - **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
   command again continues from the first unfinished phase and ends with the same bytes as an uninterrupted
-  run (the CSV log is cut back to the checkpoint's epochs).
+  run (the CSV log is cut back to the checkpoint's epochs; one holding fewer, emptied or cut, is refused).
 - **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
   another architecture under an existing run is an error that says which.
 - **Divergence stops at the batch** (Keras's ``TerminateOnNaN(raise_error=True)``); the last good
@@ -72,7 +74,9 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
     """The compiled model ``phase`` starts from: the finished phase it continues, or a new model built from
     the components earlier phases finished."""
     if phase.continues:
-        return load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
+        model = load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
+        run.check_model(record, run.model_path(phase.continues).name, model, phase.component)
+        return model
     model = _new_model(cfg, run, record, phase)
     _compile(model, cfg, phase)
     return model
@@ -188,6 +192,22 @@ def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]
             "history": history}
 
 
+def _checkpoint_differences(state: dict, cfg: TrainConfig, phase: Phase) -> list[str]:
+    """What a checkpoint's training state says that ``phase`` of the run ``cfg`` does not, one item per
+    difference, each with both values: the phase, each model setting, and else the training options (a
+    checkpoint stores their hash, which covers the model)."""
+    differ = []
+    if state.get("phase", phase.name) != phase.name:
+        differ.append(f"it is the {state['phase']} phase's, this is the {phase.name} phase's")
+    model = state.get("model") if isinstance(state.get("model"), dict) else {}
+    differ += [f"model {k} {model.get(k)!r}, the run's {cfg.model.get(k)!r}"
+               for k in sorted(set(model) | set(cfg.model)) if model.get(k) != cfg.model.get(k)]
+    if not differ and state.get("train") != _identity_key(cfg):  # the hash covers the model too
+        differ.append(f"training options of hash {state.get('train')}, the run's {_identity_key(cfg)} (a "
+                      "checkpoint of another run)")
+    return differ
+
+
 def _identity_key(cfg: TrainConfig) -> str:
     return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
 
@@ -201,6 +221,7 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
         raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
     entries = {split: sset.verified_shards(split, manifest, rounds=[0]) for split in ("train", "val")}
+    sset.check_renders(manifest)
     paths = {split: [e.path for e in found] for split, found in entries.items()}
     patches = sum(e.patches for e in entries["train"])
     if patches < cfg.batch_size:
@@ -254,6 +275,25 @@ def _phase_plan(phase: Phase) -> dict:
     if phase.continues:
         plan.update(continues=phase.continues, rounds=phase.rounds)
     return plan
+
+
+def _check_log(run: Run, epochs: int) -> None:
+    """KpcnError naming the CSV log unless it holds the run's first ``epochs`` epochs (what the checkpoint and
+    the finished phases say were trained), numbered in order, each row whole: resuming on a log that was
+    emptied, cut or torn would lose those epochs from it and from ``loss.png`` for good. Refused rather than
+    rebuilt: the log is kept as Keras wrote it, and a rebuilt one could only claim to be that."""
+    try:
+        rows = read_log(run.log_path)
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise KpcnError(f"{run.log_path}: unreadable training log ({type(exc).__name__}: {exc})") from None
+    bad = next((i for i, row in enumerate(rows[:epochs])
+                if row.get("epoch") != str(i) or None in row or any(v in (None, "") for v in row.values())), None)
+    if len(rows) < epochs or bad is not None:
+        found = f"{len(rows)} epochs" if bad is None else f"a damaged row for epoch {bad}"
+        raise KpcnError(
+            f"{run.log_path}: holds {found} where the run has trained {epochs} (it was emptied, cut or edited); "
+            f"resuming would lose them from the log and loss.png. Restore it, or train again under another --run"
+        )
 
 
 def _cut_log(path: Path, rows: int) -> None:
@@ -310,6 +350,8 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     (the checkpoint, the log, the model)."""
     final = run.model_path(phase.name)
     if final.is_file():
+        if world.writer:
+            _check_log(run, phase.first_epoch + phase.epochs)  # what _finish_phase and loss.png read
         return 0  # written once, after its last epoch: the phase is done (the record may lag after a kill)
     ckpt = run.checkpoint_path(phase.name)
     epochs_done, history = 0, []
@@ -318,11 +360,11 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         if state is None or "epochs_done" not in state:
             raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the "
                             f"{phase.name} phase")
-        if (state.get("model") != cfg.model or state.get("train") != _identity_key(cfg)
-                or state.get("phase", phase.name) != phase.name):
+        differ = _checkpoint_differences(state, cfg, phase)
+        if differ:
             raise KpcnError(
-                f"{ckpt}: checkpoint of another configuration (model {state.get('model')}); the run asks for "
-                f"{cfg.model}. Remove the checkpoint to restart the {phase.name} phase, or choose another --run"
+                f"{ckpt}: checkpoint of another configuration ({'; '.join(differ)}). Remove the checkpoint to "
+                f"restart the {phase.name} phase, or choose another --run"
             )
         model = load_model(ckpt)
         if not phase.trains_on_final_colour:
@@ -336,6 +378,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     distributed.broadcast_weights(model, world)
     distributed.average_gradients(model, world)
     if world.writer:
+        _check_log(run, phase.first_epoch + epochs_done)
         _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
     train, val = _data(cfg, phase, paths, epochs_done, world)
@@ -374,6 +417,9 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
     record["components"].update(_components(cfg, phase))
     if not world.writer:
         return
+    # rank 0 only: another process may get here before rank 0 has written the file, and its copy of the
+    # record, without the checksum, has its networks checked by their names (Run.check_model)
+    run.record_model(record, run.model_path(phase.name).name, phase.component)
     rows = [r for r in read_log(run.log_path)
             if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
     record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}

@@ -50,7 +50,8 @@ Guarantees, by construction:
 - **Nothing half-done is taken for done.** Shards are written with ``prep.files.atomic_path`` and marked
   ``complete`` inside; the manifest is rewritten after every shard with ``status: "building"`` and marked
   ``"complete"`` last. Readers (:meth:`ShardSet.verified_shards`) accept only a complete manifest and shards
-  whose checksum matches it (:data:`SHARD_CHECKSUMS`). That check, not an fsync, is what makes a shard safe
+  whose checksum matches it (:data:`SHARD_CHECKSUMS`), and whose attributes and shapes say what the manifest
+  says of them (patch size, patch count, configuration, content key): a hand-edited manifest is refused. That check, not an fsync, is what makes a shard safe
   against a power cut (:func:`write_shard`).
 - **One writer per set, or per part.** ``build_shards`` holds the set's lock; a second one waits, then
   finds the work done. Split in parts (``build_shards(part=)``), each part holds its own lock while it
@@ -385,7 +386,60 @@ class ShardSet:
                     f"{entry.path}: its checksum ({entry.checksum[0]}) differs from the one in {self.manifest_path} (the file changed "
                     "after it was written); run 'kpcn shards' again to rebuild it"
                 )
+            self._check_claims(manifest, entry)
         return entries
+
+    def check_renders(self, manifest: dict) -> None:
+        """ShardError naming the first source render that is where the manifest says but no longer has the
+        SHA-256 it lists (a render replaced since the set was cut: the shards are stale). A render that is not
+        there is not an error: a set can be moved or copied without its renders, and is then trusted as it
+        is. Every present render is hashed, every time: for the default set's 195 MB of renders that is a second at
+        most, less than ``kpcn train`` spends importing torch, and a size-and-mtime shortcut would need a record
+        kept beside a set that may be read-only, or moved with new mtimes."""
+        for source in manifest["sources"]:
+            path = self.resolve(source["path"])
+            if path.is_file() and sha256_file(path) != source["sha256"]:
+                config = manifest.get("config", {})
+                raise ShardError(
+                    f"{path}: changed since the shard set {self.dir} was cut from it (its SHA-256 is not the one "
+                    f"{self.manifest_path} lists); 'kpcn shards --set {config.get('set_name', self.dir.name)}' "
+                    f"with the set's options rebuilds the set ({config.get('command') or 'kpcn shards'})"
+                )
+
+    def _check_claims(self, manifest: dict, entry: ShardEntry) -> None:
+        """ShardError naming the manifest and its field unless what it says of ``entry`` (a shard whose checksum
+        matched: its own attributes and shapes are what was written) is what the shard holds: the patch size,
+        the shard's patch count, the configuration and its hash, the features and the content key (which
+        covers the sources' patch counts and checksums, recomputed from the manifest's lists)."""
+        try:
+            with open_shard(entry.path) as f:
+                found = {"patch_size": int(f.attrs["patch_size"]), "shape": f["diffuse/features"].shape[1:3],
+                         "patches": len(f["source"]), "config": json.loads(f.attrs["config"]),
+                         "config_hash": f.attrs["config_hash"], "content_key": f.attrs["content_key"],
+                         "features": json.loads(f.attrs["features"])}
+        except (KeyError, OSError, ValueError) as exc:
+            raise ShardError(f"{entry.path}: damaged shard attributes ({type(exc).__name__}: {exc})") from None
+        config = manifest.get("config", {})
+        size = manifest.get("patch_size")
+        claims = [("patch_size", size, found["patch_size"]),
+                  ("patch_size", (size, size), tuple(int(n) for n in found["shape"])),
+                  (f"patches of {self.relative(entry.path)}", entry.patches, found["patches"]),
+                  *((f"config.{k}", config.get(k), v) for k, v in found["config"].items()
+                    if k not in ("command", "out_root", "render_root")),
+                  ("config_hash", manifest.get("config_hash"), found["config_hash"]),
+                  ("features", manifest.get("features"), found["features"]),
+                  ("content_key", manifest.get("content_key"), found["content_key"])]
+        try:
+            key = content_key(manifest["config_hash"], manifest["sources"])
+        except (KeyError, TypeError) as exc:
+            key = f"none ({type(exc).__name__}: {exc})"
+        claims.append(("sources (their patches and checksums)", key, found["content_key"]))
+        for field_name, claimed, held in claims:
+            if claimed != held:
+                raise ShardError(
+                    f"{self.manifest_path}: its {field_name} ({claimed!r}) is not what {entry.path.name} of "
+                    f"{entry.round} holds ({held!r}): the manifest was edited; run 'kpcn shards' again to rewrite it"
+                )
 
     def fork(self, dest: str | os.PathLike, rounds=(0,)) -> "ShardSet":
         """A new set in ``dest`` holding ``rounds`` of this complete set (hard links where the file system allows,
@@ -782,9 +836,15 @@ def _plan(config: ShardConfig, sset: ShardSet) -> _Plan:
                 streams.append((split_name, len(sources), config.patches_per_image))
                 sources.append(_source_record(sset, src, "input", split_name, config.patches_per_image))
     config_hash = config.content_hash()
-    identity = [{k: s[k] for k in ("scene", "spp", "role", "split", "sha256", "patches")} for s in sources]
-    key = hashlib.sha256(json.dumps([FORMAT, config_hash, identity], sort_keys=True).encode()).hexdigest()[:16]
+    key = content_key(config_hash, sources)
     return _Plan(config_hash, key, split, sources, _shard_specs(streams, config.patches_per_shard))
+
+
+def content_key(config_hash: str, sources: list[dict]) -> str:
+    """The set's content key: its format, configuration and every source's identity (what, where in the
+    split, with how many patches, and the render's SHA-256) hashed together."""
+    identity = [{k: s[k] for k in ("scene", "spp", "role", "split", "sha256", "patches")} for s in sources]
+    return hashlib.sha256(json.dumps([FORMAT, config_hash, identity], sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _source_record(sset: ShardSet, src: Source, role: str, split: str, patches: int) -> dict:

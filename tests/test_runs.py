@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from kpcn_keras.denoise import Denoiser
+from kpcn_keras.evaluate import evaluate
 from kpcn_keras.run import Run, load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep import exr
@@ -128,3 +130,101 @@ def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path,
     assert_one_line_error(res, which)
     assert "File not found" not in res.stderr
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
+
+
+BOTH = ("diffuse", "specular")
+
+
+def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_the_branch(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/specular.keras", "holds a diffuse network", "its specular network")
+    assert checksums(tmp_path) == before
+
+
+def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_path):
+    # the same branch, the same architecture, other weights: only the record's SHA-256 tells them apart
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    other = train(tiny_config(shard_cfg, branches=BOTH, seed=5), tmp_path / "runs" / "other", verbose=0)
+    assert Run(run_dir).read_record()["models"]["specular.keras"] == \
+        {"network": "specular", "sha256": checksums(run_dir)["specular.keras"]}
+    shutil.copyfile(other / "specular.keras", run_dir / "specular.keras")
+    with pytest.raises(KpcnError, match=r"specular\.keras: not the file this run wrote \(SHA-256 "
+                                        + checksums(other)["specular.keras"][:12]):
+        Denoiser(run_dir)
+
+
+def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_by_branch(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    del record["models"]
+    run.write_record(record)
+    aovs = random_aovs(8, 8)
+    assert np.isfinite(Denoiser(run_dir)(aovs)["default"]).all()
+    shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
+    with pytest.raises(KpcnError, match="specular.keras: holds a diffuse network"):
+        Denoiser(run_dir)
+
+
+@pytest.mark.parametrize("status", ["running", "pending"])
+def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_phase(tmp_path, status):
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    record["phases"]["specular"]["status"] = status
+    run.write_record(record)
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    before = checksums(tmp_path)
+    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "runs/r/config.json", f"specular phase is unfinished (status '{status}')",
+                          "'kpcn train --run runs/r'")
+    with pytest.raises(KpcnError, match="specular phase is unfinished"):
+        evaluate(run_dir)
+    assert checksums(tmp_path) == before
+
+
+def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_and_nothing_that_agrees(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = tiny_config(shard_cfg, branches=BOTH)
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    (run_dir / "specular.keras").unlink()  # so that training goes back to the specular checkpoint
+    shutil.copyfile(run_dir / "checkpoints" / "diffuse.keras", run_dir / "checkpoints" / "specular.keras")
+    with pytest.raises(KpcnError) as err:
+        train(cfg, run_dir, verbose=0)
+    message = str(err.value)
+    assert "checkpoints/specular.keras: checkpoint of another configuration (it is the diffuse phase's, this " \
+           "is the specular phase's)" in message
+    assert "model" not in message and "{" not in message, message  # no setting that agrees is printed
+    assert not (run_dir / "specular.keras").exists()
+
+
+def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
+    run_dir = tmp_path / "runs" / "r"
+    shutil.copytree(other / "checkpoints", run_dir / "checkpoints")
+    with pytest.raises(KpcnError) as err:
+        train(tiny_config(shard_cfg), run_dir, verbose=0)
+    assert "(model width 6, the run's 4)" in str(err.value), str(err.value)
+
+
+def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resampled_on(tmp_path):
+    # a kill between a round's two branch phases leaves the diffuse network a round ahead of the specular
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
+    run = Run(run_dir)
+    record = run.read_record()
+    record["resample"] = {"config": {}, "rounds": {"round-001": {"status": "training", "seconds": {}}}}
+    run.write_record(record)
+    with pytest.raises(KpcnError, match=r"resample round-001 is unfinished \(status 'training'\); "
+                                        r"'kpcn resample --run .*' with the options it was started with resumes it"):
+        Denoiser(run_dir)
+    assert Denoiser(run_dir, resampling=True).record == record  # the loop's own use, mid-round

@@ -3,6 +3,7 @@
 
 import json
 import pickle
+import re
 import shutil
 import subprocess
 import sys
@@ -234,3 +235,71 @@ def test_a_set_whose_manifest_is_not_complete_is_refused_by_readers(tmp_path, st
     (cfg.set_dir / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(KpcnError, match="status|not complete"):
         shards.shard_paths(cfg.set_dir, "train")
+
+
+def tiny_train(cfg, **kw):
+    from kpcn_keras.train import TrainConfig
+
+    values = dict(set_name=cfg.set_name, shards_root=cfg.out_root, model={"width": 4, "depth": 2, "kernel_size": 3},
+                  steps=2, steps_per_epoch=2, batch_size=2, val_batches=1, branches=("diffuse",))
+    return TrainConfig.from_preset("cpu", **{**values, **kw})
+
+
+def edit_manifest(set_dir, edit):
+    path = set_dir / "manifest.json"
+    manifest = json.loads(path.read_text())
+    edit(manifest)
+    path.write_text(json.dumps(manifest, indent=2))
+
+
+MANIFEST_EDITS = {
+    "patch_size": lambda m: m.update(patch_size=6),
+    "patches of round-000/shard-00001.h5": lambda m: m["rounds"]["round-000"]["shards"][1].update(patches=3),
+    "config.patches_per_image": lambda m: m["config"].update(patches_per_image=10),
+    "sources (their patches and checksums)": lambda m: m["sources"][1].update(patches=11),
+}
+
+
+@pytest.mark.parametrize("field", MANIFEST_EDITS)
+def test_a_hand_edited_manifest_is_refused_by_train_naming_the_field(tmp_path, field):
+    from kpcn_keras.train import train
+
+    make_renders(tmp_path / "renders" / "s")
+    cfg = config(tmp_path, patch_size=8, patches_per_image=12, patches_per_shard=2)
+    shards.build_shards(cfg, progress=False)
+    edit_manifest(cfg.set_dir, MANIFEST_EDITS[field])
+    before = checksums(tmp_path)
+    with pytest.raises(shards.ShardError, match=rf"manifest\.json: its {re.escape(field)} \("):
+        train(tiny_train(cfg), tmp_path / "runs" / "r", verbose=0)
+    assert checksums(tmp_path) == before
+
+
+def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_path):
+    make_renders(tmp_path / "renders" / "s")
+    assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
+    whole = checksums(tmp_path / "shards")
+    edit_manifest(tmp_path / "shards" / "s", MANIFEST_EDITS["patch_size"])
+    res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
+               "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
+    assert_one_line_error(res, "shards/s/manifest.json: its patch_size (6) is not what shard-00000.h5")
+    assert not (tmp_path / "runs").exists()
+    assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
+    assert checksums(tmp_path / "shards") == whole
+
+
+def test_a_render_replaced_since_the_set_was_cut_is_refused_by_train_and_a_set_without_renders_trains(tmp_path):
+    from kpcn_keras.train import train
+
+    root = make_renders(tmp_path / "renders" / "s")
+    cfg = config(tmp_path)
+    shards.build_shards(cfg, progress=False)
+    exr.write_aovs(root / "a-000-00004spp.exr", random_aovs(40, 44, seed=999))
+    before = checksums(tmp_path)
+    with pytest.raises(shards.ShardError) as err:
+        train(tiny_train(cfg), tmp_path / "runs" / "r", verbose=0)
+    assert "renders/s/a-000-00004spp.exr: changed since the shard set" in str(err.value)
+    assert "'kpcn shards --set s' with the set's options rebuilds the set" in str(err.value)
+    assert checksums(tmp_path) == before
+    shutil.move(tmp_path / "renders", tmp_path / "elsewhere")  # a set moved without its renders trains
+    run_dir = train(tiny_train(cfg), tmp_path / "runs" / "r", verbose=0)
+    assert (run_dir / "diffuse.keras").is_file()

@@ -10,7 +10,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import build_tiny_shards
+from conftest import build_tiny_shards, checksums
 from kpcn_keras.run import read_state
 from kpcn_keras.train import TrainConfig, train
 from prep.errors import KpcnError
@@ -111,3 +111,18 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
     train(cfg, run_dir, verbose=0)  # the same command again resumes
     for wa, wb in zip(weights(reference, "diffuse"), weights(run_dir, "diffuse")):
         np.testing.assert_array_equal(wa, wb)
+
+
+@pytest.mark.parametrize("damage", ["emptied", "cut to its first epochs", "torn in its last row"])
+def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_path, damage):
+    cfg = tiny_config(build_tiny_shards(tmp_path))
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    (run_dir / "specular.keras").unlink()  # a kill after the specular phase's last checkpoint: it resumes
+    log = run_dir / "log.csv"
+    text = log.read_bytes()
+    log.write_bytes({"emptied": b"", "cut to its first epochs": b"".join(text.splitlines(keepends=True)[:3]),
+                     "torn in its last row": text[: text.rindex(b",")]}[damage])
+    before = checksums(run_dir)
+    with pytest.raises(KpcnError, match=r"log\.csv: holds .* where the run has trained 6"):
+        train(cfg, run_dir, verbose=0)
+    assert checksums(run_dir) == before
