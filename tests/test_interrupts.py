@@ -42,8 +42,9 @@ RENDER = ["render", "--set", "t", "--out", "renders", "--families", "cornell,sph
           "--width", "48", "--height", "48", "--input-spp", "4", "--reference-spp", "512"]
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "48", "--patches-per-shard", "1", "--val-fraction", "0.5"]
-# 200 steps of 50 per epoch: 4 checkpoints per branch (the CLI has no --steps-per-epoch)
-TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "200", "--batch-size", "2",
+# 180 steps of 50 per epoch: 4 checkpoints per branch, the last after a shorter epoch of 30 steps (the CLI
+# has no --steps-per-epoch)
+TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "180", "--batch-size", "2",
          "--width", "4", "--depth", "2", "--kernel-size", "3"]
 
 STAGES = {

@@ -20,7 +20,7 @@ from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
 from kpcn_keras.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
-from kpcn_keras.run import Run
+from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import check_inputs, train
 from prep.errors import KpcnError
 from prep.shards import ErrorRound, ShardError, ShardSet, build_error_round
@@ -534,6 +534,24 @@ def test_resampling_a_folder_that_is_not_a_run_names_it(tmp_path):
     (tmp_path / "empty").mkdir()
     assert_one_line_error(kpcn("resample", "--run", tmp_path / "empty", cwd=tmp_path), str(tmp_path / "empty"),
                           "not a run")
+
+
+def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path):
+    """6 round steps at the base run's 4 per epoch: a shorter last epoch, so each network's optimizer has
+    taken the base run's steps and then exactly the round's, as the record says (not two whole epochs)."""
+    base = Run(tiny_run)
+    record = base.read_record()
+    run = base.fork(tmp_path / "runs" / "r", base.shard_set(record).fork(tmp_path / "shards" / "s"))
+    res = kpcn("resample", "--run", run.dir, "--rounds", "1", "--round-steps", "6", "--patches-per-image", "0",
+               "--error-weight", "0", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    base_steps = record["train"]["steps"]
+    assert (base_steps, record["train"]["steps_per_epoch"]) == (8, 4)
+    phases = run.read_record()["phases"]
+    for branch in ("diffuse", "specular"):
+        name = f"{branch}-round-001"
+        optimizer = load_model(run.dir / f"{name}.keras").optimizer
+        assert int(optimizer.iterations.numpy()) == base_steps + 6 == base_steps + phases[name]["steps"]
 
 
 @pytest.fixture(scope="module")
