@@ -32,6 +32,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import checksums_but_timings
+
 REPO = Path(__file__).resolve().parents[1]
 SEED = 5
 KILLS = 3  # kill points per stage; the last one kills twice
@@ -125,15 +127,6 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def compared_files(root: Path) -> dict[str, str]:
-    """relative path -> SHA-256 of every file under ``root`` but dot-files and timings.json."""
-    return {
-        p.relative_to(root).as_posix(): sha256(p)
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and not p.name.startswith(".") and p.name != "timings.json"
-    }
-
-
 def dot_files(root: Path) -> list[str]:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob(".*") if p.is_file())
 
@@ -160,7 +153,7 @@ def explain(a: Path, b: Path) -> str:
 
 
 def assert_same_tree(reference: Path, root: Path) -> None:
-    want, got = compared_files(reference), compared_files(root)
+    want, got = checksums_but_timings(reference), checksums_but_timings(root)
     missing, extra = sorted(set(want) - set(got)), sorted(set(got) - set(want))
     differ = sorted(k for k in set(want) & set(got) if want[k] != got[k])
     details = "\n".join(f"  {k}: {explain(reference / k, root / k)}" for k in differ)

@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, checksums, make_renders
+from tests.conftest import REPO, checksums_but_timings, make_renders
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]
@@ -106,11 +106,6 @@ def _fresh_copy(base: Path, tmp_path: Path) -> Path:
     return root
 
 
-def compared_files(root: Path) -> dict[str, str]:
-    """SHA-256 of every file of the tree but dot files and the timings files (seconds differ by design)."""
-    return {k: v for k, v in checksums(root).items() if Path(k).name != "timings.json"}
-
-
 def _assert_same_end(reference: Path, root: Path) -> None:
     want, got = patches(reference / "shards" / "t"), patches(root / "shards" / "t")
     assert sorted(got) == sorted(want) == ["round-000", "round-001", "round-002"]
@@ -125,7 +120,7 @@ def _assert_same_end(reference: Path, root: Path) -> None:
     assert [record["resample"]["rounds"][k]["status"] for k in ("round-001", "round-002")] == ["done", "done"]
     leftovers = [p for p in root.rglob(".*") if p.is_file() and p.name != ".lock"]
     assert leftovers == []
-    want, got = compared_files(reference), compared_files(root)
+    want, got = checksums_but_timings(reference), checksums_but_timings(root)
     differ = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
     assert not differ, f"files that differ from an uninterrupted loop's (or exist in one tree only): {differ}"
     for tree in (reference, root):  # the seconds are kept, apart: the run's per phase, the loop's per round
