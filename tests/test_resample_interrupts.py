@@ -123,9 +123,11 @@ def _assert_same_end(reference: Path, root: Path) -> None:
     want, got = checksums_but_timings(reference), checksums_but_timings(root)
     differ = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
     assert not differ, f"files that differ from an uninterrupted loop's (or exist in one tree only): {differ}"
-    for tree in (reference, root):  # the seconds are kept, apart: the run's per phase, the loop's per round
-        assert json.loads((tree / "runs" / "r" / "resample" / "timings.json").read_text()).keys() == \
-            {"before", "round-001", "round-002"}
+    # the seconds are kept apart: the run's per phase, the loop's per round (a kill between a record and its
+    # seconds loses those, as a kill during the work does: the rounds here were finished after the kill)
+    for tree, kept in ((reference, {"before"}), (root, set())):
+        loop = json.loads((tree / "runs" / "r" / "resample" / "timings.json").read_text())
+        assert kept | {"round-001", "round-002"} <= set(loop) <= {"before", "round-001", "round-002"}
         assert "specular-round-002" in json.loads((tree / "runs" / "r" / "timings.json").read_text())
 
 
