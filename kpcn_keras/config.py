@@ -220,7 +220,13 @@ class Phase:
 
     @property
     def epochs(self) -> int:
+        """Epochs of ``epoch_steps``, the last one shorter where ``steps`` is not a multiple: a phase trains
+        exactly its ``steps`` (and its learning-rate schedule spans those)."""
         return math.ceil(self.steps / self.epoch_steps)
+
+    def epoch_length(self, i: int) -> int:
+        """Steps of the phase's epoch ``i`` (0-based, within the phase)."""
+        return min(self.epoch_steps, self.steps - i * self.epoch_steps)
 
     @property
     def trains_on_final_colour(self) -> bool:

@@ -16,7 +16,8 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
    ``evaluate`` and ``figures`` use the newest networks).
 3. **Measure.** Held-out relMSE and DSSIM (the set's validation frames, never resampled; the means and each
    frame's); one printed line;
-   the round's entry in the run record (``resample``) and in ``<run>/resample/rounds.json``, and
+   the round's entry in the run record (``resample``) and in ``<run>/resample/rounds.json``, its seconds
+   (error maps, shards, training, evaluation) in ``<run>/resample/timings.json``, and
    ``<run>/resample/round-<k>.png``: the map that drove the draw on one training render (the one with the
    largest mean) with the round's new patches drawn over it, beside the render with every round's patches.
 
@@ -24,7 +25,9 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
 shards are incomplete is finished from its plan (or drawn again if its plan was not written), a complete round
 is never rebuilt or duplicated, and training continues from the phase's checkpoint, ending with the weights an
 uninterrupted loop ends with. A rerun with more ``--rounds`` adds rounds; other settings are refused.
-Seconds are those of the session that did the work.
+Every wall-clock figure is in the timings files (the run's ``timings.json``, per phase, and the resample
+folder's, per round), so that a resumed loop ends with the bytes of an uninterrupted one in every other
+file (``tests/test_resample_interrupts.py``); a step's seconds are those of the sessions that finished it.
 
 Runs with joint fine-tuning or a compositor are refused: their final-colour phases would have to be redone
 after every round, which this loop does not do.
@@ -39,7 +42,7 @@ import numpy as np
 
 from kpcn_keras.config import Phase, ResampleConfig, TrainConfig
 from prep.errors import KpcnError
-from prep.files import atomic_write_json, check_writable, pyplot, save_png, sha256_file
+from prep.files import atomic_write_json, check_writable, pyplot, read_json, save_png, sha256_file
 from prep.shards import ErrorRound, ShardSet, build_error_round, round_name
 
 
@@ -104,7 +107,8 @@ def _check_loop(record: dict, cfg: ResampleConfig, run) -> dict:
 
 def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progress: bool = True, command: str = "",
              log=print) -> dict:
-    """Run (or resume) the loop on the finished run ``run_dir``; returns the record's ``resample`` entry."""
+    """Run (or resume) the loop on the finished run ``run_dir``; returns the record's ``resample`` entry with
+    the seconds of the run before the rounds and of each round joined in (:func:`with_seconds`)."""
     import keras
 
     from kpcn_keras.evaluate import held_out_frames
@@ -136,14 +140,15 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         if "before" not in loop:
             start = time.perf_counter()
             loop["before"] = {**_scores(run, frames), "steps": base[0].steps,
-                              "patches": sum(e.patches for e in sset.entries(manifest, "train", [0])),
-                              "seconds": {"evaluation": round(time.perf_counter() - start, 2)}}
+                              "patches": sum(e.patches for e in sset.entries(manifest, "train", [0]))}
+            seconds = time.perf_counter() - start
             run.write_record(record)
             _write_rounds(run, loop)
+            add_seconds(run, "before", {"evaluation": seconds})
         previous = loop["before"]
         for k in range(1, cfg.rounds + 1):
             name = round_name(k)
-            entry = loop["rounds"].setdefault(name, {"status": "shards", "seconds": {}})
+            entry = loop["rounds"].setdefault(name, {"status": "shards"})
             if entry["status"] != "done":
                 if entry["status"] == "shards":
                     _new_patches(run, record, sset, cfg, k, patches_per_image, command, progress)
@@ -151,12 +156,40 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
                 start = time.perf_counter()
                 entry.update(status="done", round=k, **_scores(run, frames), steps=cfg.round_steps,
                              total_steps=base[0].steps + k * cfg.round_steps, total_patches=total_patches)
-                entry["seconds"]["evaluation"] = round(time.perf_counter() - start, 2)
+                seconds = time.perf_counter() - start
                 run.write_record(record)
                 _write_rounds(run, loop)
-                log(round_line(name, entry, previous))
+                log(round_line(name, entry, previous, add_seconds(run, name, {"evaluation": seconds})))
             previous = entry
-    return loop
+    return with_seconds(loop, read_timings(run))
+
+
+def read_timings(run) -> dict:
+    """``<run>/resample/timings.json``: ``before`` and each round's name -> what -> seconds ({} before any)."""
+    path = run.resample_timings_path
+    return read_json(path, "resample timings") if path.is_file() else {}
+
+
+def add_seconds(run, key: str, seconds: dict) -> dict:
+    """Add ``seconds`` (error_maps, shards, training, evaluation -> s) to ``key``'s entry of the resample
+    timings (``before`` or a round's name), written after the record says the work is done: a kill in
+    between loses them, as a kill during the work does. Returns the entry."""
+    timings = read_timings(run)
+    entry = timings.setdefault(key, {})
+    for what, value in seconds.items():
+        entry[what] = round(entry.get(what, 0.0) + value, 2)
+    atomic_write_json(run.resample_timings_path, timings)
+    return entry
+
+
+def with_seconds(loop: dict, timings: dict) -> dict:
+    """A copy of the loop record with the seconds of ``before`` and of every round joined in as ``seconds``
+    (what the study's costs and reports read)."""
+    joined = {**loop, "rounds": {name: {**entry, "seconds": timings.get(name, {})}
+                                 for name, entry in loop["rounds"].items()}}
+    if "before" in loop:
+        joined["before"] = {**loop["before"], "seconds": timings.get("before", {})}
+    return joined
 
 
 def _scores(run, frames: list[dict]) -> dict:
@@ -176,7 +209,7 @@ def _new_patches(run, record: dict, sset: ShardSet, cfg: ResampleConfig, k: int,
     from kpcn_keras.denoise import Denoiser
 
     entry = record["resample"]["rounds"][round_name(k)]
-    patches = 0
+    patches, seconds = 0, {}
     if patches_per_image:
         denoise = None
         if cfg.error_weight > 0:
@@ -185,13 +218,13 @@ def _new_patches(run, record: dict, sset: ShardSet, cfg: ResampleConfig, k: int,
         model = _model_provenance(run, record) if cfg.error_weight > 0 else {}
         rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric, model, command=command)
         result = build_error_round(sset.dir, rnd, denoise, progress=progress)
-        for key, value in result.seconds.items():
-            entry["seconds"][key] = round(entry["seconds"].get(key, 0.0) + value, 2)
+        seconds = result.seconds
         if result.figure:
             entry["png"] = run.relative(round_png(run, sset, result, k, cfg))
         patches = result.patches
     entry.update(status="training", patches=patches)
     run.write_record(record)
+    add_seconds(run, round_name(k), seconds)
 
 
 def _train_round(run, record: dict, sset: ShardSet, train_cfg: TrainConfig, cfg: ResampleConfig, k: int,
@@ -206,10 +239,9 @@ def _train_round(run, record: dict, sset: ShardSet, train_cfg: TrainConfig, cfg:
     paths = {"train": [e.path for e in train_entries],
              "val": [e.path for e in sset.verified_shards("val", manifest, rounds=[0])],
              "train_weights": round_weights(train_entries, k, cfg.round_decay)}
-    seconds = record["resample"]["rounds"][round_name(k)]["seconds"]
     for phase in round_phases(train_cfg, cfg, k, rounds[-1]):
         elapsed = run_phase(train_cfg, run, record, phase, paths, verbose=verbose)
-        seconds["training"] = round(seconds.get("training", 0.0) + elapsed, 2)
+        add_seconds(run, round_name(k), {"training": elapsed})
     return sum(e.patches for e in train_entries)
 
 
@@ -218,9 +250,8 @@ def _write_rounds(run, loop: dict) -> None:
     atomic_write_json(run.resample_record_path, loop)
 
 
-def round_line(name: str, entry: dict, previous: dict) -> str:
-    """The one line printed per round."""
-    s = entry["seconds"]
+def round_line(name: str, entry: dict, previous: dict, s: dict) -> str:
+    """The one line printed per round; ``s``: its seconds (:func:`add_seconds`)."""
     return (f"[{name}] +{entry['patches']} patches ({entry['total_patches']} in all), {entry['steps']} steps per "
             f"network ({entry['total_steps']} in all): held-out relMSE {previous['relmse']:.4f} → "
             f"{entry['relmse']:.4f}, DSSIM {previous['dssim']:.4f} → {entry['dssim']:.4f}; error maps "

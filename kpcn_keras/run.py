@@ -4,7 +4,8 @@
 
     <run>/config.json                 the run record: training config, shard set, versions, command, phases,
                                       components, results
-    <run>/timings.json                seconds per phase (the one file that differs between identical runs)
+    <run>/timings.json                seconds per phase (with resample/timings.json, the only files that differ
+                                      between identical runs)
     <run>/<phase>.keras               what a finished training phase trained (one file per phase)
     <run>/checkpoints/<phase>.keras   the phase being trained, with its optimizer and training state
     <run>/log.csv                     loss and validation loss per epoch, every phase in one numbering
@@ -12,6 +13,7 @@
     <run>/eval/                       ``kpcn evaluate``'s report
     <run>/figures/                    ``kpcn figures``' PNGs
     <run>/resample/rounds.json        ``kpcn resample``: one record per error round (and the run before them)
+    <run>/resample/timings.json       seconds per error round (and the run before them)
     <run>/resample/round-<k>.png      the map that drove round k's draw on one training render, its new patches
     <run>/.lock                       held by the one process that trains into the run
 
@@ -55,6 +57,7 @@ from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json
 from prep.shards import ShardSet
 
 RECORD = "config.json"
+TIMINGS = "timings.json"  # the seconds of a folder: the one file whose bytes differ between identical runs
 STATE_ENTRY = "kpcn-state.json"
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
@@ -74,7 +77,7 @@ class Run:
 
     @property
     def timings_path(self) -> Path:
-        return self.dir / "timings.json"
+        return self.dir / TIMINGS
 
     @property
     def eval_dir(self) -> Path:
@@ -91,6 +94,10 @@ class Run:
     @property
     def resample_record_path(self) -> Path:
         return self.resample_dir / "rounds.json"
+
+    @property
+    def resample_timings_path(self) -> Path:
+        return self.resample_dir / TIMINGS
 
     def resample_png(self, round_name: str) -> Path:
         return self.resample_dir / f"{round_name}.png"

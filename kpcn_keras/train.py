@@ -25,6 +25,9 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   source render still present must have the SHA-256 the manifest lists (``ShardSet.check_renders``), the
   options must fit the data, and the run folder must be writable, before ``config.json`` is written; a
   command refused for bad input leaves no run behind.
+- **Exactly the steps asked.** A phase's epochs are ``steps_per_epoch`` steps (``Phase.epoch_steps``), the
+  last one shorter where the phase's steps are not a multiple of it, so its optimizer, and with it the
+  learning-rate schedule, takes exactly the steps the record gives.
 - **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
@@ -135,8 +138,9 @@ def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
     model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
 
 
-def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int, world: distributed.World):
-    """The training and validation streams of ``phase``, the training one ``epochs_done`` epochs in.
+def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, world: distributed.World):
+    """The training and validation streams of ``phase``'s epochs ``start`` to ``end`` (excluded; the
+    training stream starts ``start`` epochs in and serves exactly their steps).
     ``paths``: split -> shard paths, and optionally ``train_weights``, one per training shard. Over several
     processes the training stream is this process's slice of each batch (``cfg.batch_size`` is the global
     batch); validation is read whole by each."""
@@ -145,8 +149,8 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, epochs_done: int, world: 
     common = dict(source=source, batch_size=cfg.batch_size, model=ModelConfig.from_dict(cfg.model),
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range)
-    train = ShardPatches(paths["train"], steps=(phase.epochs - epochs_done) * phase.epoch_steps,
-                         seed=cfg.seed, offset=epochs_done * phase.epoch_steps, augment=cfg.augment,
+    train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
+                         seed=cfg.seed, offset=start * phase.epoch_steps, augment=cfg.augment,
                          weights=paths.get("train_weights"), rank=world.rank, world=world.size,
                          **{**common, "batch_size": cfg.batch_size // world.size})
     val = None
@@ -381,7 +385,6 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _check_log(run, phase.first_epoch + epochs_done)
         _cut_log(run.log_path, phase.first_epoch + epochs_done)
 
-    train, val = _data(cfg, phase, paths, epochs_done, world)
     writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True), _Checkpoint(ckpt, cfg, phase, history)]
     callbacks = [
         _MeanOverProcesses(world),
@@ -389,12 +392,18 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         *(writes if world.writer else []),
         *callbacks,
     ]
-    if epochs_done < phase.epochs:
+    # Keras's fit gives every epoch the same steps: the whole epochs are one fit, a shorter last epoch
+    # (what is left of the phase's steps) another, so the optimizer takes exactly ``phase.steps`` steps
+    whole = phase.steps // phase.epoch_steps
+    for start, end in ((epochs_done, whole), (max(epochs_done, whole), phase.epochs)):
+        if start >= end:
+            continue
+        train, val = _data(cfg, phase, paths, start, end, world)
         try:
             # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
             # across epochs only without its own shuffling (and with one worker), which makes resume exact
-            model.fit(train, epochs=phase.first_epoch + phase.epochs, initial_epoch=phase.first_epoch + epochs_done,
-                      steps_per_epoch=phase.epoch_steps, validation_data=val, callbacks=callbacks,
+            model.fit(train, epochs=phase.first_epoch + end, initial_epoch=phase.first_epoch + start,
+                      steps_per_epoch=phase.epoch_length(start), validation_data=val, callbacks=callbacks,
                       verbose=verbose if world.writer else 0, shuffle=False)
         except RuntimeError as exc:
             if "NaN or Inf loss" not in str(exc):
@@ -405,7 +414,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
             ) from None
     if world.writer:
         save_model(model, final)
-    return max(phase.epochs - epochs_done, 0) * phase.epoch_steps
+    return sum(phase.epoch_length(i) for i in range(epochs_done, phase.epochs))
 
 
 def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float,

@@ -189,3 +189,9 @@ def checksums(root: Path) -> dict[str, str]:
     """SHA-256 of every file under ``root`` but dot files (locks, temporaries), by path relative to it."""
     return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(Path(root).rglob("*")) if p.is_file() and not p.name.startswith(".")}
+
+
+def checksums_but_timings(root: Path) -> dict[str, str]:
+    """:func:`checksums` but the timings files (``timings.json``, one per folder that keeps seconds): what a
+    resumed command must leave byte-identical to an uninterrupted one."""
+    return {k: v for k, v in checksums(root).items() if Path(k).name != "timings.json"}

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import checksums_but_timings
+
 REPO = Path(__file__).resolve().parents[1]
 SEED = 5
 KILLS = 3  # kill points per stage; the last one kills twice
@@ -42,8 +44,9 @@ RENDER = ["render", "--set", "t", "--out", "renders", "--families", "cornell,sph
           "--width", "48", "--height", "48", "--input-spp", "4", "--reference-spp", "512"]
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "48", "--patches-per-shard", "1", "--val-fraction", "0.5"]
-# 200 steps of 50 per epoch: 4 checkpoints per branch (the CLI has no --steps-per-epoch)
-TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "200", "--batch-size", "2",
+# 180 steps of 50 per epoch: 4 checkpoints per branch, the last after a shorter epoch of 30 steps (the CLI
+# has no --steps-per-epoch)
+TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "180", "--batch-size", "2",
          "--width", "4", "--depth", "2", "--kernel-size", "3"]
 
 STAGES = {
@@ -124,15 +127,6 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def compared_files(root: Path) -> dict[str, str]:
-    """relative path -> SHA-256 of every file under ``root`` but dot-files and timings.json."""
-    return {
-        p.relative_to(root).as_posix(): sha256(p)
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and not p.name.startswith(".") and p.name != "timings.json"
-    }
-
-
 def dot_files(root: Path) -> list[str]:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob(".*") if p.is_file())
 
@@ -159,7 +153,7 @@ def explain(a: Path, b: Path) -> str:
 
 
 def assert_same_tree(reference: Path, root: Path) -> None:
-    want, got = compared_files(reference), compared_files(root)
+    want, got = checksums_but_timings(reference), checksums_but_timings(root)
     missing, extra = sorted(set(want) - set(got)), sorted(set(got) - set(want))
     differ = sorted(k for k in set(want) & set(got) if want[k] != got[k])
     details = "\n".join(f"  {k}: {explain(reference / k, root / k)}" for k in differ)

@@ -20,7 +20,7 @@ from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
 from kpcn_keras.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
-from kpcn_keras.run import Run
+from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import check_inputs, train
 from prep.errors import KpcnError
 from prep.shards import ErrorRound, ShardError, ShardSet, build_error_round
@@ -372,6 +372,11 @@ def rounds_json(root: Path, seed: int, arm: str) -> dict:
     return json.loads((arm_run(root, seed, arm).dir / "resample" / "rounds.json").read_text())
 
 
+def timings_json(root: Path, seed: int, arm: str) -> dict:
+    """The arm's seconds: ``before`` and each round -> error_maps, shards, training, evaluation."""
+    return json.loads((arm_run(root, seed, arm).dir / "resample" / "timings.json").read_text())
+
+
 @pytest.mark.slow
 def test_the_study_reports_every_arm_of_every_seed_at_equal_steps(study):
     root, record = study["root"], study["record"]
@@ -408,23 +413,22 @@ def test_the_study_reports_every_arm_of_every_seed_at_equal_steps(study):
     assert pair["differences"] == pytest.approx(want, abs=1e-12)
 
 
-def cost_curve(loop: dict) -> tuple[np.ndarray, np.ndarray]:
+def cost_curve(loop: dict, timings: dict) -> tuple[np.ndarray, np.ndarray]:
     """(cumulative seconds of error maps, shards and training; relMSE) before and after each finished round."""
-    done = [loop["rounds"][k] for k in sorted(loop["rounds"]) if loop["rounds"][k]["status"] == "done"]
-    cost = np.cumsum([0.0] + [sum(e["seconds"].get(k, 0.0) for k in ("error_maps", "shards", "training"))
-                              for e in done])
-    return cost, np.array([loop["before"]["relmse"]] + [e["relmse"] for e in done], np.float64)
+    done = [k for k in sorted(loop["rounds"]) if loop["rounds"][k]["status"] == "done"]
+    cost = np.cumsum([0.0] + [sum(timings[k].get(what, 0.0) for what in ("error_maps", "shards", "training"))
+                              for k in done])
+    return cost, np.array([loop["before"]["relmse"]] + [loop["rounds"][k]["relmse"] for k in done], np.float64)
 
 
 @pytest.mark.slow
 def test_the_study_compares_arms_at_the_costliest_arms_time(study):
     root, record = study["root"], study["record"]
     for i, seed in enumerate((0, 1)):
-        loops = {arm: rounds_json(root, seed, arm) for arm in ARMS}
-        budget = max(cost_curve(loop)[0][ROUNDS] for loop in loops.values())
+        curves = {arm: cost_curve(rounds_json(root, seed, arm), timings_json(root, seed, arm)) for arm in ARMS}
+        budget = max(cost[ROUNDS] for cost, _ in curves.values())
         assert record["seeds"][str(seed)]["budget_seconds"] == pytest.approx(budget, abs=1e-9)
-        for arm, loop in loops.items():
-            cost, relmse = cost_curve(loop)
+        for arm, (cost, relmse) in curves.items():
             want = np.interp(budget, cost, relmse) if budget <= cost[-1] + 1e-9 else math.nan
             got = record["summary"]["table"][arm]["relmse"]["equal_time"][i]
             assert (math.isnan(want) and math.isnan(got)) or got == pytest.approx(want, rel=1e-12), (seed, arm)
@@ -492,7 +496,10 @@ def test_running_the_study_again_reuses_everything(study):
     for seed, found in again["seeds"].items():
         assert found["budget_seconds"] == study["record"]["seeds"][seed]["budget_seconds"]
         for arm, loop in found["loops"].items():
-            assert loop["rounds"] == rounds_json(root, int(seed), arm)["rounds"]
+            # the run's records, and the seconds from its timings file
+            timings = timings_json(root, int(seed), arm)
+            assert {k: {**e, "seconds": timings[k]} for k, e in rounds_json(root, int(seed), arm)["rounds"].items()} \
+                == loop["rounds"]
     assert study["second_seconds"] < 0.5 * study["first_seconds"], (study["first_seconds"], study["second_seconds"])
 
 
@@ -536,6 +543,24 @@ def test_resampling_a_folder_that_is_not_a_run_names_it(tmp_path):
                           "not a run")
 
 
+def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path):
+    """6 round steps at the base run's 4 per epoch: a shorter last epoch, so each network's optimizer has
+    taken the base run's steps and then exactly the round's, as the record says (not two whole epochs)."""
+    base = Run(tiny_run)
+    record = base.read_record()
+    run = base.fork(tmp_path / "runs" / "r", base.shard_set(record).fork(tmp_path / "shards" / "s"))
+    res = kpcn("resample", "--run", run.dir, "--rounds", "1", "--round-steps", "6", "--patches-per-image", "0",
+               "--error-weight", "0", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    base_steps = record["train"]["steps"]
+    assert (base_steps, record["train"]["steps_per_epoch"]) == (8, 4)
+    phases = run.read_record()["phases"]
+    for branch in ("diffuse", "specular"):
+        name = f"{branch}-round-001"
+        optimizer = load_model(run.dir / f"{name}.keras").optimizer
+        assert int(optimizer.iterations.numpy()) == base_steps + 6 == base_steps + phases[name]["steps"]
+
+
 @pytest.fixture(scope="module")
 def resampled_run(forked_run):
     """The copy of the tiny run after one error round (error weight 0.5) through the command line."""
@@ -563,6 +588,22 @@ def test_an_error_round_records_the_files_of_the_model_that_drew_it(resampled_ru
     # the record's components now point at the round's phases
     assert {c["file"] for c in record["components"].values()} == {"diffuse-round-001.keras",
                                                                    "specular-round-001.keras"}
+
+
+@pytest.mark.slow
+def test_a_loops_seconds_are_kept_in_its_timings_file_alone(resampled_run):
+    """Wall-clock seconds differ between a resumed and an uninterrupted loop: they are in the resample
+    folder's timings.json (and the run's, per phase), never in the records."""
+    run = Run(resampled_run)
+    timings = json.loads((run.dir / "resample" / "timings.json").read_text())
+    assert set(timings) == {"before", "round-001"}
+    assert set(timings["before"]) == {"evaluation"}
+    assert set(timings["round-001"]) == {"error_maps", "shards", "training", "evaluation"}
+    assert all(s >= 0 for entry in timings.values() for s in entry.values())
+    for path in (run.dir / "config.json", run.dir / "resample" / "rounds.json"):
+        assert "seconds" not in path.read_text(), path
+    phases = json.loads((run.dir / "timings.json").read_text())
+    assert {"diffuse-round-001", "specular-round-001"} <= set(phases)
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import build_tiny_shards, checksums
-from kpcn_keras.run import read_state
+from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep.errors import KpcnError
 
@@ -45,6 +45,21 @@ def test_run_folder_records_how_it_was_made(tmp_path):
     assert log[0].startswith("epoch") and [int(row.split(",")[0]) for row in log[1:]] == list(range(6))
     assert np.isfinite(float(log[-1].split(",")[1]))
     assert (run_dir / "loss.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_every_phase_trains_exactly_the_steps_asked(tmp_path):
+    """Steps that are not a multiple of the epoch's: the last epoch is shorter, so each phase's optimizer
+    counts exactly the steps asked (the record's), not whole epochs; the log has one row per epoch."""
+    cfg = tiny_config(build_tiny_shards(tmp_path), steps=6, steps_per_epoch=4, joint_steps=5, compositor_steps=3,
+                      compositor={"kind": "alpha", "width": 4, "depth": 3, "kernel_size": 3})
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    record = json.loads((run_dir / "config.json").read_text())
+    asked = {"diffuse": 6, "specular": 6, "joint": 5, "compositor": 3}
+    iterations = {name: int(load_model(run_dir / f"{name}.keras").optimizer.iterations.numpy()) for name in asked}
+    assert iterations == asked
+    assert {name: p["steps"] for name, p in record["phases"].items()} == asked
+    rows = (run_dir / "log.csv").read_text().splitlines()[1:]
+    assert len(rows) == 2 + 2 + 2 + 1  # 4 + 2, 4 + 2, 4 + 1 and 3 steps
 
 
 def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
@@ -84,7 +99,7 @@ def test_another_configuration_under_the_same_run_is_refused(tmp_path):
 @pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
-    steps = dict(steps=40, steps_per_epoch=4)
+    steps = dict(steps=38, steps_per_epoch=4)  # 9 epochs of 4 steps and a last one of 2
     reference = train(tiny_config(shard_cfg, branches=("diffuse",), **steps), tmp_path / "ref", verbose=0)
 
     # the library call that `kpcn train` makes, with a short epoch so that a kill lands mid-run
