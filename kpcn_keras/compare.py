@@ -412,11 +412,14 @@ RECORD_KEYS = ("date", "config", "shards", "rules", "machine", "timed", "rows")
 def rewrite_reports(out_dir: str | Path) -> dict:
     """``compare.md`` and ``compare.png`` written again from ``<out_dir>/compare.json``, nothing trained or
     measured (``kpcn compare --report-only``): a committed comparison re-rendered after the report's text
-    changed, its numbers those of the record. Returns the record."""
+    changed, its numbers those of the record, the report saying so with the day. Returns the record as
+    the report read it (with ``rewritten``; ``compare.json`` is left as it is)."""
     out = Path(out_dir)
     record = read_json(out / "compare.json", "comparison record", RECORD_KEYS)
     for name in ("compare.md", "compare.png"):
         check_writable(out / name, "report (--out)")
+    # the numbers stay the record's; the report says when, and by what, it was written again
+    record = {**record, "rewritten": f"`kpcn compare --report-only` on {date.today().isoformat()}"}
     atomic_write_text(out / "compare.md", format_report(record))
     scatter_png(record, out / "compare.png")
     return record
@@ -492,7 +495,9 @@ def format_report(record: dict) -> str:
         (f"`{record['command']}`: e" if record.get("command") else "E") + "ach configuration trained for "
         f"{cfg['budget']:g} s on this machine on the shard set `{record['shards']['set_dir']}` (content key "
         f"`{record['shards']['content_key'][:12]}`), then measured on the same {record['shards']['held_out_frames']} "
-        "held-out frames (every validation scene at every input spp): all rows share one shard set and one budget.",
+        "held-out frames (every validation scene at every input spp): all rows share one shard set and one budget."
+        + (f" This report was written again from `compare.json` by {record['rewritten']}; every number is the "
+           "record's." if record.get("rewritten") else ""),
         "",
         f"| configuration | what it is | steps per phase | training s | held-out relMSE | DSSIM | relSE p99.9 "
         f"| frames with a lower relMSE than OIDN | parameters | ms / {frame} frame |",

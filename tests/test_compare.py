@@ -7,6 +7,7 @@ them every trained weight) do not depend on how busy the machine is; the real pr
 """
 
 import dataclasses
+import datetime
 import json
 
 import numpy as np
@@ -246,7 +247,10 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
     (tmp_path / "compare.md").write_text("an older report\n")
     res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert (tmp_path / "compare.md").read_text() == cmp.format_report(record)
+    md = (tmp_path / "compare.md").read_text()
+    today = f"`kpcn compare --report-only` on {datetime.date.today().isoformat()}"
+    assert md == cmp.format_report({**record, "rewritten": today})
+    assert f"written again from `compare.json` by {today}" in md
     assert (tmp_path / "compare.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((tmp_path / "compare.json").read_text()) == record  # read, not rewritten
     assert sorted(p.name for p in tmp_path.iterdir()) == ["compare.json", "compare.md", "compare.png"]
