@@ -261,11 +261,14 @@ def cmd_bench(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from kpcn_keras.compare import compare, format_report
+    from kpcn_keras.compare import compare, format_report, rewrite_reports
     from kpcn_keras.config import CompareConfig
 
     cfg = CompareConfig(**_given(args, CompareConfig))
-    record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
+    if args.report_only:
+        record = rewrite_reports(cfg.out_dir)
+    else:
+        record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
     print(format_report(record))
     print(f"report: {cfg.out_dir}/compare.md")
     return 0
@@ -478,6 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--frame", type=int, help=f"side of the crop whose inference is timed {d('frame')}")
     c.add_argument("--repeats", type=int, help=f"timed calls per row, the median is reported {d('repeats')}")
     c.add_argument("--seed", type=int, help=d("seed"))
+    c.add_argument("--report-only", action="store_true", help="write compare.md and compare.png again from the "
+                   "--out folder's compare.json, training and measuring nothing")
     c.set_defaults(func=cmd_compare)
 
     from kpcn_keras.config import ResampleStudyConfig

@@ -237,11 +237,12 @@ class Phase:
 class TrainConfig:
     """Configuration of ``kpcn train``; every field is saved in the run's config.json.
 
-    The defaults are the "cpu" preset: a 7-layer, 32-wide vanilla KPCN with 13x13 kernels (the
-    ModelConfig defaults), 1200 steps of batch 8 per branch, augmentation on. ``steps``, ``learning_rate``,
-    ``decay_steps`` and ``decay_rate`` are per branch phase; the joint and compositor phases have their own
-    steps and learning rates and share the decay. ``compositor`` is None (no multiscale) or the
-    ``CompositorConfig`` fields (``{"kind": "alpha"}`` at least). With
+    The defaults are the "cpu" preset: a vanilla KPCN of 8 layers (7 convolutions of 32 3x3 filters and
+    the kernel head; 13x13 kernels; the ModelConfig defaults), 1200 steps of batch 8 per branch,
+    augmentation on. ``steps``, ``learning_rate``, ``decay_steps`` and ``decay_rate`` are per branch phase;
+    the joint and compositor phases have their own steps and learning rates and share the decay.
+    ``compositor`` is None (no multiscale) or the ``CompositorConfig`` fields (``{"kind": "alpha"}`` at
+    least). With
     ``slope_input`` the network gets λ as an input channel and learns the asymmetric loss for every λ in
     ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.

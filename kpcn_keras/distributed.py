@@ -14,6 +14,10 @@ time ``apply`` (gradient clipping included) sees the gradients they are the mean
 process runs the same graph, so the hooks, and their collective calls, fire in the same order in each.
 With each process's batch the same size (``kpcn_keras.data.ShardPatches``' slices), the mean of their
 gradients of a batch-mean loss is the gradient of the whole global batch.
+
+Every collective runs on the device its backend reduces on: nccl (where CUDA is) has no CPU side, so the
+weights broadcast and the gradients averaged are Keras's, already on this process's GPU, and the tensors
+made here (the logs' mean) are put on :func:`collective_device`; gloo reduces CPU tensors.
 """
 
 from __future__ import annotations
@@ -130,6 +134,18 @@ def barrier(world: World) -> None:
         dist.barrier()
 
 
+def collective_device(backend_name: str, world: World):
+    """The torch device a tensor of ours must be on for a collective of the process group's backend
+    ``backend_name``: nccl reduces only CUDA tensors, those of this process's device (:func:`start` took the
+    device of its ``local_rank``); gloo, CPU ones. The model's weights and gradients are already where Keras
+    put them, on that same device under nccl (Keras's torch backend uses the current CUDA device)."""
+    import torch
+
+    if backend_name == "nccl":
+        return torch.device("cuda", world.local_rank)
+    return torch.device("cpu")
+
+
 def mean_over_processes(values: dict[str, float], world: World) -> dict[str, float]:
     """``values`` averaged over the processes of ``world`` (each passes its own, same keys in the same
     order): an epoch's training loss of each process is the mean over its slices, so their mean is the
@@ -139,7 +155,9 @@ def mean_over_processes(values: dict[str, float], world: World) -> dict[str, flo
     import torch
     import torch.distributed as dist
 
-    tensor = torch.tensor(list(values.values()), dtype=torch.float64)
+    # float64: nccl reduces doubles too (ncclFloat64), and a sum of float32 losses would round them
+    tensor = torch.tensor(list(values.values()), dtype=torch.float64,
+                          device=collective_device(dist.get_backend(), world))
     dist.all_reduce(tensor)
     return {k: float(v) / world.size for k, v in zip(values, tensor.tolist())}
 
@@ -157,5 +175,5 @@ def broadcast_weights(model, world: World) -> None:
             dist.broadcast(weight.value.data, src=0)
 
 
-__all__ = ["ENVIRONMENT", "World", "average_gradients", "backend", "barrier", "broadcast_weights", "from_environment",
-           "mean_over_processes", "start", "stop"]
+__all__ = ["ENVIRONMENT", "World", "average_gradients", "backend", "barrier", "broadcast_weights", "collective_device",
+           "from_environment", "mean_over_processes", "start", "stop"]

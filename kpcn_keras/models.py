@@ -13,8 +13,9 @@ for, appended by :func:`network_input` (the one place that knows them):
 Architectures (``ModelConfig.arch``):
 
 - ``"kpcn"``: Bako et al.'s plain stack: ``depth`` convolutions (``conv_size``, ``width`` filters, ReLU), then a
-  1x1 convolution to k*k logits and ``KernelApply`` on the noisy colour. The default depth 7 plus the head
-  is 8 layers; the paper's vanilla network is 9 (8 hidden 5x5 layers of 100 filters + output).
+  1x1 convolution to k*k logits (the kernel head) and ``KernelApply`` on the noisy colour. The default is
+  8 layers: 7 convolutions of 32 3x3 filters and the kernel head; the paper's vanilla network is 9: 8
+  convolutions of 100 5x5 filters and the kernel head.
 - ``"kpal"``: Vogels et al.'s residual network: a stem convolution to ``width`` filters, then ``depth``
   residual blocks of two convolutions, each followed by batch norm (if enabled) and dropout, the block
   input added back before the final ReLU; then the same kernel-predicting head. The report's 28-layer

@@ -35,8 +35,8 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   run (the CSV log is cut back to the checkpoint's epochs; one holding fewer, emptied or cut, is refused).
 - **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
   another architecture under an existing run is an error that says which.
-- **Divergence stops at the batch** (Keras's ``TerminateOnNaN(raise_error=True)``); the last good
-  checkpoint stays.
+- **Divergence stops at the batch** (:class:`_StopOnNonFinite`): one line names the last good checkpoint,
+  which stays.
 - **One trainer per run**: the run's lock is held while training.
 """
 
@@ -45,6 +45,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import math
 import sys
 import time
 from contextlib import nullcontext
@@ -176,6 +177,26 @@ class _MeanOverProcesses(keras.callbacks.Callback):
             return
         train = {k: float(v) for k, v in logs.items() if not k.startswith("val_")}
         logs.update(distributed.mean_over_processes(train, self.world))
+
+
+class _StopOnNonFinite(keras.callbacks.Callback):
+    """Divergence stops at the batch: a training loss that is not finite raises, at once, the one-line
+    error naming the last good checkpoint, before any writer sees the epoch. Ours, not Keras's
+    ``TerminateOnNaN(raise_error=True)``: that argument came long after the oldest Keras pyproject.toml
+    allows."""
+
+    def __init__(self, phase: Phase, checkpoint: Path):
+        super().__init__()
+        self.phase, self.checkpoint = phase, checkpoint
+
+    def on_train_batch_end(self, batch, logs=None):
+        loss = (logs or {}).get("loss")
+        if loss is not None and not math.isfinite(float(loss)):
+            raise KpcnError(
+                f"training the {self.phase.name} phase diverged (loss {float(loss)} at batch {batch}); the last good "
+                f"checkpoint is {self.checkpoint}. Lower the learning rate (--lr) under a new --run, or resume this "
+                "one as it is."
+            )
 
 
 class _Checkpoint(keras.callbacks.Callback):
@@ -388,7 +409,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True), _Checkpoint(ckpt, cfg, phase, history)]
     callbacks = [
         _MeanOverProcesses(world),
-        keras.callbacks.TerminateOnNaN(raise_error=True),  # before the writers: they never see a non-finite epoch
+        _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
         *callbacks,
     ]
@@ -399,19 +420,11 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         if start >= end:
             continue
         train, val = _data(cfg, phase, paths, start, end, world)
-        try:
-            # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
-            # across epochs only without its own shuffling (and with one worker), which makes resume exact
-            model.fit(train, epochs=phase.first_epoch + end, initial_epoch=phase.first_epoch + start,
-                      steps_per_epoch=phase.epoch_length(start), validation_data=val, callbacks=callbacks,
-                      verbose=verbose if world.writer else 0, shuffle=False)
-        except RuntimeError as exc:
-            if "NaN or Inf loss" not in str(exc):
-                raise
-            raise KpcnError(
-                f"training the {phase.name} phase diverged (non-finite loss); the last good checkpoint is {ckpt}. "
-                "Lower the learning rate (--lr) under a new --run, or resume this one as it is."
-            ) from None
+        # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
+        # across epochs only without its own shuffling (and with one worker), which makes resume exact
+        model.fit(train, epochs=phase.first_epoch + end, initial_epoch=phase.first_epoch + start,
+                  steps_per_epoch=phase.epoch_length(start), validation_data=val, callbacks=callbacks,
+                  verbose=verbose if world.writer else 0, shuffle=False)
     if world.writer:
         save_model(model, final)
     return sum(phase.epoch_length(i) for i in range(epochs_done, phase.epochs))

@@ -7,6 +7,7 @@ them every trained weight) do not depend on how busy the machine is; the real pr
 """
 
 import dataclasses
+import datetime
 import json
 
 import numpy as np
@@ -203,3 +204,59 @@ def test_oidn_row_is_measured_when_installed_and_says_so_when_not(compared, monk
     assert any(line.startswith("[cpu] steps from ") for line in lines)
     assert not any("probe" in line for line in lines)
     assert [r["relmse"] for r in again["rows"][:3]] == [r["relmse"] for r in record["rows"][:3]]
+
+
+def _record_where_the_mean_and_the_frames_disagree() -> dict:
+    """A hand-made comparison record: `cpu` has the lower mean relMSE (0.02 against OIDN's 0.34) only
+    because OIDN fails one frame of three; OIDN is lower on the other two, by 2x."""
+    def frames(values):
+        return [{"frame": f"f{i}", "relmse": v, "dssim": 0.01, "relse_p999": 0.1} for i, v in enumerate(values)]
+
+    def row(name, kind, values, **more):
+        return {"name": name, "kind": kind, "what": name, "relmse": float(np.mean(values)), "dssim": 0.01,
+                "relse_p999": 0.1, "frames": frames(values), "ms_per_frame": 10.0, **more}
+
+    return {
+        "date": "2026-12-01", "command": "kpcn compare --budget 1",
+        "config": {**dataclasses.asdict(CompareConfig(budget=1)), "configurations": ["cpu"]},
+        "overrides": {}, "shards": {"set_dir": "shards/default", "content_key": "0" * 16, "held_out_frames": 3},
+        "rules": {"probe_steps": cmp.PROBE_STEPS, "probe_skip": cmp.PROBE_SKIP, "branch_share": cmp.BRANCH_SHARE},
+        "machine": {"cpus": 2, "platform": "p", "python": "3.11", "torch": "t", "keras": "k", "torch_threads": 2,
+                    "load_average_before": [0.0] * 3, "load_average_after": [0.0] * 3},
+        "timed": {"frame": "f0", "width": 8, "height": 8},
+        "plans": {},
+        "rows": [row("cpu", "network", [0.02, 0.02, 0.02], phase_steps={"diffuse": 1, "specular": 1},
+                     training_seconds=1.0, parameters=10),
+                 row("raw input", "input", [0.5, 0.5, 0.5]),
+                 row("OIDN", "baseline", [0.01, 0.01, 1.0], available=True)],
+    }
+
+
+def test_the_headline_judges_oidn_by_frames_not_by_a_mean_one_frame_carries():
+    record = _record_where_the_mean_and_the_frames_disagree()
+    headline = next(line for line in cmp.format_report(record).splitlines() if line.startswith("**Best"))
+    assert "beats OIDN" not in headline
+    assert "OIDN is better on most frames" in headline
+    assert "lower relMSE on 1 of 3 frames" in headline and "2.00×" in headline  # 0.02 / 0.01 on two of three
+    assert cmp.against(record["rows"][0], record["rows"][2]) == {"lower": 1, "frames": 3, "median_ratio": 2.0}
+
+
+def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
+    record = _record_where_the_mean_and_the_frames_disagree()
+    (tmp_path / "compare.json").write_text(json.dumps(record, indent=2) + "\n")
+    (tmp_path / "compare.md").write_text("an older report\n")
+    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    md = (tmp_path / "compare.md").read_text()
+    today = f"`kpcn compare --report-only` on {datetime.date.today().isoformat()}"
+    assert md == cmp.format_report({**record, "rewritten": today})
+    assert f"written again from `compare.json` by {today}" in md
+    assert (tmp_path / "compare.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((tmp_path / "compare.json").read_text()) == record  # read, not rewritten
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["compare.json", "compare.md", "compare.png"]
+
+
+def test_report_only_without_a_record_is_a_one_line_error(tmp_path):
+    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    assert_one_line_error(res, str(tmp_path / "compare.json"), "no such comparison record")
+    assert not any(tmp_path.iterdir())

@@ -1,6 +1,7 @@
 """Data-parallel training (issue 10): the launcher's environment read into a World, and gradients averaged
 over processes so that two processes on halves of a batch train what one process trains on all of it."""
 
+import json
 import os
 import socket
 import subprocess
@@ -84,6 +85,41 @@ def _weights_of_seed_7_untrained(tmp_path, env) -> list[np.ndarray]:
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     return _weights(tmp_path / "init.npz")
+
+
+def test_collectives_of_our_own_tensors_use_the_device_the_backend_reduces_on():
+    """nccl has no CPU backend: the logs' mean must be reduced on this process's CUDA device (that of its
+    local_rank, which start() selects), gloo's on the CPU."""
+    import torch
+
+    world = distributed.World(rank=1, size=2, local_rank=1)
+    assert distributed.collective_device("nccl", world) == torch.device("cuda", 1)
+    assert distributed.collective_device("gloo", world) == torch.device("cpu")
+
+
+# Each of two gloo processes passes its own logs; both must get their mean.
+MEAN = """
+import json, sys
+from kpcn_keras import distributed
+
+world = distributed.from_environment()
+distributed.start(world)
+mine = {"loss": [1.0, 3.0][world.rank], "lr": [0.25, 0.75][world.rank]}
+print(json.dumps(distributed.mean_over_processes(mine, world)))
+distributed.stop(world)
+"""
+
+
+def test_two_gloo_processes_log_the_mean_of_their_losses():
+    rendezvous = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": "2"}
+    env = launcher_free_env(KERAS_BACKEND="torch")
+    procs = [subprocess.Popen([sys.executable, "-c", MEAN], cwd=REPO,
+                              env={**env, **rendezvous, "RANK": str(r), "LOCAL_RANK": str(r)},
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
+    for p in procs:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-3000:]
+        assert json.loads(out.strip().splitlines()[-1]) == {"loss": (1.0 + 3.0) / 2, "lr": (0.25 + 0.75) / 2}
 
 
 def test_the_world_is_read_from_the_launchers_variables():

@@ -807,3 +807,14 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
         assert math.isclose(row["saving"], 1 - row["specialised_s"] / row["all_effects_s"])
     md = (tmp_path / "render.md").read_text()
     assert all(s in md for s in scenes) and "Msamples/s" in md
+
+
+def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
+    from conftest import REPO
+    from prep.render.bench import format_report
+
+    record = json.loads((REPO / "reports" / "render.json").read_text())
+    md = format_report(record)
+    line = next(row for row in md.splitlines() if row.startswith("Reference point"))
+    assert "issue 6 quoted" in line and "not measured here" in line
+    assert md == (REPO / "reports" / "render.md").read_text()  # the committed report is its record's
