@@ -84,3 +84,21 @@ def test_render_file_names():
     assert exr.parse_render_filename("/x/cornell-001-00512spp.exr") == ("cornell-001", 512)
     with pytest.raises(exr.AOVError, match="spp.exr"):
         exr.parse_render_filename("cornell.exr")
+
+
+def test_a_render_is_read_without_a_second_copy_of_its_pixels(tmp_path):
+    import tracemalloc
+
+    aovs = random_aovs(300, 200, seed=1)
+    del aovs["default"]  # derived on reading
+    exr.write_aovs(tmp_path / "r.exr", aovs)
+    tracemalloc.start()
+    try:
+        back = exr.read_aovs(tmp_path / "r.exr")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    layer = 300 * 200 * 3 * 4  # one float32 RGB layer
+    # the render itself and at most two layers more (one being assembled, a block of the derived default);
+    # d097970 held the file's channels and the whole render at once: 2.6 times the render
+    assert peak <= sum(image.nbytes for image in back.values()) + 2 * layer
