@@ -311,11 +311,17 @@ def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: 
             shape = image.shape[:2]
         if image.shape[:2] != shape:
             raise AOVError(f"{path}: layer {name!r} is {image.shape[:2]}, other layers are {shape}")
+        # a float32 layer goes to a float32 file as it is (the binding writes (H, W, 3) as <layer>.R/G/B):
+        # a frame is written without a copy of its pixels; anything else is cast and clamped channel by channel
+        as_is = image.dtype == dtype == np.float32 and image.flags.c_contiguous
         if image.ndim == 3 and image.shape[2] == 3:
-            for i, c in enumerate("RGB"):
-                channels[f"{name}.{c}"] = np.ascontiguousarray(to_float32(image[..., i], dtype))
+            if as_is:
+                channels[name] = image
+            else:
+                for i, c in enumerate("RGB"):
+                    channels[f"{name}.{c}"] = np.ascontiguousarray(to_float32(image[..., i], dtype))
         elif image.ndim == 2:
-            channels[f"{name}.Z"] = np.ascontiguousarray(to_float32(image, dtype))
+            channels[f"{name}.Z"] = image if as_is else np.ascontiguousarray(to_float32(image, dtype))
         else:
             raise AOVError(f"{path}: layer {name!r} has shape {image.shape}, expected (H, W, 3) or (H, W)")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
