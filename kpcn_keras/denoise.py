@@ -42,6 +42,7 @@ from prep.features import BRANCHES
 from prep.files import atomic_path, check_writable, pyplot, save_png
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
+PNG_ROWS = 256  # rows of a panel tonemapped at a time
 
 
 
@@ -184,7 +185,9 @@ def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: st
     canvas = np.full((top + h, len(panels) * (w + gap) - gap, 3), 255, np.uint8)
     for i, (_, image) in enumerate(panels):
         x = i * (w + gap)
-        canvas[top:, x : x + w] = np.round(tonemap(image) * 255.0).astype(np.uint8)
+        for y in range(0, h, PNG_ROWS):  # the float64 tonemap of a whole frame is 24 bytes a pixel at a time
+            rows = slice(y, y + PNG_ROWS)
+            canvas[top + y : top + y + PNG_ROWS, x : x + w] = np.round(tonemap(image[rows]) * 255.0).astype(np.uint8)
     picture = Image.fromarray(canvas)
     draw = ImageDraw.Draw(picture)
     if title:

@@ -128,6 +128,24 @@ def test_panels_png_is_a_row_of_tonemapped_panels(tmp_path):
     np.testing.assert_array_equal(pixels[28:, :12], np.round(tonemap(image) * 255).astype(np.uint8))
 
 
+def test_panels_png_tonemaps_a_block_of_rows_at_a_time(tmp_path):
+    import tracemalloc
+
+    from kpcn_keras.denoise import PNG_ROWS, panels_png
+
+    image = random_aovs(3 * PNG_ROWS + 132, 400, seed=1)["default"]
+    panels_png(tmp_path / "warm.png", [("input", image[:4])])  # imports what drawing needs
+    tracemalloc.start()
+    try:
+        panels_png(tmp_path / "p.png", [("input", image), ("denoised", image)], title="t")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    canvas = (28 + image.shape[0]) * (2 * 400 + 4) * 3
+    # the canvas and a few float64 blocks of rows; d097970 tonemapped whole panels (28 MB here)
+    assert peak <= canvas + 4 * PNG_ROWS * 400 * 3 * 8
+
+
 def test_plan_outputs(tmp_path):
     from kpcn_keras.denoise import plan_outputs
     from prep.errors import KpcnError, OptionError
