@@ -1,7 +1,11 @@
 """Full-frame inference: a noisy render in the AOV layout in, the denoised colour out.
 
 Each branch network (or the shared one, or either wrapped in the multiscale compositor) runs on overlapping
-tiles so that memory stays bounded at any resolution. A tile's margin is the model's receptive radius
+tiles, and so do the features and the recombination, so that memory beyond the frame's own AOVs and the three
+float32 outputs is bounded by the tile at any resolution (``tests/test_denoise.py::
+test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile``): a tile's features are computed from its
+window alone, with the frame's depth scale computed once (``prep.features``), and equal those pixels of the
+whole frame's bit for bit. A tile's margin is the model's receptive radius
 (trunk + kernel, ``models.receptive_radius``; ``multiscale.multiscale_radius`` with a compositor), and only
 its centre is kept, so the result equals an untiled run up to float rounding. With a compositor, tiles and
 margins are multiples of the pyramid's alignment, so each tile pools the same 2x2 blocks as the whole image. The branches are
@@ -21,6 +25,7 @@ every earlier output whole. The default output is ``<input stem>-denoised.exr`` 
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from pathlib import Path
@@ -38,6 +43,7 @@ from prep.features import BRANCHES
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
+PNG_ROWS = 256  # rows of a panel tonemapped at a time
 
 
 
@@ -90,38 +96,62 @@ class Denoiser:
         black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
         self(black)
 
-    def run_branch(self, branch: str, feats: np.ndarray) -> np.ndarray:
-        """Model output (log domain) for one (H, W, 27) feature image, tile by tile."""
-        model = self.models[branch]
-        feats = network_input(feats, self.model_config, branch, self.slope)
-        h, w, _ = feats.shape
-        out = np.empty((h, w, 3), dtype=np.float32)
+    def tiles(self, h: int, w: int):
+        """Each tile of an (h, w) frame as ((y0, y1, x0, x1), (ya, yb, xa, xb)): the pixels it gives and the
+        window, grown by the margin and cut at the frame's border, that the network sees for them."""
         t, m = self.tile, self.margin
-        # predict_on_batch, not a direct call under torch.inference_mode: measured alike (within 10%, the
-        # noise) at 64- and 256-pixel tiles; the convolutions, not the per-call setup, take the time
         for y0 in range(0, h, t):
             for x0 in range(0, w, t):
                 y1, x1 = min(y0 + t, h), min(x0 + t, w)
-                ya, xa = max(y0 - m, 0), max(x0 - m, 0)
-                yb, xb = min(y1 + m, h), min(x1 + m, w)
-                # a contiguous tile: a strided view reaches torch as a strided tensor, and the trunk's
-                # convolutions and the kernel layer then run on (and copy) other layouts
-                pred = model.predict_on_batch(np.ascontiguousarray(feats[None, ya:yb, xa:xb]))
-                pred = keras.ops.convert_to_numpy(pred)[0]
-                out[y0:y1, x0:x1] = pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+                yield (y0, y1, x0, x1), (max(y0 - m, 0), min(y1 + m, h), max(x0 - m, 0), min(x1 + m, w))
+
+    def predict_tile(self, branch: str, aovs: dict[str, np.ndarray], tile, window, scale: float) -> np.ndarray:
+        """Model output (log domain, float32) of ``tile``'s pixels from the features of ``window`` alone
+        (``prep.features.branch_features`` with the frame's depth ``scale``): the same as those pixels of
+        the whole frame's features."""
+        (y0, y1, x0, x1), (ya, yb, xa, xb) = tile, window
+        # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
+        # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
+        feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,
+                              branch, self.slope)
+        # predict_on_batch, not a direct call under torch.inference_mode: measured alike (within 10%, the
+        # noise) at 64- and 256-pixel tiles; the convolutions, not the per-call setup, take the time
+        pred = keras.ops.convert_to_numpy(self.models[branch].predict_on_batch(feats[None]))[0]
+        # torch's pytree flattening, which keras runs on every call, leaves a reference cycle that holds the
+        # call's tensors (the window's kernel logits and colour); left to the collector's schedule they pile up
+        # in the old generation over the tiles of a frame (measured: 0.9 against 0.37 MB over 4 tiles of 32,
+        # 1.45 against 0.50 MB over 30). A young-generation pass is cheap (a full one tripled the time).
+        gc.collect(1)
+        return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+
+    def run_branch(self, branch: str, aovs: dict[str, np.ndarray]) -> np.ndarray:
+        """Model output (log domain) of one branch for a whole noisy render, tile by tile."""
+        h, w = aovs["depth"].shape
+        scale = features.depth_scale(aovs["depth"])
+        out = np.empty((h, w, 3), dtype=np.float32)
+        for tile, window in self.tiles(h, w):
+            y0, y1, x0, x1 = tile
+            out[y0:y1, x0:x1] = self.predict_tile(branch, aovs, tile, window, scale)
         return out
 
     def __call__(self, aovs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Denoised ``diffuse``, ``specular`` and ``default`` (linear, float32) of one noisy render."""
-        diffuse_log = self.run_branch("diffuse", features.branch_features(aovs, "diffuse"))
-        specular_log = self.run_branch("specular", features.branch_features(aovs, "specular"))
-        diffuse = features.diffuse_from_log(diffuse_log, aovs["albedo"])
-        specular = features.specular_from_log(specular_log)
-        return {
-            "diffuse": exr.to_float32(diffuse),
-            "specular": exr.to_float32(specular),
-            "default": exr.to_float32(diffuse + specular),
-        }
+        """Denoised ``diffuse``, ``specular`` and ``default`` (linear, float32) of one noisy render.
+
+        Tile by tile, both branches and their recombination: beyond ``aovs`` and the three float32 outputs,
+        what this holds is bounded by the tile (features of one window, its network activations, the float64
+        recombination of one tile), at any frame size."""
+        h, w = aovs["depth"].shape
+        scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
+        out = {name: np.empty((h, w, 3), dtype=np.float32) for name in ("diffuse", "specular", "default")}
+        for tile, window in self.tiles(h, w):
+            y0, y1, x0, x1 = tile
+            diffuse = features.diffuse_from_log(self.predict_tile("diffuse", aovs, tile, window, scale),
+                                                aovs["albedo"][y0:y1, x0:x1])
+            specular = features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale))
+            out["diffuse"][y0:y1, x0:x1] = exr.to_float32(diffuse)
+            out["specular"][y0:y1, x0:x1] = exr.to_float32(specular)
+            out["default"][y0:y1, x0:x1] = exr.to_float32(diffuse + specular)
+        return out
 
 
 def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
@@ -158,7 +188,9 @@ def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: st
     canvas = np.full((top + h, len(panels) * (w + gap) - gap, 3), 255, np.uint8)
     for i, (_, image) in enumerate(panels):
         x = i * (w + gap)
-        canvas[top:, x : x + w] = np.round(tonemap(image) * 255.0).astype(np.uint8)
+        for y in range(0, h, PNG_ROWS):  # the float64 tonemap of a whole frame is 24 bytes a pixel at a time
+            rows = slice(y, y + PNG_ROWS)
+            canvas[top + y : top + y + PNG_ROWS, x : x + w] = np.round(tonemap(image[rows]) * 255.0).astype(np.uint8)
     picture = Image.fromarray(canvas)
     draw = ImageDraw.Draw(picture)
     if title:

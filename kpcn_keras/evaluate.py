@@ -11,6 +11,7 @@ against every file the evaluation reads (renders, references, the run's models) 
 
 from __future__ import annotations
 
+import glob
 import json
 import time
 from datetime import date
@@ -24,7 +25,6 @@ from kpcn_keras.run import Run
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable
-from prep.shards import discover_renders
 
 # (header, format, where the value is in a row: a top-level key, or (method, metric))
 COLUMNS = (
@@ -75,15 +75,23 @@ def frame_scores(outputs: list[np.ndarray], frames: list[dict]) -> dict:
 
 
 def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
-    """Each noisy render with the reference of its scene: the same folder's render with the most samples."""
+    """Each noisy render with the reference of its scene: the same folder's render of that scene with the
+    most samples. Only the input's own scene is looked at: other files in the folder (of other scenes, or
+    not named ``<scene>-<spp>spp.exr``) are neither read nor judged."""
     pairs = []
     for path in inputs:
         scene, spp = exr.parse_render_filename(path)
-        entry = discover_renders(Path(path).parent).get(scene)
-        ref = entry["reference"] if entry else None
-        if ref is None or ref.spp <= spp:
+        ref, ref_spp = None, spp
+        for other in Path(path).parent.glob(f"{glob.escape(scene)}-*spp.exr"):
+            try:
+                other_scene, other_spp = exr.parse_render_filename(other)
+            except exr.AOVError:  # e.g. "<scene>-extra-00004spp.exr": not this scene's
+                continue
+            if other_scene == scene and other_spp > ref_spp and not other.name.startswith("."):
+                ref, ref_spp = other, other_spp
+        if ref is None:
             raise KpcnError(f"{path}: no reference with more samples than {spp} spp beside it")
-        pairs.append((str(path), ref.path))
+        pairs.append((str(path), str(ref)))
     return pairs
 
 

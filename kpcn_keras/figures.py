@@ -74,7 +74,7 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
     ya, yb, xa, xb = max(y - m, 0), min(y + m + 1, h), max(x - m, 0), min(x + m + 1, w)
     for row, branch in zip(axes, BRANCHES):
         net = den.networks["shared" if cfg.branch_channels else branch]
-        feats = network_input(features.branch_features(aovs, branch)[ya:yb, xa:xb], cfg, branch, den.slope)
+        feats = network_input(features.branch_features(aovs, branch, (ya, yb, xa, xb)), cfg, branch, den.slope)
         kernels = _to_numpy(build_kernel_model(net).predict_on_batch(feats[None]))[0]
         kernel = kernels[y - ya, x - xa].reshape(k, k)
         colour = features.branch_colour(aovs, branch)

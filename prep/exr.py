@@ -58,6 +58,8 @@ VARIANCE_LAYERS = (
 SCALAR_LAYERS = ("depth",) + VARIANCE_LAYERS
 BASE_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth")
 
+_SUM_ROWS = 64  # rows per block of the derived default's float64 sum
+
 _RENDER_NAME = re.compile(r"^(?P<scene>.+)-(?P<spp>\d{5,})spp\.exr$")
 
 
@@ -92,13 +94,17 @@ def _group_channels(path, channels: dict) -> dict[str, dict[str, np.ndarray]]:
 
 
 def _assemble(name: str, comps: dict[str, np.ndarray]) -> np.ndarray:
-    """One layer as float32, (H, W, 3) or (H, W); its channels were checked by _check_layers."""
+    """One layer as float32, (H, W, 3) or (H, W); its channels were checked by _check_layers. A float32
+    channel is taken as it is, not copied (a render is read without a second copy of its pixels)."""
     if name in RGB_LAYERS:
-        return np.stack([comps[c] for c in "RGB"], axis=-1).astype(np.float32)
+        rgb = np.empty(comps["R"].shape + (3,), np.float32)
+        for i, c in enumerate("RGB"):
+            rgb[..., i] = comps[c]
+        return rgb
     if "Z" in comps:
-        return comps["Z"].astype(np.float32)
+        return comps["Z"].astype(np.float32, copy=False)
     if len(comps) == 1:
-        return next(iter(comps.values())).astype(np.float32)
+        return next(iter(comps.values())).astype(np.float32, copy=False)
     return to_float32(np.mean([comps[c].astype(np.float64) for c in "RGB"], axis=0))
 
 
@@ -245,11 +251,15 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
     path = Path(path)
     expected, _, channels = _open(path, separate_channels=True)
     raw = _group_channels(path, channels)
+    del channels
     wanted = _check_layers(path, {name: set(comps) for name, comps in raw.items()}, variances)
+    for name in set(raw) - set(wanted):
+        del raw[name]
     out: dict[str, np.ndarray] = {}
     repaired: dict[str, int] = {}
     for name in wanted:
-        image = _assemble(name, raw[name])
+        # each layer's channels are let go once assembled: the file's pixels and the render are never both held
+        image = _assemble(name, raw.pop(name))
         if image.shape[:2] != expected:
             raise AOVError(
                 f"{path}: layer {name!r} is {image.shape[1]}x{image.shape[0]}, "
@@ -260,7 +270,12 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
             repaired[name] = count
         out[name] = image
     if "default" not in out:
-        out["default"] = to_float32(out["diffuse"].astype(np.float64) + out["specular"])
+        # in blocks of rows: the float64 sum of a whole frame would be the largest thing the read holds
+        default = np.empty_like(out["diffuse"])
+        for y in range(0, default.shape[0], _SUM_ROWS):
+            rows = slice(y, y + _SUM_ROWS)
+            default[rows] = to_float32(out["diffuse"][rows].astype(np.float64) + out["specular"][rows])
+        out["default"] = default
     if repaired:
         detail = ", ".join(f"{k}: {v}" for k, v in repaired.items())
         log.warning("%s: repaired non-finite values (NaN->0, inf->channel's finite max/min): %s", path, detail)
@@ -298,11 +313,17 @@ def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: 
             shape = image.shape[:2]
         if image.shape[:2] != shape:
             raise AOVError(f"{path}: layer {name!r} is {image.shape[:2]}, other layers are {shape}")
+        # a float32 layer goes to a float32 file as it is (the binding writes (H, W, 3) as <layer>.R/G/B):
+        # a frame is written without a copy of its pixels; anything else is cast and clamped channel by channel
+        as_is = image.dtype == dtype == np.float32 and image.flags.c_contiguous
         if image.ndim == 3 and image.shape[2] == 3:
-            for i, c in enumerate("RGB"):
-                channels[f"{name}.{c}"] = np.ascontiguousarray(to_float32(image[..., i], dtype))
+            if as_is:
+                channels[name] = image
+            else:
+                for i, c in enumerate("RGB"):
+                    channels[f"{name}.{c}"] = np.ascontiguousarray(to_float32(image[..., i], dtype))
         elif image.ndim == 2:
-            channels[f"{name}.Z"] = np.ascontiguousarray(to_float32(image, dtype))
+            channels[f"{name}.Z"] = image if as_is else np.ascontiguousarray(to_float32(image, dtype))
         else:
             raise AOVError(f"{path}: layer {name!r} has shape {image.shape}, expected (H, W, 3) or (H, W)")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}

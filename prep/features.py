@@ -1,7 +1,12 @@
 """Network inputs of the diffuse and specular branches (seed report §2.1, §3.3.1).
 
-Features are computed once per full image, before patches are cut, so that patch borders see the
-true gradients. Each branch gets ``NUM_FEATURES`` = 27 channels, in this order:
+Features are those of the full image: a patch or a tile cut from them sees the true gradients at its
+borders. They can be computed for a window of the image alone (:func:`branch_features` with ``window``): a
+pixel's features read only that pixel, the next one along x and along y (the forward differences) and one
+whole-image statistic, the depth scale 1 / max(depth) (:func:`depth_scale`), computed once by a cheap pass
+over the depth layer. So a window's features equal the same pixels of the whole image's, bit for bit, and a
+caller that streams windows (tiled inference) holds features of one window at a time. Each branch gets
+``NUM_FEATURES`` = 27 channels, in this order:
 
 =======  ==========================  =====================================================  ==============
 channel  name                        formula                                                range
@@ -60,23 +65,35 @@ assert len(FEATURE_NAMES) == NUM_FEATURES
 # median 30 ms parallel against 7 ms serial for both branches). Callers that cut many images (kpcn shards)
 # get their parallelism from images, not from pixels.
 @numba.njit(cache=True, nogil=True)
-def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo, out):
-    """Fill ``out`` (H, W, 27) for one branch; colour is linear, albedo divided when divide_albedo."""
+def _depth_max(depth):
+    """max(0, max(depth)), NaN ignored: the statistic behind :func:`depth_scale`."""
     h, w = depth.shape
     dmax = 0.0
     for y in range(h):
         for x in range(w):
             if depth[y, x] > dmax:
                 dmax = depth[y, x]
-    dscale = 1.0 / dmax if dmax > 0.0 else 0.0
+    return dmax
 
-    # pass 1: per-pixel transformed buffers into out's slots that the gradients read
-    logc = np.empty((h, w, 3))
-    nrm = np.empty((h, w, 3))
-    alb = np.empty((h, w, 3))
-    dep = np.empty((h, w))
-    for y in range(h):
-        for x in range(w):
+
+@numba.njit(cache=True, nogil=True)
+def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo,
+                     dscale, scratch, out):
+    """Fill ``out`` (h, w, 27) for one branch; colour is linear, albedo divided when divide_albedo.
+
+    The inputs cover out's pixels and at most one row and one column more: the neighbours the forward
+    differences read (where they are absent, out's last row or column is the image's, and its differences
+    are 0). ``scratch`` (input rows, input columns, 10) holds the transformed buffers the differences read.
+    """
+    h, w = out.shape[0], out.shape[1]
+    hi, wi = depth.shape
+    logc = scratch[:, :, 0:3]
+    nrm = scratch[:, :, 3:6]
+    alb = scratch[:, :, 6:9]
+
+    # pass 1: per-pixel transformed buffers (the relative variances only for out's own pixels)
+    for y in range(hi):
+        for x in range(wi):
             vc = max(float(colour_var[y, x]), 0.0)
             sq_c = 0.0
             sq_n = 0.0
@@ -100,17 +117,18 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
                 sq_n += n * n
                 sq_a += a * a
             d = max(float(depth[y, x]), 0.0) * dscale
-            dep[y, x] = d
-            out[y, x, 23] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
-            out[y, x, 24] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
-            out[y, x, 25] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
-            out[y, x, 26] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
+            scratch[y, x, 9] = d
+            if y < h and x < w:
+                out[y, x, 23] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
+                out[y, x, 24] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
+                out[y, x, 25] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
+                out[y, x, 26] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
 
-    # pass 2: values and forward differences (0 on the last column / row)
+    # pass 2: values and forward differences (0 on the image's last column / row)
     for y in range(h):
         for x in range(w):
-            xn = min(x + 1, w - 1)
-            yn = min(y + 1, h - 1)
+            xn = min(x + 1, wi - 1)
+            yn = min(y + 1, hi - 1)
             for c in range(3):
                 out[y, x, c] = logc[y, x, c]
                 out[y, x, 3 + c] = logc[y, xn, c] - logc[y, x, c]
@@ -119,25 +137,51 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
                 out[y, x, 13 + c] = logc[yn, x, c] - logc[y, x, c]
                 out[y, x, 16 + c] = nrm[yn, x, c] - nrm[y, x, c]
                 out[y, x, 19 + c] = alb[yn, x, c] - alb[y, x, c]
-            out[y, x, 12] = dep[y, xn] - dep[y, x]
-            out[y, x, 22] = dep[yn, x] - dep[y, x]
+            out[y, x, 12] = scratch[y, xn, 9] - scratch[y, x, 9]
+            out[y, x, 22] = scratch[yn, x, 9] - scratch[y, x, 9]
 
 
-def branch_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
+SCRATCH_CHANNELS = 10  # float64 per input pixel in the kernel: log colour, normal, albedo (3 each), depth
+
+_KERNEL_LAYERS = ("{b}", "{b}Variance", "albedo", "albedoVariance", "normal", "normalVariance", "depth",
+                  "depthVariance")
+
+
+def depth_scale(depth: np.ndarray) -> float:
+    """1 / max(depth) over the whole image, 0 when max(depth) <= 0: the features' one whole-image quantity
+    (every other feature of a pixel reads that pixel and its next neighbours only)."""
+    dmax = _depth_max(np.ascontiguousarray(depth))
+    return 1.0 / dmax if dmax > 0.0 else 0.0
+
+
+def branch_features(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, int, int, int] | None = None,
+                    *, scale: float | None = None) -> np.ndarray:
     """The (H, W, 27) float32 network input of ``branch`` ('diffuse' or 'specular') for one render.
 
     ``aovs`` is a noisy render as returned by :func:`prep.exr.read_aovs` (variance layers needed).
+    ``window`` = (y0, y1, x0, x1): only those rows and columns, equal bit for bit to the same pixels of the
+    whole image's features, from the window's pixels and the next row and column alone; ``scale``: the
+    whole image's :func:`depth_scale` (computed here when not given: a caller cutting many windows passes it).
+    Memory: the result, a float32 copy of the window of the 14 input channels and ``SCRATCH_CHANNELS`` float64
+    per pixel of the window grown by one row and column.
     """
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
     h, w = aovs["depth"].shape
-    out = np.empty((h, w, NUM_FEATURES), dtype=np.float32)
-    names = (branch, f"{branch}Variance", "albedo", "albedoVariance", "normal", "normalVariance", "depth",
-             "depthVariance")
+    y0, y1, x0, x1 = (0, h, 0, w) if window is None else window
+    if not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
+        raise ValueError(f"window must lie inside the {h}x{w} image and hold a pixel, got {window}")
+    if scale is None:
+        scale = depth_scale(aovs["depth"])
+    rows, cols = slice(y0, min(y1 + 1, h)), slice(x0, min(x1 + 1, w))
+    out = np.empty((y1 - y0, x1 - x0, NUM_FEATURES), dtype=np.float32)
+    names = [n.format(b=branch) for n in _KERNEL_LAYERS]
     # The kernel widens each value to float64 itself: float32 renders (what prep.exr reads) go in without a
     # float64 copy of every layer; anything else is widened here, so at most two specialisations compile.
     dtype = np.float32 if all(aovs[n].dtype == np.float32 for n in names) else np.float64
-    _features_kernel(*(np.ascontiguousarray(aovs[n], dtype=dtype) for n in names), branch == "diffuse", out)
+    layers = [np.ascontiguousarray(aovs[n][rows, cols], dtype=dtype) for n in names]
+    scratch = np.empty(layers[-2].shape + (SCRATCH_CHANNELS,))
+    _features_kernel(*layers, branch == "diffuse", float(scale), scratch, out)
     return out
 
 

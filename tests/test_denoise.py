@@ -1,36 +1,79 @@
+import keras
 import numpy as np
 import pytest
 
 from conftest import random_aovs
 from kpcn_keras.denoise import Denoiser, denoise_file
+from kpcn_keras.models import network_input
 from prep import exr, features
 
 
-def test_tiles_equal_an_untiled_run(tiny_run):
-    aovs = random_aovs(45, 61, seed=9)
-    whole = Denoiser(tiny_run, tile=4096)
-    tiled = Denoiser(tiny_run, tile=16)
+def _untiled(denoiser, aovs):
+    """What tiling must equal: the whole frame's features through each network in one call, recombined in
+    float64 by the inverses of the features table."""
+    logs = {}
+    for branch in features.BRANCHES:
+        feats = network_input(features.branch_features(aovs, branch), denoiser.model_config, branch, denoiser.slope)
+        logs[branch] = keras.ops.convert_to_numpy(denoiser.models[branch].predict_on_batch(feats[None]))[0]
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS)
+    specular = np.expm1(logs["specular"].astype(np.float64))
+    return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
+
+
+@pytest.mark.parametrize("size, tile", [((45, 61), 16), ((13, 7), 2), ((1, 6), 4)], ids=["45x61/16", "13x7/2", "1x6/4"])
+def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
+    # odd frames (partial tiles at the right and bottom), a tile smaller than the margin, a single row
+    aovs = random_aovs(*size, seed=9)
+    aovs["depth"][-1, -1] = 50.0  # the depth scale comes from one corner, outside most tiles
+    logs, want = _untiled(Denoiser(tiny_run), aovs)
+    tiled = Denoiser(tiny_run, tile=tile)
     assert tiled.margin == 3  # 3 convs of 3x3 reach 3 pixels, the 5x5 kernel 2: the max of the two
-    for branch in ("diffuse", "specular"):
-        feats = features.branch_features(aovs, branch)
-        np.testing.assert_allclose(tiled.run_branch(branch, feats), whole.run_branch(branch, feats), rtol=1e-5, atol=1e-6)
+    out = tiled(aovs)
+    for name, image in out.items():
+        assert image.dtype == np.float32 and image.shape == size + (3,)
+        np.testing.assert_allclose(image, want[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    for branch in features.BRANCHES:
+        np.testing.assert_allclose(tiled.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
 
 
 def test_tiles_with_too_little_overlap_would_differ(tiny_run):
     # guards the test above: without the margin the tile seams are visible
     aovs = random_aovs(40, 40, seed=3)
-    feats = features.branch_features(aovs, "diffuse")
-    whole = Denoiser(tiny_run, tile=4096).run_branch("diffuse", feats)
+    whole = Denoiser(tiny_run, tile=4096).run_branch("diffuse", aovs)
     seamy = Denoiser(tiny_run, tile=8)
     seamy.margin = 0
-    assert np.abs(seamy.run_branch("diffuse", feats) - whole).max() > 1e-4
+    assert np.abs(seamy.run_branch("diffuse", aovs) - whole).max() > 1e-4
+
+
+def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run):
+    # tracemalloc sees every numpy array (the features, their inputs' copies and the kernel's scratch, the
+    # float64 recombination), not torch's own buffers (the network's activations, bounded by the tile anyway)
+    import tracemalloc
+
+    denoiser = Denoiser(tiny_run, tile=32)
+    denoiser.warm_up()
+    side = denoiser.tile + 2 * denoiser.margin + 1  # a tile, its margins and the next pixel the gradients read
+    # per window pixel: 27 float32 features, a float32 copy of the 14 input channels the kernel reads and its
+    # 10 float64 buffers; twice that for the float64 recombination of the tile; 512 kB for the interpreter's
+    # and keras's own objects. d097970 (whole-frame features and recombination): 5.3 MB beyond at 192x160
+    bound = 2 * side**2 * (27 * 4 + 14 * 4 + 10 * 8) + 2**19
+    for size in [(64, 48), (192, 160)]:  # 4 and 30 tiles
+        aovs = random_aovs(*size, seed=2)
+        tracemalloc.start()
+        try:
+            out = denoiser(aovs)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        beyond = peak - sum(image.nbytes for image in out.values())
+        assert beyond <= bound, (size, beyond, bound)
 
 
 def test_recombination_inverts_the_branch_transforms(tiny_run):
     aovs = random_aovs(20, 20, seed=4)
     d = Denoiser(tiny_run)
     out = d(aovs)
-    diff_log = d.run_branch("diffuse", features.branch_features(aovs, "diffuse"))
+    diff_log = d.run_branch("diffuse", aovs)
     np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS), rtol=1e-5)
     np.testing.assert_allclose(out["default"], out["diffuse"] + out["specular"], rtol=1e-6)
 
@@ -83,6 +126,24 @@ def test_panels_png_is_a_row_of_tonemapped_panels(tmp_path):
     pixels = np.asarray(Image.open(path).convert("RGB"))
     assert pixels.shape == (28 + 10, 2 * 12 + 4, 3)
     np.testing.assert_array_equal(pixels[28:, :12], np.round(tonemap(image) * 255).astype(np.uint8))
+
+
+def test_panels_png_tonemaps_a_block_of_rows_at_a_time(tmp_path):
+    import tracemalloc
+
+    from kpcn_keras.denoise import PNG_ROWS, panels_png
+
+    image = random_aovs(3 * PNG_ROWS + 132, 400, seed=1)["default"]
+    panels_png(tmp_path / "warm.png", [("input", image[:4])])  # imports what drawing needs
+    tracemalloc.start()
+    try:
+        panels_png(tmp_path / "p.png", [("input", image), ("denoised", image)], title="t")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    canvas = (28 + image.shape[0]) * (2 * 400 + 4) * 3
+    # the canvas and a few float64 blocks of rows; d097970 tonemapped whole panels (28 MB here)
+    assert peak <= canvas + 4 * PNG_ROWS * 400 * 3 * 8
 
 
 def test_plan_outputs(tmp_path):

@@ -101,3 +101,24 @@ def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_r
     assert f"metrics {tmp_path}/linked/metrics.json is the reference file {tmp_path}/a/x-00064spp.exr itself" \
         in capsys.readouterr().err
     assert checksums(tmp_path) == before
+
+
+def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(tiny_run, tmp_path, capsys):
+    import shutil
+
+    from conftest import make_renders, random_aovs
+
+    folder = make_renders(tmp_path / "renders", scenes=("a-000",), size=(24, 20))
+    noisy, ref = folder / exr.render_filename("a-000", 4), folder / exr.render_filename("a-000", 64)
+    exr.write_aovs(folder / exr.render_filename("lonely-000", 4), random_aovs(24, 20))  # a scene without a reference
+    (folder / "notes.exr").write_bytes(b"not a render")  # not named <scene>-<spp>spp.exr
+    (folder / exr.render_filename("a-000-x", 999)).write_bytes(b"torn")  # another scene, with more samples
+    run = shutil.copytree(tiny_run, tmp_path / "run")  # figures are written into the run
+    assert main(["-q", "evaluate", "--run", str(run), "--out", str(tmp_path / "eval"), "--no-baseline", str(noisy)]) == 0
+    [row] = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert (row["scene"], row["input spp"]) == ("a-000", 4)
+    want = metrics.relmse(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])
+    assert row["raw"]["relmse"] == want
+    assert main(["-q", "figures", "--run", str(run), str(noisy)]) == 0
+    assert (run / "figures" / "kernels.png").is_file()
+    capsys.readouterr()

@@ -60,3 +60,21 @@ def test_float32_and_float64_renders_give_the_same_features():
     wide = {name: image.astype(np.float64) for name, image in aovs.items()}
     for branch in features.BRANCHES:
         np.testing.assert_array_equal(features.branch_features(aovs, branch), features.branch_features(wide, branch))
+
+
+@pytest.mark.parametrize("branch", features.BRANCHES)
+def test_a_window_has_the_whole_image_features_bit_for_bit(branch):
+    aovs = random_aovs(23, 31, seed=5)
+    aovs["depth"][0, 0] = 1e3  # the depth scale comes from a pixel outside most windows
+    whole = features.branch_features(aovs, branch)
+    scale = features.depth_scale(aovs["depth"])
+    windows = [(0, 23, 0, 31), (0, 1, 0, 1), (22, 23, 30, 31), (5, 12, 7, 8), (3, 23, 0, 17), (10, 11, 0, 31)]
+    for y0, y1, x0, x1 in windows:
+        np.testing.assert_array_equal(features.branch_features(aovs, branch, (y0, y1, x0, x1), scale=scale),
+                                      whole[y0:y1, x0:x1])
+        np.testing.assert_array_equal(features.branch_features(aovs, branch, (y0, y1, x0, x1)), whole[y0:y1, x0:x1])
+
+
+def test_a_window_outside_the_image_is_refused():
+    with pytest.raises(ValueError, match=r"\(0, 5, 3, 3\)"):
+        features.branch_features(random_aovs(4, 4), "diffuse", (0, 5, 3, 3))

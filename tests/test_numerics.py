@@ -601,11 +601,10 @@ def test_hard_case_tiled_denoise_is_finite_non_negative_and_equals_untiled(hard_
     noisy = hard_set.noisy(case)
     logs = {}
     for branch in features.BRANCHES:
-        feats = features.branch_features(noisy, branch)
-        logs[branch] = tiled.run_branch(branch, feats)
+        logs[branch] = tiled.run_branch(branch, noisy)
         assert np.isfinite(logs[branch]).all()
         assert logs[branch].min() >= 0 and logs[branch].max() <= LOG_COLOUR_MAX
-        np.testing.assert_allclose(logs[branch], whole.run_branch(branch, feats), rtol=1e-5, atol=2e-5)
+        np.testing.assert_allclose(logs[branch], whole.run_branch(branch, noisy), rtol=1e-5, atol=2e-5)
     out = tiled(noisy)
     for name, image in out.items():
         assert image.dtype == np.float32 and np.isfinite(image).all() and image.min() >= 0, name
@@ -626,7 +625,7 @@ def test_randomised_networks_keep_denoised_extreme_renders_finite_and_in_range(h
     for case in ("float32-max", "firefly-1e6", "nan-inf-every-layer", "black"):
         noisy = hard_set.noisy(case)
         for branch in features.BRANCHES:
-            log = denoiser.run_branch(branch, features.branch_features(noisy, branch))
+            log = denoiser.run_branch(branch, noisy)
             assert np.isfinite(log).all() and log.min() >= 0 and log.max() <= LOG_COLOUR_MAX, (case, branch)
             clamped |= bool((log == np.float32(LOG_COLOUR_MAX)).any())
         out = denoiser(noisy)
@@ -669,8 +668,7 @@ def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_deno
 
     tiled, whole = Denoiser(run, tile=2), Denoiser(run, tile=4096)  # tiles smaller than the margin
     for branch in features.BRANCHES:
-        feats = features.branch_features(back, branch)
-        np.testing.assert_allclose(tiled.run_branch(branch, feats), whole.run_branch(branch, feats), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(tiled.run_branch(branch, back), whole.run_branch(branch, back), rtol=1e-5, atol=1e-6)
     out = tiled(back)
     for name, image in out.items():
         assert image.shape[:2] == size and np.isfinite(image).all() and image.min() >= 0, name
