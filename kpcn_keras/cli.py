@@ -2,6 +2,9 @@
 
 Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
+Every number's help states the bound it is checked against, from the same ``prep.bounds.Bound``
+(:func:`_state_bounds`); the few options no dataclass holds (``--tile``, ``--slope``, ...) are checked
+against theirs before the command starts.
 ``render`` and ``shards`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with

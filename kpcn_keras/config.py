@@ -1,7 +1,8 @@
 """The configuration dataclasses of training and of the networks, and the presets (no keras, no torch).
 
-Each default is written once, here; the command line fills these from the options a user gave and never
-retypes a default. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
+Each default is written once, here, with the bound of its value (``prep.bounds``: checked by the dataclass,
+stated by ``--help``); the command line fills these from the options a user gave and never retypes a
+default or a bound. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from prep.bounds import REPEATS, SEED, Bound, bounded, check_distinct, check_fields
+from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
 from prep.features import BRANCHES
@@ -50,7 +51,6 @@ SLOPE = Bound(1.0, 1000.0, integer=False)  # λ of the asymmetric loss: 1 is SMA
 GAMMA = Bound(0.0, 100.0, integer=False)
 DROPOUT = Bound(0.0, 1.0, integer=False, high_open=True)
 ROUNDS = Bound(1, 100)
-PATCH_COUNT_OR_NONE = Bound(0, 65536)  # new patches per training input and round; 0 adds none
 BUDGET = Bound(0.0, 7 * 86400.0, integer=False, low_open=True)  # training seconds: at most a week
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
@@ -392,7 +392,7 @@ class ResampleConfig:
     rounds: int = bounded(3, ROUNDS)
     metric: str = "smape"
     error_weight: float = bounded(0.5, SHARE)
-    patches_per_image: Optional[int] = bounded(None, PATCH_COUNT_OR_NONE)
+    patches_per_image: Optional[int] = bounded(None, Bound(0, PATCH_COUNT.high))  # 0 adds no patches
     round_steps: int = bounded(400, STEPS)
     round_decay: float = bounded(1.0, FRACTION)
 
@@ -434,7 +434,7 @@ class ResampleStudyConfig:
     base_steps: int = bounded(600, STEPS)
     rounds: int = bounded(3, ROUNDS)
     round_steps: int = bounded(200, STEPS)
-    patches_per_image: int = bounded(8, Bound(1, PATCH_COUNT_OR_NONE.high))
+    patches_per_image: int = bounded(8, PATCH_COUNT)
     error_weight: Optional[float] = None
     metric: Optional[str] = None
 

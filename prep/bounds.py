@@ -85,6 +85,7 @@ def _num(x: float) -> str:
 # streams from it by SeedSequence, which would take more, but a seed that a set accepts must train too.
 SEED = Bound(0, 2**32 - 1)
 REPEATS = Bound(1, 1000)  # timed calls of a measurement (the benches, compare)
+PATCH_COUNT = Bound(1, 65536)  # patches per image, per shard, per resampling round (shards are bounded in bytes too)
 
 
 def bounded(default: Any = dataclasses.MISSING, bound: Bound | None = None, *, distinct: bool = False,
@@ -135,4 +136,4 @@ def check_fields(obj) -> None:
         object.__setattr__(obj, f.name, value)  # frozen dataclasses too
 
 
-__all__ = ["REPEATS", "SEED", "Bound", "bound_of", "bounded", "check_distinct", "check_fields"]
+__all__ = ["PATCH_COUNT", "REPEATS", "SEED", "Bound", "bound_of", "bounded", "check_distinct", "check_fields"]

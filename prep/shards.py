@@ -84,7 +84,7 @@ import h5py
 import numpy as np
 
 from prep import exr, features, sampling, threads
-from prep.bounds import SEED, Bound, bounded, check_fields
+from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import KpcnError, OptionError
 from prep.files import (
     atomic_path,
@@ -210,7 +210,6 @@ def empty_patches(count: int, patch_size: int) -> dict[str, np.ndarray]:
 # side, eight times the 65 of the papers; train refuses a kernel or receptive field that the set's patches
 # do not hold (kpcn_keras.train.check_inputs).
 PATCH_SIZE = Bound(3, 512)
-PATCH_COUNT = Bound(1, 65536)  # patches per image or per shard (a shard is bounded in bytes too: MAX_SHARD_BYTES)
 
 
 @dataclass

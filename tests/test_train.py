@@ -58,9 +58,10 @@ def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
 
 def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
     # the kernel softmax saturates rather than overflows at any finite weight, so only a step
-    # that takes the weights past float32 max (Adam's step is about the learning rate) diverges
-    cfg = tiny_config(build_tiny_shards(tmp_path), branches=("diffuse",), learning_rate=3e38,
-                      clipnorm=1e38)
+    # that takes the weights past float32 max (Adam's step is about the learning rate) diverges: set
+    # past the options' bounds (--lr at most 1), which the config checks when it is made
+    cfg = tiny_config(build_tiny_shards(tmp_path), branches=("diffuse",))
+    cfg.learning_rate, cfg.clipnorm = 3e38, 1e38
     with pytest.raises(KpcnError, match="diverged"):
         train(cfg, tmp_path / "runs" / "r", verbose=0)
     assert not (tmp_path / "runs" / "r" / "diffuse.keras").exists()
