@@ -306,6 +306,13 @@ def test_a_render_setting_out_of_range_in_the_file_names_its_key(tmp_path):
     assert not (tmp_path / "out.exr").exists()
 
 
+def test_a_seed_option_beyond_the_projects_range_is_refused_before_rendering(tmp_path):
+    # the option's seed is in the one range of every command (prep.bounds.SEED); a file's is the noise seed
+    with pytest.raises(OptionError, match=r"seed must be an integer in \[0, 4294967295\], got 4294967296"):
+        render_scene_file(EXAMPLE, tmp_path / "out.exr", overrides={"seed": 2**32}, png=False)
+    assert not any(tmp_path.iterdir())
+
+
 def test_toml_syntax_error_names_the_line_and_column(tmp_path):
     path = edited(tmp_path, "fov = 40.0", "fov = = 40")
     line = next(i for i, text in enumerate(path.read_text().splitlines(), 1) if text.startswith("fov = ="))
