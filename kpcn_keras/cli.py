@@ -2,6 +2,9 @@
 
 Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study. Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default (the parser never retypes one).
+Every number's help states the bound it is checked against, from the same ``prep.bounds.Bound``
+(:func:`_state_bounds`); the few options no dataclass holds (``--tile``, ``--slope``, ...) are checked
+against theirs before the command starts.
 ``render`` and ``shards`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
@@ -17,6 +20,7 @@ import logging
 import os
 import sys
 
+from prep.bounds import BOUND, DISTINCT, check_distinct
 from prep.errors import KpcnError, OptionError
 
 # The exit status of a KpcnError; argparse uses the same for a malformed command line.
@@ -71,6 +75,42 @@ def _command_line(args, leave_out=()) -> str:
             continue
         kept.append(token)
     return " ".join(["kpcn"] + kept)
+
+
+def _state_bounds(parser: argparse.ArgumentParser) -> None:
+    """Append to the help of every option of every subcommand the bound it is checked against
+    (``prep.bounds``): its config field's, or, for an option no config holds, the subcommand's own (which
+    :func:`main` checks), and, for a list, that it takes no repeat. Every help states what the check does."""
+    for command, sub in parser.get_default("subcommands").items():
+        configs, own, own_distinct = parser.get_default("bounded")[command]
+        for action in sub._actions:
+            if not action.option_strings or action.help is argparse.SUPPRESS or action.nargs == 0:
+                continue
+            fields = [f for cls in configs for f in dataclasses.fields(cls) if f.name == action.dest]
+            bound = own.get(action.dest) or next((f.metadata[BOUND] for f in fields if f.metadata.get(BOUND)), None)
+            distinct = any(f.metadata.get(DISTINCT) for f in fields) or action.dest in own_distinct
+            listed = action.type in (_csv, _csv_ints, _csv_floats)
+            stated = [("each " if listed else "") + bound.text()] if bound else []
+            if distinct:
+                stated.append("no repeats")
+            if stated:
+                stated = ", ".join(stated)
+                # "an integer in [1, 16384] (default: 256)", "random permutations per family (default: 3); an ..."
+                help = action.help or ""
+                action.help = f"{stated} {help}" if help.startswith("(") else f"{help}; {stated}" if help else stated
+
+
+def _check_own_bounds(args) -> None:
+    """Check the options of the subcommand that no config dataclass holds against their bounds (before
+    anything is read or written, as a config's check is)."""
+    _, own, own_distinct = args.parser.get_default("bounded")[args.command]
+    for dest, bound in own.items():
+        if dest in args:
+            value = getattr(args, dest)
+            for v in value if isinstance(value, tuple) else (value,):
+                bound.check(dest, v)
+            if dest in own_distinct:
+                check_distinct(dest, value)
 
 
 def _default(cls, name: str) -> str:
@@ -301,17 +341,26 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="kpcn", description="Kernel-predicting denoisers for path-traced renders.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True)
-    p.set_defaults(subcommands={})
+    p.set_defaults(subcommands={}, bounded={})
 
-    def parser(name, **kw):
+    def parser(name, configs=(), own=None, own_distinct=(), **kw):
+        """The subcommand ``name``, whose options are fields of ``configs`` (their bounds) or in ``own``
+        (dest -> Bound: the options no config holds; those in ``own_distinct`` take no repeat)."""
         p.get_default("subcommands")[name] = sub.add_parser(name, argument_default=argparse.SUPPRESS, **kw)
+        p.get_default("bounded")[name] = (tuple(configs), dict(own or {}), frozenset(own_distinct))
         # every command computes (numba, torch or both); prep/threads.py makes the count hold for both
         p.get_default("subcommands")[name].add_argument(
-            "--threads", type=int, help="threads for numba and torch (default: every core this process may use; under torchrun, "
-            "its share of them)")
+            "--threads", type=int, help="threads for numba and torch, an integer from 1 to the cores this process "
+            "may use (default: every one of them; under torchrun, its share of them)")
         return p.get_default("subcommands")[name]
 
-    r = parser("render", help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")
+    from prep.render.bench import RenderBenchConfig
+    from prep.render.frame import SPP
+
+    from kpcn_keras.config import (PIXEL, SLOPE, TILE, CompareConfig, CompositorConfig, ModelConfig, ResampleConfig,
+                                   ResampleStudyConfig, TrainConfig)
+
+    r = parser("render", (RenderConfig,), {"spp": SPP}, help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")
     d = lambda name: f"(default: {_default(RenderConfig, name)})"  # noqa: E731
     r.add_argument("--set", dest="set_name", help=f"render set name, a folder under --out {d('set_name')}")
     r.add_argument("--families", type=_csv, help=f"comma-separated scene families {d('families')}")
@@ -330,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     _part_option(r, "renders")
     r.set_defaults(func=cmd_render)
 
-    s = parser("shards", help="cut 65x65 patches of a render folder into HDF5 shards")
+    s = parser("shards", (ShardConfig,), help="cut 65x65 patches of a render folder into HDF5 shards")
     d = lambda name: f"(default: {_default(ShardConfig, name)})"  # noqa: E731
     s.add_argument("--set", dest="set_name", help=f"render set to read and shard set to write {d('set_name')}")
     s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
@@ -345,9 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
     _part_option(s, "shards")
     s.set_defaults(func=cmd_shards)
 
-    from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PRESETS, CompositorConfig, TrainConfig
+    from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PRESETS
 
-    t = parser("train", help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
+    t = parser("train", (TrainConfig, ModelConfig, CompositorConfig), help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
     d = lambda name: f"(default: {_default(TrainConfig, name)})"  # noqa: E731
     t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
     t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
@@ -379,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--decay-rate", type=float, help=d("decay_rate"))
     g.add_argument("--clipnorm", type=float, help=f"gradient norm clip {d('clipnorm')}")
     g.add_argument("--loss", help=f"smape or asymmetric {d('loss')}")
-    g.add_argument("--slope", type=float, help=f"asymmetric loss slope λ >= 1 {d('slope')}")
+    g.add_argument("--slope", type=float, help=f"asymmetric loss slope λ {d('slope')}")
     g.add_argument("--slope-input", action="store_true", help="λ as an input channel: one network for every λ "
                    "in --slope-range, chosen at 'kpcn denoise --slope'")
     g.add_argument("--slope-range", type=_csv_floats, help=f"low,high {d('slope_range')}")
@@ -388,9 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, help=d("seed"))
     t.set_defaults(func=cmd_train)
 
-    from kpcn_keras.config import ResampleConfig
-
-    m = parser("resample", help="error-based resampling rounds: new patches where the run's denoiser errs, "
+    m = parser("resample", (ResampleConfig,), help="error-based resampling rounds: new patches where the run's denoiser errs, "
                "then more training on every round (resumes by itself)")
     d = lambda name: f"(default: {_default(ResampleConfig, name)})"  # noqa: E731
     _run_option(m, required=True, help="a run folder that finished training (kpcn train)")
@@ -405,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
                    f"alike {d('round_decay')}")
     m.set_defaults(func=cmd_resample)
 
-    n = parser("denoise", help="denoise EXRs in the AOV layout: files, or every render in a folder, in one process")
+    n = parser("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs in the AOV layout: files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
     _run_option(n, required=True, help="a run folder that finished training (kpcn train)")
@@ -419,7 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--no-png", action="store_true", default=False)
     n.set_defaults(func=cmd_denoise)
 
-    e = parser("evaluate", help="compare a run with the raw input and NLM on held-out scenes")
+    e = parser("evaluate", own={"tile": TILE}, help="compare a run with the raw input and NLM on held-out scenes")
     _run_option(e, required=True)
     e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
                    "each reference is the same scene's render with the most samples in the same folder")
@@ -428,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-baseline", action="store_true", default=False)
     e.set_defaults(func=cmd_evaluate)
 
-    f = parser("figures", help="draw the report's figures from a run: kernels, α maps, with and without "
+    f = parser("figures", own={"tile": TILE, "slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",), help="draw the report's figures from a run: kernels, α maps, with and without "
                "multiscale, a λ sweep (into <run>/figures)")
     _run_option(f, required=True)
     f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
@@ -439,11 +486,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     f.set_defaults(func=cmd_figures)
 
-    from prep.render.bench import RenderBenchConfig
-
     from kpcn_keras.config import BENCH_PRESETS, BenchConfig
 
-    b = parser("bench", help="what accuracy costs in time: reports/accuracy_time.{md,json,png} (or, with 'render', "
+    b = parser("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: reports/accuracy_time.{md,json,png} (or, with 'render', "
                "the path tracer's samples per second: reports/render.{md,json})")
     d = lambda name: f"(default: {_default(BenchConfig, name)})"  # noqa: E731
     b.add_argument("what", nargs="?", choices=["accuracy", "render"], default="accuracy",
@@ -470,9 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--spp", type=int, help=f"bench render: {d('spp')}")
     b.set_defaults(func=cmd_bench)
 
-    from kpcn_keras.config import CompareConfig
-
-    c = parser("compare", help="train every configuration for the same seconds, then compare accuracy and cost "
+    c = parser("compare", (CompareConfig,), help="train every configuration for the same seconds, then compare accuracy and cost "
                "on held-out frames; writes reports/compare.{md,json,png}")
     d = lambda name: f"(default: {_default(CompareConfig, name)})"  # noqa: E731
     _experiment_folders(c, d, "the comparison's runs")
@@ -485,9 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "--out folder's compare.json, training and measuring nothing")
     c.set_defaults(func=cmd_compare)
 
-    from kpcn_keras.config import ResampleStudyConfig
-
-    y = parser("resample-study", help="error rounds against variance sampling alone, at equal steps and equal "
+    y = parser("resample-study", (ResampleStudyConfig, ResampleConfig), help="error rounds against variance sampling alone, at equal steps and equal "
                "wall time, over several seeds; writes reports/resample.{md,json,png}")
     d = lambda name: f"(default: {_default(ResampleStudyConfig, name)})"  # noqa: E731
     _experiment_folders(y, d, "the study's runs and shard copies")
@@ -501,6 +542,7 @@ def build_parser() -> argparse.ArgumentParser:
                    f"{_default(ResampleConfig, 'error_weight')})")
     y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")
     y.set_defaults(func=cmd_resample_study)
+    _state_bounds(p)
     return p
 
 
@@ -568,6 +610,7 @@ def main(argv=None) -> int:
 
         set_threads(getattr(args, "threads", None))
         _check_launcher(args.command)
+        _check_own_bounds(args)
         return args.func(args)
     except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):

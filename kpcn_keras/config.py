@@ -1,7 +1,8 @@
 """The configuration dataclasses of training and of the networks, and the presets (no keras, no torch).
 
-Each default is written once, here; the command line fills these from the options a user gave and never
-retypes a default. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
+Each default is written once, here, with the bound of its value (``prep.bounds``: checked by the dataclass,
+stated by ``--help``); the command line fills these from the options a user gave and never retypes a
+default or a bound. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
 """
 
 from __future__ import annotations
@@ -14,15 +15,44 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
 from prep.features import BRANCHES
+from prep.render.frame import FRAME_SIDE, SPP
 
 ARCHS = ("kpcn", "kpal", "dpcn")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
+TILE = Bound(1, FRAME_SIDE.high)
 DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
 COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
 BRANCH_CHANNELS = len(BRANCHES)  # one-hot branch indicator of a shared network
+
+
+# The bounds of the options (prep.bounds). A kernel of k x k taps is k**2 logits a pixel: 41 (1681 taps,
+# twice the papers' 21 a side) keeps a training batch's head within a few hundred MB; 1 would be the
+# identity, no filter. The trunk's width, depth and convolution size likewise stay well past the papers'
+# (100 wide, 28 layers, 5x5).
+KERNEL_SIZE = Bound(3, 41, odd=True)
+COMPOSITOR_KERNEL_SIZE = Bound(1, 41, odd=True)  # coarse pixels; 1 upsamples by replication
+CONV_SIZE = Bound(1, 15, odd=True)
+WIDTH = Bound(1, 1024)
+DEPTH = Bound(1, 100)
+IN_CHANNELS = Bound(COLOUR_CHANNELS, 1024)  # channels 0..2 are the colour
+LEVELS = Bound(2, 8)  # one level is the denoiser alone; 8 halves a frame 7 times
+STEPS = Bound(1, 10_000_000)  # ten days at 12 steps/s
+BATCH_SIZE = Bound(1, 4096)
+VAL_BATCHES = Bound(1, 10_000)
+LEARNING_RATE = Bound(0.0, 1.0, integer=False, low_open=True)
+FRACTION = Bound(0.0, 1.0, integer=False, low_open=True)  # (0, 1]: a decay rate, a round's decay, a budget share
+SHARE = Bound(0.0, 1.0, integer=False)  # [0, 1]: a mix weight
+CLIPNORM = Bound(0.0, 1e6, integer=False, low_open=True)
+SLOPE = Bound(1.0, 1000.0, integer=False)  # λ of the asymmetric loss: 1 is SMAPE itself
+GAMMA = Bound(0.0, 100.0, integer=False)
+DROPOUT = Bound(0.0, 1.0, integer=False, high_open=True)
+ROUNDS = Bound(1, 100)
+BUDGET = Bound(0.0, 7 * 86400.0, integer=False, low_open=True)  # training seconds: at most a week
+PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
 
 def check_kernel_size(k) -> int:
@@ -34,25 +64,6 @@ def check_kernel_size(k) -> int:
     if value is None or isinstance(k, bool) or value < 1 or value % 2 == 0:
         raise ValueError(f"kernel size must be a positive odd integer, received {k!r}")
     return value
-
-
-def _check_network(cfg, *integers: str) -> None:
-    """The fields every convolutional network config has (``width``, ``depth``, ``conv_size``,
-    ``kernel_size``) and ``integers``: OptionError naming the field and echoing the value."""
-    for name in integers + ("width", "depth", "conv_size", "kernel_size"):
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise OptionError(name, f"must be an integer, received {value!r}")
-    if cfg.width < 1:
-        raise OptionError("width", f"must be >= 1, received {cfg.width}")
-    if cfg.depth < 1:
-        raise OptionError("depth", f"must be >= 1, received {cfg.depth}")
-    if cfg.conv_size < 1 or cfg.conv_size % 2 == 0:
-        raise OptionError("conv_size", f"must be a positive odd integer, received {cfg.conv_size}")
-    try:
-        check_kernel_size(cfg.kernel_size)
-    except ValueError as exc:
-        raise OptionError("kernel_size", str(exc).removeprefix("kernel size ")) from None
 
 
 def _strict_from_dict(cls, d: dict, option: str):
@@ -75,12 +86,12 @@ class ModelConfig:
     """
 
     arch: str = "kpcn"
-    in_channels: int = 27
-    width: int = 32
-    depth: int = 7
-    conv_size: int = 3
-    kernel_size: int = 13
-    dropout: float = 0.0
+    in_channels: int = bounded(27, IN_CHANNELS)
+    width: int = bounded(32, WIDTH)
+    depth: int = bounded(7, DEPTH)
+    conv_size: int = bounded(3, CONV_SIZE)
+    kernel_size: int = bounded(13, KERNEL_SIZE)
+    dropout: float = bounded(0.0, DROPOUT)
     batchnorm: Optional[bool] = None
     branch_channels: bool = False
     slope_channel: bool = False
@@ -88,16 +99,7 @@ class ModelConfig:
     def __post_init__(self):
         if self.arch not in ARCHS:
             raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
-        _check_network(self, "in_channels")
-        if self.in_channels < COLOUR_CHANNELS:
-            raise OptionError(
-                "in_channels", f"must be >= {COLOUR_CHANNELS} (channels 0..2 are the colour), received {self.in_channels}"
-            )
-        if isinstance(self.dropout, bool) or not isinstance(self.dropout, (int, float)):
-            raise OptionError("dropout", f"must be a number in [0, 1), received {self.dropout!r}")
-        if not 0.0 <= float(self.dropout) < 1.0:
-            raise OptionError("dropout", f"must be in [0, 1), received {self.dropout!r}")
-        self.dropout = float(self.dropout)
+        check_fields(self)
         if self.batchnorm is None:
             self.batchnorm = self.arch == "kpal"
         elif not isinstance(self.batchnorm, bool):
@@ -133,24 +135,18 @@ class CompositorConfig:
     weight ``gamma`` (>= 0)."""
 
     kind: str = "alpha"
-    levels: int = 3
-    width: int = 32
-    depth: int = 6
-    conv_size: int = 3
-    kernel_size: int = 5
-    gamma: float = 0.01
+    levels: int = bounded(3, LEVELS)
+    width: int = bounded(32, WIDTH)
+    depth: int = bounded(6, DEPTH)
+    conv_size: int = bounded(3, CONV_SIZE)
+    kernel_size: int = bounded(5, COMPOSITOR_KERNEL_SIZE)
+    gamma: float = bounded(0.01, GAMMA)
 
     def __post_init__(self):
         if self.kind not in COMPOSITOR_KINDS:
             # the option a user types is --compositor KIND
             raise OptionError("compositor", f"must be one of {COMPOSITOR_KINDS}, received {self.kind!r}")
-        _check_network(self, "levels")
-        if self.levels < 2:
-            raise OptionError("levels", f"must be >= 2 (one level is the denoiser alone), received {self.levels}")
-        gamma = self.gamma
-        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma < math.inf:
-            raise OptionError("gamma", f"must be a finite number >= 0, received {gamma!r}")
-        self.gamma = float(gamma)
+        check_fields(self)
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict."""
@@ -252,58 +248,41 @@ class TrainConfig:
     shards_root: str = "shards"
     preset: str = "cpu"
     model: dict = field(default_factory=dict)
-    branches: tuple[str, ...] = BRANCHES
+    branches: tuple[str, ...] = bounded(BRANCHES, distinct=True)
     shared: bool = False
-    steps: int = 1200
-    steps_per_epoch: int = 50
-    batch_size: int = 8
-    learning_rate: float = 1e-3
-    decay_steps: int = 1200
-    decay_rate: float = 0.3
-    clipnorm: float = 1.0
+    steps: int = bounded(1200, STEPS)
+    steps_per_epoch: int = bounded(50, STEPS)
+    batch_size: int = bounded(8, BATCH_SIZE)
+    learning_rate: float = bounded(1e-3, LEARNING_RATE)
+    decay_steps: int = bounded(1200, STEPS)
+    decay_rate: float = bounded(0.3, FRACTION)
+    clipnorm: float = bounded(1.0, CLIPNORM)
     loss: str = "smape"
-    slope: float = 2.0
+    slope: float = bounded(2.0, SLOPE)
     slope_input: bool = False
-    slope_range: tuple[float, float] = (1.0, 8.0)
+    slope_range: tuple[float, float] = bounded((1.0, 8.0), SLOPE)
     augment: bool = True
-    joint_steps: int = 0
-    joint_learning_rate: float = 1e-4
+    joint_steps: int = bounded(0, Bound(0, STEPS.high))
+    joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     compositor: dict | None = None
-    compositor_steps: int = 600
-    compositor_learning_rate: float = 1e-3
-    val_batches: int = 8
-    seed: int = 0
+    compositor_steps: int = bounded(600, STEPS)
+    compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
+    val_batches: int = bounded(8, VAL_BATCHES)
+    seed: int = bounded(0, SEED)
 
     def __post_init__(self):
         self.branches = tuple(self.branches)
-        self.slope_range = tuple(float(s) for s in self.slope_range)
+        self.slope_range = tuple(self.slope_range)
         if not self.branches or any(b not in BRANCHES for b in self.branches):
             raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, got {list(self.branches)}")
         if self.loss not in ("smape", "asymmetric"):
             raise OptionError("loss", f"must be 'smape' or 'asymmetric', got {self.loss!r}")
-        for name in ("steps", "steps_per_epoch", "batch_size", "decay_steps", "val_batches", "compositor_steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise OptionError(name, f"must be an integer >= 1, got {value!r}")
-        if isinstance(self.joint_steps, bool) or not isinstance(self.joint_steps, int) or self.joint_steps < 0:
-            raise OptionError("joint_steps", f"must be an integer >= 0, got {self.joint_steps!r}")
+        check_fields(self)
         for name in ("shared", "slope_input", "augment"):
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"must be true or false, got {getattr(self, name)!r}")
-        lo, hi = self.slope_range if len(self.slope_range) == 2 else (0.0, 0.0)
-        checks = {
-            "learning_rate": (0 < self.learning_rate < math.inf, "> 0 and finite"),
-            "joint_learning_rate": (0 < self.joint_learning_rate < math.inf, "> 0 and finite"),
-            "compositor_learning_rate": (0 < self.compositor_learning_rate < math.inf, "> 0 and finite"),
-            "clipnorm": (0 < self.clipnorm < math.inf, "> 0 and finite"),
-            "decay_rate": (0 < self.decay_rate <= 1, "in (0, 1]"),
-            "slope": (1 <= self.slope < math.inf, ">= 1 and finite"),
-            "slope_range": (1 <= lo < hi < math.inf, "two numbers 1 <= low < high"),
-            "seed": (self.seed >= 0, ">= 0"),
-        }
-        for name, (ok, bound) in checks.items():
-            if not ok:
-                raise OptionError(name, f"must be {bound}, got {getattr(self, name)!r}")
+        if len(self.slope_range) != 2 or not self.slope_range[0] < self.slope_range[1]:
+            raise OptionError("slope_range", f"must be two numbers low < high, got {list(self.slope_range)}")
         if self.slope_input and self.loss != "asymmetric":
             raise OptionError("slope_input", "needs --loss asymmetric (λ is the asymmetric loss's slope)")
         whole = set(self.branches) == set(BRANCHES)
@@ -382,11 +361,11 @@ class CompareConfig:
     shards_root: str = "shards"
     runs_root: str = "runs/compare"
     out_dir: str = "reports"
-    budget: float = 180
-    configurations: tuple[str, ...] = field(default_factory=_all_configurations)
-    frame: int = 256
-    repeats: int = 5
-    seed: int = 0
+    budget: float = bounded(180, BUDGET)
+    configurations: tuple[str, ...] = bounded(default_factory=_all_configurations, distinct=True)
+    frame: int = bounded(256, FRAME_SIDE)
+    repeats: int = bounded(5, REPEATS)
+    seed: int = bounded(0, SEED)
 
     def __post_init__(self):
         known = _all_configurations()
@@ -397,21 +376,11 @@ class CompareConfig:
         for name in ("shards_root", "runs_root", "out_dir"):
             if not isinstance(getattr(self, name), str) or not getattr(self, name):
                 raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
-        budget = self.budget
-        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < math.inf:
-            raise OptionError("budget", f"must be a number of seconds > 0, got {budget!r}")
-        self.budget = float(budget)
         unknown = [c for c in self.configurations if c not in known]
         if unknown or not self.configurations:
             found = f"has unknown {', '.join(map(repr, unknown))}" if unknown else "is empty"
             raise OptionError("configurations", f"{found}; the known ones are {', '.join(known)}")
-        repeated = sorted({c for c in self.configurations if self.configurations.count(c) > 1})
-        if repeated:
-            raise OptionError("configurations", f"names {', '.join(repeated)} more than once")
-        for name, low in (("frame", 1), ("repeats", 1), ("seed", 0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
+        check_fields(self)
 
 
 @dataclass
@@ -427,30 +396,19 @@ class ResampleConfig:
     ``patches_per_image`` 0 adds no patches: the rounds only train longer on round 0 (the other control).
     """
 
-    rounds: int = 3
+    rounds: int = bounded(3, ROUNDS)
     metric: str = "smape"
-    error_weight: float = 0.5
-    patches_per_image: Optional[int] = None
-    round_steps: int = 400
-    round_decay: float = 1.0
+    error_weight: float = bounded(0.5, SHARE)
+    patches_per_image: Optional[int] = bounded(None, Bound(0, PATCH_COUNT.high))  # 0 adds no patches
+    round_steps: int = bounded(400, STEPS)
+    round_decay: float = bounded(1.0, FRACTION)
 
     def __post_init__(self):
         from prep.sampling import ERROR_METRICS
 
-        for name, low in (("rounds", 1), ("round_steps", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
-        ppi = self.patches_per_image
-        if ppi is not None and (isinstance(ppi, bool) or not isinstance(ppi, int) or ppi < 0):
-            raise OptionError("patches_per_image", f"must be an integer >= 0, got {ppi!r}")
+        check_fields(self)
         if self.metric not in ERROR_METRICS:
             raise OptionError("metric", f"must be one of {', '.join(ERROR_METRICS)}, got {self.metric!r}")
-        for name, ok, bound in (("error_weight", 0.0 <= _number(self.error_weight) <= 1.0, "in [0, 1]"),
-                                ("round_decay", 0.0 < _number(self.round_decay) <= 1.0, "in (0, 1]")):
-            if not ok:
-                raise OptionError(name, f"must be a number {bound}, got {getattr(self, name)!r}")
-        self.error_weight, self.round_decay = float(self.error_weight), float(self.round_decay)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -458,13 +416,6 @@ class ResampleConfig:
     def identity(self) -> dict:
         """What must agree for a rerun to continue the same loop (``rounds`` may grow: more rounds)."""
         return {k: v for k, v in self.to_dict().items() if k != "rounds"}
-
-
-def _number(value) -> float:
-    """``value`` as a float for a range check; NaN (outside every range) for what is not a number."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return math.nan
-    return float(value)
 
 
 def _study_arms() -> tuple[str, ...]:
@@ -485,29 +436,25 @@ class ResampleStudyConfig:
     shards_root: str = "shards"
     runs_root: str = "runs/resample-study"
     out_dir: str = "reports"
-    seeds: tuple[int, ...] = (0, 1, 2)
-    arms: tuple[str, ...] = field(default_factory=_study_arms)
-    base_steps: int = 600
-    rounds: int = 3
-    round_steps: int = 200
-    patches_per_image: int = 8
+    seeds: tuple[int, ...] = bounded((0, 1, 2), SEED, distinct=True)
+    arms: tuple[str, ...] = bounded(default_factory=_study_arms, distinct=True)
+    base_steps: int = bounded(600, STEPS)
+    rounds: int = bounded(3, ROUNDS)
+    round_steps: int = bounded(200, STEPS)
+    patches_per_image: int = bounded(8, PATCH_COUNT)
     error_weight: Optional[float] = None
     metric: Optional[str] = None
 
     def __post_init__(self):
         self.seeds, self.arms = tuple(self.seeds), tuple(self.arms)
         check_set_name(self.set_name)
-        if not self.seeds or len(set(self.seeds)) != len(self.seeds) or any(
-                isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in self.seeds):
-            raise OptionError("seeds", f"must be distinct integers >= 0, got {list(self.seeds)}")
+        if not self.seeds:
+            raise OptionError("seeds", "must name at least one seed")
         known = _study_arms()
-        if not self.arms or any(a not in known for a in self.arms) or len(set(self.arms)) != len(self.arms):
-            raise OptionError("arms", f"must be distinct names among {', '.join(known)}, got {list(self.arms)}")
-        for name, low in (("base_steps", 1), ("patches_per_image", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise OptionError(name, f"must be an integer >= {low}, got {value!r}")
-        self.loop(0.0)  # the loop's own checks of rounds, round_steps, error_weight, metric
+        if not self.arms or any(a not in known for a in self.arms):
+            raise OptionError("arms", f"must be names among {', '.join(known)}, got {list(self.arms)}")
+        check_fields(self)
+        self.loop()  # the loop's own checks of rounds, round_steps, error_weight (the error arm's), metric
 
     def loop(self, error_weight: float | None = None, patches_per_image: int | None = None) -> ResampleConfig:
         """The resample loop of one arm: the study's settings, the arm's error weight and patches."""
@@ -550,15 +497,15 @@ class BenchConfig:
     runs_root: str = "runs/bench"
     out_dir: str = "reports"
     full: bool = False
-    raw_spp: Optional[tuple[int, ...]] = None
-    input_spp: Optional[tuple[int, ...]] = None
-    budget: Optional[float] = None
-    budget_fractions: Optional[tuple[float, ...]] = None
-    configurations: Optional[tuple[str, ...]] = None
-    presets: Optional[tuple[str, ...]] = None
-    large_frame: tuple[int, int] = (1920, 1080)
-    repeats: int = 3
-    seed: int = 0
+    raw_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
+    input_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
+    budget: Optional[float] = bounded(None, BUDGET)
+    budget_fractions: Optional[tuple[float, ...]] = bounded(None, FRACTION, distinct=True)
+    configurations: Optional[tuple[str, ...]] = bounded(None, distinct=True)
+    presets: Optional[tuple[str, ...]] = bounded(None, distinct=True)
+    large_frame: tuple[int, int] = bounded((1920, 1080), FRAME_SIDE)
+    repeats: int = bounded(3, REPEATS)
+    seed: int = bounded(0, SEED)
 
     def __post_init__(self):
         ladder = BENCH_LADDERS["full" if self.full else "reduced"]
@@ -568,39 +515,28 @@ class BenchConfig:
         if self.presets is None:
             self.presets = BENCH_PRESETS
         check_set_name(self.set_name)
-        for name in ("raw_spp", "input_spp"):
-            values = tuple(getattr(self, name))
-            if not values or any(isinstance(v, bool) or not isinstance(v, int) or v < 2 for v in values) \
-                    or len(set(values)) != len(values):
-                raise OptionError(name, f"must be distinct sample counts >= 2, got {list(values)}")
-            setattr(self, name, tuple(sorted(values)))
-        if len(self.raw_spp) < 2:
-            raise OptionError("raw_spp", f"needs at least two sample counts for a curve, got {list(self.raw_spp)}")
-        budget = self.budget
-        if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0 < budget < math.inf:
-            raise OptionError("budget", f"must be a number of seconds > 0, got {budget!r}")
-        self.budget = float(budget)
-        fractions = tuple(self.budget_fractions)
-        if not fractions or any(not 0 < f <= 1 for f in fractions):
-            raise OptionError("budget_fractions", f"must be fractions in (0, 1], got {list(fractions)}")
-        self.budget_fractions = tuple(sorted(set(fractions)))
         known = _all_configurations()
         for name in ("configurations", "presets"):
             values = getattr(self, name)
             values = tuple(c.strip() for c in values.split(",") if c.strip()) if isinstance(values, str) \
                 else tuple(values)
             unknown = [c for c in values if c not in known]
-            if unknown or len(set(values)) != len(values):
-                raise OptionError(name, f"must be distinct names among {', '.join(known)}, got {list(values)}")
+            if unknown:
+                raise OptionError(name, f"must be names among {', '.join(known)}, got {list(values)}")
             setattr(self, name, values)
+        for name in ("raw_spp", "input_spp", "budget_fractions"):
+            setattr(self, name, tuple(getattr(self, name)))
+            if not getattr(self, name):
+                raise OptionError(name, "must name at least one value")
+        if len(self.large_frame) != 2:
+            raise OptionError("large_frame", f"must be WIDTH,HEIGHT, got {list(self.large_frame)}")
+        check_fields(self)
+        for name in ("raw_spp", "input_spp", "budget_fractions"):
+            setattr(self, name, tuple(sorted(getattr(self, name))))
+        if len(self.raw_spp) < 2:
+            raise OptionError("raw_spp", f"needs at least two sample counts for a curve, got {list(self.raw_spp)}")
         if not self.configurations:
             raise OptionError("configurations", "must name at least one configuration")
-        w, h = self.large_frame
-        for name, value, low in (("large_frame", w, 1), ("large_frame", h, 1), ("repeats", self.repeats, 1),
-                                 ("seed", self.seed, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise OptionError(name, f"must be integers >= {low}, got {value!r}")
-        self.large_frame = (w, h)
 
     def budgets(self) -> tuple[float, ...]:
         """The training budgets of the runs: the presets' curve, whose largest is the budget itself."""

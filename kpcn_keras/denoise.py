@@ -33,7 +33,7 @@ from pathlib import Path
 import keras
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.config import DEFAULT_TILE, TILE
 from kpcn_keras.models import network_input, receptive_radius
 from kpcn_keras.multiscale import CompositorConfig, alignment, build_multiscale_model, multiscale_radius
 from kpcn_keras.run import Run, check_architecture
@@ -59,8 +59,7 @@ class Denoiser:
 
     def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE, *, slope: float | None = None,
                  multiscale: bool = True, resampling: bool = False):
-        if isinstance(tile, bool) or not isinstance(tile, int) or tile < 1:
-            raise OptionError("tile", f"must be an integer >= 1 (pixels), got {tile!r}")
+        tile = TILE.check("tile", tile)
         self.run = Run(run_dir)
         self.record = self.run.finished_record(resampling=resampling)
         self.model_config = self.run.model_config(self.record)

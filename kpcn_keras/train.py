@@ -23,7 +23,8 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 - **Inputs first, record second.** The shard set must be complete, every shard's checksum must match
   its manifest and the manifest's claims (patch size, counts, configuration) what the shards hold, every
   source render still present must have the SHA-256 the manifest lists (``ShardSet.check_renders``), the
-  options must fit the data, and the run folder must be writable, before ``config.json`` is written; a
+  options must fit the data (the kernel and the receptive field within the shards' patches:
+  :func:`check_fits_patches`), and the run folder must be writable, before ``config.json`` is written; a
   command refused for bad input leaves no run behind.
 - **Exactly the steps asked.** A phase's epochs are ``steps_per_epoch`` steps (``Phase.epoch_steps``), the
   last one shorter where the phase's steps are not a multiple of it, so its optimizer, and with it the
@@ -58,7 +59,7 @@ from kpcn_keras import distributed
 from kpcn_keras.config import LOCATION_FIELDS, CompositorConfig, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
-from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model
+from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model, receptive_radius
 from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_output
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
 from prep.errors import KpcnError, OptionError
@@ -237,6 +238,23 @@ def _identity_key(cfg: TrainConfig) -> str:
     return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
 
 
+def check_fits_patches(model: ModelConfig, patch: int, where) -> None:
+    """OptionError unless the network fits the ``patch`` x ``patch`` training patches of the shard set
+    ``where``: the predicted kernel (a larger one reaches only the patch's replicated edges), and the
+    receptive field (with a larger one no pixel of a patch sees the context it sees in a tiled inference,
+    whose margins are real pixels: every pixel of the loss is computed from the trunk's zero padding)."""
+    fits = f"the {patch}x{patch} patches of {where} (--patch-size {patch})"
+    if model.arch != "dpcn" and model.kernel_size > patch:
+        raise OptionError("kernel_size", f"{model.kernel_size} is larger than {fits}: use a kernel of at most "
+                          f"{patch - 1 + patch % 2}, or cut the shards with a --patch-size of at least "
+                          f"{model.kernel_size}")
+    field = 2 * receptive_radius(model) + 1
+    if field > patch:
+        raise OptionError("depth", f"{model.depth} with --conv-size {model.conv_size} gives a {model.arch} network "
+                          f"a receptive field of {field}x{field} pixels, larger than {fits}: use a smaller "
+                          f"--depth or --conv-size, or a --patch-size of at least {field}")
+
+
 def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     """Everything a run needs from its shard set, checked before the run folder is touched; returns the
     manifest and ``split -> shard paths`` of round 0 (the variance round: a run's own phases train on it;
@@ -245,6 +263,7 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     if manifest.get("features") is not None and len(manifest["features"]) != cfg.model["in_channels"]:
         raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
+    check_fits_patches(ModelConfig.from_dict(cfg.model), int(manifest["patch_size"]), sset.dir)
     entries = {split: sset.verified_shards(split, manifest, rounds=[0]) for split in ("train", "val")}
     sset.check_renders(manifest)
     paths = {split: [e.path for e in found] for split, found in entries.items()}

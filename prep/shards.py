@@ -86,6 +86,7 @@ import numpy as np
 from h5py import h5s
 
 from prep import exr, features, sampling, threads
+from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import KpcnError, OptionError
 from prep.files import (
     atomic_path,
@@ -100,6 +101,7 @@ from prep.files import (
 )
 from prep.parts import Part
 from prep.processes import die_with_parent
+from prep.render.frame import SPP
 
 log = logging.getLogger("kpcn")
 
@@ -206,6 +208,12 @@ def empty_patches(count: int, patch_size: int) -> dict[str, np.ndarray]:
     return out
 
 
+# A patch is at least the smallest kernel that filters (3x3; models.KERNEL_SIZE) and at most 512 pixels a
+# side, eight times the 65 of the papers; train refuses a kernel or receptive field that the set's patches
+# do not hold (kpcn_keras.train.check_inputs).
+PATCH_SIZE = Bound(3, 512)
+
+
 @dataclass
 class ShardConfig:
     """Configuration of ``kpcn shards``; saved in the manifest and in every shard."""
@@ -213,35 +221,24 @@ class ShardConfig:
     set_name: str = "default"
     render_root: str = "data/renders"
     out_root: str = "shards"
-    patch_size: int = 65
-    patches_per_image: int = 32  # per input render: a ladder of three inputs gives 96 per scene
-    patches_per_shard: int = 256
-    val_fraction: float = 0.25
-    val_scenes: tuple[str, ...] = ()
-    input_spp: int | None = None
+    patch_size: int = bounded(65, PATCH_SIZE)
+    patches_per_image: int = bounded(32, PATCH_COUNT)  # per input render: a ladder of three inputs gives 96 per scene
+    patches_per_shard: int = bounded(256, PATCH_COUNT)
+    val_fraction: float = bounded(0.25, Bound(0.0, 1.0, integer=False, high_open=True))
+    val_scenes: tuple[str, ...] = bounded((), distinct=True)
+    input_spp: int | None = bounded(None, SPP)
     colour_weight: float = 1.0
     normal_weight: float = 1.0
-    uniform_mix: float = 0.1
-    seed: int = 0
+    # > 0: every position can be drawn, so the plan's check of patches_per_image against the positions of
+    # each image is complete (with 0, an image without variance has none)
+    uniform_mix: float = bounded(0.1, Bound(0.0, 1.0, integer=False, low_open=True))
+    seed: int = bounded(0, SEED)
     command: str = field(default="", compare=False)
 
     def __post_init__(self):
         self.val_scenes = tuple(self.val_scenes)
         check_set_name(self.set_name)
-        checks = {
-            "patch_size": (self.patch_size >= 1, ">= 1"),
-            "patches_per_image": (self.patches_per_image >= 1, ">= 1"),
-            "patches_per_shard": (self.patches_per_shard >= 1, ">= 1"),
-            "val_fraction": (0.0 <= self.val_fraction < 1.0, "in [0, 1)"),
-            # > 0: every position can be drawn, so the plan's check of patches_per_image against the
-            # positions of each image is complete (with 0, an image without variance has none)
-            "uniform_mix": (0.0 < self.uniform_mix <= 1.0, "in (0, 1]"),
-            "seed": (self.seed >= 0, ">= 0"),
-            "input_spp": (self.input_spp is None or self.input_spp >= 1, ">= 1"),
-        }
-        for name, (ok, bound) in checks.items():
-            if not ok:
-                raise OptionError(name, f"must be {bound}, got {getattr(self, name)!r}")
+        check_fields(self)
         if self.colour_weight < 0 or self.normal_weight < 0 or self.colour_weight + self.normal_weight <= 0:
             raise OptionError("colour_weight", f"and normal_weight must be >= 0 and not both 0, got "
                               f"{self.colour_weight} and {self.normal_weight}")
@@ -822,10 +819,10 @@ def _plan(config: ShardConfig, sset: ShardSet) -> _Plan:
                         f"{src.path} is {size[1]}x{size[0]} but its reference {ref.path} is {ref_size[1]}x{ref_size[0]}"
                     )
                 if min(size) < p:
-                    raise ShardError(
-                        f"{src.path} is {size[1]}x{size[0]}, smaller than a {p}x{p} patch; "
-                        f"use --patch-size {min(size)} or less, or remove the render"
-                    )
+                    smaller = (f"use --patch-size {min(size)} or less, or remove the render"
+                               if min(size) >= PATCH_SIZE.low else
+                               f"the smallest patch is {PATCH_SIZE.low}x{PATCH_SIZE.low}: remove the render")
+                    raise ShardError(f"{src.path} is {size[1]}x{size[0]}, smaller than a {p}x{p} patch; {smaller}")
                 positions = (size[0] - p + 1) * (size[1] - p + 1)
                 if config.patches_per_image > positions:
                     raise OptionError(

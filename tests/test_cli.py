@@ -289,3 +289,98 @@ def test_shards_record_their_command_without_the_options_that_change_no_byte():
     args.argv, args.parser = argv, parser
     assert cli._command_line(args, cli.DATA_INVARIANT) == "kpcn shards --set t --seed 3"
     assert cli._command_line(args) == "kpcn " + " ".join(argv)  # a report keeps every option
+
+
+# --- the bounds of every numeric option, and no repeats in a list (issue 20, items 4-6, 14) ---
+
+_NUMERIC = ("int", "float", "_csv_ints", "_csv_floats")
+_STATED = re.compile(r"(an odd integer|an integer|a number) in ([\[(])([^,]+), ([^\])]+)([\])])")
+# the lists whose entries have a place (y,x; width,height; low,high): a repeat means something there
+_POSITIONAL = {"pixel", "large_frame", "slope_range"}
+# what a command needs besides the option for its check to be reached (the option's bound is checked first)
+_NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
+          "resample": ["--run", "no-run"]}
+_NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
+              ("train", "gamma"): ["--compositor", "alpha"]}
+
+
+def _options():
+    """(command, action) of every option of every subcommand."""
+    from kpcn_keras.cli import build_parser
+
+    return [(command, action) for command, sub in build_parser().get_default("subcommands").items()
+            for action in sub._actions if action.option_strings and action.dest != "help"]
+
+
+def _beyond(kind, opening, low, high, closing):
+    """The values just outside a stated bound, below then above."""
+    if kind != "a number":
+        return [int(low) - 1, int(high) + 1]
+    low, high = float(low), float(high)
+    return [low if opening == "(" else low - 1e-3 * max(1.0, abs(low)),
+            high if closing == ")" else high + 1e-3 * max(1.0, abs(high))]
+
+
+def _error_line(capsys, tmp_path, argv):
+    from kpcn_keras.cli import main
+
+    assert main(["-q", *argv]) == 2, argv
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1, (argv, out, err)
+    assert not any(tmp_path.iterdir()), argv  # refused before anything is written
+    return err.strip()
+
+
+def test_every_numeric_option_states_both_bounds_and_refuses_a_value_beyond_each(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    numeric = [(c, a) for c, a in _options() if getattr(a.type, "__name__", None) in _NUMERIC]
+    assert len(numeric) > 60
+    unstated = [f"{c} {a.option_strings[-1]}" for c, a in numeric
+                if a.dest != "threads" and not _STATED.search(a.help or "")]
+    assert unstated == []
+    for command, action in numeric:
+        flag = max(action.option_strings, key=len)
+        if action.dest == "threads":  # its upper bound is the machine's: the cores this process may use
+            assert "an integer from 1 to the cores this process may use" in action.help
+            values, stated = [0, 10**6], "an integer from 1 to"
+        else:
+            found = _STATED.search(action.help)
+            values, stated = _beyond(*found.groups()), found.group(0)
+        for value in values:
+            text = f"{value},{value}" if action.dest in _POSITIONAL else str(value)
+            argv = [command, *_NEEDS.get(command, []), *_NEEDS_FOR.get((command, action.dest), []), f"{flag}={text}"]
+            line = _error_line(capsys, tmp_path, argv)
+            assert line.startswith(f"kpcn {command}: error: {flag} must be {stated}"), (argv, line)
+            assert f"got {value}" in line, (argv, line)
+
+
+def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    lists = [(c, a) for c, a in _options() if getattr(a.type, "__name__", None) in ("_csv", "_csv_ints", "_csv_floats")]
+    assert {a.dest for _, a in lists} >= {"families", "input_spp", "branches", "configurations", "arms", "seeds",
+                                          "val_scenes", "presets", "raw_spp", "budget_fractions", "slopes"}
+    for command, action in lists:
+        if action.dest in _POSITIONAL:
+            assert "no repeats" not in action.help
+            continue
+        assert "no repeats" in action.help, (command, action.dest)
+        flag = max(action.option_strings, key=len)
+        valid = {"families": "cornell", "branches": "diffuse", "configurations": "cpu", "presets": "cpu",
+                 "arms": "error", "val_scenes": "a", "budget_fractions": "0.5", "slopes": "2.5"}.get(action.dest, "4")
+        argv = [command, *_NEEDS.get(command, []), flag, f"{valid},{valid}"]
+        line = _error_line(capsys, tmp_path, argv)
+        assert line.startswith(f"kpcn {command}: error: {flag} names {valid} more than once"), (argv, line)
+
+
+def test_render_of_one_family_twice_is_refused_in_one_line_before_anything_is_written(tmp_path):
+    res = kpcn("render", "--families", "cornell,cornell", "--per-family", "1", "--out", "renders", cwd=tmp_path)
+    assert_one_line_error(res, "--families names cornell more than once")
+    assert not any(tmp_path.iterdir())
+
+
+def test_every_seed_option_takes_the_one_seed_range():
+    from prep.bounds import SEED
+
+    seeds = {c: a.help for c, a in _options() if a.dest in ("seed", "seeds")}
+    assert set(seeds) >= {"render", "shards", "train", "bench", "compare", "resample-study"}
+    assert all(SEED.text() in text for text in seeds.values()), seeds

@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -137,9 +139,9 @@ def test_output_does_not_depend_on_thread_count(cornell_render):
 @pytest.mark.parametrize(
     "kwargs, needle",
     [
-        ({"spp": 1}, "spp must be >= 2, got 1"),
+        ({"spp": 1}, "spp must be an integer in [2, 65536], got 1"),
         ({"spp": 2.5}, "got 2.5"),
-        ({"width": 0}, "width must be >= 1, got 0"),
+        ({"width": 0}, "width must be an integer in [1, 16384], got 0"),
         ({"height": -3}, "got -3"),
         ({"seed": -1}, "got -1"),
     ],
@@ -147,7 +149,7 @@ def test_output_does_not_depend_on_thread_count(cornell_render):
 def test_render_rejects_bad_arguments(kwargs, needle):
     args = {"scene": facing_scene(), "spp": 2, "seed": 0, "width": 4, "height": 4}
     args.update(kwargs)
-    with pytest.raises(ValueError, match=needle.replace(".", r"\.")):
+    with pytest.raises(ValueError, match=re.escape(needle)):
         render(**args)
 
 
@@ -818,3 +820,66 @@ def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     line = next(row for row in md.splitlines() if row.startswith("Reference point"))
     assert "issue 6 quoted" in line and "not measured here" in line
     assert md == (REPO / "reports" / "render.md").read_text()  # the committed report is its record's
+
+
+# --- the frame size: both bounds, and the memory the machine has (issue 20, item 5) ---
+
+def test_frame_bytes_are_what_the_renderer_allocates_per_pixel():
+    import tracemalloc
+
+    from prep.render.frame import frame_bytes
+
+    scene = make_scene("cornell", 0, 0)
+    render(scene, 2, 0, 4, 4)  # compiled (or loaded) before measuring
+    peaks = {}
+    for side in (32, 64):
+        tracemalloc.start()
+        render(scene, 2, 0, side, side)
+        peaks[side] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    per_pixel = (peaks[64] - peaks[32]) / (64 * 64 - 32 * 32)  # what a pixel more costs, overheads cancelled
+    assert per_pixel == pytest.approx(frame_bytes(1, 1), rel=0.02)
+    assert frame_bytes(100, 30) == 3000 * frame_bytes(1, 1)
+
+
+def test_a_frame_beyond_the_memory_available_is_refused_naming_what_it_needs():
+    from prep.errors import OptionError
+    from prep.render.frame import check_frame, frame_bytes
+
+    need_mb = frame_bytes(1000, 2000) / 2**20
+    assert check_frame(1000, 2000, available_mb=need_mb) == (1000, 2000)
+    with pytest.raises(OptionError) as err:
+        check_frame(1000, 2000, available_mb=need_mb - 1)
+    assert err.value.option == "height"  # the larger side
+    assert f"{frame_bytes(1000, 2000) / 2**30:.1f} GiB ({frame_bytes(1, 1)} bytes a pixel)" in str(err.value)
+
+
+def _available_gib() -> float:
+    from prep.processes import proc_megabytes
+
+    return proc_megabytes("/proc/meminfo", ("MemAvailable",)).get("MemAvailable", math.inf) / 1024
+
+
+def test_a_huge_frame_is_refused_in_one_line_before_anything_is_written(tmp_path):
+    from conftest import assert_one_line_error, kpcn
+
+    res = kpcn("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
+    assert_one_line_error(res, "--width must be an integer in [1, 16384], got 100000")
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.skipif(_available_gib() > 70, reason="a 16384x16384 frame (79 GiB) fits this machine's memory")
+def test_a_frame_the_machine_cannot_hold_is_refused_before_anything_is_written(tmp_path, monkeypatch, capsys):
+    from kpcn_keras.cli import main
+    from prep.render.frame import FRAME_SIDE
+
+    monkeypatch.chdir(tmp_path)
+    example = Path(__file__).resolve().parents[1] / "scenes" / "example.toml"
+    side = str(FRAME_SIDE.high)
+    for argv in (["render", "--width", side, "--height", side, "--out", "renders"],
+                 ["render", "--scene", str(example), "--width", side, "--height", side, "--out", "x.exr"]):
+        assert main(["-q", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"--width {side} (with height {side}): rendering the frame needs" in err
+        assert "this machine has available" in err
+        assert not any(tmp_path.iterdir())

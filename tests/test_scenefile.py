@@ -299,12 +299,19 @@ def test_a_wrong_value_names_the_key_path_and_the_value_found(tmp_path, old, new
 
 def test_a_render_setting_out_of_range_in_the_file_names_its_key(tmp_path):
     path = edited(tmp_path, "spp = 16", "spp = 1")
-    with pytest.raises(SceneFileError, match=r"scene\.toml: render\.spp = 1: spp must be >= 2, got 1"):
+    with pytest.raises(SceneFileError, match=r"scene\.toml: render\.spp = 1: spp must be an integer in \[2, 65536\], got 1"):
         render_scene_file(path, tmp_path / "out.exr", png=False)
     # the same value given as an option is the option's fault (the command line names the flag)
-    with pytest.raises(OptionError, match="spp must be >= 2"):
+    with pytest.raises(OptionError, match=r"spp must be an integer in \[2, 65536\]"):
         render_scene_file(EXAMPLE, tmp_path / "out.exr", overrides={"spp": 1}, png=False)
     assert not (tmp_path / "out.exr").exists()
+
+
+def test_a_seed_option_beyond_the_projects_range_is_refused_before_rendering(tmp_path):
+    # the option's seed is in the one range of every command (prep.bounds.SEED); a file's is the noise seed
+    with pytest.raises(OptionError, match=r"seed must be an integer in \[0, 4294967295\], got 4294967296"):
+        render_scene_file(EXAMPLE, tmp_path / "out.exr", overrides={"seed": 2**32}, png=False)
+    assert not any(tmp_path.iterdir())
 
 
 def test_toml_syntax_error_names_the_line_and_column(tmp_path):

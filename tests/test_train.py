@@ -13,7 +13,7 @@ import pytest
 from conftest import build_tiny_shards, checksums
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
-from prep.errors import KpcnError
+from prep.errors import KpcnError, OptionError
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 
@@ -73,9 +73,10 @@ def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
 
 def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
     # the kernel softmax saturates rather than overflows at any finite weight, so only a step
-    # that takes the weights past float32 max (Adam's step is about the learning rate) diverges
-    cfg = tiny_config(build_tiny_shards(tmp_path), branches=("diffuse",), learning_rate=3e38,
-                      clipnorm=1e38)
+    # that takes the weights past float32 max (Adam's step is about the learning rate) diverges: set
+    # past the options' bounds (--lr at most 1), which the config checks when it is made
+    cfg = tiny_config(build_tiny_shards(tmp_path), branches=("diffuse",))
+    cfg.learning_rate, cfg.clipnorm = 3e38, 1e38
     with pytest.raises(KpcnError, match=r"diverged \(loss (nan|-?inf) at batch \d+\); the last good checkpoint is .*"
                                         r"checkpoints/diffuse\.keras"):
         train(cfg, tmp_path / "runs" / "r", verbose=0)
@@ -142,3 +143,60 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
     with pytest.raises(KpcnError, match=r"log\.csv: holds .* where the run has trained 6"):
         train(cfg, run_dir, verbose=0)
     assert checksums(run_dir) == before
+
+
+# --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
+
+def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):
+    from conftest import assert_one_line_error, kpcn
+
+    shard_cfg = build_tiny_shards(tmp_path)
+    res = kpcn("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
+               "--steps", "2", cwd=tmp_path)
+    assert_one_line_error(res, "--seed must be an integer in [0, 4294967295], got 4294967296")
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_projects_seed_range_is_the_one_training_seeds_take():
+    from prep.bounds import SEED
+
+    keras.utils.set_random_seed(SEED.high)  # the largest seed trains (numpy's legacy seeding takes it)
+    np.random.seed(SEED.high)
+    with pytest.raises(ValueError):
+        np.random.seed(SEED.high + 1)  # the first one refused: what a seed >= 2**32 met in training
+
+
+@pytest.mark.parametrize("model, option, needles", [
+    ({"width": 4, "depth": 1, "kernel_size": 17}, "kernel_size", ["17 is larger than the 16x16 patches", "at most 15"]),
+    ({"width": 4, "depth": 8, "kernel_size": 5}, "depth", ["receptive field of 17x17 pixels", "16x16 patches"]),
+    ({"arch": "kpal", "width": 4, "depth": 4, "kernel_size": 5}, "depth", ["kpal", "19x19", "16x16 patches"]),
+])
+def test_a_network_larger_than_the_shard_patches_is_refused_naming_both_before_the_run_is_written(
+        tmp_path, model, option, needles):
+    shard_cfg = build_tiny_shards(tmp_path)  # 16x16 patches
+    with pytest.raises(OptionError) as err:
+        train(tiny_config(shard_cfg, model=model), tmp_path / "runs" / "r", verbose=0)
+    assert err.value.option == option and all(n in str(err.value) for n in needles), str(err.value)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_largest_network_that_fits_the_patches_is_accepted():
+    from kpcn_keras.models import ModelConfig, receptive_radius
+    from kpcn_keras.train import check_fits_patches
+
+    # 7 convolutions of 3x3 see 15x15 pixels: both fit a 15-pixel patch, one convolution or kernel side more does not
+    fits = ModelConfig(width=4, depth=7, kernel_size=15)
+    assert 2 * receptive_radius(fits) + 1 == 15
+    check_fits_patches(fits, 15, "s")
+    for bigger in (ModelConfig(width=4, depth=8, kernel_size=15), ModelConfig(width=4, depth=7, kernel_size=17)):
+        with pytest.raises(OptionError):
+            check_fits_patches(bigger, 15, "s")
+    check_fits_patches(ModelConfig(arch="dpcn", width=4, depth=7, kernel_size=41), 15, "s")  # dpcn has no kernel
+
+
+def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_path):
+    from conftest import assert_one_line_error, kpcn
+
+    res = kpcn("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
+    assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")
+    assert not any(tmp_path.iterdir())

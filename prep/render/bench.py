@@ -19,9 +19,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from prep.bounds import REPEATS, bounded, check_fields
 from prep.files import atomic_write_text
 from prep.render.families import FAMILIES, make_scene
-from prep.render.frame import render
+from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 from prep.render.scene import EFFECTS, Scene, lambert
 
 # A production CPU path tracer on a machine like this one: a 256x256 Cornell box with paths of up to
@@ -33,11 +34,15 @@ ANCHOR_DEPTH = (12, 5)  # (max_depth, rr_depth)
 
 @dataclass
 class RenderBenchConfig:
-    width: int = 256
-    height: int = 256
-    spp: int = 16
-    repeats: int = 3
+    width: int = bounded(256, FRAME_SIDE)
+    height: int = bounded(256, FRAME_SIDE)
+    spp: int = bounded(16, SPP)
+    repeats: int = bounded(3, REPEATS)
     out_dir: str = "reports"
+
+    def __post_init__(self):
+        check_fields(self)
+        check_frame(self.width, self.height)
 
 
 def lambert_only(scene: Scene) -> Scene:

@@ -5,23 +5,48 @@ from __future__ import annotations
 
 import numpy as np
 
+from prep.bounds import Bound
 from prep.errors import OptionError
+from prep.processes import proc_megabytes
 from prep.render.scene import Scene
 
 # Paths end by Russian roulette from vertex RR_DEPTH (0-based) on; MAX_DEPTH only guards against a
 # path that roulette keeps alive by chance (a scene may set a lower cap to imitate another renderer).
 MAX_DEPTH = 256
 RR_DEPTH = 3
-_U64 = (1 << 64) - 1
+# The bounds of a frame's settings. A side of 16384 (16K) is four times 4K; what the machine can hold is
+# checked too (check_frame). spp >= 2: the variance layers need two samples; at most 65536, within the
+# five digits of a render's file name (prep.exr.render_filename).
+FRAME_SIDE = Bound(1, 16384)
+SPP = Bound(2, 65536)
+PATH_DEPTH = Bound(0, 4096)
+NOISE_SEED = Bound(0, (1 << 64) - 1)  # a render's own seed; render sets derive theirs from an option's SEED
 
 
-def _check_int(name, value, lo, hi=None):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise OptionError(name, f"must be an int, got {value!r}")
-    if value < lo or (hi is not None and value > hi):
-        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise OptionError(name, f"must be {bound}, got {value!r}")
-    return int(value)
+def frame_bytes(width: int, height: int) -> int:
+    """The bytes :func:`render` holds at its peak for a ``width`` x ``height`` frame: the kernel's float64
+    output, its float32 copy and the float32 layers cut from it (the layers have the output's channels and
+    ``default``'s three)."""
+    from prep.render.tracer import N_OUT  # numba loads with it, as it will for the render anyway
+
+    return width * height * (8 * N_OUT + 4 * N_OUT + 4 * (N_OUT + 3))
+
+
+def check_frame(width, height, *, available_mb: float | None = None) -> tuple[int, int]:
+    """``(width, height)`` as ints, or OptionError: a side outside :data:`FRAME_SIDE`, or a frame whose
+    :func:`frame_bytes` exceed the memory this machine has available (Linux ``MemAvailable``;
+    ``available_mb`` instead where given; not checked where it cannot be read)."""
+    width, height = FRAME_SIDE.check("width", width), FRAME_SIDE.check("height", height)
+    if available_mb is None:
+        available_mb = proc_megabytes("/proc/meminfo", ("MemAvailable",)).get("MemAvailable")
+    needed = frame_bytes(width, height)
+    if available_mb is not None and needed > available_mb * 2**20:
+        # named by the larger side: the one to make smaller (and, with --scene, the one likely given)
+        (big, b), (small, s) = sorted([("width", width), ("height", height)], key=lambda t: -t[1])
+        raise OptionError(big, f"{b} (with {small} {s}): rendering the frame needs {needed / 2**30:.1f} GiB "
+                          f"({needed // (width * height)} bytes a pixel), more than the "
+                          f"{available_mb / 1024:.1f} GiB this machine has available")
+    return width, height
 
 
 def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 256, *,
@@ -30,9 +55,9 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     (``default``, ``diffuse``, ``specular``, ``albedo``, ``normal`` (H, W, 3); ``depth`` and the six
     ``*Variance`` layers (H, W)).
 
-    Same (scene, spp, seed, size) gives bit-identical output; ``seed`` in [0, 2**64) picks the noise.
-    ``spp >= 2`` because the variance layers need two samples. ``default`` is exactly
-    ``diffuse + specular`` in float32. ``max_depth`` caps the scattering vertices of a path,
+    Same (scene, spp, seed, size) gives bit-identical output; ``seed`` (:data:`NOISE_SEED`) picks the
+    noise. ``spp`` in :data:`SPP`, the size in :data:`FRAME_SIDE` and within memory (:func:`check_frame`).
+    ``default`` is exactly ``diffuse + specular`` in float32. ``max_depth`` caps the scattering vertices of a path,
     Russian roulette starts at vertex ``rr_depth`` (0-based; >= max_depth switches it off).
     The kernel is the one compiled for ``effects`` (default: ``scene.effects()``, the effects the scene
     calls for; ``EFFECTS`` gives the all-effects kernel, which renders the same bits).
@@ -42,12 +67,11 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
 
     if not isinstance(scene, Scene):
         raise ValueError(f"scene must be a prep.render.Scene, got {type(scene).__name__}")
-    spp = _check_int("spp", spp, 2)
-    seed = _check_int("seed", seed, 0, _U64)
-    width = _check_int("width", width, 1)
-    height = _check_int("height", height, 1)
-    max_depth = _check_int("max_depth", max_depth, 0)
-    rr_depth = _check_int("rr_depth", rr_depth, 0)
+    spp = SPP.check("spp", spp)
+    seed = NOISE_SEED.check("seed", seed)
+    width, height = check_frame(width, height)
+    max_depth = PATH_DEPTH.check("max_depth", max_depth)
+    rr_depth = PATH_DEPTH.check("rr_depth", rr_depth)
     needed = scene.effects()
     effects = needed if effects is None else frozenset(effects)
     if not needed <= effects:

@@ -21,14 +21,18 @@ from pathlib import Path
 
 import numpy as np
 
+from prep.bounds import SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.parts import Part
 from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
-from prep.render.frame import _check_int, render
+from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 
 log = logging.getLogger("kpcn")
+
+
+PER_FAMILY = Bound(1, 1000)  # scenes per family: a set of 1000 x 8 scenes is far past any use of one
 
 
 @dataclass
@@ -36,13 +40,13 @@ class RenderConfig:
     """What :func:`render_set` renders and where."""
 
     set_name: str = "default"
-    families: tuple[str, ...] = tuple(FAMILIES)
-    per_family: int = 3
-    width: int = 256
-    height: int = 256
-    input_spp: tuple[int, ...] = (4, 16, 64)  # a ladder: the network sees every noise level
-    reference_spp: int = 512  # times families.REFERENCE_SPP_FACTOR for the families slow to converge
-    seed: int = 0
+    families: tuple[str, ...] = bounded(tuple(FAMILIES), distinct=True)
+    per_family: int = bounded(3, PER_FAMILY)
+    width: int = bounded(256, FRAME_SIDE)
+    height: int = bounded(256, FRAME_SIDE)
+    input_spp: tuple[int, ...] = bounded((4, 16, 64), SPP, distinct=True)  # a ladder: every noise level
+    reference_spp: int = bounded(512, SPP)  # times families.REFERENCE_SPP_FACTOR for the families slow to converge
+    seed: int = bounded(0, SEED)
     out_root: str = "data/renders"
 
     def __post_init__(self):
@@ -60,19 +64,19 @@ class RenderConfig:
         for fam in self.families:
             if fam not in FAMILIES:
                 raise OptionError("families", f"has unknown scene family {fam!r}; valid families: {', '.join(FAMILIES)}")
-        _check_int("per_family", self.per_family, 1)
-        _check_int("width", self.width, 1)
-        _check_int("height", self.height, 1)
-        if not self.input_spp or len(set(self.input_spp)) != len(self.input_spp):
-            raise OptionError("input_spp", f"must be distinct sample counts, got {list(self.input_spp)}")
-        for spp in self.input_spp:
-            _check_int("input_spp", spp, 2)
-        _check_int("reference_spp", self.reference_spp, 2)
-        _check_int("seed", self.seed, 0)
+        if not self.input_spp:
+            raise OptionError("input_spp", "must name at least one sample count")
+        check_fields(self)
         if self.reference_spp <= max(self.input_spp):
             raise OptionError("reference_spp", f"must exceed every input_spp (the reference is a scene's render "
                                                f"with the most samples), got {self.reference_spp} and "
                                                f"{list(self.input_spp)}")
+        for fam in self.families:
+            if reference_spp(self, fam) > SPP.high:
+                raise OptionError("reference_spp", f"{self.reference_spp} renders {fam}'s references at "
+                                  f"{REFERENCE_SPP_FACTOR[fam]} times that, {reference_spp(self, fam)}, above the "
+                                  f"{SPP.high} of any render; at most {SPP.high // REFERENCE_SPP_FACTOR[fam]} with {fam}")
+        check_frame(self.width, self.height)
 
 
 def reference_spp(config: RenderConfig, family: str) -> int:

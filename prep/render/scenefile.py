@@ -155,6 +155,7 @@ from typing import Any, Literal, Union
 
 import numpy as np
 
+from prep.bounds import SEED
 from prep.errors import InputFileError, KpcnError, OptionError
 from prep.files import read_input
 from prep.render import RenderConfig, render
@@ -775,6 +776,8 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     unknown = set(overrides) - {f.name for f in dataclasses.fields(RenderSettings)}
     if unknown:
         raise ValueError(f"unknown render settings {sorted(unknown)}")
+    if "seed" in overrides:  # an option's seed, in the project's one range; a file's is the noise seed itself
+        SEED.check("seed", overrides["seed"])
     settings = dataclasses.replace(settings, **overrides)
     output = Path(output) if output is not None else default_output(scene_path, settings.spp)
     outputs = [output] + ([png_path(output)] if png else [])
