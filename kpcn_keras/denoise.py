@@ -18,7 +18,8 @@ every render in a folder) and reports start-up, load and warm-up apart from each
 networks on the same tiles: bit-identical). ``denoise_file`` is the batch of one. Inputs and outputs are
 checked before anything is loaded: a file it would write (an output EXR, its PNG) that is a file it reads
 (an input, the reference, the run's record or models) or another output, or that could not be written, an
-input whose header lacks a layer. Each output is written atomically, so a batch stopped by a bad frame leaves
+input whose header lacks a layer, a frame whose whole-frame arrays (:func:`frame_bytes`) the machine cannot
+hold. Each output is written atomically, so a batch stopped by a bad frame leaves
 every earlier output whole. The default output is ``<input stem>-denoised.exr`` beside the input
 (:func:`default_output`); with several inputs ``-o`` is a folder.
 """
@@ -41,9 +42,16 @@ from prep import exr, features
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
+from prep.processes import memory_shortfall
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
 PNG_ROWS = 256  # rows of a panel tonemapped at a time
+# Bytes a pixel of what denoising a frame holds whole, the tiles bounding the rest: the render as read (its
+# float32 layers) with the three float32 outputs; the side-by-side PNG (canvas, image and encoder); a
+# reference as read with the metrics' float64 arithmetic. Upper bounds of what numpy allocates
+# (tests/test_denoise.py::test_frame_bytes_bound_what_a_frame_holds_whole), used to refuse a frame the
+# machine cannot hold before any work (frame_bytes).
+FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 256
 
 
 
@@ -200,6 +208,23 @@ def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: st
     with atomic_path(path) as tmp:
         picture.save(tmp, format="PNG", compress_level=1)  # speed over a few percent of size
     return path
+
+
+def frame_bytes(height: int, width: int, *, png: bool = True, reference: bool = False) -> int:
+    """What :func:`denoise_frame` holds whole for a ``height`` x ``width`` frame (see :data:`FRAME_BYTES`)."""
+    return height * width * (FRAME_BYTES + PNG_BYTES * png + REFERENCE_BYTES * reference)
+
+
+def check_frame_memory(path, size: tuple[int, int], *, png: bool = True, reference: bool = False,
+                       available_mb: float | None = None) -> None:
+    """KpcnError naming the render ``path`` of ``size`` (height, width) if denoising it would hold more
+    than this machine has available (:func:`frame_bytes`; ``prep.processes.memory_shortfall``)."""
+    needed = frame_bytes(*size, png=png, reference=reference)
+    short = memory_shortfall(needed, available_mb=available_mb)
+    if short:
+        with_ref = ", with the reference" if reference else ""
+        raise KpcnError(f"{path}: denoising its {size[1]}x{size[0]} frame ({needed // (size[0] * size[1])} bytes a "
+                        f"pixel held whole{with_ref}) {short}" + ("; --no-png holds less" if png else ""))
 
 
 def default_output(input_path: str | os.PathLike, folder: str | os.PathLike | None = None) -> Path:
@@ -360,6 +385,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         size = exr.read_header(src)
         if ref_size is not None and ref_size != size:
             raise KpcnError(f"{reference} is {ref_size[1]}x{ref_size[0]} but {src} is {size[1]}x{size[0]}")
+        check_frame_memory(src, size, png=png, reference=reference is not None)
     for out in outputs:
         check_writable(out, "--output")
         if png:

@@ -2,7 +2,8 @@
 
 A shard worker (``prep.shards``) or a training process started by torchrun (``kpcn_keras.distributed``)
 left running by a killed parent would go on writing, or hold a folder's lock, or wait for its peers
-forever; :func:`die_with_parent` makes the kernel end it instead.
+forever; :func:`die_with_parent` makes the kernel end it instead. :func:`memory_shortfall` lets render and denoise
+refuse a frame whose whole-frame arrays the machine cannot hold before any work starts.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+
 
 
 def die_with_parent(parent: int) -> None:
@@ -40,4 +42,15 @@ def proc_megabytes(path: str, keys) -> dict[str, float]:
     return found
 
 
-__all__ = ["die_with_parent", "proc_megabytes"]
+def memory_shortfall(needed_bytes: int, *, available_mb: float | None = None) -> str | None:
+    """None where ``needed_bytes`` fit the memory this machine has available (Linux ``MemAvailable``;
+    ``available_mb`` instead where given; taken to fit where it cannot be read), else the end of a message
+    saying so: ``"needs 79.0 GiB, more than the 20.1 GiB this machine has available"``."""
+    if available_mb is None:
+        available_mb = proc_megabytes("/proc/meminfo", ("MemAvailable",)).get("MemAvailable")
+    if available_mb is None or needed_bytes <= available_mb * 2**20:
+        return None
+    return f"needs {needed_bytes / 2**30:.1f} GiB, more than the {available_mb / 1024:.1f} GiB this machine has available"
+
+
+__all__ = ["memory_shortfall", "die_with_parent", "proc_megabytes"]

@@ -69,6 +69,52 @@ def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run)
         assert beyond <= bound, (size, beyond, bound)
 
 
+@pytest.mark.parametrize("png, reference", [(False, False), (True, False), (False, True), (True, True)])
+def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, reference):
+    # what a pixel more costs (the difference of two frame heights at one width: fixed costs and the PNG's
+    # blocks of rows cancel), measured by tracemalloc over the whole frame (reading, the tiles, writing, the
+    # PNG, the metrics), against the bound the refusal uses: an upper bound, and not one so loose that it
+    # refuses frames the machine can hold
+    import gc
+    import tracemalloc
+
+    from kpcn_keras.denoise import denoise_frame, frame_bytes
+
+    denoiser = Denoiser(tiny_run, tile=64)
+    denoiser.warm_up()
+    peaks = {}
+    width = 96
+    for height in (512, 1024):
+        exr.write_aovs(tmp_path / f"n{height}.exr", random_aovs(height, width, seed=1))
+        exr.write_aovs(tmp_path / f"r{height}.exr", random_aovs(height, width, seed=2, variances=False))
+        gc.collect()
+        tracemalloc.start()
+        try:
+            denoise_frame(denoiser, tmp_path / f"n{height}.exr", tmp_path / f"o{height}.exr",
+                          tmp_path / f"r{height}.exr" if reference else None, png=png)
+            peaks[height] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+    measured = (peaks[1024] - peaks[512]) / ((1024 - 512) * width)
+    bound = frame_bytes(1, 1, png=png, reference=reference)
+    assert measured <= bound <= 1.5 * measured, (measured, bound)
+
+
+def test_a_frame_the_machine_cannot_hold_is_refused_before_any_work(tiny_run, tmp_path):
+    from kpcn_keras.denoise import check_frame_memory, frame_bytes
+    from prep.errors import KpcnError
+
+    need_mb = frame_bytes(3000, 4000, png=False) / 2**20
+    check_frame_memory("x.exr", (3000, 4000), png=False, available_mb=need_mb)
+    with pytest.raises(KpcnError) as err:
+        check_frame_memory("x.exr", (3000, 4000), png=False, available_mb=need_mb - 1)
+    assert str(err.value) == (f"x.exr: denoising its 4000x3000 frame ({frame_bytes(1, 1, png=False)} bytes a pixel "
+                              f"held whole) needs {need_mb / 1024:.1f} GiB, more than the "
+                              f"{(need_mb - 1) / 1024:.1f} GiB this machine has available")
+    with pytest.raises(KpcnError, match="with the reference.*; --no-png holds less"):
+        check_frame_memory("x.exr", (3000, 4000), reference=True, available_mb=need_mb)
+
+
 def test_recombination_inverts_the_branch_transforms(tiny_run):
     aovs = random_aovs(20, 20, seed=4)
     d = Denoiser(tiny_run)

@@ -7,7 +7,7 @@ import numpy as np
 
 from prep.bounds import Bound
 from prep.errors import OptionError
-from prep.processes import proc_megabytes
+from prep.processes import memory_shortfall
 from prep.render.scene import Scene
 
 # Paths end by Russian roulette from vertex RR_DEPTH (0-based) on; MAX_DEPTH only guards against a
@@ -34,18 +34,16 @@ def frame_bytes(width: int, height: int) -> int:
 
 def check_frame(width, height, *, available_mb: float | None = None) -> tuple[int, int]:
     """``(width, height)`` as ints, or OptionError: a side outside :data:`FRAME_SIDE`, or a frame whose
-    :func:`frame_bytes` exceed the memory this machine has available (Linux ``MemAvailable``;
-    ``available_mb`` instead where given; not checked where it cannot be read)."""
+    :func:`frame_bytes` exceed the memory this machine has available (``prep.processes.memory_shortfall``;
+    ``available_mb`` instead where given)."""
     width, height = FRAME_SIDE.check("width", width), FRAME_SIDE.check("height", height)
-    if available_mb is None:
-        available_mb = proc_megabytes("/proc/meminfo", ("MemAvailable",)).get("MemAvailable")
     needed = frame_bytes(width, height)
-    if available_mb is not None and needed > available_mb * 2**20:
+    short = memory_shortfall(needed, available_mb=available_mb)
+    if short:
         # named by the larger side: the one to make smaller (and, with --scene, the one likely given)
         (big, b), (small, s) = sorted([("width", width), ("height", height)], key=lambda t: -t[1])
-        raise OptionError(big, f"{b} (with {small} {s}): rendering the frame needs {needed / 2**30:.1f} GiB "
-                          f"({needed // (width * height)} bytes a pixel), more than the "
-                          f"{available_mb / 1024:.1f} GiB this machine has available")
+        raise OptionError(big, f"{b} (with {small} {s}): rendering the frame ({needed // (width * height)} bytes a "
+                          f"pixel) {short}")
     return width, height
 
 
