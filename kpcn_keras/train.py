@@ -273,6 +273,19 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     return manifest, paths
 
 
+def check_run_folder(run: Run, sset: ShardSet, manifest: dict) -> None:
+    """KpcnError for a run folder that is, or lies in, the shard set's folder or the folder of one of its
+    renders: a run's records have the names of a render set's (``config.json``, ``timings.json``), and a
+    shard set's rebuild owns what is in its folder. Checked with the inputs, before the run is written."""
+    where = run.dir.resolve()
+    folders = [("shard set", sset.dir)] + [("render set", sset.resolve(s["path"]).parent) for s in manifest["sources"]]
+    for what, folder in folders:
+        folder = folder.resolve()
+        if where == folder or folder in where.parents:
+            raise KpcnError(f"run folder (--run) {run.dir}: is {'' if where == folder else 'inside '}the {what} "
+                            f"folder {folder}, whose files a run would write over or mix with; choose another --run")
+
+
 def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> dict:
     """The run's record: read and compared if the run exists, else created (inputs are checked by now)."""
     if run.has_record():
@@ -490,6 +503,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
     run = Run(run_dir)
     sset = ShardSet(cfg.set_dir)
     manifest, paths = check_inputs(cfg, sset)
+    check_run_folder(run, sset, manifest)
     check_writable(run.dir, "run folder (--run)", directory=True)
     distributed.start(world)
     if world.distributed and world.writer:

@@ -200,3 +200,14 @@ def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_pat
     res = kpcn("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("where", ["the render set", "inside the shard set"])
+def test_a_run_folder_in_a_render_or_shard_set_is_refused_before_it_is_written(tmp_path, where):
+    # the render set's config.json and timings.json have the names of a run's records
+    shard_cfg = build_tiny_shards(tmp_path)
+    run_dir = {"the render set": tmp_path / "renders" / "s", "inside the shard set": tmp_path / "shards" / "s" / "r"}[where]
+    before = checksums(tmp_path)
+    with pytest.raises(KpcnError, match=rf"run folder \(--run\) {run_dir}: is .*the (render|shard) set folder"):
+        train(tiny_config(shard_cfg), run_dir, verbose=0)
+    assert checksums(tmp_path) == before
