@@ -50,7 +50,8 @@ def memory_shortfall(needed_bytes: int, *, available_mb: float | None = None) ->
         available_mb = proc_megabytes("/proc/meminfo", ("MemAvailable",)).get("MemAvailable")
     if available_mb is None or needed_bytes <= available_mb * 2**20:
         return None
-    return f"needs {needed_bytes / 2**30:.1f} GiB, more than the {available_mb / 1024:.1f} GiB this machine has available"
+    return (f"needs {needed_bytes / 2**30:.1f} GiB, more than the {available_mb / 1024:.1f} GiB this machine has "
+            "available")
 
 
 __all__ = ["memory_shortfall", "die_with_parent", "proc_megabytes"]

@@ -206,7 +206,8 @@ def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_pat
 def test_a_run_folder_in_a_render_or_shard_set_is_refused_before_it_is_written(tmp_path, where):
     # the render set's config.json and timings.json have the names of a run's records
     shard_cfg = build_tiny_shards(tmp_path)
-    run_dir = {"the render set": tmp_path / "renders" / "s", "inside the shard set": tmp_path / "shards" / "s" / "r"}[where]
+    run_dir = {"the render set": tmp_path / "renders" / "s",
+               "inside the shard set": tmp_path / "shards" / "s" / "r"}[where]
     before = checksums(tmp_path)
     with pytest.raises(KpcnError, match=rf"run folder \(--run\) {run_dir}: is .*the (render|shard) set folder"):
         train(tiny_config(shard_cfg), run_dir, verbose=0)
