@@ -51,7 +51,7 @@ PNG_ROWS = 256  # rows of a panel tonemapped at a time
 # reference as read with the metrics' float64 arithmetic. Upper bounds of what numpy allocates
 # (tests/test_denoise.py::test_frame_bytes_bound_what_a_frame_holds_whole), used to refuse a frame the
 # machine cannot hold before any work (frame_bytes).
-FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 256
+FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 384
 
 
 

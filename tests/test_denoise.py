@@ -97,7 +97,7 @@ def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, ref
             tracemalloc.stop()
     measured = (peaks[1024] - peaks[512]) / ((1024 - 512) * width)
     bound = frame_bytes(1, 1, png=png, reference=reference)
-    assert measured <= bound <= 1.5 * measured, (measured, bound)
+    assert measured <= bound <= 2 * measured, (measured, bound)
 
 
 def test_a_frame_the_machine_cannot_hold_is_refused_before_any_work(tiny_run, tmp_path):
