@@ -43,17 +43,6 @@ import time
 from pathlib import Path
 
 
-def meminfo() -> dict[str, int]:
-    """/proc/meminfo in MB (MemAvailable, Dirty, Writeback)."""
-    out = {}
-    with open("/proc/meminfo") as f:
-        for line in f:
-            key, value = line.split(":", 1)
-            if key in ("MemTotal", "MemAvailable", "Dirty", "Writeback"):
-                out[key] = int(value.split()[0]) // 1024
-    return out
-
-
 def steal_ticks() -> int:
     with open("/proc/stat") as f:
         fields = f.readline().split()
@@ -104,8 +93,11 @@ def cached_bytes(path: Path) -> tuple[int, int]:
 
 
 def state(label: str, shards: list[Path]) -> None:
+    from prep.processes import proc_megabytes
+
     cached = [cached_bytes(p) for p in shards]
-    mem = meminfo()
+    mem = {k: int(v) for k, v in proc_megabytes("/proc/meminfo", ("MemTotal", "MemAvailable", "Dirty",
+                                                                  "Writeback")).items()}
     print(f"{label}: load average {os.getloadavg()[0]:.2f}; memory available {mem['MemAvailable']} of "
           f"{mem['MemTotal']} MB, dirty {mem['Dirty']} MB, writeback {mem['Writeback']} MB; the set's shards "
           f"in the page cache: {sum(c for c, _ in cached) / 1e6:.0f} of {sum(s for _, s in cached) / 1e6:.0f} MB")
