@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prep.bounds import is_integer
 from prep.features import FEATURE_NAMES, NUM_FEATURES
 
 TRANSPOSE, FLIP_X, FLIP_Y = 1, 2, 4
@@ -79,7 +80,7 @@ class Augmentation:
 
     def __post_init__(self):
         s = self.spatial
-        if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 0 <= s <= 7:
+        if not is_integer(s) or not 0 <= s <= 7:
             raise ValueError(f"spatial must be an integer code in 0..7, got {self.spatial!r}")
         colour = tuple(self.colour) if isinstance(self.colour, (tuple, list)) else ()
         if not all(isinstance(c, (int, np.integer)) for c in colour) or sorted(colour) != [0, 1, 2]:

@@ -46,6 +46,7 @@ import numpy as np
 
 from kpcn_keras import augment
 from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
+from prep.bounds import is_integer
 from prep.features import BRANCHES
 from prep.shards import ShardError, branch_datasets, open_shard, read_patch
 
@@ -87,9 +88,9 @@ class ShardPatches(keras.utils.PyDataset):
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        if isinstance(world, bool) or not isinstance(world, int) or world < 1:
+        if not is_integer(world) or world < 1:
             raise ValueError(f"world must be an integer >= 1, got {world!r}")
-        if isinstance(rank, bool) or not isinstance(rank, int) or not 0 <= rank < world:
+        if not is_integer(rank) or not 0 <= rank < world:
             raise ValueError(f"rank must be an integer in [0, {world}), got {rank!r}")
         self.paths = [str(p) for p in paths]
         if not self.paths:

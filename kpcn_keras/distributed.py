@@ -25,6 +25,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+from prep.bounds import is_integer
 from prep.parts import LOCAL_RANK, RANK, WORLD_SIZE, LaunchError, launcher_variables
 from prep.processes import die_with_parent
 
@@ -41,7 +42,7 @@ class World:
 
     def __post_init__(self):
         for name, value, low in (("size", self.size, 1), ("rank", self.rank, 0), ("local_rank", self.local_rank, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            if not is_integer(value) or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         if self.rank >= self.size:
             raise ValueError(f"rank must be below size ({self.size}), got {self.rank}")

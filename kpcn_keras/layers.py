@@ -21,6 +21,7 @@ import numpy as np
 from keras import ops
 
 from kpcn_keras.config import check_kernel_size
+from prep.bounds import is_integer
 from prep.features import ALBEDO_EPS
 
 __all__ = [
@@ -76,7 +77,7 @@ def pad_edge(x, r: int):
 
 def _check_dilation(dilation) -> int:
     """``dilation`` if it is a positive integer (not a bool), else ValueError echoing it."""
-    if isinstance(dilation, bool) or not isinstance(dilation, int) or dilation < 1:
+    if not is_integer(dilation) or dilation < 1:
         raise ValueError(f"dilation must be a positive integer, received {dilation!r}")
     return dilation
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 import keras
 from keras import ops
 
+from prep.bounds import is_number
+
 __all__ = [
     "SMAPE_EPS",
     "AsymmetricSMAPE",
@@ -39,7 +41,7 @@ SMAPE_EPS = 0.01  # the report's constant; keeps the ratio finite where out and 
 def _check_slope(slope) -> float:
     if not isinstance(slope, (int, float)) and ops.is_tensor(slope):
         return slope  # a per-element map, from the data: checked where it is drawn
-    if isinstance(slope, bool) or not isinstance(slope, (int, float)) or not slope >= 1.0:
+    if not is_number(slope) or not slope >= 1.0:
         raise ValueError(f"asymmetric SMAPE slope must be a number >= 1, received {slope!r}")
     return float(slope)
 

@@ -62,6 +62,7 @@ from keras import ops
 
 from kpcn_keras.config import CompositorConfig
 from kpcn_keras.layers import KernelApply, kernel_apply
+from prep.bounds import is_integer, is_number
 from prep.features import FEATURE_NAMES, NUM_FEATURES
 
 __all__ = [
@@ -130,7 +131,7 @@ def multiscale_radius(denoiser_radius: int, cfg: CompositorConfig) -> int:
     pixel copies one nearer to p). The test suite checks that the bound holds and is reached, and that tiles
     aligned to ``alignment(cfg)`` with margins R reproduce an untiled run.
     """
-    if isinstance(denoiser_radius, bool) or not isinstance(denoiser_radius, int) or denoiser_radius < 0:
+    if not is_integer(denoiser_radius) or denoiser_radius < 0:
         raise ValueError(f"denoiser_radius must be an integer >= 0, received {denoiser_radius!r}")
     t = compositor_trunk_radius(cfg)
     r_k = cfg.kernel_size // 2 if cfg.kind == "kernel" else 0
@@ -215,7 +216,7 @@ def _pool_relvar(a, b, c, d):
 
 
 def _positive_int(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if not is_integer(value) or value < 1:
         raise ValueError(f"{name} must be a positive integer, received {value!r}")
     return value
 
@@ -431,7 +432,7 @@ class AlphaRegulariser(keras.layers.Layer):
 
     def __init__(self, gamma: float, **kwargs):
         super().__init__(**kwargs)
-        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 <= gamma < math.inf:
+        if not is_number(gamma) or not 0.0 <= gamma < math.inf:
             raise ValueError(f"gamma must be a finite number >= 0, received {gamma!r}")
         self.gamma = float(gamma)
         self.input_spec = keras.layers.InputSpec(ndim=4, axes={-1: 1})

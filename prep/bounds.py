@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import operator
 from dataclasses import dataclass
 from typing import Any
@@ -72,6 +73,17 @@ class Bound:
         if not self.contains(value):
             raise OptionError(name, f"must be {self.text()}, got {value!r}")
         return operator.index(value) if self.integer else float(value)
+
+
+def is_integer(value) -> bool:
+    """Whether ``value`` is an integer (an int or a numpy integer) and not a bool: ``True`` is an int to
+    Python, but a flag typed where a count belongs is a mistake to refuse, not 1."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def is_number(value) -> bool:
+    """Whether ``value`` is a real number (int, float or a numpy number) and not a bool (see :func:`is_integer`)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _num(x: float) -> str:
@@ -136,4 +148,5 @@ def check_fields(obj) -> None:
         object.__setattr__(obj, f.name, value)  # frozen dataclasses too
 
 
-__all__ = ["PATCH_COUNT", "REPEATS", "SEED", "Bound", "bound_of", "bounded", "check_distinct", "check_fields"]
+__all__ = ["PATCH_COUNT", "REPEATS", "SEED", "Bound", "bound_of", "bounded", "check_distinct", "check_fields",
+           "is_integer", "is_number"]

@@ -18,6 +18,7 @@ import os
 import re
 from dataclasses import dataclass
 
+from prep.bounds import is_integer
 from prep.errors import KpcnError, OptionError
 from prep.files import LOCK_NAME
 
@@ -59,9 +60,9 @@ class Part:
     count: int = 1
 
     def __post_init__(self):
-        if isinstance(self.count, bool) or not isinstance(self.count, int) or self.count < 1:
+        if not is_integer(self.count) or self.count < 1:
             raise OptionError("part", f"must be i/N with N >= 1, got {self.count!r} parts")
-        if isinstance(self.index, bool) or not isinstance(self.index, int) or not 0 <= self.index < self.count:
+        if not is_integer(self.index) or not 0 <= self.index < self.count:
             raise OptionError("part", f"must be i/N with 1 <= i <= N, got {self}")
 
     @classmethod

@@ -27,6 +27,7 @@ from __future__ import annotations
 import os
 import sys
 
+from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.parts import LOCAL_WORLD_SIZE, launcher_variables
 
@@ -68,7 +69,7 @@ def set_threads(n: int | None = None) -> int:
     most = pool_size()
     if n is None:
         n = default_threads()
-    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= most:
+    if not is_integer(n) or not 1 <= n <= most:
         raise OptionError("threads", f"must be an integer from 1 to {most} (the cores this process may use), got {n!r}")
     # for a torch imported later (it sizes its OpenMP and MKL pools from these) and for child processes
     os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)

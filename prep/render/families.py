@@ -9,6 +9,7 @@ import zlib
 
 import numpy as np
 
+from prep.bounds import is_integer
 from prep.render.scene import (
     Camera,
     EnvironmentMap,
@@ -468,9 +469,9 @@ def make_scene(family: str, index: int, seed: int) -> Scene:
     """
     if family not in FAMILIES:
         raise ValueError(f"unknown scene family {family!r}; valid families: {', '.join(FAMILIES)}")
-    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
+    if not is_integer(index) or index < 0:
         raise ValueError(f"scene index must be an int >= 0, got {index!r}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+    if not is_integer(seed) or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
     rng = np.random.default_rng(family_seed(family, index, seed))
     scene = FAMILIES[family](rng, name=f"{family}-{int(index):03d}")

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prep.bounds import is_number
 from prep.errors import KpcnError
 from prep.files import read_input
 from prep.render.scene import Mesh, Vec3, _vec
@@ -61,9 +62,9 @@ def load_obj(path, material: str, translate: Vec3 = (0.0, 0.0, 0.0), scale: floa
     (``scale``, then ``rotate_y`` degrees about y, then ``translate``). Raises :class:`ObjError`."""
     path = Path(path)
     translate = _vec(translate, "translate")
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
+    if not is_number(scale) or not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a finite number > 0, got {scale!r}")
-    if isinstance(rotate_y, bool) or not isinstance(rotate_y, (int, float)) or not math.isfinite(rotate_y):
+    if not is_number(rotate_y) or not math.isfinite(rotate_y):
         raise ValueError(f"rotate_y must be a finite number of degrees, got {rotate_y!r}")
     data = read_input(path, "an OBJ file", ObjError)
     try:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prep.bounds import SEED, Bound, bounded, check_fields
+from prep.bounds import SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
@@ -50,7 +50,7 @@ class RenderConfig:
     out_root: str = "data/renders"
 
     def __post_init__(self):
-        if isinstance(self.input_spp, (int, np.integer)) and not isinstance(self.input_spp, bool):
+        if is_integer(self.input_spp):
             self.input_spp = (int(self.input_spp),)
         self.input_spp = tuple(self.input_spp)
         self.families = tuple(self.families) if not isinstance(self.families, str) else self.families

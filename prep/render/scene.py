@@ -66,6 +66,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from prep.bounds import is_integer
+
 MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
 TEXTURES = ("none", "world", "uv", "image")
 # What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
@@ -309,7 +311,7 @@ class Sky:
             raise ValueError(f"Sky.sun_azimuth must be finite, got {self.sun_azimuth!r}")
         if not 0 < self.sun_radius <= 20:
             raise ValueError(f"Sky.sun_radius must be in (0, 20] degrees, got {self.sun_radius!r}")
-        if isinstance(self.height, bool) or not isinstance(self.height, int) or not 4 <= self.height <= 4096:
+        if not is_integer(self.height) or not 4 <= self.height <= 4096:
             raise ValueError(f"Sky.height must be an integer in [4, 4096], got {self.height!r}")
 
 
