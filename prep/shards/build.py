@@ -44,8 +44,8 @@ class _Plan:
 
 
 def _plan(config: ShardConfig, sset: ShardSet) -> _Plan:
-    """Find the renders, check every header and the options against every image, fix the split, source
-    ids and the shard each patch goes to. Raises (naming the file or option) before any writing."""
+    """The sources found and checked (``find_sources``), the hashes that name the set, and the shard each
+    patch goes to. Raises (naming the file or option) before any writing."""
     split, sources, streams = find_sources(config, sset)
     config_hash = config.content_hash()
     key = content_key(config_hash, sources)
