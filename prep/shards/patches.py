@@ -1,5 +1,5 @@
 """The per-image step of every round: an input's PDF over its patch positions (:func:`round_pdf`: the
-variance PDF, seed report §2.1, mixed in an error round with an error map's), the positions drawn from it
+variance PDF, mixed in an error round with an error map's), the positions drawn from it
 (:func:`draw`, a generator per input and round: :func:`round_rng`), and the patches cut at them from the
 full-image datasets of the shard layout (:class:`ImagePatches`). Every round goes through it, round 0
 (:func:`variance_patches`) as every error round, and hands its patches to the same writer
