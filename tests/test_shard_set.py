@@ -16,6 +16,7 @@ import pytest
 from conftest import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError
+from prep.files import sha256_file
 
 SHARD_ARGS = ("--set", "s", "--renders", "renders", "--out", "shards", "--patch-size", "8",
               "--patches-per-image", "12", "--patches-per-shard", "2", "--val-fraction", "0.5", "--seed", "5")
@@ -180,7 +181,7 @@ def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_
     manifest = shards.build_shards(cfg, progress=False)
     for entry in manifest["rounds"]["round-000"]["shards"]:
         del entry["crc32"]
-        entry["sha256"] = shards.sha256_file(cfg.set_dir / entry["path"])
+        entry["sha256"] = sha256_file(cfg.set_dir / entry["path"])
     (cfg.set_dir / "manifest.json").write_text(json.dumps(manifest))
     before = checksums(cfg.set_dir)
     sset = shards.ShardSet(cfg.set_dir)

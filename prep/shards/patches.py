@@ -1,0 +1,106 @@
+"""The per-image step of every round: an input's PDF over its patch positions (:func:`round_pdf`: the
+variance PDF, mixed in an error round with an error map's), the positions drawn from it
+(:func:`draw`, a generator per input and round: :func:`round_rng`), and the patches cut at them from the
+full-image datasets of the shard layout (:class:`ImagePatches`). Every round goes through it, round 0
+(:func:`variance_patches`) as every error round, and hands its patches to the same writer
+(``prep.shards.writer``). Deterministic: the same renders, configuration and round give the same patches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from prep import features, sampling
+from prep.shards.config import ShardConfig
+from prep.shards.format import empty_patches
+
+
+def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
+    """Full-image arrays of every per-patch dataset of the shard layout, for one (noisy, reference) pair."""
+    return {
+        "diffuse/features": features.branch_features(noisy, "diffuse"),
+        "specular/features": features.branch_features(noisy, "specular"),
+        "diffuse/noisy": features.branch_colour(noisy, "diffuse"),
+        "diffuse/reference": features.branch_colour(reference, "diffuse"),
+        "specular/noisy": features.branch_colour(noisy, "specular"),
+        "specular/reference": features.branch_colour(reference, "specular"),
+        "albedo": noisy["albedo"],
+        "noisy": noisy["default"],
+        "reference": reference["default"],
+    }
+
+
+@dataclass
+class ImagePatches:
+    """The patches that one input render gives to one round: the positions drawn for it (:func:`draw`), and
+    the full-image datasets they are cut from. Every round (variance or error PDF) goes through this."""
+
+    source_id: int
+    round: int
+    patch_size: int
+    positions: np.ndarray  # (n, 2) int32, top-left (y, x), in drawing order
+    pdf: np.ndarray  # (n,) float64, probability of each position under the round's PDF
+    images: dict[str, np.ndarray]
+
+    @classmethod
+    def at(cls, noisy: dict, reference: dict, positions: np.ndarray, pdf: np.ndarray, *, source_id: int, round: int,
+           patch_size: int) -> "ImagePatches":
+        return cls(source_id, round, patch_size, positions, pdf, image_datasets(noisy, reference))
+
+    def cut(self, start: int, stop: int) -> dict[str, np.ndarray]:
+        """Patches ``start:stop`` (in drawing order) with their provenance datasets."""
+        out = empty_patches(stop - start, self.patch_size)
+        self.cut_into(start, stop, out, 0)
+        return out
+
+    def cut_into(self, start: int, stop: int, out: dict[str, np.ndarray], at: int) -> None:
+        """Patches ``start:stop`` into rows ``at:`` of ``out`` (:func:`empty_patches`): a shard's arrays are
+        filled in place, never stacked and concatenated (that copying was a tenth of the writer's time)."""
+        p = self.patch_size
+        pos = self.positions[start:stop]
+        rows = slice(at, at + len(pos))
+        for name, image in self.images.items():
+            target = out[name]
+            for k, (y, x) in enumerate(pos):
+                target[at + k] = image[y : y + p, x : x + p]
+        out["source"][rows] = self.source_id
+        out["position"][rows] = pos
+        out["round"][rows] = self.round
+        out["pdf"][rows] = self.pdf[start:stop]
+
+
+def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
+    """A round's PDF over the patch positions of one input: its variance PDF (seed report §2.1), and in an
+    error round (§3.3.2) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
+    window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""
+    importance = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
+    pdf = sampling.patch_pdf(importance, config.patch_size, config.uniform_mix)
+    if error is None or error_weight == 0.0:
+        return pdf
+    return sampling.mix_pdfs(sampling.patch_pdf(error, config.patch_size, config.uniform_mix), pdf, error_weight)
+
+
+def round_rng(config: ShardConfig, source_id: int, k: int) -> np.random.Generator:
+    """The generator of one input's draw in round ``k``. Round 0 keeps the (seed, source) stream it has
+    always had, so sets cut before rounds existed are still the sets this code cuts."""
+    key = [config.seed, source_id] if k == 0 else [config.seed, source_id, k]
+    return np.random.default_rng(np.random.SeedSequence(key))
+
+
+def draw(pdf: np.ndarray, count: int, config: ShardConfig, source_id: int, k: int,
+         used: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` positions of one input for round ``k`` (without replacement, never one of ``used``: the
+    positions earlier rounds took from it) and each one's probability under the round's PDF (``pdf`` with
+    ``used`` removed and renormalised)."""
+    if used is not None and len(used):
+        pdf = sampling.exclude_positions(pdf, used)
+    positions = sampling.draw_positions(pdf, count, round_rng(config, source_id, k))
+    return positions, pdf[positions[:, 0], positions[:, 1]]
+
+
+def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_id: int) -> ImagePatches:
+    """Round 0 of one input: ``patches_per_image`` positions from its variance PDF."""
+    positions, pdf = draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
+    return ImagePatches.at(noisy, reference, positions, pdf, source_id=source_id, round=0, patch_size=config.patch_size)
