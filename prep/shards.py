@@ -1,4 +1,4 @@
-"""65x65 training patches in HDF5 shards (design.md "Shards").
+"""65x65 training patches in HDF5 shards (docs/formats.md §4).
 
 A shard set is the folder ``<out_root>/<set>/``; :class:`ShardSet` is the one owner of its layout::
 
@@ -10,7 +10,7 @@ A shard set is the folder ``<out_root>/<set>/``; :class:`ShardSet` is the one ow
     <set>/.lock-part-<i>-of-<N>     held by the process that writes part i of N
 
 **Rounds.** ``round-000`` is cut by ``kpcn shards`` from each input's variance PDF (:func:`build_shards`),
-from every input of both splits. Round k >= 1 is an *error round* (seed report §3.3.2,
+from every input of both splits. Round k >= 1 is an *error round* (docs/method.md §8,
 :func:`build_error_round`): from every training input, positions drawn from the PDF of a model's per-pixel
 error mixed with the variance PDF, never at a position an earlier round used; its manifest entry keeps
 its provenance (the model's files with their SHA-256, the error metric, the mix weight). Every round goes
@@ -612,7 +612,7 @@ class ImagePatches:
 
 
 def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
-    """A round's PDF over the patch positions of one input: its variance PDF (seed report §2.1), and in an
+    """A round's PDF over the patch positions of one input: its variance PDF (docs/method.md §3), and in an
     error round (§3.3.2) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
     window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""
     importance = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
@@ -1250,7 +1250,7 @@ def _shard_attrs(config: ShardConfig, manifest: dict, command: str) -> dict:
     }
 
 
-# ---------------------------------------------------------------- error rounds (seed report §3.3.2)
+# ---------------------------------------------------------------- error rounds (docs/method.md §8)
 
 
 @dataclass(frozen=True)

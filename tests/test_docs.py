@@ -1,4 +1,5 @@
-"""The README and docs/: every relative link resolves (file and heading), and the README stays a user's page."""
+"""The README and docs/: every relative link resolves (file and heading), every docs page the code cites
+exists with the section cited, and the README stays a user's page."""
 
 import re
 import unicodedata
@@ -10,6 +11,11 @@ README_MAX_LINES = 200  # issue 21: the README is for users; everything else liv
 
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 CODE_SPAN = re.compile(r"`[^`]*`")
+# a citation in the code: "docs/method.md §8", "docs/method.md §6, §7", "docs/training.md"
+CITATION = re.compile(r"docs/([\w-]+\.md)((?:[,;]? ?§\d+)*)")
+# a citation of a page the repository never held, or of the report's sections without a docs page
+UNFINDABLE = re.compile(r"(?<!docs/)\bdesign\.md|seed report §")
+CODE_DIRS = ("prep", "kpcn_keras", "tests", "reports")
 
 
 def prose(text: str) -> list[str]:
@@ -71,3 +77,43 @@ def test_a_link_to_a_missing_file_or_heading_is_found(tmp_path):
 def test_the_readme_is_at_most_200_lines():
     lines = len((ROOT / "README.md").read_text(encoding="utf-8").splitlines())
     assert lines <= README_MAX_LINES, f"README.md has {lines} lines; move the rest to docs/"
+
+
+def code_files():
+    this = Path(__file__).resolve()  # its own examples of what it refuses
+    return [f for d in CODE_DIRS for f in sorted((ROOT / d).rglob("*"))
+            if f.suffix in (".py", ".md") and f.is_file() and f.resolve() != this]
+
+
+def cited_sections(text: str) -> list[tuple[str, str]]:
+    """(page, section number) of every docs citation in ``text``; section "" for a whole page."""
+    found = []
+    for page, sections in CITATION.findall(text):
+        found += [(page, n) for n in re.findall(r"\d+", sections)] or [(page, "")]
+    return found
+
+
+def numbered_sections(page: Path) -> set[str]:
+    return {m.group(1) for line in prose(page.read_text(encoding="utf-8")) if (m := re.match(r"#+ (\d+) ", line))}
+
+
+def test_every_docs_page_and_section_the_code_cites_exists():
+    cited = {}
+    for f in code_files():
+        for page, section in cited_sections(f.read_text(encoding="utf-8")):
+            cited.setdefault((page, section), []).append(f.relative_to(ROOT).as_posix())
+    assert cited
+    missing = {f"docs/{page} §{section}": where for (page, section), where in cited.items()
+               if not (ROOT / "docs" / page).exists()
+               or (section and section not in numbered_sections(ROOT / "docs" / page))}
+    assert not missing, missing
+    stale = [f"{f.relative_to(ROOT).as_posix()}:{i}" for f in code_files()
+             for i, line in enumerate(f.read_text(encoding="utf-8").splitlines(), 1) if UNFINDABLE.search(line)]
+    assert not stale, f"cite docs/design.md or docs/method.md instead: {stale}"
+
+
+def test_a_citation_names_each_section_it_cites():
+    assert cited_sections("(docs/method.md §6, §7; docs/training.md) and docs/formats.md §5.") == [
+        ("method.md", "6"), ("method.md", "7"), ("training.md", ""), ("formats.md", "5")]
+    assert UNFINDABLE.search('of design.md "Measuring"') and UNFINDABLE.search("(seed report §3.3.2)")
+    assert not UNFINDABLE.search("docs/design.md §3") and not UNFINDABLE.search("(seed report Fig. 2)")
