@@ -117,3 +117,15 @@ def test_a_citation_names_each_section_it_cites():
         ("method.md", "6"), ("method.md", "7"), ("training.md", ""), ("formats.md", "5")]
     assert UNFINDABLE.search('of design.md "Measuring"') and UNFINDABLE.search("(seed report §3.3.2)")
     assert not UNFINDABLE.search("docs/design.md §3") and not UNFINDABLE.search("(seed report Fig. 2)")
+
+
+def test_every_test_file_and_test_the_docs_name_exists():
+    text = "\n".join(p.read_text(encoding="utf-8") for p in PAGES)
+    files = set(re.findall(r"\btests/[\w/]+\.py\b", text))
+    names = set(re.findall(r"\b(test_\w+)\b(?!\.py)", text))
+    assert files and names
+    defined = set()
+    for f in (ROOT / "tests").rglob("*.py"):
+        defined |= set(re.findall(r"^\s*def (test_\w+)\(", f.read_text(encoding="utf-8"), re.M))
+    missing = sorted(f for f in files if not (ROOT / f).exists()) + sorted(names - defined)
+    assert not missing, f"the docs name tests that do not exist (renamed?): {missing}"
