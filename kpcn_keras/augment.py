@@ -31,7 +31,7 @@ Why the features are *transformed* rather than recomputed:
   border instead of 0. The dy channels (13-22) are plainly mirrored: a column flip does not change
   vertical differences. A flip y is the same along rows, with the roles of dx and dy exchanged.
 - A transpose swaps the dx block (3-12) with the dy block (13-22), channel for channel.
-- Normals are world space (README, AOV layers: ``normal``), and mirroring the image mirrors no world
+- Normals are world space (docs/formats.md §1: ``normal``), and mirroring the image mirrors no world
   axis, so the normal components are neither negated nor swapped. Only the direction of the
   derivative changes sign, and that holds for every gradient alike (colour, normal, albedo, depth).
 - The colour permutation applies to the RGB of colour (0-2), dx colour (3-5), dx albedo (9-11),

@@ -1,10 +1,10 @@
-"""``kpcn figures``: the seed report's figures, drawn from a run's own networks on one frame.
+"""``kpcn figures``: the seed report's figures (docs/method.md §10), drawn from a run's own networks on one frame.
 
 Written into ``<run>/figures/`` (``Run.figures_dir``), each as a PNG, for the frame given (default: the
 run's first held-out scene at its lowest sample count):
 
 =====================  ===================================================================================
-file                   what (seed report figure)
+file                   what (seed report figure: docs/method.md §10)
 =====================  ===================================================================================
 ``kernels.png``        per branch, the kernel predicted at a chosen pixel beside the input crop around it
                        and the reference crop, with the filtered value (Fig. 2); not for dpcn, which

@@ -1,4 +1,4 @@
-"""Per-pixel kernel application for kernel-predicting networks (seed report §2.2, Bako et al. 2017).
+"""Per-pixel kernel application for kernel-predicting networks (docs/method.md §4, Bako et al. 2017).
 
 A kernel-predicting network outputs k*k logits per pixel. They are turned into a normalised kernel by a
 softmax over the taps and applied to the noisy colour of the same pixel's k x k neighbourhood:

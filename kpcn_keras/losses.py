@@ -1,4 +1,4 @@
-"""SMAPE and asymmetric SMAPE training losses (seed report §2.3, §2.3.1).
+"""SMAPE and asymmetric SMAPE training losses (docs/method.md §5).
 
     smape(gt, out)      = mean(|out - gt| / (|out| + |gt| + SMAPE_EPS))      over pixels and channels
     asymmetric (slope λ) = smape elementwise * (1 + (λ - 1) * H((out - gt) * (gt - noisy)))

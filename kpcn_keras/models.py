@@ -1,4 +1,4 @@
-"""Branch denoising networks: vanilla KPCN, residual KPAL and direct-prediction DPCN (seed report §2.2, §3.4).
+"""Branch denoising networks: vanilla KPCN, residual KPAL and direct-prediction DPCN (docs/method.md §4).
 
 A branch network (diffuse or specular) maps its input (B, H, W, ``input_channels``), channels last, any H and W,
 to the filtered colour in the log domain log(1 + x), (B, H, W, 3). The input is the ``in_channels`` features of
@@ -6,7 +6,7 @@ to the filtered colour in the log domain log(1 + x), (B, H, W, 3). The input is 
 for, appended by :func:`network_input` (the one place that knows them):
 
 - ``branch_channels``: two one-hot channels, (1, 0) for diffuse and (0, 1) for specular, so that one shared
-  network serves both branches (seed report §3.4.5) and knows which it is filtering;
+  network serves both branches (docs/method.md §4) and knows which it is filtering;
 - ``slope_channel``: one channel holding log(λ) of the asymmetric loss slope λ >= 1, per pixel (0 for λ = 1),
   so that one network serves a range of λ chosen at inference (Vogels et al. 2018 §5.3).
 
@@ -215,7 +215,7 @@ def build_final_model(networks: dict, input_channels: int, name: str = "final") 
     branch (the same model twice for a shared network; or any callable building a symbolic graph, such as
     ``multiscale.multiscale_output``) and the branch transforms inverted (``FinalColour``).
 
-    Joint fine-tuning trains it on the final colour (seed report §2.3.2); the networks are nested models, so
+    Joint fine-tuning trains it on the final colour (docs/method.md §6); the networks are nested models, so
     each can be taken out again by name (``model.get_layer("diffuse")``).
     """
     inputs = {b: keras.Input(shape=(None, None, input_channels), name=FINAL_INPUTS[b]) for b in BRANCHES}

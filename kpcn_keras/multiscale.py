@@ -1,5 +1,5 @@
 """Multiscale denoising: a trained branch denoiser applied to an image pyramid, blended by a learned scale
-compositor (seed report §2.2.1, §3.1, §3.1.1; Vogels et al. 2018).
+compositor (docs/method.md §7; Vogels et al. 2018).
 
 The denoiser is any single-frame branch model (``models.build_branch_model``): features (B, H, W, C),
 C >= 27 in the ``prep.features`` layout (channels 0..2 the noisy log colour, then conditioning channels),

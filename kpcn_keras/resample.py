@@ -1,5 +1,5 @@
 """``kpcn resample``: grow a run's training set where its denoiser still fails, and keep training on it
-(seed report §3.3.2, in the manner of DAgger's dataset aggregation).
+(docs/method.md §8, in the manner of DAgger's dataset aggregation).
 
 For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a run whose training finished:
 

@@ -1,4 +1,4 @@
-"""``kpcn resample-study``: does error-based resampling (seed report §3.3.2) beat variance sampling alone?
+"""``kpcn resample-study``: does error-based resampling (docs/method.md §8) beat variance sampling alone?
 
 The report proposed the loop and never measured it. For each seed of
 :class:`kpcn_keras.config.ResampleStudyConfig`:

@@ -1,4 +1,4 @@
-"""A run folder, and the ``.keras`` files in it (design.md "Models and training").
+"""A run folder, and the ``.keras`` files in it (docs/formats.md §5; docs/design.md §3).
 
 :class:`Run` is the one owner of a run folder's layout::
 

@@ -1,4 +1,4 @@
-"""Training a denoiser from a shard set, in phases (seed report §2.2–2.3, §3.1, §3.4.5).
+"""Training a denoiser from a shard set, in phases (docs/method.md §6, §7; docs/training.md).
 
 A run trains, in this order (:meth:`TrainConfig.phases`), one command for all of them:
 

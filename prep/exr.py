@@ -1,4 +1,4 @@
-"""Reading and writing renders in the AOV layout of design.md (the Tungsten/KPCN dataset layout).
+"""Reading and writing renders in the AOV layout of docs/formats.md §1 (the Tungsten/KPCN dataset layout).
 
 A render is one multi-layer OpenEXR file whose channels are named ``<layer>.<C>``:
 

@@ -1,4 +1,4 @@
-"""Network inputs of the diffuse and specular branches (seed report §2.1, §3.3.1).
+"""Network inputs of the diffuse and specular branches (docs/method.md §1, §2; docs/formats.md §2).
 
 Features are those of the full image: a patch or a tile cut from them sees the true gradients at its
 borders. They can be computed for a window of the image alone (:func:`branch_features` with ``window``): a

@@ -1,4 +1,4 @@
-"""Image error metrics of design.md "Measuring", on linear HDR colour (H, W, 3).
+"""Image error metrics of docs/method.md §9 "Measuring", on linear HDR colour (H, W, 3).
 
 - MSE: mean((x - r)^2).
 - relMSE (MrSE): mean((x - r)^2 / (r^2 + RELMSE_EPS)), per channel.

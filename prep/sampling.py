@@ -1,4 +1,4 @@
-"""Where patches are cut (seed report §2.1, Fig. 3; §3.3.2).
+"""Where patches are cut (docs/method.md §3, §8).
 
 A per-pixel importance map (variance-based, or a model's error map for error-based rounds) becomes
 a PDF over patch positions: the importance summed over each P x P window, normalised, and mixed
@@ -103,7 +103,7 @@ def error_map(output: np.ndarray, reference: np.ndarray, metric: str = "smape") 
     float64 input large enough to overflow (relMSE beyond ~1e154 in magnitude) is an error rather than an
     infinite pixel that ``patch_pdf`` would silently zero.
 
-    Error-based rounds (seed report §3.3.2) turn it into a patch PDF with ``patch_pdf``, exactly as the
+    Error-based rounds (docs/method.md §8) turn it into a patch PDF with ``patch_pdf``, exactly as the
     variance importance is (then ``mix_pdfs`` with the variance PDF).
 
     Raises ValueError for an unknown metric, shapes that differ or are not (H, W, 3), and any NaN or

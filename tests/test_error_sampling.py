@@ -1,4 +1,4 @@
-"""Error-based sampling rounds (seed report §3.3.2): error maps, their patch PDFs, excluded positions."""
+"""Error-based sampling rounds (docs/method.md §8): error maps, their patch PDFs, excluded positions."""
 
 import numpy as np
 import pytest
@@ -9,7 +9,7 @@ from prep import metrics, sampling
 
 
 def numpy_error_map(output, reference, metric):
-    """Float64 numpy reference: the channel mean of the metric's element term (design.md "Measuring")."""
+    """Float64 numpy reference: the channel mean of the metric's element term (docs/method.md §9 "Measuring")."""
     x = np.asarray(output, dtype=np.float64)
     r = np.asarray(reference, dtype=np.float64)
     if metric == "smape":

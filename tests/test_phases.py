@@ -254,7 +254,7 @@ def test_augmented_batches_are_the_patches_under_the_symmetries_drawn_for_them(s
 
 
 def test_a_slope_input_network_keeps_more_of_the_noisy_input_at_a_higher_slope():
-    """Documented direction (README, ``kpcn denoise --slope``): a higher λ punishes overshooting the
+    """Documented direction (docs/training.md §2, ``kpcn denoise --slope``): a higher λ punishes overshooting the
     reference away from the input more, so the output stays nearer the noisy input. Synthetic case: a flat
     reference under Gaussian noise; one tiny network trained for λ = 1 and λ = 16 alike."""
     keras.utils.set_random_seed(0)

@@ -1,4 +1,4 @@
-"""The parts of error-based resampling (seed report §3.3.2) and of its study: weighted training batches, forked
+"""The parts of error-based resampling (docs/method.md §8) and of its study: weighted training batches, forked
 shard sets and runs, the base run's round-0-only inputs, the study's arithmetic, the study end to end through
 the command line, and the command line's refusals. Each checked against an independent computation (numpy in
 float64, numbers worked by hand, binomial bounds, files read with h5py and hashlib)."""

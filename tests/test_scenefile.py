@@ -112,10 +112,10 @@ def test_the_docstring_example_is_a_valid_scene_file(tmp_path):
     assert tiny_render(scene)["default"].max() > 0
 
 
-def test_the_readme_shows_the_example_file_as_it_is():
-    readme = (REPO / "README.md").read_text()
-    assert "## Scene files" in readme
-    assert "```toml\n" + example_text() + "```" in readme
+def test_the_scene_docs_show_the_example_file_as_it_is():
+    page = (REPO / "docs" / "scenes.md").read_text()
+    assert "## 5 Scene files" in page
+    assert "```toml\n" + example_text() + "```" in page
 
 
 def test_a_minimal_file_takes_the_documented_defaults(tmp_path):

@@ -1,4 +1,4 @@
-"""65x65 training patches in HDF5 shards (design.md "Shards"): what ``kpcn shards`` and the error rounds of
+"""65x65 training patches in HDF5 shards (docs/formats.md §4): what ``kpcn shards`` and the error rounds of
 ``kpcn resample`` write, and what training reads.
 
 A shard set is the folder ``<out_root>/<set>/`` (:class:`ShardSet` owns its layout). ``round-000`` is cut by

@@ -81,7 +81,7 @@ class Layout:
     dtype: str = "float32"
 
 
-# The layouts `prep.stage_costs.shard_layout_costs` measures side by side (README "Shards" has the numbers).
+# The layouts `prep.stage_costs.shard_layout_costs` measures side by side (docs/results.md §8 has the numbers).
 # gzip (what shards were written with before) and lzf compress slower than the uncompressed bytes are
 # written and hashed (for the manifest), and a training batch reads 4-8x slower from them. Several
 # patches per chunk make a random patch read its whole chunk. float16 halves the bytes but not the time

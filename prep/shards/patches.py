@@ -72,8 +72,8 @@ class ImagePatches:
 
 
 def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
-    """A round's PDF over the patch positions of one input: its variance PDF (seed report §2.1), and in an
-    error round (§3.3.2) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
+    """A round's PDF over the patch positions of one input: its variance PDF (docs/method.md §3), and in an
+    error round (docs/method.md §8) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
     window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""
     importance = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
     pdf = sampling.patch_pdf(importance, config.patch_size, config.uniform_mix)

@@ -1,4 +1,4 @@
-"""Error rounds (seed report §3.3.2): round k >= 1 of a set, written by :func:`build_error_round`.
+"""Error rounds (docs/method.md §8): round k >= 1 of a set, written by :func:`build_error_round`.
 
 From every training input, positions are drawn from the PDF of a model's per-pixel error mixed with the
 variance PDF, never at a position an earlier round used; the round's manifest entry keeps its provenance
