@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
-from kpcn_keras import bench
-from kpcn_keras.config import BenchConfig
+from kpcn_keras.studies import bench
+from kpcn_keras.studies.config import BenchConfig
 from prep.errors import OptionError
 
 LADDER = (2, 4, 8, 16, 32, 64, 128)

@@ -2,8 +2,8 @@
 
 The contract:
 
-- **Configurations** are :data:`CONFIGURATIONS` (name -> what it is, preset, TrainConfig overrides), the one
-  place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
+- **Configurations** are :data:`kpcn_keras.studies.config.CONFIGURATIONS` (name -> what it is, preset,
+  TrainConfig overrides), the one place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
   rates and phases; only their steps (and the decay) are cut to the budget, and the report says so.
 - **One shard set, one budget.** Every configuration trains on ``<shards_root>/<set_name>`` for
   ``budget`` seconds of training steps into its own run folder
@@ -32,8 +32,9 @@ The contract:
   many held-out frames its relMSE is below OIDN's and the median of their ratio; "beats OIDN" means on most
   frames, never by a mean that one frame can carry.
 
-This module imports keras and torch only inside the functions that train or denoise, so ``kpcn --help``
-and :class:`kpcn_keras.config.CompareConfig` (whose default list of configurations is this table) stay light.
+The table of configurations and :class:`kpcn_keras.studies.config.CompareConfig` are in
+``kpcn_keras/studies/config.py``. This module imports keras and torch only inside the functions that train
+or denoise.
 """
 
 from __future__ import annotations
@@ -49,27 +50,10 @@ import time
 from datetime import date, datetime
 from pathlib import Path
 
-from kpcn_keras.config import PRESETS, CompareConfig, TrainConfig
+from kpcn_keras.config import PRESETS, TrainConfig
+from kpcn_keras.studies.config import CONFIGURATIONS, CompareConfig
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, read_json, save_png
-
-# name -> (what it is, preset, TrainConfig overrides). A joint_steps or compositor entry only says that the
-# phase exists: every step count is set by the budget.
-CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
-    "cpu": ("the default (cpu preset)", "cpu", {}),
-    "kpcn-paper": ("Bako et al. 2017's network and training", "kpcn-paper", {}),
-    "kpal-paper": ("the report's residual network and training", "kpal-paper", {}),
-    "dpcn": ("cpu, predicting the colour directly instead of kernels", "cpu", {"model": {"arch": "dpcn"}}),
-    "shared": ("cpu, one network for both branches", "cpu", {"shared": True}),
-    "joint": ("cpu, then both branches fine-tuned together on the final colour", "cpu", {"joint_steps": 1}),
-    "multiscale-alpha": ("cpu + Vogels' scale compositor", "cpu", {"compositor": {"kind": "alpha"}}),
-    "multiscale-kernel": ("cpu + the kernel-predicting compositor", "cpu", {"compositor": {"kind": "kernel"}}),
-    "asymmetric": ("cpu, asymmetric loss instead of SMAPE", "cpu", {"loss": "asymmetric", "slope": 2.0}),
-    "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
-    "kernel-5": ("cpu with 5×5 kernels", "cpu", {"model": {"kernel_size": 5}}),
-    "kernel-21": ("cpu with the papers' 21×21 kernels", "cpu", {"model": {"kernel_size": 21}}),
-    "kpal": ("cpu-sized residual network", "cpu", {"model": {"arch": "kpal", "depth": 3}}),
-}
 
 PROBE_STEPS = 10
 PROBE_SKIP = 2  # the first steps of a phase build the optimizer and warm torch up

@@ -1,7 +1,7 @@
 """``kpcn resample-study``: does error-based resampling (seed report §3.3.2) beat variance sampling alone?
 
 The report proposed the loop and never measured it. For each seed of
-:class:`kpcn_keras.config.ResampleStudyConfig`:
+:class:`kpcn_keras.studies.config.ResampleStudyConfig`:
 
 1. **A base run** of the default (cpu) preset, ``base_steps`` per network, on the shard set (round 0: the
    variance-PDF patches of ``kpcn shards``), with the training seed ``seed``:
@@ -36,16 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import ResampleStudyConfig, TrainConfig
+from kpcn_keras.config import TrainConfig
+from kpcn_keras.studies.config import ARMS, ResampleStudyConfig
 from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, save_png
 
-# name -> (what it is, the loop's settings besides the study's)
-ARMS: dict[str, tuple[str, dict]] = {
-    "continue": ("no new patches: round 0 (variance-PDF sampling only), trained as long",
-                 {"patches_per_image": 0, "error_weight": 0.0}),
-    "variance": ("new patches each round from the variance PDF alone", {"error_weight": 0.0}),
-    "error": ("new patches each round from the error PDF mixed with the variance PDF", {}),
-}
 MAX_ROUNDS_FACTOR = 3
 REPORT = ("resample.md", "resample.json", "resample.png")
 # the differences the report tests, (a, b): is a better than b?
@@ -200,7 +194,7 @@ def _mean(values) -> float:
 
 def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progress: bool = True, log=print) -> dict:
     """Run (or resume) the study of the module docstring; writes the three reports, returns the record."""
-    from kpcn_keras.compare import machine_record
+    from kpcn_keras.studies.compare import machine_record
     from prep.shards import ShardSet
 
     out = Path(cfg.out_dir)

@@ -8,7 +8,7 @@ The contract:
   the inputs are the set's own files, and the reference is the set's reference of the scene. The scenes
   come from the render set's ``config.json``: the bench needs a set made by ``kpcn render``.
 - **Methods**, each on the same frames: raw Monte Carlo; every configuration of ``configurations`` (and the
-  presets) trained for ``budget`` seconds (``kpcn compare``'s planning: :func:`kpcn_keras.compare.plan_and_train`,
+  presets) trained for ``budget`` seconds (``kpcn compare``'s planning: :func:`kpcn_keras.studies.compare.plan_and_train`,
   in ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``), a multiscale run with and without its compositor;
   non-local means; Intel Open Image Denoise when ``pyoidn`` is installed. A point is (input spp, seconds =
   render + denoise, relMSE, DSSIM, relSE p99.9); a denoiser's seconds per frame is its own call on that
@@ -51,7 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import BenchConfig, CompareConfig, ModelConfig
+from kpcn_keras.config import ModelConfig
+from kpcn_keras.studies.config import BenchConfig, CompareConfig
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_writable, pyplot, read_json, save_png
 
@@ -300,7 +301,7 @@ def denoiser_method(name: str, kind: str, what: str, fn, cfg: BenchConfig, scene
 
 def train_runs(cfg: BenchConfig, *, overrides: dict | None, verbose, log) -> dict:
     """``budget -> {name: plan entry}``: the configurations at the budget, the presets at every budget."""
-    from kpcn_keras.compare import plan_and_train
+    from kpcn_keras.studies.compare import plan_and_train
 
     plans, probes = {}, {}
     # the budget itself first: its probes serve the presets' smaller budgets (a probe times steps, not budgets)
@@ -319,7 +320,7 @@ def train_runs(cfg: BenchConfig, *, overrides: dict | None, verbose, log) -> dic
 
 def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log) -> tuple[list[dict], list[dict]]:
     """The error-against-time methods of the trained runs at the budget, and the training-cost rows."""
-    from kpcn_keras.compare import _training_seconds, describe
+    from kpcn_keras.studies.compare import _training_seconds, describe
     from kpcn_keras.denoise import Denoiser
 
     methods, training = [], []
@@ -397,8 +398,8 @@ def _median(values) -> float:
 
 def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     """The costs of each stage (module docstring); every function it calls measures side by side."""
-    from kpcn_keras import stage_costs as net_costs
-    from prep import stage_costs as prep_costs
+    from kpcn_keras.studies import stage_costs as net_costs
+    from prep.studies import stage_costs as prep_costs
     from prep.shards import ShardSet
 
     pixels = {s["name"]: s["width"] * s["height"] for s in scenes}
@@ -496,7 +497,7 @@ def shards_command_cost(set_dir: Path, scratch: Path) -> dict:
     import shutil
     import sys
 
-    from kpcn_keras.cli import command_line
+    from kpcn_keras.parser import command_line
     from prep import threads
     from prep.shards import SHARD_LAYOUT, ShardConfig, ShardSet, round_name
 
@@ -622,7 +623,7 @@ def busy_processes(limit: int = 5) -> list[str]:
 def machine(load_before, busy_before) -> dict:
     import numba
 
-    from kpcn_keras.compare import machine_record
+    from kpcn_keras.studies.compare import machine_record
 
     return {**machine_record(load_before), "numba_threads": numba.get_num_threads(), "busy_before": busy_before,
             "busy_after": busy_processes()}
