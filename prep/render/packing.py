@@ -12,7 +12,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from prep.errors import InputFileError
 from prep.render.environment import load_image, load_texels, sampling_tables
 from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec, triangle_areas
 
