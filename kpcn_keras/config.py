@@ -1,5 +1,8 @@
 """The configuration dataclasses of training and of the networks, and the presets (no keras, no torch).
 
+This module imports nothing else of ``kpcn_keras`` (only ``prep`` and the standard library): every other
+module may import it. The studies' configurations are in :mod:`kpcn_keras.studies.config`.
+
 Each default is written once, here, with the bound of its value (``prep.bounds``: checked by the dataclass,
 stated by ``--help``); the command line fills these from the options a user gave and never retypes a
 default or a bound. Importing this module is cheap, so ``kpcn --help`` and the data stages stay light.
@@ -15,11 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
+from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
-from prep.files import check_set_name
 from prep.features import BRANCHES
-from prep.render.frame import FRAME_SIDE, SPP
+from prep.render.frame import FRAME_SIDE
 
 ARCHS = ("kpcn", "kpal", "dpcn")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
@@ -51,7 +53,6 @@ SLOPE = Bound(1.0, 1000.0, integer=False)  # λ of the asymmetric loss: 1 is SMA
 GAMMA = Bound(0.0, 100.0, integer=False)
 DROPOUT = Bound(0.0, 1.0, integer=False, high_open=True)
 ROUNDS = Bound(1, 100)
-BUDGET = Bound(0.0, 7 * 86400.0, integer=False, low_open=True)  # training seconds: at most a week
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
 
@@ -342,47 +343,6 @@ class TrainConfig:
         return {k: v for k, v in self.to_dict().items() if k not in LOCATION_FIELDS}
 
 
-def _all_configurations() -> tuple[str, ...]:
-    # the table is data in kpcn_keras.compare, written once there; that module imports keras only inside
-    # its functions, so this stays as light as the rest of this module
-    from kpcn_keras.compare import CONFIGURATIONS
-
-    return tuple(CONFIGURATIONS)
-
-
-@dataclass
-class CompareConfig:
-    """Configuration of ``kpcn compare`` (kpcn_keras/compare.py): each of ``configurations`` trained for
-    ``budget`` seconds on the shard set ``<shards_root>/<set_name>`` into ``runs_root``, measured on the
-    set's held-out frames, reported in ``out_dir``; ``frame`` is the side of the crop whose inference is
-    timed, ``repeats`` how many timed calls the median is of, ``seed`` the training seed of every run."""
-
-    set_name: str = "default"
-    shards_root: str = "shards"
-    runs_root: str = "runs/compare"
-    out_dir: str = "reports"
-    budget: float = bounded(180, BUDGET)
-    configurations: tuple[str, ...] = bounded(default_factory=_all_configurations, distinct=True)
-    frame: int = bounded(256, FRAME_SIDE)
-    repeats: int = bounded(5, REPEATS)
-    seed: int = bounded(0, SEED)
-
-    def __post_init__(self):
-        known = _all_configurations()
-        if isinstance(self.configurations, str):
-            self.configurations = tuple(c.strip() for c in self.configurations.split(",") if c.strip())
-        self.configurations = tuple(self.configurations)
-        check_set_name(self.set_name)
-        for name in ("shards_root", "runs_root", "out_dir"):
-            if not isinstance(getattr(self, name), str) or not getattr(self, name):
-                raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
-        unknown = [c for c in self.configurations if c not in known]
-        if unknown or not self.configurations:
-            found = f"has unknown {', '.join(map(repr, unknown))}" if unknown else "is empty"
-            raise OptionError("configurations", f"{found}; the known ones are {', '.join(known)}")
-        check_fields(self)
-
-
 @dataclass
 class ResampleConfig:
     """Configuration of ``kpcn resample`` (kpcn_keras/resample.py), the error-based resampling loop of seed
@@ -416,128 +376,3 @@ class ResampleConfig:
     def identity(self) -> dict:
         """What must agree for a rerun to continue the same loop (``rounds`` may grow: more rounds)."""
         return {k: v for k, v in self.to_dict().items() if k != "rounds"}
-
-
-def _study_arms() -> tuple[str, ...]:
-    from kpcn_keras.resample_study import ARMS  # the table is data there, as compare's configurations are
-
-    return tuple(ARMS)
-
-
-@dataclass
-class ResampleStudyConfig:
-    """Configuration of ``kpcn resample-study`` (kpcn_keras/resample_study.py): for each of ``seeds``, a run
-    trained ``base_steps`` per network on ``<shards_root>/<set_name>``, then each of ``arms`` continues it for
-    ``rounds`` rounds of ``round_steps`` (adding ``patches_per_image`` per training input where the arm adds
-    any), in ``runs_root``; reports in ``out_dir``. ``error_weight`` and ``metric`` None take
-    :class:`ResampleConfig`'s."""
-
-    set_name: str = "default"
-    shards_root: str = "shards"
-    runs_root: str = "runs/resample-study"
-    out_dir: str = "reports"
-    seeds: tuple[int, ...] = bounded((0, 1, 2), SEED, distinct=True)
-    arms: tuple[str, ...] = bounded(default_factory=_study_arms, distinct=True)
-    base_steps: int = bounded(600, STEPS)
-    rounds: int = bounded(3, ROUNDS)
-    round_steps: int = bounded(200, STEPS)
-    patches_per_image: int = bounded(8, PATCH_COUNT)
-    error_weight: Optional[float] = None
-    metric: Optional[str] = None
-
-    def __post_init__(self):
-        self.seeds, self.arms = tuple(self.seeds), tuple(self.arms)
-        check_set_name(self.set_name)
-        if not self.seeds:
-            raise OptionError("seeds", "must name at least one seed")
-        known = _study_arms()
-        if not self.arms or any(a not in known for a in self.arms):
-            raise OptionError("arms", f"must be names among {', '.join(known)}, got {list(self.arms)}")
-        check_fields(self)
-        self.loop()  # the loop's own checks of rounds, round_steps, error_weight (the error arm's), metric
-
-    def loop(self, error_weight: float | None = None, patches_per_image: int | None = None) -> ResampleConfig:
-        """The resample loop of one arm: the study's settings, the arm's error weight and patches."""
-        given = {"metric": self.metric}
-        weight = self.error_weight if error_weight is None else error_weight
-        return ResampleConfig(rounds=self.rounds, round_steps=self.round_steps,
-                              patches_per_image=self.patches_per_image if patches_per_image is None else patches_per_image,
-                              **({"error_weight": weight} if weight is not None else {}),
-                              **{k: v for k, v in given.items() if v is not None})
-
-
-# The ladders of ``kpcn bench`` (kpcn_keras/bench.py). "reduced", the default, finishes in under 45 minutes
-# on a 2-core CPU; "full" (--full) measures every spp up to half the references' and trains five times longer.
-# raw_spp: the raw Monte Carlo curve; input_spp: what the denoisers get; budget: training seconds of every
-# configuration; budget_fractions: the training-cost curve of the presets, as fractions of the budget.
-BENCH_LADDERS = {
-    "reduced": {"raw_spp": (2, 4, 8, 16, 32, 64, 128), "input_spp": (4, 16, 64), "budget": 120.0,
-                "budget_fractions": (1 / 3, 1.0),
-                "configurations": ("cpu", "kernel-5", "kernel-21", "kpal", "dpcn", "multiscale-alpha")},
-    "full": {"raw_spp": (2, 4, 8, 16, 32, 64, 128, 256), "input_spp": (2, 4, 8, 16, 32, 64, 128),
-             "budget": 600.0, "budget_fractions": (1 / 9, 1 / 3, 1.0),
-             "configurations": ("cpu", "kernel-5", "kernel-21", "kpal", "dpcn", "multiscale-alpha",
-                                "multiscale-kernel", "shared", "joint")},
-}
-BENCH_PRESETS = ("cpu", "kpcn-paper", "kpal-paper")  # the training-cost curve: error against training seconds
-
-
-@dataclass
-class BenchConfig:
-    """Configuration of ``kpcn bench`` (kpcn_keras/bench.py): the held-out scenes of the shard set
-    ``<shards_root>/<set_name>`` rendered at every spp of a ladder, denoised by each configuration trained
-    for ``budget`` seconds in ``runs_root`` and by the baselines; reports in ``out_dir``. ``full`` picks the
-    full ladder of :data:`BENCH_LADDERS`; ``raw_spp``, ``input_spp``, ``budget``, ``budget_fractions``,
-    ``configurations`` and ``presets`` None take the ladder's (presets: :data:`BENCH_PRESETS`).
-    ``large_frame`` (width, height) is the frame whose inference time and memory are measured against
-    Intel Open Image Denoise; ``repeats`` how many timed calls a stage cost is the best or median of."""
-
-    set_name: str = "default"
-    shards_root: str = "shards"
-    runs_root: str = "runs/bench"
-    out_dir: str = "reports"
-    full: bool = False
-    raw_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
-    input_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
-    budget: Optional[float] = bounded(None, BUDGET)
-    budget_fractions: Optional[tuple[float, ...]] = bounded(None, FRACTION, distinct=True)
-    configurations: Optional[tuple[str, ...]] = bounded(None, distinct=True)
-    presets: Optional[tuple[str, ...]] = bounded(None, distinct=True)
-    large_frame: tuple[int, int] = bounded((1920, 1080), FRAME_SIDE)
-    repeats: int = bounded(3, REPEATS)
-    seed: int = bounded(0, SEED)
-
-    def __post_init__(self):
-        ladder = BENCH_LADDERS["full" if self.full else "reduced"]
-        for name in ("raw_spp", "input_spp", "budget", "budget_fractions", "configurations"):
-            if getattr(self, name) is None:
-                setattr(self, name, ladder[name])
-        if self.presets is None:
-            self.presets = BENCH_PRESETS
-        check_set_name(self.set_name)
-        known = _all_configurations()
-        for name in ("configurations", "presets"):
-            values = getattr(self, name)
-            values = tuple(c.strip() for c in values.split(",") if c.strip()) if isinstance(values, str) \
-                else tuple(values)
-            unknown = [c for c in values if c not in known]
-            if unknown:
-                raise OptionError(name, f"must be names among {', '.join(known)}, got {list(values)}")
-            setattr(self, name, values)
-        for name in ("raw_spp", "input_spp", "budget_fractions"):
-            setattr(self, name, tuple(getattr(self, name)))
-            if not getattr(self, name):
-                raise OptionError(name, "must name at least one value")
-        if len(self.large_frame) != 2:
-            raise OptionError("large_frame", f"must be WIDTH,HEIGHT, got {list(self.large_frame)}")
-        check_fields(self)
-        for name in ("raw_spp", "input_spp", "budget_fractions"):
-            setattr(self, name, tuple(sorted(getattr(self, name))))
-        if len(self.raw_spp) < 2:
-            raise OptionError("raw_spp", f"needs at least two sample counts for a curve, got {list(self.raw_spp)}")
-        if not self.configurations:
-            raise OptionError("configurations", "must name at least one configuration")
-
-    def budgets(self) -> tuple[float, ...]:
-        """The training budgets of the runs: the presets' curve, whose largest is the budget itself."""
-        return tuple(sorted({round(self.budget * f, 3) for f in self.budget_fractions} | {self.budget}))

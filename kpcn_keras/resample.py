@@ -8,7 +8,7 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
    error map against the reference into a patch PDF, mixes it with the variance PDF, draws new positions that
    no earlier round used, and writes ``shards/<set>/round-<k>/`` with the round's provenance (the model files
    and their SHA-256, the metric, the mix weight). With ``error_weight`` 0 no model runs: the round is drawn
-   from the variance PDF alone, the control of the experiment (``kpcn_keras.resample_study``).
+   from the variance PDF alone, the control of the experiment (``kpcn_keras.studies.resample_study``).
 2. **Training.** Every branch network of the run (``diffuse`` and ``specular``, or ``shared``) continues from
    its latest file, optimizer and learning-rate schedule included, for ``round_steps`` steps on the training
    patches of rounds 0..k, as one more phase of the run (``<network>-round-<k>``: its own checkpoints, rows of

@@ -34,7 +34,7 @@ input). Negative variances (a renderer's rounding) count as 0.
 The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
-kernel but the constants: the tests hold the kernel to it, and ``prep.stage_costs`` times the two.
+kernel but the constants: the tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
-from kpcn_keras import bench
-from kpcn_keras.config import BenchConfig
+from kpcn_keras.studies import bench, bench_stages
+from kpcn_keras.studies.config import BenchConfig
 from prep.errors import OptionError
 
 LADDER = (2, 4, 8, 16, 32, 64, 128)
@@ -160,5 +160,5 @@ def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch)
 
     st = record["stages"]
     assert st["shard_read"]["ratio"] == pytest.approx(st["shard_read"]["batch_s"] / st["train_step"]["keras_s"])
-    assert [k["k"] for k in st["kernel_application"]] == list(bench.KERNEL_SIZES)
+    assert [k["k"] for k in st["kernel_application"]] == list(bench_stages.KERNEL_SIZES)
     assert st["inference"]["large"]["frame"] == [40, 30]

@@ -249,7 +249,7 @@ def test_torchrun_passes_every_option_of_ours_through_to_the_command():
     ours has a spelling that is not (`--run-dir`)."""
     from torch.distributed.run import get_args_parser
 
-    from kpcn_keras.cli import build_parser
+    from kpcn_keras.parser import build_parser
 
     torchrun = get_args_parser()
     theirs = {s for action in torchrun._actions for s in action.option_strings}
@@ -269,7 +269,7 @@ def test_torchrun_passes_every_option_of_ours_through_to_the_command():
 
 
 def test_a_command_line_built_from_values_parses_back_to_them():
-    from kpcn_keras.cli import build_parser, command_line
+    from kpcn_keras.parser import build_parser, command_line
 
     values = {"set_name": "s", "render_root": "r", "patch_size": 16, "val_scenes": ("a", "b"), "input_spp": 4,
               "out_root": "x", "seed": 3}
@@ -281,7 +281,7 @@ def test_a_command_line_built_from_values_parses_back_to_them():
 
 
 def test_shards_record_their_command_without_the_options_that_change_no_byte():
-    from kpcn_keras import cli
+    from kpcn_keras import parser as cli
 
     argv = ["-q", "shards", "--set", "t", "--threads=2", "--part", "1/2", "--seed", "3", "--thr", "1"]
     parser = cli.build_parser()
@@ -306,7 +306,7 @@ _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], (
 
 def _options():
     """(command, action) of every option of every subcommand."""
-    from kpcn_keras.cli import build_parser
+    from kpcn_keras.parser import build_parser
 
     return [(command, action) for command, sub in build_parser().get_default("subcommands").items()
             for action in sub._actions if action.option_strings and action.dest != "help"]

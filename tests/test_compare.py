@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
-from kpcn_keras import compare as cmp
-from kpcn_keras.config import PRESETS, CompareConfig
+from kpcn_keras.studies import compare as cmp
+from kpcn_keras.config import PRESETS
+from kpcn_keras.studies.config import CompareConfig
 from prep import exr
 from prep.errors import OptionError
 from prep.shards import ShardSet

@@ -794,7 +794,7 @@ def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
 
 
 def test_render_bench_writes_its_report_for_every_family(tmp_path):
-    from prep.render.bench import RenderBenchConfig, bench_render
+    from prep.studies.render_bench import RenderBenchConfig, bench_render
 
     record = bench_render(RenderBenchConfig(width=8, height=6, spp=2, repeats=1, out_dir=str(tmp_path)),
                           progress=False)
@@ -813,7 +813,7 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     from conftest import REPO
-    from prep.render.bench import format_report
+    from prep.studies.render_bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())
     md = format_report(record)

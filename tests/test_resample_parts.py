@@ -19,7 +19,7 @@ from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, check
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
-from kpcn_keras.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
+from kpcn_keras.studies.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
 from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import check_inputs, train
 from prep.errors import KpcnError

@@ -8,8 +8,8 @@ import pytest
 from conftest import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
-from kpcn_keras.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras
-from kpcn_keras.stage_costs import (
+from kpcn_keras.studies.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras
+from kpcn_keras.studies.stage_costs import (
     TRAINING_SKIPS,
     VARIANTS,
     kernel_application_cost,

@@ -53,6 +53,25 @@ def bake_sky(sky: Sky) -> np.ndarray:
     return np.where(angle <= math.radians(sky.sun_radius), np.asarray(sky.sun), out)
 
 
+SRGB_GAMMA = 2.2
+
+
+def load_image(path: str) -> np.ndarray:
+    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); InputFileError naming the
+    file."""
+    import matplotlib.image
+
+    try:
+        image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise InputFileError(f"{path}: not a readable PNG image ({exc})") from None
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=-1)
+    if image.ndim != 3 or image.shape[2] < 3 or image.size == 0:
+        raise InputFileError(f"{path}: expected an RGB image, found shape {image.shape}")
+    return np.clip(image[..., :3], 0.0, 1.0) ** SRGB_GAMMA
+
+
 def load_texels(env: EnvironmentMap) -> np.ndarray:
     """The (H, W, 3) float64 radiance texels of ``env`` (scale applied); InputFileError naming an image
     file that cannot be read or is not an RGB map with finite, non-negative texels."""
@@ -68,8 +87,6 @@ def load_texels(env: EnvironmentMap) -> np.ndarray:
             except AOVError as exc:
                 raise InputFileError(str(exc)) from None
         else:
-            from prep.render.packing import load_image
-
             texels = load_image(str(path))
         if texels.shape[0] < 2 or texels.shape[1] < 2:
             raise InputFileError(f"{path}: an environment map needs at least 2 x 2 texels, found "

@@ -60,7 +60,9 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     The kernel is the one compiled for ``effects`` (default: ``scene.effects()``, the effects the scene
     calls for; ``EFFECTS`` gives the all-effects kernel, which renders the same bits).
     """
-    from prep.render import kernels, tracer  # numba and the kernels load only when a frame is rendered
+    # numba and the kernels load only when a frame is rendered
+    import prep.render.kernels as kernels
+    import prep.render.tracer as tracer
     from prep.render.packing import pack
 
     if not isinstance(scene, Scene):

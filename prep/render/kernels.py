@@ -21,8 +21,10 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+import prep.render.integrator as integrator
+import prep.render.packing as packing
+import prep.render.tracer as tracer
 from prep.files import atomic_write_text
-from prep.render import integrator, packing, tracer
 from prep.render.scene import EFFECTS
 
 _BLOCK = re.compile(r"(# --- effects \(kernels\.py rewrites this block.*?\n)(.*?)(# --- end of effects ---)", re.S)

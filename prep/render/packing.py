@@ -12,8 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from prep.errors import InputFileError
-from prep.render.environment import load_texels, sampling_tables
+from prep.render.environment import load_image, load_texels, sampling_tables
 from prep.render.scene import MATERIAL_KINDS, TEXTURES, Scene, _luminance, _vec, triangle_areas
 
 # Layout of one row of the material table handed to the kernels (see tracer.py).
@@ -169,25 +168,6 @@ def build_bvh(v0: np.ndarray, v1: np.ndarray, v2: np.ndarray) -> tuple[np.ndarra
         stack.append((links[node][0], left, depth + 1))
     return (np.asarray(order, dtype=np.int64), np.asarray(bounds, dtype=np.float64).reshape(-1, 6),
             np.asarray(links, dtype=np.int64).reshape(-1, 3))
-
-
-SRGB_GAMMA = 2.2
-
-
-def load_image(path: str) -> np.ndarray:
-    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); InputFileError naming the
-    file."""
-    import matplotlib.image
-
-    try:
-        image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise InputFileError(f"{path}: not a readable PNG image ({exc})") from None
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=-1)
-    if image.ndim != 3 or image.shape[2] < 3 or image.size == 0:
-        raise InputFileError(f"{path}: expected an RGB image, found shape {image.shape}")
-    return np.clip(image[..., :3], 0.0, 1.0) ** SRGB_GAMMA
 
 
 def pack_images(scene: Scene) -> tuple[np.ndarray, np.ndarray]:

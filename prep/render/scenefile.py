@@ -158,7 +158,8 @@ import numpy as np
 from prep.bounds import SEED
 from prep.errors import InputFileError, KpcnError, OptionError
 from prep.files import read_input
-from prep.render import RenderConfig, render
+from prep.render.frame import render
+from prep.render.renderset import RenderConfig
 from prep.render.scene import Mesh, Scene
 
 __all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "read_scene", "render_scene_file"]

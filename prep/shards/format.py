@@ -81,7 +81,7 @@ class Layout:
     dtype: str = "float32"
 
 
-# The layouts `prep.stage_costs.shard_layout_costs` measures side by side (docs/results.md §8 has the numbers).
+# The layouts `prep.studies.stage_costs.shard_layout_costs` measures side by side (docs/results.md §8 has the numbers).
 # gzip (what shards were written with before) and lzf compress slower than the uncompressed bytes are
 # written and hashed (for the manifest), and a training batch reads 4-8x slower from them. Several
 # patches per chunk make a random patch read its whole chunk. float16 halves the bytes but not the time
@@ -127,7 +127,7 @@ def empty_patches(count: int, patch_size: int) -> dict[str, np.ndarray]:
 
 def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout: Layout = SHARD_LAYOUT) -> None:
     """Write one shard atomically: a per-process temporary name, ``complete`` attribute last, then rename.
-    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.stage_costs``).
+    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.studies.stage_costs``).
 
     Not fsync'ed (``atomic_path(durable=False)``): waiting for the disk was most of ``kpcn shards`` (a set
     is ~1.2 MB a patch; this disk takes ~430 MB/s), and a shard needs no fsync to be safe, since its
@@ -185,7 +185,7 @@ def _abandon(f: h5py.File, datasets: list) -> None:
 
 def branch_datasets(branch: str, noisy: bool = False) -> list[str]:
     """The datasets a training batch of one branch reads per patch (``kpcn_keras.data``; timed by
-    ``prep.stage_costs``): the features and the reference, and the noisy colour for a loss that uses it
+    ``prep.studies.stage_costs``): the features and the reference, and the noisy colour for a loss that uses it
     (``noisy``: the asymmetric loss)."""
     return [f"{branch}/features", f"{branch}/reference"] + ([f"{branch}/noisy"] if noisy else [])
 
@@ -193,7 +193,7 @@ def branch_datasets(branch: str, noisy: bool = False) -> list[str]:
 def read_patch(f, names, patch: int) -> dict[str, np.ndarray]:
     """Patch ``patch`` of the datasets ``names`` of an open shard (an h5py File, or a mapping of its datasets
     by name), float32 whatever the storage type: the one
-    read a training batch makes per patch (``kpcn_keras.data``, timed by ``prep.stage_costs``). OSError
+    read a training batch makes per patch (``kpcn_keras.data``, timed by ``prep.studies.stage_costs``). OSError
     (a chunk whose checksum fails) is the caller's to name."""
     return {name: np.asarray(f[name][patch], dtype=np.float32) for name in names}
 

@@ -12,24 +12,21 @@ recorded: the machine is shared, so compare the ratios, which are measured side 
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
-import platform
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 from prep.bounds import REPEATS, bounded, check_fields
-from prep.files import atomic_write_text
 from prep.render.families import FAMILIES, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 from prep.render.scene import EFFECTS, Scene, lambert
+from prep.studies.report import Report
 
 # A production CPU path tracer on a machine like this one: a 256x256 Cornell box with paths of up to
 # 12 vertices and Russian roulette after 5, at about 1.4 million samples per second. Quoted from issue 6,
 # never measured here: the report says so beside the figures it measures.
 ANCHOR_SAMPLES_PER_S = 1.4e6
 ANCHOR_DEPTH = (12, 5)  # (max_depth, rr_depth)
+REPORT = "render"  # render.json and render.md in the report folder
 
 
 @dataclass
@@ -82,7 +79,8 @@ def bench_render(cfg: RenderBenchConfig, progress: bool = True) -> dict:
     """Run the benchmark; writes ``<out_dir>/render.json`` and ``render.md`` and returns the record."""
     from tqdm import tqdm
 
-    load_before = os.getloadavg()
+    report = Report(cfg.out_dir, REPORT, png=False)
+    session = report.begin()
     scenes = [make_scene(f, 0, 0) for f in FAMILIES] + [lambert_only(make_scene("cornell", 0, 0))]
     rows = [_compare(s, cfg) for s in tqdm(scenes, desc="bench render", unit="scene", disable=not progress)]
     cornell = make_scene("cornell", 0, 0)
@@ -91,17 +89,13 @@ def bench_render(cfg: RenderBenchConfig, progress: bool = True) -> dict:
     anchor_s = _best_seconds(cornell, cfg, max_depth=max_depth, rr_depth=rr_depth)
     record = {
         "config": dataclasses.asdict(cfg),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "load_average_before": load_before, "load_average_after": os.getloadavg()},
+        "machine": session.machine(),
         "families": rows,
         "anchor": {"scene": cornell.name, "max_depth": max_depth, "rr_depth": rr_depth,
                    "samples_per_s": cfg.width * cfg.height * cfg.spp / anchor_s,
                    "reference_samples_per_s": ANCHOR_SAMPLES_PER_S},
     }
-    out = Path(cfg.out_dir)
-    atomic_write_text(out / "render.json", json.dumps(record, indent=2) + "\n")
-    atomic_write_text(out / "render.md", format_report(record))
-    return record
+    return report.write(record, format_report(record))
 
 
 def format_report(record: dict) -> str:

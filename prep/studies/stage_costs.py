@@ -18,7 +18,7 @@ function                               measures
                                        training batch, and that each reads back what was written
 =====================================  ==================================================================
 
-``kpcn shards`` end to end is timed as a command by ``kpcn_keras.bench.shards_command_cost``.
+``kpcn shards`` end to end is timed as a command by ``kpcn_keras.studies.bench.shards_command_cost``.
 
 Scratch: :func:`shard_layout_costs` writes only inside a fresh folder under
 ``out_dir`` (created if missing, not its parents) and remove it, and ``out_dir`` itself if they created it, also when they

@@ -33,7 +33,7 @@ from kpcn_keras import layers
 from kpcn_keras.config import ModelConfig
 from kpcn_keras.losses import SMAPE, smape
 from kpcn_keras.models import build_branch_model
-from kpcn_keras.plain_torch import torch_branch_from_keras
+from kpcn_keras.studies.plain_torch import torch_branch_from_keras
 
 __all__ = ["TRAINING_SKIPS", "VARIANTS", "kernel_application_cost", "memory_bandwidth", "train_step_cost"]
 

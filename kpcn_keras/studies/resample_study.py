@@ -1,7 +1,7 @@
 """``kpcn resample-study``: does error-based resampling (docs/method.md §8) beat variance sampling alone?
 
 The report proposed the loop and never measured it. For each seed of
-:class:`kpcn_keras.config.ResampleStudyConfig`:
+:class:`kpcn_keras.studies.config.ResampleStudyConfig`:
 
 1. **A base run** of the default (cpu) preset, ``base_steps`` per network, on the shard set (round 0: the
    variance-PDF patches of ``kpcn shards``), with the training seed ``seed``:
@@ -27,27 +27,19 @@ the same command reuses finished runs and rounds.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import statistics
-from datetime import date, datetime
 from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import ResampleStudyConfig, TrainConfig
-from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, save_png
+from kpcn_keras.config import TrainConfig
+from kpcn_keras.studies.config import ARMS, ResampleStudyConfig
+from prep.files import exclusive_lock, pyplot
+from prep.studies.report import Report
 
-# name -> (what it is, the loop's settings besides the study's)
-ARMS: dict[str, tuple[str, dict]] = {
-    "continue": ("no new patches: round 0 (variance-PDF sampling only), trained as long",
-                 {"patches_per_image": 0, "error_weight": 0.0}),
-    "variance": ("new patches each round from the variance PDF alone", {"error_weight": 0.0}),
-    "error": ("new patches each round from the error PDF mixed with the variance PDF", {}),
-}
 MAX_ROUNDS_FACTOR = 3
-REPORT = ("resample.md", "resample.json", "resample.png")
+REPORT = "resample"  # resample.json, resample.md, resample.png in the report folder
 # the differences the report tests, (a, b): is a better than b?
 PAIRS = (("error", "continue"), ("error", "variance"), ("variance", "continue"))
 SCORES = ("relmse", "dssim")
@@ -200,39 +192,31 @@ def _mean(values) -> float:
 
 def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progress: bool = True, log=print) -> dict:
     """Run (or resume) the study of the module docstring; writes the three reports, returns the record."""
-    from kpcn_keras.compare import machine_record
+    from kpcn_keras.studies.compare import deep_learning_stack
     from prep.shards import ShardSet
 
-    out = Path(cfg.out_dir)
-    for name in REPORT:
-        check_writable(out / name, "report (--out)")
+    report = Report(cfg.out_dir, REPORT)
+    report.check_writable()
     sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
     manifest = sset.complete_manifest()
-    load_before = os.getloadavg()
-    started = datetime.now().isoformat(timespec="seconds")
+    session = report.begin()
     seeds = {}
     with exclusive_lock(cfg.runs_root, "study folder"):
         for seed in cfg.seeds:
             seeds[seed] = _run_arms(cfg, seed, sset, verbose=verbose, progress=progress, command=command, log=log)
     record = {
-        "date": date.today().isoformat(),
-        "command": command,
-        "started": started,
-        "finished": datetime.now().isoformat(timespec="seconds"),
+        **session.envelope(command),
         "config": dataclasses.asdict(cfg),
         "arms": {arm: ARMS[arm][0] for arm in cfg.arms},
         "loop": {arm: cfg.loop(**ARMS[arm][1]).to_dict() for arm in cfg.arms},
         "shards": {"set_dir": str(sset.dir), "content_key": manifest["content_key"],
                    "training_inputs": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "train"),
                    "held_out_frames": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "val")},
-        "machine": machine_record(load_before),
+        "machine": session.machine(**deep_learning_stack()),
         "seeds": {str(s): v for s, v in seeds.items()},
         "summary": summarise(cfg, seeds),
     }
-    atomic_write_text(out / "resample.json", json.dumps(record, indent=2) + "\n")
-    atomic_write_text(out / "resample.md", format_report(record))
-    curves_png(record, out / "resample.png")
-    return record
+    return report.write(record, format_report(record), curves_figure)
 
 
 def _fmt(values, fmt="{:.4f}") -> str:
@@ -304,7 +288,7 @@ def _geomean_curve(loop: dict) -> list[float]:
     return [float(np.exp(np.mean(np.log([max(f["relmse"], 1e-12) for f in row["frames"]])))) for row in rows]
 
 
-def curves_png(record: dict, path: Path) -> Path:
+def curves_figure(record: dict):
     """Held-out relMSE (top: the mean over frames; bottom: their geometric mean, which no single frame can
     carry) against training steps (left) and wall time (right); one colour per arm, one line per seed."""
     plt = pyplot()
@@ -329,4 +313,4 @@ def curves_png(record: dict, path: Path) -> Path:
             ax.legend(fontsize=8)
     fig.suptitle(f"Resampling rounds, seeds {', '.join(map(str, record['config']['seeds']))}", fontsize=10)
     fig.tight_layout()
-    return save_png(fig, path)
+    return fig

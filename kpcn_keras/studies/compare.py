@@ -2,8 +2,8 @@
 
 The contract:
 
-- **Configurations** are :data:`CONFIGURATIONS` (name -> what it is, preset, TrainConfig overrides), the one
-  place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
+- **Configurations** are :data:`kpcn_keras.studies.config.CONFIGURATIONS` (name -> what it is, preset,
+  TrainConfig overrides), the one place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
   rates and phases; only their steps (and the decay) are cut to the budget, and the report says so.
 - **One shard set, one budget.** Every configuration trains on ``<shards_root>/<set_name>`` for
   ``budget`` seconds of training steps into its own run folder
@@ -32,8 +32,9 @@ The contract:
   many held-out frames its relMSE is below OIDN's and the median of their ratio; "beats OIDN" means on most
   frames, never by a mean that one frame can carry.
 
-This module imports keras and torch only inside the functions that train or denoise, so ``kpcn --help``
-and :class:`kpcn_keras.config.CompareConfig` (whose default list of configurations is this table) stay light.
+The table of configurations and :class:`kpcn_keras.studies.config.CompareConfig` are in
+``kpcn_keras/studies/config.py``. This module imports keras and torch only inside the functions that train
+or denoise.
 """
 
 from __future__ import annotations
@@ -41,35 +42,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import platform
 import shutil
 import statistics
 import time
-from datetime import date, datetime
+from datetime import date
 from pathlib import Path
 
-from kpcn_keras.config import PRESETS, CompareConfig, TrainConfig
+from kpcn_keras.config import PRESETS, TrainConfig
+from kpcn_keras.studies.config import CONFIGURATIONS, CompareConfig
 from prep.errors import KpcnError
-from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, read_json, save_png
-
-# name -> (what it is, preset, TrainConfig overrides). A joint_steps or compositor entry only says that the
-# phase exists: every step count is set by the budget.
-CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
-    "cpu": ("the default (cpu preset)", "cpu", {}),
-    "kpcn-paper": ("Bako et al. 2017's network and training", "kpcn-paper", {}),
-    "kpal-paper": ("the report's residual network and training", "kpal-paper", {}),
-    "dpcn": ("cpu, predicting the colour directly instead of kernels", "cpu", {"model": {"arch": "dpcn"}}),
-    "shared": ("cpu, one network for both branches", "cpu", {"shared": True}),
-    "joint": ("cpu, then both branches fine-tuned together on the final colour", "cpu", {"joint_steps": 1}),
-    "multiscale-alpha": ("cpu + Vogels' scale compositor", "cpu", {"compositor": {"kind": "alpha"}}),
-    "multiscale-kernel": ("cpu + the kernel-predicting compositor", "cpu", {"compositor": {"kind": "kernel"}}),
-    "asymmetric": ("cpu, asymmetric loss instead of SMAPE", "cpu", {"loss": "asymmetric", "slope": 2.0}),
-    "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
-    "kernel-5": ("cpu with 5×5 kernels", "cpu", {"model": {"kernel_size": 5}}),
-    "kernel-21": ("cpu with the papers' 21×21 kernels", "cpu", {"model": {"kernel_size": 21}}),
-    "kpal": ("cpu-sized residual network", "cpu", {"model": {"arch": "kpal", "depth": 3}}),
-}
+from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, read_json
+from prep.studies.report import Report
 
 PROBE_STEPS = 10
 PROBE_SKIP = 2  # the first steps of a phase build the optimizer and warm torch up
@@ -79,6 +62,7 @@ BRANCH_SHARE = 0.8
 BRANCH_PHASES = ("diffuse", "specular", "shared")
 FINAL_PHASES = ("joint", "compositor")
 PLAN = "plan.json"
+REPORT = "compare"  # compare.json, compare.md, compare.png in the report folder
 
 
 # ---------------------------------------------------------------- seconds to steps
@@ -373,11 +357,9 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
     a quick look or a test); they are part of the plan's key and of the record. ``command``: the command
     line that asked, for the report.
     """
-    out = Path(cfg.out_dir)
-    for name in ("compare.md", "compare.json", "compare.png"):
-        check_writable(out / name, "report (--out)")
-    load_before = os.getloadavg()
-    started = datetime.now().isoformat(timespec="seconds")
+    report = Report(cfg.out_dir, REPORT)
+    report.check_writable()
+    session = report.begin()
     log(f"compare: {len(cfg.configurations)} configurations, {cfg.budget:g} s of training each, "
         f"shard set {Path(cfg.shards_root) / cfg.set_name}")
     plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
@@ -386,24 +368,18 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
 
     manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
     record = {
-        "date": date.today().isoformat(),
-        "command": command,
-        "started": started,
-        "finished": datetime.now().isoformat(timespec="seconds"),
+        **session.envelope(command),
         "config": {**dataclasses.asdict(cfg), "configurations": list(cfg.configurations)},
         "overrides": overrides or {},
         "shards": {"set_dir": str(Path(cfg.shards_root) / cfg.set_name), "content_key": manifest["content_key"],
                    "held_out_frames": len(rows[0]["frames"])},
         "rules": {"probe_steps": PROBE_STEPS, "probe_skip": PROBE_SKIP, "branch_share": BRANCH_SHARE},
-        "machine": machine_record(load_before),
+        "machine": session.machine(**deep_learning_stack()),
         "timed": timed,
         "plans": plans,
         "rows": rows,
     }
-    atomic_write_text(out / "compare.json", json.dumps(record, indent=2) + "\n")
-    atomic_write_text(out / "compare.md", format_report(record))
-    scatter_png(record, out / "compare.png")
-    return record
+    return report.write(record, format_report(record), scatter_figure)
 
 
 RECORD_KEYS = ("date", "config", "shards", "rules", "machine", "timed", "rows")
@@ -414,25 +390,22 @@ def rewrite_reports(out_dir: str | Path) -> dict:
     measured (``kpcn compare --report-only``): a committed comparison re-rendered after the report's text
     changed, its numbers those of the record, the report saying so with the day. Returns the record as
     the report read it (with ``rewritten``; ``compare.json`` is left as it is)."""
-    out = Path(out_dir)
-    record = read_json(out / "compare.json", "comparison record", RECORD_KEYS)
-    for name in ("compare.md", "compare.png"):
-        check_writable(out / name, "report (--out)")
+    report = Report(out_dir, REPORT)
+    record = read_json(report.path(".json"), "comparison record", RECORD_KEYS)
+    report.check_writable((".md", ".png"))
     # the numbers stay the record's; the report says when, and by what, it was written again
     record = {**record, "rewritten": f"`kpcn compare --report-only` on {date.today().isoformat()}"}
-    atomic_write_text(out / "compare.md", format_report(record))
-    scatter_png(record, out / "compare.png")
+    report.write_text(record, format_report(record), scatter_figure)
     return record
 
 
-def machine_record(load_before) -> dict:
-    """What a report says about where it was measured: CPUs, versions, torch threads, load before and after."""
+def deep_learning_stack() -> dict:
+    """What a kpcn_keras study's ``machine`` record adds (``prep.studies.report.machine_record``): the torch
+    and keras versions and torch's thread count."""
     import keras
     import torch
 
-    return {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-            "torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads(),
-            "load_average_before": list(load_before), "load_average_after": list(os.getloadavg())}
+    return {"torch": torch.__version__, "keras": keras.__version__, "torch_threads": torch.get_num_threads()}
 
 
 def best(record: dict) -> dict:
@@ -557,7 +530,7 @@ def format_report(record: dict) -> str:
     return "\n".join(lines)
 
 
-def scatter_png(record: dict, path: Path) -> Path:
+def scatter_figure(record: dict):
     """relMSE against ms per frame, log axes, each point labelled; the raw input's relMSE is a line."""
     plt = pyplot()
 
@@ -588,4 +561,4 @@ def scatter_png(record: dict, path: Path) -> Path:
     ax.grid(True, which="both", alpha=0.2)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    return save_png(fig, path)
+    return fig

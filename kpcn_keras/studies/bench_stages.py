@@ -1,0 +1,244 @@
+"""``kpcn bench``'s stage costs: what each stage of the pipeline costs, measured side by side.
+
+:func:`stage_costs` (the ``stages`` of ``accuracy_time.json``): render samples per second; features (numba
+against the float64 numpy reference and the EXR decode, ``prep.studies.stage_costs``); shard layouts side by
+side; reading a training batch against a training step; a Keras training step against the same network in
+plain torch (``kpcn_keras.studies.stage_costs``); kernel application against the memory-bandwidth floor (the
+kernel sizes of :data:`KERNEL_SIZES`); inference start-up, then a frame of the held-out size and a
+``large_frame`` frame against OIDN for the configurations of :data:`INFERENCE`, and ``kpcn denoise`` of the
+large frame as a command with its own peak memory. ``kpcn shards`` end to end is timed as a command too
+(:func:`shards_command_cost`). The bench itself (:mod:`kpcn_keras.studies.bench`) calls these.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+import resource
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import ModelConfig
+from kpcn_keras.studies.config import BenchConfig
+from prep.errors import KpcnError
+
+KERNEL_SIZES = (13, 21)  # the kernel sizes whose application is measured against the bandwidth floor
+SHARD_READ_BATCHES = 20
+SHARD_LAYOUT_IMAGES = 4  # (noisy, reference) pairs whose patches are written in every shard layout
+OURS = "cpu"  # the configuration of the headline: the default preset
+INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the default, and the fast configuration
+
+
+def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
+    """The costs of each stage (module docstring); every function it calls measures side by side."""
+    from kpcn_keras.studies import stage_costs as net_costs
+    from prep.studies import stage_costs as prep_costs
+    from prep.shards import ShardSet
+
+    pixels = {s["name"]: s["width"] * s["height"] for s in scenes}
+    stages = {"render": {
+        "samples_per_s": sum(pixels[name] * n for name, n in seconds) / sum(seconds.values()),
+        "per_scene": {name: sum(pixels[name] * n for n in cfg.raw_spp) / sum(seconds[(name, n)] for n in cfg.raw_spp)
+                      for name in pixels}}}
+    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    manifest = sset.complete_manifest()
+    val_pairs = sset.pairs(manifest, "val")
+    log("stage costs: features")
+    stages["features"] = prep_costs.feature_costs(val_pairs[0][0], repeats=cfg.repeats)
+    log("stage costs: shard layouts")
+    scratch = Path(cfg.runs_root) / "shard-layouts"
+    train_pairs = [(str(a), str(b)) for a, b in sset.pairs(manifest, "train")]
+    stages["shard_layouts"] = prep_costs.shard_layout_costs(train_pairs[:SHARD_LAYOUT_IMAGES], scratch,
+                                                            repeats=cfg.repeats, seed=cfg.seed,
+                                                            patch_size=manifest["patch_size"])
+    log("stage costs: a training step, Keras and plain torch")
+    ours = planned_train_config(plans.get(cfg.budget, {}).get(OURS))
+    model_config, batch = ModelConfig.from_dict(ours.model), ours.batch_size
+    stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
+    stages["shard_read"] = shard_read_cost(sset, manifest, model_config, batch, cfg.seed)
+    stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
+    stages["shard_read"]["ratio"] = stages["shard_read"]["batch_s"] / stages["train_step"]["keras_s"]
+    log("stage costs: kernel application")
+    bandwidth = net_costs.memory_bandwidth()  # one floor for every kernel size of the report
+    stages["kernel_application"] = [net_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
+                                                                      repeats=cfg.repeats, bandwidth=bandwidth)
+                                    for k in KERNEL_SIZES]
+    log("stage costs: inference")
+    stages["repeats"] = cfg.repeats
+    stages["inference"] = inference_cost(cfg, plans.get(cfg.budget, {}), inputs[(scenes[0]["name"], cfg.input_spp[0])])
+    return stages
+
+
+def planned_train_config(plan: dict | None):
+    """The training configuration of a planned run, or the default one where the run is not in the bench."""
+    from kpcn_keras.config import TrainConfig
+    from kpcn_keras.run import Run
+
+    if plan is None:
+        return TrainConfig()
+    run = Run(plan["run"])
+    return run.train_config(run.read_record())
+
+
+def shard_read_cost(sset, manifest, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
+    """Seconds of reading one training batch (``ShardPatches``, augmented, diffuse) from the set's shards:
+    the median of :data:`SHARD_READ_BATCHES` batches after one that opens the files."""
+    from kpcn_keras.data import ShardPatches
+
+    paths = [e.path for e in sset.verified_shards("train", manifest, rounds=(0,))]
+    data = ShardPatches(paths, "diffuse", batch_size, steps=SHARD_READ_BATCHES + 1, model=model_config,
+                        seed=seed, augment=True)
+    data[0]
+    times = []
+    for i in range(1, SHARD_READ_BATCHES + 1):
+        start = time.perf_counter()
+        data[i]
+        times.append(time.perf_counter() - start)
+    return {"batch_s": float(np.median(times)), "batch_size": batch_size, "batches": SHARD_READ_BATCHES,
+            "patches_per_s": batch_size / float(np.median(times))}
+
+
+def _tile_to(aovs: dict, width: int, height: int) -> dict:
+    """A ``width`` x ``height`` frame made of copies of ``aovs`` (a large frame from a small render)."""
+    out = {}
+    for k, v in aovs.items():
+        h, w = v.shape[:2]
+        reps = (-(-height // h), -(-width // w)) + (1,) * (v.ndim - 2)
+        out[k] = np.ascontiguousarray(np.tile(v, reps)[:height, :width])
+    return out
+
+
+def _alternating_best(fns: dict, frame: dict, repeats: int) -> dict:
+    """Best seconds of each of ``fns`` on ``frame``, called in turn ``repeats`` times after one warm-up call
+    each, so that a slow spell of a shared machine hits them alike."""
+    for fn in fns.values():
+        fn(frame)
+    best = {name: math.inf for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn(frame)
+            best[name] = min(best[name], time.perf_counter() - start)
+    return best
+
+
+def shards_command_cost(set_dir: Path, scratch: Path) -> dict:
+    """``kpcn shards`` of the shard set ``set_dir``'s renders with its own options, into a fresh set under
+    ``scratch``, in a process of its own as a user runs it: its wall time,
+    start-up included, with the thread count it got (shards are cut by that many processes); then the
+    time ``sync`` takes after it, since the command leaves the last of its bytes to the system to write."""
+    import shutil
+    import sys
+
+    from kpcn_keras.parser import command_line
+    from prep import threads
+    from prep.shards import SHARD_LAYOUT, ShardConfig, ShardSet, round_name
+
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir(parents=True)
+    given = ShardConfig(**ShardSet(set_dir).complete_manifest()["config"])
+    workers = threads.requested() or threads.default_threads()
+    # the options that differ from the defaults (some fields have no flag; command_line refuses those)
+    default = dataclasses.asdict(ShardConfig())
+    options = {k: v for k, v in dataclasses.asdict(given).items() if k != "command" and v != default[k]}
+    args = command_line("shards", {"threads": workers, **options, "out_root": str(scratch)})
+    os.sync()  # the disk owes nothing from before
+    memory = _meminfo_mb()
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "shards", *args], capture_output=True,
+                         text=True)
+    seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime - children.ru_utime) + (after.ru_stime - children.ru_stime)
+    if res.returncode != 0:
+        raise KpcnError(f"kpcn shards {' '.join(args)} failed: {res.stderr.strip()[-500:]}")
+    start = time.perf_counter()
+    os.sync()
+    sync_s = time.perf_counter() - start
+    sset = ShardSet(scratch / given.set_name)
+    listed = sset.complete_manifest()["rounds"][round_name(0)]["shards"]
+    count = sum(s["patches"] for s in listed)
+    size = sum(sset.resolve(s["path"]).stat().st_size for s in listed)
+    shutil.rmtree(scratch)
+    return {"command": f"kpcn shards {' '.join(args)}", "patches": count, "shards": len(listed),
+            "seconds": seconds, "patches_per_s": count / seconds, "sync_s": sync_s, "bytes_per_patch": size / count,
+            "cpu_s": cpu_s, "workers": workers, "layout": SHARD_LAYOUT.name, "memory_mb_before": memory}
+
+
+def _meminfo_mb() -> dict:
+    """MemAvailable, Dirty and this process's resident size (MB), Linux; {} elsewhere. The share of memory
+    that may hold written-but-unflushed pages scales with what is available, so it says whether a command
+    that writes gigabytes ran at the speed of the page cache or of the disk."""
+    from prep.processes import proc_megabytes
+
+    return {**proc_megabytes("/proc/meminfo", ("MemAvailable", "Dirty")),
+            **proc_megabytes("/proc/self/status", ("VmRSS",))}
+
+
+def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
+    """``kpcn denoise`` of ``frame`` (written to an EXR in ``scratch``) in a process of its own, as a user runs
+    it: its wall time, start-up included, what it printed about itself, and the peak resident memory it
+    printed (its own: a parent's rusage of children would count the bench's size, copied at fork)."""
+    import sys
+
+    from prep import exr
+
+    scratch.mkdir(parents=True, exist_ok=True)
+    h, w = frame["default"].shape[:2]
+    path = scratch / f"frame-{w}x{h}-00004spp.exr"
+    exr.write_aovs(path, frame)
+    start = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "denoise", str(path), "--run", run,
+                          "-o", str(scratch) + os.sep, "--no-png"], capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if res.returncode != 0:
+        raise KpcnError(f"kpcn denoise {path} failed: {res.stderr.strip()[-500:]}")
+    printed = res.stdout.strip().splitlines()
+    peak = [float(m.group(1)) for m in map(re.compile(r"^peak memory (\d+) MB").match, printed) if m]
+    return {"frame": [w, h], "wall_s": seconds, "printed": printed[-3:], "peak_rss_mb": peak[0] if peak else None}
+
+
+def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
+    """Start-up of our denoiser (load, warm-up), then, for each configuration of :data:`INFERENCE`
+    that was trained, a frame of the held-out size and a ``large_frame`` against OIDN (alternating, best of
+    ``repeats``), and ``kpcn denoise`` of the large frame as a command (its wall time and peak memory)."""
+    from kpcn_keras.denoise import Denoiser
+    from prep import baselines
+
+    if OURS not in plans:
+        raise KpcnError(f"the bench's inference costs are those of the {OURS!r} configuration: add it to "
+                        "--configurations")
+    start = time.perf_counter()
+    denoiser = Denoiser(plans[OURS]["run"])
+    out = {"load_s": time.perf_counter() - start}
+    start = time.perf_counter()
+    denoiser.warm_up()
+    out["warm_up_s"] = time.perf_counter() - start
+    oidn = baselines.oidn_available()
+    large = _tile_to(aovs, *cfg.large_frame)
+    h, w = aovs["default"].shape[:2]
+    out["frame"] = [w, h]
+    out["configurations"] = {}
+    for name in (n for n in INFERENCE if n in plans):
+        d = denoiser if name == OURS else Denoiser(plans[name]["run"])
+        fns = {"ours": lambda a, d=d: d(a), **({"oidn": baselines.oidn_denoise} if oidn else {})}
+        small = _alternating_best(fns, aovs, cfg.repeats)
+        big = _alternating_best(fns, large, cfg.repeats)
+        row = {"frame_ms": 1e3 * small["ours"], "large_s": big["ours"], "tile": d.tile}
+        if oidn:
+            row.update(oidn_frame_ms=1e3 * small["oidn"], frame_ratio=small["ours"] / small["oidn"],
+                       oidn_large_s=big["oidn"], large_ratio=big["ours"] / big["oidn"])
+        out["configurations"][name] = row
+    ours = out["configurations"][OURS]
+    out["frame_ms"], out["oidn_frame_ms"], out["frame_ratio"] = (ours["frame_ms"], ours.get("oidn_frame_ms"),
+                                                                 ours.get("frame_ratio"))
+    out["large"] = {"frame": list(cfg.large_frame), "ours_s": ours["large_s"], "oidn_s": ours.get("oidn_large_s"),
+                    "ratio": ours.get("large_ratio"), "tile": ours["tile"],
+                    **denoise_command_cost(plans[OURS]["run"], large, Path(cfg.runs_root) / "large-frame")}
+    return out
