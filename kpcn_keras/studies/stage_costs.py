@@ -34,6 +34,7 @@ from kpcn_keras.config import ModelConfig
 from kpcn_keras.losses import SMAPE, smape
 from kpcn_keras.models import build_branch_model
 from kpcn_keras.studies.plain_torch import torch_branch_from_keras
+from prep.bounds import is_integer
 
 __all__ = ["TRAINING_SKIPS", "VARIANTS", "kernel_application_cost", "memory_bandwidth", "train_step_cost"]
 
@@ -44,7 +45,7 @@ KERAS_ADAM_EPSILON = 1e-7  # keras.optimizers.Adam's default; torch's is 1e-8
 
 
 def _check_positive_int(name, value, minimum=1):
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    if not is_integer(value) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, received {value!r}")
     return value
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from prep import exr, sampling
+from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_path, atomic_write_json, remove_temporaries, sha256_file
 from prep.shards.config import ShardConfig
@@ -51,10 +52,9 @@ class ErrorRound:
     command: str = field(default="", compare=False)
 
     def __post_init__(self):
-        if isinstance(self.index, bool) or not isinstance(self.index, int) or self.index < 1:
+        if not is_integer(self.index) or self.index < 1:
             raise OptionError("rounds", f"error rounds are numbered from 1, got {self.index!r}")
-        if isinstance(self.patches_per_image, bool) or not isinstance(self.patches_per_image, int) \
-                or self.patches_per_image < 1:
+        if not is_integer(self.patches_per_image) or self.patches_per_image < 1:
             raise OptionError("patches_per_image", f"must be an integer >= 1, got {self.patches_per_image!r}")
         if not 0.0 <= self.error_weight <= 1.0:
             raise OptionError("error_weight", f"must be in [0, 1], got {self.error_weight!r}")

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from prep import exr, features, threads
+from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
 from prep.processes import die_with_parent
@@ -148,7 +149,7 @@ def write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, spe
 
 
 def _check_workers(workers) -> int:
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+    if not is_integer(workers) or workers < 1:
         raise OptionError("workers", f"must be an integer >= 1, got {workers!r}")
     return workers
 

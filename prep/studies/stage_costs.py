@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from prep import exr, features, shards
+from prep.bounds import is_integer
 
 # Batches read per repeat by shard_layout_costs: one batch is a handful of reads, too few to time alone.
 BATCHES_PER_REPEAT = 4
@@ -53,7 +54,7 @@ def _best(times: list[float]) -> float:
 
 
 def _check_repeats(repeats: int) -> None:
-    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+    if not is_integer(repeats) or repeats < 1:
         raise ValueError(f"repeats must be an integer >= 1, got {repeats!r}")
 
 
