@@ -321,6 +321,7 @@ def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log)
     """The error-against-time methods of the trained runs at the budget, and the training-cost rows."""
     from kpcn_keras.compare import _training_seconds, describe
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
 
     methods, training = [], []
     for budget, runs in plans.items():
@@ -330,7 +331,7 @@ def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log)
             variants = [(name, True)] + ([(f"{name} (compositor off)", False)] if train_cfg.compositor else [])
             for label, multiscale in variants:
                 start = time.perf_counter()
-                denoiser = Denoiser(run, multiscale=multiscale)
+                denoiser = Denoiser.from_run(Run(run), multiscale=multiscale)
                 load_s = time.perf_counter() - start
                 extra = {"run": str(run), "budget": budget, "load_s": load_s,
                          "training_seconds": _training_seconds(run), "phase_steps": plan["phase_steps"]}
@@ -419,7 +420,7 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
                                                             patch_size=manifest["patch_size"])
     log("stage costs: a training step, Keras and plain torch")
     ours = _train_config(plans.get(cfg.budget, {}).get(OURS))
-    model_config, batch = ModelConfig.from_dict(ours.model), ours.batch_size
+    model_config, batch = ours.model, ours.batch_size
     stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
     stages["shard_read"] = shard_read_cost(sset, manifest, model_config, batch, cfg.seed)
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
@@ -442,8 +443,7 @@ def _train_config(plan: dict | None):
 
     if plan is None:
         return TrainConfig()
-    run = Run(plan["run"])
-    return run.train_config(run.read_record())
+    return Run(plan["run"]).record().train
 
 
 def shard_read_cost(sset, manifest, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
@@ -570,13 +570,14 @@ def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
     that was trained, a frame of the held-out size and a ``large_frame`` against OIDN (alternating, best of
     ``repeats``), and ``kpcn denoise`` of the large frame as a command (its wall time and peak memory)."""
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
     from prep import baselines
 
     if OURS not in plans:
         raise KpcnError(f"the bench's inference costs are those of the {OURS!r} configuration: add it to "
                         "--configurations")
     start = time.perf_counter()
-    denoiser = Denoiser(plans[OURS]["run"])
+    denoiser = Denoiser.from_run(Run(plans[OURS]["run"]))
     out = {"load_s": time.perf_counter() - start}
     start = time.perf_counter()
     denoiser.warm_up()
@@ -587,7 +588,7 @@ def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
     out["frame"] = [w, h]
     out["configurations"] = {}
     for name in (n for n in INFERENCE if n in plans):
-        d = denoiser if name == OURS else Denoiser(plans[name]["run"])
+        d = denoiser if name == OURS else Denoiser.from_run(Run(plans[name]["run"]))
         fns = {"ours": lambda a, d=d: d(a), **({"oidn": baselines.oidn_denoise} if oidn else {})}
         small = _alternating_best(fns, aovs, cfg.repeats)
         big = _alternating_best(fns, large, cfg.repeats)
