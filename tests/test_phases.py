@@ -308,7 +308,7 @@ def test_a_run_trains_its_phases_in_order_into_one_log_and_one_record(full_run):
 
 def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_does_not(full_run):
     run = Run(full_run)
-    record = run.read_record()
+    record = run.record()
     branch = keras.models.load_model(full_run / "diffuse.keras", compile=False)
     joint = run.load_component(record, "diffuse")
     assert any(not np.array_equal(a, b) for a, b in zip(_weights(branch), _weights(joint)))

@@ -215,7 +215,7 @@ def test_a_forked_run_reads_the_forked_set_and_has_the_same_models(tiny_run, tmp
     sset = base.shard_set(base.record()).fork(tmp_path / "shards" / "s")
     new = base.fork(tmp_path / "runs" / "r", sset)
     record = new.read_record()
-    assert new.shard_set(record).dir.resolve() == sset.dir.resolve()
+    assert new.shard_set(new.record()).dir.resolve() == sset.dir.resolve()
     models = sorted(p.relative_to(base.dir) for p in base.dir.rglob("*.keras"))
     assert models and sorted(p.relative_to(new.dir) for p in new.dir.rglob("*.keras")) == models
     for rel in models:
