@@ -21,6 +21,10 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
    ``<run>/resample/round-<k>.png``: the map that drove the draw on one training render (the one with the
    largest mean) with the round's new patches drawn over it, beside the render with every round's patches.
 
+The networks are loaded once per state (``Denoiser.from_run`` on the loop's own copy of the record): the
+scores before the rounds and the next round's error maps share one denoiser, and it is loaded again only
+after a round's training wrote new networks.
+
 **Resume.** The run's lock is held throughout. Interrupted anywhere, the same command goes on: a round whose
 shards are incomplete is finished from its plan (or drawn again if its plan was not written), a complete round
 is never rebuilt or duplicated, and training continues from the phase's checkpoint, ending with the weights an
