@@ -238,8 +238,10 @@ class TrainConfig:
     the kernel head; 13x13 kernels; the ModelConfig defaults), 1200 steps of batch 8 per branch,
     augmentation on. ``steps``, ``learning_rate``, ``decay_steps`` and ``decay_rate`` are per branch phase;
     the joint and compositor phases have their own steps and learning rates and share the decay.
-    ``compositor`` is None (no multiscale) or the ``CompositorConfig`` fields (``{"kind": "alpha"}`` at
-    least). With
+    ``model`` and ``compositor`` (None: no multiscale) may be given as dicts of their dataclass's fields
+    (a preset, the options, a run record's JSON: ``{"kind": "alpha"}`` at least for a compositor) and
+    are held as the :class:`ModelConfig` and :class:`CompositorConfig` they describe, checked once here;
+    :meth:`to_dict` writes them back as dicts. With
     ``slope_input`` the network gets λ as an input channel and learns the asymmetric loss for every λ in
     ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.
@@ -248,7 +250,7 @@ class TrainConfig:
     set_name: str = "default"
     shards_root: str = "shards"
     preset: str = "cpu"
-    model: dict = field(default_factory=dict)
+    model: ModelConfig = field(default_factory=ModelConfig)
     branches: tuple[str, ...] = bounded(BRANCHES, distinct=True)
     shared: bool = False
     steps: int = bounded(1200, STEPS)
@@ -265,7 +267,7 @@ class TrainConfig:
     augment: bool = True
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
-    compositor: dict | None = None
+    compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)
     compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
     val_batches: int = bounded(8, VAL_BATCHES)
@@ -294,10 +296,11 @@ class TrainConfig:
             if wanted and not whole:
                 raise OptionError(name, f"trains on the final colour, which needs both branches; got --branches "
                                   f"{','.join(self.branches)}")
-        if self.compositor is not None:
-            self.compositor = CompositorConfig.from_dict(self.compositor).to_dict()
-        user = {k: v for k, v in self.model.items() if k not in _CONDITIONING}
-        self.model = ModelConfig(**user, branch_channels=self.shared, slope_channel=self.slope_input).to_dict()
+        if isinstance(self.compositor, dict):
+            self.compositor = CompositorConfig.from_dict(self.compositor)
+        given = self.model.to_dict() if isinstance(self.model, ModelConfig) else self.model
+        user = {k: v for k, v in given.items() if k not in _CONDITIONING}
+        self.model = ModelConfig.from_dict({**user, "branch_channels": self.shared, "slope_channel": self.slope_input})
 
     @classmethod
     def from_preset(cls, preset: str | None = None, **overrides) -> "TrainConfig":

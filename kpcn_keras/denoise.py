@@ -12,15 +12,15 @@ margins are multiples of the pyramid's alignment, so each tile pools the same 2x
 mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64 and
 clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
 
-Batches: :func:`denoise_files` loads a run and warms it up once, then denoises many frames (files, or
-every render in a folder) and reports start-up, load and warm-up apart from each frame's time; a frame's
-``seconds`` never includes the model load. A frame of a batch is denoised exactly as alone (the same
-networks on the same tiles: bit-identical). ``denoise_file`` is the batch of one. Inputs and outputs are
-checked before anything is loaded: a file it would write (an output EXR, its PNG) that is a file it reads
-(an input, the reference, the run's record or models) or another output, or that could not be written, an
-input whose header lacks a layer, a frame whose whole-frame arrays (:func:`frame_bytes`) the machine cannot
-hold. Each output is written atomically, so a batch stopped by a bad frame leaves
-every earlier output whole. The default output is ``<input stem>-denoised.exr`` beside the input
+Batches: :func:`denoise_files` reads a run's record and loads its networks once (``Denoiser.from_run``), warms
+them up once, then denoises many frames (files, or every render in a folder) and reports start-up, load and
+warm-up apart from each frame's time; a frame's ``seconds`` never includes the model load. A frame of a batch
+is denoised exactly as alone (the same networks on the same tiles: bit-identical). ``denoise_file`` is the
+batch of one. Inputs and outputs are checked before anything is loaded: a file it would write (an output EXR,
+its PNG) that is a file it reads (an input, the reference, the run's record or models) or another output, or
+that could not be written, an input whose header lacks a layer, a frame whose whole-frame arrays
+(:func:`frame_bytes`) the machine cannot hold. Each output is written atomically, so a batch stopped by a bad
+frame leaves every earlier output whole. The default output is ``<input stem>-denoised.exr`` beside the input
 (:func:`default_output`); with several inputs ``-o`` is a folder.
 """
 
@@ -36,8 +36,8 @@ import numpy as np
 
 from kpcn_keras.config import DEFAULT_TILE, TILE
 from kpcn_keras.models import network_input, receptive_radius
-from kpcn_keras.multiscale import CompositorConfig, alignment, build_multiscale_model, multiscale_radius
-from kpcn_keras.run import Run, check_architecture
+from kpcn_keras.multiscale import alignment, build_multiscale_model, multiscale_radius
+from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
@@ -56,52 +56,64 @@ FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 384
 
 
 class Denoiser:
-    """The finished networks of one run folder, applied to whole renders.
+    """The finished networks of one run, applied to whole renders.
 
-    ``slope``: λ for a run trained with a slope input channel (required there, refused elsewhere).
-    ``multiscale=False`` leaves a multiscale run's compositor out (the single-scale networks alone: the
-    "without" of a with/without comparison). The run must be finished and its files the ones it wrote
-    (``Run.finished_record``, ``Run.load_component``); ``resampling``: the resample loop's own use, between
-    the phases of its current round.
+    :meth:`from_run` reads them: the run must be finished and its files the ones it wrote
+    (``RunRecord.finished``, ``Run.load_component``). ``slope`` is given per call: λ for a run trained with
+    a slope input channel (required there, refused elsewhere: ``RunRecord.check_slope``), so one loaded
+    denoiser serves every λ. :meth:`without_compositor` is the same networks without a multiscale run's
+    compositor (the "without" of a with/without comparison), nothing loaded again.
     """
 
-    def __init__(self, run_dir: str | Path, tile: int = DEFAULT_TILE, *, slope: float | None = None,
-                 multiscale: bool = True, resampling: bool = False):
-        tile = TILE.check("tile", tile)
-        self.run = Run(run_dir)
-        self.record = self.run.finished_record(resampling=resampling)
-        self.model_config = self.run.model_config(self.record)
-        if self.model_config.slope_channel and slope is None:
-            raise OptionError("slope", f"is needed: {self.run.dir} was trained with λ as an input, for λ in "
-                              f"{self.record['train']['slope_range']}")
-        self.slope = slope
+    def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
+                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE):
+        self.run, self.record, self.model_config = run, record, record.model
+        self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
         names = {b: "shared" if self.model_config.branch_channels else b for b in BRANCHES}
-        networks = {}
-        for name in dict.fromkeys(names.values()):
-            networks[name] = self.run.load_component(self.record, name)
-            check_architecture(networks[name], self.model_config, self.run.dir / self.record["components"][name]["file"])
-        self.networks = networks
         self.margin = receptive_radius(self.model_config)
         self.align = 1
-        self.compositor = None
-        if multiscale and "compositor" in self.record["components"]:
-            comp_cfg = CompositorConfig.from_dict(self.record["train"]["compositor"])
-            self.compositor = self.run.load_component(self.record, "compositor")
-            networks = {name: build_multiscale_model(net, comp_cfg, compositor=self.compositor, name=f"multiscale_{name}")
+        if compositor is not None:
+            comp_cfg = record.compositor
+            networks = {name: build_multiscale_model(net, comp_cfg, compositor=compositor, name=f"multiscale_{name}")
                         for name, net in networks.items()}
             self.margin = multiscale_radius(self.margin, comp_cfg)
             self.align = alignment(comp_cfg)
         self.models = {b: networks[names[b]] for b in BRANCHES}
         # tiles start at multiples of the pyramid's alignment, so every tile pools the image's own 2x2 blocks
         self.margin = -(-self.margin // self.align) * self.align
-        self.tile = -(-tile // self.align) * self.align
+        self.tile = -(-self.asked_tile // self.align) * self.align
 
-    def warm_up(self) -> None:
-        """Denoise a small black frame once, so that timings exclude one-time setup (numba, torch)."""
+    @classmethod
+    def from_run(cls, run: Run, tile: int = DEFAULT_TILE, *, record: RunRecord | None = None,
+                 multiscale: bool = True, resampling: bool = False) -> "Denoiser":
+        """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
+        ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
+        own use, between the phases of its current round."""
+        tile = TILE.check("tile", tile)
+        record = (run.record() if record is None else record).finished(resampling=resampling)
+        names = dict.fromkeys("shared" if record.model.branch_channels else b for b in BRANCHES)
+        networks = {}
+        for name in names:
+            networks[name] = run.load_component(record, name)
+            check_architecture(networks[name], record.model, record.component_path(name))
+        compositor = None
+        if multiscale and "compositor" in record.components:
+            compositor = run.load_component(record, "compositor")
+        return cls(run, record, networks, compositor, tile)
+
+    def without_compositor(self) -> "Denoiser":
+        """The same networks without the compositor (itself for a run that has none)."""
+        if self.compositor is None:
+            return self
+        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile)
+
+    def warm_up(self, slope: float | None = None) -> None:
+        """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
+        torch)."""
         size = 2 * self.margin + 1
         black = {name: np.zeros((size, size, 3), np.float32) for name in exr.RGB_LAYERS}
         black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
-        self(black)
+        self(black, slope=slope)
 
     def tiles(self, h: int, w: int):
         """Each tile of an (h, w) frame as ((y0, y1, x0, x1), (ya, yb, xa, xb)): the pixels it gives and the
@@ -112,15 +124,16 @@ class Denoiser:
                 y1, x1 = min(y0 + t, h), min(x0 + t, w)
                 yield (y0, y1, x0, x1), (max(y0 - m, 0), min(y1 + m, h), max(x0 - m, 0), min(x1 + m, w))
 
-    def predict_tile(self, branch: str, aovs: dict[str, np.ndarray], tile, window, scale: float) -> np.ndarray:
+    def predict_tile(self, branch: str, aovs: dict[str, np.ndarray], tile, window, scale: float,
+                     slope: float | None = None) -> np.ndarray:
         """Model output (log domain, float32) of ``tile``'s pixels from the features of ``window`` alone
-        (``prep.features.branch_features`` with the frame's depth ``scale``): the same as those pixels of
-        the whole frame's features."""
+        (``prep.features.branch_features`` with the frame's depth ``scale``), at ``slope``: the same as
+        those pixels of the whole frame's features."""
         (y0, y1, x0, x1), (ya, yb, xa, xb) = tile, window
         # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
         # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
         feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,
-                              branch, self.slope)
+                              branch, slope)
         # predict_on_batch, not a direct call under torch.inference_mode: measured alike (within 10%, the
         # noise) at 64- and 256-pixel tiles; the convolutions, not the per-call setup, take the time
         pred = keras.ops.convert_to_numpy(self.models[branch].predict_on_batch(feats[None]))[0]
@@ -131,30 +144,33 @@ class Denoiser:
         gc.collect(1)
         return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
 
-    def run_branch(self, branch: str, aovs: dict[str, np.ndarray]) -> np.ndarray:
-        """Model output (log domain) of one branch for a whole noisy render, tile by tile."""
+    def run_branch(self, branch: str, aovs: dict[str, np.ndarray], slope: float | None = None) -> np.ndarray:
+        """Model output (log domain) of one branch for a whole noisy render, tile by tile, at ``slope``."""
+        self.record.check_slope(slope)
         h, w = aovs["depth"].shape
         scale = features.depth_scale(aovs["depth"])
         out = np.empty((h, w, 3), dtype=np.float32)
         for tile, window in self.tiles(h, w):
             y0, y1, x0, x1 = tile
-            out[y0:y1, x0:x1] = self.predict_tile(branch, aovs, tile, window, scale)
+            out[y0:y1, x0:x1] = self.predict_tile(branch, aovs, tile, window, scale, slope)
         return out
 
-    def __call__(self, aovs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Denoised ``diffuse``, ``specular`` and ``default`` (linear, float32) of one noisy render.
+    def __call__(self, aovs: dict[str, np.ndarray], slope: float | None = None) -> dict[str, np.ndarray]:
+        """Denoised ``diffuse``, ``specular`` and ``default`` (linear, float32) of one noisy render, at
+        ``slope`` (λ, for a run trained with it as an input).
 
         Tile by tile, both branches and their recombination: beyond ``aovs`` and the three float32 outputs,
         what this holds is bounded by the tile (features of one window, its network activations, the float64
         recombination of one tile), at any frame size."""
+        self.record.check_slope(slope)
         h, w = aovs["depth"].shape
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
         out = {name: np.empty((h, w, 3), dtype=np.float32) for name in ("diffuse", "specular", "default")}
         for tile, window in self.tiles(h, w):
             y0, y1, x0, x1 = tile
-            diffuse = features.diffuse_from_log(self.predict_tile("diffuse", aovs, tile, window, scale),
+            diffuse = features.diffuse_from_log(self.predict_tile("diffuse", aovs, tile, window, scale, slope),
                                                 aovs["albedo"][y0:y1, x0:x1])
-            specular = features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale))
+            specular = features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale, slope))
             out["diffuse"][y0:y1, x0:x1] = exr.to_float32(diffuse)
             out["specular"][y0:y1, x0:x1] = exr.to_float32(specular)
             out["default"][y0:y1, x0:x1] = exr.to_float32(diffuse + specular)
@@ -316,8 +332,9 @@ def process_age() -> float | None:
         return None
 
 
-def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png: bool = True) -> dict:
-    """Denoise one EXR with a loaded (warmed-up) ``denoiser``: writes ``output`` and, with ``png``, the
+def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png: bool = True,
+                  slope: float | None = None) -> dict:
+    """Denoise one EXR with a loaded (warmed-up) ``denoiser`` at ``slope``: writes ``output`` and, with ``png``, the
     side-by-side PNG beside it, each atomically. Returns the frame's report: ``input``, ``output``, ``png``
     (if written), ``seconds`` (features, network and recombination: no file I/O), ``read_s``, ``write_s``,
     ``png_s``, ``frame_s`` (all of it) and, with a reference, ``metrics`` and ``input_metrics``."""
@@ -332,7 +349,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
             f"{noisy['default'].shape[1]}x{noisy['default'].shape[0]}"
         )
     start = time.perf_counter()
-    result = denoiser(noisy)
+    result = denoiser(noisy, slope=slope)
     done = time.perf_counter()
     layers = dict(result)
     layers.update({k: noisy[k] for k in ("albedo", "normal", "depth")})
@@ -376,9 +393,10 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         raise OptionError("reference", f"must be the input's reference EXR file, got {reference}, a folder")
     outputs = plan_outputs(inputs, output)
     run = Run(run_dir)
+    record = run.record()
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
     read = [("input", src) for src in inputs] + ([("reference", reference)] if reference is not None else [])
-    check_outputs(written, read + run.read_files(run.read_record()),
+    check_outputs(written, read + run.read_files(record),
                   "choose another -o" + (" (or --no-png)" if png else ""))
     ref_size = exr.read_header(reference, variances=False) if reference is not None else None
     for src in inputs:
@@ -390,15 +408,17 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         check_writable(out, "--output")
         if png:
             check_writable(png_path(out), "side-by-side PNG")
+    TILE.check("tile", tile)
+    record.finished().check_slope(slope)  # before the networks are loaded
     begin = time.perf_counter()
-    denoiser = Denoiser(run_dir, tile=tile, slope=slope)
+    denoiser = Denoiser.from_run(run, tile, record=record)
     loaded = time.perf_counter()
-    denoiser.warm_up()
+    denoiser.warm_up(slope)
     warm = time.perf_counter()
     frames = []
     for src, out in zip(inputs, outputs):
         try:
-            frames.append(denoise_frame(denoiser, src, out, reference, png=png))
+            frames.append(denoise_frame(denoiser, src, out, reference, png=png, slope=slope))
         except KpcnError as exc:
             if frames:
                 raise KpcnError(f"{exc} (stopped after {len(frames)} of {len(inputs)} frames; written: "

@@ -21,7 +21,7 @@ import numpy as np
 
 from kpcn_keras.config import DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser, side_by_side_png
-from kpcn_keras.run import Run
+from kpcn_keras.run import Run, RunRecord
 from prep import baselines, exr, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable
@@ -44,17 +44,16 @@ COLUMNS = (
 )
 
 
-def held_out_pairs(run_dir: str | Path) -> list[tuple[str, str]]:
-    """(noisy, reference) paths of the validation scenes of the run's shard set."""
-    run = Run(run_dir)
-    sset = run.shard_set(run.read_record())
+def held_out_pairs(run: Run, record: RunRecord) -> list[tuple[str, str]]:
+    """(noisy, reference) paths of the validation scenes of the shard set of ``run`` (its ``record``)."""
+    sset = run.shard_set(record)
     return [(str(a), str(b)) for a, b in sset.pairs(sset.complete_manifest(), "val")]
 
 
-def held_out_frames(run_dir: str | Path) -> list[dict]:
+def held_out_frames(run: Run, record: RunRecord) -> list[dict]:
     """The run's held-out frames read once: ``name`` ("<scene> <spp> spp"), ``noisy`` AOVs, ``reference`` colour."""
     frames = []
-    for noisy_path, ref_path in held_out_pairs(run_dir):
+    for noisy_path, ref_path in held_out_pairs(run, record):
         scene, spp = exr.parse_render_filename(noisy_path)
         frames.append({"name": f"{scene} {spp} spp", "noisy": exr.read_aovs(noisy_path),
                        "reference": exr.read_aovs(ref_path, variances=False)["default"]})
@@ -109,15 +108,16 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
-    pairs = pairs or held_out_pairs(run.dir)
+    record = run.record()
+    pairs = pairs or held_out_pairs(run, record)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
-    check_outputs(written, read + run.read_files(run.read_record()),
+    check_outputs(written, read + run.read_files(record),
                   "choose another --out (a report folder takes one render of each name)")
-    denoiser = Denoiser(run.dir, tile=tile)
+    denoiser = Denoiser.from_run(run, tile, record=record)
     denoiser.warm_up()
     rows = []
     for noisy_path, ref_path in pairs:

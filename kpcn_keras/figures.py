@@ -19,7 +19,10 @@ file                   what (seed report figure: docs/method.md §10)
 
 The chosen pixel defaults to the pixel of the highest noisy-colour variance at least a kernel radius from
 the border: where a kernel has the most to do. Each of the four files is checked against every file the
-figures read (the frame, its reference, the run's models) before the run is loaded.
+figures read (the frame, its reference, the run's models) before the run is loaded. The run's record is
+read once and its networks loaded once (``Denoiser.from_run``): every figure, the λ sweep and the
+comparison without the compositor use that one denoiser, λ given per call (the run's validation λ,
+``RunRecord.validation_slope``, but for the sweep).
 """
 
 from __future__ import annotations
@@ -57,8 +60,8 @@ def choose_pixel(aovs: dict, radius: int) -> tuple[int, int]:
     return int(y) + radius, int(x) + radius
 
 
-def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel=None) -> Path | None:
-    """``kernels.png`` (Fig. 2); None for a run whose networks predict no kernels."""
+def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel=None, slope=None) -> Path | None:
+    """``kernels.png`` (Fig. 2) at ``slope``; None for a run whose networks predict no kernels."""
     cfg = den.model_config
     if cfg.arch == "dpcn":
         return None
@@ -74,7 +77,7 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
     ya, yb, xa, xb = max(y - m, 0), min(y + m + 1, h), max(x - m, 0), min(x + m + 1, w)
     for row, branch in zip(axes, BRANCHES):
         net = den.networks["shared" if cfg.branch_channels else branch]
-        feats = network_input(features.branch_features(aovs, branch, (ya, yb, xa, xb)), cfg, branch, den.slope)
+        feats = network_input(features.branch_features(aovs, branch, (ya, yb, xa, xb)), cfg, branch, slope)
         kernels = _to_numpy(build_kernel_model(net).predict_on_batch(feats[None]))[0]
         kernel = kernels[y - ya, x - xa].reshape(k, k)
         colour = features.branch_colour(aovs, branch)
@@ -108,12 +111,12 @@ def _caption(name: str, image: np.ndarray, ref: dict | None) -> str:
     return name if ref is None else f"{name}\nrelMSE {metrics.relmse(image, ref['default']):.4f}"
 
 
-def multiscale_figure(den: Denoiser, plain: Denoiser, aovs: dict, ref: dict | None, path: Path) -> Path:
-    """``multiscale.png`` (Fig. 15): the run with and without its compositor, side by side."""
+def multiscale_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, slope=None) -> Path:
+    """``multiscale.png`` (Fig. 15): the run with and without its compositor, side by side, at ``slope``."""
     from kpcn_keras.denoise import side_by_side_png
 
-    without = plain(aovs)["default"]
-    with_ = den(aovs)["default"]
+    without = den.without_compositor()(aovs, slope=slope)["default"]
+    with_ = den(aovs, slope=slope)["default"]
     panels = [("input", aovs["default"]), (_caption("without multiscale", without, ref), without),
               (_caption("with multiscale", with_, ref), with_)]
     if ref is not None:
@@ -121,12 +124,13 @@ def multiscale_figure(den: Denoiser, plain: Denoiser, aovs: dict, ref: dict | No
     return side_by_side_png(path, panels, title="multiscale (seed report Fig. 15)")
 
 
-def alpha_figure(den: Denoiser, aovs: dict, path: Path) -> Path:
-    """``alpha.png`` (Fig. 16): α of every compositor application, per branch, finest scale first."""
+def alpha_figure(den: Denoiser, aovs: dict, path: Path, slope=None) -> Path:
+    """``alpha.png`` (Fig. 16): α of every compositor application at ``slope``, per branch, finest scale
+    first."""
     plt = pyplot()
     rows = []
     for branch in BRANCHES:
-        feats = network_input(features.branch_features(aovs, branch), den.model_config, branch, den.slope)
+        feats = network_input(features.branch_features(aovs, branch), den.model_config, branch, slope)
         alphas = build_alpha_model(den.models[branch]).predict_on_batch(feats[None])
         rows.append((branch, [_to_numpy(a)[0, ..., 0] for a in alphas]))
     cols = 1 + len(rows[0][1])
@@ -145,13 +149,13 @@ def alpha_figure(den: Denoiser, aovs: dict, path: Path) -> Path:
     return save_png(fig, path)
 
 
-def slope_figure(run_dir, aovs: dict, ref: dict | None, path: Path, slopes, tile: int) -> Path:
+def slope_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, slopes) -> Path:
     """``slopes.png`` (Fig. 17): one frame denoised at every λ of ``slopes``."""
     from kpcn_keras.denoise import side_by_side_png
 
     panels = [("input", aovs["default"])]
     for slope in slopes:
-        out = Denoiser(run_dir, tile=tile, slope=slope)(aovs)["default"]
+        out = den(aovs, slope=slope)["default"]
         panels.append((_caption(f"λ = {slope:g}", out, ref), out))
     if ref is not None:
         panels.append(("reference", ref["default"]))
@@ -163,33 +167,31 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
     """Every figure the run can show, for ``frame`` = (noisy EXR, reference EXR or None); returns name -> path."""
     from kpcn_keras.evaluate import held_out_pairs
 
+    run = Run(run_dir)
+    record = run.record()
     if frame is None:
-        pairs = held_out_pairs(run_dir)
+        pairs = held_out_pairs(run, record)
         if not pairs:
             raise KpcnError(f"{run_dir}: no held-out scenes; give a noisy render")
         frame = min(pairs, key=lambda pair: exr.parse_render_filename(pair[0]))  # (scene, spp)
     noisy_path, ref_path = frame
-    run = Run(run_dir)
-    record = run.read_record()
     read = [("input", noisy_path)] + ([("reference", ref_path)] if ref_path else []) + run.read_files(record)
     check_outputs([("figure", run.figures_dir / name) for name in FIGURES.values()], read,
                   f"give a render from outside {run.figures_dir}")
     aovs = exr.read_aovs(noisy_path)
     ref = exr.read_aovs(ref_path, variances=False) if ref_path else None
-    train = record["train"]
-    slope = train["slope"] if train["model"]["slope_channel"] else None  # its validation λ
-    den = Denoiser(run_dir, tile=tile, slope=slope)
-    out_dir = den.run.figures_dir
+    den = Denoiser.from_run(run, tile, record=record)
+    slope = record.validation_slope
+    out_dir = run.figures_dir
     written = {}
-    kernels = kernel_figure(den, aovs, ref, out_dir / FIGURES["kernels"], pixel)
+    kernels = kernel_figure(den, aovs, ref, out_dir / FIGURES["kernels"], pixel, slope)
     if kernels:
         written["kernels"] = kernels
     if den.compositor is not None:
-        plain = Denoiser(run_dir, tile=tile, slope=slope, multiscale=False)
-        written["multiscale"] = multiscale_figure(den, plain, aovs, ref, out_dir / FIGURES["multiscale"])
-        written["alpha"] = alpha_figure(den, aovs, out_dir / FIGURES["alpha"])
+        written["multiscale"] = multiscale_figure(den, aovs, ref, out_dir / FIGURES["multiscale"], slope)
+        written["alpha"] = alpha_figure(den, aovs, out_dir / FIGURES["alpha"], slope)
     if slope is not None:
-        written["slopes"] = slope_figure(run_dir, aovs, ref, out_dir / FIGURES["slopes"], slopes, tile)
+        written["slopes"] = slope_figure(den, aovs, ref, out_dir / FIGURES["slopes"], slopes)
     return written
 
 

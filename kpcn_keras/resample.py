@@ -21,6 +21,10 @@ For each error round k = 1..N of :class:`kpcn_keras.config.ResampleConfig`, on a
    ``<run>/resample/round-<k>.png``: the map that drove the draw on one training render (the one with the
    largest mean) with the round's new patches drawn over it, beside the render with every round's patches.
 
+The networks are loaded once per state (``Denoiser.from_run`` on the loop's own copy of the record): the
+scores before the rounds and the next round's error maps share one denoiser, and it is loaded again only
+after a round's training wrote new networks.
+
 **Resume.** The run's lock is held throughout. Interrupted anywhere, the same command goes on: a round whose
 shards are incomplete is finished from its plan (or drawn again if its plan was not written), a complete round
 is never rebuilt or duplicated, and training continues from the phase's checkpoint, ending with the weights an
@@ -118,18 +122,18 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
     if keras.backend.backend() != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
     run = Run(run_dir)
-    record = run.finished_record(resampling=True)
-    train_cfg = run.train_config(record)
+    finished = run.finished_record(resampling=True)
+    train_cfg = finished.train
     base = base_phases(train_cfg)
-    sset = run.shard_set(record)
+    sset = run.shard_set(finished)
     manifest, _ = check_inputs(train_cfg, sset)
-    if manifest["content_key"] != record["shards"]["content_key"]:
+    if manifest["content_key"] != finished.content_key:
         raise KpcnError(f"{sset.dir}: the shard set changed since {run.dir} was trained (its renders or options)")
     patches_per_image = cfg.patches_per_image
     if patches_per_image is None:
         patches_per_image = int(manifest["config"]["patches_per_image"])
     check_writable(run.resample_dir, "resample folder", directory=True)
-    frames = held_out_frames(run.dir)
+    frames = held_out_frames(run, finished)
     if not frames:
         raise KpcnError(f"{sset.dir}: no held-out scenes to measure the rounds on")
 
@@ -137,9 +141,11 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
         run.remove_temporaries()
         record = run.read_record()  # what the lock holder before us left
         loop = _check_loop(record, cfg, run)
+        # the networks as they are now, loaded when first needed and again only after a round trained them
+        current = _Current(run, record)
         if "before" not in loop:
             start = time.perf_counter()
-            loop["before"] = {**_scores(run, frames), "steps": base[0].steps,
+            loop["before"] = {**_scores(current(), frames), "steps": base[0].steps,
                               "patches": sum(e.patches for e in sset.entries(manifest, "train", [0]))}
             seconds = time.perf_counter() - start
             run.write_record(record)
@@ -151,10 +157,11 @@ def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progre
             entry = loop["rounds"].setdefault(name, {"status": "shards"})
             if entry["status"] != "done":
                 if entry["status"] == "shards":
-                    _new_patches(run, record, sset, cfg, k, patches_per_image, command, progress)
+                    _new_patches(run, record, sset, cfg, k, patches_per_image, command, progress, current)
                 total_patches = _train_round(run, record, sset, train_cfg, cfg, k, patches_per_image > 0, verbose)
+                current.trained()
                 start = time.perf_counter()
-                entry.update(status="done", round=k, **_scores(run, frames), steps=cfg.round_steps,
+                entry.update(status="done", round=k, **_scores(current(), frames), steps=cfg.round_steps,
                              total_steps=base[0].steps + k * cfg.round_steps, total_patches=total_patches)
                 seconds = time.perf_counter() - start
                 run.write_record(record)
@@ -192,28 +199,42 @@ def with_seconds(loop: dict, timings: dict) -> dict:
     return joined
 
 
-def _scores(run, frames: list[dict]) -> dict:
-    """Held-out relMSE and DSSIM of the run's current networks: the means and every frame's."""
-    from kpcn_keras.denoise import Denoiser
+class _Current:
+    """The denoiser of the run's current networks (those the loop's ``record`` names): loaded on the first
+    call, and again on the first call after :meth:`trained` (a round's training wrote new ones)."""
+
+    def __init__(self, run, record: dict):
+        self.run, self.record, self.denoiser = run, record, None
+
+    def __call__(self):
+        from kpcn_keras.denoise import Denoiser
+
+        if self.denoiser is None:
+            self.denoiser = Denoiser.from_run(self.run, record=self.run.parse_record(self.record), resampling=True)
+        return self.denoiser
+
+    def trained(self) -> None:
+        self.denoiser = None
+
+
+def _scores(denoiser, frames: list[dict]) -> dict:
+    """Held-out relMSE and DSSIM of the run's current networks (``denoiser``): the means and every frame's."""
     from kpcn_keras.evaluate import frame_scores
 
-    denoiser = Denoiser(run.dir, resampling=True)
     scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
     return {"relmse": scores["relmse"], "dssim": scores["dssim"], "frames": scores["frames"]}
 
 
 def _new_patches(run, record: dict, sset: ShardSet, cfg: ResampleConfig, k: int, patches_per_image: int,
-                 command: str, progress: bool) -> None:
-    """Step 1 of round ``k``: its shards (none when the loop adds no patches) and its picture; the round's
-    entry then says ``training``."""
-    from kpcn_keras.denoise import Denoiser
-
+                 command: str, progress: bool, current: _Current) -> None:
+    """Step 1 of round ``k``: its shards (none when the loop adds no patches), drawn from the error maps of
+    the ``current`` networks, and its picture; the round's entry then says ``training``."""
     entry = record["resample"]["rounds"][round_name(k)]
     patches, seconds = 0, {}
     if patches_per_image:
         denoise = None
         if cfg.error_weight > 0:
-            denoiser = Denoiser(run.dir, resampling=True)
+            denoiser = current()
             denoise = lambda aovs: denoiser(aovs)["default"]  # noqa: E731
         model = _model_provenance(run, record) if cfg.error_weight > 0 else {}
         rnd = ErrorRound(k, patches_per_image, cfg.error_weight, cfg.metric, model, command=command)

@@ -29,10 +29,14 @@ so a run folder can be renamed or used from any working directory.
 SHA-256 and the network it was trained as (:meth:`Run.record_model`); each network inside a file also carries
 its role as its model name (``diffuse``, ``specular``, ``shared``, ``compositor``: ``models.build_branch_model``
 names every layer after it). Every reader of a run's networks (denoise, evaluate, figures, compare, bench,
-resample) opens the record with :meth:`Run.finished_record` (refused while a phase or a resample round is
-unfinished, naming it and the command that resumes it) and reads each network with :meth:`Run.load_component`
-(refused when the file's checksum is not the recorded one, or the network in it is another branch's). A run
+resample) reads the record once, as a :class:`RunRecord` (:meth:`Run.record`: the JSON parsed in this one
+place, the model configuration a ``ModelConfig``), refuses it while a phase or a resample round is unfinished
+(:meth:`RunRecord.finished`, naming it and the command that resumes it), and reads each network once with
+:meth:`Run.load_component` (refused when the file's checksum is not the recorded one, or the network in it is
+another branch's), through ``denoise.Denoiser.from_run``, and passes the record and the denoiser down. A run
 written before the record held checksums has no ``models``: it still loads, checked by the model names alone.
+The writers (``train``, ``resample``) update the record's JSON (:meth:`Run.read_record`) and write it whole:
+the file's format is theirs, and :class:`RunRecord` only reads it.
 
 ``.keras`` files are written by :func:`save_model` through ``prep.files.atomic_path`` and made canonical:
 fixed zip timestamps and no save date, so the same weights give the same bytes (checksums of models mean
@@ -42,17 +46,21 @@ more entry of the same zip, so the model and its epoch count can never disagree 
 
 from __future__ import annotations
 
+import copy
 import importlib
 import json
 import os
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
+from typing import Mapping, Optional
 
 import keras
 
-from kpcn_keras.config import TrainConfig
-from kpcn_keras.models import ModelConfig, build_branch_model
-from prep.errors import KpcnError
+from kpcn_keras.config import CompositorConfig, ModelConfig, TrainConfig
+from kpcn_keras.models import build_branch_model
+from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
 from prep.shards import ShardSet
 
@@ -133,87 +141,71 @@ class Run:
     def has_record(self) -> bool:
         return self.record_path.is_file()
 
-    def read_record(self) -> dict:
-        """The run record; KpcnError naming the file if the folder is not a run or the record is broken."""
+    def _read_json(self) -> dict:
         if not self.record_path.is_file():
             raise KpcnError(f"{self.dir}: not a run folder (no {RECORD}); train one with 'kpcn train'")
-        record = read_json(self.record_path, "run record", keys=("train", "shards", "results"))
-        if "phases" not in record:
+        data = read_json(self.record_path, "run record", keys=("train", "shards", "results"))
+        if "phases" not in data:
             raise KpcnError(f"{self.record_path}: a run made by an older kpcn (no training phases); train it again")
-        try:
-            ModelConfig.from_dict(record["train"]["model"])
-            record["shards"]["set_dir"]
-            for entry in record["components"].values():
-                entry["file"]
-            for entry in record.get("models", {}).values():
-                entry["sha256"], entry["network"]
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise KpcnError(f"{self.record_path}: the run record is damaged ({type(exc).__name__}: {exc})") from None
-        return record
+        return data
 
-    def read_files(self, record: dict) -> list[tuple[str, Path]]:
+    def record(self) -> "RunRecord":
+        """The run record, read and parsed once (:class:`RunRecord`); KpcnError naming the file if the
+        folder is not a run or the record is broken."""
+        return self.parse_record(self._read_json())
+
+    def read_record(self) -> dict:
+        """The run record as its JSON, checked as :meth:`record` checks it: for the writers (train, resample),
+        which update it and write it back (:meth:`write_record`)."""
+        data = self._read_json()
+        self.parse_record(data)
+        return data
+
+    def parse_record(self, data: dict) -> "RunRecord":
+        """``data`` (the JSON of this run's record, e.g. a writer's copy) as a :class:`RunRecord`."""
+        return RunRecord.from_json(self.record_path, data)
+
+    def finished_record(self, *, resampling: bool = False) -> "RunRecord":
+        """:meth:`record`, refused unless the run's networks may be used (:meth:`RunRecord.finished`)."""
+        return self.record().finished(resampling=resampling)
+
+    def read_files(self, record: "RunRecord") -> list[tuple[str, Path]]:
         """What denoising with the run reads of it, ``(what, path)``: its record and each component's model
         file (for ``prep.files.check_outputs``)."""
-        return [("run record", self.record_path)] + [(f"{name} model", self.dir / entry["file"])
-                                                     for name, entry in record["components"].items()]
+        return [("run record", self.record_path)] + [(f"{name} model", self.dir / entry.file)
+                                                     for name, entry in record.components.items()]
 
     def write_record(self, record: dict) -> None:
         atomic_write_json(self.record_path, record)
 
-    def model_config(self, record: dict) -> ModelConfig:
-        return ModelConfig.from_dict(record["train"]["model"])
-
-    def train_config(self, record: dict) -> TrainConfig:
-        return TrainConfig(**record["train"])
-
     def relative(self, path: str | os.PathLike) -> str:
         return os.path.relpath(os.path.abspath(path), os.path.abspath(self.dir))
-
-    def finished_record(self, *, resampling: bool = False) -> dict:
-        """The record of a run whose networks may be used: KpcnError naming the first phase that is not done
-        (its status, and that ``kpcn train`` resumes it), or the first unfinished resample round (a kill
-        between its two branch phases leaves one network a round ahead), unless ``resampling`` (the loop's
-        own use, between the phases of the round it is training)."""
-        record = self.read_record()
-        for name, plan in record["phases"].items():
-            if plan.get("status") != "done":
-                raise KpcnError(
-                    f"{self.record_path}: the {name} phase is unfinished (status {plan.get('status')!r}); "
-                    f"'kpcn train --run {self.dir}' with the options it was started with resumes it "
-                    f"({record.get('command', 'kpcn train')})")
-        rounds = record.get("resample", {}).get("rounds", {})
-        for name, entry in rounds.items() if not resampling else ():
-            if entry.get("status") != "done":
-                raise KpcnError(
-                    f"{self.record_path}: resample {name} is unfinished (status {entry.get('status')!r}); "
-                    f"'kpcn resample --run {self.dir}' with the options it was started with resumes it")
-        return record
 
     def record_model(self, record: dict, file: str, network: str) -> None:
         """Note in ``record`` the model file ``file`` (relative to the run folder) that the run wrote: its
         SHA-256 and the network it was trained as, what :meth:`load_component` checks it against."""
         record.setdefault("models", {})[file] = {"network": network, "sha256": sha256_file(self.dir / file)}
 
-    def load_component(self, record: dict, name: str, *, compile: bool = False) -> keras.Model:
+    def load_component(self, record: "RunRecord", name: str, *, compile: bool = False) -> keras.Model:
         """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``compositor``) of the run,
         read from the phase file the record names; KpcnError if the run has not trained it, if the file is
         not the one the record lists (SHA-256), or if the network in it was trained for another branch."""
-        entry = record["components"].get(name)
+        entry = record.components.get(name)
         if entry is None:
-            trained = ", ".join(sorted(record["components"])) or "none yet"
+            trained = ", ".join(sorted(record.components)) or "none yet"
             raise KpcnError(f"{self.dir}: the run has no finished {name} network (finished: {trained})")
-        path = self.dir / entry["file"]
+        path = self.dir / entry.file
         model = load_model(path, compile=compile)
-        for layer in entry.get("layers", []):
+        for layer in entry.layers:
             try:
                 model = model.get_layer(layer)
             except ValueError:
                 raise KpcnError(f"{path}: holds no {layer} network (it holds the model {model.name!r}); "
                                 f"not the file the run wrote") from None
-        self.check_model(record, entry["file"], model, name)
+        self.check_model(record, entry.file, model, name)
         return model
 
-    def check_model(self, record: dict, file: str, model: keras.Model, network: str) -> None:
+    def check_model(self, record: "RunRecord", file: str, model: keras.Model, network: str) -> None:
         """KpcnError naming the run's model file ``file`` unless ``model`` (read from it) is the ``network``
         the run needs there and the file has the SHA-256 the record lists (a record without one, of a run
         written before records held them, is checked by the network's name alone)."""
@@ -221,12 +213,12 @@ class Run:
         if model.name != network:
             raise KpcnError(f"{path}: holds a {model.name} network where the run needs its {network} network "
                             f"(a copy of another phase's file?); restore the run's own file or train it again")
-        listed = record.get("models", {}).get(file)
+        listed = record.models.get(file)
         if listed is not None:
             found = sha256_file(path)
-            if found != listed["sha256"]:
+            if found != listed.sha256:
                 raise KpcnError(f"{path}: not the file this run wrote (SHA-256 {found[:12]}…, the record "
-                                f"{self.record_path} lists {listed['sha256'][:12]}…); restore it or train "
+                                f"{self.record_path} lists {listed.sha256[:12]}…); restore it or train "
                                 "the run again")
 
     def fork(self, dest: str | os.PathLike, sset: ShardSet | None = None) -> "Run":
@@ -238,24 +230,136 @@ class Run:
         new = Run(dest)
         if new.has_record():
             return new
-        record = self.read_record()
+        record = self.record()
         if sset is not None:
-            if sset.complete_manifest()["content_key"] != record["shards"]["content_key"]:
+            if sset.complete_manifest()["content_key"] != record.content_key:
                 raise KpcnError(f"{sset.dir}: not the shard set {self.dir} was trained on")
         else:
             sset = self.shard_set(record)
+        data = copy.deepcopy(record.data)  # the copy's record: the same but for where its shard set is
         for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed fork's
             shutil.rmtree(stale)
         tmp = new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}")
         shutil.copytree(self.dir, tmp, ignore=shutil.ignore_patterns(".*"))
-        record["shards"]["set_dir"] = os.path.relpath(os.path.abspath(sset.dir), os.path.abspath(new.dir))
-        Run(tmp).write_record(record)
+        data["shards"]["set_dir"] = os.path.relpath(os.path.abspath(sset.dir), os.path.abspath(new.dir))
+        Run(tmp).write_record(data)
         os.replace(tmp, new.dir)
         return new
 
-    def shard_set(self, record: dict) -> ShardSet:
+    def shard_set(self, record: "RunRecord") -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""
-        return ShardSet(os.path.normpath(self.dir / record["shards"]["set_dir"]))
+        return ShardSet(os.path.normpath(self.dir / record.set_dir))
+
+
+@dataclass(frozen=True)
+class Component:
+    """A network of the run (see the module docstring): the phase file, relative to the run folder, that
+    holds its latest weights, and the path of nested model names to it inside that file."""
+
+    file: str
+    layers: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A finished phase file as training wrote it: the network it was trained as and its SHA-256."""
+
+    network: str
+    sha256: str
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """A run's ``config.json``, read once and parsed once (:meth:`Run.record`), for the readers of a run.
+
+    ``train`` is the run's :class:`TrainConfig`, its ``model`` a :class:`ModelConfig` (and ``compositor``
+    a :class:`CompositorConfig` or None): the one parse of the model configuration. ``set_dir`` is the
+    shard set's folder relative to the run folder; ``components`` and ``models`` are the record's entries
+    (``models`` is empty for a run written before records held checksums); ``phases`` and ``rounds`` each
+    phase's and resample round's status. ``data`` is the JSON as read, for what no field names (results,
+    versions, the resample loop's entries); the writers (train, resample) update their own dict
+    (:meth:`Run.read_record`) and write it back, so the file format is theirs.
+    """
+
+    path: Path
+    train: TrainConfig
+    set_dir: str
+    content_key: Optional[str]
+    components: Mapping[str, Component]
+    models: Mapping[str, ModelFile]
+    phases: Mapping[str, Optional[str]]
+    rounds: Mapping[str, Optional[str]]
+    command: Optional[str]
+    data: Mapping = field(repr=False)
+
+    @classmethod
+    def from_json(cls, path: Path, data: dict) -> "RunRecord":
+        """The record of the JSON ``data`` read from ``path``; KpcnError naming the file and the part of the
+        record that is damaged (missing, of the wrong type, or a configuration out of its bounds)."""
+        part = "train"
+        try:
+            train = TrainConfig(**data["train"])
+            part = "shards"
+            set_dir, content_key = data["shards"]["set_dir"], data["shards"].get("content_key")
+            part = "components"
+            components = {name: Component(entry["file"], tuple(entry.get("layers", ())))
+                          for name, entry in data["components"].items()}
+            part = "models"
+            models = {file: ModelFile(entry["network"], entry["sha256"])
+                      for file, entry in data.get("models", {}).items()}
+            part = "phases"
+            phases = {name: plan.get("status") for name, plan in data["phases"].items()}
+            part = "resample"
+            rounds = {name: entry.get("status") for name, entry in data.get("resample", {}).get("rounds", {}).items()}
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise KpcnError(f"{path}: the run record is damaged in its {part} ({type(exc).__name__}: {exc})") from None
+        return cls(Path(path), train, set_dir, content_key, MappingProxyType(components), MappingProxyType(models),
+                   MappingProxyType(phases), MappingProxyType(rounds), data.get("command"), data)
+
+    @property
+    def dir(self) -> Path:
+        return self.path.parent
+
+    @property
+    def model(self) -> ModelConfig:
+        return self.train.model
+
+    @property
+    def compositor(self) -> CompositorConfig | None:
+        return self.train.compositor
+
+    @property
+    def validation_slope(self) -> float | None:
+        """λ of the run's validation for a run trained with λ as an input (``kpcn figures``' frame), else None."""
+        return self.train.slope if self.model.slope_channel else None
+
+    def check_slope(self, slope: float | None) -> None:
+        """OptionError unless the networks get the λ they need: a run trained with λ as an input needs one
+        (``models.network_input`` refuses one given to a network without that input)."""
+        if self.model.slope_channel and slope is None:
+            raise OptionError("slope", f"is needed: {self.dir} was trained with λ as an input, for λ in "
+                              f"{list(self.train.slope_range)}")
+
+    def component_path(self, name: str) -> Path:
+        return self.dir / self.components[name].file
+
+    def finished(self, *, resampling: bool = False) -> "RunRecord":
+        """This record, if the run's networks may be used: KpcnError naming the first phase that is not done
+        (its status, and that ``kpcn train`` resumes it), or the first unfinished resample round (a kill
+        between its two branch phases leaves one network a round ahead), unless ``resampling`` (the loop's
+        own use, between the phases of the round it is training)."""
+        for name, status in self.phases.items():
+            if status != "done":
+                raise KpcnError(
+                    f"{self.path}: the {name} phase is unfinished (status {status!r}); "
+                    f"'kpcn train --run {self.dir}' with the options it was started with resumes it "
+                    f"({self.command or 'kpcn train'})")
+        for name, status in self.rounds.items() if not resampling else ():
+            if status != "done":
+                raise KpcnError(
+                    f"{self.path}: resample {name} is unfinished (status {status!r}); "
+                    f"'kpcn resample --run {self.dir}' with the options it was started with resumes it")
+        return self
 
 
 # ---------------------------------------------------------------- .keras files

@@ -56,7 +56,7 @@ import keras
 import numpy as np
 
 from kpcn_keras import distributed
-from kpcn_keras.config import LOCATION_FIELDS, CompositorConfig, Phase, TrainConfig
+from kpcn_keras.config import LOCATION_FIELDS, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model, receptive_radius
@@ -80,7 +80,7 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
     the components earlier phases finished."""
     if phase.continues:
         model = load_model(run.model_path(phase.continues))  # with its optimizer: training goes on
-        run.check_model(record, run.model_path(phase.continues).name, model, phase.component)
+        run.check_model(run.parse_record(record), run.model_path(phase.continues).name, model, phase.component)
         return model
     model = _new_model(cfg, run, record, phase)
     _compile(model, cfg, phase)
@@ -88,18 +88,19 @@ def _build(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Mode
 
 
 def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.Model:
-    model_cfg = ModelConfig.from_dict(cfg.model)
+    model_cfg = cfg.model
     if not phase.trains_on_final_colour:
         keras.utils.set_random_seed(cfg.seed + [p.name for p in cfg.phases()].index(phase.name))
         return build_branch_model(model_cfg, name=phase.name)
     names = _network_names(cfg)
-    nets = {name: run.load_component(record, name) for name in dict.fromkeys(names.values())}
+    finished = run.parse_record(record)  # the phases done so far
+    nets = {name: run.load_component(finished, name) for name in dict.fromkeys(names.values())}
     for name, net in nets.items():
-        check_architecture(net, model_cfg, run.dir / record["components"][name]["file"])
+        check_architecture(net, model_cfg, finished.component_path(name))
     if phase.name == "joint":
         return build_final_model({b: nets[names[b]] for b in BRANCHES}, model_cfg.input_channels, name="joint")
     keras.utils.set_random_seed(cfg.seed + len(cfg.phases()))
-    comp_cfg = CompositorConfig.from_dict(cfg.compositor)
+    comp_cfg = cfg.compositor
     compositor = build_compositor(comp_cfg)
     # one graph for both branches: they share the compositor (and a shared network its frozen wrapper)
     frozen = {name: InferenceOnly(net, name=f"{name}_denoiser") for name, net in nets.items()}
@@ -148,7 +149,7 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     batch); validation is read whole by each."""
     network = phase.component
     source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
-    common = dict(source=source, batch_size=cfg.batch_size, model=ModelConfig.from_dict(cfg.model),
+    common = dict(source=source, batch_size=cfg.batch_size, model=cfg.model,
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range)
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
@@ -214,7 +215,7 @@ class _Checkpoint(keras.callbacks.Callback):
 
 
 def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]) -> dict:
-    return {"phase": phase.name, "epochs_done": epochs_done, "model": cfg.model, "train": _identity_key(cfg),
+    return {"phase": phase.name, "epochs_done": epochs_done, "model": cfg.model.to_dict(), "train": _identity_key(cfg),
             "history": history}
 
 
@@ -226,8 +227,9 @@ def _checkpoint_differences(state: dict, cfg: TrainConfig, phase: Phase) -> list
     if state.get("phase", phase.name) != phase.name:
         differ.append(f"it is the {state['phase']} phase's, this is the {phase.name} phase's")
     model = state.get("model") if isinstance(state.get("model"), dict) else {}
-    differ += [f"model {k} {model.get(k)!r}, the run's {cfg.model.get(k)!r}"
-               for k in sorted(set(model) | set(cfg.model)) if model.get(k) != cfg.model.get(k)]
+    own = cfg.model.to_dict()
+    differ += [f"model {k} {model.get(k)!r}, the run's {own.get(k)!r}"
+               for k in sorted(set(model) | set(own)) if model.get(k) != own.get(k)]
     if not differ and state.get("train") != _identity_key(cfg):  # the hash covers the model too
         differ.append(f"training options of hash {state.get('train')}, the run's {_identity_key(cfg)} (a "
                       "checkpoint of another run)")
@@ -260,10 +262,10 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     manifest and ``split -> shard paths`` of round 0 (the variance round: a run's own phases train on it;
     error rounds are the resample loop's)."""
     manifest = sset.complete_manifest()
-    if manifest.get("features") is not None and len(manifest["features"]) != cfg.model["in_channels"]:
-        raise OptionError("in_channels", f"is {cfg.model['in_channels']} but the shards in {sset.dir} have "
+    if manifest.get("features") is not None and len(manifest["features"]) != cfg.model.in_channels:
+        raise OptionError("in_channels", f"is {cfg.model.in_channels} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
-    check_fits_patches(ModelConfig.from_dict(cfg.model), int(manifest["patch_size"]), sset.dir)
+    check_fits_patches(cfg.model, int(manifest["patch_size"]), sset.dir)
     entries = {split: sset.verified_shards(split, manifest, rounds=[0]) for split in ("train", "val")}
     sset.check_renders(manifest)
     paths = {split: [e.path for e in found] for split, found in entries.items()}
@@ -425,7 +427,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
             )
         model = load_model(ckpt)
         if not phase.trains_on_final_colour:
-            check_architecture(model, ModelConfig.from_dict(cfg.model), ckpt)
+            check_architecture(model, cfg.model, ckpt)
         epochs_done, history = int(state["epochs_done"]), list(state.get("history", []))
         if world.writer:
             print(f"[{phase.name}] resuming from {ckpt} after epoch {epochs_done}")

@@ -106,6 +106,7 @@ def _relmse64(x, r):
 def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch):
     from kpcn_keras.cli import main
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
     from prep import exr
     from prep.render.frame import render
     from prep.render.scene import Scene
@@ -137,7 +138,7 @@ def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch)
     meta = json.loads((tmp_path / "data/renders/b/config.json").read_text())
     scenes = {s["name"]: s for s in meta["scenes"]}
     cpu = next(m for m in record["methods"] if m["name"] == "cpu")
-    denoiser = Denoiser(cpu["run"])
+    denoiser = Denoiser.from_run(Run(cpu["run"]))
     relmse = []
     for frame in cpu["points"][0]["frames"]:
         s = scenes[frame["scene"]]

@@ -67,7 +67,7 @@ def test_every_configuration_is_a_training_with_the_phases_it_names():
         base = cmp.train_config(name, cfg)
         planned = cmp.with_steps(base, cmp.budget_steps(cfg.budget, {p: 1.0 for p in phases[name]}))
         # the preset's network and training; only the steps and the decay follow the budget
-        assert {k: planned.model[k] for k in PRESETS[name]["model"]} == PRESETS[name]["model"]
+        assert {k: getattr(planned.model, k) for k in PRESETS[name]["model"]} == PRESETS[name]["model"]
         assert (planned.batch_size, planned.learning_rate, planned.joint_learning_rate) == \
             (PRESETS[name]["batch_size"], PRESETS[name]["learning_rate"], PRESETS[name]["joint_learning_rate"])
         assert planned.steps == planned.decay_steps < PRESETS[name]["steps"]
@@ -133,6 +133,7 @@ def _relmse64(x, r) -> float:
 def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduces(compared):
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.models import ModelConfig, build_branch_model
+    from kpcn_keras.run import Run
 
     tmp, cfg, record, lines = compared
     out = tmp / "reports"
@@ -161,7 +162,7 @@ def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduc
     assert row["relmse"] == pytest.approx(raw, rel=1e-12)
     assert table["raw input"][4] == f"{raw:.4f}"
     cpu = record["rows"][0]
-    denoiser = Denoiser(cpu["run"])
+    denoiser = Denoiser.from_run(Run(cpu["run"]))
     cpu_frames = [_relmse64(denoiser(x)["default"], r) for x, r in zip(noisy, refs)]
     assert cpu["relmse"] == pytest.approx(np.mean(cpu_frames), rel=1e-6)
     from prep import baselines

@@ -2,18 +2,22 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from conftest import TINY_MODEL, build_tiny_shards, random_aovs
+from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file
 from kpcn_keras.models import network_input
+from kpcn_keras.run import Run
+from kpcn_keras.train import train
 from prep import exr, features
+from prep.errors import OptionError
 
 
-def _untiled(denoiser, aovs):
-    """What tiling must equal: the whole frame's features through each network in one call, recombined in
-    float64 by the inverses of the features table."""
+def _untiled(denoiser, aovs, slope=None):
+    """What tiling must equal: the whole frame's features (with ``slope``) through each network in one call,
+    recombined in float64 by the inverses of the features table."""
     logs = {}
     for branch in features.BRANCHES:
-        feats = network_input(features.branch_features(aovs, branch), denoiser.model_config, branch, denoiser.slope)
+        feats = network_input(features.branch_features(aovs, branch), denoiser.model_config, branch, slope)
         logs[branch] = keras.ops.convert_to_numpy(denoiser.models[branch].predict_on_batch(feats[None]))[0]
     diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS)
     specular = np.expm1(logs["specular"].astype(np.float64))
@@ -25,8 +29,8 @@ def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
     # odd frames (partial tiles at the right and bottom), a tile smaller than the margin, a single row
     aovs = random_aovs(*size, seed=9)
     aovs["depth"][-1, -1] = 50.0  # the depth scale comes from one corner, outside most tiles
-    logs, want = _untiled(Denoiser(tiny_run), aovs)
-    tiled = Denoiser(tiny_run, tile=tile)
+    logs, want = _untiled(Denoiser.from_run(Run(tiny_run)), aovs)
+    tiled = Denoiser.from_run(Run(tiny_run), tile=tile)
     assert tiled.margin == 3  # 3 convs of 3x3 reach 3 pixels, the 5x5 kernel 2: the max of the two
     out = tiled(aovs)
     for name, image in out.items():
@@ -36,11 +40,27 @@ def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
         np.testing.assert_allclose(tiled.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
 
 
+def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_MODEL, steps=2,
+                                  steps_per_epoch=2, batch_size=2, val_batches=1, loss="asymmetric", slope_input=True)
+    denoiser = Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), tile=8)
+    aovs = random_aovs(19, 22, seed=4)
+    out = {}
+    for slope in (1.0, 8.0, 2.5):
+        out[slope] = denoiser(aovs, slope=slope)["default"]
+        np.testing.assert_allclose(out[slope], _untiled(denoiser, aovs, slope)[1]["default"], rtol=2e-5, atol=1e-6)
+    assert np.abs(out[1.0] - out[8.0]).max() > 1e-4  # λ reaches the networks
+    np.testing.assert_array_equal(denoiser(aovs, slope=1.0)["default"], out[1.0])  # no λ stays behind
+    with pytest.raises(OptionError, match=r"slope is needed: .*r was trained with λ as an input, for λ in \[1.0, 8.0\]"):
+        denoiser(aovs)
+
+
 def test_tiles_with_too_little_overlap_would_differ(tiny_run):
     # guards the test above: without the margin the tile seams are visible
     aovs = random_aovs(40, 40, seed=3)
-    whole = Denoiser(tiny_run, tile=4096).run_branch("diffuse", aovs)
-    seamy = Denoiser(tiny_run, tile=8)
+    whole = Denoiser.from_run(Run(tiny_run), tile=4096).run_branch("diffuse", aovs)
+    seamy = Denoiser.from_run(Run(tiny_run), tile=8)
     seamy.margin = 0
     assert np.abs(seamy.run_branch("diffuse", aovs) - whole).max() > 1e-4
 
@@ -50,7 +70,7 @@ def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run)
     # float64 recombination), not torch's own buffers (the network's activations, bounded by the tile anyway)
     import tracemalloc
 
-    denoiser = Denoiser(tiny_run, tile=32)
+    denoiser = Denoiser.from_run(Run(tiny_run), tile=32)
     denoiser.warm_up()
     side = denoiser.tile + 2 * denoiser.margin + 1  # a tile, its margins and the next pixel the gradients read
     # per window pixel: 27 float32 features, a float32 copy of the 14 input channels the kernel reads and its
@@ -80,7 +100,7 @@ def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, ref
 
     from kpcn_keras.denoise import denoise_frame, frame_bytes
 
-    denoiser = Denoiser(tiny_run, tile=64)
+    denoiser = Denoiser.from_run(Run(tiny_run), tile=64)
     denoiser.warm_up()
     peaks = {}
     width = 96
@@ -117,7 +137,7 @@ def test_a_frame_the_machine_cannot_hold_is_refused_before_any_work(tiny_run, tm
 
 def test_recombination_inverts_the_branch_transforms(tiny_run):
     aovs = random_aovs(20, 20, seed=4)
-    d = Denoiser(tiny_run)
+    d = Denoiser.from_run(Run(tiny_run))
     out = d(aovs)
     diff_log = d.run_branch("diffuse", aovs)
     np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS), rtol=1e-5)

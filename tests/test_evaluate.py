@@ -7,6 +7,7 @@ import numpy as np
 
 from kpcn_keras.cli import main
 from kpcn_keras.evaluate import COLUMNS, format_table, held_out_pairs
+from kpcn_keras.run import Run
 from prep import exr, metrics
 
 P999 = ("raw relSE p99.9", "denoised relSE p99.9", "NLM relSE p99.9")
@@ -67,7 +68,7 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
     header, cells = _parse(table)
     rows = json.loads((out / "metrics.json").read_text())
     assert len(rows) == 2 and [c[0] for c in cells] == [r["scene"] for r in rows] + ["**mean**"]
-    for (noisy, ref), row, line in zip(held_out_pairs(tiny_run), rows, cells):
+    for (noisy, ref), row, line in zip(held_out_pairs(Run(tiny_run), Run(tiny_run).record()), rows, cells):
         raw = metrics.relse_p999(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])
         assert row["raw"]["relse_p999"] == raw
         assert set(row["raw"]) == set(row["denoised"]) == set(row["nlm"]) == set(metrics.METRICS)

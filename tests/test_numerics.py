@@ -30,7 +30,7 @@ from kpcn_keras.denoise import Denoiser
 from kpcn_keras.layers import KernelApply, softmax_kernels
 from kpcn_keras.losses import SMAPE, SMAPE_EPS, AsymmetricSMAPE, asymmetric_smape, smape
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
-from kpcn_keras.run import load_model
+from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
 from prep.errors import KpcnError, OptionError
@@ -539,7 +539,7 @@ def hard_set(tmp_path_factory):
         tc = TrainConfig.from_preset("cpu", set_name="hard", shards_root=cfg.out_root, model={"arch": arch, **ARCH_MODEL[arch]},
                                      steps=steps, steps_per_epoch=steps, batch_size=batch, val_batches=1)
         runs[arch] = train(tc, root / "runs" / arch, verbose=0)
-        denoisers[arch] = (Denoiser(runs[arch], tile=8), Denoiser(runs[arch], tile=4096))
+        denoisers[arch] = (Denoiser.from_run(Run(runs[arch]), tile=8), Denoiser.from_run(Run(runs[arch]), tile=4096))
     return HardSet(renders, cfg, runs, denoisers)
 
 
@@ -620,7 +620,7 @@ def test_hard_case_tiled_denoise_is_finite_non_negative_and_equals_untiled(hard_
 
 @pytest.mark.parametrize("arch", ARCHS)
 def test_randomised_networks_keep_denoised_extreme_renders_finite_and_in_range(hard_set, arch):
-    denoiser = Denoiser(hard_set.runs[arch], tile=8)
+    denoiser = Denoiser.from_run(Run(hard_set.runs[arch]), tile=8)
     for i, model in enumerate(denoiser.models.values()):
         randomise(model, seed=10 + i, scale=1.0)  # logits and corrections of 1e3 and more
     clamped = False
@@ -679,7 +679,7 @@ def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_deno
     rows = (run / "log.csv").read_text().splitlines()[1:]
     assert len(rows) == len(features.BRANCHES) and all(np.isfinite(float(r.split(",")[1])) for r in rows)
 
-    tiled, whole = Denoiser(run, tile=2), Denoiser(run, tile=4096)  # tiles smaller than the margin
+    tiled, whole = Denoiser.from_run(Run(run), tile=2), Denoiser.from_run(Run(run), tile=4096)  # tiles smaller than the margin
     for branch in features.BRANCHES:
         np.testing.assert_allclose(tiled.run_branch(branch, back), whole.run_branch(branch, back), rtol=1e-5, atol=1e-6)
     out = tiled(back)

@@ -52,13 +52,13 @@ def conv_layers(model):
 
 
 def test_presets_reach_the_papers_architectures():
-    kpcn_paper = build_branch_model(ModelConfig(**TrainConfig.from_preset("kpcn-paper").model))
+    kpcn_paper = build_branch_model(TrainConfig.from_preset("kpcn-paper").model)
     convs = conv_layers(kpcn_paper)
     # Bako et al.: 9 layers, 8 hidden 5x5 convolutions of 100 filters and the 21x21 kernel head
     assert len(convs) == 9 and all(c.kernel_size == (5, 5) and c.filters == 100 for c in convs[:-1])
     assert convs[-1].filters == 21 * 21
     kpal = TrainConfig.from_preset("kpal-paper")
-    kpal_paper = build_branch_model(ModelConfig(**kpal.model))
+    kpal_paper = build_branch_model(kpal.model)
     convs = conv_layers(kpal_paper)
     # the report's 28-layer residual network, batch norm after every convolution, keep probability 0.7
     assert len(convs) == 28 and convs[-1].filters == 21 * 21
@@ -67,7 +67,7 @@ def test_presets_reach_the_papers_architectures():
     assert kpal.batch_size == 12 and kpal.learning_rate == 1e-4 and kpal.joint_learning_rate == 1e-6
     assert TrainConfig().preset == "cpu" and set(PRESETS) == {"cpu", "kpcn-paper", "kpal-paper"}
     # flags override the preset
-    assert TrainConfig.from_preset("kpcn-paper", model={"conv_size": 3, "dropout": 0.1}).model["conv_size"] == 3
+    assert TrainConfig.from_preset("kpcn-paper", model={"conv_size": 3, "dropout": 0.1}).model.conv_size == 3
 
 
 def test_network_input_appends_the_branch_one_hot_and_log_slope():
@@ -107,7 +107,7 @@ def test_inconsistent_phase_options_are_refused_naming_the_option(bad, option):
 def test_the_conditioning_channels_follow_the_training_options_not_the_model_dict():
     cfg = TrainConfig.from_preset("cpu", shared=True, loss="asymmetric", slope_input=True,
                                   model={"branch_channels": False})
-    assert cfg.model["branch_channels"] and cfg.model["slope_channel"]
+    assert cfg.model.branch_channels and cfg.model.slope_channel
     assert [p.name for p in cfg.phases()] == ["shared"]
     cfg = TrainConfig.from_preset("cpu", joint_steps=5, compositor={"kind": "alpha"}, steps=120)
     assert [(p.name, p.first_epoch, p.epochs) for p in cfg.phases()] == \
@@ -308,7 +308,7 @@ def test_a_run_trains_its_phases_in_order_into_one_log_and_one_record(full_run):
 
 def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_does_not(full_run):
     run = Run(full_run)
-    record = run.read_record()
+    record = run.record()
     branch = keras.models.load_model(full_run / "diffuse.keras", compile=False)
     joint = run.load_component(record, "diffuse")
     assert any(not np.array_equal(a, b) for a, b in zip(_weights(branch), _weights(joint)))
@@ -321,11 +321,14 @@ def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_do
 
 def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
     aovs = random_aovs(37, 53, seed=5)
-    whole = Denoiser(full_run, tile=512)(aovs)["default"]
-    tiled = Denoiser(full_run, tile=8)(aovs)["default"]
+    whole = Denoiser.from_run(Run(full_run), tile=512)(aovs)["default"]
+    tiled = Denoiser.from_run(Run(full_run), tile=8)(aovs)["default"]
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-6)
-    plain = Denoiser(full_run, multiscale=False)(aovs)["default"]
+    plain = Denoiser.from_run(Run(full_run), multiscale=False)(aovs)["default"]
     assert not np.allclose(plain, whole)  # the compositor does something
+    # the same networks without their compositor, nothing loaded again
+    np.testing.assert_array_equal(Denoiser.from_run(Run(full_run), tile=8).without_compositor()(aovs)["default"],
+                                  Denoiser.from_run(Run(full_run), tile=8, multiscale=False)(aovs)["default"])
 
 
 def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):

@@ -212,10 +212,10 @@ def test_a_forked_shard_set_shares_round_0_and_keeps_its_own_later_rounds(tmp_pa
 def test_a_forked_run_reads_the_forked_set_and_has_the_same_models(tiny_run, tmp_path):
     base = Run(tiny_run)
     record_bytes = base.record_path.read_bytes()
-    sset = base.shard_set(base.read_record()).fork(tmp_path / "shards" / "s")
+    sset = base.shard_set(base.record()).fork(tmp_path / "shards" / "s")
     new = base.fork(tmp_path / "runs" / "r", sset)
     record = new.read_record()
-    assert new.shard_set(record).dir.resolve() == sset.dir.resolve()
+    assert new.shard_set(new.record()).dir.resolve() == sset.dir.resolve()
     models = sorted(p.relative_to(base.dir) for p in base.dir.rglob("*.keras"))
     assert models and sorted(p.relative_to(new.dir) for p in new.dir.rglob("*.keras")) == models
     for rel in models:
@@ -228,7 +228,7 @@ def test_a_forked_run_reads_the_forked_set_and_has_the_same_models(tiny_run, tmp
     again = base.fork(new.dir)  # returned as it is
     assert again.dir == new.dir
     assert {p: p.stat().st_mtime_ns for p in new.dir.rglob("*") if p.is_file()} == stamp
-    assert new.shard_set(new.read_record()).dir.resolve() == sset.dir.resolve()
+    assert new.shard_set(new.record()).dir.resolve() == sset.dir.resolve()
 
     other = tiny_set(tmp_path / "other", seed=4)
     with pytest.raises(KpcnError, match=re.escape(str(other.dir))):
@@ -448,7 +448,7 @@ def test_each_study_arm_adds_its_patches_to_its_own_copy_of_the_set(study):
     for seed in (0, 1):
         for arm, weight in (("continue", None), ("variance", 0.0), ("error", 0.5)):
             run = arm_run(root, seed, arm)
-            set_dir = run.shard_set(run.read_record()).dir.resolve()
+            set_dir = run.shard_set(run.record()).dir.resolve()
             manifest = manifest_of(set_dir)
             loop = rounds_json(root, seed, arm)
             if weight is None:
@@ -522,7 +522,7 @@ def forked_run(tiny_run, tmp_path_factory) -> Path:
     """A copy of the tiny run on its own copy of the shard set (the session's set stays as it is)."""
     tmp = tmp_path_factory.mktemp("cli")
     base = Run(tiny_run)
-    sset = base.shard_set(base.read_record()).fork(tmp / "shards" / "s")
+    sset = base.shard_set(base.record()).fork(tmp / "shards" / "s")
     return base.fork(tmp / "runs" / "r", sset).dir
 
 
@@ -548,7 +548,7 @@ def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path)
     taken the base run's steps and then exactly the round's, as the record says (not two whole epochs)."""
     base = Run(tiny_run)
     record = base.read_record()
-    run = base.fork(tmp_path / "runs" / "r", base.shard_set(record).fork(tmp_path / "shards" / "s"))
+    run = base.fork(tmp_path / "runs" / "r", base.shard_set(base.record()).fork(tmp_path / "shards" / "s"))
     res = kpcn("resample", "--run", run.dir, "--rounds", "1", "--round-steps", "6", "--patches-per-image", "0",
                "--error-weight", "0", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -574,7 +574,7 @@ def resampled_run(forked_run):
 def test_an_error_round_records_the_files_of_the_model_that_drew_it(resampled_run):
     run = Run(resampled_run)
     record = run.read_record()
-    sset_dir = run.shard_set(record).dir
+    sset_dir = run.shard_set(run.record()).dir
     entry = manifest_of(sset_dir)["rounds"]["round-001"]
     model = entry["provenance"]["model"]
     assert set(model) == {"diffuse", "specular"}

@@ -2,6 +2,8 @@
 holds the model and its epoch count in one file, and anything broken in it is one clear line
 (issue 5, defects 4, 9, 10 and 11)."""
 
+import dataclasses
+import json
 import shutil
 import zipfile
 
@@ -11,10 +13,12 @@ import pytest
 from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
-from kpcn_keras.run import Run, load_model, read_state
+from kpcn_keras.config import ModelConfig
+from kpcn_keras.run import Component, ModelFile, Run, load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep import exr
 from prep.errors import KpcnError
+from prep.files import atomic_write_json
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 TRAIN = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
@@ -52,7 +56,7 @@ def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
     assert {k: v for k, v in checksums(again).items() if k != "timings.json"} == \
            {k: v for k, v in done.items() if k != "timings.json"}
     run = Run(moved)
-    assert run.shard_set(run.read_record()).dir.resolve() == shard_cfg.set_dir.resolve()
+    assert run.shard_set(run.record()).dir.resolve() == shard_cfg.set_dir.resolve()
 
 
 def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
@@ -87,7 +91,7 @@ def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path
     ckpt = run_dir / "checkpoints" / "diffuse.keras"
     state = read_state(ckpt)
     assert state["epochs_done"] == 3 and [h["epoch"] for h in state["history"]] == [0, 1, 2]
-    assert state["model"] == tiny_config(shard_cfg).model
+    assert state["model"] == tiny_config(shard_cfg).model.to_dict()
     for a, b in zip(weights(ckpt), weights(run_dir / "diffuse.keras")):
         np.testing.assert_array_equal(a, b)
     # the same weights give the same bytes: a model's checksum means something
@@ -109,6 +113,48 @@ def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json")
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
+
+
+def test_the_record_train_wrote_reads_back_typed_with_the_model_config_it_trained(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = tiny_config(shard_cfg, branches=BOTH)
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    text = (run_dir / "config.json").read_text()
+    record = Run(run_dir).record()
+    assert isinstance(record.model, ModelConfig) and record.model == cfg.model
+    assert record.model == ModelConfig.from_dict(json.loads(text)["train"]["model"])
+    assert (record.model.width, record.model.depth, record.model.kernel_size) == (4, 2, 3)
+    assert record.train == cfg and record.compositor is None and record.validation_slope is None
+    sums = checksums(run_dir)
+    assert dict(record.models) == {f"{b}.keras": ModelFile(b, sums[f"{b}.keras"]) for b in BOTH}
+    assert dict(record.components) == {b: Component(f"{b}.keras") for b in BOTH}
+    assert dict(record.phases) == {b: "done" for b in BOTH} and record.finished() is record
+    assert Run(run_dir).shard_set(record).dir.resolve() == shard_cfg.set_dir.resolve()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        record.train = None
+    atomic_write_json(tmp_path / "again.json", record.data)
+    assert (tmp_path / "again.json").read_text() == text  # the file's format is the writers', untouched
+
+
+@pytest.mark.parametrize("part, damage", [
+    ("train", lambda r: r["train"]["model"].update(width=0)),
+    ("train", lambda r: r["train"]["model"].update(widht=4)),
+    ("train", lambda r: r["train"].update(steps="many")),
+    ("shards", lambda r: r["shards"].pop("set_dir")),
+    ("components", lambda r: r["components"]["diffuse"].pop("file")),
+    ("models", lambda r: r["models"]["specular.keras"].pop("sha256")),
+    ("phases", lambda r: r.update(phases=["diffuse"])),
+], ids=["width 0", "unknown model key", "steps a string", "no set_dir", "component without file",
+        "model without sha256", "phases a list"])
+def test_a_damaged_part_of_the_record_is_one_line_naming_the_file_and_the_part(tiny_run, tmp_path, part, damage):
+    record = json.loads((tiny_run / "config.json").read_text())
+    damage(record)
+    atomic_write_json(tmp_path / "r" / "config.json", record)
+    with pytest.raises(KpcnError) as err:
+        Run(tmp_path / "r").record()
+    message = str(err.value)
+    assert message.startswith(f"{tmp_path / 'r' / 'config.json'}: the run record is damaged in its {part} (")
+    assert "\n" not in message
 
 
 @pytest.mark.parametrize("which", ["checkpoints/diffuse.keras", "diffuse.keras"])
@@ -156,7 +202,7 @@ def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_pa
     shutil.copyfile(other / "specular.keras", run_dir / "specular.keras")
     with pytest.raises(KpcnError, match=r"specular\.keras: not the file this run wrote \(SHA-256 "
                                         + checksums(other)["specular.keras"][:12]):
-        Denoiser(run_dir)
+        Denoiser.from_run(Run(run_dir))
 
 
 def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_by_branch(tmp_path):
@@ -167,10 +213,10 @@ def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_
     del record["models"]
     run.write_record(record)
     aovs = random_aovs(8, 8)
-    assert np.isfinite(Denoiser(run_dir)(aovs)["default"]).all()
+    assert np.isfinite(Denoiser.from_run(Run(run_dir))(aovs)["default"]).all()
     shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
     with pytest.raises(KpcnError, match="specular.keras: holds a diffuse network"):
-        Denoiser(run_dir)
+        Denoiser.from_run(Run(run_dir))
 
 
 @pytest.mark.parametrize("status", ["running", "pending"])
@@ -226,5 +272,5 @@ def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resa
     run.write_record(record)
     with pytest.raises(KpcnError, match=r"resample round-001 is unfinished \(status 'training'\); "
                                         r"'kpcn resample --run .*' with the options it was started with resumes it"):
-        Denoiser(run_dir)
-    assert Denoiser(run_dir, resampling=True).record == record  # the loop's own use, mid-round
+        Denoiser.from_run(Run(run_dir))
+    assert Denoiser.from_run(Run(run_dir), resampling=True).record.data == record  # the loop's own use, mid-round

@@ -316,6 +316,7 @@ def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log)
     """The error-against-time methods of the trained runs at the budget, and the training-cost rows."""
     from kpcn_keras.studies.compare import _training_seconds, describe
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
 
     methods, training = [], []
     for budget, runs in plans.items():
@@ -325,7 +326,7 @@ def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log)
             variants = [(name, True)] + ([(f"{name} (compositor off)", False)] if train_cfg.compositor else [])
             for label, multiscale in variants:
                 start = time.perf_counter()
-                denoiser = Denoiser(run, multiscale=multiscale)
+                denoiser = Denoiser.from_run(Run(run), multiscale=multiscale)
                 load_s = time.perf_counter() - start
                 extra = {"run": str(run), "budget": budget, "load_s": load_s,
                          "training_seconds": _training_seconds(run), "phase_steps": plan["phase_steps"]}

@@ -58,7 +58,7 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
                                                             patch_size=manifest["patch_size"])
     log("stage costs: a training step, Keras and plain torch")
     ours = planned_train_config(plans.get(cfg.budget, {}).get(OURS))
-    model_config, batch = ModelConfig.from_dict(ours.model), ours.batch_size
+    model_config, batch = ours.model, ours.batch_size
     stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
     stages["shard_read"] = shard_read_cost(sset, manifest, model_config, batch, cfg.seed)
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
@@ -81,8 +81,7 @@ def planned_train_config(plan: dict | None):
 
     if plan is None:
         return TrainConfig()
-    run = Run(plan["run"])
-    return run.train_config(run.read_record())
+    return Run(plan["run"]).record().train
 
 
 def shard_read_cost(sset, manifest, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
@@ -209,13 +208,14 @@ def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
     that was trained, a frame of the held-out size and a ``large_frame`` against OIDN (alternating, best of
     ``repeats``), and ``kpcn denoise`` of the large frame as a command (its wall time and peak memory)."""
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
     from prep import baselines
 
     if OURS not in plans:
         raise KpcnError(f"the bench's inference costs are those of the {OURS!r} configuration: add it to "
                         "--configurations")
     start = time.perf_counter()
-    denoiser = Denoiser(plans[OURS]["run"])
+    denoiser = Denoiser.from_run(Run(plans[OURS]["run"]))
     out = {"load_s": time.perf_counter() - start}
     start = time.perf_counter()
     denoiser.warm_up()
@@ -226,7 +226,7 @@ def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
     out["frame"] = [w, h]
     out["configurations"] = {}
     for name in (n for n in INFERENCE if n in plans):
-        d = denoiser if name == OURS else Denoiser(plans[name]["run"])
+        d = denoiser if name == OURS else Denoiser.from_run(Run(plans[name]["run"]))
         fns = {"ours": lambda a, d=d: d(a), **({"oidn": baselines.oidn_denoise} if oidn else {})}
         small = _alternating_best(fns, aovs, cfg.repeats)
         big = _alternating_best(fns, large, cfg.repeats)

@@ -146,7 +146,7 @@ def _probe_fields(base: TrainConfig, n: int) -> dict:
 def describe(name: str, cfg: TrainConfig) -> str:
     """What the configuration is, for the report: the table's phrase, then the network it trains."""
     phrase, preset, _ = CONFIGURATIONS[name]
-    m = cfg.model
+    m = cfg.model.to_dict()
     unit = "residual blocks" if m["arch"] == "kpal" else "convolutions"
     net = f"{m['arch'].upper()}, {m['depth']} {unit} of {m['width']} {m['conv_size']}×{m['conv_size']} filters"
     if m["batchnorm"]:
@@ -159,7 +159,7 @@ def describe(name: str, cfg: TrainConfig) -> str:
     if cfg.joint_steps:
         net += f", joint lr {cfg.joint_learning_rate:g}"
     if cfg.compositor:
-        net += f", {cfg.compositor['levels']} levels"
+        net += f", {cfg.compositor.levels} levels"
     if cfg.loss == "asymmetric":
         net += f", λ = {cfg.slope:g}"
     scaled = " (scaled to the budget)" if preset != TrainConfig.preset else ""
@@ -300,9 +300,11 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
     """The report's rows (trained configurations, then raw input, NLM, OIDN) and what was timed."""
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import frame_scores, held_out_frames
+    from kpcn_keras.run import Run
     from prep import baselines
 
-    frames = held_out_frames(next(iter(plans.values()))["run"])
+    first = Run(next(iter(plans.values()))["run"])
+    frames = held_out_frames(first, first.record())
     if not frames:
         raise KpcnError(f"{cfg.shards_root}/{cfg.set_name}: no held-out scenes to compare on")
     crop = _crop(frames[0]["noisy"], cfg.frame)
@@ -310,12 +312,12 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
     timed = {"frame": frames[0]["name"], "width": w, "height": h}
     rows = []
     for name, plan in plans.items():
-        denoiser = Denoiser(plan["run"])
+        denoiser = Denoiser.from_run(Run(plan["run"]))
         denoiser.warm_up()
         scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
         ms, samples = _median_ms(lambda: denoiser(crop), cfg.repeats)
         networks = list(denoiser.networks.values()) + ([denoiser.compositor] if denoiser.compositor else [])
-        train_cfg = denoiser.run.train_config(denoiser.record)
+        train_cfg = denoiser.record.train
         rows.append({"name": name, "kind": "network", "what": describe(name, train_cfg), "run": plan["run"],
                      "phase_steps": plan["phase_steps"], "training_seconds": _training_seconds(Path(plan["run"])),
                      "parameters": int(sum(n.count_params() for n in networks)), "ms_per_frame": ms,
