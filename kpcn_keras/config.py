@@ -16,7 +16,6 @@ import math
 import operator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
 
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
@@ -93,7 +92,7 @@ class ModelConfig:
     conv_size: int = bounded(3, CONV_SIZE)
     kernel_size: int = bounded(13, KERNEL_SIZE)
     dropout: float = bounded(0.0, DROPOUT)
-    batchnorm: Optional[bool] = None
+    batchnorm: bool | None = None
     branch_channels: bool = False
     slope_channel: bool = False
 
@@ -119,7 +118,7 @@ class ModelConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
+    def from_dict(cls, d: dict) -> ModelConfig:
         """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
         return _strict_from_dict(cls, d, "model")
 
@@ -154,7 +153,7 @@ class CompositorConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CompositorConfig":
+    def from_dict(cls, d: dict) -> CompositorConfig:
         """Inverse of ``to_dict``; unknown keys are an error (a typo would otherwise be silently ignored)."""
         return _strict_from_dict(cls, d, "compositor")
 
@@ -209,7 +208,7 @@ class Phase:
     epoch_steps: int
     network: str = ""
     rounds: int = 0
-    continues: Optional[str] = None
+    continues: str | None = None
 
     @property
     def component(self) -> str:
@@ -303,7 +302,7 @@ class TrainConfig:
         self.model = ModelConfig.from_dict({**user, "branch_channels": self.shared, "slope_channel": self.slope_input})
 
     @classmethod
-    def from_preset(cls, preset: str | None = None, **overrides) -> "TrainConfig":
+    def from_preset(cls, preset: str | None = None, **overrides) -> TrainConfig:
         """The preset's values (None: the default preset), then ``overrides`` (None values ignored;
         ``model`` and ``compositor`` keys merged)."""
         preset = cls.preset if preset is None else preset
@@ -362,7 +361,7 @@ class ResampleConfig:
     rounds: int = bounded(3, ROUNDS)
     metric: str = "smape"
     error_weight: float = bounded(0.5, SHARE)
-    patches_per_image: Optional[int] = bounded(None, Bound(0, PATCH_COUNT.high))  # 0 adds no patches
+    patches_per_image: int | None = bounded(None, Bound(0, PATCH_COUNT.high))  # 0 adds no patches
     round_steps: int = bounded(400, STEPS)
     round_decay: float = bounded(1.0, FRACTION)
 

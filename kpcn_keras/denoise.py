@@ -85,7 +85,7 @@ class Denoiser:
 
     @classmethod
     def from_run(cls, run: Run, tile: int = DEFAULT_TILE, *, record: RunRecord | None = None,
-                 multiscale: bool = True, resampling: bool = False) -> "Denoiser":
+                 multiscale: bool = True, resampling: bool = False) -> Denoiser:
         """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
         ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
         own use, between the phases of its current round."""
@@ -101,7 +101,7 @@ class Denoiser:
             compositor = run.load_component(record, "compositor")
         return cls(run, record, networks, compositor, tile)
 
-    def without_compositor(self) -> "Denoiser":
+    def without_compositor(self) -> Denoiser:
         """The same networks without the compositor (itself for a run that has none)."""
         if self.compositor is None:
             return self
@@ -129,7 +129,7 @@ class Denoiser:
         """Model output (log domain, float32) of ``tile``'s pixels from the features of ``window`` alone
         (``prep.features.branch_features`` with the frame's depth ``scale``), at ``slope``: the same as
         those pixels of the whole frame's features."""
-        (y0, y1, x0, x1), (ya, yb, xa, xb) = tile, window
+        (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
         # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
         # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
         feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,

@@ -51,10 +51,10 @@ import importlib
 import json
 import os
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Mapping, Optional
 
 import keras
 
@@ -149,7 +149,7 @@ class Run:
             raise KpcnError(f"{self.record_path}: a run made by an older kpcn (no training phases); train it again")
         return data
 
-    def record(self) -> "RunRecord":
+    def record(self) -> RunRecord:
         """The run record, read and parsed once (:class:`RunRecord`); KpcnError naming the file if the
         folder is not a run or the record is broken."""
         return self.parse_record(self._read_json())
@@ -161,15 +161,15 @@ class Run:
         self.parse_record(data)
         return data
 
-    def parse_record(self, data: dict) -> "RunRecord":
+    def parse_record(self, data: dict) -> RunRecord:
         """``data`` (the JSON of this run's record, e.g. a writer's copy) as a :class:`RunRecord`."""
         return RunRecord.from_json(self.record_path, data)
 
-    def finished_record(self, *, resampling: bool = False) -> "RunRecord":
+    def finished_record(self, *, resampling: bool = False) -> RunRecord:
         """:meth:`record`, refused unless the run's networks may be used (:meth:`RunRecord.finished`)."""
         return self.record().finished(resampling=resampling)
 
-    def read_files(self, record: "RunRecord") -> list[tuple[str, Path]]:
+    def read_files(self, record: RunRecord) -> list[tuple[str, Path]]:
         """What denoising with the run reads of it, ``(what, path)``: its record and each component's model
         file (for ``prep.files.check_outputs``)."""
         return [("run record", self.record_path)] + [(f"{name} model", self.dir / entry.file)
@@ -186,7 +186,7 @@ class Run:
         SHA-256 and the network it was trained as, what :meth:`load_component` checks it against."""
         record.setdefault("models", {})[file] = {"network": network, "sha256": sha256_file(self.dir / file)}
 
-    def load_component(self, record: "RunRecord", name: str, *, compile: bool = False) -> keras.Model:
+    def load_component(self, record: RunRecord, name: str, *, compile: bool = False) -> keras.Model:
         """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``compositor``) of the run,
         read from the phase file the record names; KpcnError if the run has not trained it, if the file is
         not the one the record lists (SHA-256), or if the network in it was trained for another branch."""
@@ -205,7 +205,7 @@ class Run:
         self.check_model(record, entry.file, model, name)
         return model
 
-    def check_model(self, record: "RunRecord", file: str, model: keras.Model, network: str) -> None:
+    def check_model(self, record: RunRecord, file: str, model: keras.Model, network: str) -> None:
         """KpcnError naming the run's model file ``file`` unless ``model`` (read from it) is the ``network``
         the run needs there and the file has the SHA-256 the record lists (a record without one, of a run
         written before records held them, is checked by the network's name alone)."""
@@ -221,7 +221,7 @@ class Run:
                                 f"{self.record_path} lists {listed.sha256[:12]}…); restore it or train "
                                 "the run again")
 
-    def fork(self, dest: str | os.PathLike, sset: ShardSet | None = None) -> "Run":
+    def fork(self, dest: str | os.PathLike, sset: ShardSet | None = None) -> Run:
         """A copy of this run in ``dest`` (so that two experiments can continue it apart), trained on ``sset``
         (default: the same shard set), which must hold the same content. Written under a temporary name and
         renamed, so ``dest`` is whole or absent; an existing ``dest`` is returned as it is."""
@@ -246,7 +246,7 @@ class Run:
         os.replace(tmp, new.dir)
         return new
 
-    def shard_set(self, record: "RunRecord") -> ShardSet:
+    def shard_set(self, record: RunRecord) -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""
         return ShardSet(os.path.normpath(self.dir / record.set_dir))
 
@@ -284,16 +284,16 @@ class RunRecord:
     path: Path
     train: TrainConfig
     set_dir: str
-    content_key: Optional[str]
+    content_key: str | None
     components: Mapping[str, Component]
     models: Mapping[str, ModelFile]
-    phases: Mapping[str, Optional[str]]
-    rounds: Mapping[str, Optional[str]]
-    command: Optional[str]
+    phases: Mapping[str, str | None]
+    rounds: Mapping[str, str | None]
+    command: str | None
     data: Mapping = field(repr=False)
 
     @classmethod
-    def from_json(cls, path: Path, data: dict) -> "RunRecord":
+    def from_json(cls, path: Path, data: dict) -> RunRecord:
         """The record of the JSON ``data`` read from ``path``; KpcnError naming the file and the part of the
         record that is damaged (missing, of the wrong type, or a configuration out of its bounds)."""
         part = "train"
@@ -343,7 +343,7 @@ class RunRecord:
     def component_path(self, name: str) -> Path:
         return self.dir / self.components[name].file
 
-    def finished(self, *, resampling: bool = False) -> "RunRecord":
+    def finished(self, *, resampling: bool = False) -> RunRecord:
         """This record, if the run's networks may be used: KpcnError naming the first phase that is not done
         (its status, and that ``kpcn train`` resumes it), or the first unfinished resample round (a kill
         between its two branch phases leaves one network a round ahead), unless ``resampling`` (the loop's

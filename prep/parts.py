@@ -66,7 +66,7 @@ class Part:
             raise OptionError("part", f"must be i/N with 1 <= i <= N, got {self}")
 
     @classmethod
-    def parse(cls, text: str) -> "Part":
+    def parse(cls, text: str) -> Part:
         """``"i/N"`` (1-based i), as ``--part`` takes it."""
         match = _PART_RE.match(str(text))
         if not match:
@@ -77,7 +77,7 @@ class Part:
         return cls(index - 1, count)
 
     @classmethod
-    def from_environment(cls, environ=None) -> "Part":
+    def from_environment(cls, environ=None) -> Part:
         """The part ``torchrun`` gives this process (``RANK`` of ``WORLD_SIZE``); the whole work without it."""
         values = launcher_variables((RANK, WORLD_SIZE), environ)
         if values is None:
@@ -87,7 +87,7 @@ class Part:
         return cls(values[RANK], values[WORLD_SIZE])
 
     @classmethod
-    def chosen(cls, text: str | None = None, environ=None) -> "Part":
+    def chosen(cls, text: str | None = None, environ=None) -> Part:
         """``--part`` when given, else the launcher's."""
         return cls.from_environment(environ) if text is None else cls.parse(text)
 

@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 
-
 def die_with_parent(parent: int) -> None:
     """End this process (SIGKILL) when ``parent``, the process that started it, ends, however it ends
     (Linux's PR_SET_PDEATHSIG; elsewhere nothing is set). If ``parent`` is already gone, end now."""

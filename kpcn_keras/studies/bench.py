@@ -314,9 +314,9 @@ def train_runs(cfg: BenchConfig, *, overrides: dict | None, verbose, log) -> dic
 
 def network_methods(cfg: BenchConfig, plans: dict, scenes, seconds, inputs, log) -> tuple[list[dict], list[dict]]:
     """The error-against-time methods of the trained runs at the budget, and the training-cost rows."""
-    from kpcn_keras.studies.compare import _training_seconds, describe
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.studies.compare import _training_seconds, describe
 
     methods, training = [], []
     for budget, runs in plans.items():

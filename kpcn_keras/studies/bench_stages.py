@@ -37,8 +37,8 @@ INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the defau
 def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     """The costs of each stage (module docstring); every function it calls measures side by side."""
     from kpcn_keras.studies import stage_costs as net_costs
-    from prep.studies import stage_costs as prep_costs
     from prep.shards import ShardSet
+    from prep.studies import stage_costs as prep_costs
 
     pixels = {s["name"]: s["width"] * s["height"] for s in scenes}
     stages = {"render": {

@@ -315,7 +315,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
         denoiser = Denoiser.from_run(Run(plan["run"]))
         denoiser.warm_up()
         scores = frame_scores([denoiser(f["noisy"])["default"] for f in frames], frames)
-        ms, samples = _median_ms(lambda: denoiser(crop), cfg.repeats)
+        ms, samples = _median_ms(lambda d=denoiser: d(crop), cfg.repeats)
         networks = list(denoiser.networks.values()) + ([denoiser.compositor] if denoiser.compositor else [])
         train_cfg = denoiser.record.train
         rows.append({"name": name, "kind": "network", "what": describe(name, train_cfg), "run": plan["run"],
@@ -337,7 +337,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
                               baselines.oidn_denoise))
     for name, what, fn in baseline_rows:
         scores = frame_scores([fn(f["noisy"]) for f in frames], frames)
-        ms, samples = _median_ms(lambda: fn(crop), cfg.repeats)
+        ms, samples = _median_ms(lambda fn=fn: fn(crop), cfg.repeats)
         rows.append({"name": name, "kind": "baseline", "available": True, "what": what, "ms_per_frame": ms,
                      "ms_samples": samples, **scores})
         log(f"[{name}] held-out relMSE {scores['relmse']:.4f}; {ms:.1f} ms per {w}×{h} frame")

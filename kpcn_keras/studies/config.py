@@ -10,7 +10,6 @@ fill.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 from kpcn_keras.config import FRACTION, ROUNDS, STEPS, ResampleConfig
 from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
@@ -106,8 +105,8 @@ class ResampleStudyConfig:
     rounds: int = bounded(3, ROUNDS)
     round_steps: int = bounded(200, STEPS)
     patches_per_image: int = bounded(8, PATCH_COUNT)
-    error_weight: Optional[float] = None
-    metric: Optional[str] = None
+    error_weight: float | None = None
+    metric: str | None = None
 
     def __post_init__(self):
         self.seeds, self.arms = tuple(self.seeds), tuple(self.arms)
@@ -161,12 +160,12 @@ class BenchConfig:
     runs_root: str = "runs/bench"
     out_dir: str = "reports"
     full: bool = False
-    raw_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
-    input_spp: Optional[tuple[int, ...]] = bounded(None, SPP, distinct=True)
-    budget: Optional[float] = bounded(None, BUDGET)
-    budget_fractions: Optional[tuple[float, ...]] = bounded(None, FRACTION, distinct=True)
-    configurations: Optional[tuple[str, ...]] = bounded(None, distinct=True)
-    presets: Optional[tuple[str, ...]] = bounded(None, distinct=True)
+    raw_spp: tuple[int, ...] | None = bounded(None, SPP, distinct=True)
+    input_spp: tuple[int, ...] | None = bounded(None, SPP, distinct=True)
+    budget: float | None = bounded(None, BUDGET)
+    budget_fractions: tuple[float, ...] | None = bounded(None, FRACTION, distinct=True)
+    configurations: tuple[str, ...] | None = bounded(None, distinct=True)
+    presets: tuple[str, ...] | None = bounded(None, distinct=True)
     large_frame: tuple[int, int] = bounded((1920, 1080), FRAME_SIDE)
     repeats: int = bounded(3, REPEATS)
     seed: int = bounded(0, SEED)

@@ -88,6 +88,13 @@ def frame_scores_at(loop: dict, score: str, *, rounds: int | None = None, second
     return np.array([np.interp(seconds, times, column) for column in values.T])
 
 
+def _prefixed(log, prefix: str):
+    """``log`` with each line led by ``prefix`` (which seed and arm a line of the interleaved loops is from)."""
+    def say(line):
+        log(f"{prefix} {line}")
+    return say
+
+
 def _run_arms(cfg: ResampleStudyConfig, seed: int, sset, *, verbose, progress: bool, command: str, log) -> dict:
     """The base run of ``seed`` and every arm's loop, extended to equal wall time; arm -> loop record."""
     from kpcn_keras.resample import resample
@@ -106,16 +113,15 @@ def _run_arms(cfg: ResampleStudyConfig, seed: int, sset, *, verbose, progress: b
         if configs[arm].patches_per_image:
             arm_set = sset.fork(Path(cfg.runs_root) / "shards" / f"{cfg.set_name}-seed{seed}-{arm}")
         run = base.fork(seed_dir / arm, arm_set)
-        say = (lambda line, arm=arm: log(f"[seed {seed}, {arm}] {line}"))
-        loops[arm] = resample(configs[arm], run.dir, verbose=verbose, progress=progress, command=command, log=say)
+        loops[arm] = resample(configs[arm], run.dir, verbose=verbose, progress=progress, command=command,
+                              log=_prefixed(log, f"[seed {seed}, {arm}]"))
     budget = max(cumulative_cost(loop)[cfg.rounds] for loop in loops.values())
     for arm, loop in loops.items():
         rounds = len(_rounds(loop))
         while cumulative_cost(loop)[-1] < budget and rounds < MAX_ROUNDS_FACTOR * cfg.rounds:
             rounds += 1
-            say = (lambda line, arm=arm: log(f"[seed {seed}, {arm}, equal time] {line}"))
             loop = resample(dataclasses.replace(configs[arm], rounds=rounds), seed_dir / arm, verbose=verbose,
-                            progress=progress, command=command, log=say)
+                            progress=progress, command=command, log=_prefixed(log, f"[seed {seed}, {arm}, equal time]"))
         loops[arm] = loop
     return {"budget_seconds": budget, "loops": loops}
 

@@ -171,7 +171,7 @@ def kernel_application_cost(
         step(VARIANTS[name])
     for _ in range(repeats):
         for name in names:
-            best[name] = min(best[name], _timed(lambda: step(VARIANTS[name])))
+            best[name] = min(best[name], _timed(lambda name=name: step(VARIANTS[name])))
     weight_bytes = batch * height * width * k * k * FLOAT_BYTES
     floor = weight_bytes / bandwidth["read_bytes_per_s"]
     return {

@@ -424,7 +424,7 @@ class Scene:
         return out
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Scene":
+    def from_dict(cls, d: dict) -> Scene:
         return cls(
             name=d["name"], family=d["family"], seed=d.get("seed"),
             camera=Camera(**d["camera"]),

@@ -30,7 +30,7 @@ def icosphere(center: Vec3, radius: float, subdivisions: int, material: str) -> 
     for _ in range(subdivisions):
         cache: dict[tuple[int, int], int] = {}
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = (np.asarray(verts[a]) + np.asarray(verts[b])) / 2

@@ -46,7 +46,7 @@ class ImagePatches:
 
     @classmethod
     def at(cls, noisy: dict, reference: dict, positions: np.ndarray, pdf: np.ndarray, *, source_id: int, round: int,
-           patch_size: int) -> "ImagePatches":
+           patch_size: int) -> ImagePatches:
         return cls(source_id, round, patch_size, positions, pdf, image_datasets(noisy, reference))
 
     def cut(self, start: int, stop: int) -> dict[str, np.ndarray]:

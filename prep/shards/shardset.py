@@ -234,7 +234,7 @@ class ShardSet:
                     f"{entry.round} holds ({held!r}): the manifest was edited; run 'kpcn shards' again to rewrite it"
                 )
 
-    def fork(self, dest: str | os.PathLike, rounds=(0,)) -> "ShardSet":
+    def fork(self, dest: str | os.PathLike, rounds=(0,)) -> ShardSet:
         """A new set in ``dest`` holding ``rounds`` of this complete set (hard links where the file system allows,
         else copies; shard files are never written in place, so the two sets cannot change each other's) and a
         manifest listing only them, with source paths rebased; later rounds are the new set's own. A ``dest``

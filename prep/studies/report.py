@@ -20,10 +20,10 @@ from __future__ import annotations
 import json
 import os
 import platform
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import date, datetime
 from pathlib import Path
-from typing import Callable, Optional
 
 from prep.files import atomic_write_text, check_writable, save_png
 
@@ -47,7 +47,7 @@ class Session:
     started: str = field(default_factory=now)
     load_before: tuple = field(default_factory=os.getloadavg)
 
-    def envelope(self, command: Optional[str]) -> dict:
+    def envelope(self, command: str | None) -> dict:
         """The head of a record: the day, the command that asked, when the work started and finished."""
         return {"date": date.today().isoformat(), "command": command, "started": self.started, "finished": now()}
 
@@ -77,7 +77,7 @@ class Report:
     def begin() -> Session:
         return Session()
 
-    def write(self, record: dict, markdown: str, figure: Optional[Callable[[dict], object]] = None, *,
+    def write(self, record: dict, markdown: str, figure: Callable[[dict], object] | None = None, *,
               plain: Callable[[dict], object] = lambda record: record) -> dict:
         """Write ``plain(record)`` as the json (indented by 2, one newline at the end), ``markdown`` as the
         md and ``figure(record)`` (a matplotlib figure) as the png; returns ``record``."""
@@ -85,7 +85,7 @@ class Report:
         self.write_text(record, markdown, figure)
         return record
 
-    def write_text(self, record: dict, markdown: str, figure: Optional[Callable[[dict], object]] = None) -> None:
+    def write_text(self, record: dict, markdown: str, figure: Callable[[dict], object] | None = None) -> None:
         """The md and the png alone, from a record already written (a report written again)."""
         atomic_write_text(self.path(".md"), markdown)
         if self.png and figure is not None:
