@@ -276,7 +276,8 @@ class TrainConfig:
         self.branches = tuple(self.branches)
         self.slope_range = tuple(self.slope_range)
         if not self.branches or any(b not in BRANCHES for b in self.branches):
-            raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, got {list(self.branches)}")
+            raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, "
+                              f"got {list(self.branches)}")
         if self.loss not in ("smape", "asymmetric"):
             raise OptionError("loss", f"must be 'smape' or 'asymmetric', got {self.loss!r}")
         check_fields(self)

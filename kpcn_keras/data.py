@@ -78,8 +78,9 @@ class ShardPatches(keras.utils.PyDataset):
     """
 
     def __init__(self, paths, source: str, batch_size: int, steps: int | None = None, *,
-                 model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0, loss_target: str = "reference",
-                 augment: bool = False, slope: float = 2.0, slope_range: tuple[float, float] = (1.0, 8.0),
+                 model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0,
+                 loss_target: str = "reference", augment: bool = False, slope: float = 2.0,
+                 slope_range: tuple[float, float] = (1.0, 8.0),
                  weights=None, rank: int = 0, world: int = 1, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:

@@ -8,9 +8,9 @@ window alone, with the frame's depth scale computed once (``prep.features``), an
 whole frame's bit for bit. A tile's margin is the model's receptive radius
 (trunk + kernel, ``models.receptive_radius``; ``multiscale.multiscale_radius`` with a compositor), and only
 its centre is kept, so the result equals an untiled run up to float rounding. With a compositor, tiles and
-margins are multiples of the pyramid's alignment, so each tile pools the same 2x2 blocks as the whole image. The branches are
-mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64 and
-clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
+margins are multiples of the pyramid's alignment, so each tile pools the same 2x2 blocks as the whole image. The
+branches are mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64
+and clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
 
 Batches: :func:`denoise_files` reads a run's record and loads its networks once (``Denoiser.from_run``), warms
 them up once, then denoises many frames (files, or every render in a folder) and reports start-up, load and

@@ -14,8 +14,9 @@ needs the noisy colour too, so its ``y_true`` has 6 channels, ``concatenate([gt,
 (gt first); a data pipeline yields ``(features, concatenate([gt, features[..., :3]], -1))`` and the model
 output stays 3 channels. ``AsymmetricSMAPE(slope=None)`` takes λ per element from a seventh channel of
 ``y_true`` instead (``concatenate([gt, noisy, λ], -1)``): the training of a network whose input carries λ
-(``models.network_input``), where each patch has its own λ. Both losses are registered for ``.keras`` saving. All inputs are in the domain
-the network is trained in (log(1 + x) branch colour, or the final colour for joint fine-tuning).
+(``models.network_input``), where each patch has its own λ. Both losses are registered for ``.keras`` saving. All
+inputs are in the domain the network is trained in (log(1 + x) branch colour, or the final colour for joint
+fine-tuning).
 """
 
 from __future__ import annotations

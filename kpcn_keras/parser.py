@@ -196,7 +196,8 @@ def _render_options(add) -> None:
     from prep.render import RenderConfig  # light: no numba kernels until a render runs
     from prep.render.frame import SPP
 
-    r = add("render", (RenderConfig,), {"spp": SPP}, help="render a built-in scene set (noisy inputs + references), or one scene file, to EXR")
+    r = add("render", (RenderConfig,), {"spp": SPP}, help="render a built-in scene set (noisy inputs + references), "
+               "or one scene file, to EXR")
     d = _defaults(RenderConfig)
     r.add_argument("--set", dest="set_name", help=f"render set name, a folder under --out {d('set_name')}")
     r.add_argument("--families", type=_csv, help=f"comma-separated scene families {d('families')}")
@@ -225,7 +226,8 @@ def _shards_options(add) -> None:
     s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
     s.add_argument("--out", dest="out_root", help=f"folder holding shard sets {d('out_root')}")
     s.add_argument("--patch-size", type=int, help=d("patch_size"))
-    s.add_argument("--patches-per-image", type=int, help=f"at most the patch positions of the smallest image {d('patches_per_image')}")
+    s.add_argument("--patches-per-image", type=int, help="at most the patch positions of the smallest image "
+                   f"{d('patches_per_image')}")
     s.add_argument("--patches-per-shard", type=int, help=d("patches_per_shard"))
     s.add_argument("--val-fraction", type=float, help=f"scenes held out per family {d('val_fraction')}")
     s.add_argument("--val-scenes", type=_csv, help="explicit held-out scenes (comma-separated)")
@@ -238,7 +240,8 @@ def _train_options(add) -> None:
     """The options of ``kpcn train``: the network, the phases, the optimisation."""
     from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
 
-    t = add("train", (TrainConfig, ModelConfig, CompositorConfig), help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
+    t = add("train", (TrainConfig, ModelConfig, CompositorConfig), help="train a denoiser in phases: branches, joint "
+               "fine-tuning, compositor (resumes by itself)")
     d = _defaults(TrainConfig)
     t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
     t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
@@ -256,7 +259,8 @@ def _train_options(add) -> None:
     g = t.add_argument_group("phases")
     g.add_argument("--branches", type=_csv, help=f"comma-separated subset of diffuse,specular {d('branches')}")
     g.add_argument("--steps", type=int, help=f"training steps per branch {d('steps')}")
-    g.add_argument("--joint-steps", type=int, help=f"joint fine-tuning steps on the final colour, 0 for none {d('joint_steps')}")
+    g.add_argument("--joint-steps", type=int, help="joint fine-tuning steps on the final colour, 0 for none "
+                   f"{d('joint_steps')}")
     g.add_argument("--joint-lr", dest="joint_learning_rate", type=float, help=d("joint_learning_rate"))
     g.add_argument("--compositor", help="alpha or kernel: add the multiscale compositor phase (default: none)")
     g.add_argument("--compositor-steps", type=int, help=d("compositor_steps"))
@@ -266,7 +270,8 @@ def _train_options(add) -> None:
     g = t.add_argument_group("optimisation")
     g.add_argument("--batch-size", type=int, help=d("batch_size"))
     g.add_argument("--lr", dest="learning_rate", type=float, help=f"initial learning rate {d('learning_rate')}")
-    g.add_argument("--decay-steps", type=int, help=f"steps per decay of the learning rate by --decay-rate {d('decay_steps')}")
+    g.add_argument("--decay-steps", type=int, help="steps per decay of the learning rate by --decay-rate "
+                   f"{d('decay_steps')}")
     g.add_argument("--decay-rate", type=float, help=d("decay_rate"))
     g.add_argument("--clipnorm", type=float, help=f"gradient norm clip {d('clipnorm')}")
     g.add_argument("--loss", help=f"smape or asymmetric {d('loss')}")
@@ -283,8 +288,8 @@ def _resample_options(add) -> None:
     """The options of ``kpcn resample``."""
     from kpcn_keras.config import ResampleConfig
 
-    m = add("resample", (ResampleConfig,), help="error-based resampling rounds: new patches where the run's denoiser errs, "
-               "then more training on every round (resumes by itself)")
+    m = add("resample", (ResampleConfig,), help="error-based resampling rounds: new patches where the run's denoiser "
+               "errs, then more training on every round (resumes by itself)")
     d = _defaults(ResampleConfig)
     _run_option(m, required=True, help="a run folder that finished training (kpcn train)")
     m.add_argument("--rounds", type=int, help=f"error rounds in all; a rerun with more adds rounds {d('rounds')}")
@@ -302,7 +307,8 @@ def _denoise_options(add) -> None:
     """The options of ``kpcn denoise``."""
     from kpcn_keras.config import DEFAULT_TILE, SLOPE, TILE
 
-    n = add("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs in the AOV layout: files, or every render in a folder, in one process")
+    n = add("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs in the AOV layout: files, or every "
+               "render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
     _run_option(n, required=True, help="a run folder that finished training (kpcn train)")
@@ -333,8 +339,9 @@ def _figures_options(add) -> None:
     """The options of ``kpcn figures``."""
     from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PIXEL, SLOPE, TILE
 
-    f = add("figures", own={"tile": TILE, "slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",), help="draw the report's figures from a run: kernels, α maps, with and without "
-               "multiscale, a λ sweep (into <run>/figures)")
+    f = add("figures", own={"tile": TILE, "slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",),
+            help="draw the report's figures from a run: kernels, α maps, with and without multiscale, a λ sweep "
+            "(into <run>/figures)")
     _run_option(f, required=True)
     f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
                    "at its lowest spp); its reference is the same scene's render with the most samples beside it")
@@ -349,8 +356,9 @@ def _bench_options(add) -> None:
     from kpcn_keras.studies.config import BENCH_PRESETS, BenchConfig
     from prep.studies.render_bench import RenderBenchConfig
 
-    b = add("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: reports/accuracy_time.{md,json,png} (or, with 'render', "
-               "the path tracer's samples per second: reports/render.{md,json})")
+    b = add("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: "
+               "reports/accuracy_time.{md,json,png} (or, with 'render', the path tracer's samples per second: "
+               "reports/render.{md,json})")
     d = _defaults(BenchConfig)
     b.add_argument("what", nargs="?", choices=["accuracy", "render"], default="accuracy",
                    help="accuracy (the default): error against time per frame of raw Monte Carlo, our denoisers "
@@ -366,8 +374,10 @@ def _bench_options(add) -> None:
                    "--budget (default: the ladder's)")
     b.add_argument("--configurations", type=_csv, help="configurations of kpcn compare to train and measure "
                    "(default: the ladder's)")
-    b.add_argument("--presets", type=_csv, help=f"presets of the training-cost curve (default: {','.join(BENCH_PRESETS)})")
-    b.add_argument("--large-frame", type=_csv_ints, help=f"WIDTH,HEIGHT of the frame timed against OIDN {d('large_frame')}")
+    b.add_argument("--presets", type=_csv, help="presets of the training-cost curve (default: "
+                   f"{','.join(BENCH_PRESETS)})")
+    b.add_argument("--large-frame", type=_csv_ints, help="WIDTH,HEIGHT of the frame timed against OIDN "
+                   f"{d('large_frame')}")
     b.add_argument("--repeats", type=int, help=f"timed calls per stage cost {d('repeats')}")
     b.add_argument("--seed", type=int, help=d("seed"))
     d = _defaults(RenderBenchConfig)
@@ -380,8 +390,8 @@ def _compare_options(add) -> None:
     """The options of ``kpcn compare``."""
     from kpcn_keras.studies.config import CompareConfig
 
-    c = add("compare", (CompareConfig,), help="train every configuration for the same seconds, then compare accuracy and cost "
-               "on held-out frames; writes reports/compare.{md,json,png}")
+    c = add("compare", (CompareConfig,), help="train every configuration for the same seconds, then compare accuracy "
+               "and cost on held-out frames; writes reports/compare.{md,json,png}")
     d = _defaults(CompareConfig)
     _experiment_folders(c, d, "the comparison's runs")
     c.add_argument("--budget", type=float, help=f"seconds of training per configuration {d('budget')}")
@@ -398,8 +408,8 @@ def _resample_study_options(add) -> None:
     from kpcn_keras.config import ResampleConfig
     from kpcn_keras.studies.config import ResampleStudyConfig
 
-    y = add("resample-study", (ResampleStudyConfig, ResampleConfig), help="error rounds against variance sampling alone, at equal steps and equal "
-               "wall time, over several seeds; writes reports/resample.{md,json,png}")
+    y = add("resample-study", (ResampleStudyConfig, ResampleConfig), help="error rounds against variance sampling "
+               "alone, at equal steps and equal wall time, over several seeds; writes reports/resample.{md,json,png}")
     d = _defaults(ResampleStudyConfig)
     _experiment_folders(y, d, "the study's runs and shard copies")
     y.add_argument("--seeds", type=_csv_ints, help=f"training seeds, comma-separated {d('seeds')}")
@@ -407,7 +417,8 @@ def _resample_study_options(add) -> None:
     y.add_argument("--base-steps", type=int, help=f"steps per network of each seed's base run {d('base_steps')}")
     y.add_argument("--rounds", type=int, help=d("rounds"))
     y.add_argument("--round-steps", type=int, help=f"steps per network per round {d('round_steps')}")
-    y.add_argument("--patches-per-image", type=int, help=f"new patches per training input per round {d('patches_per_image')}")
+    y.add_argument("--patches-per-image", type=int, help="new patches per training input per round "
+                   f"{d('patches_per_image')}")
     y.add_argument("--error-weight", type=float, help="share of the error PDF in the error arm's mix (default: "
                    f"{_default(ResampleConfig, 'error_weight')})")
     y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")

@@ -19,8 +19,8 @@
 
 A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``), and
 ``compositor`` for a multiscale run. The record's ``components`` maps each to the phase file that holds its
-latest weights and the path of nested model names to it inside that file (joint fine-tuning trains both branch networks as
-parts of one model, so its file holds both): :meth:`Run.load_component` is how anything reads one.
+latest weights and the path of nested model names to it inside that file (joint fine-tuning trains both branch
+networks as parts of one model, so its file holds both): :meth:`Run.load_component` is how anything reads one.
 
 The record stores the shard set's folder relative to the run folder, and no field names the run itself,
 so a run folder can be renamed or used from any working directory.

@@ -24,7 +24,8 @@ IMPORTANCE_EPS = 0.01
 ERROR_METRICS = ("smape", "relmse")
 
 
-def variance_importance(aovs: dict[str, np.ndarray], colour_weight: float = 1.0, normal_weight: float = 1.0) -> np.ndarray:
+def variance_importance(aovs: dict[str, np.ndarray], colour_weight: float = 1.0,
+                        normal_weight: float = 1.0) -> np.ndarray:
     """Per-pixel importance: colour_weight * relative colour variance + normal_weight * normal variance.
 
     The colour term is colorVariance / (mean(default)^2 + IMPORTANCE_EPS), so that dark noisy regions

@@ -156,7 +156,8 @@ def summary(timer) -> None:
         steps = len(e["steps"])
         print(f"  {name:<22} {e['total']:7.2f} s: compute {sum(e['steps']):6.2f} s ({steps} steps, median "
               f"{1e3 * statistics.median(e['steps']):.1f} ms), batch wait {sum(e['waits']):5.2f} s (median "
-              f"{1e3 * statistics.median(e['waits']):.1f} ms), validation {e['val']:5.2f} s, writes {e['writes']:5.2f} s")
+              f"{1e3 * statistics.median(e['waits']):.1f} ms), validation {e['val']:5.2f} s, "
+              f"writes {e['writes']:5.2f} s")
 
     epochs = timer.epochs
     print(f"before fit: {timer.fit_at - timer.started:.2f} s (every shard's checksum, the record, the model, the data "

@@ -8,11 +8,11 @@ The contract:
   the inputs are the set's own files, and the reference is the set's reference of the scene. The scenes
   come from the render set's ``config.json``: the bench needs a set made by ``kpcn render``.
 - **Methods**, each on the same frames: raw Monte Carlo; every configuration of ``configurations`` (and the
-  presets) trained for ``budget`` seconds (``kpcn compare``'s planning: :func:`kpcn_keras.studies.compare.plan_and_train`,
-  in ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``), a multiscale run with and without its compositor;
-  non-local means; Intel Open Image Denoise when ``pyoidn`` is installed. A point is (input spp, seconds =
-  render + denoise, relMSE, DSSIM, relSE p99.9); a denoiser's seconds per frame is its own call on that
-  frame after a warm-up (model loading is a stage cost, reported apart).
+  presets) trained for ``budget`` seconds (``kpcn compare``'s planning:
+  :func:`kpcn_keras.studies.compare.plan_and_train`, in ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``), a
+  multiscale run with and without its compositor; non-local means; Intel Open Image Denoise when ``pyoidn`` is
+  installed. A point is (input spp, seconds = render + denoise, relMSE, DSSIM, relSE p99.9); a denoiser's seconds
+  per frame is its own call on that frame after a warm-up (model loading is a stage cost, reported apart).
 - **Summaries over scenes**: the geometric mean of relMSE and relSE p99.9 (the arithmetic mean is kept in the
   JSON, but one scene whose reference still has fireflies carries it: docs/results.md §6) and the mean DSSIM.
 - **Equal-error spp** (:func:`equal_error_spp`): per scene, the spp at which raw Monte Carlo reaches the
@@ -23,12 +23,12 @@ The contract:
   seconds) over render + denoise time. The report gives the median over scenes and each scene's value.
 - **Training cost**: each preset of ``presets`` trained for each of :meth:`BenchConfig.budgets`, its held-out
   scores against the seconds its phases took.
-- **Stage costs** (:func:`kpcn_keras.studies.bench_stages.stage_costs`): render samples per second; features (numba against the float64 numpy
-  reference and the EXR decode); shard layouts side by side (write patches/s, bytes, batch read) and
-  ``kpcn shards`` end to end; reading a training batch against a training step; a Keras training step
-  against the same network in plain torch; kernel application against the memory-bandwidth floor (k = 13,
-  21); inference start-up, then a frame of the held-out size and a ``large_frame`` frame against OIDN for
-  the default and the fast configuration (:data:`INFERENCE`), and ``kpcn denoise`` of the large frame as a
+- **Stage costs** (:func:`kpcn_keras.studies.bench_stages.stage_costs`): render samples per second; features
+  (numba against the float64 numpy reference and the EXR decode); shard layouts side by side (write patches/s,
+  bytes, batch read) and ``kpcn shards`` end to end; reading a training batch against a training step; a Keras
+  training step against the same network in plain torch; kernel application against the memory-bandwidth floor
+  (k = 13, 21); inference start-up, then a frame of the held-out size and a ``large_frame`` frame against OIDN
+  for the default and the fast configuration (:data:`INFERENCE`), and ``kpcn denoise`` of the large frame as a
   command with its own peak memory.
 - **Writes** ``accuracy_time.json`` (every number, the command, the date, the machine and what else was
   running), ``accuracy_time.md`` and ``accuracy_time.png`` in ``out_dir``, each atomically

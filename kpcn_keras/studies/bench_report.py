@@ -45,7 +45,8 @@ def format_report(record: dict) -> str:
     for row in record["equal_error"]:
         hows = ", ".join(f"{k} {v}" for k, v in sorted(row["hows"].items()))
         lines.append(f"| {row['method']} | {row['spp']} | {_f(row['median_equal_spp'], '{:.0f}')} | "
-                     f"{_f(row['median_spp_saving'], '{:.1f}×')} | {_f(row['median_time_saving'], '{:.1f}×')} | {hows} |")
+                     f"{_f(row['median_spp_saving'], '{:.1f}×')} | {_f(row['median_time_saving'], '{:.1f}×')} | "
+                     f"{hows} |")
     lines += [
         "",
         "## Error against time per frame",
@@ -144,8 +145,8 @@ def plot_figure(record: dict):
     panels = (("relmse", "relMSE (geometric mean over scenes)"), ("dssim", "DSSIM (mean over scenes)"),
               ("relse_p999", "relSE p99.9 (geometric mean over scenes)"))
     # fixed styles for the yardsticks, and a colour of its own for each network (tab20 has enough)
-    fixed = {"raw Monte Carlo": dict(color="black", lw=2, marker="o"), "OIDN": dict(color="crimson", ls="--", marker="s"),
-             "NLM": dict(color="grey", ls="--", marker="s")}
+    fixed = {"raw Monte Carlo": dict(color="black", lw=2, marker="o"),
+             "OIDN": dict(color="crimson", ls="--", marker="s"), "NLM": dict(color="grey", ls="--", marker="s")}
     networks = [m["name"] for m in record["methods"] if m["name"] not in fixed]
     # tab10 without its red and grey (OIDN's and NLM's), then tab20's light shades
     colours = [plt.cm.tab10.colors[i] for i in (0, 1, 2, 4, 5, 6, 8, 9)] + list(plt.cm.tab20.colors[1::2])

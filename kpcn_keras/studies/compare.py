@@ -3,8 +3,9 @@
 The contract:
 
 - **Configurations** are :data:`kpcn_keras.studies.config.CONFIGURATIONS` (name -> what it is, preset,
-  TrainConfig overrides), the one place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets' architectures, batch, learning
-  rates and phases; only their steps (and the decay) are cut to the budget, and the report says so.
+  TrainConfig overrides), the one place they are defined. ``kpcn-paper`` and ``kpal-paper`` keep their presets'
+  architectures, batch, learning rates and phases; only their steps (and the decay) are cut to the budget, and the
+  report says so.
 - **One shard set, one budget.** Every configuration trains on ``<shards_root>/<set_name>`` for
   ``budget`` seconds of training steps into its own run folder
   ``<runs_root>/<set>-<budget>s-seed<seed>/<name>``. Seconds become steps by probing

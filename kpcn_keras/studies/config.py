@@ -124,7 +124,8 @@ class ResampleStudyConfig:
         given = {"metric": self.metric}
         weight = self.error_weight if error_weight is None else error_weight
         return ResampleConfig(rounds=self.rounds, round_steps=self.round_steps,
-                              patches_per_image=self.patches_per_image if patches_per_image is None else patches_per_image,
+                              patches_per_image=(self.patches_per_image if patches_per_image is None
+                                                 else patches_per_image),
                               **({"error_weight": weight} if weight is not None else {}),
                               **{k: v for k, v in given.items() if v is not None})
 

@@ -216,8 +216,10 @@ def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progre
         "arms": {arm: ARMS[arm][0] for arm in cfg.arms},
         "loop": {arm: cfg.loop(**ARMS[arm][1]).to_dict() for arm in cfg.arms},
         "shards": {"set_dir": str(sset.dir), "content_key": manifest["content_key"],
-                   "training_inputs": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "train"),
-                   "held_out_frames": sum(1 for s in manifest["sources"] if s["role"] == "input" and s["split"] == "val")},
+                   "training_inputs": sum(1 for s in manifest["sources"]
+                                          if s["role"] == "input" and s["split"] == "train"),
+                   "held_out_frames": sum(1 for s in manifest["sources"]
+                                          if s["role"] == "input" and s["split"] == "val")},
         "machine": session.machine(**deep_learning_stack()),
         "seeds": {str(s): v for s, v in seeds.items()},
         "summary": summarise(cfg, seeds),
@@ -270,9 +272,10 @@ def format_report(record: dict) -> str:
                   "|---|---|---|---|---|---|---|---|"]
         for pair in summary["pairs"]:
             if pair["when"] == when:
-                lines.append(f"| {pair['a']} − {pair['b']} | {pair['score']} | {_fmt(pair['differences'], '{:+.4f}')} | "
-                             f"{pair['mean']:+.4f} | {pair['verdict']} | {pair['frames_lower']} of "
-                             f"{pair['frames_compared']} | {pair['sign_test_p']:.3g} | {pair['geomean_ratio']:.3f} |")
+                lines.append(f"| {pair['a']} − {pair['b']} | {pair['score']} | "
+                             f"{_fmt(pair['differences'], '{:+.4f}')} | {pair['mean']:+.4f} | {pair['verdict']} | "
+                             f"{pair['frames_lower']} of {pair['frames_compared']} | {pair['sign_test_p']:.3g} | "
+                             f"{pair['geomean_ratio']:.3f} |")
         lines.append("")
     m = record["machine"]
     lines += [

@@ -204,7 +204,8 @@ def train_step_cost(model_config: ModelConfig, batch_size: int = 8, patch: int =
     model.compile(optimizer=keras.optimizers.Adam(ADAM_LEARNING_RATE), loss=SMAPE())
     optimizer = torch.optim.Adam(net.parameters(), lr=ADAM_LEARNING_RATE, eps=KERAS_ADAM_EPSILON)
     rng = np.random.default_rng(0)
-    x = torch.from_numpy(rng.uniform(0.0, 1.0, (batch_size, patch, patch, model_config.input_channels)).astype(np.float32))
+    x = torch.from_numpy(rng.uniform(0.0, 1.0, (batch_size, patch, patch,
+                                                model_config.input_channels)).astype(np.float32))
     y = torch.from_numpy(rng.uniform(0.0, 1.0, (batch_size, patch, patch, 3)).astype(np.float32))
 
     def torch_step():

@@ -63,7 +63,8 @@ class RenderConfig:
             raise OptionError("families", "must name at least one scene family")
         for fam in self.families:
             if fam not in FAMILIES:
-                raise OptionError("families", f"has unknown scene family {fam!r}; valid families: {', '.join(FAMILIES)}")
+                raise OptionError("families", f"has unknown scene family {fam!r}; valid families: "
+                                  f"{', '.join(FAMILIES)}")
         if not self.input_spp:
             raise OptionError("input_spp", "must name at least one sample count")
         check_fields(self)
@@ -75,7 +76,8 @@ class RenderConfig:
             if reference_spp(self, fam) > SPP.high:
                 raise OptionError("reference_spp", f"{self.reference_spp} renders {fam}'s references at "
                                   f"{REFERENCE_SPP_FACTOR[fam]} times that, {reference_spp(self, fam)}, above the "
-                                  f"{SPP.high} of any render; at most {SPP.high // REFERENCE_SPP_FACTOR[fam]} with {fam}")
+                                  f"{SPP.high} of any render; at most {SPP.high // REFERENCE_SPP_FACTOR[fam]} "
+                                  f"with {fam}")
         check_frame(self.width, self.height)
 
 

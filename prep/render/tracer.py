@@ -18,7 +18,8 @@ TEX_NONE, TEX_WORLD, TEX_UV, TEX_IMAGE = 0, 1, 2, 3  # order of scene.TEXTURES
 # Column layouts of the material, quad, triangle and BVH tables and the kinds of lights, mirrored from packing.py
 # (MAT_*, QUAD_COLS, TRI_*, BVH_*, LIGHT_*) rather than imported, so that numba's cache of this file cannot hold
 # stale copies; a test checks they agree.
-M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION, M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 0, 1, 4, 7, 8, 11, 12, 15, 16
+M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION = 0, 1, 4, 7, 8
+M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
 T_V0, T_E1, T_E2, T_NORMAL, T_AREA = 0, 3, 6, 9, 12
 L_QUAD, L_SPHERE, L_TRIANGLE, L_ENVIRONMENT = 0, 1, 2, 3

@@ -215,7 +215,8 @@ def open_shard(path: str | os.PathLike) -> h5py.File:
         raise ShardError(f"{path}: damaged HDF5 file ({exc})") from None
     if found != FORMAT or not complete:
         f.close()
-        raise ShardError(f"{path}: incomplete or foreign shard (format={found!r}, complete={complete}; expected {FORMAT!r})")
+        raise ShardError(f"{path}: incomplete or foreign shard (format={found!r}, complete={complete}; "
+                         f"expected {FORMAT!r})")
     if missing:
         f.close()
         raise ShardError(f"{path}: missing datasets {missing}")

@@ -71,7 +71,8 @@ class ImagePatches:
         out["pdf"][rows] = self.pdf[start:stop]
 
 
-def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None, error_weight: float = 0.0) -> np.ndarray:
+def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None,
+              error_weight: float = 0.0) -> np.ndarray:
     """A round's PDF over the patch positions of one input: its variance PDF (docs/method.md §3), and in an
     error round (docs/method.md §8) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
     window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""

@@ -147,7 +147,8 @@ def source_changes(old: list[dict], new: list[dict]) -> str:
     for label, names in (
         ("added", sorted(set(b) - set(a))),
         ("removed", sorted(set(a) - set(b))),
-        ("changed", sorted(k for k in set(a) & set(b) if (a[k]["sha256"], a[k]["split"]) != (b[k]["sha256"], b[k]["split"]))),
+        ("changed", sorted(k for k in set(a) & set(b)
+                           if (a[k]["sha256"], a[k]["split"]) != (b[k]["sha256"], b[k]["split"]))),
     ):
         if names:
             parts.append(f"{label} " + ", ".join(f"{scene} ({spp} spp)" for scene, spp in names))

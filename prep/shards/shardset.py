@@ -1,6 +1,7 @@
 """The folder of one shard set, its manifest and its rounds: :class:`ShardSet` is the one owner of its layout::
 
-    <set>/manifest.json             sources (with SHA-256), split, configuration, every round and shard (with its CRC-32)
+    <set>/manifest.json             sources (with SHA-256), split, configuration, every round and shard (with
+                                    its CRC-32)
     <set>/.lock                     held by the one process that writes the set
     <set>/round-<k>/shard-<i>.h5    up to ``patches_per_shard`` patches of one split (train or val)
     <set>/round-<k>/plan.npz        an error round's positions, drawn before its shards are cut (k >= 1)
@@ -176,8 +177,8 @@ class ShardSet:
                                  "run 'kpcn shards' again to rebuild it")
             if not entry.intact():
                 raise ShardError(
-                    f"{entry.path}: its checksum ({entry.checksum[0]}) differs from the one in {self.manifest_path} (the file changed "
-                    "after it was written); run 'kpcn shards' again to rebuild it"
+                    f"{entry.path}: its checksum ({entry.checksum[0]}) differs from the one in {self.manifest_path} "
+                    "(the file changed after it was written); run 'kpcn shards' again to rebuild it"
                 )
             self._check_claims(manifest, entry)
         return entries

@@ -21,8 +21,8 @@ function                               measures
 ``kpcn shards`` end to end is timed as a command by ``kpcn_keras.studies.bench.shards_command_cost``.
 
 Scratch: :func:`shard_layout_costs` writes only inside a fresh folder under
-``out_dir`` (created if missing, not its parents) and remove it, and ``out_dir`` itself if they created it, also when they
-fail. Nothing else is written. Reads are of files just written, so from the page cache: what training
+``out_dir`` (created if missing, not its parents) and remove it, and ``out_dir`` itself if they created it, also
+when they fail. Nothing else is written. Reads are of files just written, so from the page cache: what training
 sees on a machine whose memory holds the set.
 """
 
@@ -199,7 +199,8 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
                         diff = np.abs(got - want)
                         abs_err = max(abs_err, float(np.max(diff)))
                         rel_err = max(rel_err, float(np.max(diff / np.maximum(np.abs(want), REL_ERROR_FLOOR))))
-                provenance_equal = all(np.array_equal(f[k][()], patches[k]) for k in ("source", "position", "round", "pdf"))
+                provenance_equal = all(np.array_equal(f[k][()], patches[k])
+                                       for k in ("source", "position", "round", "pdf"))
             result[name] = {
                 "write_patches_per_s": n / _best(write_s[name]),
                 "bytes_per_patch": paths[name].stat().st_size / n,
