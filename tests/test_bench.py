@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
 from kpcn_keras import bench
 from kpcn_keras.config import BenchConfig
 from prep.errors import OptionError

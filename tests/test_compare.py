@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
 from kpcn_keras import compare as cmp
 from kpcn_keras.config import PRESETS, CompareConfig
 from prep import exr

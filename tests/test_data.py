@@ -3,7 +3,7 @@ import pickle
 import numpy as np
 import pytest
 
-from conftest import build_tiny_shards
+from helpers import build_tiny_shards
 from kpcn_keras.data import ShardPatches
 from prep.shards import ShardError, open_shard, shard_paths
 

@@ -2,7 +2,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from helpers import random_aovs
 from kpcn_keras.denoise import Denoiser, denoise_file
 from kpcn_keras.models import network_input
 from prep import exr, features

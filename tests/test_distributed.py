@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO, launcher_free_env, torchrun
+from helpers import REPO, launcher_free_env, torchrun
 from kpcn_keras import distributed
 
 # One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
@@ -158,7 +158,7 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     """The documented launch line, on 2 gloo processes, against `kpcn train` alone, through every phase
     (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
     losses, and one set of files, written by rank 0."""
-    from conftest import build_tiny_shards, kpcn
+    from helpers import build_tiny_shards, kpcn
     from kpcn_keras.run import Run, load_model
 
     build_tiny_shards(tmp_path)
@@ -191,7 +191,7 @@ def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_file
     import signal
     import time
 
-    from conftest import build_tiny_shards, checksums
+    from helpers import build_tiny_shards, checksums
 
     env = launcher_free_env(PYTHONPATH=str(REPO))
     trees = {}

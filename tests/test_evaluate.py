@@ -82,7 +82,7 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
 def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_run, tmp_path, capsys):
     import os
 
-    from conftest import checksums, random_aovs
+    from helpers import checksums, random_aovs
 
     for folder in ("a", "b"):
         exr.write_aovs(tmp_path / folder / "x-00004spp.exr", random_aovs(16, 16))
@@ -106,7 +106,7 @@ def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_r
 def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(tiny_run, tmp_path, capsys):
     import shutil
 
-    from conftest import make_renders, random_aovs
+    from helpers import make_renders, random_aovs
 
     folder = make_renders(tmp_path / "renders", scenes=("a-000",), size=(24, 20))
     noisy, ref = folder / exr.render_filename("a-000", 4), folder / exr.render_filename("a-000", 64)

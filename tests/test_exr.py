@@ -3,7 +3,7 @@ import logging
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from helpers import random_aovs
 from prep import exr
 
 

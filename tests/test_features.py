@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from helpers import random_aovs
 from prep import features
 from prep.features import reference_features
 

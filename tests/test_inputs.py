@@ -8,7 +8,7 @@ are clamped to float32 max); a file that cannot be read is one AOVError naming i
 import numpy as np
 import pytest
 
-from conftest import random_aovs
+from helpers import random_aovs
 from prep import exr, features, metrics
 
 F32_MAX = float(np.finfo(np.float32).max)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import randomise
+from helpers import randomise
 
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE

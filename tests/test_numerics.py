@@ -1,6 +1,6 @@
 """Hard numerical cases end to end, and property-based tests of the numerics (issue 5).
 
-Every hard case is a synthetic render (``conftest.random_aovs`` with the case applied) that goes through
+Every hard case is a synthetic render (``helpers.random_aovs`` with the case applied) that goes through
 the whole pipeline: written with ``prep.exr.write_aovs`` and read back (the repair rule), the features of
 both branches (finite, inside the ranges of the table in ``prep/features.py``, equal to a float64 numpy
 evaluation of that table), the variance PDF (a distribution equal to explicit window sums), shards, real
@@ -25,7 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import random_aovs, randomise, reference_features
+from helpers import random_aovs, randomise, reference_features
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.layers import KernelApply, softmax_kernels
 from kpcn_keras.losses import SMAPE, SMAPE_EPS, AsymmetricSMAPE, asymmetric_smape, smape

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, launcher_free_env, torchrun
+from helpers import REPO, launcher_free_env, torchrun
 from kpcn_keras.cli import main
 from prep.errors import OptionError
 from prep.parts import LaunchError, Part

@@ -14,7 +14,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import REPO, assert_one_line_error, build_tiny_shards, kpcn, random_aovs, randomise
+from helpers import REPO, assert_one_line_error, build_tiny_shards, kpcn, random_aovs, randomise
 from kpcn_keras import augment
 from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.data import ShardPatches

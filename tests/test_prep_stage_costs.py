@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from conftest import make_renders
+from helpers import make_renders
 from prep import exr, shards, stage_costs
 
 

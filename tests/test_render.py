@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn, rect_form_factor
+from helpers import assert_one_line_error, checksums, kpcn, rect_form_factor
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -812,7 +812,7 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
 
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
-    from conftest import REPO
+    from helpers import REPO
     from prep.render.bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())
@@ -861,7 +861,7 @@ def _available_gib() -> float:
 
 
 def test_a_huge_frame_is_refused_in_one_line_before_anything_is_written(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, kpcn
 
     res = kpcn("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
     assert_one_line_error(res, "--width must be an integer in [1, 16384], got 100000")

@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, checksums_but_timings, make_renders
+from helpers import REPO, checksums_but_timings, make_renders
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]

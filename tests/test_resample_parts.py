@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights

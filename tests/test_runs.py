@@ -8,7 +8,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from helpers import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
 from kpcn_keras.run import Run, load_model, read_state

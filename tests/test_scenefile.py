@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn
+from helpers import assert_one_line_error, checksums, kpcn
 from prep import exr
 from prep.errors import KpcnError, OptionError
 from prep.render import EFFECTS, FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene, render

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError
 

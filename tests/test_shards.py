@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, features, shards
 from prep.files import is_temporary
 

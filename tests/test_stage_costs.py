@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import randomise
+from helpers import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
 from kpcn_keras.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras

@@ -10,7 +10,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import build_tiny_shards, checksums
+from helpers import build_tiny_shards, checksums
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep.errors import KpcnError, OptionError
@@ -148,7 +148,7 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
 # --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
 
 def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, kpcn
 
     shard_cfg = build_tiny_shards(tmp_path)
     res = kpcn("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
@@ -195,7 +195,7 @@ def test_the_largest_network_that_fits_the_patches_is_accepted():
 
 
 def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, kpcn
 
     res = kpcn("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")
