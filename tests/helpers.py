@@ -130,14 +130,14 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
 
 @contextlib.contextmanager
 def process_state_kept():
-    """Put back what ``kpcn_keras.cli.main`` changes in the process: the environment (``set_threads`` writes
-    ``OMP_NUM_THREADS``/``MKL_NUM_THREADS``), the working directory, the root logger (``logging.basicConfig``)
-    and the numba and torch thread counts."""
+    """Put back what ``kpcn_keras.cli.main`` (or a test around it) changes in the process: the environment
+    (``set_threads`` writes ``OMP_NUM_THREADS``/``MKL_NUM_THREADS``), ``sys.argv``, the working directory,
+    the root logger (``logging.basicConfig``) and the numba and torch thread counts."""
     import numba
 
     from prep import threads
 
-    environ, cwd = dict(os.environ), os.getcwd()
+    environ, cwd, argv = dict(os.environ), os.getcwd(), sys.argv[:]
     root = logging.getLogger()
     handlers, level = root.handlers[:], root.level
     counts = numba.get_num_threads(), threads.requested()
@@ -147,6 +147,7 @@ def process_state_kept():
         yield
     finally:
         os.chdir(cwd)
+        sys.argv[:] = argv
         os.environ.clear()
         os.environ.update(environ)
         root.handlers[:] = handlers
@@ -159,12 +160,13 @@ def process_state_kept():
 
 def run_main(*args, cwd) -> subprocess.CompletedProcess:
     """``kpcn -q ARGS`` through ``kpcn_keras.cli.main`` in this process, in ``cwd``, as :func:`kpcn` runs it
-    (no launcher variables, no ``KPCN_DEBUG``, the root logger writing to this call's stderr, warnings shown
+    (``sys.argv`` as ``python -m kpcn_keras.cli`` sets it, which records keep; no launcher variables, no
+    ``KPCN_DEBUG``; the root logger writing to this call's stderr, warnings shown
     as a fresh interpreter shows them, and what a library writes to file descriptors 1 and 2 caught too):
     its exit status (argparse's ``SystemExit`` too) and what it printed, without the seconds a fresh
     interpreter spends importing torch and keras. For the checks of what a command says and writes;
     :func:`kpcn` stays for those of the process itself (signals, limits, imports, a launcher)."""
-    from kpcn_keras.cli import main
+    from kpcn_keras import cli
     from prep.parts import LOCAL_RANK, LOCAL_WORLD_SIZE, RANK, WORLD_SIZE
 
     argv = ["-q", *map(str, args)]
@@ -178,6 +180,7 @@ def run_main(*args, cwd) -> subprocess.CompletedProcess:
         for name in (RANK, WORLD_SIZE, LOCAL_RANK, LOCAL_WORLD_SIZE, "KPCN_DEBUG"):
             os.environ.pop(name, None)
         os.chdir(cwd)
+        sys.argv[:] = [cli.__file__, *argv]
         root = logging.getLogger()
         root.handlers[:] = []  # as in a fresh process, so that main's basicConfig logs to this stderr
         root.setLevel(logging.WARNING)
@@ -191,7 +194,7 @@ def run_main(*args, cwd) -> subprocess.CompletedProcess:
         try:
             with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
                 try:
-                    status = main(argv)
+                    status = cli.main(argv)
                 except SystemExit as exc:
                     status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
                     if exc.code is not None and not isinstance(exc.code, int):

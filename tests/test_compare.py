@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
 from kpcn_keras import compare as cmp
 from kpcn_keras.config import PRESETS, CompareConfig
 from prep import exr
@@ -82,7 +82,7 @@ def test_unknown_configuration_is_a_one_line_error_listing_the_known_ones(tmp_pa
     for bad in ({"budget": 0}, {"budget": float("inf")}, {"repeats": 0}, {"configurations": ("cpu", "cpu")}):
         with pytest.raises(OptionError, match=next(iter(bad))):
             CompareConfig(**bad)
-    res = kpcn("compare", "--configurations", "cpu,kpcn-papr", cwd=tmp_path)
+    res = run_main("compare", "--configurations", "cpu,kpcn-papr", cwd=tmp_path)
     assert_one_line_error(res, "--configurations", "'kpcn-papr'", "kpal-paper", "multiscale-kernel")
     assert not any(tmp_path.iterdir())
 
@@ -246,7 +246,7 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
     (tmp_path / "compare.json").write_text(json.dumps(record, indent=2) + "\n")
     (tmp_path / "compare.md").write_text("an older report\n")
     before = datetime.date.today()
-    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    res = run_main("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     md = (tmp_path / "compare.md").read_text()
     # the day it ran: the day before the command or after it (a run across midnight)
@@ -259,6 +259,6 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
 
 
 def test_report_only_without_a_record_is_a_one_line_error(tmp_path):
-    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    res = run_main("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert_one_line_error(res, str(tmp_path / "compare.json"), "no such comparison record")
     assert not any(tmp_path.iterdir())

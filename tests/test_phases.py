@@ -14,7 +14,7 @@ import keras
 import numpy as np
 import pytest
 
-from helpers import REPO, assert_one_line_error, build_tiny_shards, kpcn, random_aovs, randomise
+from helpers import REPO, assert_one_line_error, build_tiny_shards, random_aovs, randomise, run_main
 from kpcn_keras import augment
 from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.data import ShardPatches
@@ -366,22 +366,22 @@ def test_the_command_line_trains_shared_slope_input_multiscale_and_draws_every_f
             "--width", "4", "--depth", "2", "--kernel-size", "3", "--steps", "2", "--batch-size", "2",
             "--shared", "--joint-steps", "2", "--compositor", "kernel", "--compositor-steps", "2",
             "--loss", "asymmetric", "--slope-input", "--slope-range", "1,4")
-    res = kpcn(*args, cwd=root)
+    res = run_main(*args, cwd=root)
     assert res.returncode == 0, res.stderr[-3000:]
     record = json.loads((tmp_path / "r" / "config.json").read_text())
     assert sorted(record["components"]) == ["compositor", "shared"] and record["train"]["slope_range"] == [1.0, 4.0]
     noisy = tmp_path / "renders" / "x-00004spp.exr"
     exr.write_aovs(noisy, random_aovs(24, 28, seed=9))
-    res = kpcn("denoise", noisy, "--run", tmp_path / "r", cwd=root)
+    res = run_main("denoise", noisy, "--run", tmp_path / "r", cwd=root)
     assert_one_line_error(res, "--slope")
-    res = kpcn("denoise", noisy, "--run", tmp_path / "r", "--slope", "3", "-o", tmp_path / "out.exr", cwd=root)
+    res = run_main("denoise", noisy, "--run", tmp_path / "r", "--slope", "3", "-o", tmp_path / "out.exr", cwd=root)
     assert res.returncode == 0, res.stderr[-3000:]
     exr.write_aovs(tmp_path / "renders" / "x-00064spp.exr", random_aovs(24, 28, seed=10))
-    res = kpcn("figures", noisy, "--run", tmp_path / "r", "--slopes", "1,4", cwd=root)
+    res = run_main("figures", noisy, "--run", tmp_path / "r", "--slopes", "1,4", cwd=root)
     assert res.returncode == 0, res.stderr[-3000:]
     for name in ("kernels", "multiscale", "alpha", "slopes"):
         assert (tmp_path / "r" / "figures" / f"{name}.png").read_bytes().startswith(b"\x89PNG"), name
-    res = kpcn(*args[:3], "--gamma", "0.1", cwd=root)
+    res = run_main(*args[:3], "--gamma", "0.1", cwd=root)
     assert_one_line_error(res, "--gamma", "--compositor")
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import assert_one_line_error, checksums, kpcn, rect_form_factor
+from helpers import assert_one_line_error, checksums, rect_form_factor, run_main
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -688,16 +688,16 @@ def test_render_set_writes_resumes_and_records(tmp_path):
 def test_render_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_finishes_the_set(tmp_path, small_disk):
     args = ("render", "--set", "s", "--out", "disk", "--families", "cornell", "--per-family", "1", "--width", "48",
             "--height", "40", "--input-spp", "2", "--reference-spp", "4")
-    res = kpcn(*args, cwd=tmp_path)
+    res = run_main(*args, cwd=tmp_path)
     assert_one_line_error(res, "disk/s/cornell-000-00002spp.exr: cannot write (No space left on device)")
     # the set's record holds its config and no scene yet, as when a render is interrupted: a rerun resumes
     assert sorted(p.name for p in (small_disk.path / "s").iterdir()) == [".lock", "config.json"]
     assert json.loads((small_disk.path / "s" / "config.json").read_text())["scenes"] == []
     small_disk.grow()
-    res = kpcn(*args, cwd=tmp_path)
+    res = run_main(*args, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     (tmp_path / "twin").mkdir()
-    assert kpcn(*args, cwd=tmp_path / "twin").returncode == 0
+    assert run_main(*args, cwd=tmp_path / "twin").returncode == 0
     once = checksums(tmp_path / "twin" / "disk" / "s")
     resumed = checksums(small_disk.path / "s")
     assert once.pop("timings.json") and resumed.pop("timings.json") and resumed == once
@@ -861,9 +861,9 @@ def _available_gib() -> float:
 
 
 def test_a_huge_frame_is_refused_in_one_line_before_anything_is_written(tmp_path):
-    from helpers import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
-    res = kpcn("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
+    res = run_main("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
     assert_one_line_error(res, "--width must be an integer in [1, 16384], got 100000")
     assert not any(tmp_path.iterdir())
 

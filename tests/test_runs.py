@@ -8,7 +8,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from helpers import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from helpers import assert_one_line_error, build_tiny_shards, checksums, random_aovs, run_main
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
 from kpcn_keras.run import Run, load_model, read_state
@@ -35,10 +35,10 @@ def weights(path):
 def test_a_first_train_that_fails_its_checks_writes_nothing_and_the_corrected_command_runs(tmp_path):
     build_tiny_shards(tmp_path)
     before = checksums(tmp_path)
-    res = kpcn(*TRAIN, "--run", "runs/r", "--batch-size", "100000", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", "--batch-size", "100000", cwd=tmp_path)
     assert_one_line_error(res, "--batch-size", "100000")
     assert checksums(tmp_path) == before and not (tmp_path / "runs" / "r" / "config.json").exists()
-    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "runs" / "r" / "config.json").is_file() and (tmp_path / "runs" / "r" / "diffuse.keras").is_file()
 
@@ -103,10 +103,10 @@ def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     text = record.read_text()
     record.write_text({"truncated": text[: len(text) // 2], "not json": "<html>", "no train key": "{}"}[damage])
     before = checksums(tmp_path)
-    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json")
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json")
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
 
@@ -114,19 +114,19 @@ def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
 @pytest.mark.parametrize("which", ["checkpoints/diffuse.keras", "diffuse.keras"])
 def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path, which):
     build_tiny_shards(tmp_path)
-    assert kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path).returncode == 0
+    assert run_main(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path).returncode == 0
     run_dir = tmp_path / "runs" / "r"
     victim = run_dir / which
     victim.write_bytes(victim.read_bytes()[:500])
     before = checksums(tmp_path)
     if which == "diffuse.keras":
         exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
-        res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+        res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
         assert not (tmp_path / "in-denoised.exr").exists()
     else:
         (run_dir / "diffuse.keras").unlink()  # so that training goes back to the checkpoint
         before = checksums(tmp_path)
-        res = kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path)
+        res = run_main(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path)
     assert_one_line_error(res, which)
     assert "File not found" not in res.stderr
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
@@ -141,7 +141,7 @@ def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_th
     shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/specular.keras", "holds a diffuse network", "its specular network")
     assert checksums(tmp_path) == before
 
@@ -183,7 +183,7 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
     run.write_record(record)
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json", f"specular phase is unfinished (status '{status}')",
                           "'kpcn train --run runs/r'")
     with pytest.raises(KpcnError, match="specular phase is unfinished"):

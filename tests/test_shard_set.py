@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError
 
@@ -120,7 +120,7 @@ def test_a_shard_corrupted_at_the_same_size_is_refused_by_train_and_rebuilt_by_s
     victim.write_bytes(bytes(data))
     corrupted = checksums(tmp_path)
 
-    res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
+    res = run_main("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
                "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
     assert_one_line_error(res, "shard-00003.h5", "checksum (crc32) differs")
     assert checksums(tmp_path) == corrupted  # nothing written, not even a run record
@@ -279,7 +279,7 @@ def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_p
     assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
     whole = checksums(tmp_path / "shards")
     edit_manifest(tmp_path / "shards" / "s", MANIFEST_EDITS["patch_size"])
-    res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
+    res = run_main("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
                "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
     assert_one_line_error(res, "shards/s/manifest.json: its patch_size (6) is not what shard-00000.h5")
     assert not (tmp_path / "runs").exists()

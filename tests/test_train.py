@@ -148,10 +148,10 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
 # --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
 
 def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):
-    from helpers import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
     shard_cfg = build_tiny_shards(tmp_path)
-    res = kpcn("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
+    res = run_main("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
                "--steps", "2", cwd=tmp_path)
     assert_one_line_error(res, "--seed must be an integer in [0, 4294967295], got 4294967296")
     assert not (tmp_path / "runs").exists()
@@ -195,9 +195,9 @@ def test_the_largest_network_that_fits_the_patches_is_accepted():
 
 
 def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_path):
-    from helpers import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
-    res = kpcn("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")
     assert not any(tmp_path.iterdir())
 
