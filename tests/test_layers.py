@@ -1,10 +1,13 @@
-"""KernelApply against an independent float64 numpy reference, plus its numerical edge cases."""
+"""KernelApply against an independent float64 numpy reference, plus its numerical edge cases; every layer of
+``kpcn_keras.layers`` against the Keras layer contract (``helpers.check_keras_layer``)."""
 
 import numpy as np
 import pytest
 
+from helpers import check_keras_layer
 from kpcn_keras import layers as layers_module
 from kpcn_keras.layers import (
+    FinalColour,
     FusedConv2D,
     KernelApply,
     TakeChannels,
@@ -140,12 +143,19 @@ def test_wrong_logit_count_raises():
         KernelApply(3)([np.zeros((1, 4, 4, 3), np.float32), np.zeros((1, 4, 4, 25), np.float32)])
 
 
-def test_serialisation_round_trip_without_custom_objects():
-    for layer in (KernelApply(7, name="ka"), TakeChannels(0, 3, name="tc")):
-        config = keras.saving.serialize_keras_object(layer)
-        clone = keras.saving.deserialize_keras_object(config)
-        assert type(clone) is type(layer)
-        assert clone.get_config() == layer.get_config()
+# name -> (factory, input shapes without the batch); every custom layer of kpcn_keras/layers.py
+LAYER_CASES = {
+    "KernelApply": (lambda: KernelApply(3, name="ka"), [(8, 6, 3), (8, 6, 9)]),
+    "TakeChannels": (lambda: TakeChannels(0, 3, name="tc"), [(8, 6, 5)]),
+    "FusedConv2D": (lambda: FusedConv2D(4, 3, padding="same"), [(8, 6, 3)]),
+    "FinalColour": (lambda: FinalColour(), [(8, 6, 3), (8, 6, 3), (8, 6, 3)]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LAYER_CASES))
+def test_layer_keeps_the_keras_layer_contract(name, tmp_path):
+    factory, shapes = LAYER_CASES[name]
+    check_keras_layer(factory, shapes, tmp_path)
 
 
 def test_take_channels_validates():
@@ -235,5 +245,3 @@ def test_fused_conv_equals_keras_conv_values_and_gradients(kw):
     for ga, gb in zip(torch.autograd.grad(a.square().sum(), params(ours)),
                       torch.autograd.grad(b.square().sum(), params(theirs))):
         np.testing.assert_allclose(to_np(ga), to_np(gb), rtol=1e-4, atol=1e-4)
-    clone = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(ours))
-    assert type(clone) is FusedConv2D and clone.get_config() == ours.get_config()

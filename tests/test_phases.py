@@ -117,7 +117,7 @@ def test_the_conditioning_channels_follow_the_training_options_not_the_model_dic
 # ---------------------------------------------------------------- the layers and models of the phases
 
 
-def test_final_colour_inverts_the_branch_transforms_and_round_trips():
+def test_final_colour_inverts_the_branch_transforms():
     rng = np.random.default_rng(1)
     d, s = rng.uniform(0, 5, (2, 6, 7, 3)), rng.uniform(0, 3, (2, 6, 7, 3))
     albedo = rng.uniform(-0.2, 1.2, (2, 6, 7, 3))  # clipped to [0, 1], as the inverse transform does
@@ -127,9 +127,7 @@ def test_final_colour_inverts_the_branch_transforms_and_round_trips():
     model = keras.Model(ins, layer(ins))
     got = predict(model, [x.astype(np.float32) for x in (d, s, albedo)])
     np.testing.assert_allclose(got, want, rtol=2e-5)
-    assert layer.compute_output_shape([(2, 6, 7, 3)] * 3) == (2, 6, 7, 3)
-    clone = FinalColour.from_config(layer.get_config())
-    assert clone.get_config() == layer.get_config()
+    assert layer.compute_output_shape([(2, 6, 7, 3)] * 3) == (2, 6, 7, 3)  # the Keras contract: test_layers
     huge = predict(model, [np.full((1, 2, 2, 3), 94.0, np.float32)] * 2 + [np.ones((1, 2, 2, 3), np.float32)])
     assert np.all(np.isfinite(huge))  # the clamp: exp(94) overflows float32
 
