@@ -180,7 +180,7 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
         np.testing.assert_allclose(log_two[column], log_one[column], rtol=1e-4)
 
 
-# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_interrupts.py)
+# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_cli_resume.py)
 RESUMABLE = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
              "--steps", "200", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
 

@@ -161,7 +161,7 @@ def test_mesh_model_validates_and_round_trips():
     assert Scene.from_dict(scene.to_dict()) == scene
     assert "meshes" not in mesh_scene([]).to_dict()  # scenes without meshes are described as before
     light = dataclasses.replace(scene, materials={"m": emitter((1.0, 1.0, 1.0))})
-    light.validate()  # an emitter mesh is an area light (tests/test_render_effects.py)
+    light.validate()  # an emitter mesh is an area light (tests/test_integrator.py)
     assert {"emitter", "mesh"} <= light.effects()
     with pytest.raises(ValueError, match="'nope'"):
         dataclasses.replace(scene, meshes=[box_mesh(0, 1, 0, 1, 0, 1, "nope")]).validate()
