@@ -85,6 +85,7 @@ def test_bench_config_takes_its_ladder_and_names_a_bad_option():
         assert err.value.option == option
 
 
+@pytest.mark.slow
 def test_bench_command_refuses_options_of_the_other_bench_and_a_set_without_a_render_record(tmp_path):
     res = run_main("bench", "render", "--budget", "3", cwd=tmp_path)
     assert_one_line_error(res, "--budget", "kpcn bench render")
@@ -103,6 +104,7 @@ def _relmse64(x, r):
     return float(np.mean((x - r) ** 2 / (r * r + 1e-2)))
 
 
+@pytest.mark.slow
 def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch):
     from kpcn_keras.cli import main
     from kpcn_keras.denoise import Denoiser

@@ -43,6 +43,7 @@ def test_denoise_without_a_run_names_the_folder(tmp_path, fixture_noisy):
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 def test_render_and_shards_do_not_import_the_deep_learning_stack():
     code = ("import sys; import kpcn_keras.cli, prep.render, prep.shards, prep.features, prep.sampling; "
             "bad = [m for m in ('keras', 'torch', 'tensorflow') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
@@ -127,6 +128,7 @@ def test_denoise_output_under_a_file_is_refused_before_inference(tmp_path, tiny_
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_render_output_under_a_file_is_refused_before_rendering(tmp_path):
     (tmp_path / "afile").write_text("not a folder")
     # a set that would take hours: the refusal has to come first to return within the timeout
@@ -159,6 +161,7 @@ def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_i
     assert exr.read_aovs(small_disk.path / "out.exr", variances=False)["default"].shape == (64, 64, 3)
 
 
+@pytest.mark.slow
 def test_denoise_refused_a_write_by_the_file_system_ends_in_one_line(tmp_path, tiny_run):
     # the failure injected at write(2) without a mount: files may not grow past 64 kB
     exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))

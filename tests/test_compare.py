@@ -87,6 +87,7 @@ def test_unknown_configuration_is_a_one_line_error_listing_the_known_ones(tmp_pa
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_probes_time_every_step_of_every_phase_in_a_scratch_run(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = CompareConfig(set_name="s", shards_root=shard_cfg.out_root)
@@ -181,6 +182,7 @@ def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduc
     assert "one shard set and one budget" in md
 
 
+@pytest.mark.slow
 def test_oidn_row_is_measured_when_installed_and_says_so_when_not(compared, monkeypatch):
     from prep import baselines
 

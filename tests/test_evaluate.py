@@ -4,6 +4,7 @@ NLM; the mean row averages the scenes' values."""
 import json
 
 import numpy as np
+import pytest
 
 from kpcn_keras.cli import main
 from kpcn_keras.evaluate import COLUMNS, format_table, held_out_pairs
@@ -58,6 +59,7 @@ def test_table_without_the_baseline_leaves_the_nlm_columns_nan():
     assert cells[-1][header.index("raw relSE p99.9")] == "5.0000"
 
 
+@pytest.mark.slow
 def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["-q", "evaluate", "--run", str(tiny_run), "--out", str(out)]) == 0
@@ -103,6 +105,7 @@ def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_r
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(tiny_run, tmp_path, capsys):
     import shutil
 
