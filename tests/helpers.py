@@ -18,7 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hypothesis import HealthCheck
+from hypothesis import strategies as st
+
+from prep import exr as _exr
 from prep import features as _features
+from prep import sampling as _sampling
+from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES, REL_EPS
+from prep.sampling import IMPORTANCE_EPS
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
 
@@ -308,3 +315,179 @@ def check_keras_layer(make, shapes, tmp_path: Path, batch: int = 2, seed: int = 
     for w in model.weights:
         moved = not np.array_equal(weights[id(w)], to_np(w.value))
         assert moved == (id(w) not in frozen), (type(layer).__name__, w.path, moved)
+
+
+# ---------------------------------------------------------------- the float64 references of the numerics
+# the ranges of the feature table, float64 evaluations of the features, PDFs and kernels, and the hypothesis
+# strategies of float32 renders, which the hard cases (test_numerics) and the module tests hold the code to
+
+F32_MAX = float(np.finfo(np.float32).max)
+F32_TINY = float(np.finfo(np.float32).smallest_subnormal)
+F32_EPS = float(np.finfo(np.float32).eps)
+HALF_MAX = float(np.finfo(np.float16).max)
+# The largest relative variance a float32 render can give: a depth variance of float32 max at a miss
+# (d = 0) in an image whose largest depth is the smallest subnormal (depth scale 1 / F32_TINY).
+RELVAR_BOUND = float(np.log1p(F32_MAX / F32_TINY**2 / REL_EPS))
+# (first channel, stop, lowest, highest): the table of prep/features.py, each bound derived from the
+# module's constants or from the clip range its formula names.
+FEATURE_RANGES = [
+    (0, 3, 0.0, LOG_COLOUR_MAX),  # colour
+    (3, 6, -LOG_COLOUR_MAX, LOG_COLOUR_MAX),  # dx colour
+    (6, 9, -2.0, 2.0),  # dx normal: normal clipped to [-1, 1]
+    (9, 12, -1.0, 1.0),  # dx albedo: albedo clipped to [0, 1]
+    (12, 13, -1.0, 1.0),  # dx depth: depth scaled to [0, 1]
+    (13, 16, -LOG_COLOUR_MAX, LOG_COLOUR_MAX),  # dy of the same
+    (16, 19, -2.0, 2.0),
+    (19, 22, -1.0, 1.0),
+    (22, 23, -1.0, 1.0),
+    (23, 27, 0.0, RELVAR_BOUND),  # relative variances
+]
+
+
+def reference_log_colour(colour, albedo=None) -> np.ndarray:
+    """log(1 + max(x, 0)), x = colour / (clip(albedo, 0, 1) + ALBEDO_EPS) for the diffuse branch, in float64."""
+    x = np.asarray(colour, np.float64)
+    if albedo is not None:
+        x = x / (np.clip(np.asarray(albedo, np.float64), 0.0, 1.0) + ALBEDO_EPS)
+    return np.log1p(np.maximum(x, 0.0))
+
+
+def reference_importance(aovs: dict) -> np.ndarray:
+    mean = np.maximum(aovs["default"].astype(np.float64), 0.0).sum(axis=-1) / 3.0
+    colour = np.maximum(aovs["colorVariance"].astype(np.float64), 0.0) / (mean**2 + IMPORTANCE_EPS)
+    return colour + np.maximum(aovs["normalVariance"].astype(np.float64), 0.0)
+
+
+def reference_pdf(importance, p: int, mix: float) -> np.ndarray:
+    """Explicit window sums (exactly rounded, math.fsum) of the finite, non-negative importance, normalised,
+    mixed with the uniform PDF; uniform when nothing is left."""
+    imp = np.asarray(importance, np.float64)
+    imp = np.where(np.isfinite(imp), np.maximum(imp, 0.0), 0.0)
+    if imp.max() > 0:
+        imp = np.ldexp(imp, -np.frexp(imp.max())[1])  # an exact power-of-two scale, so that fsum cannot overflow
+    h, w = imp.shape
+    sums = np.array([[math.fsum(imp[y : y + p, x : x + p].ravel()) for x in range(w - p + 1)]
+                     for y in range(h - p + 1)])
+    total = math.fsum(sums.ravel())
+    uniform = np.full(sums.shape, 1.0 / sums.size)
+    if total <= 0:
+        return uniform
+    return mix * uniform + (1.0 - mix) * (sums / total)
+
+
+def reference_kernel_apply(colour, logits, k: int):
+    """float64: softmax with max subtraction, edge-replicated k x k windows, weighted sum. Returns the output
+    (B, H, W, C) and the windows (B, H, W, k*k, C)."""
+    c = np.asarray(colour, np.float64)
+    z = np.asarray(logits, np.float64)
+    z = z - z.max(axis=-1, keepdims=True)
+    weights = np.exp(z)
+    weights /= weights.sum(axis=-1, keepdims=True)
+    r = k // 2
+    h, w = c.shape[1:3]
+    padded = np.pad(c, ((0, 0), (r, r), (r, r), (0, 0)), mode="edge")
+    windows = np.stack([padded[:, i : i + h, j : j + w] for i in range(k) for j in range(k)], axis=3)
+    return np.einsum("bhwt,bhwtc->bhwc", weights, windows), windows
+
+
+def assert_features_in_documented_ranges(feats: np.ndarray) -> None:
+    assert feats.shape[-1] == NUM_FEATURES
+    assert np.isfinite(feats).all()
+    f = feats.astype(np.float64)
+    for first, stop, lo, hi in FEATURE_RANGES:
+        block = f[..., first:stop]
+        assert block.min() >= lo and block.max() <= hi, (
+            f"channels {_features.FEATURE_NAMES[first:stop]}: [{block.min()}, {block.max()}] outside [{lo}, {hi}]")
+
+
+def assert_features_match_reference(aovs: dict) -> None:
+    for branch in _features.BRANCHES:
+        got = _features.branch_features(aovs, branch)
+        assert got.dtype == np.float32
+        assert_features_in_documented_ranges(got)
+        np.testing.assert_allclose(got, reference_features(aovs, branch), rtol=1e-6, atol=1e-6, err_msg=branch)
+
+
+def assert_pdf_is_a_distribution(pdf: np.ndarray, want: np.ndarray) -> None:
+    assert pdf.shape == want.shape and pdf.dtype == np.float64
+    assert np.isfinite(pdf).all() and pdf.min() >= 0.0
+    assert abs(math.fsum(pdf.ravel()) - 1.0) <= 1e-12
+    # direct sums of non-negative terms: relative accuracy, even beside a pixel 1e20 times brighter
+    np.testing.assert_allclose(pdf, want, rtol=1e-12, atol=1e-300)
+
+
+def assert_variance_pdf_matches(aovs: dict, patch: int, mix: float = 0.1) -> np.ndarray:
+    importance = _sampling.variance_importance(aovs)
+    np.testing.assert_allclose(importance, reference_importance(aovs), rtol=1e-12, atol=0)
+    pdf = _sampling.patch_pdf(importance, patch, mix)
+    assert_pdf_is_a_distribution(pdf, reference_pdf(importance, patch, mix))
+    return pdf
+
+
+def finite_loss_and_gradients(model, x, gt, noisy):
+    """SMAPE and asymmetric SMAPE of ``model`` (a keras.Model) in training mode, with their gradients;
+    asserts all finite. Returns the output (a torch tensor)."""
+    import torch
+
+    from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
+
+    out = model(torch.as_tensor(x), training=True)
+    gt_t = torch.as_tensor(gt)
+    losses = {
+        "smape": SMAPE()(gt_t, out),
+        "asymmetric": AsymmetricSMAPE(2.0)(torch.as_tensor(np.concatenate([gt, noisy], axis=-1)), out),
+    }
+    variables = [w.value for w in model.trainable_weights]
+    for name, loss in losses.items():
+        assert torch.isfinite(loss), (name, loss)
+        grads = torch.autograd.grad(loss, variables, retain_graph=True, allow_unused=True)
+        for w, g in zip(model.trainable_weights, grads):
+            assert g is None or torch.isfinite(g).all(), f"{name}: non-finite gradient of {w.path}"
+    return out
+
+
+def extreme_features(shape, seed: int) -> np.ndarray:
+    """Features with every channel at the low end, the high end of its documented range, or 0."""
+    rng = np.random.default_rng(seed)
+    x = np.empty(tuple(shape) + (NUM_FEATURES,), np.float32)
+    for first, stop, lo, hi in FEATURE_RANGES:
+        x[..., first:stop] = rng.choice([lo, hi, 0.0], size=tuple(shape) + (stop - first,))
+    return x
+
+
+PROPERTY = dict(deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+SPECIAL_F32 = [0.0, F32_TINY, float(np.float32(1e-30)), 1.0, HALF_MAX, float(np.float32(1e20)), F32_MAX]
+
+
+@st.composite
+def float32_images(draw, shape, signed=True):
+    """An image whose magnitudes are log-uniform over a drawn range of decades (subnormal to float32 max),
+    with a few special values (0, the smallest subnormal, half max, float32 max) at drawn pixels."""
+    size = int(np.prod(shape))
+    kind = draw(st.sampled_from(["spread", "spread", "spread", "constant", "zero"]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    if kind == "zero":
+        return np.zeros(shape, np.float32)
+    lo = draw(st.integers(-46, 38))
+    hi = draw(st.integers(lo, 39))
+    magnitude = np.minimum(10.0 ** rng.uniform(lo, hi, shape if kind == "spread" else ()), F32_MAX)
+    image = np.broadcast_to(magnitude, shape).copy()
+    if signed and draw(st.booleans()):
+        image *= rng.choice([-1.0, 1.0], shape)
+    specials = draw(st.lists(st.tuples(st.integers(0, size - 1), st.sampled_from(SPECIAL_F32), st.booleans()),
+                             max_size=4))
+    flat = image.reshape(-1)
+    for index, value, negative in specials:
+        flat[index] = -value if (negative and signed) else value
+    return image.astype(np.float32)
+
+
+@st.composite
+def renders(draw, max_side=12):
+    h = draw(st.integers(1, max_side))
+    w = draw(st.integers(1, max_side))
+    aovs = {name: draw(float32_images((h, w, 3))) for name in _exr.RGB_LAYERS}
+    aovs.update({name: draw(float32_images((h, w))) for name in _exr.SCALAR_LAYERS})
+    return aovs
