@@ -127,6 +127,7 @@ def test_extreme_logits_finite_values_and_gradients():
     assert torch.isfinite(colour.grad).all()
 
 
+@pytest.mark.slow
 def test_gradient_matches_finite_differences():
     k = 3
     rng = np.random.default_rng(4)
@@ -190,6 +191,7 @@ def test_torch_path_equals_keras_ops_path_with_gradients(k, d, h, w):
         np.testing.assert_allclose(to_np(a), to_np(b), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_torch_path_is_taken_and_gradchecks_with_dilation(monkeypatch):
     calls = []
     original = layers_module._torch_kernel_apply

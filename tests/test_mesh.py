@@ -73,6 +73,7 @@ def soup(rng, n=300):
     return Mesh(tuple(map(tuple, v.tolist())), tuple((3 * i, 3 * i + 1, 3 * i + 2) for i in range(n)), "m")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["soup", "shapes"])
 def test_bvh_finds_the_brute_force_nearest_hit_and_occlusion(kind):
     from prep.render.tracer import intersect_mesh, occluded_mesh

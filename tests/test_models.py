@@ -130,6 +130,7 @@ def test_untrained_dpcn_is_identity_on_log_colours():
 # ---------------------------------------------------------------- receptive field
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "cfg",
     [
@@ -168,6 +169,7 @@ def test_radius_formulas():
 # ---------------------------------------------------------------- save / load, kernels
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_save_load_round_trip(arch, tmp_path):
     cfg = tiny(arch, dropout=0.2)
@@ -183,6 +185,7 @@ def test_save_load_round_trip(arch, tmp_path):
     assert [type(layer) for layer in loaded.layers] == [type(layer) for layer in model.layers]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_channels_last_saved_models_load_and_agree_with_the_channels_first_layout(arch, tmp_path):
     """A model saved with the old channels-last convolutions loads and runs as before, and the default
@@ -247,6 +250,7 @@ def synthetic_batch(seed, n=4, size=16):
     return feats, gt
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_adam_steps_reduce_loss(arch):
     keras.utils.set_random_seed(1234)

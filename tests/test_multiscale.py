@@ -405,6 +405,7 @@ def test_alpha_regulariser_is_part_of_the_fit_loss():
     np.testing.assert_allclose(to_np(head.bias.value), [bias + lr * gamma * s * (1 - s)], rtol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("levels", [2, 3])
 def test_multiscale_loss_is_smape_plus_one_term_per_compositor_application(levels):
     gamma, bias = 0.5, -1.0
@@ -426,6 +427,7 @@ def test_multiscale_loss_is_smape_plus_one_term_per_compositor_application(level
 # ---------------------------------------------------------------- the whole model
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["alpha", "kernel"])
 def test_multiscale_model_save_load_identical(kind, tmp_path):
     model = multiscale(kind)
@@ -442,6 +444,7 @@ def test_multiscale_model_save_load_identical(kind, tmp_path):
         np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["alpha", "kernel"])
 def test_odd_sizes_come_back_full_size_with_alpha_maps_per_level(kind):
     model = multiscale(kind)
@@ -472,6 +475,7 @@ def test_alpha_zero_returns_the_single_scale_denoiser_exactly():
     np.testing.assert_array_equal(run(model, x), run(denoiser_of(model), x))
 
 
+@pytest.mark.slow
 def test_training_the_compositor_leaves_the_denoiser_bit_identical():
     model = multiscale("kernel", seed=5)
     denoiser, compositor = denoiser_of(model), compositor_of(model)
@@ -514,6 +518,7 @@ def test_compositor_can_be_shared_and_must_fit_the_config():
         build_multiscale_model(build_branch_model(ModelConfig(in_channels=4)), cfg)
 
 
+@pytest.mark.slow
 def test_flat_two_branch_model_sharing_compositor_and_denoiser_reloads(tmp_path):
     cfg = tiny_compositor("kernel")
     compositor = build_compositor(cfg)
@@ -534,6 +539,7 @@ def test_flat_two_branch_model_sharing_compositor_and_denoiser_reloads(tmp_path)
 # ---------------------------------------------------------------- receptive radius and tiling
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "kind,levels,extra",
     [("alpha", 2, {}), ("kernel", 3, {}), ("kernel", 2, dict(depth=2, kernel_size=5)), ("alpha", 3, dict(depth=1))],
@@ -575,6 +581,7 @@ def tiled(model, x, tile, margin, align):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["alpha", "kernel"])
 def test_aligned_tiles_with_radius_margins_reproduce_the_untiled_output(kind):
     cfg = tiny_compositor(kind)

@@ -515,6 +515,7 @@ def test_randomised_networks_keep_denoised_extreme_renders_finite_and_in_range(h
 # ---------------------------------------------------------------- image sizes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size", [(1, 1), (1, 9), (9, 1), (7, 13)], ids=lambda s: f"{s[0]}x{s[1]}")
 def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_denoise(tmp_path, size):
     h, w = size

@@ -68,6 +68,7 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
     assert [p.name for p in out.iterdir()] == ["keep"]
 
 
+@pytest.mark.slow
 def test_no_deep_learning_import():
     import subprocess
 

@@ -346,6 +346,7 @@ def test_glossy_and_plastic_plane_under_area_light_match_quadrature(material):
     assert spec > 0.1 and math.sqrt(r["specularVariance"][1, 1]) < 0.03 * spec
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "material",
     [
@@ -480,6 +481,7 @@ def _mean_vs_reference(scene, layer, k, spp, ref_spp, size, seed0, ref_scale=1.0
 #   surfaces (light -> mirror -> floor is found only by BSDF sampling), so over four seed sets the diffuse
 #   z_sum ran -3.8, -4.6, +0.7, -3.6 against a 512 spp reference and -4.8, -5.9, +1.0, -3.0 against 2048,
 #   alike before and after GGX sampling changed: heavy tails, not a bias these criteria can separate.
+@pytest.mark.slow
 @pytest.mark.parametrize("family,index,spp,ref_spp", [
     ("cornell", 1, 4, 512), ("spheres", 2, 4, 512), ("boxes", 0, 4, 512), ("fireflies", 0, 64, 2048),
     ("caustics", 0, 64, 512), ("outdoor", 1, 64, 512)])

@@ -543,6 +543,7 @@ def test_resampling_a_folder_that_is_not_a_run_names_it(tmp_path):
                           "not a run")
 
 
+@pytest.mark.slow
 def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path):
     """6 round steps at the base run's 4 per epoch: a shorter last epoch, so each network's optimizer has
     taken the base run's steps and then exactly the round's, as the record says (not two whole epochs)."""

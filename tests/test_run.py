@@ -32,6 +32,7 @@ def weights(path):
     return [np.asarray(w) for w in load_model(path, compile=False).get_weights()]
 
 
+@pytest.mark.slow
 def test_a_first_train_that_fails_its_checks_writes_nothing_and_the_corrected_command_runs(tmp_path):
     build_tiny_shards(tmp_path)
     before = checksums(tmp_path)
@@ -43,6 +44,7 @@ def test_a_first_train_that_fails_its_checks_writes_nothing_and_the_corrected_co
     assert (tmp_path / "runs" / "r" / "config.json").is_file() and (tmp_path / "runs" / "r" / "diffuse.keras").is_file()
 
 
+@pytest.mark.slow
 def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg), tmp_path / "runs" / "r", verbose=0)
@@ -55,6 +57,7 @@ def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
     assert run.shard_set(run.read_record()).dir.resolve() == shard_cfg.set_dir.resolve()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
@@ -65,6 +68,7 @@ def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
     assert not (run_dir / "diffuse.keras").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_whose_weights_disagree_with_its_record_is_refused(tmp_path):
     # the state entry claims the run's model, the weights are another's: checked against the weights
     shard_cfg = build_tiny_shards(tmp_path)
@@ -80,6 +84,7 @@ def test_a_checkpoint_whose_weights_disagree_with_its_record_is_refused(tmp_path
         train(tiny_config(shard_cfg), run_dir, verbose=0)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, steps=6), tmp_path / "runs" / "r", verbose=0)
@@ -95,6 +100,7 @@ def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path
     assert (again / "diffuse.keras").read_bytes() == (run_dir / "diffuse.keras").read_bytes()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncated", "not json", "no train key"])
 def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     shard_cfg = build_tiny_shards(tmp_path)
@@ -111,6 +117,7 @@ def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["checkpoints/diffuse.keras", "diffuse.keras"])
 def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path, which):
     build_tiny_shards(tmp_path)
@@ -135,6 +142,7 @@ def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path,
 BOTH = ("diffuse", "specular")
 
 
+@pytest.mark.slow
 def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_the_branch(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
@@ -146,6 +154,7 @@ def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_th
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_path):
     # the same branch, the same architecture, other weights: only the record's SHA-256 tells them apart
     shard_cfg = build_tiny_shards(tmp_path)
@@ -159,6 +168,7 @@ def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_pa
         Denoiser(run_dir)
 
 
+@pytest.mark.slow
 def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_by_branch(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
@@ -173,6 +183,7 @@ def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_
         Denoiser(run_dir)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("status", ["running", "pending"])
 def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_phase(tmp_path, status):
     shard_cfg = build_tiny_shards(tmp_path)
@@ -191,6 +202,7 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_and_nothing_that_agrees(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = tiny_config(shard_cfg, branches=BOTH)
@@ -206,6 +218,7 @@ def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_a
     assert not (run_dir / "specular.keras").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
@@ -216,6 +229,7 @@ def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path
     assert "(model width 6, the run's 4)" in str(err.value), str(err.value)
 
 
+@pytest.mark.slow
 def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resampled_on(tmp_path):
     # a kill between a round's two branch phases leaves the diffuse network a round ahead of the specular
     shard_cfg = build_tiny_shards(tmp_path)

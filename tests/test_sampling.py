@@ -7,6 +7,7 @@ from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_
 from prep import sampling
 
 
+@pytest.mark.slow
 def test_positions_are_unique_and_inside_the_pdf():
     pdf = sampling.patch_pdf(np.random.default_rng(0).gamma(0.5, 1.0, (80, 90)), 17)
     assert pdf.shape == (64, 74)
@@ -94,6 +95,7 @@ def importance_maps(draw):
     return imp, patch, mix
 
 
+@pytest.mark.slow
 @settings(max_examples=150, **PROPERTY)
 @given(case=importance_maps())
 def test_patch_pdf_of_any_importance_is_a_distribution_equal_to_explicit_window_sums(case):
@@ -105,6 +107,7 @@ def test_patch_pdf_of_any_importance_is_a_distribution_equal_to_explicit_window_
     assert len({tuple(p) for p in pos}) == count and (pdf[pos[:, 0], pos[:, 1]] > 0).all()
 
 
+@pytest.mark.slow
 @settings(max_examples=40, **PROPERTY)
 @given(aovs=renders(), data=st.data())
 def test_variance_pdf_of_any_finite_render_is_a_distribution_equal_to_float64_reference(aovs, data):

@@ -50,6 +50,7 @@ def patch_counts(set_dir) -> dict[str, int]:
     return counts
 
 
+@pytest.mark.slow
 def test_renders_added_to_the_set_rebuild_it_without_leaking_held_out_scenes(tmp_path):
     root = make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -70,6 +71,7 @@ def test_renders_added_to_the_set_rebuild_it_without_leaking_held_out_scenes(tmp
     assert checksums(cfg.set_dir) == rebuilt
 
 
+@pytest.mark.slow
 def test_a_render_edited_in_place_rebuilds_the_shards_that_hold_it(tmp_path, caplog):
     root = make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -91,6 +93,7 @@ def test_a_render_edited_in_place_rebuilds_the_shards_that_hold_it(tmp_path, cap
         np.testing.assert_allclose(f["noisy"][i], noisy["default"][at[0]:at[0] + p, at[1]:at[1] + p], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_two_shard_commands_on_one_set_at_once_give_the_set_one_command_gives(tmp_path):
     for folder in ("together", "alone"):
         make_renders(tmp_path / folder / "renders" / "s")
@@ -109,6 +112,7 @@ def test_two_shard_commands_on_one_set_at_once_give_the_set_one_command_gives(tm
     assert len(shards.shard_paths(tmp_path / "together" / "shards" / "s", "train")) == 12
 
 
+@pytest.mark.slow
 def test_a_shard_corrupted_at_the_same_size_is_refused_by_train_and_rebuilt_by_shards(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
@@ -142,6 +146,7 @@ assert ("torch" in sys.modules) == {torch}, "the start method under test is not 
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", ["fork", "spawn"])
 def test_a_set_cut_by_two_worker_processes_is_byte_for_byte_the_set_one_process_cuts(tmp_path, start):
     make_renders(tmp_path / "renders" / "s")
@@ -158,6 +163,7 @@ def test_a_set_cut_by_two_worker_processes_is_byte_for_byte_the_set_one_process_
     assert checksums(cfg.set_dir) == alone
 
 
+@pytest.mark.slow
 def test_a_render_that_fails_to_decode_in_a_worker_stops_the_command_with_one_line_naming_it(tmp_path):
     root = make_renders(tmp_path / "renders" / "s")
     victim = root / exr.render_filename("a-000", 4)
@@ -174,6 +180,7 @@ def test_an_option_error_raised_in_a_worker_reaches_the_caller_whole():
         OptionError, "patches_per_image", "must be >= 1, got 0", "patches_per_image must be >= 1, got 0")
 
 
+@pytest.mark.slow
 def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -197,6 +204,7 @@ def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_
         sset.verified_shards("train")
 
 
+@pytest.mark.slow
 def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(tmp_path):
     make_renders(tmp_path / "renders" / "s")  # 40x44: 33 x 37 = 1221 positions of an 8x8 patch
     before = checksums(tmp_path)
@@ -207,6 +215,7 @@ def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tmp_path):
     make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"))
     peaks, total = {}, {}
@@ -223,6 +232,7 @@ def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tm
     assert peaks[1200] < total[1200] / 4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("status", ["building", None])
 def test_a_set_whose_manifest_is_not_complete_is_refused_by_readers(tmp_path, status):
     make_renders(tmp_path / "renders" / "s")
@@ -260,6 +270,7 @@ MANIFEST_EDITS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("field", MANIFEST_EDITS)
 def test_a_hand_edited_manifest_is_refused_by_train_naming_the_field(tmp_path, field):
     from kpcn_keras.train import train
@@ -274,6 +285,7 @@ def test_a_hand_edited_manifest_is_refused_by_train_naming_the_field(tmp_path, f
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
@@ -287,6 +299,7 @@ def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_p
     assert checksums(tmp_path / "shards") == whole
 
 
+@pytest.mark.slow
 def test_a_render_replaced_since_the_set_was_cut_is_refused_by_train_and_a_set_without_renders_trains(tmp_path):
     from kpcn_keras.train import train
 

@@ -32,6 +32,7 @@ def tiny(arch, **kw):
     return ModelConfig(**base)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 @pytest.mark.parametrize("training", [False, True])
 def test_plain_torch_equals_keras(arch, training):

@@ -139,6 +139,7 @@ def _final_inputs(cfg: ModelConfig, seed=0):
     return x
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", [None, "alpha", "kernel"])
 @pytest.mark.parametrize("shared", [False, True])
 def test_final_colour_models_survive_save_and_load_and_train_a_step(kind, shared, tmp_path):
@@ -251,6 +252,7 @@ def test_augmented_batches_are_the_patches_under_the_symmetries_drawn_for_them(s
     assert TrainConfig().augment  # on by default
 
 
+@pytest.mark.slow
 def test_a_slope_input_network_keeps_more_of_the_noisy_input_at_a_higher_slope():
     """Documented direction (README, ``kpcn denoise --slope``): a higher λ punishes overshooting the
     reference away from the input more, so the output stays nearer the noisy input. Synthetic case: a flat
@@ -287,6 +289,7 @@ def full_run(shards, tmp_path_factory):
     return train(cfg, tmp_path_factory.mktemp("runs") / "full", verbose=0)
 
 
+@pytest.mark.slow
 def test_a_run_trains_its_phases_in_order_into_one_log_and_one_record(full_run):
     record = json.loads((full_run / "config.json").read_text())
     assert [(n, p["first_epoch"], p["epochs"], p["status"]) for n, p in record["phases"].items()] == [
@@ -304,6 +307,7 @@ def test_a_run_trains_its_phases_in_order_into_one_log_and_one_record(full_run):
         ["compositor.keras", "diffuse.keras", "joint.keras", "specular.keras"]
 
 
+@pytest.mark.slow
 def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_does_not(full_run):
     run = Run(full_run)
     record = run.read_record()
@@ -317,6 +321,7 @@ def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_do
     assert np.any(_weights(compositor)[-1] != 0) or np.any(_weights(compositor)[-2] != 0)  # the α head trained
 
 
+@pytest.mark.slow
 def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
     aovs = random_aovs(37, 53, seed=5)
     whole = Denoiser(full_run, tile=512)(aovs)["default"]
@@ -326,6 +331,7 @@ def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
     assert not np.allclose(plain, whole)  # the compositor does something
 
 
+@pytest.mark.slow
 def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
     cfg = tiny_config(shards, joint_steps=40, steps_per_epoch=4)
     reference = train(cfg, tmp_path / "ref", verbose=0)
@@ -358,6 +364,7 @@ def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
     assert json.dumps(records[0]) == json.dumps(records[1])  # in the same order too: the bytes of the rest
 
 
+@pytest.mark.slow
 def test_the_command_line_trains_shared_slope_input_multiscale_and_draws_every_figure(shards, tmp_path):
     root = Path(shards.out_root).parent
     args = ("train", "--set", shards.set_name, "--shards", shards.out_root, "--run", str(tmp_path / "r"),
@@ -383,6 +390,7 @@ def test_the_command_line_trains_shared_slope_input_multiscale_and_draws_every_f
     assert_one_line_error(res, "--gamma", "--compositor")
 
 
+@pytest.mark.slow
 def test_a_record_of_an_older_kpcn_is_one_clear_error(shards, tmp_path):
     run_dir = train(tiny_config(shards, branches=("diffuse",)), tmp_path / "r", verbose=0)
     record = json.loads((run_dir / "config.json").read_text())
