@@ -51,6 +51,23 @@ def test_render_and_shards_do_not_import_the_deep_learning_stack():
     assert res.returncode == 0, res.stdout + res.stderr
 
 
+def test_main_run_in_this_process_leaves_the_process_as_it_found_it(tmp_path):
+    # run_main is how these tests call main without a fresh interpreter; main sets the thread counts, their
+    # environment variables and the root logger, which later tests in this process must not inherit
+    import logging
+    import os
+
+    import numba
+    import torch
+
+    before = (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
+              numba.get_num_threads(), torch.get_num_threads())
+    res = run_main("denoise", "in.exr", "--run", "no-run", "--threads", "1", cwd=tmp_path)
+    assert_one_line_error(res, "no-run", "not a run folder")
+    assert (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
+            numba.get_num_threads(), torch.get_num_threads()) == before
+
+
 # --- kpcn denoise's default output (issue 5, defect 3) ---
 
 @pytest.mark.parametrize("name", ["noext", "UP.EXR", "frame.exr.d/in.exr", "x.Exr"])
