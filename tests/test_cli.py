@@ -62,6 +62,7 @@ def test_main_run_in_this_process_leaves_the_process_as_it_found_it(tmp_path):
 
     before = (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
               numba.get_num_threads(), torch.get_num_threads())
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
     res = run_main("denoise", "in.exr", "--run", "no-run", "--threads", "1", cwd=tmp_path)
     assert_one_line_error(res, "no-run", "not a run folder")
     assert (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
