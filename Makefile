@@ -14,7 +14,7 @@ STUDY_ARGS  ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 
-.PHONY: venv render shards train resample resample-study evaluate figures compare bench test test-oldest clean
+.PHONY: venv render shards train resample resample-study evaluate figures compare bench test test-fast test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -67,13 +67,17 @@ bench: shards
 test: $(KPCN)
 	$(BIN)/python -m pytest -q
 
+# the inner loop: every test but those marked slow (subprocesses, training, renders)
+test-fast: $(KPCN)
+	$(BIN)/python -m pytest -q -m "not slow"
+
 # the training tests on the oldest Keras that pyproject.toml allows, in an environment of its own
 KERAS_OLDEST := $(shell sed -n 's/.*"keras>=\([0-9.]*\)".*/\1/p' pyproject.toml)
 test-oldest:
 	$(PYTHON) -m venv .venv-oldest
 	.venv-oldest/bin/pip install --quiet --disable-pip-version-check -c constraints.txt 'keras==$(KERAS_OLDEST)' -e '.[test]'
 	.venv-oldest/bin/python -c 'from importlib.metadata import version as v; from packaging.version import Version as V; assert V(v("keras")) == V("$(KERAS_OLDEST)"), v("keras")'
-	.venv-oldest/bin/python -m pytest -q tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_phases.py
+	.venv-oldest/bin/python -m pytest -q tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_train_phases.py
 
 clean:
 	rm -rf data runs shards/*/

@@ -31,7 +31,7 @@ is never rebuilt or duplicated, and training continues from the phase's checkpoi
 uninterrupted loop ends with. A rerun with more ``--rounds`` adds rounds; other settings are refused.
 Every wall-clock figure is in the timings files (the run's ``timings.json``, per phase, and the resample
 folder's, per round), so that a resumed loop ends with the bytes of an uninterrupted one in every other
-file (``tests/test_resample_interrupts.py``); a step's seconds are those of the sessions that finished it.
+file (``tests/test_resample_resume.py``); a step's seconds are those of the sessions that finished it.
 
 Runs with joint fine-tuning or a compositor are refused: their final-colour phases would have to be redone
 after every round, which this loop does not do.

@@ -4,7 +4,7 @@ import pytest
 from kpcn_keras import augment
 from kpcn_keras.augment import ALL, DX, DY, IDENTITY, Augmentation, augment_colour, augment_features, draw
 from prep import features
-from tests.conftest import random_aovs
+from helpers import random_aovs
 
 COLOUR_LAYERS = ("diffuse", "specular", "albedo", "default")
 

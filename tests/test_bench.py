@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
 from kpcn_keras.studies import bench, bench_stages
 from kpcn_keras.studies.config import BenchConfig
 from prep.errors import OptionError
@@ -85,15 +85,16 @@ def test_bench_config_takes_its_ladder_and_names_a_bad_option():
         assert err.value.option == option
 
 
+@pytest.mark.slow
 def test_bench_command_refuses_options_of_the_other_bench_and_a_set_without_a_render_record(tmp_path):
-    res = kpcn("bench", "render", "--budget", "3", cwd=tmp_path)
+    res = run_main("bench", "render", "--budget", "3", cwd=tmp_path)
     assert_one_line_error(res, "--budget", "kpcn bench render")
-    res = kpcn("bench", "--spp", "3", cwd=tmp_path)
+    res = run_main("bench", "--spp", "3", cwd=tmp_path)
     assert_one_line_error(res, "--spp", "kpcn bench render")
-    res = kpcn("bench", "--large-frame", "3", cwd=tmp_path)
+    res = run_main("bench", "--large-frame", "3", cwd=tmp_path)
     assert_one_line_error(res, "--large-frame", "WIDTH,HEIGHT")
     shard_cfg = build_tiny_shards(tmp_path)  # random renders: no scene descriptions to render again
-    res = kpcn("bench", "--set", "s", "--shards", shard_cfg.out_root, "--out", "rep", cwd=tmp_path)
+    res = run_main("bench", "--set", "s", "--shards", shard_cfg.out_root, "--out", "rep", cwd=tmp_path)
     assert_one_line_error(res, "config.json", "kpcn render")
     assert not (tmp_path / "rep").exists()
 
@@ -103,6 +104,7 @@ def _relmse64(x, r):
     return float(np.mean((x - r) ** 2 / (r * r + 1e-2)))
 
 
+@pytest.mark.slow
 def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch):
     from kpcn_keras.cli import main
     from kpcn_keras.denoise import Denoiser

@@ -1,13 +1,18 @@
-"""The command line as a user meets it: bad input gives one clear line and exit status 2."""
+"""The command line as a user meets it: bad input gives one clear line and exit status 2, and the whole
+pipeline at toy size through its entry point: render, shards, 20 training steps, denoise (our render and the
+Mitsuba fixture), evaluate."""
 
+import json
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
+from kpcn_keras.cli import main
 from prep import exr
 
 REPO = Path(__file__).resolve().parents[1]
@@ -18,7 +23,7 @@ def test_missing_layer_is_reported_without_traceback(tmp_path):
     del aovs["specularVariance"]
     exr.write_aovs(tmp_path / "renders" / "s" / "x-00004spp.exr", aovs)
     exr.write_aovs(tmp_path / "renders" / "s" / "x-00064spp.exr", random_aovs(8, 8, variances=False))
-    res = kpcn("shards", "--set", "s", "--renders", str(tmp_path / "renders"), "--out", str(tmp_path / "sh"),
+    res = run_main("shards", "--set", "s", "--renders", str(tmp_path / "renders"), "--out", str(tmp_path / "sh"),
                "--patch-size", "4", cwd=tmp_path)
     assert res.returncode == 2
     assert "x-00004spp.exr" in res.stderr and "specularVariance" in res.stderr
@@ -26,23 +31,42 @@ def test_missing_layer_is_reported_without_traceback(tmp_path):
 
 
 def test_missing_render_folder_and_bad_option_values(tmp_path):
-    res = kpcn("shards", "--set", "nothing", "--renders", str(tmp_path), cwd=tmp_path)
+    res = run_main("shards", "--set", "nothing", "--renders", str(tmp_path), cwd=tmp_path)
     assert res.returncode == 2 and "no such render folder" in res.stderr and "Traceback" not in res.stderr
-    res = kpcn("shards", "--set", "nothing", "--renders", str(tmp_path), "--val-fraction", "1.5", cwd=tmp_path)
+    res = run_main("shards", "--set", "nothing", "--renders", str(tmp_path), "--val-fraction", "1.5", cwd=tmp_path)
     assert res.returncode == 2 and "--val-fraction" in res.stderr and "1.5" in res.stderr
 
 
 def test_denoise_without_a_run_names_the_folder(tmp_path, fixture_noisy):
-    res = kpcn("denoise", str(fixture_noisy), "--run", str(tmp_path / "no-run"), cwd=tmp_path)
+    res = run_main("denoise", str(fixture_noisy), "--run", str(tmp_path / "no-run"), cwd=tmp_path)
     assert res.returncode == 2 and "no-run" in res.stderr and "not a run folder" in res.stderr
     assert "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 def test_render_and_shards_do_not_import_the_deep_learning_stack():
     code = ("import sys; import kpcn_keras.cli, prep.render, prep.shards, prep.features, prep.sampling; "
             "bad = [m for m in ('keras', 'torch', 'tensorflow') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_main_run_in_this_process_leaves_the_process_as_it_found_it(tmp_path):
+    # run_main is how these tests call main without a fresh interpreter; main sets the thread counts, their
+    # environment variables and the root logger, which later tests in this process must not inherit
+    import logging
+    import os
+
+    import numba
+    import torch
+
+    before = (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
+              numba.get_num_threads(), torch.get_num_threads())
+    exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
+    res = run_main("denoise", "in.exr", "--run", "no-run", "--threads", "1", cwd=tmp_path)
+    assert_one_line_error(res, "no-run", "not a run folder")
+    assert (dict(os.environ), os.getcwd(), sys.argv[:], logging.getLogger().handlers[:],
+            numba.get_num_threads(), torch.get_num_threads()) == before
 
 
 # --- kpcn denoise's default output (issue 5, defect 3) ---
@@ -52,7 +76,7 @@ def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_pa
     src = tmp_path / name
     exr.write_aovs(src, random_aovs(20, 24))
     before = checksums(tmp_path)
-    res = kpcn("denoise", name, "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", name, "--run", tiny_run, "--no-png", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     stem = src.name[:-4] if src.name.lower().endswith(".exr") else src.name
     out = src.with_name(stem + "-denoised.exr")
@@ -64,12 +88,12 @@ def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_pa
 def test_denoise_refuses_an_output_that_is_its_input_or_its_reference(tmp_path, tiny_run):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", tiny_run, "-o", "./in.exr", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", tiny_run, "-o", "./in.exr", cwd=tmp_path)
     assert_one_line_error(res, "in.exr", "input")
     assert checksums(tmp_path) == before
     exr.write_aovs(tmp_path / "ref.exr", random_aovs(12, 12, variances=False))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "ref.exr", "-o", "./ref.exr", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", tiny_run, "--reference", "ref.exr", "-o", "./ref.exr", cwd=tmp_path)
     assert_one_line_error(res, "ref.exr", "reference file")
     assert checksums(tmp_path) == before
 
@@ -89,7 +113,7 @@ def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_pat
     os.link(tmp_path / "in.exr", tmp_path / "hard.exr")
     model = Path(tiny_run) / json.loads((Path(tiny_run) / "config.json").read_text())["components"]["diffuse"]["file"]
     before, models = checksums(tmp_path), checksums(tiny_run)
-    res = kpcn("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", cwd=tmp_path)
+    res = run_main("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", cwd=tmp_path)
     assert_one_line_error(res, "side-by-side PNG pp/frame.png is the input file pp/frame.png itself")
     monkeypatch.chdir(tmp_path)
     for inputs, output, reference, message in [
@@ -107,7 +131,7 @@ def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_pat
 def test_denoise_reference_that_is_a_folder_is_named_as_one(tmp_path, tiny_run):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
     (tmp_path / "refs").mkdir()
-    res = kpcn("denoise", "in.exr", "--run", tiny_run, "--reference", "refs", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", tiny_run, "--reference", "refs", cwd=tmp_path)
     assert_one_line_error(res, "--reference", "refs, a folder", "reference EXR file")
 
 
@@ -117,11 +141,12 @@ def test_denoise_output_under_a_file_is_refused_before_inference(tmp_path, tiny_
     exr.write_aovs(tmp_path / "in.exr", random_aovs(12, 12))
     (tmp_path / "afile").write_text("not a folder")
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", tiny_run, "-o", "afile/out.exr", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", tiny_run, "-o", "afile/out.exr", cwd=tmp_path)
     assert_one_line_error(res, "afile/out.exr")
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_render_output_under_a_file_is_refused_before_rendering(tmp_path):
     (tmp_path / "afile").write_text("not a folder")
     # a set that would take hours: the refusal has to come first to return within the timeout
@@ -135,7 +160,7 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     (tmp_path / "afile").write_text("not a folder")
     before = checksums(tmp_path)
-    res = kpcn("shards", "--set", "s", "--renders", "renders", "--out", "afile", "--patch-size", "8", cwd=tmp_path)
+    res = run_main("shards", "--set", "s", "--renders", "renders", "--out", "afile", "--patch-size", "8", cwd=tmp_path)
     assert_one_line_error(res, "afile")
     assert checksums(tmp_path) == before
 
@@ -145,15 +170,16 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
 def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_it(tmp_path, tiny_run, small_disk):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
     args = ("denoise", "in.exr", "--run", tiny_run, "-o", "disk/out.exr")
-    assert_one_line_error(kpcn(*args, cwd=tmp_path), "disk/out.exr: cannot write (No space left on device)")
+    assert_one_line_error(run_main(*args, cwd=tmp_path), "disk/out.exr: cannot write (No space left on device)")
     assert list(small_disk.path.iterdir()) == []
     small_disk.grow()
-    res = kpcn(*args, cwd=tmp_path)
+    res = run_main(*args, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in small_disk.path.iterdir()) == ["out.exr", "out.png"]
     assert exr.read_aovs(small_disk.path / "out.exr", variances=False)["default"].shape == (64, 64, 3)
 
 
+@pytest.mark.slow
 def test_denoise_refused_a_write_by_the_file_system_ends_in_one_line(tmp_path, tiny_run):
     # the failure injected at write(2) without a mount: files may not grow past 64 kB
     exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
@@ -185,7 +211,7 @@ def test_corrupt_exr_gives_one_line_and_no_library_output(tmp_path, tiny_run):
     bad = tmp_path / "bad.exr"
     bad.write_bytes(bytes(data[: len(data) // 2]))  # truncated mid-file, as a killed copy leaves it
     before = checksums(tmp_path)
-    res = kpcn("denoise", "bad.exr", "--run", tiny_run, cwd=tmp_path)
+    res = run_main("denoise", "bad.exr", "--run", tiny_run, cwd=tmp_path)
     assert_one_line_error(res, "bad.exr")
     assert checksums(tmp_path) == before
 
@@ -196,16 +222,16 @@ def test_denoise_many_inputs_into_a_folder_and_refuses_a_file_output(tmp_path, t
     for name in ("a.exr", "b.exr"):
         exr.write_aovs(tmp_path / "in" / name, random_aovs(12, 14))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in/a.exr", "in/b.exr", "--run", tiny_run, "-o", "one.exr", cwd=tmp_path)
+    res = run_main("denoise", "in/a.exr", "in/b.exr", "--run", tiny_run, "-o", "one.exr", cwd=tmp_path)
     assert_one_line_error(res, "--output", "one.exr", "folder")
     assert checksums(tmp_path) == before
-    res = kpcn("--quiet", "denoise", "in", "--run", tiny_run, "-o", "out", "--threads", "1", cwd=tmp_path)
+    res = run_main("--quiet", "denoise", "in", "--run", tiny_run, "-o", "out", "--threads", "1", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         "a-denoised.exr", "a-denoised.png", "b-denoised.exr", "b-denoised.png"]
     assert "model load" in res.stdout and "warm-up" in res.stdout and "(1 thread)" in res.stdout
     # a second run over the folder beside the inputs skips nothing silently: earlier outputs are named
-    res = kpcn("denoise", "out", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", "out", "--run", tiny_run, "--no-png", cwd=tmp_path)
     assert res.returncode == 2 and "no renders to denoise" in res.stderr
 
 
@@ -213,7 +239,7 @@ def test_denoise_batch_stopped_by_a_bad_frame_keeps_the_outputs_before_it(tmp_pa
     exr.write_aovs(tmp_path / "a.exr", random_aovs(12, 12))
     data = (tmp_path / "a.exr").read_bytes()
     (tmp_path / "b.exr").write_bytes(data[: len(data) - 200])  # header intact, pixels cut off
-    res = kpcn("denoise", "a.exr", "b.exr", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", "a.exr", "b.exr", "--run", tiny_run, "--no-png", cwd=tmp_path)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
     assert "b.exr" in lines[0] and "a-denoised.exr" in lines[0]  # names the bad frame and what was written
@@ -226,7 +252,7 @@ def test_denoise_batch_stopped_by_a_bad_frame_keeps_the_outputs_before_it(tmp_pa
 def test_denoise_reference_is_for_one_input(tmp_path, tiny_run):
     for name in ("a.exr", "b.exr"):
         exr.write_aovs(tmp_path / name, random_aovs(12, 12))
-    res = kpcn("denoise", "a.exr", "b.exr", "--run", tiny_run, "--reference", "a.exr", cwd=tmp_path)
+    res = run_main("denoise", "a.exr", "b.exr", "--run", tiny_run, "--reference", "a.exr", cwd=tmp_path)
     assert_one_line_error(res, "--reference", "one input")
 
 
@@ -373,7 +399,7 @@ def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_
 
 
 def test_render_of_one_family_twice_is_refused_in_one_line_before_anything_is_written(tmp_path):
-    res = kpcn("render", "--families", "cornell,cornell", "--per-family", "1", "--out", "renders", cwd=tmp_path)
+    res = run_main("render", "--families", "cornell,cornell", "--per-family", "1", "--out", "renders", cwd=tmp_path)
     assert_one_line_error(res, "--families names cornell more than once")
     assert not any(tmp_path.iterdir())
 
@@ -384,3 +410,43 @@ def test_every_seed_option_takes_the_one_seed_range():
     seeds = {c: a.help for c, a in _options() if a.dest in ("seed", "seeds")}
     assert set(seeds) >= {"render", "shards", "train", "bench", "compare", "resample-study"}
     assert all(SEED.text() in text for text in seeds.values()), seeds
+
+
+# --- the whole pipeline ---
+
+@pytest.mark.slow
+def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_noisy, fixture_reference, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["-q", "render", "--set", "toy", "--families", "cornell,caustics,outdoor", "--per-family", "2",
+                 "--width", "48", "--height", "40", "--input-spp", "4,8", "--reference-spp", "32"]) == 0
+    renders = sorted((tmp_path / "data/renders/toy").glob("*.exr"))
+    assert len(renders) == 3 * 2 * 3  # families x scenes x (two inputs and the reference)
+
+    assert main(["-q", "shards", "--set", "toy", "--patch-size", "24", "--patches-per-image", "6",
+                 "--val-fraction", "0.5"]) == 0
+    manifest = json.loads((tmp_path / "shards/toy/manifest.json").read_text())
+    assert len(manifest["split"]["val"]) == 3 and not set(manifest["split"]["val"]) & set(manifest["split"]["train"])
+
+    assert main(["-q", "train", "--set", "toy", "--run", "runs/toy", "--steps", "20", "--batch-size", "4",
+                 "--width", "8", "--depth", "3", "--kernel-size", "5"]) == 0
+    record = json.loads((tmp_path / "runs/toy/config.json").read_text())
+    assert record["train"]["steps"] == 20 and set(record["results"]) == {"diffuse", "specular"}
+
+    noisy = next(p for p in renders if p.name.endswith("00004spp.exr"))
+    assert main(["-q", "denoise", str(noisy), "--run", "runs/toy", "-o", "out/ours.exr", "--tile", "16"]) == 0
+    assert main(["-q", "denoise", str(fixture_noisy), "--run", "runs/toy", "-o", "out/mitsuba.exr",
+                 "--reference", str(fixture_reference)]) == 0
+    for name, shape in (("ours", (40, 48, 3)), ("mitsuba", (64, 64, 3))):
+        out = exr.read_aovs(tmp_path / f"out/{name}.exr", variances=False)
+        assert out["default"].shape == shape and np.isfinite(out["default"]).all()
+        assert (tmp_path / f"out/{name}.png").stat().st_size > 0
+    assert "relmse" in capsys.readouterr().out
+
+    assert main(["-q", "evaluate", "--run", "runs/toy"]) == 0
+    rows = json.loads((tmp_path / "runs/toy/eval/metrics.json").read_text())
+    assert sorted((r["scene"], r["input spp"]) for r in rows) == sorted((s, n) for s in manifest["split"]["val"] for n in (4, 8))
+    assert all(np.isfinite(r["denoised"]["relmse"]) and np.isfinite(r["nlm"]["relmse"]) for r in rows)
+    assert all(np.isfinite(r[k]["relse_p999"]) for r in rows for k in ("raw", "denoised", "nlm"))
+    report = (tmp_path / "runs/toy/eval/report.md").read_text()
+    assert "| scene | input spp | raw relMSE | denoised relMSE | raw relSE p99.9 | denoised relSE p99.9 |" in report
+    assert "| NLM relMSE | NLM relSE p99.9 |" in report

@@ -13,9 +13,9 @@ import json
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, kpcn
-from kpcn_keras.studies import compare as cmp
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
 from kpcn_keras.config import PRESETS
+from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies.config import CompareConfig
 from prep import exr
 from prep.errors import OptionError
@@ -83,11 +83,12 @@ def test_unknown_configuration_is_a_one_line_error_listing_the_known_ones(tmp_pa
     for bad in ({"budget": 0}, {"budget": float("inf")}, {"repeats": 0}, {"configurations": ("cpu", "cpu")}):
         with pytest.raises(OptionError, match=next(iter(bad))):
             CompareConfig(**bad)
-    res = kpcn("compare", "--configurations", "cpu,kpcn-papr", cwd=tmp_path)
+    res = run_main("compare", "--configurations", "cpu,kpcn-papr", cwd=tmp_path)
     assert_one_line_error(res, "--configurations", "'kpcn-papr'", "kpal-paper", "multiscale-kernel")
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_probes_time_every_step_of_every_phase_in_a_scratch_run(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = CompareConfig(set_name="s", shards_root=shard_cfg.out_root)
@@ -183,6 +184,7 @@ def test_tiny_comparison_writes_reports_that_an_independent_computation_reproduc
     assert "one shard set and one budget" in md
 
 
+@pytest.mark.slow
 def test_oidn_row_is_measured_when_installed_and_says_so_when_not(compared, monkeypatch):
     from prep import baselines
 
@@ -248,7 +250,7 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
     (tmp_path / "compare.json").write_text(json.dumps(record, indent=2) + "\n")
     (tmp_path / "compare.md").write_text("an older report\n")
     before = datetime.date.today()
-    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    res = run_main("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     md = (tmp_path / "compare.md").read_text()
     # the day it ran: the day before the command or after it (a run across midnight)
@@ -261,6 +263,6 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
 
 
 def test_report_only_without_a_record_is_a_one_line_error(tmp_path):
-    res = kpcn("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    res = run_main("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert_one_line_error(res, str(tmp_path / "compare.json"), "no such comparison record")
     assert not any(tmp_path.iterdir())

@@ -1,16 +1,20 @@
 import pickle
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import build_tiny_shards
+from helpers import build_tiny_shards
 from kpcn_keras.data import ShardPatches
 from prep.shards import ShardError, open_shard, shard_paths
 
 
-@pytest.fixture
-def train_paths(tmp_path):
-    return shard_paths(build_tiny_shards(tmp_path).set_dir, "train")
+@pytest.fixture(scope="module")
+def train_paths(tmp_path_factory):
+    """The training shards of one tiny set, built once: the tests read them, and the one that damages a
+    shard damages a copy."""
+    return shard_paths(build_tiny_shards(tmp_path_factory.mktemp("data")).set_dir, "train")
 
 
 def all_patches(paths, name):
@@ -57,8 +61,8 @@ def test_bad_arguments_are_echoed(train_paths):
         ShardPatches(train_paths, "diffuse", batch_size=99)
 
 
-def test_a_damaged_chunk_is_an_error_naming_the_shard(train_paths):
-    path = train_paths[0]
+def test_a_damaged_chunk_is_an_error_naming_the_shard(train_paths, tmp_path):
+    path = Path(shutil.copy(train_paths[0], tmp_path))
     with open_shard(path) as f:
         chunk = f["diffuse/features"].id.get_chunk_info(0)
     data = bytearray(path.read_bytes())

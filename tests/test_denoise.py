@@ -2,7 +2,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, build_tiny_shards, random_aovs
+from helpers import TINY_MODEL, build_tiny_shards, random_aovs
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file
 from kpcn_keras.models import network_input
@@ -24,6 +24,7 @@ def _untiled(denoiser, aovs, slope=None):
     return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size, tile", [((45, 61), 16), ((13, 7), 2), ((1, 6), 4)], ids=["45x61/16", "13x7/2", "1x6/4"])
 def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
     # odd frames (partial tiles at the right and bottom), a tile smaller than the margin, a single row
@@ -40,6 +41,7 @@ def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
         np.testing.assert_allclose(tiled.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_MODEL, steps=2,
@@ -56,6 +58,7 @@ def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives
         denoiser(aovs)
 
 
+@pytest.mark.slow
 def test_tiles_with_too_little_overlap_would_differ(tiny_run):
     # guards the test above: without the margin the tile seams are visible
     aovs = random_aovs(40, 40, seed=3)
@@ -65,6 +68,7 @@ def test_tiles_with_too_little_overlap_would_differ(tiny_run):
     assert np.abs(seamy.run_branch("diffuse", aovs) - whole).max() > 1e-4
 
 
+@pytest.mark.slow
 def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run):
     # tracemalloc sees every numpy array (the features, their inputs' copies and the kernel's scratch, the
     # float64 recombination), not torch's own buffers (the network's activations, bounded by the tile anyway)
@@ -89,6 +93,7 @@ def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run)
         assert beyond <= bound, (size, beyond, bound)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("png, reference", [(False, False), (True, False), (False, True), (True, True)])
 def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, reference):
     # what a pixel more costs (the difference of two frame heights at one width: fixed costs and the PNG's
@@ -156,6 +161,7 @@ def test_denoises_the_mitsuba_fixture(tiny_run, tmp_path, fixture_noisy, fixture
 
 # --- batches (issue 9): one load, many frames ---
 
+@pytest.mark.slow
 def test_a_batch_equals_each_frame_alone(tiny_run, tmp_path):
     # bit-exact: the same networks run the same tiles of the same features; nothing carries over between
     # frames (no state in the models at inference, every tile's result depends on its own input only)

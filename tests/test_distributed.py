@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO, launcher_free_env, torchrun
+from helpers import REPO, launcher_free_env, torchrun
 from kpcn_keras import distributed
 
 # One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
@@ -57,6 +57,7 @@ def _weights(path) -> list[np.ndarray]:
         return [z[k] for k in sorted(z.files, key=lambda k: int(k.split("_")[1]))]
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_on_halves_of_a_batch_train_what_one_process_trains_on_all_of_it(tmp_path):
     env = launcher_free_env(KERAS_BACKEND="torch")
     one = subprocess.run([sys.executable, "-c", STEPS, str(tmp_path / "one.npz")], cwd=REPO, env=env,
@@ -110,6 +111,7 @@ distributed.stop(world)
 """
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_log_the_mean_of_their_losses():
     rendezvous = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": "2"}
     env = launcher_free_env(KERAS_BACKEND="torch")
@@ -154,11 +156,12 @@ TRAIN = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth",
 EVERY_PHASE = ("--joint-steps", "2", "--compositor", "alpha", "--compositor-steps", "2")
 
 
+@pytest.mark.slow
 def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_path):
     """The documented launch line, on 2 gloo processes, against `kpcn train` alone, through every phase
     (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
     losses, and one set of files, written by rank 0."""
-    from conftest import build_tiny_shards, kpcn
+    from helpers import build_tiny_shards, kpcn
     from kpcn_keras.run import Run, load_model
 
     build_tiny_shards(tmp_path)
@@ -180,18 +183,19 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
         np.testing.assert_allclose(log_two[column], log_one[column], rtol=1e-4)
 
 
-# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_interrupts.py)
+# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_cli_resume.py)
 RESUMABLE = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
              "--steps", "200", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
 
 
+@pytest.mark.slow
 def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_files(tmp_path):
     """Every process of the run killed at once (as a cancelled job is) after its first checkpoint; the same
     launch line again finishes it, and every file equals an uninterrupted two-process run's byte for byte."""
     import signal
     import time
 
-    from conftest import build_tiny_shards, checksums
+    from helpers import build_tiny_shards, checksums
 
     env = launcher_free_env(PYTHONPATH=str(REPO))
     trees = {}

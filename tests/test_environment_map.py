@@ -59,6 +59,7 @@ def test_texel_of_a_direction_agrees_with_the_documented_mapping():
     assert env_texel(sc, (0.0, 0.0, 1.0))[1] == 12  # +z: azimuth 90 degrees
 
 
+@pytest.mark.slow
 def test_sampled_directions_estimate_the_irradiance_of_the_map(tmp_path):
     # E[L cos / pdf] over env_sample's draws is the irradiance; the hot texel makes a wrong pdf show
     path, texels = stripes_map(tmp_path)

@@ -107,6 +107,7 @@ def test_error_map_refuses_float64_overflow_rather_than_returning_inf():
         sampling.error_map(out, -out, "relmse")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("metric", sampling.ERROR_METRICS)
 def test_error_pdf_draws_follow_the_error_chi_square(metric):
     size, side, mix = 5, 24, 0.1

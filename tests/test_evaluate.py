@@ -4,6 +4,7 @@ NLM; the mean row averages the scenes' values."""
 import json
 
 import numpy as np
+import pytest
 
 from kpcn_keras.cli import main
 from kpcn_keras.evaluate import COLUMNS, format_table, held_out_pairs
@@ -59,6 +60,7 @@ def test_table_without_the_baseline_leaves_the_nlm_columns_nan():
     assert cells[-1][header.index("raw relSE p99.9")] == "5.0000"
 
 
+@pytest.mark.slow
 def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path, capsys):
     out = tmp_path / "eval"
     assert main(["-q", "evaluate", "--run", str(tiny_run), "--out", str(out)]) == 0
@@ -83,7 +85,7 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
 def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_run, tmp_path, capsys):
     import os
 
-    from conftest import checksums, random_aovs
+    from helpers import checksums, random_aovs
 
     for folder in ("a", "b"):
         exr.write_aovs(tmp_path / folder / "x-00004spp.exr", random_aovs(16, 16))
@@ -104,10 +106,11 @@ def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_r
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(tiny_run, tmp_path, capsys):
     import shutil
 
-    from conftest import make_renders, random_aovs
+    from helpers import make_renders, random_aovs
 
     folder = make_renders(tmp_path / "renders", scenes=("a-000",), size=(24, 20))
     noisy, ref = folder / exr.render_filename("a-000", 4), folder / exr.render_filename("a-000", 64)

@@ -1,8 +1,10 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
 
-from conftest import random_aovs
-from prep import features
+from helpers import F32_EPS, F32_TINY, PROPERTY, assert_features_match_reference, random_aovs, renders
+from prep import exr, features
+from prep.features import LOG_COLOUR_MAX
 from prep.features import reference_features
 
 
@@ -78,3 +80,27 @@ def test_a_window_has_the_whole_image_features_bit_for_bit(branch):
 def test_a_window_outside_the_image_is_refused():
     with pytest.raises(ValueError, match=r"\(0, 5, 3, 3\)"):
         features.branch_features(random_aovs(4, 4), "diffuse", (0, 5, 3, 3))
+
+
+# ---------------------------------------------------------------- hard numbers (from test_numerics)
+
+
+@settings(max_examples=60, **PROPERTY)
+@given(aovs=renders())
+def test_features_of_any_finite_float32_render_match_float64_and_stay_in_documented_ranges(aovs):
+    assert_features_match_reference(aovs)
+
+
+@settings(max_examples=60, **PROPERTY)
+@given(aovs=renders())
+def test_colour_transform_inverses_recover_the_clamped_input_to_float32_rounding(aovs):
+    # c is rounded to float32 (relative 2^-24), which expm1 turns into a relative error of at most
+    # (c + 1) * 2^-24 <= (LOG_COLOUR_MAX + 1) * 2^-24; subnormal inputs keep an absolute error of ~F32_TINY
+    rtol = (LOG_COLOUR_MAX + 1) * F32_EPS / 2
+    albedo = aovs["albedo"]
+    diffuse = features.diffuse_from_log(features.branch_colour(aovs, "diffuse"), albedo)
+    specular = features.specular_from_log(features.branch_colour(aovs, "specular"))
+    for got, x in ((diffuse, aovs["diffuse"]), (specular, aovs["specular"])):
+        assert np.isfinite(got).all() and got.min() >= 0
+        np.testing.assert_allclose(got, np.maximum(x.astype(np.float64), 0.0), rtol=rtol, atol=2 * F32_TINY)
+        assert np.isfinite(exr.to_float32(got)).all()

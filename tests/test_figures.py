@@ -2,7 +2,7 @@
 
 import os
 
-from conftest import checksums, random_aovs
+from helpers import checksums, random_aovs
 from kpcn_keras.cli import main
 from kpcn_keras.run import Run
 from prep import exr

@@ -1,10 +1,17 @@
-"""KernelApply against an independent float64 numpy reference, plus its numerical edge cases."""
+"""KernelApply against an independent float64 numpy reference, plus its numerical edge cases; every layer of
+``kpcn_keras.layers`` against the Keras layer contract (``helpers.check_keras_layer``)."""
 
 import numpy as np
 import pytest
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from helpers import F32_EPS, F32_MAX, F32_TINY, PROPERTY, check_keras_layer, float32_images
+from helpers import reference_kernel_apply as float64_kernel_apply
 from kpcn_keras import layers as layers_module
 from kpcn_keras.layers import (
+    FinalColour,
     FusedConv2D,
     KernelApply,
     TakeChannels,
@@ -14,6 +21,8 @@ from kpcn_keras.layers import (
     pad_edge,
     softmax_kernels,
 )
+from kpcn_keras.losses import smape
+from prep.features import LOG_COLOUR_MAX
 
 import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 import torch  # noqa: E402
@@ -118,6 +127,7 @@ def test_extreme_logits_finite_values_and_gradients():
     assert torch.isfinite(colour.grad).all()
 
 
+@pytest.mark.slow
 def test_gradient_matches_finite_differences():
     k = 3
     rng = np.random.default_rng(4)
@@ -140,12 +150,19 @@ def test_wrong_logit_count_raises():
         KernelApply(3)([np.zeros((1, 4, 4, 3), np.float32), np.zeros((1, 4, 4, 25), np.float32)])
 
 
-def test_serialisation_round_trip_without_custom_objects():
-    for layer in (KernelApply(7, name="ka"), TakeChannels(0, 3, name="tc")):
-        config = keras.saving.serialize_keras_object(layer)
-        clone = keras.saving.deserialize_keras_object(config)
-        assert type(clone) is type(layer)
-        assert clone.get_config() == layer.get_config()
+# name -> (factory, input shapes without the batch); every custom layer of kpcn_keras/layers.py
+LAYER_CASES = {
+    "KernelApply": (lambda: KernelApply(3, name="ka"), [(8, 6, 3), (8, 6, 9)]),
+    "TakeChannels": (lambda: TakeChannels(0, 3, name="tc"), [(8, 6, 5)]),
+    "FusedConv2D": (lambda: FusedConv2D(4, 3, padding="same"), [(8, 6, 3)]),
+    "FinalColour": (lambda: FinalColour(), [(8, 6, 3), (8, 6, 3), (8, 6, 3)]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(LAYER_CASES))
+def test_layer_keeps_the_keras_layer_contract(name, tmp_path):
+    factory, shapes = LAYER_CASES[name]
+    check_keras_layer(factory, shapes, tmp_path)
 
 
 def test_take_channels_validates():
@@ -174,6 +191,7 @@ def test_torch_path_equals_keras_ops_path_with_gradients(k, d, h, w):
         np.testing.assert_allclose(to_np(a), to_np(b), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_torch_path_is_taken_and_gradchecks_with_dilation(monkeypatch):
     calls = []
     original = layers_module._torch_kernel_apply
@@ -235,5 +253,70 @@ def test_fused_conv_equals_keras_conv_values_and_gradients(kw):
     for ga, gb in zip(torch.autograd.grad(a.square().sum(), params(ours)),
                       torch.autograd.grad(b.square().sum(), params(theirs))):
         np.testing.assert_allclose(to_np(ga), to_np(gb), rtol=1e-4, atol=1e-4)
-    clone = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(ours))
-    assert type(clone) is FusedConv2D and clone.get_config() == ours.get_config()
+
+
+# ---------------------------------------------------------------- hard numbers (from test_numerics)
+
+
+@pytest.mark.parametrize("colour_level", [0.0, 1.0, LOG_COLOUR_MAX])
+def test_softmax_kernels_at_logits_of_plus_minus_1e4_are_exact_averages_with_finite_gradients(colour_level):
+    k = 3
+    rng = np.random.default_rng(6)
+    signs = rng.choice([-1.0, 1.0], size=(2, 5, 4, k * k))
+    signs[0, 0, 0] = 1.0  # every tap tied at the maximum
+    signs[0, 0, 1] = -1.0  # every tap tied at the minimum
+    colour = (rng.uniform(0, 1, (2, 5, 4, 3)) * colour_level).astype(np.float32)
+    logits_np = (signs * 1e4).astype(np.float32)
+    # analytic: exp(-2e4) is 0, so the weights are 1/m on the m taps at the maximum
+    top = logits_np == logits_np.max(axis=-1, keepdims=True)
+    want_weights = top / top.sum(axis=-1, keepdims=True)
+    np.testing.assert_allclose(to_np(softmax_kernels(logits_np)), want_weights, rtol=1e-6, atol=0)
+    want, _ = float64_kernel_apply(colour, logits_np, k)
+    colour_t = torch.tensor(colour, requires_grad=True)
+    logits = torch.tensor(logits_np, requires_grad=True)
+    out = KernelApply(k)([colour_t, logits])
+    np.testing.assert_allclose(to_np(out), want, rtol=1e-6, atol=1e-6 * max(colour_level, 1.0))
+    smape(torch.zeros_like(out), out).backward()
+    assert torch.isfinite(colour_t.grad).all() and torch.isfinite(logits.grad).all()
+
+
+@st.composite
+def kernel_inputs(draw):
+    k = draw(st.sampled_from([1, 3, 5]))
+    shape = (draw(st.integers(1, 2)), draw(st.integers(1, 8)), draw(st.integers(1, 8)))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    domain = draw(st.sampled_from(["log-colour", "signed", "non-negative"]))
+    if domain == "log-colour":  # what the networks filter: [0, LOG_COLOUR_MAX], ends included
+        colour = rng.uniform(0, LOG_COLOUR_MAX, shape + (3,))
+        colour[rng.uniform(size=colour.shape) < 0.2] = 0.0
+        colour[rng.uniform(size=colour.shape) < 0.2] = LOG_COLOUR_MAX
+    else:
+        # magnitudes up to 1e37: a convex combination within k*k rounding errors of float32 max may round to inf
+        colour = draw(float32_images(shape + (3,), signed=domain == "signed")).astype(np.float64)
+        colour = np.clip(colour, -1e37, 1e37)
+    scale = draw(st.sampled_from([0.0, 1.0, 30.0, 1e4, 1e30, F32_MAX / 8]))
+    logits = rng.normal(size=shape + (k * k,)) * scale
+    if draw(st.booleans()):
+        logits = np.sign(logits) * scale  # saturated: ties at +-scale
+    return colour.astype(np.float32), np.clip(logits, -F32_MAX, F32_MAX).astype(np.float32), k
+
+
+@settings(max_examples=80, **PROPERTY)
+@given(case=kernel_inputs())
+def test_kernel_application_matches_float64_and_stays_inside_each_window(case):
+    colour, logits, k = case
+    colour_t = torch.tensor(colour, requires_grad=True)
+    logits_t = torch.tensor(logits, requires_grad=True)
+    out = KernelApply(k)([colour_t, logits_t])
+    got = to_np(out).astype(np.float64)
+    want, windows = float64_kernel_apply(colour, logits, k)
+    # float32 error: the shifted logits' rounding through exp (|z| <= ~104 before exp underflows), the
+    # normalisation and the k*k-term sum, relative to the window's largest magnitude
+    scale = np.abs(windows).max(axis=3)
+    tol = (128 + 2 * k * k) * F32_EPS * scale + k * k * F32_TINY
+    assert np.isfinite(got).all()
+    assert (np.abs(got - want) <= tol).all()
+    # a convex combination: inside [min, max] of the window, per channel
+    assert (got >= windows.min(axis=3) - tol).all() and (got <= windows.max(axis=3) + tol).all()
+    (out * out.detach().sign()).sum().backward()
+    assert torch.isfinite(colour_t.grad).all() and torch.isfinite(logits_t.grad).all()

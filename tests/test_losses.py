@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from helpers import F32_MAX, F32_TINY
 from kpcn_keras.losses import (
     SMAPE_EPS,
     SMAPE,
@@ -13,6 +14,7 @@ from kpcn_keras.losses import (
     smape_elementwise,
 )
 from kpcn_keras.models import ModelConfig, build_branch_model
+from prep.features import LOG_COLOUR_MAX
 
 import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 import torch  # noqa: E402
@@ -143,3 +145,45 @@ def test_losses_serialise_and_train_a_model(tmp_path):
     model.save(tmp_path / "m.keras")
     loaded = keras.models.load_model(tmp_path / "m.keras")
     assert isinstance(loaded.loss, AsymmetricSMAPE) and loaded.loss.slope == 2.0
+
+
+# ---------------------------------------------------------------- hard numbers (from test_numerics)
+
+
+def test_smape_at_zero_is_zero_with_finite_bounded_gradient():
+    out = torch.zeros((2, 3, 3, 3), requires_grad=True)
+    gt = torch.zeros((2, 3, 3, 3))
+    for loss in (smape(gt, out), SMAPE()(gt, out)):
+        assert float(loss.detach()) == 0.0
+        (grad,) = torch.autograd.grad(loss, out)
+        # one-sided derivatives at out = gt = 0 are +-1 / SMAPE_EPS per element (over the mean's count)
+        assert torch.isfinite(grad).all() and float(grad.abs().max()) <= 1.0 / SMAPE_EPS / out.numel()
+
+
+@pytest.mark.parametrize("gt_level", [0.0, 1e-6, 1.0, LOG_COLOUR_MAX])
+@pytest.mark.parametrize("slope", [1.0, 2.0, 8.0])
+def test_asymmetric_smape_at_out_equal_gt_is_zero_with_finite_bounded_gradient(gt_level, slope):
+    rng = np.random.default_rng(8)
+    gt = torch.tensor(rng.uniform(0, 1, (2, 4, 4, 3)) * gt_level, dtype=torch.float32)
+    noisy = gt + torch.tensor(rng.normal(size=(2, 4, 4, 3)), dtype=torch.float32)
+    out = gt.clone().requires_grad_(True)
+    for loss in (asymmetric_smape(noisy, gt, out, slope), AsymmetricSMAPE(slope)(torch.cat([gt, noisy], -1), out)):
+        assert float(loss.detach()) == 0.0
+        (grad,) = torch.autograd.grad(loss, out)
+        # one-sided derivative bound at out = gt: slope / (2|gt| + SMAPE_EPS), over the mean's count
+        bound = slope / (2 * gt.abs() + SMAPE_EPS) / out.numel()
+        assert torch.isfinite(grad).all() and bool((grad.abs() <= bound * (1 + 1e-6)).all())
+
+
+@pytest.mark.parametrize("out_value,gt_value", [(0.0, LOG_COLOUR_MAX), (LOG_COLOUR_MAX, 0.0), (F32_MAX, 0.0),
+                                                (F32_MAX, F32_MAX), (F32_TINY, 0.0), (0.0, F32_TINY)])
+def test_smape_over_the_colour_range_matches_float64_with_finite_gradient(out_value, gt_value):
+    out = torch.tensor([out_value], dtype=torch.float32, requires_grad=True)
+    gt = torch.tensor([gt_value], dtype=torch.float32)
+    loss = smape(gt, out)
+    o, g = float(np.float32(out_value)), float(np.float32(gt_value))
+    want = abs(o - g) / (abs(o) + abs(g) + SMAPE_EPS)
+    value = float(loss.detach())
+    assert value == pytest.approx(want, rel=1e-6, abs=1e-12) and 0.0 <= value <= 1.0
+    loss.backward()
+    assert torch.isfinite(out.grad).all()

@@ -73,6 +73,7 @@ def soup(rng, n=300):
     return Mesh(tuple(map(tuple, v.tolist())), tuple((3 * i, 3 * i + 1, 3 * i + 2) for i in range(n)), "m")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["soup", "shapes"])
 def test_bvh_finds_the_brute_force_nearest_hit_and_occlusion(kind):
     from prep.render.tracer import intersect_mesh, occluded_mesh
@@ -161,7 +162,7 @@ def test_mesh_model_validates_and_round_trips():
     assert Scene.from_dict(scene.to_dict()) == scene
     assert "meshes" not in mesh_scene([]).to_dict()  # scenes without meshes are described as before
     light = dataclasses.replace(scene, materials={"m": emitter((1.0, 1.0, 1.0))})
-    light.validate()  # an emitter mesh is an area light (tests/test_render_effects.py)
+    light.validate()  # an emitter mesh is an area light (tests/test_integrator.py)
     assert {"emitter", "mesh"} <= light.effects()
     with pytest.raises(ValueError, match="'nope'"):
         dataclasses.replace(scene, meshes=[box_mesh(0, 1, 0, 1, 0, 1, "nope")]).validate()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import randomise
+from helpers import extreme_features, finite_loss_and_gradients, randomise
 
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
@@ -15,6 +15,10 @@ from kpcn_keras.models import (
     receptive_radius,
     trunk_radius,
 )
+
+from prep import exr
+from prep import features as prep_features
+from prep.features import LOG_COLOUR_MAX, NUM_FEATURES
 
 import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 import torch  # noqa: E402
@@ -126,6 +130,7 @@ def test_untrained_dpcn_is_identity_on_log_colours():
 # ---------------------------------------------------------------- receptive field
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "cfg",
     [
@@ -164,6 +169,7 @@ def test_radius_formulas():
 # ---------------------------------------------------------------- save / load, kernels
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_save_load_round_trip(arch, tmp_path):
     cfg = tiny(arch, dropout=0.2)
@@ -179,6 +185,7 @@ def test_save_load_round_trip(arch, tmp_path):
     assert [type(layer) for layer in loaded.layers] == [type(layer) for layer in model.layers]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_channels_last_saved_models_load_and_agree_with_the_channels_first_layout(arch, tmp_path):
     """A model saved with the old channels-last convolutions loads and runs as before, and the default
@@ -243,6 +250,7 @@ def synthetic_batch(seed, n=4, size=16):
     return feats, gt
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 def test_adam_steps_reduce_loss(arch):
     keras.utils.set_random_seed(1234)
@@ -255,3 +263,49 @@ def test_adam_steps_reduce_loss(arch):
     loss1 = float(model.evaluate(x, y, verbose=0))
     assert np.isfinite(loss1)
     assert loss1 < 0.85 * loss0, (loss0, loss1)
+
+
+# ---------------------------------------------------------------- hard numbers (from test_numerics)
+
+TINY = {"width": 4, "depth": 2, "kernel_size": 3}
+
+
+@pytest.mark.parametrize("content", ["constant", "extreme"])
+@pytest.mark.parametrize("size", [1, 6])
+def test_batch_norm_with_a_batch_of_one_keeps_loss_gradients_and_statistics_finite(size, content):
+    keras.utils.set_random_seed(0)
+    model = build_branch_model(ModelConfig(arch="kpal", **TINY))
+    assert any(isinstance(layer, keras.layers.BatchNormalization) for layer in model.layers)
+    randomise(model, seed=1, scale=0.5)
+    if content == "constant":  # zero batch variance in every channel
+        x = np.zeros((1, size, size, NUM_FEATURES), np.float32)
+        x[..., :3] = 1.0
+    else:
+        x = extreme_features((1, size, size), seed=2)
+    gt = np.full((1, size, size, 3), 0.5, np.float32)
+    out = to_np(finite_loss_and_gradients(model, x, gt, x[..., :3]))
+    assert out.min() >= 0 and out.max() <= LOG_COLOUR_MAX
+    model.compile(optimizer=keras.optimizers.Adam(1e-3, clipnorm=1.0), loss=SMAPE())
+    for _ in range(2):
+        assert np.isfinite(float(model.train_on_batch(x, gt)))
+    for w in model.weights:
+        value = to_np(w.value)
+        assert np.isfinite(value).all(), w.path
+        if "moving_variance" in w.path:
+            assert value.min() >= 0, w.path
+    assert np.isfinite(to_np(model(x, training=False))).all()
+
+
+def test_dpcn_output_is_clamped_to_the_log_colour_range_at_extreme_inputs():
+    model = build_branch_model(ModelConfig(arch="dpcn", **TINY))
+    x = extreme_features((2, 9, 9), seed=3)
+    x[0, 0, 0, :3] = LOG_COLOUR_MAX
+    # untrained: the identity on the colour, which maps back to float32 max, not to inf
+    out = to_np(model(x, training=False))
+    np.testing.assert_array_equal(out, x[..., :3])
+    assert np.isfinite(exr.to_float32(prep_features.diffuse_from_log(out, np.zeros_like(out)))).all()
+    randomise(model, seed=4, scale=1.0)  # corrections far beyond the colour range, both ways
+    out = to_np(finite_loss_and_gradients(model, x, np.zeros_like(x[..., :3]), x[..., :3]))
+    assert out.min() == 0.0 and out.max() == np.float32(LOG_COLOUR_MAX)
+    linear = prep_features.diffuse_from_log(out, np.ones_like(out))  # the largest albedo multiplier
+    assert np.isfinite(linear).all() and np.isfinite(exr.to_float32(linear)).all()

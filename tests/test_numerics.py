@@ -1,19 +1,19 @@
-"""Hard numerical cases end to end, and property-based tests of the numerics (issue 5).
+"""Hard numerical cases end to end (issue 5).
 
-Every hard case is a synthetic render (``conftest.random_aovs`` with the case applied) that goes through
+Every hard case is a synthetic render (``helpers.random_aovs`` with the case applied) that goes through
 the whole pipeline: written with ``prep.exr.write_aovs`` and read back (the repair rule), the features of
 both branches (finite, inside the ranges of the table in ``prep/features.py``, equal to a float64 numpy
 evaluation of that table), the variance PDF (a distribution equal to explicit window sums), shards, real
 training steps of the three architectures (losses and gradients finite) and tiled denoising (finite,
-non-negative, equal to an untiled run). Figures are checked against independent float64 references;
-the property-based tests (hypothesis) cover the feature transforms, the PDF and the kernel application
-over random shapes and value ranges.
+non-negative, equal to an untiled run). Figures are checked against independent float64 references
+(``helpers``); the property-based tests (hypothesis) of the feature transforms, the PDF, the kernel
+application and the losses are in the files of their modules (test_features, test_sampling, test_layers,
+test_losses, test_models).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,47 +22,35 @@ from typing import Callable
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
-from conftest import random_aovs, randomise, reference_features
+from helpers import (
+    F32_MAX,
+    F32_TINY,
+    FEATURE_RANGES,
+    HALF_MAX,
+    RELVAR_BOUND,
+    assert_features_in_documented_ranges,
+    assert_features_match_reference,
+    assert_pdf_is_a_distribution,
+    assert_variance_pdf_matches,
+    finite_loss_and_gradients,
+    random_aovs,
+    randomise,
+    reference_features,
+    reference_importance,
+    reference_log_colour,
+    reference_pdf,
+)
 from kpcn_keras.denoise import Denoiser
-from kpcn_keras.layers import KernelApply, softmax_kernels
-from kpcn_keras.losses import SMAPE, SMAPE_EPS, AsymmetricSMAPE, asymmetric_smape, smape
-from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
+from kpcn_keras.models import ARCHS
 from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
 from prep.errors import KpcnError, OptionError
-from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES, REL_EPS
-from prep.sampling import IMPORTANCE_EPS
+from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES
 
-import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 import torch  # noqa: E402
 
-F32_MAX = float(np.finfo(np.float32).max)
-F32_TINY = float(np.finfo(np.float32).smallest_subnormal)
-F32_EPS = float(np.finfo(np.float32).eps)
-HALF_MAX = float(np.finfo(np.float16).max)
-
-# The largest relative variance a float32 render can give: a depth variance of float32 max at a miss
-# (d = 0) in an image whose largest depth is the smallest subnormal (depth scale 1 / F32_TINY).
-RELVAR_BOUND = float(np.log1p(F32_MAX / F32_TINY**2 / REL_EPS))
-
-# (first channel, stop, lowest, highest): the table of prep/features.py, each bound derived from the
-# module's constants or from the clip range its formula names.
-FEATURE_RANGES = [
-    (0, 3, 0.0, LOG_COLOUR_MAX),  # colour
-    (3, 6, -LOG_COLOUR_MAX, LOG_COLOUR_MAX),  # dx colour
-    (6, 9, -2.0, 2.0),  # dx normal: normal clipped to [-1, 1]
-    (9, 12, -1.0, 1.0),  # dx albedo: albedo clipped to [0, 1]
-    (12, 13, -1.0, 1.0),  # dx depth: depth scaled to [0, 1]
-    (13, 16, -LOG_COLOUR_MAX, LOG_COLOUR_MAX),  # dy of the same
-    (16, 19, -2.0, 2.0),
-    (19, 22, -1.0, 1.0),
-    (22, 23, -1.0, 1.0),
-    (23, 27, 0.0, RELVAR_BOUND),  # relative variances
-]
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 PATCH = 8
@@ -82,119 +70,6 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
-
-
-# ---------------------------------------------------------------- float64 references
-
-
-def reference_log_colour(colour, albedo=None) -> np.ndarray:
-    """log(1 + max(x, 0)), x = colour / (clip(albedo, 0, 1) + ALBEDO_EPS) for the diffuse branch, in float64."""
-    x = np.asarray(colour, np.float64)
-    if albedo is not None:
-        x = x / (np.clip(np.asarray(albedo, np.float64), 0.0, 1.0) + ALBEDO_EPS)
-    return np.log1p(np.maximum(x, 0.0))
-
-
-def reference_importance(aovs: dict) -> np.ndarray:
-    mean = np.maximum(aovs["default"].astype(np.float64), 0.0).sum(axis=-1) / 3.0
-    colour = np.maximum(aovs["colorVariance"].astype(np.float64), 0.0) / (mean**2 + IMPORTANCE_EPS)
-    return colour + np.maximum(aovs["normalVariance"].astype(np.float64), 0.0)
-
-
-def reference_pdf(importance, p: int, mix: float) -> np.ndarray:
-    """Explicit window sums (exactly rounded, math.fsum) of the finite, non-negative importance, normalised,
-    mixed with the uniform PDF; uniform when nothing is left."""
-    imp = np.asarray(importance, np.float64)
-    imp = np.where(np.isfinite(imp), np.maximum(imp, 0.0), 0.0)
-    if imp.max() > 0:
-        imp = np.ldexp(imp, -np.frexp(imp.max())[1])  # an exact power-of-two scale, so that fsum cannot overflow
-    h, w = imp.shape
-    sums = np.array([[math.fsum(imp[y : y + p, x : x + p].ravel()) for x in range(w - p + 1)]
-                     for y in range(h - p + 1)])
-    total = math.fsum(sums.ravel())
-    uniform = np.full(sums.shape, 1.0 / sums.size)
-    if total <= 0:
-        return uniform
-    return mix * uniform + (1.0 - mix) * (sums / total)
-
-
-def reference_kernel_apply(colour, logits, k: int):
-    """float64: softmax with max subtraction, edge-replicated k x k windows, weighted sum. Returns the output
-    (B, H, W, C) and the windows (B, H, W, k*k, C)."""
-    c = np.asarray(colour, np.float64)
-    z = np.asarray(logits, np.float64)
-    z = z - z.max(axis=-1, keepdims=True)
-    weights = np.exp(z)
-    weights /= weights.sum(axis=-1, keepdims=True)
-    r = k // 2
-    h, w = c.shape[1:3]
-    padded = np.pad(c, ((0, 0), (r, r), (r, r), (0, 0)), mode="edge")
-    windows = np.stack([padded[:, i : i + h, j : j + w] for i in range(k) for j in range(k)], axis=3)
-    return np.einsum("bhwt,bhwtc->bhwc", weights, windows), windows
-
-
-# ---------------------------------------------------------------- checks
-
-
-def assert_features_in_documented_ranges(feats: np.ndarray) -> None:
-    assert feats.shape[-1] == NUM_FEATURES
-    assert np.isfinite(feats).all()
-    f = feats.astype(np.float64)
-    for first, stop, lo, hi in FEATURE_RANGES:
-        block = f[..., first:stop]
-        assert block.min() >= lo and block.max() <= hi, (
-            f"channels {features.FEATURE_NAMES[first:stop]}: [{block.min()}, {block.max()}] outside [{lo}, {hi}]")
-
-
-def assert_features_match_reference(aovs: dict) -> None:
-    for branch in features.BRANCHES:
-        got = features.branch_features(aovs, branch)
-        assert got.dtype == np.float32
-        assert_features_in_documented_ranges(got)
-        np.testing.assert_allclose(got, reference_features(aovs, branch), rtol=1e-6, atol=1e-6, err_msg=branch)
-
-
-def assert_pdf_is_a_distribution(pdf: np.ndarray, want: np.ndarray) -> None:
-    assert pdf.shape == want.shape and pdf.dtype == np.float64
-    assert np.isfinite(pdf).all() and pdf.min() >= 0.0
-    assert abs(math.fsum(pdf.ravel()) - 1.0) <= 1e-12
-    # direct sums of non-negative terms: relative accuracy, even beside a pixel 1e20 times brighter
-    np.testing.assert_allclose(pdf, want, rtol=1e-12, atol=1e-300)
-
-
-def assert_variance_pdf_matches(aovs: dict, patch: int, mix: float = 0.1) -> np.ndarray:
-    importance = sampling.variance_importance(aovs)
-    np.testing.assert_allclose(importance, reference_importance(aovs), rtol=1e-12, atol=0)
-    pdf = sampling.patch_pdf(importance, patch, mix)
-    assert_pdf_is_a_distribution(pdf, reference_pdf(importance, patch, mix))
-    return pdf
-
-
-def finite_loss_and_gradients(model: keras.Model, x, gt, noisy) -> torch.Tensor:
-    """SMAPE and asymmetric SMAPE of ``model`` in training mode, with their gradients; asserts all finite.
-    Returns the output."""
-    out = model(torch.as_tensor(x), training=True)
-    gt_t = torch.as_tensor(gt)
-    losses = {
-        "smape": SMAPE()(gt_t, out),
-        "asymmetric": AsymmetricSMAPE(2.0)(torch.as_tensor(np.concatenate([gt, noisy], axis=-1)), out),
-    }
-    variables = [w.value for w in model.trainable_weights]
-    for name, loss in losses.items():
-        assert torch.isfinite(loss), (name, loss)
-        grads = torch.autograd.grad(loss, variables, retain_graph=True, allow_unused=True)
-        for w, g in zip(model.trainable_weights, grads):
-            assert g is None or torch.isfinite(g).all(), f"{name}: non-finite gradient of {w.path}"
-    return out
-
-
-def extreme_features(shape, seed: int) -> np.ndarray:
-    """Features with every channel at the low end, the high end of its documented range, or 0."""
-    rng = np.random.default_rng(seed)
-    x = np.empty(tuple(shape) + (NUM_FEATURES,), np.float32)
-    for first, stop, lo, hi in FEATURE_RANGES:
-        x[..., first:stop] = rng.choice([lo, hi, 0.0], size=tuple(shape) + (stop - first,))
-    return x
 
 
 # ---------------------------------------------------------------- the hard cases
@@ -640,6 +515,7 @@ def test_randomised_networks_keep_denoised_extreme_renders_finite_and_in_range(h
 # ---------------------------------------------------------------- image sizes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size", [(1, 1), (1, 9), (9, 1), (7, 13)], ids=lambda s: f"{s[0]}x{s[1]}")
 def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_denoise(tmp_path, size):
     h, w = size
@@ -706,245 +582,3 @@ def test_a_shard_set_without_a_uniform_share_is_refused_naming_the_option(tmp_pa
     # plan could not check patches_per_image against it before writing
     with pytest.raises(OptionError, match=r"uniform_mix must be a number in \(0, 1\], got 0.0"):
         shards.ShardConfig(set_name="flat", uniform_mix=0.0)
-
-
-# ---------------------------------------------------------------- kernels, losses, batch norm, DPCN
-
-
-@pytest.mark.parametrize("colour_level", [0.0, 1.0, LOG_COLOUR_MAX])
-def test_softmax_kernels_at_logits_of_plus_minus_1e4_are_exact_averages_with_finite_gradients(colour_level):
-    k = 3
-    rng = np.random.default_rng(6)
-    signs = rng.choice([-1.0, 1.0], size=(2, 5, 4, k * k))
-    signs[0, 0, 0] = 1.0  # every tap tied at the maximum
-    signs[0, 0, 1] = -1.0  # every tap tied at the minimum
-    colour = (rng.uniform(0, 1, (2, 5, 4, 3)) * colour_level).astype(np.float32)
-    logits_np = (signs * 1e4).astype(np.float32)
-    # analytic: exp(-2e4) is 0, so the weights are 1/m on the m taps at the maximum
-    top = logits_np == logits_np.max(axis=-1, keepdims=True)
-    want_weights = top / top.sum(axis=-1, keepdims=True)
-    np.testing.assert_allclose(to_np(softmax_kernels(logits_np)), want_weights, rtol=1e-6, atol=0)
-    want, _ = reference_kernel_apply(colour, logits_np, k)
-    colour_t = torch.tensor(colour, requires_grad=True)
-    logits = torch.tensor(logits_np, requires_grad=True)
-    out = KernelApply(k)([colour_t, logits])
-    np.testing.assert_allclose(to_np(out), want, rtol=1e-6, atol=1e-6 * max(colour_level, 1.0))
-    smape(torch.zeros_like(out), out).backward()
-    assert torch.isfinite(colour_t.grad).all() and torch.isfinite(logits.grad).all()
-
-
-def test_smape_at_zero_is_zero_with_finite_bounded_gradient():
-    out = torch.zeros((2, 3, 3, 3), requires_grad=True)
-    gt = torch.zeros((2, 3, 3, 3))
-    for loss in (smape(gt, out), SMAPE()(gt, out)):
-        assert float(loss.detach()) == 0.0
-        (grad,) = torch.autograd.grad(loss, out)
-        # one-sided derivatives at out = gt = 0 are +-1 / SMAPE_EPS per element (over the mean's count)
-        assert torch.isfinite(grad).all() and float(grad.abs().max()) <= 1.0 / SMAPE_EPS / out.numel()
-
-
-@pytest.mark.parametrize("gt_level", [0.0, 1e-6, 1.0, LOG_COLOUR_MAX])
-@pytest.mark.parametrize("slope", [1.0, 2.0, 8.0])
-def test_asymmetric_smape_at_out_equal_gt_is_zero_with_finite_bounded_gradient(gt_level, slope):
-    rng = np.random.default_rng(8)
-    gt = torch.tensor(rng.uniform(0, 1, (2, 4, 4, 3)) * gt_level, dtype=torch.float32)
-    noisy = gt + torch.tensor(rng.normal(size=(2, 4, 4, 3)), dtype=torch.float32)
-    out = gt.clone().requires_grad_(True)
-    for loss in (asymmetric_smape(noisy, gt, out, slope), AsymmetricSMAPE(slope)(torch.cat([gt, noisy], -1), out)):
-        assert float(loss.detach()) == 0.0
-        (grad,) = torch.autograd.grad(loss, out)
-        # one-sided derivative bound at out = gt: slope / (2|gt| + SMAPE_EPS), over the mean's count
-        bound = slope / (2 * gt.abs() + SMAPE_EPS) / out.numel()
-        assert torch.isfinite(grad).all() and bool((grad.abs() <= bound * (1 + 1e-6)).all())
-
-
-@pytest.mark.parametrize("out_value,gt_value", [(0.0, LOG_COLOUR_MAX), (LOG_COLOUR_MAX, 0.0), (F32_MAX, 0.0),
-                                                (F32_MAX, F32_MAX), (F32_TINY, 0.0), (0.0, F32_TINY)])
-def test_smape_over_the_colour_range_matches_float64_with_finite_gradient(out_value, gt_value):
-    out = torch.tensor([out_value], dtype=torch.float32, requires_grad=True)
-    gt = torch.tensor([gt_value], dtype=torch.float32)
-    loss = smape(gt, out)
-    o, g = float(np.float32(out_value)), float(np.float32(gt_value))
-    want = abs(o - g) / (abs(o) + abs(g) + SMAPE_EPS)
-    value = float(loss.detach())
-    assert value == pytest.approx(want, rel=1e-6, abs=1e-12) and 0.0 <= value <= 1.0
-    loss.backward()
-    assert torch.isfinite(out.grad).all()
-
-
-@pytest.mark.parametrize("content", ["constant", "extreme"])
-@pytest.mark.parametrize("size", [1, 6])
-def test_batch_norm_with_a_batch_of_one_keeps_loss_gradients_and_statistics_finite(size, content):
-    keras.utils.set_random_seed(0)
-    model = build_branch_model(ModelConfig(arch="kpal", **TINY))
-    assert any(isinstance(layer, keras.layers.BatchNormalization) for layer in model.layers)
-    randomise(model, seed=1, scale=0.5)
-    if content == "constant":  # zero batch variance in every channel
-        x = np.zeros((1, size, size, NUM_FEATURES), np.float32)
-        x[..., :3] = 1.0
-    else:
-        x = extreme_features((1, size, size), seed=2)
-    gt = np.full((1, size, size, 3), 0.5, np.float32)
-    out = to_np(finite_loss_and_gradients(model, x, gt, x[..., :3]))
-    assert out.min() >= 0 and out.max() <= LOG_COLOUR_MAX
-    model.compile(optimizer=keras.optimizers.Adam(1e-3, clipnorm=1.0), loss=SMAPE())
-    for _ in range(2):
-        assert np.isfinite(float(model.train_on_batch(x, gt)))
-    for w in model.weights:
-        value = to_np(w.value)
-        assert np.isfinite(value).all(), w.path
-        if "moving_variance" in w.path:
-            assert value.min() >= 0, w.path
-    assert np.isfinite(to_np(model(x, training=False))).all()
-
-
-def test_dpcn_output_is_clamped_to_the_log_colour_range_at_extreme_inputs():
-    model = build_branch_model(ModelConfig(arch="dpcn", **TINY))
-    x = extreme_features((2, 9, 9), seed=3)
-    x[0, 0, 0, :3] = LOG_COLOUR_MAX
-    # untrained: the identity on the colour, which maps back to float32 max, not to inf
-    out = to_np(model(x, training=False))
-    np.testing.assert_array_equal(out, x[..., :3])
-    assert np.isfinite(exr.to_float32(features.diffuse_from_log(out, np.zeros_like(out)))).all()
-    randomise(model, seed=4, scale=1.0)  # corrections far beyond the colour range, both ways
-    out = to_np(finite_loss_and_gradients(model, x, np.zeros_like(x[..., :3]), x[..., :3]))
-    assert out.min() == 0.0 and out.max() == np.float32(LOG_COLOUR_MAX)
-    linear = features.diffuse_from_log(out, np.ones_like(out))  # the largest albedo multiplier
-    assert np.isfinite(linear).all() and np.isfinite(exr.to_float32(linear)).all()
-
-
-# ---------------------------------------------------------------- property-based
-
-PROPERTY = dict(deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
-SPECIAL_F32 = [0.0, F32_TINY, float(np.float32(1e-30)), 1.0, HALF_MAX, float(np.float32(1e20)), F32_MAX]
-
-
-@st.composite
-def float32_images(draw, shape, signed=True):
-    """An image whose magnitudes are log-uniform over a drawn range of decades (subnormal to float32 max),
-    with a few special values (0, the smallest subnormal, half max, float32 max) at drawn pixels."""
-    size = int(np.prod(shape))
-    kind = draw(st.sampled_from(["spread", "spread", "spread", "constant", "zero"]))
-    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    if kind == "zero":
-        return np.zeros(shape, np.float32)
-    lo = draw(st.integers(-46, 38))
-    hi = draw(st.integers(lo, 39))
-    magnitude = np.minimum(10.0 ** rng.uniform(lo, hi, shape if kind == "spread" else ()), F32_MAX)
-    image = np.broadcast_to(magnitude, shape).copy()
-    if signed and draw(st.booleans()):
-        image *= rng.choice([-1.0, 1.0], shape)
-    specials = draw(st.lists(st.tuples(st.integers(0, size - 1), st.sampled_from(SPECIAL_F32), st.booleans()),
-                             max_size=4))
-    flat = image.reshape(-1)
-    for index, value, negative in specials:
-        flat[index] = -value if (negative and signed) else value
-    return image.astype(np.float32)
-
-
-@st.composite
-def renders(draw, max_side=12):
-    h = draw(st.integers(1, max_side))
-    w = draw(st.integers(1, max_side))
-    aovs = {name: draw(float32_images((h, w, 3))) for name in exr.RGB_LAYERS}
-    aovs.update({name: draw(float32_images((h, w))) for name in exr.SCALAR_LAYERS})
-    return aovs
-
-
-@settings(max_examples=60, **PROPERTY)
-@given(aovs=renders())
-def test_features_of_any_finite_float32_render_match_float64_and_stay_in_documented_ranges(aovs):
-    assert_features_match_reference(aovs)
-
-
-@settings(max_examples=60, **PROPERTY)
-@given(aovs=renders())
-def test_colour_transform_inverses_recover_the_clamped_input_to_float32_rounding(aovs):
-    # c is rounded to float32 (relative 2^-24), which expm1 turns into a relative error of at most
-    # (c + 1) * 2^-24 <= (LOG_COLOUR_MAX + 1) * 2^-24; subnormal inputs keep an absolute error of ~F32_TINY
-    rtol = (LOG_COLOUR_MAX + 1) * F32_EPS / 2
-    albedo = aovs["albedo"]
-    diffuse = features.diffuse_from_log(features.branch_colour(aovs, "diffuse"), albedo)
-    specular = features.specular_from_log(features.branch_colour(aovs, "specular"))
-    for got, x in ((diffuse, aovs["diffuse"]), (specular, aovs["specular"])):
-        assert np.isfinite(got).all() and got.min() >= 0
-        np.testing.assert_allclose(got, np.maximum(x.astype(np.float64), 0.0), rtol=rtol, atol=2 * F32_TINY)
-        assert np.isfinite(exr.to_float32(got)).all()
-
-
-@st.composite
-def importance_maps(draw):
-    h = draw(st.integers(1, 12))
-    w = draw(st.integers(1, 12))
-    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    lo = draw(st.integers(-320, 308))
-    hi = draw(st.integers(lo, 308))
-    imp = np.minimum(10.0 ** rng.uniform(lo, hi, (h, w)), np.finfo(np.float64).max)
-    imp[rng.uniform(size=(h, w)) < draw(st.floats(0, 1))] = 0.0
-    specials = [np.nan, np.inf, -np.inf, -1.0, 0.0, 5e-324, np.finfo(np.float64).max, 1e20]
-    for index, value in draw(st.lists(st.tuples(st.integers(0, h * w - 1), st.sampled_from(specials)), max_size=4)):
-        imp.reshape(-1)[index] = value
-    patch = draw(st.integers(1, min(h, w)))
-    mix = draw(st.one_of(st.sampled_from([0.0, 0.1, 1.0]), st.floats(0, 1)))
-    return imp, patch, mix
-
-
-@settings(max_examples=150, **PROPERTY)
-@given(case=importance_maps())
-def test_patch_pdf_of_any_importance_is_a_distribution_equal_to_explicit_window_sums(case):
-    importance, patch, mix = case
-    pdf = sampling.patch_pdf(importance, patch, mix)
-    assert_pdf_is_a_distribution(pdf, reference_pdf(importance, patch, mix))
-    count = min(3, int(np.count_nonzero(pdf)))
-    pos = sampling.draw_positions(pdf, count, np.random.default_rng(0))
-    assert len({tuple(p) for p in pos}) == count and (pdf[pos[:, 0], pos[:, 1]] > 0).all()
-
-
-@settings(max_examples=40, **PROPERTY)
-@given(aovs=renders(), data=st.data())
-def test_variance_pdf_of_any_finite_render_is_a_distribution_equal_to_float64_reference(aovs, data):
-    h, w = aovs["depth"].shape
-    patch = data.draw(st.integers(1, min(h, w)))
-    assert_variance_pdf_matches(aovs, patch, data.draw(st.floats(0, 1)))
-
-
-@st.composite
-def kernel_inputs(draw):
-    k = draw(st.sampled_from([1, 3, 5]))
-    shape = (draw(st.integers(1, 2)), draw(st.integers(1, 8)), draw(st.integers(1, 8)))
-    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    domain = draw(st.sampled_from(["log-colour", "signed", "non-negative"]))
-    if domain == "log-colour":  # what the networks filter: [0, LOG_COLOUR_MAX], ends included
-        colour = rng.uniform(0, LOG_COLOUR_MAX, shape + (3,))
-        colour[rng.uniform(size=colour.shape) < 0.2] = 0.0
-        colour[rng.uniform(size=colour.shape) < 0.2] = LOG_COLOUR_MAX
-    else:
-        # magnitudes up to 1e37: a convex combination within k*k rounding errors of float32 max may round to inf
-        colour = draw(float32_images(shape + (3,), signed=domain == "signed")).astype(np.float64)
-        colour = np.clip(colour, -1e37, 1e37)
-    scale = draw(st.sampled_from([0.0, 1.0, 30.0, 1e4, 1e30, F32_MAX / 8]))
-    logits = rng.normal(size=shape + (k * k,)) * scale
-    if draw(st.booleans()):
-        logits = np.sign(logits) * scale  # saturated: ties at +-scale
-    return colour.astype(np.float32), np.clip(logits, -F32_MAX, F32_MAX).astype(np.float32), k
-
-
-@settings(max_examples=80, **PROPERTY)
-@given(case=kernel_inputs())
-def test_kernel_application_matches_float64_and_stays_inside_each_window(case):
-    colour, logits, k = case
-    colour_t = torch.tensor(colour, requires_grad=True)
-    logits_t = torch.tensor(logits, requires_grad=True)
-    out = KernelApply(k)([colour_t, logits_t])
-    got = to_np(out).astype(np.float64)
-    want, windows = reference_kernel_apply(colour, logits, k)
-    # float32 error: the shifted logits' rounding through exp (|z| <= ~104 before exp underflows), the
-    # normalisation and the k*k-term sum, relative to the window's largest magnitude
-    scale = np.abs(windows).max(axis=3)
-    tol = (128 + 2 * k * k) * F32_EPS * scale + k * k * F32_TINY
-    assert np.isfinite(got).all()
-    assert (np.abs(got - want) <= tol).all()
-    # a convex combination: inside [min, max] of the window, per channel
-    assert (got >= windows.min(axis=3) - tol).all() and (got <= windows.max(axis=3) + tol).all()
-    (out * out.detach().sign()).sum().backward()
-    assert torch.isfinite(colour_t.grad).all() and torch.isfinite(logits_t.grad).all()

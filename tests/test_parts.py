@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, launcher_free_env, torchrun
+from helpers import REPO, launcher_free_env, torchrun
 from kpcn_keras.cli import main
 from prep.errors import OptionError
 from prep.parts import LaunchError, Part
@@ -82,6 +82,7 @@ def test_balanced_shares_cover_every_item_once_and_stay_within_one_item_of_each_
     assert Part(0, 2).balanced(costs) == Part(0, 2).balanced(list(costs))  # every part computes the same
 
 
+@pytest.mark.slow
 def test_render_and_shards_in_two_parts_write_the_files_of_one_process(tmp_path, monkeypatch):
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir(), two.mkdir()
@@ -122,6 +123,7 @@ def _whole_set_and_a_third_of_one(tmp_path: Path, monkeypatch) -> tuple[Path, Pa
     return one, two
 
 
+@pytest.mark.slow
 def test_a_rerun_in_any_split_keeps_the_shards_a_part_listed_and_rewrites_a_damaged_one(tmp_path, monkeypatch):
     one, two = _whole_set_and_a_third_of_one(tmp_path, monkeypatch)
     sset = ShardSet(two / "data/shards/t")
@@ -137,6 +139,7 @@ def test_a_rerun_in_any_split_keeps_the_shards_a_part_listed_and_rewrites_a_dama
     assert _files(sset.dir) == _files(one / "data/shards/t")
 
 
+@pytest.mark.slow
 def test_torchrun_splits_render_and_shards_over_its_processes(tmp_path, monkeypatch):
     one, two = tmp_path / "one", tmp_path / "two"
     one.mkdir(), two.mkdir()
@@ -153,6 +156,7 @@ def test_torchrun_splits_render_and_shards_over_its_processes(tmp_path, monkeypa
     assert _files(two / "data") == _files(one / "data")
 
 
+@pytest.mark.slow
 def test_a_damaged_part_list_is_left_out_and_blocks_no_merge(tmp_path, monkeypatch):
     one, two = _whole_set_and_a_third_of_one(tmp_path, monkeypatch)
     stale = two / "data/shards/t/parts/part-1-of-3.json"
@@ -178,6 +182,7 @@ def _lock_free(path: Path) -> bool:
         os.close(fd)
 
 
+@pytest.mark.slow
 def test_a_killed_split_render_and_shards_resume_with_the_same_launch_line(tmp_path, monkeypatch):
     """torchrun and both its processes killed at once (a cancelled job) once the first files are written:
     no part goes on writing, and the same launch line again gives the files of one uninterrupted process."""

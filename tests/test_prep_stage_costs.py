@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from conftest import make_renders
+from helpers import make_renders
 from prep import exr, shards
 from prep.studies import stage_costs
 
@@ -69,6 +69,7 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
     assert [p.name for p in out.iterdir()] == ["keep"]
 
 
+@pytest.mark.slow
 def test_no_deep_learning_import():
     import subprocess
 

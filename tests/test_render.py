@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn, rect_form_factor
+from helpers import assert_one_line_error, checksums, rect_form_factor, run_main
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -346,6 +346,7 @@ def test_glossy_and_plastic_plane_under_area_light_match_quadrature(material):
     assert spec > 0.1 and math.sqrt(r["specularVariance"][1, 1]) < 0.03 * spec
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "material",
     [
@@ -480,6 +481,7 @@ def _mean_vs_reference(scene, layer, k, spp, ref_spp, size, seed0, ref_scale=1.0
 #   surfaces (light -> mirror -> floor is found only by BSDF sampling), so over four seed sets the diffuse
 #   z_sum ran -3.8, -4.6, +0.7, -3.6 against a 512 spp reference and -4.8, -5.9, +1.0, -3.0 against 2048,
 #   alike before and after GGX sampling changed: heavy tails, not a bias these criteria can separate.
+@pytest.mark.slow
 @pytest.mark.parametrize("family,index,spp,ref_spp", [
     ("cornell", 1, 4, 512), ("spheres", 2, 4, 512), ("boxes", 0, 4, 512), ("fireflies", 0, 64, 2048),
     ("caustics", 0, 64, 512), ("outdoor", 1, 64, 512)])
@@ -688,16 +690,16 @@ def test_render_set_writes_resumes_and_records(tmp_path):
 def test_render_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_finishes_the_set(tmp_path, small_disk):
     args = ("render", "--set", "s", "--out", "disk", "--families", "cornell", "--per-family", "1", "--width", "48",
             "--height", "40", "--input-spp", "2", "--reference-spp", "4")
-    res = kpcn(*args, cwd=tmp_path)
+    res = run_main(*args, cwd=tmp_path)
     assert_one_line_error(res, "disk/s/cornell-000-00002spp.exr: cannot write (No space left on device)")
     # the set's record holds its config and no scene yet, as when a render is interrupted: a rerun resumes
     assert sorted(p.name for p in (small_disk.path / "s").iterdir()) == [".lock", "config.json"]
     assert json.loads((small_disk.path / "s" / "config.json").read_text())["scenes"] == []
     small_disk.grow()
-    res = kpcn(*args, cwd=tmp_path)
+    res = run_main(*args, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     (tmp_path / "twin").mkdir()
-    assert kpcn(*args, cwd=tmp_path / "twin").returncode == 0
+    assert run_main(*args, cwd=tmp_path / "twin").returncode == 0
     once = checksums(tmp_path / "twin" / "disk" / "s")
     resumed = checksums(small_disk.path / "s")
     assert once.pop("timings.json") and resumed.pop("timings.json") and resumed == once
@@ -711,86 +713,6 @@ def test_prep_render_does_not_import_frameworks():
             "bad = [m for m in ('keras', 'torch', 'kpcn_keras') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
-
-
-# ------------------------------------------------------------------------------------------
-# kernels specialised to a scene's effects
-# ------------------------------------------------------------------------------------------
-
-def test_a_scene_calls_for_the_effects_of_what_it_uses():
-    cam = Camera((0, 0, 0), (0, 0, -1))
-    mats = {"grey": lambert((0.5,) * 3), "metal": glossy((0.9,) * 3, 0.2), "unused": Material("plastic", (0.2,) * 3)}
-    diffuse_only = Scene("d", "test", cam, mats, spheres=[Sphere((0, 0, -3), 1, "grey")])
-    assert diffuse_only.effects() == {"lambert"}
-    lit = dataclasses.replace(diffuse_only, spheres=[Sphere((0, 0, -3), 1, "metal")], environment=(0.1, 0.1, 0.1),
-                              materials={**mats, "grey": lambert((0.5,) * 3, texture="uv", albedo2=(0.1,) * 3)},
-                              quads=[Quad((0, 1, 0), (1, 0, 0), (0, 0, 1), "grey")])
-    assert lit.effects() == {"glossy", "lambert", "texture", "environment"}
-
-
-SUBSETS = [
-    ("lambert only", lambda s: _only(s, "lambert")),
-    ("glossy under the environment", lambda s: _only(s, "glossy", env=(0.5, 0.6, 0.7), lights=False)),
-    ("plastic under a light", lambda s: _only(s, "plastic")),
-]
-
-
-def _only(scene: Scene, kind: str, env=(0.0, 0.0, 0.0), lights: bool = True) -> Scene:
-    """``scene`` with every non-emitting material made ``kind`` (textures dropped), lights kept or not."""
-    def one(m):
-        if m.kind == "emitter":
-            return m
-        if kind == "lambert":
-            return lambert(m.albedo if max(m.albedo) > 0 else (0.5, 0.5, 0.5))
-        if kind == "glossy":
-            return glossy((0.8, 0.7, 0.6), 0.3)
-        return Material("plastic", albedo=(0.5, 0.4, 0.3), specular=(0.05,) * 3, roughness=0.2)
-
-    quads = [q for q in scene.quads if lights or scene.materials[q.material].kind != "emitter"]
-    return dataclasses.replace(scene, materials={k: one(m) for k, m in scene.materials.items()}, quads=quads,
-                               environment=env)
-
-
-@pytest.mark.parametrize("label, make", SUBSETS + [("cornell-001 (no plastic, no environment)", None)])
-def test_specialised_kernel_renders_the_bits_of_the_all_effects_kernel(label, make):
-    from prep.render import EFFECTS, kernels
-
-    base = make_scene("cornell", 1, 0)
-    scene = make(base) if make else base
-    assert scene.effects() != frozenset(EFFECTS)
-    assert kernels.kernel_for(scene.effects()) is not kernels.kernel_for(EFFECTS)
-    fast = render(scene, spp=3, seed=9, width=16, height=12)
-    full = render(scene, spp=3, seed=9, width=16, height=12, effects=EFFECTS)
-    for name in fast:
-        np.testing.assert_array_equal(fast[name], full[name], err_msg=f"{label}: {name}")
-    assert fast["default"].max() > 0
-
-
-def test_a_kernel_without_an_effect_the_scene_needs_is_refused():
-    scene = make_scene("cornell", 0, 0)
-    with pytest.raises(ValueError, match="calls for"):
-        render(scene, spp=2, seed=0, width=4, height=4, effects={"lambert"})
-
-
-def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
-    # the flags are compile-time constants: a diffuse-only kernel's machine code never calls GGX or the
-    # plastic's lobe choice, the all-effects kernel's does (compiled afresh here: numba's disk cache
-    # keeps no IR to inspect)
-    import numba
-
-    from prep.render import EFFECTS, kernels
-
-    scene = _only(make_scene("cornell", 0, 0), "lambert")
-    packed = pack(scene)
-    calls = {}
-    for effects in (scene.effects(), EFFECTS):
-        trace = numba.njit(kernels.kernel_for(effects).trace_sample.py_func)
-        trace((0.0, 1.0, 5.0), (0.0, 0.0, -1.0), np.uint64(1), packed, 5, 3, np.zeros(16))
-        ir = "".join(trace.inspect_llvm().values())
-        calls[frozenset(effects)] = {name for name in ("_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect")
-                                     if name in ir}
-    assert calls[scene.effects()] == {"intersect"}
-    assert calls[frozenset(EFFECTS)] == {"_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect"}
 
 
 def test_render_bench_writes_its_report_for_every_family(tmp_path):
@@ -812,7 +734,7 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
 
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
-    from conftest import REPO
+    from helpers import REPO
     from prep.studies.render_bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())
@@ -861,9 +783,9 @@ def _available_gib() -> float:
 
 
 def test_a_huge_frame_is_refused_in_one_line_before_anything_is_written(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
-    res = kpcn("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
+    res = run_main("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
     assert_one_line_error(res, "--width must be an integer in [1, 16384], got 100000")
     assert not any(tmp_path.iterdir())
 

@@ -1,9 +1,13 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf, renders
 from prep import sampling
 
 
+@pytest.mark.slow
 def test_positions_are_unique_and_inside_the_pdf():
     pdf = sampling.patch_pdf(np.random.default_rng(0).gamma(0.5, 1.0, (80, 90)), 17)
     assert pdf.shape == (64, 74)
@@ -69,3 +73,44 @@ def test_bad_options_are_echoed():
         sampling.patch_pdf(np.ones((30, 30)), 40)
     with pytest.raises(ValueError, match="got 1.5"):
         sampling.patch_pdf(np.ones((30, 30)), 4, uniform_mix=1.5)
+
+
+# ---------------------------------------------------------------- hard numbers (from test_numerics)
+
+
+@st.composite
+def importance_maps(draw):
+    h = draw(st.integers(1, 12))
+    w = draw(st.integers(1, 12))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    lo = draw(st.integers(-320, 308))
+    hi = draw(st.integers(lo, 308))
+    imp = np.minimum(10.0 ** rng.uniform(lo, hi, (h, w)), np.finfo(np.float64).max)
+    imp[rng.uniform(size=(h, w)) < draw(st.floats(0, 1))] = 0.0
+    specials = [np.nan, np.inf, -np.inf, -1.0, 0.0, 5e-324, np.finfo(np.float64).max, 1e20]
+    for index, value in draw(st.lists(st.tuples(st.integers(0, h * w - 1), st.sampled_from(specials)), max_size=4)):
+        imp.reshape(-1)[index] = value
+    patch = draw(st.integers(1, min(h, w)))
+    mix = draw(st.one_of(st.sampled_from([0.0, 0.1, 1.0]), st.floats(0, 1)))
+    return imp, patch, mix
+
+
+@pytest.mark.slow
+@settings(max_examples=150, **PROPERTY)
+@given(case=importance_maps())
+def test_patch_pdf_of_any_importance_is_a_distribution_equal_to_explicit_window_sums(case):
+    importance, patch, mix = case
+    pdf = sampling.patch_pdf(importance, patch, mix)
+    assert_pdf_is_a_distribution(pdf, reference_pdf(importance, patch, mix))
+    count = min(3, int(np.count_nonzero(pdf)))
+    pos = sampling.draw_positions(pdf, count, np.random.default_rng(0))
+    assert len({tuple(p) for p in pos}) == count and (pdf[pos[:, 0], pos[:, 1]] > 0).all()
+
+
+@pytest.mark.slow
+@settings(max_examples=40, **PROPERTY)
+@given(aovs=renders(), data=st.data())
+def test_variance_pdf_of_any_finite_render_is_a_distribution_equal_to_float64_reference(aovs, data):
+    h, w = aovs["depth"].shape
+    patch = data.draw(st.integers(1, min(h, w)))
+    assert_variance_pdf_matches(aovs, patch, data.draw(st.floats(0, 1)))

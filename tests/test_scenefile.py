@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn
+from helpers import assert_one_line_error, checksums, run_main
 from prep import exr
 from prep.errors import KpcnError, OptionError
 from prep.render import EFFECTS, FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene, render
@@ -350,7 +350,7 @@ def test_json_files_give_the_same_key_paths(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 def test_cli_renders_a_scene_file_to_a_readable_exr_and_a_preview(tmp_path):
-    res = kpcn("render", "--scene", EXAMPLE, "--width", 8, "--height", 6, "--spp", 2, "--out", "x.exr",
+    res = run_main("render", "--scene", EXAMPLE, "--width", 8, "--height", 6, "--spp", 2, "--out", "x.exr",
                cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     aovs = exr.read_aovs(tmp_path / "x.exr")
@@ -365,7 +365,7 @@ def test_cli_renders_a_scene_file_to_a_readable_exr_and_a_preview(tmp_path):
 def test_cli_default_output_is_named_after_the_scene_file_beside_it(tmp_path):
     (tmp_path / "scenes").mkdir()
     shutil.copy(EXAMPLE, tmp_path / "scenes" / "room.toml")
-    res = kpcn("render", "--scene", "scenes/room.toml", "--width", 4, "--height", 4, "--spp", 3, "--no-png",
+    res = run_main("render", "--scene", "scenes/room.toml", "--width", 4, "--height", 4, "--spp", 3, "--no-png",
                cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(checksums(tmp_path)) == ["scenes/room-00003spp.exr", "scenes/room.toml"]
@@ -375,7 +375,7 @@ def test_cli_bad_scene_file_is_one_line_naming_the_key_and_changes_nothing(tmp_p
     edited(tmp_path, "albedo = [0.63, 0.07, 0.05]", "albdo = [0.63, 0.07, 0.05]", name="bad.toml")
     (tmp_path / "x.exr").write_bytes(b"an older render")
     before = checksums(tmp_path)
-    res = kpcn("render", "--scene", "bad.toml", "--out", "x.exr", cwd=tmp_path)
+    res = run_main("render", "--scene", "bad.toml", "--out", "x.exr", cwd=tmp_path)
     assert_one_line_error(res, "bad.toml", "materials.red.albdo", "albedo")
     assert checksums(tmp_path) == before
 
@@ -383,11 +383,11 @@ def test_cli_bad_scene_file_is_one_line_naming_the_key_and_changes_nothing(tmp_p
 def test_cli_refuses_options_of_the_other_mode_and_an_output_over_the_scene_file(tmp_path):
     shutil.copy(EXAMPLE, tmp_path / "s.toml")
     before = checksums(tmp_path)
-    assert_one_line_error(kpcn("render", "--scene", "s.toml", "--input-spp", "4", cwd=tmp_path), "--input-spp")
-    assert_one_line_error(kpcn("render", "--spp", "4", "--out", "r", cwd=tmp_path), "--spp", "--scene")
-    assert_one_line_error(kpcn("render", "--scene", "s.toml", "--out", "s.toml", cwd=tmp_path), "s.toml",
+    assert_one_line_error(run_main("render", "--scene", "s.toml", "--input-spp", "4", cwd=tmp_path), "--input-spp")
+    assert_one_line_error(run_main("render", "--spp", "4", "--out", "r", cwd=tmp_path), "--spp", "--scene")
+    assert_one_line_error(run_main("render", "--scene", "s.toml", "--out", "s.toml", cwd=tmp_path), "s.toml",
                           "scene file")
-    assert_one_line_error(kpcn("render", "--scene", "s.toml", "--spp", "1", "--out", "o.exr", cwd=tmp_path),
+    assert_one_line_error(run_main("render", "--scene", "s.toml", "--spp", "1", "--out", "o.exr", cwd=tmp_path),
                           "--spp", "got 1")
     assert checksums(tmp_path) == before
 
@@ -460,7 +460,7 @@ def test_render_never_writes_over_a_file_the_scene_reads(tmp_path, monkeypatch):
             + '\n[environment_map]\nimage = "maps/sky.exr"\n\n[[meshes]]\nobj = "torus.obj"\nmaterial = "floor"\n')
     write(tmp_path / "s.toml", text)
     before = checksums(tmp_path)
-    res = kpcn("render", "--scene", "s.toml", "--out", "tex/wood.exr", cwd=tmp_path)
+    res = run_main("render", "--scene", "s.toml", "--out", "tex/wood.exr", cwd=tmp_path)
     assert_one_line_error(res, "PNG preview tex/wood.png is the materials.floor.image file tex/wood.png itself")
     monkeypatch.chdir(tmp_path)
     for out, message in [("maps/sky.exr", "output EXR (--out) maps/sky.exr is the environment_map.image file"),

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError
 from prep.files import sha256_file
@@ -51,6 +51,7 @@ def patch_counts(set_dir) -> dict[str, int]:
     return counts
 
 
+@pytest.mark.slow
 def test_renders_added_to_the_set_rebuild_it_without_leaking_held_out_scenes(tmp_path):
     root = make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -71,6 +72,7 @@ def test_renders_added_to_the_set_rebuild_it_without_leaking_held_out_scenes(tmp
     assert checksums(cfg.set_dir) == rebuilt
 
 
+@pytest.mark.slow
 def test_a_render_edited_in_place_rebuilds_the_shards_that_hold_it(tmp_path, caplog):
     root = make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -92,6 +94,7 @@ def test_a_render_edited_in_place_rebuilds_the_shards_that_hold_it(tmp_path, cap
         np.testing.assert_allclose(f["noisy"][i], noisy["default"][at[0]:at[0] + p, at[1]:at[1] + p], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_two_shard_commands_on_one_set_at_once_give_the_set_one_command_gives(tmp_path):
     for folder in ("together", "alone"):
         make_renders(tmp_path / folder / "renders" / "s")
@@ -110,6 +113,7 @@ def test_two_shard_commands_on_one_set_at_once_give_the_set_one_command_gives(tm
     assert len(shards.shard_paths(tmp_path / "together" / "shards" / "s", "train")) == 12
 
 
+@pytest.mark.slow
 def test_a_shard_corrupted_at_the_same_size_is_refused_by_train_and_rebuilt_by_shards(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
@@ -121,7 +125,7 @@ def test_a_shard_corrupted_at_the_same_size_is_refused_by_train_and_rebuilt_by_s
     victim.write_bytes(bytes(data))
     corrupted = checksums(tmp_path)
 
-    res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
+    res = run_main("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
                "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
     assert_one_line_error(res, "shard-00003.h5", "checksum (crc32) differs")
     assert checksums(tmp_path) == corrupted  # nothing written, not even a run record
@@ -143,6 +147,7 @@ assert ("torch" in sys.modules) == {torch}, "the start method under test is not 
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", ["fork", "spawn"])
 def test_a_set_cut_by_two_worker_processes_is_byte_for_byte_the_set_one_process_cuts(tmp_path, start):
     make_renders(tmp_path / "renders" / "s")
@@ -159,6 +164,7 @@ def test_a_set_cut_by_two_worker_processes_is_byte_for_byte_the_set_one_process_
     assert checksums(cfg.set_dir) == alone
 
 
+@pytest.mark.slow
 def test_a_render_that_fails_to_decode_in_a_worker_stops_the_command_with_one_line_naming_it(tmp_path):
     root = make_renders(tmp_path / "renders" / "s")
     victim = root / exr.render_filename("a-000", 4)
@@ -175,6 +181,7 @@ def test_an_option_error_raised_in_a_worker_reaches_the_caller_whole():
         OptionError, "patches_per_image", "must be >= 1, got 0", "patches_per_image must be >= 1, got 0")
 
 
+@pytest.mark.slow
 def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     cfg = config(tmp_path)
@@ -198,6 +205,7 @@ def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_
         sset.verified_shards("train")
 
 
+@pytest.mark.slow
 def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(tmp_path):
     make_renders(tmp_path / "renders" / "s")  # 40x44: 33 x 37 = 1221 positions of an 8x8 patch
     before = checksums(tmp_path)
@@ -208,6 +216,7 @@ def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tmp_path):
     make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"))
     peaks, total = {}, {}
@@ -224,6 +233,7 @@ def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tm
     assert peaks[1200] < total[1200] / 4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("status", ["building", None])
 def test_a_set_whose_manifest_is_not_complete_is_refused_by_readers(tmp_path, status):
     make_renders(tmp_path / "renders" / "s")
@@ -261,6 +271,7 @@ MANIFEST_EDITS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("field", MANIFEST_EDITS)
 def test_a_hand_edited_manifest_is_refused_by_train_naming_the_field(tmp_path, field):
     from kpcn_keras.train import train
@@ -275,12 +286,13 @@ def test_a_hand_edited_manifest_is_refused_by_train_naming_the_field(tmp_path, f
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_path):
     make_renders(tmp_path / "renders" / "s")
     assert kpcn("shards", *SHARD_ARGS, cwd=tmp_path).returncode == 0
     whole = checksums(tmp_path / "shards")
     edit_manifest(tmp_path / "shards" / "s", MANIFEST_EDITS["patch_size"])
-    res = kpcn("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
+    res = run_main("train", "--set", "s", "--shards", "shards", "--run", "runs/r", "--width", "4", "--depth", "2",
                "--kernel-size", "3", "--steps", "2", "--batch-size", "2", cwd=tmp_path)
     assert_one_line_error(res, "shards/s/manifest.json: its patch_size (6) is not what shard-00000.h5")
     assert not (tmp_path / "runs").exists()
@@ -288,6 +300,7 @@ def test_a_manifest_edited_by_hand_is_one_line_and_kpcn_shards_rewrites_it(tmp_p
     assert checksums(tmp_path / "shards") == whole
 
 
+@pytest.mark.slow
 def test_a_render_replaced_since_the_set_was_cut_is_refused_by_train_and_a_set_without_renders_trains(tmp_path):
     from kpcn_keras.train import train
 

@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
 from prep import exr, features, shards
 from prep.files import is_temporary
 
@@ -30,6 +30,7 @@ def render_set(tmp_path):
     return make_renders(tmp_path / "renders" / "s")
 
 
+@pytest.mark.slow
 def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
     cfg = config(tmp_path)
     manifest = shards.build_shards(cfg, progress=False)
@@ -60,6 +61,7 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
     assert json.loads((cfg.set_dir / "manifest.json").read_text())["config_hash"] == cfg.content_hash()
 
 
+@pytest.mark.slow
 def test_split_is_by_scene_never_by_patch(tmp_path, render_set):
     manifest = shards.build_shards(config(tmp_path), progress=False)
     assert manifest["split"] == {"train": ["a-000", "b-000"], "val": ["a-001", "b-001"]}
@@ -68,6 +70,7 @@ def test_split_is_by_scene_never_by_patch(tmp_path, render_set):
     assert not train & val
 
 
+@pytest.mark.slow
 def test_same_seed_same_shards_and_a_second_run_keeps_them(tmp_path, render_set):
     a = config(tmp_path, out_root=str(tmp_path / "one"))
     b = config(tmp_path, out_root=str(tmp_path / "two"))
@@ -83,12 +86,14 @@ def test_same_seed_same_shards_and_a_second_run_keeps_them(tmp_path, render_set)
     assert first.stat().st_mtime_ns == mtime
 
 
+@pytest.mark.slow
 def test_other_configuration_over_existing_shards_is_refused(tmp_path, render_set):
     shards.build_shards(config(tmp_path), progress=False)
     with pytest.raises(shards.ShardError, match="another configuration"):
         shards.build_shards(config(tmp_path, seed=4), progress=False)
 
 
+@pytest.mark.slow
 def test_interrupted_write_leaves_nothing_a_reader_accepts(tmp_path):
     out = tmp_path / "killed"
     out.mkdir()
@@ -137,6 +142,7 @@ def test_reader_rejects_incomplete_and_foreign_files(tmp_path):
         shards.open_shard(path)
 
 
+@pytest.mark.slow
 def test_rerun_after_a_kill_completes_the_set(tmp_path, render_set):
     cfg = config(tmp_path)
     manifest = shards.build_shards(cfg, progress=False)
@@ -149,6 +155,7 @@ def test_rerun_after_a_kill_completes_the_set(tmp_path, render_set):
     assert last.is_file() and not list(last.parent.glob(".*.tmp-*"))
 
 
+@pytest.mark.slow
 def test_errors_name_the_folder_and_scene(tmp_path):
     root = tmp_path / "renders" / "s"
     root.mkdir(parents=True)
@@ -159,6 +166,7 @@ def test_errors_name_the_folder_and_scene(tmp_path):
         shards.build_shards(config(tmp_path), progress=False)
 
 
+@pytest.mark.slow
 def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
     root = tmp_path / "renders" / "fx"
     root.mkdir(parents=True)
@@ -216,6 +224,7 @@ def _temporaries(root: Path) -> list[Path]:
     return [p for p in root.rglob("*") if is_temporary(p)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("threads", [1, 2])
 def test_shards_on_a_full_disk_end_in_one_line_and_a_rerun_with_space_finishes_the_set(tmp_path, small_disk,
                                                                                         threads):
@@ -240,6 +249,7 @@ def _uninterrupted(tmp_path: Path, *args) -> dict[str, str]:
     return checksums(twin / args[args.index("--out") + 1] / "s")
 
 
+@pytest.mark.slow
 def test_shards_refused_a_write_by_the_file_system_end_in_one_line_and_resume(tmp_path):
     # the same failure injected at write(2) without a mount: files may not grow past 64 kB
     make_renders(tmp_path / "renders" / "s")

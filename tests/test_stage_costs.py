@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import randomise
+from helpers import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
 from kpcn_keras.studies.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras
@@ -32,6 +32,7 @@ def tiny(arch, **kw):
     return ModelConfig(**base)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 @pytest.mark.parametrize("training", [False, True])
 def test_plain_torch_equals_keras(arch, training):

@@ -39,17 +39,20 @@ def _run(code: str, **extra) -> tuple[int, int]:
     return torch_n, numba_n
 
 
+@pytest.mark.slow
 def test_one_thread_holds_when_torch_is_imported_first():
     # a torch op first: torch has then initialised its threads and will not redo it after numba's reset
     code = "import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE + "from prep import threads\nthreads.set_threads(1)\n" + CHECK
     assert _run(code) == (1, 1)
 
 
+@pytest.mark.slow
 def test_one_thread_holds_when_torch_is_imported_after():
     code = PRANGE + "from prep import threads\nthreads.set_threads(1)\nimport torch\n" + CHECK
     assert _run(code) == (1, 1)
 
 
+@pytest.mark.slow
 def test_the_default_is_every_core():
     code = "import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE + "from prep import threads\nthreads.set_threads()\n" + CHECK
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -57,6 +60,7 @@ def test_the_default_is_every_core():
     assert _run(code) == (cores, cores)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("local", [2, 64])
 def test_the_default_under_a_launcher_is_this_processs_share_of_the_cores(local):
     """torchrun's LOCAL_WORLD_SIZE processes on one machine each take an even share, at least one core."""
@@ -65,6 +69,7 @@ def test_the_default_under_a_launcher_is_this_processs_share_of_the_cores(local)
     assert _run(code, LOCAL_WORLD_SIZE=str(local)) == (share, share)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: numba's reset cannot be seen")
 def test_without_the_module_numba_resets_torch():
     # guards the tests above: the defect they would catch is real here (numba's OpenMP layer calls

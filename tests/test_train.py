@@ -10,7 +10,7 @@ import keras
 import numpy as np
 import pytest
 
-from conftest import build_tiny_shards, checksums
+from helpers import build_tiny_shards, checksums
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep.errors import KpcnError, OptionError
@@ -30,6 +30,7 @@ def weights(run_dir: Path, branch: str):
     return [np.asarray(w) for w in model.get_weights()]
 
 
+@pytest.mark.slow
 def test_run_folder_records_how_it_was_made(tmp_path):
     cfg = tiny_config(build_tiny_shards(tmp_path))
     run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
@@ -47,6 +48,7 @@ def test_run_folder_records_how_it_was_made(tmp_path):
     assert (run_dir / "loss.png").read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.slow
 def test_every_phase_trains_exactly_the_steps_asked(tmp_path):
     """Steps that are not a multiple of the epoch's: the last epoch is shorter, so each phase's optimizer
     counts exactly the steps asked (the record's), not whole epochs; the log has one row per epoch."""
@@ -62,6 +64,7 @@ def test_every_phase_trains_exactly_the_steps_asked(tmp_path):
     assert len(rows) == 2 + 2 + 2 + 1  # 4 + 2, 4 + 2, 4 + 1 and 3 steps
 
 
+@pytest.mark.slow
 def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
     cfg = tiny_config(build_tiny_shards(tmp_path), branches=("specular",), loss="asymmetric", slope=4.0, steps=4)
     run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
@@ -71,6 +74,7 @@ def test_asymmetric_loss_trains_on_reference_and_noisy_targets(tmp_path):
     assert losses and all(np.isfinite(losses))
 
 
+@pytest.mark.slow
 def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
     # the kernel softmax saturates rather than overflows at any finite weight, so only a step
     # that takes the weights past float32 max (Adam's step is about the learning rate) diverges: set
@@ -83,6 +87,7 @@ def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
     assert not (tmp_path / "runs" / "r" / "diffuse.keras").exists()
 
 
+@pytest.mark.slow
 def test_same_seed_same_model_on_cpu(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     a = train(tiny_config(shard_cfg, branches=("diffuse",)), tmp_path / "a", verbose=0)
@@ -91,6 +96,7 @@ def test_same_seed_same_model_on_cpu(tmp_path):
         np.testing.assert_array_equal(wa, wb)
 
 
+@pytest.mark.slow
 def test_another_configuration_under_the_same_run_is_refused(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     train(tiny_config(shard_cfg, branches=("diffuse",)), tmp_path / "r", verbose=0)
@@ -130,6 +136,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
         np.testing.assert_array_equal(wa, wb)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["emptied", "cut to its first epochs", "torn in its last row"])
 def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_path, damage):
     cfg = tiny_config(build_tiny_shards(tmp_path))
@@ -147,11 +154,12 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
 
 # --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
 
+@pytest.mark.slow
 def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
     shard_cfg = build_tiny_shards(tmp_path)
-    res = kpcn("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
+    res = run_main("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
                "--steps", "2", cwd=tmp_path)
     assert_one_line_error(res, "--seed must be an integer in [0, 4294967295], got 4294967296")
     assert not (tmp_path / "runs").exists()
@@ -166,6 +174,7 @@ def test_the_projects_seed_range_is_the_one_training_seeds_take():
         np.random.seed(SEED.high + 1)  # the first one refused: what a seed >= 2**32 met in training
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model, option, needles", [
     ({"width": 4, "depth": 1, "kernel_size": 17}, "kernel_size", ["17 is larger than the 16x16 patches", "at most 15"]),
     ({"width": 4, "depth": 8, "kernel_size": 5}, "depth", ["receptive field of 17x17 pixels", "16x16 patches"]),
@@ -194,14 +203,16 @@ def test_the_largest_network_that_fits_the_patches_is_accepted():
     check_fits_patches(ModelConfig(arch="dpcn", width=4, depth=7, kernel_size=41), 15, "s")  # dpcn has no kernel
 
 
+@pytest.mark.slow
 def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_path):
-    from conftest import assert_one_line_error, kpcn
+    from helpers import assert_one_line_error, run_main
 
-    res = kpcn("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["the render set", "inside the shard set"])
 def test_a_run_folder_in_a_render_or_shard_set_is_refused_before_it_is_written(tmp_path, where):
     # the render set's config.json and timings.json have the names of a run's records

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import checksums_but_timings
+from helpers import checksums_but_timings
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 5

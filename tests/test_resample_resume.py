@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, checksums_but_timings, make_renders
+from helpers import REPO, checksums_but_timings, make_renders
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]
@@ -180,6 +180,7 @@ def test_a_kill_during_a_rounds_training_ends_with_the_weights_of_an_uninterrupt
     assert (root / "runs" / "r" / "log.csv").read_bytes() == log_ref
 
 
+@pytest.mark.slow
 def test_every_round_patch_is_the_crop_of_its_source_at_its_position(trees):
     """The shards of the error rounds hold what they say: each patch's reference colour is the crop of its
     source's reference render at its stored position (checked against the EXR, read independently)."""

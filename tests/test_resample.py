@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
-from conftest import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders, run_main
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
@@ -534,22 +534,23 @@ def forked_run(tiny_run, tmp_path_factory) -> Path:
     (["--round-decay", "0"], "--round-decay"),
 ])
 def test_bad_resample_options_are_one_line_errors_naming_the_flag(forked_run, args, flag):
-    assert_one_line_error(kpcn("resample", "--run", forked_run, *args, cwd=forked_run.parent), flag)
+    assert_one_line_error(run_main("resample", "--run", forked_run, *args, cwd=forked_run.parent), flag)
 
 
 def test_resampling_a_folder_that_is_not_a_run_names_it(tmp_path):
     (tmp_path / "empty").mkdir()
-    assert_one_line_error(kpcn("resample", "--run", tmp_path / "empty", cwd=tmp_path), str(tmp_path / "empty"),
+    assert_one_line_error(run_main("resample", "--run", tmp_path / "empty", cwd=tmp_path), str(tmp_path / "empty"),
                           "not a run")
 
 
+@pytest.mark.slow
 def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path):
     """6 round steps at the base run's 4 per epoch: a shorter last epoch, so each network's optimizer has
     taken the base run's steps and then exactly the round's, as the record says (not two whole epochs)."""
     base = Run(tiny_run)
     record = base.read_record()
     run = base.fork(tmp_path / "runs" / "r", base.shard_set(base.record()).fork(tmp_path / "shards" / "s"))
-    res = kpcn("resample", "--run", run.dir, "--rounds", "1", "--round-steps", "6", "--patches-per-image", "0",
+    res = run_main("resample", "--run", run.dir, "--rounds", "1", "--round-steps", "6", "--patches-per-image", "0",
                "--error-weight", "0", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     base_steps = record["train"]["steps"]
@@ -564,7 +565,7 @@ def test_a_round_trains_each_network_exactly_its_round_steps(tiny_run, tmp_path)
 @pytest.fixture(scope="module")
 def resampled_run(forked_run):
     """The copy of the tiny run after one error round (error weight 0.5) through the command line."""
-    res = kpcn("resample", "--run", forked_run, "--rounds", "1", "--round-steps", "2", "--error-weight", "0.5",
+    res = run_main("resample", "--run", forked_run, "--rounds", "1", "--round-steps", "2", "--error-weight", "0.5",
                "--patches-per-image", "2", cwd=forked_run.parent)
     assert res.returncode == 0, res.stderr[-3000:]
     return forked_run
@@ -609,7 +610,7 @@ def test_a_loops_seconds_are_kept_in_its_timings_file_alone(resampled_run):
 @pytest.mark.slow
 def test_resample_refuses_to_continue_a_loop_with_other_settings(resampled_run):
     before = checksums(resampled_run)
-    res = kpcn("resample", "--run", resampled_run, "--rounds", "1", "--round-steps", "2", "--error-weight", "0.25",
+    res = run_main("resample", "--run", resampled_run, "--rounds", "1", "--round-steps", "2", "--error-weight", "0.25",
                "--patches-per-image", "2", cwd=resampled_run.parent)
     assert_one_line_error(res, "other settings", "error_weight")
     assert checksums(resampled_run) == before
@@ -623,6 +624,6 @@ def test_resample_refuses_a_run_with_a_compositor(tmp_path):
                                   compositor={"kind": "alpha", "width": 4, "depth": 3, "kernel_size": 3})
     run_dir = train(cfg, tmp_path / "runs" / "c", verbose=0)
     manifest = manifest_of(shard_cfg.set_dir)
-    assert_one_line_error(kpcn("resample", "--run", run_dir, "--rounds", "1", cwd=tmp_path), "compositor")
+    assert_one_line_error(run_main("resample", "--run", run_dir, "--rounds", "1", cwd=tmp_path), "compositor")
     assert manifest_of(shard_cfg.set_dir) == manifest
     assert not (Path(run_dir) / "resample").exists()

@@ -10,7 +10,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, build_tiny_shards, checksums, kpcn, random_aovs
+from helpers import assert_one_line_error, build_tiny_shards, checksums, random_aovs, run_main
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
 from kpcn_keras.config import ModelConfig
@@ -36,17 +36,19 @@ def weights(path):
     return [np.asarray(w) for w in load_model(path, compile=False).get_weights()]
 
 
+@pytest.mark.slow
 def test_a_first_train_that_fails_its_checks_writes_nothing_and_the_corrected_command_runs(tmp_path):
     build_tiny_shards(tmp_path)
     before = checksums(tmp_path)
-    res = kpcn(*TRAIN, "--run", "runs/r", "--batch-size", "100000", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", "--batch-size", "100000", cwd=tmp_path)
     assert_one_line_error(res, "--batch-size", "100000")
     assert checksums(tmp_path) == before and not (tmp_path / "runs" / "r" / "config.json").exists()
-    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "runs" / "r" / "config.json").is_file() and (tmp_path / "runs" / "r" / "diffuse.keras").is_file()
 
 
+@pytest.mark.slow
 def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg), tmp_path / "runs" / "r", verbose=0)
@@ -59,6 +61,7 @@ def test_a_renamed_run_folder_is_still_the_same_run(tmp_path):
     assert run.shard_set(run.record()).dir.resolve() == shard_cfg.set_dir.resolve()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
@@ -69,6 +72,7 @@ def test_a_checkpoint_of_another_architecture_is_refused(tmp_path):
     assert not (run_dir / "diffuse.keras").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_whose_weights_disagree_with_its_record_is_refused(tmp_path):
     # the state entry claims the run's model, the weights are another's: checked against the weights
     shard_cfg = build_tiny_shards(tmp_path)
@@ -84,6 +88,7 @@ def test_a_checkpoint_whose_weights_disagree_with_its_record_is_refused(tmp_path
         train(tiny_config(shard_cfg), run_dir, verbose=0)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, steps=6), tmp_path / "runs" / "r", verbose=0)
@@ -99,6 +104,7 @@ def test_a_checkpoint_is_one_file_holding_the_model_and_its_epoch_count(tmp_path
     assert (again / "diffuse.keras").read_bytes() == (run_dir / "diffuse.keras").read_bytes()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncated", "not json", "no train key"])
 def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     shard_cfg = build_tiny_shards(tmp_path)
@@ -107,14 +113,15 @@ def test_a_broken_run_record_is_one_line_naming_it(tmp_path, damage):
     text = record.read_text()
     record.write_text({"truncated": text[: len(text) // 2], "not json": "<html>", "no train key": "{}"}[damage])
     before = checksums(tmp_path)
-    res = kpcn(*TRAIN, "--run", "runs/r", cwd=tmp_path)
+    res = run_main(*TRAIN, "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json")
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json")
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
 
 
+@pytest.mark.slow
 def test_the_record_train_wrote_reads_back_typed_with_the_model_config_it_trained(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = tiny_config(shard_cfg, branches=BOTH)
@@ -157,22 +164,23 @@ def test_a_damaged_part_of_the_record_is_one_line_naming_the_file_and_the_part(t
     assert "\n" not in message
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["checkpoints/diffuse.keras", "diffuse.keras"])
 def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path, which):
     build_tiny_shards(tmp_path)
-    assert kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path).returncode == 0
+    assert run_main(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path).returncode == 0
     run_dir = tmp_path / "runs" / "r"
     victim = run_dir / which
     victim.write_bytes(victim.read_bytes()[:500])
     before = checksums(tmp_path)
     if which == "diffuse.keras":
         exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
-        res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+        res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
         assert not (tmp_path / "in-denoised.exr").exists()
     else:
         (run_dir / "diffuse.keras").unlink()  # so that training goes back to the checkpoint
         before = checksums(tmp_path)
-        res = kpcn(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path)
+        res = run_main(*TRAIN, "--run", "runs/r", "--branches", "diffuse,specular", cwd=tmp_path)
     assert_one_line_error(res, which)
     assert "File not found" not in res.stderr
     assert {k: v for k, v in checksums(tmp_path).items() if k != "in.exr"} == before
@@ -181,17 +189,19 @@ def test_a_corrupt_model_file_is_one_line_naming_it_not_file_not_found(tmp_path,
 BOTH = ("diffuse", "specular")
 
 
+@pytest.mark.slow
 def test_a_specular_file_that_is_a_copy_of_the_diffuse_file_is_refused_naming_the_branch(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
     shutil.copyfile(run_dir / "diffuse.keras", run_dir / "specular.keras")
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/specular.keras", "holds a diffuse network", "its specular network")
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_path):
     # the same branch, the same architecture, other weights: only the record's SHA-256 tells them apart
     shard_cfg = build_tiny_shards(tmp_path)
@@ -205,6 +215,7 @@ def test_a_model_file_replaced_by_another_runs_is_refused_by_its_checksum(tmp_pa
         Denoiser.from_run(Run(run_dir))
 
 
+@pytest.mark.slow
 def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_by_branch(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     run_dir = train(tiny_config(shard_cfg, branches=BOTH), tmp_path / "runs" / "r", verbose=0)
@@ -219,6 +230,7 @@ def test_a_run_written_before_records_held_checksums_loads_and_is_still_checked_
         Denoiser.from_run(Run(run_dir))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("status", ["running", "pending"])
 def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_phase(tmp_path, status):
     shard_cfg = build_tiny_shards(tmp_path)
@@ -229,7 +241,7 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
     run.write_record(record)
     exr.write_aovs(tmp_path / "in.exr", random_aovs(8, 8))
     before = checksums(tmp_path)
-    res = kpcn("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
+    res = run_main("denoise", "in.exr", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "runs/r/config.json", f"specular phase is unfinished (status '{status}')",
                           "'kpcn train --run runs/r'")
     with pytest.raises(KpcnError, match="specular phase is unfinished"):
@@ -237,6 +249,7 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
     assert checksums(tmp_path) == before
 
 
+@pytest.mark.slow
 def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_and_nothing_that_agrees(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = tiny_config(shard_cfg, branches=BOTH)
@@ -252,6 +265,7 @@ def test_a_diffuse_checkpoint_in_the_specular_slot_is_refused_naming_the_phase_a
     assert not (run_dir / "specular.keras").exists()
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)
     other = train(tiny_config(shard_cfg, model={**TINY, "width": 6}), tmp_path / "runs" / "wide", verbose=0)
@@ -262,6 +276,7 @@ def test_a_checkpoint_of_another_width_is_refused_naming_only_the_width(tmp_path
     assert "(model width 6, the run's 4)" in str(err.value), str(err.value)
 
 
+@pytest.mark.slow
 def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resampled_on(tmp_path):
     # a kill between a round's two branch phases leaves the diffuse network a round ahead of the specular
     shard_cfg = build_tiny_shards(tmp_path)

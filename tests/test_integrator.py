@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import rect_form_factor
+from helpers import rect_form_factor
 from prep.render import EFFECTS, render
 from prep.render.packing import pack
 from prep.render.scene import Camera, Mesh, Quad, Scene, Sphere, emitter, glass, glossy, lambert, mirror

@@ -1,0 +1,89 @@
+"""Tests of prep.render.kernels: the kernels specialised to a scene's effects render the all-effects
+kernel's bits, refuse a scene that calls for an effect they lack, and leave out the code of absent ones."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from prep.render import make_scene, render
+from prep.render.packing import pack
+from prep.render.scene import Camera, Material, Quad, Scene, Sphere, glossy, lambert
+
+
+def test_a_scene_calls_for_the_effects_of_what_it_uses():
+    cam = Camera((0, 0, 0), (0, 0, -1))
+    mats = {"grey": lambert((0.5,) * 3), "metal": glossy((0.9,) * 3, 0.2), "unused": Material("plastic", (0.2,) * 3)}
+    diffuse_only = Scene("d", "test", cam, mats, spheres=[Sphere((0, 0, -3), 1, "grey")])
+    assert diffuse_only.effects() == {"lambert"}
+    lit = dataclasses.replace(diffuse_only, spheres=[Sphere((0, 0, -3), 1, "metal")], environment=(0.1, 0.1, 0.1),
+                              materials={**mats, "grey": lambert((0.5,) * 3, texture="uv", albedo2=(0.1,) * 3)},
+                              quads=[Quad((0, 1, 0), (1, 0, 0), (0, 0, 1), "grey")])
+    assert lit.effects() == {"glossy", "lambert", "texture", "environment"}
+
+
+SUBSETS = [
+    ("lambert only", lambda s: _only(s, "lambert")),
+    ("glossy under the environment", lambda s: _only(s, "glossy", env=(0.5, 0.6, 0.7), lights=False)),
+    ("plastic under a light", lambda s: _only(s, "plastic")),
+]
+
+
+def _only(scene: Scene, kind: str, env=(0.0, 0.0, 0.0), lights: bool = True) -> Scene:
+    """``scene`` with every non-emitting material made ``kind`` (textures dropped), lights kept or not."""
+    def one(m):
+        if m.kind == "emitter":
+            return m
+        if kind == "lambert":
+            return lambert(m.albedo if max(m.albedo) > 0 else (0.5, 0.5, 0.5))
+        if kind == "glossy":
+            return glossy((0.8, 0.7, 0.6), 0.3)
+        return Material("plastic", albedo=(0.5, 0.4, 0.3), specular=(0.05,) * 3, roughness=0.2)
+
+    quads = [q for q in scene.quads if lights or scene.materials[q.material].kind != "emitter"]
+    return dataclasses.replace(scene, materials={k: one(m) for k, m in scene.materials.items()}, quads=quads,
+                               environment=env)
+
+
+@pytest.mark.parametrize("label, make", SUBSETS + [("cornell-001 (no plastic, no environment)", None)])
+def test_specialised_kernel_renders_the_bits_of_the_all_effects_kernel(label, make):
+    from prep.render import EFFECTS, kernels
+
+    base = make_scene("cornell", 1, 0)
+    scene = make(base) if make else base
+    assert scene.effects() != frozenset(EFFECTS)
+    assert kernels.kernel_for(scene.effects()) is not kernels.kernel_for(EFFECTS)
+    fast = render(scene, spp=3, seed=9, width=16, height=12)
+    full = render(scene, spp=3, seed=9, width=16, height=12, effects=EFFECTS)
+    for name in fast:
+        np.testing.assert_array_equal(fast[name], full[name], err_msg=f"{label}: {name}")
+    assert fast["default"].max() > 0
+
+
+def test_a_kernel_without_an_effect_the_scene_needs_is_refused():
+    scene = make_scene("cornell", 0, 0)
+    with pytest.raises(ValueError, match="calls for"):
+        render(scene, spp=2, seed=0, width=4, height=4, effects={"lambert"})
+
+
+def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
+    # the flags are compile-time constants: a diffuse-only kernel's machine code never calls GGX or the
+    # plastic's lobe choice, the all-effects kernel's does (compiled afresh here: numba's disk cache
+    # keeps no IR to inspect)
+    import numba
+
+    from prep.render import EFFECTS, kernels
+
+    scene = _only(make_scene("cornell", 0, 0), "lambert")
+    packed = pack(scene)
+    calls = {}
+    for effects in (scene.effects(), EFFECTS):
+        trace = numba.njit(kernels.kernel_for(effects).trace_sample.py_func)
+        trace((0.0, 1.0, 5.0), (0.0, 0.0, -1.0), np.uint64(1), packed, 5, 3, np.zeros(16))
+        ir = "".join(trace.inspect_llvm().values())
+        calls[frozenset(effects)] = {name for name in ("_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect")
+                                     if name in ir}
+    assert calls[scene.effects()] == {"intersect"}
+    assert calls[frozenset(EFFECTS)] == {"_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect"}
