@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from hypothesis import HealthCheck
 from hypothesis import strategies as st
 
@@ -240,7 +239,8 @@ class SmallDisk:
 
 
 def assert_one_line_error(res: subprocess.CompletedProcess, *needles: str) -> None:
-    """Of a :func:`kpcn` or :func:`run_main` result: exit status 2, one line on stderr containing every needle, nothing on stdout, no traceback."""
+    """Of a :func:`kpcn` or :func:`run_main` result: exit status 2, one line on stderr containing every needle,
+    nothing on stdout, no traceback."""
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2, (res.returncode, res.stderr[-2000:])
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr[-2000:]

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
+from helpers import random_aovs
 
 from kpcn_keras import augment
 from kpcn_keras.augment import ALL, DX, DY, IDENTITY, Augmentation, augment_colour, augment_features, draw
 from prep import features
-from helpers import random_aovs
 
 COLOUR_LAYERS = ("diffuse", "specular", "albedo", "default")
 

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+
 from kpcn_keras.studies import bench, bench_stages
 from kpcn_keras.studies.config import BenchConfig
 from prep.errors import OptionError
@@ -157,7 +157,8 @@ def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch)
     row = next(r for r in record["equal_error"] if r["method"] == "cpu")
     for i, scene in enumerate(row["scenes"]):
         ladder = [p["frames"][i]["relmse"] for p in raw["points"]]
-        assert scene["equal_spp"] == bench.equal_error_spp(cfg.raw_spp, ladder, cpu["points"][0]["frames"][i]["relmse"])["spp"]
+        assert scene["equal_spp"] == bench.equal_error_spp(cfg.raw_spp, ladder,
+                                                           cpu["points"][0]["frames"][i]["relmse"])["spp"]
     finite = [s["equal_spp"] for s in row["scenes"] if not math.isnan(s["equal_spp"])]
     assert row["median_equal_spp"] == pytest.approx(float(np.median(finite)))
 

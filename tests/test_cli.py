@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
+
 from kpcn_keras.cli import main
 from prep import exr
 
@@ -444,7 +444,8 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
 
     assert main(["-q", "evaluate", "--run", "runs/toy"]) == 0
     rows = json.loads((tmp_path / "runs/toy/eval/metrics.json").read_text())
-    assert sorted((r["scene"], r["input spp"]) for r in rows) == sorted((s, n) for s in manifest["split"]["val"] for n in (4, 8))
+    assert sorted((r["scene"], r["input spp"]) for r in rows) == sorted((s, n) for s in manifest["split"]["val"]
+                                                                        for n in (4, 8))
     assert all(np.isfinite(r["denoised"]["relmse"]) and np.isfinite(r["nlm"]["relmse"]) for r in rows)
     assert all(np.isfinite(r[k]["relse_p999"]) for r in rows for k in ("raw", "denoised", "nlm"))
     report = (tmp_path / "runs/toy/eval/report.md").read_text()

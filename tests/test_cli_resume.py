@@ -31,7 +31,6 @@ import zipfile
 from pathlib import Path
 
 import pytest
-
 from helpers import checksums_but_timings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -255,7 +254,7 @@ def interrupt_and_resume(stage: str, reference, tmp_path: Path, inputs: tuple[st
         kills = 2 if k == KILLS - 1 else 1
         for attempt in range(kills):
             delay = rng.uniform(0.02, 0.9) * duration
-            for retry in range(3):
+            for _retry in range(3):
                 killed = run_and_kill(args, root, lock, delay)
                 where = progress(stage, root / folder) if killed else "after the command had finished"
                 landed.append(f"{stage} kill {k}.{attempt} at {delay:.2f} s of {duration:.2f} s: {where}")

@@ -12,8 +12,8 @@ import json
 
 import numpy as np
 import pytest
-
 from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+
 from kpcn_keras.config import PRESETS
 from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies.config import CompareConfig

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import build_tiny_shards
+
 from kpcn_keras.data import ShardPatches
 from prep.shards import ShardError, open_shard, shard_paths
 

@@ -1,8 +1,8 @@
 import keras
 import numpy as np
 import pytest
-
 from helpers import TINY_MODEL, build_tiny_shards, random_aovs
+
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file
 from kpcn_keras.models import network_input
@@ -54,7 +54,8 @@ def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives
         np.testing.assert_allclose(out[slope], _untiled(denoiser, aovs, slope)[1]["default"], rtol=2e-5, atol=1e-6)
     assert np.abs(out[1.0] - out[8.0]).max() > 1e-4  # λ reaches the networks
     np.testing.assert_array_equal(denoiser(aovs, slope=1.0)["default"], out[1.0])  # no λ stays behind
-    with pytest.raises(OptionError, match=r"slope is needed: .*r was trained with λ as an input, for λ in \[1.0, 8.0\]"):
+    with pytest.raises(OptionError,
+                       match=r"slope is needed: .*r was trained with λ as an input, for λ in \[1.0, 8.0\]"):
         denoiser(aovs)
 
 
@@ -145,7 +146,8 @@ def test_recombination_inverts_the_branch_transforms(tiny_run):
     d = Denoiser.from_run(Run(tiny_run))
     out = d(aovs)
     diff_log = d.run_branch("diffuse", aovs)
-    np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS), rtol=1e-5)
+    np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64))
+                               * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS), rtol=1e-5)
     np.testing.assert_allclose(out["default"], out["diffuse"] + out["specular"], rtol=1e-6)
 
 

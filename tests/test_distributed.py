@@ -9,8 +9,8 @@ import sys
 
 import numpy as np
 import pytest
-
 from helpers import REPO, launcher_free_env, torchrun
+
 from kpcn_keras import distributed
 
 # One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
@@ -162,6 +162,7 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
     losses, and one set of files, written by rank 0."""
     from helpers import build_tiny_shards, kpcn
+
     from kpcn_keras.run import Run, load_model
 
     build_tiny_shards(tmp_path)

@@ -71,7 +71,8 @@ def test_a_link_to_a_missing_file_or_heading_is_found(tmp_path):
     page = tmp_path / "page.md"
     page.write_text("[ok](other.md#2-some-heading-code-2026-11-26) [file](gone.md) [head](other.md#nope)\n"
                     "```\n[in code](gone-too.md)\n```\n`[span](gone-three.md)` [web](https://example.com/x)\n")
-    assert broken_links(page) == [f"gone.md (no file {tmp_path / 'gone.md'})", "other.md#nope (no heading #nope in other.md)"]
+    assert broken_links(page) == [f"gone.md (no file {tmp_path / 'gone.md'})",
+                                  "other.md#nope (no heading #nope in other.md)"]
 
 
 def test_the_readme_is_at_most_200_lines():

@@ -118,7 +118,8 @@ def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(
     (folder / "notes.exr").write_bytes(b"not a render")  # not named <scene>-<spp>spp.exr
     (folder / exr.render_filename("a-000-x", 999)).write_bytes(b"torn")  # another scene, with more samples
     run = shutil.copytree(tiny_run, tmp_path / "run")  # figures are written into the run
-    assert main(["-q", "evaluate", "--run", str(run), "--out", str(tmp_path / "eval"), "--no-baseline", str(noisy)]) == 0
+    assert main(["-q", "evaluate", "--run", str(run), "--out", str(tmp_path / "eval"), "--no-baseline",
+                 str(noisy)]) == 0
     [row] = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert (row["scene"], row["input spp"]) == ("a-000", 4)
     want = metrics.relmse(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])

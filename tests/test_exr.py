@@ -10,8 +10,8 @@ import logging
 
 import numpy as np
 import pytest
-
 from helpers import random_aovs
+
 from prep import exr, features, metrics
 
 
@@ -202,7 +202,8 @@ def test_half_float_file_at_half_max_reads_finite(tmp_path):
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("layer, with_default",
-                         [(layer, True) for layer in LAYERS] + [(layer, False) for layer in LAYERS if layer != "default"])
+                         [(layer, True) for layer in LAYERS]
+                         + [(layer, False) for layer in LAYERS if layer != "default"])
 def test_nonfinite_value_in_any_layer_is_repaired_by_the_documented_rule(tmp_path, layer, value, with_default):
     aovs = random_aovs(4, 5, seed=7)
     if not with_default:

@@ -1,11 +1,10 @@
 import numpy as np
 import pytest
+from helpers import F32_EPS, F32_TINY, PROPERTY, assert_features_match_reference, random_aovs, renders
 from hypothesis import given, settings
 
-from helpers import F32_EPS, F32_TINY, PROPERTY, assert_features_match_reference, random_aovs, renders
 from prep import exr, features
-from prep.features import LOG_COLOUR_MAX
-from prep.features import reference_features
+from prep.features import LOG_COLOUR_MAX, reference_features
 
 
 @pytest.mark.parametrize("branch", ["diffuse", "specular"])

@@ -3,6 +3,7 @@
 import os
 
 from helpers import checksums, random_aovs
+
 from kpcn_keras.cli import main
 from kpcn_keras.run import Run
 from prep import exr

@@ -9,8 +9,8 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import rect_form_factor
+
 from prep.render import EFFECTS, render
 from prep.render.packing import pack
 from prep.render.scene import Camera, Mesh, Quad, Scene, Sphere, emitter, glass, glossy, lambert, mirror
@@ -179,7 +179,8 @@ def test_image_texture_gives_the_texel_under_each_pixel(tmp_path):
 def test_an_image_texture_that_cannot_be_read_is_named(tmp_path):
     (tmp_path / "bad.png").write_bytes(b"not a png")
     mat = lambert((0.5,) * 3, texture="image", image=str(tmp_path / "bad.png"))
-    scene = Scene("img", "test", Camera((0, 0, 0), (0, 0, -1)), {"t": mat}, quads=[Quad((-1, -1, -3), (2, 0, 0), (0, 2, 0), "t")])
+    scene = Scene("img", "test", Camera((0, 0, 0), (0, 0, -1)), {"t": mat},
+                  quads=[Quad((-1, -1, -3), (2, 0, 0), (0, 2, 0), "t")])
     with pytest.raises(ValueError, match="bad.png"):
         render(scene, spp=2, seed=0, width=4, height=4)
     with pytest.raises(ValueError, match="image"):

@@ -1,14 +1,15 @@
 """KernelApply against an independent float64 numpy reference, plus its numerical edge cases; every layer of
 ``kpcn_keras.layers`` against the Keras layer contract (``helpers.check_keras_layer``)."""
 
+import keras
 import numpy as np
 import pytest
-
+import torch
+from helpers import F32_EPS, F32_MAX, F32_TINY, PROPERTY, check_keras_layer, float32_images
+from helpers import reference_kernel_apply as float64_kernel_apply
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from helpers import F32_EPS, F32_MAX, F32_TINY, PROPERTY, check_keras_layer, float32_images
-from helpers import reference_kernel_apply as float64_kernel_apply
 from kpcn_keras import layers as layers_module
 from kpcn_keras.layers import (
     FinalColour,
@@ -23,9 +24,6 @@ from kpcn_keras.layers import (
 )
 from kpcn_keras.losses import smape
 from prep.features import LOG_COLOUR_MAX
-
-import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
-import torch  # noqa: E402
 
 
 def to_np(x):

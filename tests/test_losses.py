@@ -1,12 +1,14 @@
 """SMAPE and asymmetric SMAPE against float64 numpy references and hand-built cases."""
 
+import keras
 import numpy as np
 import pytest
-
+import torch
 from helpers import F32_MAX, F32_TINY
+
 from kpcn_keras.losses import (
-    SMAPE_EPS,
     SMAPE,
+    SMAPE_EPS,
     AsymmetricSMAPE,
     asymmetric_smape,
     asymmetric_weight,
@@ -15,9 +17,6 @@ from kpcn_keras.losses import (
 )
 from kpcn_keras.models import ModelConfig, build_branch_model
 from prep.features import LOG_COLOUR_MAX
-
-import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
-import torch  # noqa: E402
 
 
 def np_smape(gt, out):

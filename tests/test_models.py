@@ -1,8 +1,9 @@
 """Branch models: shapes, config, initial behaviour, receptive field, save/load, kernels, and learning."""
 
+import keras
 import numpy as np
 import pytest
-
+import torch
 from helpers import extreme_features, finite_loss_and_gradients, randomise
 
 from kpcn_keras.layers import apply_kernels
@@ -15,13 +16,9 @@ from kpcn_keras.models import (
     receptive_radius,
     trunk_radius,
 )
-
 from prep import exr
 from prep import features as prep_features
 from prep.features import LOG_COLOUR_MAX, NUM_FEATURES
-
-import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
-import torch  # noqa: E402
 
 
 def to_np(x):

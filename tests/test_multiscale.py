@@ -3,9 +3,10 @@ the whole model (save/load, odd sizes, frozen denoiser, receptive radius, tiling
 
 import warnings
 
+import keras
 import numpy as np
 import pytest
-
+import torch
 from helpers import check_keras_layer, randomise
 
 from kpcn_keras.layers import apply_kernels
@@ -34,9 +35,6 @@ from kpcn_keras.multiscale import (
     multiscale_radius,
 )
 from prep.features import FEATURE_NAMES
-
-import keras  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
-import torch  # noqa: E402
 
 GRADIENT = [i for i, n in enumerate(FEATURE_NAMES) if n.startswith(("dx_", "dy_"))]
 RELVAR = [i for i, n in enumerate(FEATURE_NAMES) if n.startswith("relvar")]
@@ -162,7 +160,8 @@ def test_apply_kernels_dilation_matches_numpy_loops(k, d):
     got = to_np(apply_kernels(colour.astype(np.float32), weights.astype(np.float32), k, dilation=d))
     np.testing.assert_allclose(got, reference_dilated(colour, weights, k, d), rtol=1e-5, atol=1e-5)
     if d == 1:  # the default is the undilated filter, bit for bit
-        np.testing.assert_array_equal(got, to_np(apply_kernels(colour.astype(np.float32), weights.astype(np.float32), k)))
+        np.testing.assert_array_equal(got, to_np(apply_kernels(colour.astype(np.float32),
+                                                               weights.astype(np.float32), k)))
 
 
 @pytest.mark.parametrize("d", [0, -2, 1.5, True])
@@ -353,14 +352,17 @@ def test_pyramid_gradient_of_linear_ramp_is_the_coarse_ramps_gradient():
         want = np.concatenate([cdx, cdy], axis=-1)
         # interior: the last coarse column / row pools the fine rule's zero there
         np.testing.assert_allclose(got[:, :-1, :-1, GRADIENT], want[:, :-1, :-1], rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(got[:, :-1, :-1, GRADIENT[:10]], np.broadcast_to(factor * slopes[:, 0], (1, h // factor - 1, w // factor - 1, 10)), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(got[:, :-1, :-1, GRADIENT[:10]],
+                                   np.broadcast_to(factor * slopes[:, 0], (1, h // factor - 1, w // factor - 1, 10)),
+                                   rtol=1e-5, atol=1e-6)
 
 
 def test_pyramid_relvar_pools_variances_and_stays_finite():
     rng = np.random.default_rng(7)
     x = np.zeros((2, 8, 6, 27))
     # tiny, moderate, and up to the features' 300 (expm1 overflows float32 past ~88.7)
-    x[..., RELVAR] = rng.choice([1e-4, 0.3, 4.0, 19.0, 25.0, 90.0, 300.0], size=(2, 8, 6, 4)) * rng.uniform(0.5, 1.0, size=(2, 8, 6, 4))
+    x[..., RELVAR] = (rng.choice([1e-4, 0.3, 4.0, 19.0, 25.0, 90.0, 300.0], size=(2, 8, 6, 4))
+                      * rng.uniform(0.5, 1.0, size=(2, 8, 6, 4)))
     x[..., PLAIN] = rng.uniform(0, 3, size=(2, 8, 6, len(PLAIN)))
     got = run(FeatureDownsample(), x.astype(np.float32))
     np.testing.assert_allclose(got[..., RELVAR], pool_relvar(x[..., RELVAR]), rtol=2e-6, atol=1e-7)

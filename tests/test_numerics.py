@@ -15,14 +15,14 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import h5py
 import numpy as np
 import pytest
-
+import torch
 from helpers import (
     F32_MAX,
     F32_TINY,
@@ -41,6 +41,7 @@ from helpers import (
     reference_log_colour,
     reference_pdf,
 )
+
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import ARCHS
 from kpcn_keras.run import Run, load_model
@@ -48,9 +49,6 @@ from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
 from prep.errors import KpcnError, OptionError
 from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES
-
-import torch  # noqa: E402
-
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 PATCH = 8
@@ -411,7 +409,8 @@ def hard_set(tmp_path_factory):
     runs, denoisers = {}, {}
     for arch, batch in ARCH_BATCH.items():
         steps = PATCHES_PER_IMAGE * len(HARD_CASES) // batch
-        tc = TrainConfig.from_preset("cpu", set_name="hard", shards_root=cfg.out_root, model={"arch": arch, **ARCH_MODEL[arch]},
+        tc = TrainConfig.from_preset("cpu", set_name="hard", shards_root=cfg.out_root,
+                                     model={"arch": arch, **ARCH_MODEL[arch]},
                                      steps=steps, steps_per_epoch=steps, batch_size=batch, val_batches=1)
         runs[arch] = train(tc, root / "runs" / arch, verbose=0)
         denoisers[arch] = (Denoiser.from_run(Run(runs[arch]), tile=8), Denoiser.from_run(Run(runs[arch]), tile=4096))
@@ -534,7 +533,8 @@ def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_deno
     if patch < smallest:  # of the smallest size that kpcn shards cuts: the tiny render is denoised below
         with pytest.raises(KpcnError, match=rf"is {w}x{h}, smaller than a {smallest}x{smallest} patch; the smallest"):
             shards.build_shards(shards.ShardConfig(set_name="odd", render_root=str(tmp_path / "renders"),
-                                                   out_root=str(tmp_path / "shards"), patch_size=smallest), progress=False)
+                                                   out_root=str(tmp_path / "shards"), patch_size=smallest),
+                                progress=False)
         h, w, patch = max(h, smallest), max(w, smallest), smallest
         (tmp_path / "renders" / "odd" / exr.render_filename("odd-000", 4)).unlink()
         exr.write_aovs(renders / exr.render_filename("odd-000", 4), random_aovs(h, w, seed=7))
@@ -555,7 +555,8 @@ def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_deno
     rows = (run / "log.csv").read_text().splitlines()[1:]
     assert len(rows) == len(features.BRANCHES) and all(np.isfinite(float(r.split(",")[1])) for r in rows)
 
-    tiled, whole = Denoiser.from_run(Run(run), tile=2), Denoiser.from_run(Run(run), tile=4096)  # tiles smaller than the margin
+    # tiles smaller than the margin
+    tiled, whole = Denoiser.from_run(Run(run), tile=2), Denoiser.from_run(Run(run), tile=4096)
     for branch in features.BRANCHES:
         np.testing.assert_allclose(tiled.run_branch(branch, back), whole.run_branch(branch, back), rtol=1e-5, atol=1e-6)
     out = tiled(back)
@@ -570,7 +571,8 @@ def test_render_smaller_than_a_patch_is_refused_before_anything_is_written(tmp_p
     exr.write_aovs(renders / exr.render_filename("small-000", 64), random_aovs(5, 7, seed=2, variances=False))
     cfg = shards.ShardConfig(set_name="small", render_root=str(tmp_path / "renders"),
                              out_root=str(tmp_path / "shards"), patch_size=PATCH, patches_per_image=1)
-    with pytest.raises(KpcnError, match=r"small-000-00004spp\.exr is 7x5, smaller than a 8x8 patch; use --patch-size 5"):
+    with pytest.raises(KpcnError,
+                       match=r"small-000-00004spp\.exr is 7x5, smaller than a 8x8 patch; use --patch-size 5"):
         shards.build_shards(cfg, progress=False)
     assert not list((tmp_path / "shards").rglob("*.h5")) and not list((tmp_path / "shards").rglob("manifest.json"))
     with pytest.raises(ValueError, match=r"\[1, 5\] for a 7x5 image, got 8"):

@@ -11,8 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from helpers import REPO, launcher_free_env, torchrun
+
 from kpcn_keras.cli import main
 from prep.errors import OptionError
 from prep.parts import LaunchError, Part

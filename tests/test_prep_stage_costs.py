@@ -3,8 +3,8 @@ import math
 import sys
 
 import pytest
-
 from helpers import make_renders
+
 from prep import exr, shards
 from prep.studies import stage_costs
 
@@ -73,7 +73,8 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
 def test_no_deep_learning_import():
     import subprocess
 
-    code = "import sys; import prep.studies.stage_costs; print(sorted(m for m in ('torch', 'keras') if m in sys.modules))"
+    code = ("import sys; import prep.studies.stage_costs; "
+            "print(sorted(m for m in ('torch', 'keras') if m in sys.modules))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
     assert res.stdout.strip() == "[]"

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, checksums, rect_form_factor, run_main
+
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
@@ -735,6 +735,7 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     from helpers import REPO
+
     from prep.studies.render_bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())

@@ -14,13 +14,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
 from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders, run_main
+
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.resample import round_weights
-from kpcn_keras.studies.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
 from kpcn_keras.run import Run, load_model
+from kpcn_keras.studies.resample_study import at_time, cumulative_cost, frame_scores_at, frame_test, verdict
 from kpcn_keras.train import check_inputs, train
 from prep.errors import KpcnError
 from prep.shards import ErrorRound, ShardError, ShardSet, build_error_round

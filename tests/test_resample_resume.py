@@ -24,7 +24,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
 from helpers import REPO, checksums_but_timings, make_renders
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
@@ -195,7 +194,8 @@ def test_every_round_patch_is_the_crop_of_its_source_at_its_position(trees):
             with h5py.File(path, "r") as f:
                 for i in range(len(f["source"])):
                     src = manifest["sources"][int(f["source"][i])]
-                    ref = next(s for s in manifest["sources"] if s["scene"] == src["scene"] and s["role"] == "reference")
+                    ref = next(s for s in manifest["sources"]
+                               if s["scene"] == src["scene"] and s["role"] == "reference")
                     if ref["path"] not in refs:
                         refs[ref["path"]] = exr.read_aovs(set_dir / ref["path"], variances=False)["default"]
                     y, x = f["position"][i]

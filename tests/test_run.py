@@ -9,11 +9,11 @@ import zipfile
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, build_tiny_shards, checksums, random_aovs, run_main
+
+from kpcn_keras.config import ModelConfig
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
-from kpcn_keras.config import ModelConfig
 from kpcn_keras.run import Component, ModelFile, Run, load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep import exr

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
+from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf, renders
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf, renders
 from prep import sampling
 
 

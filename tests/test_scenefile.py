@@ -14,12 +14,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, checksums, run_main
+
 from prep import exr
 from prep.errors import KpcnError, OptionError
-from prep.render import EFFECTS, FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene, render
-from prep.render import scenefile
+from prep.render import EFFECTS, FAMILIES, Camera, Material, Quad, Scene, Sphere, make_scene, render, scenefile
 from prep.render.scene import Vec3
 from prep.render.scenefile import RenderSettings, SceneFileError, dump_scene, load_scene, render_scene_file
 
@@ -299,7 +298,8 @@ def test_a_wrong_value_names_the_key_path_and_the_value_found(tmp_path, old, new
 
 def test_a_render_setting_out_of_range_in_the_file_names_its_key(tmp_path):
     path = edited(tmp_path, "spp = 16", "spp = 1")
-    with pytest.raises(SceneFileError, match=r"scene\.toml: render\.spp = 1: spp must be an integer in \[2, 65536\], got 1"):
+    with pytest.raises(SceneFileError,
+                       match=r"scene\.toml: render\.spp = 1: spp must be an integer in \[2, 65536\], got 1"):
         render_scene_file(path, tmp_path / "out.exr", png=False)
     # the same value given as an option is the option's fault (the command line names the flag)
     with pytest.raises(OptionError, match=r"spp must be an integer in \[2, 65536\]"):

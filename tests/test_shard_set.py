@@ -12,8 +12,8 @@ import tracemalloc
 import h5py
 import numpy as np
 import pytest
-
 from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
+
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError
 from prep.files import sha256_file
@@ -105,7 +105,7 @@ def test_two_shard_commands_on_one_set_at_once_give_the_set_one_command_gives(tm
     procs = [subprocess.Popen(cmd, cwd=tmp_path / "together", env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for _ in range(2)]
     results = [(p.wait(timeout=300), *p.communicate()) for p in procs]
-    for rc, out, err in results:
+    for rc, _out, err in results:
         assert rc == 0 and "Traceback" not in err, err
     got = checksums(tmp_path / "together" / "shards")
     assert got == checksums(tmp_path / "alone" / "shards")
@@ -195,7 +195,8 @@ def test_a_set_listing_sha256_as_sets_did_before_still_verifies_and_is_kept(tmp_
     assert {e.checksum[0] for e in sset.verified_shards("train")} == {"sha256"}
     rerun = shards.build_shards(cfg, progress=False)
     after = checksums(cfg.set_dir)
-    assert {k: v for k, v in after.items() if k.endswith(".h5")} == {k: v for k, v in before.items() if k.endswith(".h5")}
+    assert ({k: v for k, v in after.items() if k.endswith(".h5")}
+            == {k: v for k, v in before.items() if k.endswith(".h5")})
     assert all("sha256" in e for e in rerun["rounds"]["round-000"]["shards"])  # kept, not rewritten
     victim = sset.verified_shards("train")[0].path
     data = bytearray(victim.read_bytes())

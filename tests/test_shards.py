@@ -10,8 +10,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+
 from prep import exr, features, shards
 from prep.files import is_temporary
 
@@ -45,14 +45,19 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
                     src = by_id[int(f["source"][k])]
                     assert src["role"] == "input" and src["split"] == split
                     noisy = exr.read_aovs(sset.resolve(src["path"]))
-                    ref_path = next(s["path"] for s in manifest["sources"] if s["scene"] == src["scene"] and s["role"] == "reference")
+                    ref_path = next(s["path"] for s in manifest["sources"]
+                                    if s["scene"] == src["scene"] and s["role"] == "reference")
                     ref = exr.read_aovs(sset.resolve(ref_path), variances=False)
                     y, x = f["position"][k]
                     win = np.s_[y:y + 16, x:x + 16]
-                    np.testing.assert_array_equal(f["diffuse/features"][k], features.branch_features(noisy, "diffuse")[win])
-                    np.testing.assert_array_equal(f["specular/features"][k], features.branch_features(noisy, "specular")[win])
-                    np.testing.assert_array_equal(f["specular/reference"][k], features.branch_colour(ref, "specular")[win])
-                    np.testing.assert_array_equal(f["diffuse/reference"][k], features.branch_colour(ref, "diffuse")[win])
+                    np.testing.assert_array_equal(f["diffuse/features"][k],
+                                                  features.branch_features(noisy, "diffuse")[win])
+                    np.testing.assert_array_equal(f["specular/features"][k],
+                                                  features.branch_features(noisy, "specular")[win])
+                    np.testing.assert_array_equal(f["specular/reference"][k],
+                                                  features.branch_colour(ref, "specular")[win])
+                    np.testing.assert_array_equal(f["diffuse/reference"][k],
+                                                  features.branch_colour(ref, "diffuse")[win])
                     np.testing.assert_array_equal(f["reference"][k], ref["default"][win])
                     np.testing.assert_array_equal(f["albedo"][k], noisy["albedo"][win])
                     assert f["diffuse/features"].chunks == (1, 16, 16, features.NUM_FEATURES)
@@ -184,7 +189,7 @@ def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
 def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_detected(tmp_path):
     rng = np.random.default_rng(1)
     arrays = shards.empty_patches(3, 8)
-    for name, data in arrays.items():
+    for _name, data in arrays.items():
         data[...] = rng.normal(size=data.shape) if data.dtype.kind == "f" else rng.integers(0, 9, data.shape)
     path = tmp_path / "shard-00000.h5"
     shards.write_shard(path, arrays, {"format": shards.FORMAT})

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-
+import torch
 from helpers import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
@@ -16,8 +16,6 @@ from kpcn_keras.studies.stage_costs import (
     memory_bandwidth,
     train_step_cost,
 )
-
-import torch  # noqa: E402  (after kpcn_keras, which fixes the torch backend)
 
 TINY_BANDWIDTH = {"read_bytes_per_s": 1e10}  # a stand-in, so that kernel tests need not stream 512 MiB
 

@@ -42,7 +42,8 @@ def _run(code: str, **extra) -> tuple[int, int]:
 @pytest.mark.slow
 def test_one_thread_holds_when_torch_is_imported_first():
     # a torch op first: torch has then initialised its threads and will not redo it after numba's reset
-    code = "import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE + "from prep import threads\nthreads.set_threads(1)\n" + CHECK
+    code = ("import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE
+            + "from prep import threads\nthreads.set_threads(1)\n" + CHECK)
     assert _run(code) == (1, 1)
 
 
@@ -54,7 +55,8 @@ def test_one_thread_holds_when_torch_is_imported_after():
 
 @pytest.mark.slow
 def test_the_default_is_every_core():
-    code = "import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE + "from prep import threads\nthreads.set_threads()\n" + CHECK
+    code = ("import torch\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE
+            + "from prep import threads\nthreads.set_threads()\n" + CHECK)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert cores == os.cpu_count()  # no restricted affinity on the machines this runs on
     assert _run(code) == (cores, cores)
@@ -75,7 +77,8 @@ def test_without_the_module_numba_resets_torch():
     # guards the tests above: the defect they would catch is real here (numba's OpenMP layer calls
     # omp_set_num_threads(pool size) when it starts; torch reads omp_get_max_threads and, having run an op
     # in this thread already, does not apply its own count again)
-    code = "import torch\ntorch.set_num_threads(1)\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE + "total(np.ones(10))\n"
+    code = ("import torch\ntorch.set_num_threads(1)\ntorch.ones(300, 300) @ torch.ones(300, 300)\n" + PRANGE
+            + "total(np.ones(10))\n")
     res = subprocess.run([sys.executable, "-c", code + "print(numba.threading_layer(), torch.get_num_threads())"],
                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr

@@ -9,8 +9,8 @@ from pathlib import Path
 import keras
 import numpy as np
 import pytest
-
 from helpers import build_tiny_shards, checksums
+
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
 from prep.errors import KpcnError, OptionError
@@ -116,10 +116,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
     run_dir = tmp_path / "killed" / "r"
     checkpoint = run_dir / "checkpoints" / "diffuse.keras"
     proc = subprocess.Popen([sys.executable, "-c", (
-        "import sys, json; sys.path.insert(0, %r)\n"
+        f"import sys, json; sys.path.insert(0, {env['PYTHONPATH']!r})\n"
         "from kpcn_keras.train import TrainConfig, train\n"
-        "train(TrainConfig(**json.loads(%r)), %r, verbose=0)\n") % (env["PYTHONPATH"], json.dumps(cfg.to_dict()),
-                                                                    str(run_dir))], env=env)
+        f"train(TrainConfig(**json.loads({json.dumps(cfg.to_dict())!r})), {str(run_dir)!r}, verbose=0)\n")], env=env)
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         if checkpoint.is_file() and 1 <= read_state(checkpoint)["epochs_done"] < 10:

@@ -13,8 +13,8 @@ from pathlib import Path
 import keras
 import numpy as np
 import pytest
-
 from helpers import REPO, assert_one_line_error, build_tiny_shards, random_aovs, randomise, run_main
+
 from kpcn_keras import augment
 from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.data import ShardPatches
@@ -166,7 +166,8 @@ def test_final_colour_models_survive_save_and_load_and_train_a_step(kind, shared
     model.save(path)
     loaded = keras.models.load_model(path)
     np.testing.assert_array_equal(predict(loaded, x), before)
-    denoisers = [w.numpy().copy() for n in nets for w in loaded.get_layer(n if kind is None else f"{n}_denoiser").weights]
+    denoisers = [w.numpy().copy() for n in nets
+                 for w in loaded.get_layer(n if kind is None else f"{n}_denoiser").weights]
     loaded.compile(optimizer=keras.optimizers.Adam(1e-2), loss="mae")
     loaded.fit(x, before + 0.5, epochs=1, verbose=0)
     after = [w.numpy() for n in nets for w in loaded.get_layer(n if kind is None else f"{n}_denoiser").weights]
@@ -344,7 +345,7 @@ def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
         "import json\n"
         "from kpcn_keras.config import TrainConfig\n"
         "from kpcn_keras.train import train\n"
-        "train(TrainConfig(**json.loads(%r)), %r, verbose=0)\n") % (json.dumps(cfg.to_dict()), str(run_dir))],
+        f"train(TrainConfig(**json.loads({json.dumps(cfg.to_dict())!r})), {str(run_dir)!r}, verbose=0)\n")],
         env=env, cwd=tmp_path)
     ckpt = run_dir / "checkpoints" / "joint.keras"
     deadline = time.time() + 120
