@@ -2,7 +2,11 @@
 
 Unidirectional path tracing with next-event estimation to the lights (one picked in proportion to its
 power: a uniform point on a rectangle or on a triangle of an emissive mesh, a direction uniform in the cone
-a sphere subtends, an environment map by texel luminance) combined with BSDF sampling by the power heuristic.
+a sphere subtends, an environment map by texel luminance; ``lights.py`` samples each kind) combined with BSDF
+sampling by the power heuristic. :func:`trace_sample` is the loop over a path's vertices; what it does at a
+vertex is in inline functions (``inline="always"``, so the kernel compiles as one function): light sampling
+(:func:`direct_light`), the weights of emission the path reaches (:func:`emission_weight`, :func:`escaped`) and
+path continuation (:func:`continue_delta`, :func:`continue_bsdf`, :func:`roulette`).
 Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
 that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
 alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
@@ -50,16 +54,8 @@ from prep.render.tracer import (
     OUT_VARS,
     PLASTIC,
     Q_AREA,
-    Q_CORNER,
-    Q_NORMAL,
-    Q_U,
-    Q_V,
     RAY_OFFSET,
     T_AREA,
-    T_E1,
-    T_E2,
-    T_NORMAL,
-    T_V0,
     TEX_IMAGE,
     TEX_NONE,
     TEX_WORLD,
@@ -76,7 +72,6 @@ from prep.render.tracer import (
     _sub,
     _to_world,
     env_lookup,
-    env_sample,
     fresnel_dielectric,
     ggx_visible_normal,
     intersect,
@@ -89,6 +84,14 @@ from prep.render.tracer import (
     sample_key,
     search_cdf,
     surface,
+)
+from prep.render.lights import (
+    planar_density,
+    sample_environment,
+    sample_quad,
+    sample_sphere,
+    sample_triangle,
+    sphere_density,
 )
 
 # --- effects (kernels.py rewrites this block; one line per name of scene.EFFECTS) ---
@@ -186,23 +189,6 @@ def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
     return wi, _dot(n, wi) > 0.0
 
 
-@njit(cache=True, inline="always")
-def toward_planar_light(origin, point, normal, area, prob):
-    """Light sampling of a planar light (a rectangle, a triangle) of unit ``normal`` and ``area``, picked with
-    probability ``prob``, at ``point`` drawn uniformly on it: (lit, wi, tmax, pdf) with wi the unit direction from
-    ``origin``, tmax the distance that a shadow ray tests and pdf the solid-angle density of light sampling
-    there; lit is False, and pdf 0, where origin is behind the light (it emits on the side of its normal)."""
-    dl = _sub(point, origin)
-    dist2 = _dot(dl, dl)
-    dist = math.sqrt(dist2)
-    wi = _scale(dl, 1.0 / dist)
-    cos_l = -_dot(normal, wi)
-    if cos_l <= 0.0:
-        return False, wi, 0.0, 0.0
-    # the shadow ray stops short of the light's own plane
-    return True, wi, dist * (1.0 - 1e-5), prob * dist2 / (cos_l * area)
-
-
 @njit(cache=True)
 def environment_at(sc, d):
     """Radiance of the environment in direction d: horizon colour blended to the zenith colour."""
@@ -212,8 +198,178 @@ def environment_at(sc, d):
 
 
 # ---------------------------------------------------------------------------------------------
+# light sampling and the MIS weights (the kinds themselves are in lights.py)
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def power_heuristic(pdf_a, pdf_b):
+    """The MIS weight (power heuristic, exponent 2) of a sample drawn with density pdf_a that pdf_b could draw."""
+    return pdf_a * pdf_a / (pdf_a * pdf_a + pdf_b * pdf_b)
+
+
+@njit(cache=True, inline="always")
+def sample_light(sc, origin, u0, u1, u2):
+    """A light picked in proportion to its power (u0), then a point or direction on it (u1, u2) seen from
+    ``origin``: (lit, wi, tmax, pdf, le) as ``lights.py`` says; unlit for a kind this kernel has no flag for."""
+    li = search_cdf(sc.light_cdf, u0)
+    q = sc.lights[li]
+    prob = sc.light_prob[li]
+    if HAS_EMITTER and sc.light_kind[li] == L_QUAD:
+        return sample_quad(sc, q, prob, origin, u1, u2)
+    if HAS_EMITTER and HAS_MESH and sc.light_kind[li] == L_TRIANGLE:
+        return sample_triangle(sc, q, prob, origin, u1, u2)
+    if HAS_EMITTER and sc.light_kind[li] == L_SPHERE:
+        return sample_sphere(sc, q, prob, origin, u1, u2)
+    if HAS_ENVIRONMENT_MAP and sc.light_kind[li] == L_ENVIRONMENT:
+        return sample_environment(sc, prob, u1, u2)
+    zero = (0.0, 0.0, 0.0)
+    return False, zero, 0.0, 0.0, zero
+
+
+@njit(cache=True, inline="always")
+def direct_light(sc, key, base, mk, kd, ks, alpha, n, wo, origin, bounce, ld, ls, bd, bs):
+    """Next-event estimation at a vertex with a BSDF: one light sample, MIS-weighted against BSDF sampling,
+    added to the radiance (ld, ls) through the throughputs (bd, bs) of the vertex; (ld, ls)."""
+    lit, wi, tmax, pdf_l, le = sample_light(sc, origin, rand(key, base), rand(key, base + 1), rand(key, base + 2))
+    ci = _dot(n, wi)
+    if not (lit and ci > 0.0):
+        return ld, ls
+    fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+    if not pdf_b > 0.0:
+        return ld, ls
+    blocked = occluded(origin, wi, tmax, sc)
+    if HAS_MESH and not blocked:
+        blocked = occluded_mesh(origin, wi, tmax, sc)
+    if blocked:
+        return ld, ls
+    c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
+    if bounce == 0:
+        return _add(ld, _mul(fd, c)), _add(ls, _mul(fs, c))
+    fc = _mul(_add(fd, fs), c)
+    return _add(ld, _mul(bd, fc)), _add(ls, _mul(bs, fc))
+
+
+@njit(cache=True, inline="always")
+def emission_weight(sc, kind, idx, o, t, cos_d, prev_pdf):
+    """The MIS weight of the emission of an emitter that BSDF sampling (density ``prev_pdf``, from ``o``) hit at
+    distance t and cosine cos_d < 0: 1 where light sampling could not have drawn it."""
+    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
+    if HAS_MESH and kind == 2:
+        li = sc.tri_light[idx]
+    if li < 0 or not prev_pdf > 0.0:
+        return 1.0
+    prob = sc.light_prob[li]
+    if kind == 1:
+        pdf_l = planar_density(prob, t, -cos_d, sc.quads[idx, Q_AREA])
+    elif HAS_MESH and kind == 2:
+        pdf_l = planar_density(prob, t, -cos_d, sc.triangles[idx, T_AREA])
+    else:  # the cone density light sampling used from the previous vertex, o
+        pdf_l = sphere_density(sc, idx, prob, o)
+    return power_heuristic(prev_pdf, pdf_l)
+
+
+@njit(cache=True, inline="always")
+def escaped(sc, d, bounce, prev_pdf):
+    """(radiance, MIS weight) of the environment along d, for a path that leaves the scene; a map is a light
+    that light sampling draws too, the constant or gradient environment is not."""
+    env = (0.0, 0.0, 0.0)
+    w = 1.0
+    if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
+        env, pdf_dir = env_lookup(sc, d)
+        if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
+            w = power_heuristic(prev_pdf, sc.light_prob[sc.env_light] * pdf_dir)
+    elif HAS_ENVIRONMENT:
+        env = environment_at(sc, d)
+    return env, w
+
+
+@njit(cache=True, inline="always")
+def add_emitted(ld, ls, bd, bs, le, w, bounce):
+    """(ld, ls) plus radiance ``le`` that the path reached, weighted ``w``: seen directly from the camera it is
+    specular (the first vertex has no lobe), later it goes through the two throughputs."""
+    if bounce == 0:
+        return ld, _add(ls, le)
+    return _madd(ld, _mul(bd, le), w), _madd(ls, _mul(bs, le), w)
+
+
+# ---------------------------------------------------------------------------------------------
+# path continuation
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def continue_delta(sc, key, base, m, mk, p, n, d, cos_d, bounce, bd, bs):
+    """The next ray from a mirror or glass vertex (one direction; glass reflects with the Fresnel probability,
+    refracts otherwise) and the throughputs through it: (origin, wi, bd, bs). The first vertex's is specular."""
+    materials = sc.materials
+    wt = _row3(materials, m, M_SPECULAR)
+    cos_i = -_dot(n, d)
+    if HAS_GLASS and mk == GLASS:
+        ior = materials[m, M_IOR]
+        eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
+        fr, cos_t = fresnel_dielectric(cos_i, eta)
+        if rand(key, base + 3) < fr:
+            wi = reflect(d, n)
+            origin = _madd(p, n, RAY_OFFSET)
+            wt = (1.0, 1.0, 1.0)
+        else:
+            wi = refract(d, n, eta, cos_i, cos_t)
+            origin = _madd(p, n, -RAY_OFFSET)
+    else:
+        wi = reflect(d, n)
+        origin = _madd(p, n, RAY_OFFSET)
+    if bounce == 0:
+        return origin, wi, (0.0, 0.0, 0.0), wt
+    return origin, wi, _mul(bd, wt), _mul(bs, wt)
+
+
+@njit(cache=True, inline="always")
+def continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs):
+    """The next direction from a vertex with a BSDF, drawn from it, and the throughputs through it, split by lobe
+    at the first vertex: (ok, wi, bd, bs, pdf); not ok where the path ends (below the horizon, zero density)."""
+    wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4), rand(key, base + 5))
+    if not ok:
+        return False, wi, bd, bs, 0.0
+    fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+    if pdf <= 0.0:
+        return False, wi, bd, bs, pdf
+    ci = _dot(n, wi)
+    if bounce == 0:
+        return True, wi, _scale(fd, ci / pdf), _scale(fs, ci / pdf), pdf
+    f = _scale(_add(fd, fs), ci / pdf)
+    return True, wi, _mul(bd, f), _mul(bs, f), pdf
+
+
+@njit(cache=True, inline="always")
+def roulette(bd, bs, u):
+    """Russian roulette on the throughputs: (alive, bd, bs), those of a surviving path scaled by 1 / its odds."""
+    survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
+    if u >= survive:
+        return False, bd, bs
+    return True, _scale(bd, 1.0 / survive), _scale(bs, 1.0 / survive)
+
+
+# ---------------------------------------------------------------------------------------------
 # the integrator
 # ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def nearest_hit(o, d, sc):
+    """(t, kind, idx) of the nearest surface along the ray: kind 0 a sphere, 1 a quad, 2 a triangle, < 0 none."""
+    t, kind, idx = intersect(o, d, np.inf, sc)
+    if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
+        tm, ti = intersect_mesh(o, d, t, sc)
+        if ti >= 0:
+            return tm, 2, ti
+    return t, kind, idx
+
+
+@njit(cache=True, inline="always")
+def material_of(sc, kind, idx):
+    """The material index of surface idx of kind (as :func:`nearest_hit` gives them)."""
+    if HAS_MESH and kind == 2:
+        return sc.tri_mat[idx]
+    return sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
+
 
 @njit(cache=True, inline="always")
 def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
@@ -226,38 +382,16 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     bd = (0.0, 0.0, 0.0)  # throughput of the diffuse part of the first vertex
     bs = (0.0, 0.0, 0.0)  # throughput of the glossy part
     prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
-    materials, quads = sc.materials, sc.quads
-    n_lights = sc.lights.shape[0]
+    materials = sc.materials
     for bounce in range(max_depth + 1):
-        t, kind, idx = intersect(o, d, np.inf, sc)
-        if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
-            tm, ti = intersect_mesh(o, d, t, sc)
-            if ti >= 0:
-                t = tm
-                kind = 2
-                idx = ti
+        t, kind, idx = nearest_hit(o, d, sc)
         if kind < 0:
-            env = (0.0, 0.0, 0.0)
-            w = 1.0
-            if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
-                env, pdf_dir = env_lookup(sc, d)
-                if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
-                    pdf_l = sc.light_prob[sc.env_light] * pdf_dir
-                    w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
-            elif HAS_ENVIRONMENT:
-                env = environment_at(sc, d)
-            if bounce == 0:
-                ls = _add(ls, env)
-            else:
-                ld = _madd(ld, _mul(bd, env), w)
-                ls = _madd(ls, _mul(bs, env), w)
+            env, w = escaped(sc, d, bounce, prev_pdf)
+            ld, ls = add_emitted(ld, ls, bd, bs, env, w, bounce)
             break
         p = _madd(o, d, t)
-        ng, tu, tv = surface(p, kind, idx, sc.spheres, quads, sc.triangles)
-        if HAS_MESH and kind == 2:
-            m = sc.tri_mat[idx]
-        else:
-            m = sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
+        ng, tu, tv = surface(p, kind, idx, sc.spheres, sc.quads, sc.triangles)
+        m = material_of(sc, kind, idx)
         mk = int(materials[m, M_KIND])
         cos_d = _dot(ng, d)
         n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
@@ -265,174 +399,44 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
         if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
             kd = albedo_at(sc, m, p, tu, tv)
         if bounce == 0:
-            out[6] = kd[0]
-            out[7] = kd[1]
-            out[8] = kd[2]
-            out[9] = n[0]
-            out[10] = n[1]
-            out[11] = n[2]
+            out[6:9] = kd
+            out[9:12] = n
             out[12] = t
         if HAS_EMITTER and mk == EMITTER:
             if cos_d < 0.0:  # front side only
-                le = _row3(materials, m, M_EMISSION)
-                if bounce == 0:
-                    ls = _add(ls, le)
-                else:
-                    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
-                    if HAS_MESH and kind == 2:
-                        li = sc.tri_light[idx]
-                    w = 1.0
-                    if li >= 0 and prev_pdf > 0.0:
-                        if kind == 1:
-                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
-                        elif HAS_MESH and kind == 2:
-                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * sc.triangles[idx, T_AREA])
-                        else:  # the cone density light sampling used from the previous vertex, o
-                            wc = _sub(_row3(sc.spheres, idx, 0), o)
-                            sin2 = sc.spheres[idx, 3] * sc.spheres[idx, 3] / _dot(wc, wc)
-                            one_minus = sin2 / (1.0 + math.sqrt(max(0.0, 1.0 - sin2)))
-                            pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
-                        w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
-                    ld = _madd(ld, _mul(bd, le), w)
-                    ls = _madd(ls, _mul(bs, le), w)
+                w = 1.0 if bounce == 0 else emission_weight(sc, kind, idx, o, t, cos_d, prev_pdf)
+                ld, ls = add_emitted(ld, ls, bd, bs, _row3(materials, m, M_EMISSION), w, bounce)
             break
         if bounce == max_depth:
             break
         base = 2 + bounce * DIMS_PER_BOUNCE
-        if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):
-            # a delta vertex: one direction (or two, for glass), no light sampling
-            wt = _row3(materials, m, M_SPECULAR)
-            cos_i = -_dot(n, d)
-            if HAS_GLASS and mk == GLASS:
-                ior = materials[m, M_IOR]
-                eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
-                fr, cos_t = fresnel_dielectric(cos_i, eta)
-                if rand(key, base + 3) < fr:
-                    wi = reflect(d, n)
-                    origin = _madd(p, n, RAY_OFFSET)
-                    wt = (1.0, 1.0, 1.0)
-                else:
-                    wi = refract(d, n, eta, cos_i, cos_t)
-                    origin = _madd(p, n, -RAY_OFFSET)
-            else:
-                wi = reflect(d, n)
-                origin = _madd(p, n, RAY_OFFSET)
-            if bounce == 0:
-                bd = (0.0, 0.0, 0.0)
-                bs = wt
-            else:
-                bd = _mul(bd, wt)
-                bs = _mul(bs, wt)
+        if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):  # a delta vertex: no light sampling
+            origin, wi, bd, bs = continue_delta(sc, key, base, m, mk, p, n, d, cos_d, bounce, bd, bs)
             prev_pdf = -1.0
         else:
             ks = _row3(materials, m, M_SPECULAR)
             alpha = materials[m, M_ROUGHNESS]
             wo = _scale(d, -1.0)
             origin = _madd(p, n, RAY_OFFSET)
-
-            # next-event estimation, MIS-weighted against BSDF sampling
-            if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and n_lights > 0:
-                li = search_cdf(sc.light_cdf, rand(key, base))
-                q = sc.lights[li]
-                u1 = rand(key, base + 1)
-                u2 = rand(key, base + 2)
-                lit = False
-                wi = n
-                tmax = 0.0
-                pdf_l = 0.0
-                le = (0.0, 0.0, 0.0)
-                if HAS_EMITTER and sc.light_kind[li] == L_QUAD:  # a rectangle: a uniform point on it
-                    point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(quads, q, Q_NORMAL),
-                                                               quads[q, Q_AREA], sc.light_prob[li])
-                    le = _row3(materials, sc.quad_mat[q], M_EMISSION)
-                elif HAS_EMITTER and HAS_MESH and sc.light_kind[li] == L_TRIANGLE:  # a uniform point on it
-                    tris = sc.triangles
-                    su = math.sqrt(u1)
-                    point = _madd(_madd(_row3(tris, q, T_V0), _row3(tris, q, T_E1), u2 * su), _row3(tris, q, T_E2),
-                                  su * (1.0 - u2))
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(tris, q, T_NORMAL),
-                                                               tris[q, T_AREA], sc.light_prob[li])
-                    le = _row3(materials, sc.tri_mat[q], M_EMISSION)
-                elif HAS_EMITTER and sc.light_kind[li] == L_SPHERE:  # a direction uniform in the cone it subtends
-                    wc = _sub(_row3(sc.spheres, q, 0), origin)
-                    dc2 = _dot(wc, wc)
-                    r2 = sc.spheres[q, 3] * sc.spheres[q, 3]
-                    if dc2 > r2:
-                        dc = math.sqrt(dc2)
-                        sin2 = r2 / dc2
-                        cos_max = math.sqrt(max(0.0, 1.0 - sin2))
-                        one_minus = sin2 / (1.0 + cos_max)  # 1 - cos_max without cancellation
-                        ct = 1.0 - u1 * one_minus
-                        st = math.sqrt(max(0.0, 1.0 - ct * ct))
-                        phi = 2.0 * math.pi * u2
-                        wi = _to_world((st * math.cos(phi), st * math.sin(phi), ct), _scale(wc, 1.0 / dc))
-                        b = _dot(wc, wi)
-                        lit = True
-                        tmax = (b - math.sqrt(max(0.0, b * b - dc2 + r2))) * (1.0 - 1e-5)
-                        pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
-                        le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
-                elif HAS_ENVIRONMENT_MAP and sc.light_kind[li] == L_ENVIRONMENT:
-                    wi, pdf_dir, le = env_sample(sc, u1, u2)
-                    if pdf_dir > 0.0:
-                        lit = True
-                        tmax = np.inf
-                        pdf_l = sc.light_prob[li] * pdf_dir
-                ci = _dot(n, wi)
-                if lit and ci > 0.0:
-                    fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-                    if pdf_b > 0.0:
-                        blocked = occluded(origin, wi, tmax, sc)
-                        if HAS_MESH and not blocked:
-                            blocked = occluded_mesh(origin, wi, tmax, sc)
-                        if not blocked:
-                            w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
-                            c = _scale(le, ci * w / pdf_l)
-                            if bounce == 0:
-                                ld = _add(ld, _mul(fd, c))
-                                ls = _add(ls, _mul(fs, c))
-                            else:
-                                fc = _mul(_add(fd, fs), c)
-                                ld = _add(ld, _mul(bd, fc))
-                                ls = _add(ls, _mul(bs, fc))
-
-            # continue the path by sampling the BSDF
-            wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4),
-                                 rand(key, base + 5))
+            if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and sc.lights.shape[0] > 0:
+                ld, ls = direct_light(sc, key, base, mk, kd, ks, alpha, n, wo, origin, bounce, ld, ls, bd, bs)
+            ok, wi, bd, bs, prev_pdf = continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs)
             if not ok:
                 break
-            fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-            if pdf <= 0.0:
-                break
-            ci = _dot(n, wi)
-            if bounce == 0:
-                bd = _scale(fd, ci / pdf)
-                bs = _scale(fs, ci / pdf)
-            else:
-                f = _scale(_add(fd, fs), ci / pdf)
-                bd = _mul(bd, f)
-                bs = _mul(bs, f)
-            prev_pdf = pdf
         o = origin
         d = wi
         if bounce >= rr_depth:
-            survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
-            if rand(key, base + 6) >= survive:
+            alive, bd, bs = roulette(bd, bs, rand(key, base + 6))
+            if not alive:
                 break
-            bd = _scale(bd, 1.0 / survive)
-            bs = _scale(bs, 1.0 / survive)
 
     good = True
     for c in range(3):
         if not (math.isfinite(ld[c]) and math.isfinite(ls[c])):
             good = False
     if good:  # a non-finite sample (should not happen) counts as black rather than poisoning the pixel
-        out[0] = ld[0]
-        out[1] = ld[1]
-        out[2] = ld[2]
-        out[3] = ls[0]
-        out[4] = ls[1]
-        out[5] = ls[2]
+        out[0:3] = ld
+        out[3:6] = ls
 
 
 @njit(cache=True, parallel=True)

@@ -22,7 +22,7 @@ from pathlib import Path
 from types import ModuleType
 
 from prep.files import atomic_write_text
-from prep.render import integrator, packing, tracer
+from prep.render import integrator, lights, packing, tracer
 from prep.render.scene import EFFECTS
 
 _BLOCK = re.compile(r"(# --- effects \(kernels\.py rewrites this block.*?\n)(.*?)(# --- end of effects ---)", re.S)
@@ -57,7 +57,7 @@ def kernel_for(effects) -> ModuleType:
         return _loaded[effects]
     text = _source(effects)
     tag = "".join("1" if e in effects else "0" for e in EFFECTS)
-    callees = "".join(Path(m.__file__).read_text() for m in (tracer, packing))
+    callees = "".join(Path(m.__file__).read_text() for m in (tracer, lights, packing))
     digest = hashlib.sha256((text + callees).encode()).hexdigest()[:12]
     name = f"kpcn_integrator_{tag}_{digest}"
     path = kernel_dir() / f"{name}.py"
