@@ -54,8 +54,16 @@ from prep.render.tracer import (
     OUT_VARS,
     PLASTIC,
     Q_AREA,
+    Q_CORNER,
+    Q_NORMAL,
+    Q_U,
+    Q_V,
     RAY_OFFSET,
     T_AREA,
+    T_E1,
+    T_E2,
+    T_NORMAL,
+    T_V0,
     TEX_IMAGE,
     TEX_NONE,
     TEX_WORLD,
@@ -72,6 +80,7 @@ from prep.render.tracer import (
     _sub,
     _to_world,
     env_lookup,
+    env_sample,
     fresnel_dielectric,
     ggx_visible_normal,
     intersect,
@@ -87,11 +96,11 @@ from prep.render.tracer import (
 )
 from prep.render.lights import (
     planar_density,
-    sample_environment,
-    sample_quad,
-    sample_sphere,
-    sample_triangle,
+    quad_point,
     sphere_density,
+    toward_planar_light,
+    toward_sphere_light,
+    triangle_point,
 )
 
 # --- effects (kernels.py rewrites this block; one line per name of scene.EFFECTS) ---
@@ -198,89 +207,14 @@ def environment_at(sc, d):
 
 
 # ---------------------------------------------------------------------------------------------
-# light sampling and the MIS weights (the kinds themselves are in lights.py)
+# the steps of a path. They take no packed scene and no array (see lights.py: numba counts references
+# to every array of an argument it binds, per call); trace_sample reads the tables and hands them values.
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
 def power_heuristic(pdf_a, pdf_b):
     """The MIS weight (power heuristic, exponent 2) of a sample drawn with density pdf_a that pdf_b could draw."""
     return pdf_a * pdf_a / (pdf_a * pdf_a + pdf_b * pdf_b)
-
-
-@njit(cache=True, inline="always")
-def sample_light(sc, origin, u0, u1, u2):
-    """A light picked in proportion to its power (u0), then a point or direction on it (u1, u2) seen from
-    ``origin``: (lit, wi, tmax, pdf, le) as ``lights.py`` says; unlit for a kind this kernel has no flag for."""
-    li = search_cdf(sc.light_cdf, u0)
-    q = sc.lights[li]
-    prob = sc.light_prob[li]
-    if HAS_EMITTER and sc.light_kind[li] == L_QUAD:
-        return sample_quad(sc, q, prob, origin, u1, u2)
-    if HAS_EMITTER and HAS_MESH and sc.light_kind[li] == L_TRIANGLE:
-        return sample_triangle(sc, q, prob, origin, u1, u2)
-    if HAS_EMITTER and sc.light_kind[li] == L_SPHERE:
-        return sample_sphere(sc, q, prob, origin, u1, u2)
-    if HAS_ENVIRONMENT_MAP and sc.light_kind[li] == L_ENVIRONMENT:
-        return sample_environment(sc, prob, u1, u2)
-    zero = (0.0, 0.0, 0.0)
-    return False, zero, 0.0, 0.0, zero
-
-
-@njit(cache=True, inline="always")
-def direct_light(sc, key, base, mk, kd, ks, alpha, n, wo, origin, bounce, ld, ls, bd, bs):
-    """Next-event estimation at a vertex with a BSDF: one light sample, MIS-weighted against BSDF sampling,
-    added to the radiance (ld, ls) through the throughputs (bd, bs) of the vertex; (ld, ls)."""
-    lit, wi, tmax, pdf_l, le = sample_light(sc, origin, rand(key, base), rand(key, base + 1), rand(key, base + 2))
-    ci = _dot(n, wi)
-    if not (lit and ci > 0.0):
-        return ld, ls
-    fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-    if not pdf_b > 0.0:
-        return ld, ls
-    blocked = occluded(origin, wi, tmax, sc)
-    if HAS_MESH and not blocked:
-        blocked = occluded_mesh(origin, wi, tmax, sc)
-    if blocked:
-        return ld, ls
-    c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
-    if bounce == 0:
-        return _add(ld, _mul(fd, c)), _add(ls, _mul(fs, c))
-    fc = _mul(_add(fd, fs), c)
-    return _add(ld, _mul(bd, fc)), _add(ls, _mul(bs, fc))
-
-
-@njit(cache=True, inline="always")
-def emission_weight(sc, kind, idx, o, t, cos_d, prev_pdf):
-    """The MIS weight of the emission of an emitter that BSDF sampling (density ``prev_pdf``, from ``o``) hit at
-    distance t and cosine cos_d < 0: 1 where light sampling could not have drawn it."""
-    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
-    if HAS_MESH and kind == 2:
-        li = sc.tri_light[idx]
-    if li < 0 or not prev_pdf > 0.0:
-        return 1.0
-    prob = sc.light_prob[li]
-    if kind == 1:
-        pdf_l = planar_density(prob, t, -cos_d, sc.quads[idx, Q_AREA])
-    elif HAS_MESH and kind == 2:
-        pdf_l = planar_density(prob, t, -cos_d, sc.triangles[idx, T_AREA])
-    else:  # the cone density light sampling used from the previous vertex, o
-        pdf_l = sphere_density(sc, idx, prob, o)
-    return power_heuristic(prev_pdf, pdf_l)
-
-
-@njit(cache=True, inline="always")
-def escaped(sc, d, bounce, prev_pdf):
-    """(radiance, MIS weight) of the environment along d, for a path that leaves the scene; a map is a light
-    that light sampling draws too, the constant or gradient environment is not."""
-    env = (0.0, 0.0, 0.0)
-    w = 1.0
-    if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
-        env, pdf_dir = env_lookup(sc, d)
-        if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
-            w = power_heuristic(prev_pdf, sc.light_prob[sc.env_light] * pdf_dir)
-    elif HAS_ENVIRONMENT:
-        env = environment_at(sc, d)
-    return env, w
 
 
 @njit(cache=True, inline="always")
@@ -292,19 +226,23 @@ def add_emitted(ld, ls, bd, bs, le, w, bounce):
     return _madd(ld, _mul(bd, le), w), _madd(ls, _mul(bs, le), w)
 
 
-# ---------------------------------------------------------------------------------------------
-# path continuation
-# ---------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always")
+def add_direct(ld, ls, bd, bs, fd, fs, c, bounce):
+    """(ld, ls) plus a light sample's radiance ``c`` (its weight folded in) scattered by the BSDF values
+    (fd, fs) of the vertex: split by lobe at the first vertex, through the throughputs later."""
+    if bounce == 0:
+        return _add(ld, _mul(fd, c)), _add(ls, _mul(fs, c))
+    fc = _mul(_add(fd, fs), c)
+    return _add(ld, _mul(bd, fc)), _add(ls, _mul(bs, fc))
+
 
 @njit(cache=True, inline="always")
-def continue_delta(sc, key, base, m, mk, p, n, d, cos_d, bounce, bd, bs):
-    """The next ray from a mirror or glass vertex (one direction; glass reflects with the Fresnel probability,
-    refracts otherwise) and the throughputs through it: (origin, wi, bd, bs). The first vertex's is specular."""
-    materials = sc.materials
-    wt = _row3(materials, m, M_SPECULAR)
+def continue_delta(key, base, glass, wt, ior, p, n, d, cos_d, bounce, bd, bs):
+    """The next ray from a mirror or glass vertex (of reflectance or tint ``wt``; one direction, glass reflects
+    with the Fresnel probability, refracts otherwise) and the throughputs through it: (origin, wi, bd, bs).
+    The first vertex's is specular."""
     cos_i = -_dot(n, d)
-    if HAS_GLASS and mk == GLASS:
-        ior = materials[m, M_IOR]
+    if glass:
         eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
         fr, cos_t = fresnel_dielectric(cos_i, eta)
         if rand(key, base + 3) < fr:
@@ -353,90 +291,123 @@ def roulette(bd, bs, u):
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
-def nearest_hit(o, d, sc):
-    """(t, kind, idx) of the nearest surface along the ray: kind 0 a sphere, 1 a quad, 2 a triangle, < 0 none."""
-    t, kind, idx = intersect(o, d, np.inf, sc)
-    if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
-        tm, ti = intersect_mesh(o, d, t, sc)
-        if ti >= 0:
-            return tm, 2, ti
-    return t, kind, idx
-
-
-@njit(cache=True, inline="always")
-def material_of(sc, kind, idx):
-    """The material index of surface idx of kind (as :func:`nearest_hit` gives them)."""
-    if HAS_MESH and kind == 2:
-        return sc.tri_mat[idx]
-    return sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
-
-
-@njit(cache=True, inline="always")
 def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     """Trace one camera ray through the packed scene ``sc``; writes out[0:13] = diffuse, specular,
     albedo, normal, depth."""
     for i in range(13):
         out[i] = 0.0
-    ld = (0.0, 0.0, 0.0)
-    ls = (0.0, 0.0, 0.0)
-    bd = (0.0, 0.0, 0.0)  # throughput of the diffuse part of the first vertex
-    bs = (0.0, 0.0, 0.0)  # throughput of the glossy part
+    zero = (0.0, 0.0, 0.0)
+    ld, ls = zero, zero
+    bd, bs = zero, zero  # throughputs of the diffuse and of the glossy part of the first vertex
     prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
-    materials = sc.materials
+    materials, quads, spheres, tris = sc.materials, sc.quads, sc.spheres, sc.triangles
+    light_prob = sc.light_prob
     for bounce in range(max_depth + 1):
-        t, kind, idx = nearest_hit(o, d, sc)
+        t, kind, idx = intersect(o, d, np.inf, sc)
+        if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
+            tm, ti = intersect_mesh(o, d, t, sc)
+            if ti >= 0:
+                t, kind, idx = tm, 2, ti
         if kind < 0:
-            env, w = escaped(sc, d, bounce, prev_pdf)
+            env, w = zero, 1.0
+            if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
+                env, pdf_dir = env_lookup(sc, d)
+                if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
+                    w = power_heuristic(prev_pdf, light_prob[sc.env_light] * pdf_dir)
+            elif HAS_ENVIRONMENT:
+                env = environment_at(sc, d)
             ld, ls = add_emitted(ld, ls, bd, bs, env, w, bounce)
             break
         p = _madd(o, d, t)
-        ng, tu, tv = surface(p, kind, idx, sc.spheres, sc.quads, sc.triangles)
-        m = material_of(sc, kind, idx)
+        ng, tu, tv = surface(p, kind, idx, spheres, quads, tris)
+        m = sc.tri_mat[idx] if HAS_MESH and kind == 2 else (sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx])
         mk = int(materials[m, M_KIND])
         cos_d = _dot(ng, d)
         n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
-        kd = (0.0, 0.0, 0.0)
+        kd = zero
         if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
             kd = albedo_at(sc, m, p, tu, tv)
         if bounce == 0:
-            out[6:9] = kd
-            out[9:12] = n
+            out[6], out[7], out[8] = kd
+            out[9], out[10], out[11] = n
             out[12] = t
         if HAS_EMITTER and mk == EMITTER:
-            if cos_d < 0.0:  # front side only
-                w = 1.0 if bounce == 0 else emission_weight(sc, kind, idx, o, t, cos_d, prev_pdf)
+            if cos_d < 0.0:  # front side only; MIS-weighted where light sampling could have drawn it
+                li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
+                if HAS_MESH and kind == 2:
+                    li = sc.tri_light[idx]
+                w = 1.0
+                if bounce > 0 and li >= 0 and prev_pdf > 0.0:
+                    if kind == 1:
+                        pdf_l = planar_density(light_prob[li], t, -cos_d, quads[idx, Q_AREA])
+                    elif HAS_MESH and kind == 2:
+                        pdf_l = planar_density(light_prob[li], t, -cos_d, tris[idx, T_AREA])
+                    else:  # the cone density light sampling used from the previous vertex, o
+                        pdf_l = sphere_density(o, _row3(spheres, idx, 0), spheres[idx, 3], light_prob[li])
+                    w = power_heuristic(prev_pdf, pdf_l)
                 ld, ls = add_emitted(ld, ls, bd, bs, _row3(materials, m, M_EMISSION), w, bounce)
             break
         if bounce == max_depth:
             break
         base = 2 + bounce * DIMS_PER_BOUNCE
         if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):  # a delta vertex: no light sampling
-            origin, wi, bd, bs = continue_delta(sc, key, base, m, mk, p, n, d, cos_d, bounce, bd, bs)
+            origin, wi, bd, bs = continue_delta(key, base, HAS_GLASS and mk == GLASS, _row3(materials, m, M_SPECULAR),
+                                                materials[m, M_IOR], p, n, d, cos_d, bounce, bd, bs)
             prev_pdf = -1.0
         else:
-            ks = _row3(materials, m, M_SPECULAR)
-            alpha = materials[m, M_ROUGHNESS]
+            ks, alpha = _row3(materials, m, M_SPECULAR), materials[m, M_ROUGHNESS]
             wo = _scale(d, -1.0)
             origin = _madd(p, n, RAY_OFFSET)
             if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and sc.lights.shape[0] > 0:
-                ld, ls = direct_light(sc, key, base, mk, kd, ks, alpha, n, wo, origin, bounce, ld, ls, bd, bs)
+                # next-event estimation: a light picked by power, a sample on it, MIS-weighted against the BSDF
+                li = search_cdf(sc.light_cdf, rand(key, base))
+                q, lk, u1, u2 = sc.lights[li], sc.light_kind[li], rand(key, base + 1), rand(key, base + 2)
+                lit, wi, tmax, pdf_l, le = False, n, 0.0, 0.0, zero
+                if HAS_EMITTER and lk == L_QUAD:
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, quad_point(
+                        _row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), _row3(quads, q, Q_V), u1, u2),
+                        _row3(quads, q, Q_NORMAL), quads[q, Q_AREA], light_prob[li])
+                    le = _row3(materials, sc.quad_mat[q], M_EMISSION)
+                elif HAS_EMITTER and HAS_MESH and lk == L_TRIANGLE:
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, triangle_point(
+                        _row3(tris, q, T_V0), _row3(tris, q, T_E1), _row3(tris, q, T_E2), u1, u2),
+                        _row3(tris, q, T_NORMAL), tris[q, T_AREA], light_prob[li])
+                    le = _row3(materials, sc.tri_mat[q], M_EMISSION)
+                elif HAS_EMITTER and lk == L_SPHERE:
+                    lit, wi, tmax, pdf_l = toward_sphere_light(origin, _row3(spheres, q, 0), spheres[q, 3],
+                                                               light_prob[li], u1, u2)
+                    le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
+                elif HAS_ENVIRONMENT_MAP and lk == L_ENVIRONMENT:
+                    wi, pdf_dir, le = env_sample(sc, u1, u2)
+                    lit, tmax, pdf_l = pdf_dir > 0.0, np.inf, light_prob[li] * pdf_dir
+                ci = _dot(n, wi)
+                if lit and ci > 0.0:
+                    fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+                    if pdf_b > 0.0 and not (occluded(origin, wi, tmax, sc)
+                                            or (HAS_MESH and occluded_mesh(origin, wi, tmax, sc))):
+                        c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
+                        ld, ls = add_direct(ld, ls, bd, bs, fd, fs, c, bounce)
             ok, wi, bd, bs, prev_pdf = continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs)
             if not ok:
                 break
-        o = origin
-        d = wi
+        o, d = origin, wi
         if bounce >= rr_depth:
             alive, bd, bs = roulette(bd, bs, rand(key, base + 6))
             if not alive:
                 break
+    if all_finite(ld, ls):  # a non-finite sample (should not happen) counts as black rather than poisoning it
+        out[0], out[1], out[2] = ld
+        out[3], out[4], out[5] = ls
 
+
+@njit(cache=True, inline="always")
+def all_finite(a, b):
+    """Whether every component of the RGB tuples a and b is finite."""
     good = True
     for c in range(3):
-        if not (math.isfinite(ld[c]) and math.isfinite(ls[c])):
+        if not (math.isfinite(a[c]) and math.isfinite(b[c])):
             good = False
-    if good:  # a non-finite sample (should not happen) counts as black rather than poisoning the pixel
-        out[0:3] = ld
-        out[3:6] = ls
+    return good
 
 
 @njit(cache=True, parallel=True)
