@@ -3,10 +3,11 @@
 Unidirectional path tracing with next-event estimation to the lights (one picked in proportion to its
 power: a uniform point on a rectangle or on a triangle of an emissive mesh, a direction uniform in the cone
 a sphere subtends, an environment map by texel luminance; ``lights.py`` samples each kind) combined with BSDF
-sampling by the power heuristic. :func:`trace_sample` is the loop over a path's vertices; what it does at a
-vertex is in inline functions (``inline="always"``, so the kernel compiles as one function): light sampling
-(:func:`direct_light`), the weights of emission the path reaches (:func:`emission_weight`, :func:`escaped`) and
-path continuation (:func:`continue_delta`, :func:`continue_bsdf`, :func:`roulette`).
+sampling by the power heuristic. :func:`trace_sample` is the loop over a path's vertices: it reads the scene's
+tables and hands values to inline functions (``inline="always"``, so the kernel compiles as one function) for
+each light kind's geometry (``lights.py``), the MIS weights (:func:`power_heuristic`), the radiance a path gathers
+(:func:`add_emitted`, :func:`add_direct`) and path continuation (:func:`continue_delta`, :func:`continue_bsdf`,
+:func:`roulette`). Those take no packed scene and no array, which numba would count references to per call.
 Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
 that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
 alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
