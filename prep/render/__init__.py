@@ -3,8 +3,8 @@
 - ``scene.py``: the scene model (materials, shapes, camera, environment) and the effects a scene calls for;
 - ``families.py``: the built-in scene families, seeded random permutations;
 - ``packing.py``: a scene flattened into the one structure the kernels take;
-- ``tracer.py``, ``integrator.py``, ``kernels.py``: the numba building blocks, the integrator, and one
-  compiled integrator per effect set;
+- ``tracer.py``, ``lights.py``, ``integrator.py``, ``kernels.py``: the numba building blocks, light sampling
+  per light kind, the integrator, and one compiled integrator per effect set;
 - ``frame.py``: :func:`render`, one frame in the AOV layout of ``prep.exr``;
 - ``renderset.py``: :func:`render_set`, a folder of input and reference renders.
 """

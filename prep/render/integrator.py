@@ -2,7 +2,12 @@
 
 Unidirectional path tracing with next-event estimation to the lights (one picked in proportion to its
 power: a uniform point on a rectangle or on a triangle of an emissive mesh, a direction uniform in the cone
-a sphere subtends, an environment map by texel luminance) combined with BSDF sampling by the power heuristic.
+a sphere subtends, an environment map by texel luminance; ``lights.py`` samples each kind) combined with BSDF
+sampling by the power heuristic. :func:`trace_sample` is the loop over a path's vertices: it reads the scene's
+tables and hands values to inline functions (``inline="always"``, so the kernel compiles as one function) for
+each light kind's geometry (``lights.py``), the MIS weights (:func:`power_heuristic`), the radiance a path gathers
+(:func:`add_emitted`, :func:`add_direct`) and path continuation (:func:`continue_delta`, :func:`continue_bsdf`,
+:func:`roulette`). Those take no packed scene and no array, which numba would count references to per call.
 Per-sample radiance is split by the lobe of the first scattering vertex: the path throughput after
 that vertex is carried as two RGB weights (diffuse part, glossy part) that later vertices scale
 alike, so every path's radiance lands exactly in diffuse + specular without a random lobe choice
@@ -89,6 +94,14 @@ from prep.render.tracer import (
     sample_key,
     search_cdf,
     surface,
+)
+from prep.render.lights import (
+    planar_density,
+    quad_point,
+    sphere_density,
+    toward_planar_light,
+    toward_sphere_light,
+    triangle_point,
 )
 
 # --- effects (kernels.py rewrites this block; one line per name of scene.EFFECTS) ---
@@ -186,29 +199,92 @@ def bsdf_sample(mk, kd, ks, alpha, n, wo, u0, u1, u2):
     return wi, _dot(n, wi) > 0.0
 
 
-@njit(cache=True, inline="always")
-def toward_planar_light(origin, point, normal, area, prob):
-    """Light sampling of a planar light (a rectangle, a triangle) of unit ``normal`` and ``area``, picked with
-    probability ``prob``, at ``point`` drawn uniformly on it: (lit, wi, tmax, pdf) with wi the unit direction from
-    ``origin``, tmax the distance that a shadow ray tests and pdf the solid-angle density of light sampling
-    there; lit is False, and pdf 0, where origin is behind the light (it emits on the side of its normal)."""
-    dl = _sub(point, origin)
-    dist2 = _dot(dl, dl)
-    dist = math.sqrt(dist2)
-    wi = _scale(dl, 1.0 / dist)
-    cos_l = -_dot(normal, wi)
-    if cos_l <= 0.0:
-        return False, wi, 0.0, 0.0
-    # the shadow ray stops short of the light's own plane
-    return True, wi, dist * (1.0 - 1e-5), prob * dist2 / (cos_l * area)
-
-
 @njit(cache=True)
 def environment_at(sc, d):
     """Radiance of the environment in direction d: horizon colour blended to the zenith colour."""
     t = max(d[1], 0.0)
     e, z = sc.environment, sc.environment_zenith
     return (e[0] + (z[0] - e[0]) * t, e[1] + (z[1] - e[1]) * t, e[2] + (z[2] - e[2]) * t)
+
+
+# ---------------------------------------------------------------------------------------------
+# the steps of a path. They take no packed scene and no array (see lights.py: numba counts references
+# to every array of an argument it binds, per call); trace_sample reads the tables and hands them values.
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def power_heuristic(pdf_a, pdf_b):
+    """The MIS weight (power heuristic, exponent 2) of a sample drawn with density pdf_a that pdf_b could draw."""
+    return pdf_a * pdf_a / (pdf_a * pdf_a + pdf_b * pdf_b)
+
+
+@njit(cache=True, inline="always")
+def add_emitted(ld, ls, bd, bs, le, w, bounce):
+    """(ld, ls) plus radiance ``le`` that the path reached, weighted ``w``: seen directly from the camera it is
+    specular (the first vertex has no lobe), later it goes through the two throughputs."""
+    if bounce == 0:
+        return ld, _add(ls, le)
+    return _madd(ld, _mul(bd, le), w), _madd(ls, _mul(bs, le), w)
+
+
+@njit(cache=True, inline="always")
+def add_direct(ld, ls, bd, bs, fd, fs, c, bounce):
+    """(ld, ls) plus a light sample's radiance ``c`` (its weight folded in) scattered by the BSDF values
+    (fd, fs) of the vertex: split by lobe at the first vertex, through the throughputs later."""
+    if bounce == 0:
+        return _add(ld, _mul(fd, c)), _add(ls, _mul(fs, c))
+    fc = _mul(_add(fd, fs), c)
+    return _add(ld, _mul(bd, fc)), _add(ls, _mul(bs, fc))
+
+
+@njit(cache=True, inline="always")
+def continue_delta(key, base, glass, wt, ior, p, n, d, cos_d, bounce, bd, bs):
+    """The next ray from a mirror or glass vertex (of reflectance or tint ``wt``; one direction, glass reflects
+    with the Fresnel probability, refracts otherwise) and the throughputs through it: (origin, wi, bd, bs).
+    The first vertex's is specular."""
+    cos_i = -_dot(n, d)
+    if glass:
+        eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
+        fr, cos_t = fresnel_dielectric(cos_i, eta)
+        if rand(key, base + 3) < fr:
+            wi = reflect(d, n)
+            origin = _madd(p, n, RAY_OFFSET)
+            wt = (1.0, 1.0, 1.0)
+        else:
+            wi = refract(d, n, eta, cos_i, cos_t)
+            origin = _madd(p, n, -RAY_OFFSET)
+    else:
+        wi = reflect(d, n)
+        origin = _madd(p, n, RAY_OFFSET)
+    if bounce == 0:
+        return origin, wi, (0.0, 0.0, 0.0), wt
+    return origin, wi, _mul(bd, wt), _mul(bs, wt)
+
+
+@njit(cache=True, inline="always")
+def continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs):
+    """The next direction from a vertex with a BSDF, drawn from it, and the throughputs through it, split by lobe
+    at the first vertex: (ok, wi, bd, bs, pdf); not ok where the path ends (below the horizon, zero density)."""
+    wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4), rand(key, base + 5))
+    if not ok:
+        return False, wi, bd, bs, 0.0
+    fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
+    if pdf <= 0.0:
+        return False, wi, bd, bs, pdf
+    ci = _dot(n, wi)
+    if bounce == 0:
+        return True, wi, _scale(fd, ci / pdf), _scale(fs, ci / pdf), pdf
+    f = _scale(_add(fd, fs), ci / pdf)
+    return True, wi, _mul(bd, f), _mul(bs, f), pdf
+
+
+@njit(cache=True, inline="always")
+def roulette(bd, bs, u):
+    """Russian roulette on the throughputs: (alive, bd, bs), those of a surviving path scaled by 1 / its odds."""
+    survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
+    if u >= survive:
+        return False, bd, bs
+    return True, _scale(bd, 1.0 / survive), _scale(bs, 1.0 / survive)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,218 +297,118 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     albedo, normal, depth."""
     for i in range(13):
         out[i] = 0.0
-    ld = (0.0, 0.0, 0.0)
-    ls = (0.0, 0.0, 0.0)
-    bd = (0.0, 0.0, 0.0)  # throughput of the diffuse part of the first vertex
-    bs = (0.0, 0.0, 0.0)  # throughput of the glossy part
+    zero = (0.0, 0.0, 0.0)
+    ld, ls = zero, zero
+    bd, bs = zero, zero  # throughputs of the diffuse and of the glossy part of the first vertex
     prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
-    materials, quads = sc.materials, sc.quads
-    n_lights = sc.lights.shape[0]
+    materials, quads, spheres, tris = sc.materials, sc.quads, sc.spheres, sc.triangles
+    light_prob = sc.light_prob
     for bounce in range(max_depth + 1):
         t, kind, idx = intersect(o, d, np.inf, sc)
         if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
             tm, ti = intersect_mesh(o, d, t, sc)
             if ti >= 0:
-                t = tm
-                kind = 2
-                idx = ti
+                t, kind, idx = tm, 2, ti
         if kind < 0:
-            env = (0.0, 0.0, 0.0)
-            w = 1.0
+            env, w = zero, 1.0
             if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
                 env, pdf_dir = env_lookup(sc, d)
                 if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
-                    pdf_l = sc.light_prob[sc.env_light] * pdf_dir
-                    w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
+                    w = power_heuristic(prev_pdf, light_prob[sc.env_light] * pdf_dir)
             elif HAS_ENVIRONMENT:
                 env = environment_at(sc, d)
-            if bounce == 0:
-                ls = _add(ls, env)
-            else:
-                ld = _madd(ld, _mul(bd, env), w)
-                ls = _madd(ls, _mul(bs, env), w)
+            ld, ls = add_emitted(ld, ls, bd, bs, env, w, bounce)
             break
         p = _madd(o, d, t)
-        ng, tu, tv = surface(p, kind, idx, sc.spheres, quads, sc.triangles)
-        if HAS_MESH and kind == 2:
-            m = sc.tri_mat[idx]
-        else:
-            m = sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx]
+        ng, tu, tv = surface(p, kind, idx, spheres, quads, tris)
+        m = sc.tri_mat[idx] if HAS_MESH and kind == 2 else (sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx])
         mk = int(materials[m, M_KIND])
         cos_d = _dot(ng, d)
         n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
-        kd = (0.0, 0.0, 0.0)
+        kd = zero
         if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
             kd = albedo_at(sc, m, p, tu, tv)
         if bounce == 0:
-            out[6] = kd[0]
-            out[7] = kd[1]
-            out[8] = kd[2]
-            out[9] = n[0]
-            out[10] = n[1]
-            out[11] = n[2]
+            out[6], out[7], out[8] = kd
+            out[9], out[10], out[11] = n
             out[12] = t
         if HAS_EMITTER and mk == EMITTER:
-            if cos_d < 0.0:  # front side only
-                le = _row3(materials, m, M_EMISSION)
-                if bounce == 0:
-                    ls = _add(ls, le)
-                else:
-                    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
-                    if HAS_MESH and kind == 2:
-                        li = sc.tri_light[idx]
-                    w = 1.0
-                    if li >= 0 and prev_pdf > 0.0:
-                        if kind == 1:
-                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * quads[idx, Q_AREA])
-                        elif HAS_MESH and kind == 2:
-                            pdf_l = sc.light_prob[li] * t * t / (-cos_d * sc.triangles[idx, T_AREA])
-                        else:  # the cone density light sampling used from the previous vertex, o
-                            wc = _sub(_row3(sc.spheres, idx, 0), o)
-                            sin2 = sc.spheres[idx, 3] * sc.spheres[idx, 3] / _dot(wc, wc)
-                            one_minus = sin2 / (1.0 + math.sqrt(max(0.0, 1.0 - sin2)))
-                            pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
-                        w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pdf_l * pdf_l)
-                    ld = _madd(ld, _mul(bd, le), w)
-                    ls = _madd(ls, _mul(bs, le), w)
+            if cos_d < 0.0:  # front side only; MIS-weighted where light sampling could have drawn it
+                li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
+                if HAS_MESH and kind == 2:
+                    li = sc.tri_light[idx]
+                w = 1.0
+                if bounce > 0 and li >= 0 and prev_pdf > 0.0:
+                    if kind == 1:
+                        pdf_l = planar_density(light_prob[li], t, -cos_d, quads[idx, Q_AREA])
+                    elif HAS_MESH and kind == 2:
+                        pdf_l = planar_density(light_prob[li], t, -cos_d, tris[idx, T_AREA])
+                    else:  # the cone density light sampling used from the previous vertex, o
+                        pdf_l = sphere_density(o, _row3(spheres, idx, 0), spheres[idx, 3], light_prob[li])
+                    w = power_heuristic(prev_pdf, pdf_l)
+                ld, ls = add_emitted(ld, ls, bd, bs, _row3(materials, m, M_EMISSION), w, bounce)
             break
         if bounce == max_depth:
             break
         base = 2 + bounce * DIMS_PER_BOUNCE
-        if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):
-            # a delta vertex: one direction (or two, for glass), no light sampling
-            wt = _row3(materials, m, M_SPECULAR)
-            cos_i = -_dot(n, d)
-            if HAS_GLASS and mk == GLASS:
-                ior = materials[m, M_IOR]
-                eta = 1.0 / ior if cos_d < 0.0 else ior  # entering through the outward normal, or leaving
-                fr, cos_t = fresnel_dielectric(cos_i, eta)
-                if rand(key, base + 3) < fr:
-                    wi = reflect(d, n)
-                    origin = _madd(p, n, RAY_OFFSET)
-                    wt = (1.0, 1.0, 1.0)
-                else:
-                    wi = refract(d, n, eta, cos_i, cos_t)
-                    origin = _madd(p, n, -RAY_OFFSET)
-            else:
-                wi = reflect(d, n)
-                origin = _madd(p, n, RAY_OFFSET)
-            if bounce == 0:
-                bd = (0.0, 0.0, 0.0)
-                bs = wt
-            else:
-                bd = _mul(bd, wt)
-                bs = _mul(bs, wt)
+        if (HAS_MIRROR and mk == MIRROR) or (HAS_GLASS and mk == GLASS):  # a delta vertex: no light sampling
+            origin, wi, bd, bs = continue_delta(key, base, HAS_GLASS and mk == GLASS, _row3(materials, m, M_SPECULAR),
+                                                materials[m, M_IOR], p, n, d, cos_d, bounce, bd, bs)
             prev_pdf = -1.0
         else:
-            ks = _row3(materials, m, M_SPECULAR)
-            alpha = materials[m, M_ROUGHNESS]
+            ks, alpha = _row3(materials, m, M_SPECULAR), materials[m, M_ROUGHNESS]
             wo = _scale(d, -1.0)
             origin = _madd(p, n, RAY_OFFSET)
-
-            # next-event estimation, MIS-weighted against BSDF sampling
-            if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and n_lights > 0:
+            if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and sc.lights.shape[0] > 0:
+                # next-event estimation: a light picked by power, a sample on it, MIS-weighted against the BSDF
                 li = search_cdf(sc.light_cdf, rand(key, base))
-                q = sc.lights[li]
-                u1 = rand(key, base + 1)
-                u2 = rand(key, base + 2)
-                lit = False
-                wi = n
-                tmax = 0.0
-                pdf_l = 0.0
-                le = (0.0, 0.0, 0.0)
-                if HAS_EMITTER and sc.light_kind[li] == L_QUAD:  # a rectangle: a uniform point on it
-                    point = _madd(_madd(_row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), u1), _row3(quads, q, Q_V), u2)
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(quads, q, Q_NORMAL),
-                                                               quads[q, Q_AREA], sc.light_prob[li])
+                q, lk, u1, u2 = sc.lights[li], sc.light_kind[li], rand(key, base + 1), rand(key, base + 2)
+                lit, wi, tmax, pdf_l, le = False, n, 0.0, 0.0, zero
+                if HAS_EMITTER and lk == L_QUAD:
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, quad_point(
+                        _row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), _row3(quads, q, Q_V), u1, u2),
+                        _row3(quads, q, Q_NORMAL), quads[q, Q_AREA], light_prob[li])
                     le = _row3(materials, sc.quad_mat[q], M_EMISSION)
-                elif HAS_EMITTER and HAS_MESH and sc.light_kind[li] == L_TRIANGLE:  # a uniform point on it
-                    tris = sc.triangles
-                    su = math.sqrt(u1)
-                    point = _madd(_madd(_row3(tris, q, T_V0), _row3(tris, q, T_E1), u2 * su), _row3(tris, q, T_E2),
-                                  su * (1.0 - u2))
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, point, _row3(tris, q, T_NORMAL),
-                                                               tris[q, T_AREA], sc.light_prob[li])
+                elif HAS_EMITTER and HAS_MESH and lk == L_TRIANGLE:
+                    lit, wi, tmax, pdf_l = toward_planar_light(origin, triangle_point(
+                        _row3(tris, q, T_V0), _row3(tris, q, T_E1), _row3(tris, q, T_E2), u1, u2),
+                        _row3(tris, q, T_NORMAL), tris[q, T_AREA], light_prob[li])
                     le = _row3(materials, sc.tri_mat[q], M_EMISSION)
-                elif HAS_EMITTER and sc.light_kind[li] == L_SPHERE:  # a direction uniform in the cone it subtends
-                    wc = _sub(_row3(sc.spheres, q, 0), origin)
-                    dc2 = _dot(wc, wc)
-                    r2 = sc.spheres[q, 3] * sc.spheres[q, 3]
-                    if dc2 > r2:
-                        dc = math.sqrt(dc2)
-                        sin2 = r2 / dc2
-                        cos_max = math.sqrt(max(0.0, 1.0 - sin2))
-                        one_minus = sin2 / (1.0 + cos_max)  # 1 - cos_max without cancellation
-                        ct = 1.0 - u1 * one_minus
-                        st = math.sqrt(max(0.0, 1.0 - ct * ct))
-                        phi = 2.0 * math.pi * u2
-                        wi = _to_world((st * math.cos(phi), st * math.sin(phi), ct), _scale(wc, 1.0 / dc))
-                        b = _dot(wc, wi)
-                        lit = True
-                        tmax = (b - math.sqrt(max(0.0, b * b - dc2 + r2))) * (1.0 - 1e-5)
-                        pdf_l = sc.light_prob[li] / (2.0 * math.pi * one_minus)
-                        le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
-                elif HAS_ENVIRONMENT_MAP and sc.light_kind[li] == L_ENVIRONMENT:
+                elif HAS_EMITTER and lk == L_SPHERE:
+                    lit, wi, tmax, pdf_l = toward_sphere_light(origin, _row3(spheres, q, 0), spheres[q, 3],
+                                                               light_prob[li], u1, u2)
+                    le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
+                elif HAS_ENVIRONMENT_MAP and lk == L_ENVIRONMENT:
                     wi, pdf_dir, le = env_sample(sc, u1, u2)
-                    if pdf_dir > 0.0:
-                        lit = True
-                        tmax = np.inf
-                        pdf_l = sc.light_prob[li] * pdf_dir
+                    lit, tmax, pdf_l = pdf_dir > 0.0, np.inf, light_prob[li] * pdf_dir
                 ci = _dot(n, wi)
                 if lit and ci > 0.0:
                     fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-                    if pdf_b > 0.0:
-                        blocked = occluded(origin, wi, tmax, sc)
-                        if HAS_MESH and not blocked:
-                            blocked = occluded_mesh(origin, wi, tmax, sc)
-                        if not blocked:
-                            w = pdf_l * pdf_l / (pdf_l * pdf_l + pdf_b * pdf_b)
-                            c = _scale(le, ci * w / pdf_l)
-                            if bounce == 0:
-                                ld = _add(ld, _mul(fd, c))
-                                ls = _add(ls, _mul(fs, c))
-                            else:
-                                fc = _mul(_add(fd, fs), c)
-                                ld = _add(ld, _mul(bd, fc))
-                                ls = _add(ls, _mul(bs, fc))
-
-            # continue the path by sampling the BSDF
-            wi, ok = bsdf_sample(mk, kd, ks, alpha, n, wo, rand(key, base + 3), rand(key, base + 4),
-                                 rand(key, base + 5))
+                    if pdf_b > 0.0 and not (occluded(origin, wi, tmax, sc)
+                                            or (HAS_MESH and occluded_mesh(origin, wi, tmax, sc))):
+                        c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
+                        ld, ls = add_direct(ld, ls, bd, bs, fd, fs, c, bounce)
+            ok, wi, bd, bs, prev_pdf = continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs)
             if not ok:
                 break
-            fd, fs, pdf = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)
-            if pdf <= 0.0:
-                break
-            ci = _dot(n, wi)
-            if bounce == 0:
-                bd = _scale(fd, ci / pdf)
-                bs = _scale(fs, ci / pdf)
-            else:
-                f = _scale(_add(fd, fs), ci / pdf)
-                bd = _mul(bd, f)
-                bs = _mul(bs, f)
-            prev_pdf = pdf
-        o = origin
-        d = wi
+        o, d = origin, wi
         if bounce >= rr_depth:
-            survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
-            if rand(key, base + 6) >= survive:
+            alive, bd, bs = roulette(bd, bs, rand(key, base + 6))
+            if not alive:
                 break
-            bd = _scale(bd, 1.0 / survive)
-            bs = _scale(bs, 1.0 / survive)
+    if all_finite(ld, ls):  # a non-finite sample (should not happen) counts as black rather than poisoning it
+        out[0], out[1], out[2] = ld
+        out[3], out[4], out[5] = ls
 
+
+@njit(cache=True, inline="always")
+def all_finite(a, b):
+    """Whether every component of the RGB tuples a and b is finite."""
     good = True
     for c in range(3):
-        if not (math.isfinite(ld[c]) and math.isfinite(ls[c])):
+        if not (math.isfinite(a[c]) and math.isfinite(b[c])):
             good = False
-    if good:  # a non-finite sample (should not happen) counts as black rather than poisoning the pixel
-        out[0] = ld[0]
-        out[1] = ld[1]
-        out[2] = ld[2]
-        out[3] = ls[0]
-        out[4] = ls[1]
-        out[5] = ls[2]
+    return good
 
 
 @njit(cache=True, parallel=True)

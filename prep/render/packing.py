@@ -214,6 +214,77 @@ def pack_meshes(scene: Scene, index: dict) -> tuple[np.ndarray, np.ndarray, np.n
 def pack(scene: Scene) -> PackedScene:
     """Flatten ``scene`` (validated first) into a :class:`PackedScene`."""
     scene.validate()
+    mats, index = pack_materials(scene)
+    spheres = np.array([[*s.center, s.radius] for s in scene.spheres], dtype=np.float64).reshape(-1, 4)
+    sphere_mat = np.array([index[s.material] for s in scene.spheres], dtype=np.int64)
+    lights = _Lights()
+    quads, quad_mat, quad_light, n_single, groups, bounds = _pack_quads(scene, index, lights)
+    sphere_light = np.full(len(scene.spheres), -1, dtype=np.int64)
+    for i, sp in enumerate(scene.spheres):
+        lum = _emitted_luminance(scene.materials[sp.material])
+        if lum > 0:
+            sphere_light[i] = lights.add(i, LIGHT_SPHERE, 4.0 * math.pi * sp.radius**2 * lum)
+    # triangles last, indexed in the table's (BVH leaf) order, which the kernels see
+    triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
+    lum = np.array([_emitted_luminance(m) for m in scene.materials.values()])
+    emitting = np.flatnonzero(lum[tri_mat] > 0)
+    tri_light = np.full(len(triangles), -1, dtype=np.int64)
+    tri_light[emitting] = lights.extend(emitting, LIGHT_TRIANGLE,
+                                        triangles[emitting, TRI_AREA] * lum[tri_mat[emitting]])
+    env_map, env_pdf, env_row_cdf, env_col_cdf, env_light = _pack_environment_map(scene, lights)
+    prob, cdf = lights.selection()
+    image_pixels, image_info = pack_images(scene)
+    return PackedScene(
+        spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
+        n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
+        sphere_light=sphere_light, lights=np.asarray(lights.index, dtype=np.int64),
+        light_kind=np.asarray(lights.kinds, dtype=np.int64), light_cdf=cdf, light_prob=prob,
+        camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
+        lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
+        environment=np.asarray(_vec(scene.environment, "environment")),
+        environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
+                                           else scene.environment_zenith, "environment_zenith")),
+        image_pixels=image_pixels, image_info=image_info,
+        triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
+        env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
+    )
+
+
+class _Lights:
+    """The light list as :func:`pack` builds it, in the order of ``LIGHT_*``: each light's index in its table,
+    its kind and its power (what picks it)."""
+
+    def __init__(self):
+        self.index, self.kinds, self.powers = [], [], []
+
+    def add(self, index: int, kind: int, power: float) -> int:
+        """Append a light; its index in the list."""
+        self.index.append(index)
+        self.kinds.append(kind)
+        self.powers.append(power)
+        return len(self.index) - 1
+
+    def extend(self, index: np.ndarray, kind: int, powers: np.ndarray) -> np.ndarray:
+        """Append lights of one kind; their indices in the list."""
+        first = len(self.index)
+        self.index.extend(index.tolist())
+        self.kinds.extend([kind] * len(index))
+        self.powers.extend(powers.tolist())
+        return first + np.arange(len(index))
+
+    def selection(self) -> tuple[np.ndarray, np.ndarray]:
+        """(probability, cumulative probability) of picking each light, in proportion to its power."""
+        powers = np.asarray(self.powers, dtype=np.float64)
+        prob = powers / powers.sum() if len(powers) else powers
+        cdf = np.cumsum(prob)
+        if len(cdf):
+            cdf[-1] = 1.0
+        return prob, cdf
+
+
+def pack_materials(scene: Scene) -> tuple[np.ndarray, dict]:
+    """The material table (one row of ``MAT_*`` per material, in the scene's order; one row of zeros without
+    materials) and the row of each material name."""
     names = list(scene.materials)
     index = {n: i for i, n in enumerate(names)}
     mats = np.zeros((max(len(names), 1), MAT_COLS), dtype=np.float64)
@@ -228,15 +299,16 @@ def pack(scene: Scene) -> PackedScene:
         mats[i, MAT_ALBEDO2:MAT_ALBEDO2 + 3] = m.albedo2
         mats[i, MAT_SCALE] = m.checker_scale
         mats[i, MAT_IOR] = m.ior
+    return mats, index
 
-    spheres = np.array([[*s.center, s.radius] for s in scene.spheres], dtype=np.float64).reshape(-1, 4)
-    sphere_mat = np.array([index[s.material] for s in scene.spheres], dtype=np.int64)
 
+def _pack_quads(scene: Scene, index: dict, lights: _Lights):
+    """The quad table in :func:`_quad_order`, each emitting quad added to ``lights``: (quads, quad_mat,
+    quad_light, n_single, groups, group_bounds)."""
     order, n_single, groups, bounds = _quad_order(scene.quads)
     quads = np.zeros((len(scene.quads), QUAD_COLS), dtype=np.float64)
     quad_mat = np.zeros(len(scene.quads), dtype=np.int64)
     quad_light = np.full(len(scene.quads), -1, dtype=np.int64)
-    lights, powers = [], []
     for i, q in enumerate(scene.quads[k] for k in order):
         u, v = np.asarray(q.u), np.asarray(q.v)
         nn = np.cross(u, v)
@@ -247,58 +319,22 @@ def pack(scene: Scene) -> PackedScene:
         quad_mat[i] = index[q.material]
         lum = _emitted_luminance(scene.materials[q.material])
         if lum > 0:
-            quad_light[i] = len(lights)
-            lights.append(i)
-            powers.append(q.area * lum)
-    kinds = [LIGHT_QUAD] * len(lights)
-    sphere_light = np.full(len(scene.spheres), -1, dtype=np.int64)
-    for i, sp in enumerate(scene.spheres):
-        lum = _emitted_luminance(scene.materials[sp.material])
-        if lum > 0:
-            sphere_light[i] = len(lights)
-            lights.append(i)
-            kinds.append(LIGHT_SPHERE)
-            powers.append(4.0 * math.pi * sp.radius**2 * lum)
-    # triangles last, indexed in the table's (BVH leaf) order, which the kernels see
-    triangles, tri_mat, bvh_bounds, bvh_nodes = pack_meshes(scene, index)
-    lum = np.array([_emitted_luminance(m) for m in scene.materials.values()])
-    emitting = np.flatnonzero(lum[tri_mat] > 0)
-    tri_light = np.full(len(triangles), -1, dtype=np.int64)
-    tri_light[emitting] = len(lights) + np.arange(len(emitting))
-    lights.extend(emitting.tolist())
-    kinds.extend([LIGHT_TRIANGLE] * len(emitting))
-    powers.extend((triangles[emitting, TRI_AREA] * lum[tri_mat[emitting]]).tolist())
-    env_map, env_pdf, env_row_cdf, env_col_cdf, env_light = _no_environment_map()
-    if scene.environment_map is not None:
-        texels = load_texels(scene.environment_map)
-        env_pdf, env_row_cdf, env_col_cdf, mean_lum = sampling_tables(texels)
-        env_map = texels.reshape(-1, 3)
-        if mean_lum > 0:
-            # an infinitely distant light's power as it reaches the scene: pi R^2 x mean radiance
-            env_light = len(lights)
-            lights.append(0)
-            kinds.append(LIGHT_ENVIRONMENT)
-            powers.append(math.pi * _bounding_radius(scene) ** 2 * mean_lum)
-    powers = np.asarray(powers, dtype=np.float64)
-    prob = powers / powers.sum() if len(powers) else powers
-    cdf = np.cumsum(prob)
-    if len(cdf):
-        cdf[-1] = 1.0
-    image_pixels, image_info = pack_images(scene)
-    return PackedScene(
-        spheres=spheres, sphere_mat=sphere_mat, quads=quads, quad_mat=quad_mat, quad_light=quad_light,
-        n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
-        sphere_light=sphere_light, lights=np.asarray(lights, dtype=np.int64),
-        light_kind=np.asarray(kinds, dtype=np.int64), light_cdf=cdf, light_prob=prob,
-        camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
-        lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
-        environment=np.asarray(_vec(scene.environment, "environment")),
-        environment_zenith=np.asarray(_vec(scene.environment if scene.environment_zenith is None
-                                           else scene.environment_zenith, "environment_zenith")),
-        image_pixels=image_pixels, image_info=image_info,
-        triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
-        env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
-    )
+            quad_light[i] = lights.add(i, LIGHT_QUAD, q.area * lum)
+    return quads, quad_mat, quad_light, n_single, groups, bounds
+
+
+def _pack_environment_map(scene: Scene, lights: _Lights):
+    """The environment map's texels and sampling tables, the map added to ``lights`` where it is not black:
+    (env_map, env_pdf, env_row_cdf, env_col_cdf, env_light); empty tables and -1 without a map."""
+    if scene.environment_map is None:
+        return np.zeros((0, 3)), np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), -1
+    texels = load_texels(scene.environment_map)
+    env_pdf, env_row_cdf, env_col_cdf, mean_lum = sampling_tables(texels)
+    env_light = -1
+    if mean_lum > 0:
+        # an infinitely distant light's power as it reaches the scene: pi R^2 x mean radiance
+        env_light = lights.add(0, LIGHT_ENVIRONMENT, math.pi * _bounding_radius(scene) ** 2 * mean_lum)
+    return texels.reshape(-1, 3), env_pdf, env_row_cdf, env_col_cdf, env_light
 
 
 def _emitted_luminance(m) -> float:
@@ -307,10 +343,6 @@ def _emitted_luminance(m) -> float:
     if m.kind != "emitter" or max(m.emission) <= 0:
         return 0.0
     return max(_luminance(m.emission), 1e-6)
-
-
-def _no_environment_map():
-    return np.zeros((0, 3)), np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)), -1
 
 
 def _bounding_radius(scene: Scene) -> float:

@@ -2,7 +2,9 @@
 
 ``load_scene(path) -> (Scene, RenderSettings)`` reads one; ``dump_scene(scene, settings)`` writes the text
 of one (every built-in family scene round-trips: the loaded scene equals the original and renders the
-same bits); ``render_scene_file`` is what ``kpcn render --scene FILE`` runs.
+same bits); ``render_scene_file`` is what ``kpcn render --scene FILE`` runs. Each table is checked against
+the dataclass it becomes by ``schema.py`` (its keys, the types of its values, an error naming the key path and
+echoing the value found), so what the format accepts follows the scene model's dataclasses.
 
 Format
 ------
@@ -141,17 +143,13 @@ The same scene in JSON has the same keys: ``{"name": ..., "render": {...}, "mate
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import inspect
 import json
-import math
 import re
-import sys
 import time
-import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any
 
 import numpy as np
 
@@ -161,6 +159,17 @@ from prep.files import read_input
 from prep.render.frame import render
 from prep.render.renderset import RenderConfig
 from prep.render.scene import Mesh, Scene
+from prep.render.schema import (
+    TableError,
+    build,
+    convert,
+    field_of,
+    init_fields,
+    join_key,
+    key_text,
+    show,
+    toml_value,
+)
 
 __all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "read_scene", "render_scene_file"]
 
@@ -224,233 +233,6 @@ RenderSettings.__doc__ = ("The ``[render]`` table of a scene file: the keyword p
 # reading
 # ------------------------------------------------------------------------------------------------
 
-class _Bad(Exception):
-    """A problem at a key path; load_scene prefixes the file name."""
-
-
-_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
-
-
-def _key(key: str) -> str:
-    return key if _BARE_KEY.fullmatch(key) else json.dumps(key, ensure_ascii=False)
-
-
-def _join(path: str, key: str) -> str:
-    return f"{path}.{_key(key)}" if path else _key(key)
-
-
-def _show(value) -> str:
-    """A value as the file wrote it (TOML notation; JSON's null as null), at most 120 characters."""
-    try:
-        text = "null" if value is None else _toml_value(value)
-    except TypeError:
-        text = repr(value)
-    return text if len(text) <= 120 else text[:117] + "..."
-
-
-def _hints(cls) -> dict:
-    """The resolved type hints of a dataclass; a hint that does not resolve (a name only a type checker
-    sees) becomes Any, which passes values through for the dataclass to judge."""
-    try:
-        return typing.get_type_hints(cls)
-    except Exception:
-        pass
-    out = {}
-    for klass in reversed(cls.__mro__):
-        module = sys.modules.get(klass.__module__)
-        for name, hint in vars(klass).get("__annotations__", {}).items():
-            if isinstance(hint, str):
-                try:
-                    hint = eval(hint, dict(vars(module)) if module else {}, dict(vars(klass)))  # noqa: S307
-                except Exception:
-                    hint = Any
-            out[name] = hint
-    return out
-
-
-def _init_fields(cls) -> list:
-    return [f for f in dataclasses.fields(cls) if f.init]
-
-
-def _required(f) -> bool:
-    return f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-
-
-def _is_union(hint) -> bool:
-    return typing.get_origin(hint) in (Union, types.UnionType)
-
-
-def _describe(hint) -> str:
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if _is_union(hint):
-        return " or ".join(_describe(a) for a in args)
-    if hint is type(None):
-        return "no value"
-    if hint is bool:
-        return "true or false"
-    if hint is int:
-        return "an integer"
-    if hint is float:
-        return "a finite number"
-    if hint is str:
-        return "a string"
-    if origin is Literal:
-        return "one of " + ", ".join(_show(a) for a in args)
-    if origin is tuple:
-        if len(args) == 2 and args[1] is Ellipsis:
-            return f"an array of {_describe(args[0])}s"
-        if args and all(a == args[0] for a in args):
-            return f"{len(args)} {_plural(args[0])}"
-        return "an array of " + ", ".join(_describe(a) for a in args)
-    if origin is list:
-        return f"an array (each {_describe(args[0])})" if args else "an array"
-    if origin is dict or (dataclasses.is_dataclass(hint) and isinstance(hint, type)):
-        return "a table"
-    return getattr(hint, "__name__", str(hint))
-
-
-def _plural(hint) -> str:
-    return {float: "finite numbers", int: "integers", str: "strings"}.get(hint, f"values ({_describe(hint)})")
-
-
-def _category(value) -> str:
-    if isinstance(value, dict):
-        return "table"
-    if isinstance(value, (list, tuple)):
-        return "array"
-    return "scalar"
-
-
-def _hint_category(hint) -> str | None:
-    origin = typing.get_origin(hint)
-    if origin is dict or (dataclasses.is_dataclass(hint) and isinstance(hint, type)):
-        return "table"
-    if origin in (list, tuple):
-        return "array"
-    if hint in (bool, int, float, str, type(None)) or origin is Literal:
-        return "scalar"
-    return None
-
-
-def _convert(value, hint, path: str):
-    """``value`` as read from the file, checked against the type hint ``hint`` and converted (arrays to
-    tuples where the hint is a tuple, integers to floats where it is float, tables to dataclasses).
-    Hints this does not know pass the value through for the dataclass to judge."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    wrong = _Bad(f"{path} = {_show(value)}: expected {_describe(hint)}")
-    if hint is Any or hint is object:
-        return value
-    if _is_union(hint):
-        members = [a for a in args if _hint_category(a) in (_category(value), None)]
-        if value is None and type(None) in args:
-            return None
-        if len(members) == 1:
-            return _convert(value, members[0], path)
-        errors = []
-        for member in members:
-            try:
-                return _convert(value, member, path)
-            except _Bad as exc:
-                errors.append(exc)
-        raise errors[0] if len(errors) == 1 else wrong
-    if hint is type(None):
-        if value is None:
-            return None
-        raise wrong
-    if hint is bool:
-        if isinstance(value, bool):
-            return value
-        raise wrong
-    if hint is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise wrong
-    if hint is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        raise wrong
-    if hint is str:
-        if isinstance(value, str):
-            return value
-        raise wrong
-    if origin is Literal:
-        if any(value == a and type(value) is type(a) for a in args):
-            return value
-        raise wrong
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise wrong
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
-        if args:
-            if len(value) != len(args):
-                raise wrong
-            try:
-                return tuple(_convert(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-            except _Bad:
-                raise wrong from None
-        return tuple(value)
-    if origin is list:
-        if not isinstance(value, (list, tuple)):
-            raise wrong
-        return [_convert(v, args[0], f"{path}[{i}]") if args else v for i, v in enumerate(value)]
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise wrong
-        return {k: _convert(v, args[1], _join(path, k)) if len(args) == 2 else v for k, v in value.items()}
-    if dataclasses.is_dataclass(hint) and isinstance(hint, type):
-        return _build(hint, value, path)
-    return value
-
-
-def _field_of(message: str, cls, names) -> str | None:
-    """The field a dataclass's ValueError is about: ``Cls.field`` anywhere in the message, or a field
-    name followed by "must" (the convention of scene.py's messages); None when neither is there."""
-    m = re.search(rf"\b{re.escape(cls.__name__)}\.(\w+)", message)
-    if m and m.group(1) in names:
-        return m.group(1)
-    for m in re.finditer(r"\b(\w+) must\b", message):
-        if m.group(1) in names:
-            return m.group(1)
-    return None
-
-
-def _build(cls, table, path: str, defaults: dict | None = None, also_valid: tuple = ()):
-    """An instance of the dataclass ``cls`` from the table ``table`` at ``path``; ``defaults`` fill
-    fields the table lacks; ``also_valid`` are keys the caller took out of the table (listed as valid)."""
-    if not isinstance(table, dict):
-        raise _Bad(f"{path} = {_show(table)}: expected a table (the fields of {cls.__name__})")
-    fields = _init_fields(cls)
-    names = [f.name for f in fields]
-    defaults = defaults or {}
-    also_valid = tuple(also_valid) or _EXTRA_KEYS.get(cls, ())
-    for key, value in table.items():
-        if key not in names:
-            close = difflib.get_close_matches(key, names + list(also_valid), n=1)
-            hint = f" (did you mean {close[0]}?)" if close else ""
-            where = f"of {path}" if path else "at the top level"
-            raise _Bad(f"unknown key {_join(path, key)} = {_show(value)}{hint}; valid keys {where}: "
-                       f"{', '.join(names + list(also_valid))}")
-    hints = _hints(cls)
-    kwargs = {}
-    for f in fields:
-        if f.name in table:
-            kwargs[f.name] = _convert(table[f.name], hints.get(f.name, Any), _join(path, f.name))
-        elif f.name in defaults:
-            kwargs[f.name] = defaults[f.name]
-        elif _required(f):
-            required = ", ".join(g.name for g in fields if _required(g) and g.name not in defaults)
-            raise _Bad(f"{path or 'the top level'} lacks key {f.name} (required: {required})")
-    try:
-        return cls(**kwargs)
-    except (ValueError, TypeError) as exc:
-        message = str(exc)
-        name = _field_of(message, cls, [n for n in names if n in table])
-        if name is None:
-            raise _Bad(f"{path}: {message}" if path else message) from None
-        raise _Bad(f"{_join(path, name)} = {_show(table[name])}: {message}") from None
-
-
 # keys a table may have beyond its dataclass's fields (taken out before it is built; listed as valid)
 _OBJ_KEYS = ("obj", "translate", "scale", "rotate_y")
 _EXTRA_KEYS = {Mesh: _OBJ_KEYS}
@@ -471,25 +253,25 @@ def _obj_meshes(data: dict, base: Path, read: list) -> None:
         path = f"meshes[{i}]"
         if "obj" not in entry:
             key = next(k for k in _OBJ_KEYS if k in entry)
-            raise _Bad(f"{path}.{key} = {_show(entry[key])}: {key} places a mesh read from an OBJ file, and "
-                       f"{path} has no obj key")
+            raise TableError(f"{path}.{key} = {show(entry[key])}: {key} places a mesh read from an OBJ file, "
+                             f"and {path} has no obj key")
         inline = [k for k in ("vertices", "faces") if k in entry]
         if inline:
-            raise _Bad(f"{path}.{inline[0]}: a mesh is either read from obj = {_show(entry['obj'])} or given "
-                       "by vertices and faces, not both")
-        name = _convert(entry["obj"], str, f"{path}.obj")
-        translate = _convert(entry.get("translate", [0.0, 0.0, 0.0]), tuple[float, float, float],
+            raise TableError(f"{path}.{inline[0]}: a mesh is either read from obj = {show(entry['obj'])} or "
+                             "given by vertices and faces, not both")
+        name = convert(entry["obj"], str, f"{path}.obj")
+        translate = convert(entry.get("translate", [0.0, 0.0, 0.0]), tuple[float, float, float],
                              f"{path}.translate")
-        scale = _convert(entry.get("scale", 1.0), float, f"{path}.scale")
+        scale = convert(entry.get("scale", 1.0), float, f"{path}.scale")
         if not scale > 0:
-            raise _Bad(f"{path}.scale = {_show(entry['scale'])}: scale must be > 0")
-        rotate_y = _convert(entry.get("rotate_y", 0.0), float, f"{path}.rotate_y")
+            raise TableError(f"{path}.scale = {show(entry['scale'])}: scale must be > 0")
+        rotate_y = convert(entry.get("rotate_y", 0.0), float, f"{path}.rotate_y")
         obj_path = Path(name) if Path(name).is_absolute() else base / name
         read.append((f"{path}.obj", obj_path))
         try:
             mesh = load_obj(obj_path, "", translate, scale, rotate_y)
         except ObjError as exc:
-            raise _Bad(f"{path}.obj = {_show(name)}: {exc}") from None
+            raise TableError(f"{path}.obj = {show(name)}: {exc}") from None
         rest = {k: v for k, v in entry.items() if k not in _OBJ_KEYS}
         meshes[i] = {"vertices": [list(v) for v in mesh.vertices], "faces": [list(f) for f in mesh.faces],
                      **rest}
@@ -501,7 +283,7 @@ def _image_paths(data: dict, base: Path, read: list) -> None:
     tables = {}
     materials = data.get("materials")
     if isinstance(materials, dict):
-        tables.update({_join("materials", name): (materials, name) for name in materials})
+        tables.update({join_key("materials", name): (materials, name) for name in materials})
     if "environment_map" in data:
         tables["environment_map"] = (data, "environment_map")
     for path, (parent, key) in tables.items():
@@ -509,23 +291,23 @@ def _image_paths(data: dict, base: Path, read: list) -> None:
         if isinstance(table, dict) and isinstance(table.get("image"), str) and table["image"]:
             image = Path(table["image"]) if Path(table["image"]).is_absolute() else base / table["image"]
             if not image.is_file():
-                raise _Bad(f"{_join(path, 'image')} = {_show(table['image'])}: no such file {image}")
-            read.append((_join(path, "image"), image))
+                raise TableError(f"{join_key(path, 'image')} = {show(table['image'])}: no such file {image}")
+            read.append((join_key(path, "image"), image))
             parent[key] = {**table, "image": str(image)}
 
 
 def _scene_problem(scene: Scene, exc: ValueError) -> str:
     """A Scene.validate() message with the key path of the object or field it is about."""
     message = str(exc).removeprefix(f"{scene.name}: ")
-    for f in _init_fields(Scene):
+    for f in init_fields(Scene):
         items = getattr(scene, f.name)
         if isinstance(items, list):
             for i, obj in enumerate(items):
                 if repr(obj) in message:
                     return f"{f.name}[{i}]: {message}"
-    name = _field_of(message, Scene, [f.name for f in _init_fields(Scene)])
+    name = field_of(message, Scene, [f.name for f in init_fields(Scene)])
     if name is not None:
-        return f"{name} = {_show(_plain(getattr(scene, name)))}: {message}"
+        return f"{name} = {show(_plain(getattr(scene, name)))}: {message}"
     return message
 
 
@@ -534,15 +316,15 @@ def _check_material_names(scene: Scene) -> None:
     materials = getattr(scene, "materials", None)
     if not isinstance(materials, dict):
         return
-    for f in _init_fields(Scene):
+    for f in init_fields(Scene):
         items = getattr(scene, f.name)
         if not isinstance(items, list):
             continue
         for i, obj in enumerate(items):
             name = getattr(obj, "material", None)
             if isinstance(name, str) and name not in materials:
-                raise _Bad(f"{f.name}[{i}].material = {_show(name)}: no such material; defined under "
-                           f"[materials]: {', '.join(materials) or 'none'}")
+                raise TableError(f"{f.name}[{i}].material = {show(name)}: no such material; defined under "
+                                 f"[materials]: {', '.join(materials) or 'none'}")
 
 
 def _parse(path: Path) -> dict:
@@ -565,7 +347,7 @@ def _parse_json(path: Path, text: str) -> dict:
         out = {}
         for k, v in items:
             if k in out:
-                raise SceneFileError(f"{path}: duplicate key {_show(k)} in a JSON object")
+                raise SceneFileError(f"{path}: duplicate key {show(k)} in a JSON object")
             out[k] = v
         return out
 
@@ -574,7 +356,7 @@ def _parse_json(path: Path, text: str) -> dict:
     except json.JSONDecodeError as exc:
         raise SceneFileError(f"{path}: line {exc.lineno}, column {exc.colno}: invalid JSON: {exc.msg}") from None
     if not isinstance(data, dict):
-        raise SceneFileError(f"{path}: expected a JSON object at the top level, found {_show(data)}")
+        raise SceneFileError(f"{path}: expected a JSON object at the top level, found {show(data)}")
     return data
 
 
@@ -622,16 +404,16 @@ def read_scene(path) -> tuple[Scene, RenderSettings, list[tuple[str, Path]]]:
             data["meshes"] = list(data["meshes"])
             _obj_meshes(data, path.parent, read)
         _image_paths(data, path.parent, read)
-        scene = _build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
-                       also_valid=("render",))
+        scene = build(Scene, data, "", defaults={"name": path.stem, "family": DEFAULT_FAMILY},
+                      also_valid=("render",), extra_keys=_EXTRA_KEYS)
         _check_material_names(scene)
         if hasattr(scene, "validate"):
             try:
                 scene.validate()
             except ValueError as exc:
-                raise _Bad(_scene_problem(scene, exc)) from None
-        settings = _build(RenderSettings, render_table, "render")
-    except _Bad as exc:
+                raise TableError(_scene_problem(scene, exc)) from None
+        settings = build(RenderSettings, render_table, "render")
+    except TableError as exc:
         raise SceneFileError(f"{path}: {exc}") from None
     return scene, settings, read
 
@@ -644,7 +426,7 @@ def _plain(value):
     """Dataclasses to dicts (init fields, in order), tuples to lists, numpy to Python; None dropped from
     tables (TOML has no null; a field that is None is left to its default)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in _init_fields(type(value))
+        return {f.name: _plain(getattr(value, f.name)) for f in init_fields(type(value))
                 if getattr(value, f.name) is not None}
     if isinstance(value, dict):
         return {str(k): _plain(v) for k, v in value.items() if v is not None}
@@ -657,30 +439,6 @@ def _plain(value):
     return value
 
 
-def _toml_str(s: str) -> str:
-    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)  # the shortest text that reads back as the same float
-    if isinstance(v, str):
-        return _toml_str(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(f"cannot write a {type(v).__name__} to TOML: {v!r}")
-
-
 def _is_table_array(v) -> bool:
     return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
 
@@ -688,9 +446,9 @@ def _is_table_array(v) -> bool:
 def _toml_table(lines: list, prefix: list, table: dict) -> None:
     for k, v in table.items():
         if not isinstance(v, dict) and not _is_table_array(v):
-            lines.append(f"{_key(k)} = {_toml_value(v)}")
+            lines.append(f"{key_text(k)} = {toml_value(v)}")
     for k, v in table.items():
-        name = ".".join(_key(p) for p in prefix + [k])
+        name = ".".join(key_text(p) for p in prefix + [k])
         if isinstance(v, dict):
             if not v or any(not isinstance(x, dict) and not _is_table_array(x) for x in v.values()):
                 lines += ["", f"[{name}]"]
@@ -794,7 +552,7 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     except OptionError as exc:
         if exc.option in overrides or exc.option not in {f.name for f in dataclasses.fields(RenderSettings)}:
             raise
-        raise SceneFileError(f"{scene_path}: render.{exc.option} = {_show(getattr(settings, exc.option))}: "
+        raise SceneFileError(f"{scene_path}: render.{exc.option} = {show(getattr(settings, exc.option))}: "
                              f"{exc.option} {exc.detail}") from None
     seconds = time.perf_counter() - t0
     write_aovs(output, layers)
