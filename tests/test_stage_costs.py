@@ -16,12 +16,13 @@ from kpcn_keras.studies.stage_costs import (
     memory_bandwidth,
     train_step_cost,
 )
+from prep.bounds import is_number
 
 TINY_BANDWIDTH = {"read_bytes_per_s": 1e10}  # a stand-in, so that kernel tests need not stream 512 MiB
 
 
 def positive(x):
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+    return is_number(x) and math.isfinite(x) and x > 0
 
 
 def tiny(arch, **kw):

@@ -28,6 +28,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from prep.render.lights import (
+    planar_density,
+    quad_point,
+    sphere_density,
+    toward_planar_light,
+    toward_sphere_light,
+    triangle_point,
+)
 from prep.render.tracer import (
     DIMS_PER_BOUNCE,
     EMITTER,
@@ -94,14 +102,6 @@ from prep.render.tracer import (
     sample_key,
     search_cdf,
     surface,
-)
-from prep.render.lights import (
-    planar_density,
-    quad_point,
-    sphere_density,
-    toward_planar_light,
-    toward_sphere_light,
-    triangle_point,
 )
 
 # --- effects (kernels.py rewrites this block; one line per name of scene.EFFECTS) ---

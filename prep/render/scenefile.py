@@ -171,7 +171,8 @@ from prep.render.schema import (
     toml_value,
 )
 
-__all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "read_scene", "render_scene_file"]
+__all__ = ["SUFFIXES", "RenderSettings", "SceneFileError", "dump_scene", "load_scene", "read_scene",
+           "render_scene_file"]
 
 SUFFIXES = (".toml", ".json")
 DEFAULT_FAMILY = "custom"
@@ -521,7 +522,8 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     """Render a scene file to one EXR in the AOV layout (``prep.exr.write_aovs``) and, with ``png``, a
     tonemapped PNG beside it. ``overrides`` (``spp``, ``seed``, ``width``, ... as given on the command
     line) replace the file's ``[render]`` values. The outputs are checked before rendering; an output that
-    is a file the scene reads (the scene file, a mesh, a texture) is refused. Returns ``{"output", "png" (if written), "seconds", "settings"}``.
+    is a file the scene reads (the scene file, a mesh, a texture) is refused. Returns ``{"output", "png" (if
+    written), "seconds", "settings"}``.
 
     A render setting out of range raises OptionError when it came from ``overrides`` (the command line
     names the flag) and SceneFileError naming ``render.<key>`` when it came from the file.

@@ -21,6 +21,9 @@ import types
 import typing
 from typing import Any, Literal, Union
 
+from prep.bounds import is_integer, is_number
+
+
 class TableError(Exception):
     """A problem at a key path; the reader prefixes the file name."""
 
@@ -160,11 +163,11 @@ def convert(value, hint, path: str, extra_keys: dict | None = None):
             return value
         raise wrong
     if hint is int:
-        if isinstance(value, int) and not isinstance(value, bool):
+        if is_integer(value):
             return value
         raise wrong
     if hint is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        if is_number(value) and math.isfinite(value):
             return float(value)
         raise wrong
     if hint is str:
