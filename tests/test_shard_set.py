@@ -221,13 +221,17 @@ def test_patches_per_image_beyond_the_patch_positions_is_refused_before_writing(
 def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tmp_path):
     make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"))
     peaks, total = {}, {}
-    for i, ppi in enumerate((100, 100, 1200)):  # the first build pays for imports and compilation
+    # the first build pays for imports and compilation; each size is built twice and its smaller peak kept, so
+    # that a one-time cost of the process (a lazy import, a cache a test before this one left to fill) is not
+    # taken for memory that grows with the patch count, which every build of that size would show
+    for i, ppi in enumerate((100, 100, 100, 1200, 1200)):
         cfg = config(tmp_path, out_root=str(tmp_path / f"shards-{i}"), patch_size=8,
                      patches_per_image=ppi, patches_per_shard=20, val_fraction=0.0)
         tracemalloc.start()
         shards.build_shards(cfg, progress=False, workers=1)  # this process's memory is the one traced
-        peaks[ppi] = tracemalloc.get_traced_memory()[1]
+        peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
+        peaks[ppi] = peak if i in (0, 3) else min(peaks[ppi], peak)
         total[ppi] = 2 * ppi * shards.patch_bytes(8)
     # twelve times the patches: the peak stays that of one image and one shard
     assert peaks[1200] < 1.5 * peaks[100] + 2**20
