@@ -13,11 +13,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
+from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import OptionError
 from prep.features import BRANCHES
 from prep.render.frame import FRAME_SIDE
@@ -57,13 +56,9 @@ PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
 def check_kernel_size(k) -> int:
     """Return ``k`` as an int if it is a positive odd integer, else raise ValueError naming the value."""
-    try:
-        value = operator.index(k)  # ints and numpy integers; rejects floats and strings
-    except TypeError:
-        value = None
-    if value is None or isinstance(k, bool) or value < 1 or value % 2 == 0:
+    if not is_integer(k) or k < 1 or k % 2 == 0:  # ints and numpy integers; not bools, floats or strings
         raise ValueError(f"kernel size must be a positive odd integer, received {k!r}")
-    return value
+    return int(k)
 
 
 def _strict_from_dict(cls, d: dict, option: str):

@@ -53,9 +53,7 @@ class Bound:
         if isinstance(value, bool):
             return False
         if self.integer:
-            try:
-                value = operator.index(value)  # ints and numpy integers; not floats, not strings
-            except TypeError:
+            if not is_integer(value):  # ints and numpy integers; not floats, not strings
                 return False
             return self.low <= value <= self.high and (not self.odd or value % 2 == 1)
         if not isinstance(value, (int, float)) and not hasattr(value, "__float__"):
