@@ -64,8 +64,9 @@ bench: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) bench --set $(SET) $(BENCH_ARGS)
 
+# one worker process per core, each taking whole test files (a file's module fixtures are built once)
 test: $(KPCN)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 # the inner loop: every test but those marked slow (subprocesses, training, renders)
 test-fast: $(KPCN)

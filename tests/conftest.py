@@ -6,6 +6,9 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
+# one all-effects kernel compiled for every scene rather than one per effect set, in this process and in the
+# commands it starts (docs/scenes.md §2); the tests of specialisation name their kernel's effects
+os.environ.setdefault("KPCN_KERNELS", "all")
 
 from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards  # noqa: E402
 

@@ -43,9 +43,9 @@ RENDER = ["render", "--set", "t", "--out", "renders", "--families", "cornell,sph
           "--width", "48", "--height", "48", "--input-spp", "4", "--reference-spp", "512"]
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "48", "--patches-per-shard", "1", "--val-fraction", "0.5"]
-# 180 steps of 50 per epoch: 4 checkpoints per branch, the last after a shorter epoch of 30 steps (the CLI
+# 80 steps of 50 per epoch: 2 checkpoints per branch, the last after a shorter epoch of 30 steps (the CLI
 # has no --steps-per-epoch)
-TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "180", "--batch-size", "2",
+TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "80", "--batch-size", "2",
          "--width", "4", "--depth", "2", "--kernel-size", "3"]
 
 STAGES = {
@@ -197,7 +197,7 @@ def progress(stage: str, folder: Path) -> str:
         if ckpt.is_file():
             with zipfile.ZipFile(ckpt) as z:
                 epochs = json.loads(z.read("kpcn-state.json"))["epochs_done"]
-            parts.append(f"{branch} checkpoint after epoch {epochs}/4")
+            parts.append(f"{branch} checkpoint after epoch {epochs}/2")
     record = folder / "config.json"
     if record.is_file():
         results = sorted(json.loads(record.read_text())["results"])

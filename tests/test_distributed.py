@@ -184,9 +184,9 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
         np.testing.assert_allclose(log_two[column], log_one[column], rtol=1e-4)
 
 
-# 200 steps of 50 per epoch: checkpoints to be killed after (as in tests/test_cli_resume.py)
+# 60 steps of 50 per epoch: a checkpoint to be killed after, then a shorter epoch (as in tests/test_cli_resume.py)
 RESUMABLE = ("train", "--set", "s", "--shards", "shards", "--width", "4", "--depth", "2", "--kernel-size", "3",
-             "--steps", "200", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
+             "--steps", "60", "--batch-size", "4", "--threads", "1", "--run-dir", "runs/r")
 
 
 @pytest.mark.slow

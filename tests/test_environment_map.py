@@ -133,7 +133,7 @@ def test_a_map_and_its_kernel_specialisation_render_the_same_bits(tmp_path):
     scene, size = plane_under(EnvironmentMap(image=str(path)))
     scene.spheres.append(Sphere((0, 0.3, 0), 0.3, "g"))
     assert scene.effects() == {"lambert", "environment_map"}
-    a = render(scene, spp=4, seed=5, width=size, height=size)
+    a = render(scene, spp=4, seed=5, width=size, height=size, effects=scene.effects())
     b = render(scene, spp=4, seed=5, width=size, height=size, effects=EFFECTS)
     for layer in a:
         np.testing.assert_array_equal(a[layer], b[layer], err_msg=layer)

@@ -55,7 +55,7 @@ def test_specialised_kernel_renders_the_bits_of_the_all_effects_kernel(label, ma
     scene = make(base) if make else base
     assert scene.effects() != frozenset(EFFECTS)
     assert kernels.kernel_for(scene.effects()) is not kernels.kernel_for(EFFECTS)
-    fast = render(scene, spp=3, seed=9, width=16, height=12)
+    fast = render(scene, spp=3, seed=9, width=16, height=12, effects=scene.effects())
     full = render(scene, spp=3, seed=9, width=16, height=12, effects=EFFECTS)
     for name in fast:
         np.testing.assert_array_equal(fast[name], full[name], err_msg=f"{label}: {name}")
@@ -87,3 +87,23 @@ def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
                                      if name in ir}
     assert calls[scene.effects()] == {"intersect"}
     assert calls[frozenset(EFFECTS)] == {"_ggx_d", "_ggx_g1", "_plastic_spec_prob", "intersect"}
+
+
+def test_kpcn_kernels_all_renders_every_scene_with_the_all_effects_kernel(monkeypatch):
+    from prep.render import EFFECTS, kernels
+
+    needed = frozenset({"lambert", "emitter"})
+    monkeypatch.setenv("KPCN_KERNELS", "specialised")
+    assert kernels.kernel_effects(needed) == needed
+    monkeypatch.delenv("KPCN_KERNELS")
+    assert kernels.kernel_effects(needed) == needed
+    monkeypatch.setenv("KPCN_KERNELS", "all")
+    assert kernels.kernel_effects(needed) == frozenset(EFFECTS)
+
+
+def test_an_unknown_kpcn_kernels_value_is_refused_naming_the_variable_and_the_choices(monkeypatch):
+    from prep.errors import KpcnError
+
+    monkeypatch.setenv("KPCN_KERNELS", "fast")
+    with pytest.raises(KpcnError, match=r"KPCN_KERNELS is 'fast'; kpcn reads one of specialised, all"):
+        render(make_scene("cornell", 0, 0), spp=2, seed=0, width=4, height=4)

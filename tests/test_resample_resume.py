@@ -30,8 +30,8 @@ SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]
 TRAIN = ["train", "--set", "t", "--shards", "shards", "--run", "runs/r", "--steps", "40", "--batch-size", "2",
          "--width", "4", "--depth", "2", "--kernel-size", "3"]
-# 150 steps per round at 50 per epoch: three checkpoints per phase; one shard file per patch
-RESAMPLE = ["resample", "--run", "runs/r", "--rounds", "2", "--round-steps", "150", "--patches-per-image", "40"]
+# 60 steps per round at 50 per epoch: a checkpoint to kill after, then a shorter epoch; one shard file per patch
+RESAMPLE = ["resample", "--run", "runs/r", "--rounds", "2", "--round-steps", "60", "--patches-per-image", "40"]
 TIMEOUT = 300
 
 

@@ -58,7 +58,8 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     ``default`` is exactly ``diffuse + specular`` in float32. ``max_depth`` caps the scattering vertices of a path,
     Russian roulette starts at vertex ``rr_depth`` (0-based; >= max_depth switches it off).
     The kernel is the one compiled for ``effects`` (default: ``scene.effects()``, the effects the scene
-    calls for; ``EFFECTS`` gives the all-effects kernel, which renders the same bits).
+    calls for, or all of them where ``KPCN_KERNELS=all``; ``EFFECTS`` gives the all-effects kernel, which
+    renders the same bits).
     """
     # numba and the kernels load only when a frame is rendered
     import prep.render.kernels as kernels
@@ -73,7 +74,7 @@ def render(scene: Scene, spp: int, seed: int, width: int = 256, height: int = 25
     max_depth = PATH_DEPTH.check("max_depth", max_depth)
     rr_depth = PATH_DEPTH.check("rr_depth", rr_depth)
     needed = scene.effects()
-    effects = needed if effects is None else frozenset(effects)
+    effects = kernels.kernel_effects(needed) if effects is None else frozenset(effects)
     if not needed <= effects:
         raise ValueError(f"scene {scene.name} calls for {sorted(needed - effects)}, not in effects {sorted(effects)}")
     kernel = kernels.kernel_for(effects)

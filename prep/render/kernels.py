@@ -9,6 +9,10 @@ numba's own on-disk cache keeps each compiled kernel across processes. The all-e
 copy too (every flag on), so that every kernel's file name carries a digest of the integrator *and* of
 the modules it calls: numba's cache checks only the file a function is in, and would otherwise serve a
 kernel compiled against an older ``tracer.py``.
+
+``KPCN_KERNELS=all`` renders every scene with the all-effects kernel instead (:func:`kernel_effects`): the
+same bits, one compile for every scene rather than one per effect set (several seconds each), slower per
+sample. Short-lived processes that render many small scenes of different effects gain: the test suite sets it.
 """
 
 from __future__ import annotations
@@ -25,11 +29,13 @@ import prep.render.integrator as integrator
 import prep.render.lights as lights
 import prep.render.packing as packing
 import prep.render.tracer as tracer
+from prep.errors import KpcnError
 from prep.files import atomic_write_text
 from prep.render.scene import EFFECTS
 
 _BLOCK = re.compile(r"(# --- effects \(kernels\.py rewrites this block.*?\n)(.*?)(# --- end of effects ---)", re.S)
 _loaded: dict[frozenset, ModuleType] = {}
+KERNEL_CHOICES = ("specialised", "all")  # the values of KPCN_KERNELS; the first is the default
 
 
 def flag_name(effect: str) -> str:
@@ -38,6 +44,16 @@ def flag_name(effect: str) -> str:
 
 def kernel_dir() -> Path:
     return Path(os.environ.get("KPCN_KERNEL_DIR") or Path.home() / ".cache" / "kpcn" / "kernels")
+
+
+def kernel_effects(needed) -> frozenset:
+    """The effects of the kernel that renders a scene calling for ``needed``: ``needed`` itself, or every
+    effect where ``KPCN_KERNELS=all``."""
+    choice = os.environ.get("KPCN_KERNELS") or KERNEL_CHOICES[0]
+    if choice not in KERNEL_CHOICES:
+        raise KpcnError(f"the environment variable KPCN_KERNELS is {choice!r}; kpcn reads one of "
+                        f"{', '.join(KERNEL_CHOICES)}")
+    return frozenset(EFFECTS) if choice == "all" else frozenset(needed)
 
 
 def _source(effects: frozenset) -> str:

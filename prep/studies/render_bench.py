@@ -66,9 +66,9 @@ def _compare(scene: Scene, cfg: RenderBenchConfig) -> dict:
     from prep.render.kernels import kernel_for
 
     samples = cfg.width * cfg.height * cfg.spp
-    for effects in (None, EFFECTS):  # compile (or load) both kernels before timing
+    for effects in (scene.effects(), EFFECTS):  # compile (or load) both kernels before timing
         render(scene, 2, 0, 8, 8, effects=effects)
-    spec = _best_seconds(scene, cfg)
+    spec = _best_seconds(scene, cfg, effects=scene.effects())
     full = _best_seconds(scene, cfg, effects=EFFECTS)
     return {"scene": scene.name, "effects": sorted(scene.effects()), "specialised_s": spec, "all_effects_s": full,
             "specialised_samples_per_s": samples / spec, "all_effects_samples_per_s": samples / full,
@@ -85,8 +85,8 @@ def bench_render(cfg: RenderBenchConfig, progress: bool = True) -> dict:
     rows = [_compare(s, cfg) for s in tqdm(scenes, desc="bench render", unit="scene", disable=not progress)]
     cornell = make_scene("cornell", 0, 0)
     max_depth, rr_depth = ANCHOR_DEPTH
-    render(cornell, 2, 0, 8, 8)
-    anchor_s = _best_seconds(cornell, cfg, max_depth=max_depth, rr_depth=rr_depth)
+    render(cornell, 2, 0, 8, 8, effects=cornell.effects())
+    anchor_s = _best_seconds(cornell, cfg, effects=cornell.effects(), max_depth=max_depth, rr_depth=rr_depth)
     record = {
         "config": dataclasses.asdict(cfg),
         "machine": session.machine(),
