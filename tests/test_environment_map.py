@@ -128,6 +128,7 @@ def test_the_sun_is_seen_directly_and_the_sky_elsewhere():
     assert np.all(r["specular"] < 0.01 * min(sky.sun))
 
 
+@pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_a_map_and_its_kernel_specialisation_render_the_same_bits(tmp_path):
     path, _ = stripes_map(tmp_path)
     scene, size = plane_under(EnvironmentMap(image=str(path)))

@@ -47,6 +47,7 @@ def _only(scene: Scene, kind: str, env=(0.0, 0.0, 0.0), lights: bool = True) -> 
                                environment=env)
 
 
+@pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 @pytest.mark.parametrize("label, make", SUBSETS + [("cornell-001 (no plastic, no environment)", None)])
 def test_specialised_kernel_renders_the_bits_of_the_all_effects_kernel(label, make):
     from prep.render import EFFECTS, kernels
@@ -68,6 +69,7 @@ def test_a_kernel_without_an_effect_the_scene_needs_is_refused():
         render(scene, spp=2, seed=0, width=4, height=4, effects={"lambert"})
 
 
+@pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_a_specialised_kernel_leaves_out_the_code_of_absent_effects():
     # the flags are compile-time constants: a diffuse-only kernel's machine code never calls GGX or the
     # plastic's lobe choice, the all-effects kernel's does (compiled afresh here: numba's disk cache

@@ -196,6 +196,7 @@ def test_a_mesh_box_renders_like_the_same_box_of_quads():
     assert np.mean(diff < 1e-4) > 0.99 and diff.mean() < 1e-3 * a["default"].mean()
 
 
+@pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_the_specialised_mesh_kernel_gives_the_all_effects_bits():
     from prep.render import kernels
 

@@ -715,6 +715,7 @@ def test_prep_render_does_not_import_frameworks():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_render_bench_writes_its_report_for_every_family(tmp_path):
     from prep.studies.render_bench import RenderBenchConfig, bench_render
 
