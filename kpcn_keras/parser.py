@@ -381,6 +381,7 @@ def _bench_options(add) -> None:
     b.add_argument("--repeats", type=int, help=f"timed calls per stage cost {d('repeats')}")
     b.add_argument("--seed", type=int, help=d("seed"))
     d = _defaults(RenderBenchConfig)
+    b.add_argument("--families", type=_csv, help=f"bench render: comma-separated scene families {d('families')}")
     b.add_argument("--width", type=int, help=f"bench render: {d('width')}")
     b.add_argument("--height", type=int, help=f"bench render: {d('height')}")
     b.add_argument("--spp", type=int, help=f"bench render: {d('spp')}")

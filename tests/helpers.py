@@ -128,10 +128,12 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
 
         resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit, file_size_limit))
 
+    # the kernels' choice and cache folder are the suite's (conftest.py), not the machine's defaults
+    kernels = {k: os.environ[k] for k in ("KPCN_KERNELS", "KPCN_KERNEL_DIR") if k in os.environ}
     return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout,
                           preexec_fn=limit if file_size_limit is not None else None,
-                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch"})
+                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kernels})
 
 
 @contextlib.contextmanager

@@ -327,7 +327,7 @@ _POSITIONAL = {"pixel", "large_frame", "slope_range"}
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
           "resample": ["--run", "no-run"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
-              ("train", "gamma"): ["--compositor", "alpha"]}
+              ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"]}
 
 
 def _options():
@@ -393,7 +393,8 @@ def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_
         flag = max(action.option_strings, key=len)
         valid = {"families": "cornell", "branches": "diffuse", "configurations": "cpu", "presets": "cpu",
                  "arms": "error", "val_scenes": "a", "budget_fractions": "0.5", "slopes": "2.5"}.get(action.dest, "4")
-        argv = [command, *_NEEDS.get(command, []), flag, f"{valid},{valid}"]
+        argv = [command, *_NEEDS.get(command, []), *_NEEDS_FOR.get((command, action.dest), []), flag,
+                f"{valid},{valid}"]
         line = _error_line(capsys, tmp_path, argv)
         assert line.startswith(f"kpcn {command}: error: {flag} names {valid} more than once"), (argv, line)
 

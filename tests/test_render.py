@@ -716,15 +716,16 @@ def test_prep_render_does_not_import_frameworks():
 
 
 @pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
-def test_render_bench_writes_its_report_for_every_family(tmp_path):
+def test_render_bench_writes_its_report_for_every_family_it_is_given(tmp_path):
     from prep.studies.render_bench import RenderBenchConfig, bench_render
 
-    record = bench_render(RenderBenchConfig(width=8, height=6, spp=2, repeats=1, out_dir=str(tmp_path)),
-                          progress=False)
+    families = ("spheres", "outdoor")  # a light and an environment map; each family's kernel compiles
+    record = bench_render(RenderBenchConfig(families=families, width=8, height=6, spp=2, repeats=1,
+                                            out_dir=str(tmp_path)), progress=False)
     saved = json.loads((tmp_path / "render.json").read_text())
     assert saved == json.loads(json.dumps(record))
     scenes = [row["scene"] for row in saved["families"]]
-    assert scenes[:len(FAMILIES)] == [f"{f}-000" for f in FAMILIES] and "lambert only" in scenes[-1]
+    assert scenes == [f"{f}-000" for f in families] + ["cornell-000 (lambert only)"]
     lean = saved["families"][-1]
     assert lean["effects"] == ["emitter", "lambert"] and not lean["same_kernel"]
     for row in saved["families"]:
@@ -732,6 +733,17 @@ def test_render_bench_writes_its_report_for_every_family(tmp_path):
         assert math.isclose(row["saving"], 1 - row["specialised_s"] / row["all_effects_s"])
     md = (tmp_path / "render.md").read_text()
     assert all(s in md for s in scenes) and "Msamples/s" in md
+
+
+@pytest.mark.parametrize("families, needle", [(("nope",), "unknown scene family 'nope'"),
+                                             ((), "at least one scene family"), ("cornell", "the string 'cornell'")])
+def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families, needle):
+    from prep.errors import OptionError
+    from prep.studies.render_bench import RenderBenchConfig
+
+    with pytest.raises(OptionError, match=needle) as caught:
+        RenderBenchConfig(families=families)
+    assert caught.value.option == "families"
 
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():

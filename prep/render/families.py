@@ -456,6 +456,20 @@ FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes, "indirect": 
 REFERENCE_SPP_FACTOR = {"caustics": 4, "fireflies": 4, "indirect": 2, "textures": 2}
 
 
+def check_families(families) -> None:
+    """Refuse a ``families`` option (a config's tuple of family names) that is a string, empty or names an
+    unknown family; repeats are refused with the config's other distinct fields (``bounds.check_fields``)."""
+    from prep.errors import OptionError
+
+    if isinstance(families, str):
+        raise OptionError("families", f"must be a tuple of names, got the string {families!r}")
+    if not families:
+        raise OptionError("families", "must name at least one scene family")
+    for fam in families:
+        if fam not in FAMILIES:
+            raise OptionError("families", f"has unknown scene family {fam!r}; valid families: {', '.join(FAMILIES)}")
+
+
 def family_seed(family: str, index: int, seed: int) -> list[int]:
     """The SeedSequence entropy a scene is generated from: stable across runs and Python versions."""
     return [int(seed), zlib.crc32(family.encode()), int(index)]

@@ -26,7 +26,7 @@ from prep.errors import OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.parts import Part
-from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, make_scene
+from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 
 log = logging.getLogger("kpcn")
@@ -57,14 +57,7 @@ class RenderConfig:
 
     def validate(self) -> None:
         check_set_name(self.set_name)
-        if isinstance(self.families, str):
-            raise OptionError("families", f"must be a tuple of names, got the string {self.families!r}")
-        if not self.families:
-            raise OptionError("families", "must name at least one scene family")
-        for fam in self.families:
-            if fam not in FAMILIES:
-                raise OptionError("families", f"has unknown scene family {fam!r}; valid families: "
-                                  f"{', '.join(FAMILIES)}")
+        check_families(self.families)
         if not self.input_spp:
             raise OptionError("input_spp", "must name at least one sample count")
         check_fields(self)

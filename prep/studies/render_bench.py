@@ -1,7 +1,8 @@
 """``kpcn bench render``: what the path tracer costs, written to ``reports/render.{md,json}``.
 
-Per built-in family (scene 0 of each, seed 0): samples per second of the kernel specialised to the
-scene's effects and of the all-effects kernel on the same scene, timed alternately in one process
+Per built-in family (``families``, by default every one; scene 0 of each, seed 0): samples per second of
+the kernel specialised to the scene's effects and of the all-effects kernel on the same scene, timed
+alternately in one process
 (best of ``repeats``), and the time the specialisation saves. Also a diffuse-only variant of a Cornell
 box (every surface made Lambertian), where specialisation has the most to leave out, and the Cornell
 family at the depth of the reference point the project compares with (paths of up to 12 vertices,
@@ -16,7 +17,7 @@ import time
 from dataclasses import dataclass
 
 from prep.bounds import REPEATS, bounded, check_fields
-from prep.render.families import FAMILIES, make_scene
+from prep.render.families import FAMILIES, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 from prep.render.scene import EFFECTS, Scene, lambert
 from prep.studies.report import Report
@@ -31,6 +32,7 @@ REPORT = "render"  # render.json and render.md in the report folder
 
 @dataclass
 class RenderBenchConfig:
+    families: tuple[str, ...] = bounded(tuple(FAMILIES), distinct=True)  # scene 0 of each is timed
     width: int = bounded(256, FRAME_SIDE)
     height: int = bounded(256, FRAME_SIDE)
     spp: int = bounded(16, SPP)
@@ -38,6 +40,8 @@ class RenderBenchConfig:
     out_dir: str = "reports"
 
     def __post_init__(self):
+        self.families = tuple(self.families) if not isinstance(self.families, str) else self.families
+        check_families(self.families)
         check_fields(self)
         check_frame(self.width, self.height)
 
@@ -81,7 +85,7 @@ def bench_render(cfg: RenderBenchConfig, progress: bool = True) -> dict:
 
     report = Report(cfg.out_dir, REPORT, png=False)
     session = report.begin()
-    scenes = [make_scene(f, 0, 0) for f in FAMILIES] + [lambert_only(make_scene("cornell", 0, 0))]
+    scenes = [make_scene(f, 0, 0) for f in cfg.families] + [lambert_only(make_scene("cornell", 0, 0))]
     rows = [_compare(s, cfg) for s in tqdm(scenes, desc="bench render", unit="scene", disable=not progress)]
     cornell = make_scene("cornell", 0, 0)
     max_depth, rr_depth = ANCHOR_DEPTH
