@@ -30,6 +30,9 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 
 FIXTURES = Path(__file__).parent / "fixtures"
 REPO = Path(__file__).resolve().parents[1]
+# what the suite's environment sets (conftest.py; the kernel cache folder where one is given), which kpcn()
+# passes to its bare environment
+SUITE_SETTINGS = ("KPCN_KERNELS", "KPCN_KERNEL_DIR", "OMP_WAIT_POLICY")
 TINY_MODEL = {"width": 6, "depth": 3, "kernel_size": 5}
 # the float64 features the numba kernel is held to; it lives in the package, where the benchmark times it
 reference_features = _features.reference_features
@@ -128,12 +131,12 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
 
         resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit, file_size_limit))
 
-    # the kernels' choice and cache folder are the suite's (conftest.py), not the machine's defaults
-    kernels = {k: os.environ[k] for k in ("KPCN_KERNELS", "KPCN_KERNEL_DIR") if k in os.environ}
+    # the suite's settings (conftest.py) rather than the machine's defaults: none changes a byte of output
+    kept = {k: os.environ[k] for k in SUITE_SETTINGS if k in os.environ}
     return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout,
                           preexec_fn=limit if file_size_limit is not None else None,
-                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kernels})
+                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kept})
 
 
 @contextlib.contextmanager
