@@ -10,6 +10,7 @@ import zlib
 import numpy as np
 
 from prep.bounds import is_integer
+from prep.errors import OptionError
 from prep.render.scene import (
     Camera,
     EnvironmentMap,
@@ -459,8 +460,6 @@ REFERENCE_SPP_FACTOR = {"caustics": 4, "fireflies": 4, "indirect": 2, "textures"
 def check_families(families) -> None:
     """Refuse a ``families`` option (a config's tuple of family names) that is a string, empty or names an
     unknown family; repeats are refused with the config's other distinct fields (``bounds.check_fields``)."""
-    from prep.errors import OptionError
-
     if isinstance(families, str):
         raise OptionError("families", f"must be a tuple of names, got the string {families!r}")
     if not families:

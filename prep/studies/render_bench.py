@@ -2,12 +2,11 @@
 
 Per built-in family (``families``, by default every one; scene 0 of each, seed 0): samples per second of
 the kernel specialised to the scene's effects and of the all-effects kernel on the same scene, timed
-alternately in one process
-(best of ``repeats``), and the time the specialisation saves. Also a diffuse-only variant of a Cornell
-box (every surface made Lambertian), where specialisation has the most to leave out, and the Cornell
-family at the depth of the reference point the project compares with (paths of up to 12 vertices,
-Russian roulette after 5). Kernels are compiled before timing. The load average before and after is
-recorded: the machine is shared, so compare the ratios, which are measured side by side.
+alternately in one process (best of ``repeats``), and the time the specialisation saves. Also a diffuse-only
+variant of a Cornell box (every surface made Lambertian), where specialisation has the most to leave out, and
+the Cornell family at the depth of the reference point the project compares with (paths of up to 12
+vertices, Russian roulette after 5). Kernels are compiled before timing. The load average before and after
+is recorded: the machine is shared, so compare the ratios, which are measured side by side.
 """
 
 from __future__ import annotations
