@@ -64,9 +64,10 @@ bench: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) bench --set $(SET) $(BENCH_ARGS)
 
-# one worker process per core, each taking whole test files (a file's module fixtures are built once)
+# one worker process per core, each taking whole test files (a file's module fixtures are built once) in the
+# order of tests/conftest.py, longest first
 test: $(KPCN)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 # the inner loop: every test but those marked slow (subprocesses, training, renders)
 test-fast: $(KPCN)

@@ -15,6 +15,18 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards  # noqa: E402
 
+# the files that take longest from a fresh clone, longest first; the rest follow in collection order. make test's
+# workers (pytest-xdist, --dist loadfile --no-loadscope-reorder) take whole files in this order, so that none is
+# left alone at the end on a long one
+LONGEST_FIRST = ("test_resample_resume.py", "test_cli_resume.py", "test_distributed.py", "test_render.py",
+                 "test_resample.py", "test_shard_set.py", "test_kernels.py", "test_parts.py", "test_train.py",
+                 "test_run.py", "test_train_phases.py", "test_bench.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file keeps its order
+
 
 @pytest.fixture
 def fixture_noisy() -> Path:
@@ -47,3 +59,15 @@ def small_disk(tmp_path):
     disk = SmallDisk(tmp_path / "disk")
     yield disk
     disk.unmount()
+
+
+@pytest.fixture(autouse=True)
+def _thread_request_left_alone():
+    """Fails a test that leaves a thread count requested in this process (``cli.main`` outside
+    ``helpers.process_state_kept``): every later in-process shard build of the worker would then start
+    that many worker processes, each importing the stack again."""
+    from prep import threads
+
+    before = threads.requested()
+    yield
+    assert threads.requested() == before, f"the test left prep.threads.requested() = {threads.requested()!r}"
