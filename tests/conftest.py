@@ -13,7 +13,7 @@ os.environ.setdefault("KPCN_KERNELS", "all")
 # from the other workers (it does not change a result)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards  # noqa: E402
+from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards, process_state_kept  # noqa: E402
 
 # the files that take longest from a fresh clone, longest first; the rest follow in collection order. make test's
 # workers (pytest-xdist, --dist loadfile --no-loadscope-reorder) take whole files in this order, so that none is
@@ -62,12 +62,12 @@ def small_disk(tmp_path):
 
 
 @pytest.fixture(autouse=True)
-def _thread_request_left_alone():
-    """Fails a test that leaves a thread count requested in this process (``cli.main`` outside
-    ``helpers.process_state_kept``): every later in-process shard build of the worker would then start
-    that many worker processes, each importing the stack again."""
+def _process_state_put_back():
+    """Every test leaves the process as it found it, ``cli.main`` called directly included: a thread request
+    left behind would make every later in-process shard build of the worker start that many processes, each
+    importing the stack again. A request already set here was left by a fixture of a wider scope."""
     from prep import threads
 
-    before = threads.requested()
-    yield
-    assert threads.requested() == before, f"the test left prep.threads.requested() = {threads.requested()!r}"
+    assert threads.requested() is None, f"a fixture left prep.threads.requested() = {threads.requested()!r}"
+    with process_state_kept():
+        yield

@@ -1,14 +1,17 @@
 """What several test files share: small inputs (random renders, tiny shard sets), the command line run as a
-user runs it (:func:`kpcn`, in a fresh process) or in this process (:func:`run_main`), and the checks of its
-one-line errors and of files left byte-identical. Fixtures live in ``conftest.py``; tests import these with
-``from helpers import ...``."""
+user runs it (:func:`kpcn`, in a fresh process), in this process (:func:`run_main`) or started to be killed
+(:func:`start_kpcn`), and the checks of its one-line errors and of files left byte-identical. Fixtures live
+in ``conftest.py``; tests import these with ``from helpers import ...``."""
 
+import atexit
 import contextlib
 import hashlib
 import io
 import logging
 import math
+import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -137,6 +140,102 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
                           capture_output=True, text=True, timeout=timeout,
                           preexec_fn=limit if file_size_limit is not None else None,
                           env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kept})
+
+
+# the commands that import the deep-learning stack, which a fresh interpreter takes ~5 s to import here
+STACK_COMMANDS = ("train", "resample", "resample-study", "denoise", "evaluate", "figures")
+
+
+def command_env() -> dict:
+    """The environment of a command a test starts to kill: this process's, with the repository importable."""
+    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)
+    return dict(os.environ, PYTHONPATH=path, KERAS_BACKEND="torch", PYTHONUNBUFFERED="1")
+
+
+def start_kpcn(args, cwd) -> "subprocess.Popen | WarmProcess":
+    """``kpcn -q ARGS`` started in ``cwd`` in a process of its own (:func:`command_env`), stdout and stderr
+    together, for the tests that kill a command and run it again: a command of the stack in a
+    :class:`WarmProcess`, ``render`` and ``shards`` (which never import it) in a fresh interpreter."""
+    args = [str(a) for a in args]
+    if args[0] in STACK_COMMANDS:
+        return WarmProcess(_kpcn_main, (args,), cwd=cwd, env=command_env(), name=f"kpcn {args[0]}")
+    return subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=cwd, env=command_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _kpcn_main(args) -> int:
+    """What ``python -m kpcn_keras.cli -q ARGS`` runs, ``sys.argv`` included (records keep it)."""
+    from kpcn_keras import cli
+
+    sys.argv[:] = [cli.__file__, "-q", *args]
+    return cli.main()
+
+
+_warm: multiprocessing.context.BaseContext | None = None
+
+
+class WarmProcess:
+    """``target(*args, **kwargs)`` in a process of its own, forked from an interpreter that has already imported
+    Keras and torch (multiprocessing's forkserver, started once per test process with the two preloaded), in
+    ``cwd`` with the environment ``env``, its stdout and stderr written to one file: a process like any other
+    (its own pid, killed by a signal), without the seconds a fresh interpreter spends importing the stack. kpcn
+    itself is imported in the child, as in a fresh process. The Popen methods the kill tests use."""
+
+    def __init__(self, target, args=(), kwargs=None, *, cwd, env, name="warm"):
+        global _warm
+        if _warm is None:
+            _warm = multiprocessing.get_context("forkserver")
+            _warm.set_forkserver_preload(["keras", "torch"])
+        fd, self._out = tempfile.mkstemp(prefix="kpcn-warm-", suffix=".out")
+        os.close(fd)
+        self.args = name
+        self._proc = _warm.Process(target=_warm_child, args=(target, args, kwargs or {}, str(cwd), env, self._out),
+                                   name=name)
+        self._proc.start()
+        self.pid = self._proc.pid
+
+    @property
+    def returncode(self) -> int | None:
+        return self._proc.exitcode
+
+    def poll(self) -> int | None:
+        return self._proc.exitcode
+
+    def send_signal(self, sig) -> None:
+        if self.poll() is None:
+            os.kill(self.pid, sig)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def wait(self, timeout=None) -> int:
+        self._proc.join(timeout)
+        if self._proc.exitcode is None:
+            raise subprocess.TimeoutExpired(self.args, timeout)
+        return self._proc.exitcode
+
+    def communicate(self, timeout=None) -> tuple[str, None]:
+        """(stdout and stderr, None) once the process has ended."""
+        self.wait(timeout)
+        out = Path(self._out).read_text()
+        Path(self._out).unlink(missing_ok=True)
+        return out, None
+
+
+def _warm_child(target, args, kwargs, cwd, env, out) -> None:
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    fd = os.open(out, os.O_WRONLY | os.O_TRUNC)
+    os.dup2(fd, 1), os.dup2(fd, 2)
+    os.close(fd)
+    sys.stdout = sys.stderr = open(1, "w", buffering=1, closefd=False)
+    try:
+        status = target(*args, **kwargs)
+    finally:
+        atexit._run_exitfuncs()  # what an interpreter runs at its exit, which a forked child's os._exit skips
+        sys.stdout.flush()
+    sys.exit(status if isinstance(status, int) else 0)
 
 
 @contextlib.contextmanager

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, process_state_kept, random_aovs, run_main
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
 
 from kpcn_keras.cli import main
 from prep import exr
@@ -198,9 +198,7 @@ def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, tmp_path):
         raise ValueError("an internal bug")
 
     monkeypatch.setattr(render, "render_set", bug)
-    # main sets the thread counts before the bug: put them back, or every later shard build of this worker
-    # process would start its own worker processes
-    with process_state_kept(), pytest.raises(ValueError, match="an internal bug"):
+    with pytest.raises(ValueError, match="an internal bug"):
         cli.main(["-q", "render", "--set", "s", "--out", str(tmp_path)])
 
 

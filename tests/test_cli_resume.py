@@ -20,20 +20,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import random
 import shutil
 import signal
 import subprocess
-import sys
 import time
 import zipfile
 from pathlib import Path
 
 import pytest
-from helpers import checksums_but_timings
+from helpers import checksums_but_timings, start_kpcn
 
-REPO = Path(__file__).resolve().parents[1]
 SEED = 5
 # kill points per stage, the last of which kills twice; training's runs start torch and Keras each time
 KILLS = {"render": 3, "shards": 3, "train": 2}
@@ -55,16 +52,6 @@ STAGES = {
     "shards": (SHARDS, "shards/t", ("round-*/shard-*.h5",)),
     "train": (TRAIN, "runs/r", ("diffuse.keras", "specular.keras")),
 }
-
-
-def _env() -> dict:
-    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)
-    return dict(os.environ, PYTHONPATH=path, KERAS_BACKEND="torch", PYTHONUNBUFFERED="1")
-
-
-def _start(args: list[str], root: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=root, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def _wait_for_lock(proc: subprocess.Popen, lock: Path) -> float | None:
@@ -95,7 +82,7 @@ def _finish(proc: subprocess.Popen) -> str:
 
 def run_to_completion(args: list[str], root: Path, lock: Path) -> float:
     """Run the command; returns the seconds from taking the lock to exit."""
-    proc = _start(args, root)
+    proc = start_kpcn(args, root)
     locked = _wait_for_lock(proc, lock)
     out = _finish(proc)
     end = time.monotonic()
@@ -106,7 +93,7 @@ def run_to_completion(args: list[str], root: Path, lock: Path) -> float:
 
 def run_and_kill(args: list[str], root: Path, lock: Path, delay: float) -> bool:
     """Start the command and SIGKILL it ``delay`` s after it took the lock; False if it ended first."""
-    proc = _start(args, root)
+    proc = start_kpcn(args, root)
     locked = _wait_for_lock(proc, lock)
     if locked is not None:
         while proc.poll() is None and time.monotonic() < locked + delay:

@@ -5,45 +5,58 @@ import json
 import os
 import socket
 import subprocess
-import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import REPO, launcher_free_env, torchrun
+from helpers import REPO, WarmProcess, launcher_free_env, torchrun
 
 from kpcn_keras import distributed
 
-# One process of a data-parallel run of a small branch network (3 Adam steps on its slice of a fixed global
-# batch of 4), or, with WORLD_SIZE unset, the one-process run on the whole batch. Each rank initialises
+
+# One process of a data-parallel run of a small branch network (``steps`` Adam steps on its slice of a fixed
+# global batch of 4), or, with WORLD_SIZE unset, the one-process run on the whole batch. Each rank initialises
 # from its own seed: broadcast_weights must make them start equal.
-STEPS = """
-import sys
-import numpy as np
-import keras, torch
-from kpcn_keras import distributed
-from kpcn_keras.config import ModelConfig
-from kpcn_keras.losses import SMAPE
-from kpcn_keras.models import build_branch_model
+def train_steps(out: str, steps: int = 3) -> None:
+    import keras
+    import torch
 
-world = distributed.from_environment()
-distributed.start(world)
-torch.set_num_threads(1)
-keras.utils.set_random_seed(7 + world.rank)
-cfg = ModelConfig(width=6, depth=2, kernel_size=3)
-model = build_branch_model(cfg)
-distributed.broadcast_weights(model, world)
-distributed.average_gradients(model, world)
-model.compile(optimizer=keras.optimizers.Adam(1e-2), loss=SMAPE())
-rng = np.random.default_rng(0)
-x = rng.uniform(0, 2, (4, 12, 12, cfg.input_channels)).astype("float32")
-y = rng.uniform(0, 2, (4, 12, 12, 3)).astype("float32")
-per = 4 // world.size
-mine = slice(world.rank * per, (world.rank + 1) * per)
-for _ in range(3):
-    model.train_on_batch(x[mine], y[mine])
-np.savez(sys.argv[1], *[np.asarray(w.numpy()) for w in model.weights])
-distributed.stop(world)
-"""
+    from kpcn_keras.config import ModelConfig
+    from kpcn_keras.losses import SMAPE
+    from kpcn_keras.models import build_branch_model
+
+    world = distributed.from_environment()
+    distributed.start(world)
+    torch.set_num_threads(1)
+    keras.utils.set_random_seed(7 + world.rank)
+    cfg = ModelConfig(width=6, depth=2, kernel_size=3)
+    model = build_branch_model(cfg)
+    distributed.broadcast_weights(model, world)
+    distributed.average_gradients(model, world)
+    model.compile(optimizer=keras.optimizers.Adam(1e-2), loss=SMAPE())
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 2, (4, 12, 12, cfg.input_channels)).astype("float32")
+    y = rng.uniform(0, 2, (4, 12, 12, 3)).astype("float32")
+    per = 4 // world.size
+    mine = slice(world.rank * per, (world.rank + 1) * per)
+    for _ in range(steps):
+        model.train_on_batch(x[mine], y[mine])
+    np.savez(out, *[np.asarray(w.numpy()) for w in model.weights])
+    distributed.stop(world)
+
+
+def _processes(target, args_of_rank, env) -> None:
+    """``target(*args_of_rank[r])`` as rank r of a gloo world of ``len(args_of_rank)`` processes (one process
+    outside any world if it is 1), each a process of its own; fails with the output of one that fails."""
+    size = len(args_of_rank)
+    rendezvous = {} if size == 1 else {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()),
+                                        "WORLD_SIZE": str(size)}
+    ranks = [{"RANK": str(r), "LOCAL_RANK": str(r)} if size > 1 else {} for r in range(size)]
+    procs = [WarmProcess(target, args, cwd=REPO, env={**env, **rendezvous, **rank})
+             for args, rank in zip(args_of_rank, ranks)]
+    for p in procs:
+        out, _ = p.communicate(timeout=300)
+        assert p.returncode == 0, out[-3000:]
 
 
 def _free_port() -> int:
@@ -60,32 +73,17 @@ def _weights(path) -> list[np.ndarray]:
 @pytest.mark.slow
 def test_two_gloo_processes_on_halves_of_a_batch_train_what_one_process_trains_on_all_of_it(tmp_path):
     env = launcher_free_env(KERAS_BACKEND="torch")
-    one = subprocess.run([sys.executable, "-c", STEPS, str(tmp_path / "one.npz")], cwd=REPO, env=env,
-                         capture_output=True, text=True, timeout=300)
-    assert one.returncode == 0, one.stderr[-3000:]
-    rendezvous = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": "2"}
-    procs = [subprocess.Popen([sys.executable, "-c", STEPS, str(tmp_path / f"rank{r}.npz")], cwd=REPO,
-                              env={**env, **rendezvous, "RANK": str(r), "LOCAL_RANK": str(r)},
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
-    for p in procs:
-        _, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err[-3000:]
+    _processes(train_steps, [(str(tmp_path / "one.npz"),)], env)
+    _processes(train_steps, [(str(tmp_path / f"rank{r}.npz"),) for r in range(2)], env)
     single, rank0, rank1 = (_weights(tmp_path / f"{n}.npz") for n in ("one", "rank0", "rank1"))
     assert len(single) == len(rank0) > 2
     for a, b in zip(rank0, rank1):
         np.testing.assert_array_equal(a, b)  # one all-reduced gradient, the same update in both
     for a, b in zip(rank0, single):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)  # sums in another order: float rounding only
-    initial = _weights_of_seed_7_untrained(tmp_path, env)
+    _processes(train_steps, [(str(tmp_path / "init.npz"), 0)], env)  # seed 7, untrained
+    initial = _weights(tmp_path / "init.npz")
     assert any(not np.allclose(a, b) for a, b in zip(initial, single))  # it trained
-
-
-def _weights_of_seed_7_untrained(tmp_path, env) -> list[np.ndarray]:
-    code = STEPS.replace("for _ in range(3):", "for _ in range(0):")
-    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "init.npz")], cwd=REPO, env=env,
-                         capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return _weights(tmp_path / "init.npz")
 
 
 def test_collectives_of_our_own_tensors_use_the_device_the_backend_reduces_on():
@@ -99,29 +97,20 @@ def test_collectives_of_our_own_tensors_use_the_device_the_backend_reduces_on():
 
 
 # Each of two gloo processes passes its own logs; both must get their mean.
-MEAN = """
-import json, sys
-from kpcn_keras import distributed
-
-world = distributed.from_environment()
-distributed.start(world)
-mine = {"loss": [1.0, 3.0][world.rank], "lr": [0.25, 0.75][world.rank]}
-print(json.dumps(distributed.mean_over_processes(mine, world)))
-distributed.stop(world)
-"""
+def log_mean(out: str) -> None:
+    world = distributed.from_environment()
+    distributed.start(world)
+    mine = {"loss": [1.0, 3.0][world.rank], "lr": [0.25, 0.75][world.rank]}
+    Path(out).write_text(json.dumps(distributed.mean_over_processes(mine, world)))
+    distributed.stop(world)
 
 
 @pytest.mark.slow
-def test_two_gloo_processes_log_the_mean_of_their_losses():
-    rendezvous = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": "2"}
-    env = launcher_free_env(KERAS_BACKEND="torch")
-    procs = [subprocess.Popen([sys.executable, "-c", MEAN], cwd=REPO,
-                              env={**env, **rendezvous, "RANK": str(r), "LOCAL_RANK": str(r)},
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
-    for p in procs:
-        out, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err[-3000:]
-        assert json.loads(out.strip().splitlines()[-1]) == {"loss": (1.0 + 3.0) / 2, "lr": (0.25 + 0.75) / 2}
+def test_two_gloo_processes_log_the_mean_of_their_losses(tmp_path):
+    outs = [tmp_path / f"rank{r}.json" for r in range(2)]
+    _processes(log_mean, [(str(out),) for out in outs], launcher_free_env(KERAS_BACKEND="torch"))
+    for out in outs:
+        assert json.loads(out.read_text()) == {"loss": (1.0 + 3.0) / 2, "lr": (0.25 + 0.75) / 2}
 
 
 def test_the_world_is_read_from_the_launchers_variables():
@@ -161,12 +150,12 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     """The documented launch line, on 2 gloo processes, against `kpcn train` alone, through every phase
     (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
     losses, and one set of files, written by rank 0."""
-    from helpers import build_tiny_shards, kpcn
+    from helpers import build_tiny_shards, run_main
 
     from kpcn_keras.run import Run, load_model
 
     build_tiny_shards(tmp_path)
-    alone = kpcn(*TRAIN, *EVERY_PHASE, "--run-dir", "runs/one", cwd=tmp_path)
+    alone = run_main(*TRAIN, *EVERY_PHASE, "--run-dir", "runs/one", cwd=tmp_path)
     assert alone.returncode == 0, alone.stderr[-3000:]
     res = subprocess.run(torchrun(*TRAIN, *EVERY_PHASE, "--run-dir", "runs/two"), cwd=tmp_path,
                          env=launcher_free_env(PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=600)

@@ -348,12 +348,12 @@ def study(tmp_path_factory):
     res = kpcn("shards", "--set", "s", "--renders", "renders", "--out", "shards", "--patch-size", "16",
                "--patches-per-image", "8", "--patches-per-shard", "8", cwd=root)
     assert res.returncode == 0, res.stderr[-3000:]
-    first = kpcn(*STUDY, cwd=root, timeout=1500)
+    first = run_main(*STUDY, cwd=root)
     assert first.returncode == 0, first.stderr[-3000:]
     shards_after_first = shard_files_state(root / "runs" / "study" / "shards") | shard_files_state(root / "shards")
     runs_after_first = checksums(root / "runs" / "study")
     report_json = json.loads((root / "reports" / "resample.json").read_text())
-    second = kpcn(*STUDY, cwd=root, timeout=1500)
+    second = run_main(*STUDY, cwd=root)
     return {"root": root, "first": first, "second": second, "shards_after_first": shards_after_first,
             "runs_after_first": runs_after_first, "record": report_json}
 

@@ -13,18 +13,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from helpers import REPO, checksums_but_timings, make_renders
+from helpers import checksums_but_timings, make_renders, start_kpcn
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]
@@ -35,17 +32,8 @@ RESAMPLE = ["resample", "--run", "runs/r", "--rounds", "2", "--round-steps", "60
 TIMEOUT = 300
 
 
-def _env() -> dict:
-    return dict(os.environ, PYTHONPATH=str(REPO), KERAS_BACKEND="torch", PYTHONUNBUFFERED="1")
-
-
-def _start(args, cwd) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=cwd, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-
-
 def _run(args, cwd) -> str:
-    proc = _start(args, cwd)
+    proc = start_kpcn(args, cwd)
     out, _ = proc.communicate(timeout=TIMEOUT)
     assert proc.returncode == 0, f"kpcn {' '.join(args)} failed ({proc.returncode}):\n{out}"
     assert "Traceback" not in out, out
@@ -54,7 +42,7 @@ def _run(args, cwd) -> str:
 
 def _kill_when(args, cwd, reached, what: str) -> None:
     """Start the command and SIGKILL it as soon as ``reached()`` holds; fails if it ended first."""
-    proc = _start(args, cwd)
+    proc = start_kpcn(args, cwd)
     deadline = time.monotonic() + TIMEOUT
     while not reached():
         if proc.poll() is not None:

@@ -1,15 +1,12 @@
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import keras
 import numpy as np
 import pytest
-from helpers import build_tiny_shards, checksums
+from helpers import WarmProcess, build_tiny_shards, checksums, command_env
 
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import TrainConfig, train
@@ -111,14 +108,10 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
     reference = train(tiny_config(shard_cfg, branches=("diffuse",), **steps), tmp_path / "ref", verbose=0)
 
     # the library call that `kpcn train` makes, with a short epoch so that a kill lands mid-run
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     cfg = tiny_config(shard_cfg, branches=("diffuse",), **steps)
     run_dir = tmp_path / "killed" / "r"
     checkpoint = run_dir / "checkpoints" / "diffuse.keras"
-    proc = subprocess.Popen([sys.executable, "-c", (
-        f"import sys, json; sys.path.insert(0, {env['PYTHONPATH']!r})\n"
-        "from kpcn_keras.train import TrainConfig, train\n"
-        f"train(TrainConfig(**json.loads({json.dumps(cfg.to_dict())!r})), {str(run_dir)!r}, verbose=0)\n")], env=env)
+    proc = WarmProcess(train, (cfg, str(run_dir)), {"verbose": 0}, cwd=tmp_path, env=command_env())
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
         if checkpoint.is_file() and 1 <= read_state(checkpoint)["epochs_done"] < 10:

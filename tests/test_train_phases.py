@@ -3,17 +3,22 @@ with frozen denoisers), the presets, the conditioning channels (branch one-hot, 
 every phase, each checked against an independent computation."""
 
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import keras
 import numpy as np
 import pytest
-from helpers import REPO, assert_one_line_error, build_tiny_shards, random_aovs, randomise, run_main
+from helpers import (
+    WarmProcess,
+    assert_one_line_error,
+    build_tiny_shards,
+    command_env,
+    random_aovs,
+    randomise,
+    run_main,
+)
 
 from kpcn_keras import augment
 from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
@@ -340,13 +345,7 @@ def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
     cfg = tiny_config(shards, joint_steps=40, steps_per_epoch=4)
     reference = train(cfg, tmp_path / "ref", verbose=0)
     run_dir = tmp_path / "killed"
-    env = dict(os.environ, PYTHONPATH=str(REPO), KERAS_BACKEND="torch")
-    proc = subprocess.Popen([sys.executable, "-c", (
-        "import json\n"
-        "from kpcn_keras.config import TrainConfig\n"
-        "from kpcn_keras.train import train\n"
-        f"train(TrainConfig(**json.loads({json.dumps(cfg.to_dict())!r})), {str(run_dir)!r}, verbose=0)\n")],
-        env=env, cwd=tmp_path)
+    proc = WarmProcess(train, (cfg, str(run_dir)), {"verbose": 0}, cwd=tmp_path, env=command_env())
     ckpt = run_dir / "checkpoints" / "joint.keras"
     deadline = time.time() + 120
     while time.time() < deadline and proc.poll() is None:
