@@ -2,10 +2,11 @@
 finished by running the same command again, and then every file it wrote is byte-identical (SHA-256) to
 an uninterrupted run's; nothing that was complete is lost, redone or duplicated, no temporary file is left.
 
-Each stage runs the real command line in a subprocess (``python -m kpcn_keras.cli``), at toy size, with
-the working directory set to its own tmp tree and the same relative arguments, so that the recorded
-commands and relative paths of the reference and the killed runs agree. Kill points are drawn from a
-seeded ``random.Random``: a time after the command took its folder's lock (the lock file then holds the
+Each stage runs the real command line in a process of its own (``helpers.start_kpcn``: ``python -m
+kpcn_keras.cli`` for render and shards, forked from an interpreter that has imported the stack for train),
+at toy size, with the working directory set to its own tmp tree and the same relative arguments, so that the
+recorded commands and relative paths of the reference and the killed runs agree. Kill points are drawn from
+a seeded ``random.Random``: a time after the command took its folder's lock (the lock file then holds the
 command's pid, so imports and input checks are not counted), as a fraction of the reference run's time
 from that point to its exit (a command that finishes before its kill point, on a machine less loaded than
 during the reference run, is compared as an uninterrupted run and started afresh with the point halved).

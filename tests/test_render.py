@@ -586,6 +586,21 @@ def test_kernel_table_layouts_agree_with_scene():
     ng, u, v = tracer.surface((1.5, 2.0, 4.0), 2, 0, packed.spheres, packed.quads, packed.triangles)
     np.testing.assert_allclose(ng, (0, -1, 0))
     assert (u, v) == (pytest.approx(0.25), pytest.approx(0.5))
+    # the light table: each light's row holds its own table's values and its material's emission
+    assert (tracer.L_A, tracer.L_B, tracer.L_C, tracer.L_NORMAL, tracer.L_AREA, tracer.L_EMISSION) == (
+        sc.LIGHT_A, sc.LIGHT_B, sc.LIGHT_C, sc.LIGHT_NORMAL, sc.LIGHT_AREA, sc.LIGHT_EMISSION)
+    lights = {"q": emitter((1, 2, 3)), "s": emitter((4, 5, 6)), "t": emitter((7, 8, 9)), "m": lambert((0.5,) * 3)}
+    lit = pack(Scene("x", "test", Camera((0, 5, 0), (0, 0, 0), up=(0, 0, 1)), lights,
+                     quads=[Quad((9, 9, 9), (1, 0, 0), (0, 0, 1), "m"), dataclasses.replace(q, material="q")],
+                     spheres=[Sphere((0, 1, 2), 0.5, "s")], meshes=[dataclasses.replace(mesh, material="t")]))
+    assert lit.light_table.shape == (3, sc.LIGHT_COLS) and list(lit.light_kind) == [
+        sc.LIGHT_QUAD, sc.LIGHT_SPHERE, sc.LIGHT_TRIANGLE]
+    quad, sphere, triangle = lit.light_table
+    np.testing.assert_array_equal(quad[:sc.LIGHT_EMISSION], np.r_[row[:12], row[tracer.Q_AREA]])
+    np.testing.assert_array_equal(sphere[:sc.LIGHT_B + 1], (0, 1, 2, 0.5))
+    np.testing.assert_array_equal(triangle[:sc.LIGHT_EMISSION], tri)
+    for light, emission in zip(lit.light_table, ((1, 2, 3), (4, 5, 6), (7, 8, 9))):
+        np.testing.assert_array_equal(light[sc.LIGHT_EMISSION:], emission)
 
 
 def test_unknown_family_is_named():

@@ -42,8 +42,13 @@ from prep.render.tracer import (
     GLASS,
     GLOSSY,
     INV_PI,
+    L_A,
+    L_AREA,
+    L_B,
+    L_C,
+    L_EMISSION,
     L_ENVIRONMENT,
-    L_QUAD,
+    L_NORMAL,
     L_SPHERE,
     L_TRIANGLE,
     LAMBERT,
@@ -62,17 +67,7 @@ from prep.render.tracer import (
     OUT_MEANS,
     OUT_VARS,
     PLASTIC,
-    Q_AREA,
-    Q_CORNER,
-    Q_NORMAL,
-    Q_U,
-    Q_V,
     RAY_OFFSET,
-    T_AREA,
-    T_E1,
-    T_E2,
-    T_NORMAL,
-    T_V0,
     TEX_IMAGE,
     TEX_NONE,
     TEX_WORLD,
@@ -208,8 +203,10 @@ def environment_at(sc, d):
 
 
 # ---------------------------------------------------------------------------------------------
-# the steps of a path. They take no packed scene and no array (see lights.py: numba counts references
-# to every array of an argument it binds, per call); trace_sample reads the tables and hands them values.
+# the steps of a path. Those of every vertex take no packed scene and no array (see lights.py: numba counts
+# references to every array of an argument it binds, per call); trace_sample reads the tables and hands them
+# values. The two that end a path (escaped, emitter_weight) take the scene: they run once per path, not once
+# per vertex, so the reference counts of its arrays are paid once a path.
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
@@ -279,12 +276,60 @@ def continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs):
 
 
 @njit(cache=True, inline="always")
+def toward_light(kind, a, b, c, normal, area, origin, prob, u1, u2):
+    """Light sampling of a light of the light table but the environment map, from the values of its row:
+    (lit, wi, tmax, pdf) of the ``toward_*`` function of its kind (lights.py)."""
+    if kind == L_SPHERE:
+        return toward_sphere_light(origin, a, b[0], prob, u1, u2)
+    if HAS_MESH and kind == L_TRIANGLE:
+        return toward_planar_light(origin, triangle_point(a, b, c, u1, u2), normal, area, prob)
+    return toward_planar_light(origin, quad_point(a, b, c, u1, u2), normal, area, prob)
+
+
+@njit(cache=True, inline="always")
+def light_density(kind, a, radius, area, o, t, cos_l, prob):
+    """The density of :func:`toward_light` from ``o`` at the point at distance ``t`` of a light that a path hit,
+    seen from the light at cosine ``cos_l``: the cone a sphere subtends, or a planar light's area."""
+    if kind == L_SPHERE:
+        return sphere_density(o, a, radius, prob)
+    return planar_density(prob, t, cos_l, area)
+
+
+@njit(cache=True, inline="always")
 def roulette(bd, bs, u):
     """Russian roulette on the throughputs: (alive, bd, bs), those of a surviving path scaled by 1 / its odds."""
     survive = min(0.95, max(bd[0] + bs[0], max(bd[1] + bs[1], bd[2] + bs[2])))
     if u >= survive:
         return False, bd, bs
     return True, _scale(bd, 1.0 / survive), _scale(bs, 1.0 / survive)
+
+
+@njit(cache=True, inline="always")
+def escaped(sc, d, bounce, prev_pdf):
+    """(radiance, MIS weight) of a path that leaves the scene along ``d``: the environment (a map, a gradient or
+    none), weighted against light sampling where the map is a light that could have drawn ``d``."""
+    if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
+        env, pdf_dir = env_lookup(sc, d)
+        if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
+            return env, power_heuristic(prev_pdf, sc.light_prob[sc.env_light] * pdf_dir)
+        return env, 1.0
+    if HAS_ENVIRONMENT:
+        return environment_at(sc, d), 1.0
+    return (0.0, 0.0, 0.0), 1.0
+
+
+@njit(cache=True, inline="always")
+def emitter_weight(sc, kind, idx, o, t, cos_d, bounce, prev_pdf):
+    """The MIS weight of the emitter (primitive ``idx`` of ``kind``) that a path from the vertex ``o`` hit at distance
+    ``t``, at cosine ``cos_d`` to its normal: 1 where light sampling could not have drawn it."""
+    li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
+    if HAS_MESH and kind == 2:
+        li = sc.tri_light[idx]
+    if not (bounce > 0 and li >= 0 and prev_pdf > 0.0):
+        return 1.0
+    lt = sc.light_table
+    return power_heuristic(prev_pdf, light_density(sc.light_kind[li], _row3(lt, li, L_A), lt[li, L_B],
+                                                   lt[li, L_AREA], o, t, -cos_d, sc.light_prob[li]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -295,14 +340,12 @@ def roulette(bd, bs, u):
 def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
     """Trace one camera ray through the packed scene ``sc``; writes out[0:13] = diffuse, specular,
     albedo, normal, depth."""
-    for i in range(13):
-        out[i] = 0.0
+    out[:13] = 0.0
     zero = (0.0, 0.0, 0.0)
     ld, ls = zero, zero
     bd, bs = zero, zero  # throughputs of the diffuse and of the glossy part of the first vertex
     prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
-    materials, quads, spheres, tris = sc.materials, sc.quads, sc.spheres, sc.triangles
-    light_prob = sc.light_prob
+    materials, light_prob, lt = sc.materials, sc.light_prob, sc.light_table
     for bounce in range(max_depth + 1):
         t, kind, idx = intersect(o, d, np.inf, sc)
         if HAS_MESH:  # triangles after spheres and quads, up to the nearer hit (t is inf on a miss)
@@ -310,17 +353,11 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             if ti >= 0:
                 t, kind, idx = tm, 2, ti
         if kind < 0:
-            env, w = zero, 1.0
-            if HAS_ENVIRONMENT_MAP and sc.env_map.shape[0] > 0:
-                env, pdf_dir = env_lookup(sc, d)
-                if bounce > 0 and prev_pdf > 0.0 and sc.env_light >= 0:
-                    w = power_heuristic(prev_pdf, light_prob[sc.env_light] * pdf_dir)
-            elif HAS_ENVIRONMENT:
-                env = environment_at(sc, d)
+            env, w = escaped(sc, d, bounce, prev_pdf)
             ld, ls = add_emitted(ld, ls, bd, bs, env, w, bounce)
             break
         p = _madd(o, d, t)
-        ng, tu, tv = surface(p, kind, idx, spheres, quads, tris)
+        ng, tu, tv = surface(p, kind, idx, sc.spheres, sc.quads, sc.triangles)
         m = sc.tri_mat[idx] if HAS_MESH and kind == 2 else (sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx])
         mk = int(materials[m, M_KIND])
         cos_d = _dot(ng, d)
@@ -333,19 +370,8 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             out[9], out[10], out[11] = n
             out[12] = t
         if HAS_EMITTER and mk == EMITTER:
-            if cos_d < 0.0:  # front side only; MIS-weighted where light sampling could have drawn it
-                li = sc.quad_light[idx] if kind == 1 else (sc.sphere_light[idx] if kind == 0 else -1)
-                if HAS_MESH and kind == 2:
-                    li = sc.tri_light[idx]
-                w = 1.0
-                if bounce > 0 and li >= 0 and prev_pdf > 0.0:
-                    if kind == 1:
-                        pdf_l = planar_density(light_prob[li], t, -cos_d, quads[idx, Q_AREA])
-                    elif HAS_MESH and kind == 2:
-                        pdf_l = planar_density(light_prob[li], t, -cos_d, tris[idx, T_AREA])
-                    else:  # the cone density light sampling used from the previous vertex, o
-                        pdf_l = sphere_density(o, _row3(spheres, idx, 0), spheres[idx, 3], light_prob[li])
-                    w = power_heuristic(prev_pdf, pdf_l)
+            if cos_d < 0.0:  # front side only
+                w = emitter_weight(sc, kind, idx, o, t, cos_d, bounce, prev_pdf)
                 ld, ls = add_emitted(ld, ls, bd, bs, _row3(materials, m, M_EMISSION), w, bounce)
             break
         if bounce == max_depth:
@@ -362,25 +388,16 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             if (HAS_EMITTER or HAS_ENVIRONMENT_MAP) and sc.lights.shape[0] > 0:
                 # next-event estimation: a light picked by power, a sample on it, MIS-weighted against the BSDF
                 li = search_cdf(sc.light_cdf, rand(key, base))
-                q, lk, u1, u2 = sc.lights[li], sc.light_kind[li], rand(key, base + 1), rand(key, base + 2)
+                lk, u1, u2 = sc.light_kind[li], rand(key, base + 1), rand(key, base + 2)
                 lit, wi, tmax, pdf_l, le = False, n, 0.0, 0.0, zero
-                if HAS_EMITTER and lk == L_QUAD:
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, quad_point(
-                        _row3(quads, q, Q_CORNER), _row3(quads, q, Q_U), _row3(quads, q, Q_V), u1, u2),
-                        _row3(quads, q, Q_NORMAL), quads[q, Q_AREA], light_prob[li])
-                    le = _row3(materials, sc.quad_mat[q], M_EMISSION)
-                elif HAS_EMITTER and HAS_MESH and lk == L_TRIANGLE:
-                    lit, wi, tmax, pdf_l = toward_planar_light(origin, triangle_point(
-                        _row3(tris, q, T_V0), _row3(tris, q, T_E1), _row3(tris, q, T_E2), u1, u2),
-                        _row3(tris, q, T_NORMAL), tris[q, T_AREA], light_prob[li])
-                    le = _row3(materials, sc.tri_mat[q], M_EMISSION)
-                elif HAS_EMITTER and lk == L_SPHERE:
-                    lit, wi, tmax, pdf_l = toward_sphere_light(origin, _row3(spheres, q, 0), spheres[q, 3],
-                                                               light_prob[li], u1, u2)
-                    le = _row3(materials, sc.sphere_mat[q], M_EMISSION)
-                elif HAS_ENVIRONMENT_MAP and lk == L_ENVIRONMENT:
+                if HAS_ENVIRONMENT_MAP and lk == L_ENVIRONMENT:
                     wi, pdf_dir, le = env_sample(sc, u1, u2)
                     lit, tmax, pdf_l = pdf_dir > 0.0, np.inf, light_prob[li] * pdf_dir
+                elif HAS_EMITTER:
+                    lit, wi, tmax, pdf_l = toward_light(lk, _row3(lt, li, L_A), _row3(lt, li, L_B), _row3(lt, li, L_C),
+                                                        _row3(lt, li, L_NORMAL), lt[li, L_AREA], origin,
+                                                        light_prob[li], u1, u2)
+                    le = _row3(lt, li, L_EMISSION)
                 ci = _dot(n, wi)
                 if lit and ci > 0.0:
                     fd, fs, pdf_b = bsdf_eval(mk, kd, ks, alpha, n, wo, wi)

@@ -1,7 +1,8 @@
 """Light sampling for next-event estimation: the geometry of each light kind, as pbrt's ``Light::SampleLi``.
 
-The functions take a light's geometry as tuples and numbers (read from its table by the integrator, which
-dispatches on ``sc.light_kind`` under its ``HAS_*`` flags) and the probability ``prob`` with which it was picked.
+The functions take a light's geometry as tuples and numbers (read from the light table, ``packing.LIGHT_*``, by
+the integrator, which dispatches on ``sc.light_kind`` under its ``HAS_*`` flags) and the probability ``prob``
+with which it was picked.
 A ``toward_*`` function returns ``(lit, wi, tmax, pdf)`` for a sample seen from ``origin``: ``wi`` the unit
 direction towards it, ``tmax`` the distance a shadow ray along it tests (short of the light itself), ``pdf`` the
 solid-angle density of the sample times ``prob``; ``lit`` is False, and pdf 0, where the light can send origin

@@ -29,6 +29,11 @@ TRI_COLS = 13
 # light_kind of each entry of the light list; the list holds the quads, then the spheres, then the triangles,
 # then the environment map.
 LIGHT_QUAD, LIGHT_SPHERE, LIGHT_TRIANGLE, LIGHT_ENVIRONMENT = 0, 1, 2, 3
+# Layout of one row of the light table, what light sampling reads of a light of any kind, copied from its own
+# table: a quad's corner, u, v or a triangle's v0, e1, e2 (a sphere's centre, and its radius at LIGHT_B), the
+# unit normal and area of a planar light, and the radiance its material emits (zeros for the environment map).
+LIGHT_A, LIGHT_B, LIGHT_C, LIGHT_NORMAL, LIGHT_AREA, LIGHT_EMISSION = 0, 3, 6, 9, 12, 13
+LIGHT_COLS = 16
 # The BVH over the triangles: node bounds (min x y z, max x y z) and links; an inner node's children are
 # nodes [BVH_LEFT] and [BVH_RIGHT], a leaf holds triangles [BVH_FIRST, BVH_FIRST + BVH_COUNT). Node 0 is
 # the root. Leaves hold at most BVH_LEAF_SIZE triangles; the tree is at most BVH_MAX_DEPTH deep (the
@@ -56,6 +61,7 @@ class PackedScene(NamedTuple):
     sphere_light: np.ndarray  # (Ns,) int64, index into lights or -1
     lights: np.ndarray  # (Nl,) int64 index of each light in its table (in the order of LIGHT_*)
     light_kind: np.ndarray  # (Nl,) int64: LIGHT_*
+    light_table: np.ndarray  # (Nl, LIGHT_COLS)
     light_cdf: np.ndarray  # (Nl,) cumulative selection probability
     light_prob: np.ndarray  # (Nl,) selection probability (proportional to power)
     camera: np.ndarray  # (12,) see Camera.frame
@@ -239,6 +245,7 @@ def pack(scene: Scene) -> PackedScene:
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
         sphere_light=sphere_light, lights=np.asarray(lights.index, dtype=np.int64),
         light_kind=np.asarray(lights.kinds, dtype=np.int64), light_cdf=cdf, light_prob=prob,
+        light_table=lights.table(mats, (quads, quad_mat), (spheres, sphere_mat), (triangles, tri_mat)),
         camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
         lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
         environment=np.asarray(_vec(scene.environment, "environment")),
@@ -271,6 +278,20 @@ class _Lights:
         self.kinds.extend([kind] * len(index))
         self.powers.extend(powers.tolist())
         return first + np.arange(len(index))
+
+    def table(self, materials, quads, spheres, triangles) -> np.ndarray:
+        """The light table (one row of ``LIGHT_*`` per light), from the ``(table, material of each row)`` of the
+        quads, spheres and triangles: the same float64 values as theirs."""
+        kinds, index = np.asarray(self.kinds, dtype=np.int64), np.asarray(self.index, dtype=np.int64)
+        table = np.zeros((len(kinds), LIGHT_COLS))
+        (quads, quad_mat), (spheres, sphere_mat), (triangles, tri_mat) = quads, spheres, triangles
+        geometry = {LIGHT_QUAD: quads[:, np.r_[0:12, QUAD_COLS - 1]],  # corner, u, v, normal; area
+                    LIGHT_TRIANGLE: triangles, LIGHT_SPHERE: np.pad(spheres, ((0, 0), (0, 9)))}
+        for kind, mats in ((LIGHT_QUAD, quad_mat), (LIGHT_TRIANGLE, tri_mat), (LIGHT_SPHERE, sphere_mat)):
+            at = index[kinds == kind]
+            table[kinds == kind, :LIGHT_EMISSION] = geometry[kind][at]
+            table[kinds == kind, LIGHT_EMISSION:] = materials[mats[at], MAT_EMISSION:MAT_EMISSION + 3]
+        return table
 
     def selection(self) -> tuple[np.ndarray, np.ndarray]:
         """(probability, cumulative probability) of picking each light, in proportion to its power."""

@@ -15,14 +15,15 @@ from numba import njit
 
 LAMBERT, GLOSSY, PLASTIC, EMITTER, MIRROR, GLASS = 0, 1, 2, 3, 4, 5  # order of scene.MATERIAL_KINDS
 TEX_NONE, TEX_WORLD, TEX_UV, TEX_IMAGE = 0, 1, 2, 3  # order of scene.TEXTURES
-# Column layouts of the material, quad, triangle and BVH tables and the kinds of lights, mirrored from packing.py
-# (MAT_*, QUAD_COLS, TRI_*, BVH_*, LIGHT_*) rather than imported, so that numba's cache of this file cannot hold
-# stale copies; a test checks they agree.
+# Column layouts of the material, quad, triangle, light and BVH tables and the kinds of lights, mirrored from
+# packing.py (MAT_*, QUAD_COLS, TRI_*, LIGHT_*, BVH_*) rather than imported, so that numba's cache of this file
+# cannot hold stale copies; a test checks they agree.
 M_KIND, M_ALBEDO, M_SPECULAR, M_ROUGHNESS, M_EMISSION = 0, 1, 4, 7, 8
 M_TEXTURE, M_ALBEDO2, M_SCALE, M_IOR = 11, 12, 15, 16
 Q_CORNER, Q_U, Q_V, Q_NORMAL, Q_DUAL_U, Q_DUAL_V, Q_AREA = 0, 3, 6, 9, 12, 15, 18
 T_V0, T_E1, T_E2, T_NORMAL, T_AREA = 0, 3, 6, 9, 12
 L_QUAD, L_SPHERE, L_TRIANGLE, L_ENVIRONMENT = 0, 1, 2, 3
+L_A, L_B, L_C, L_NORMAL, L_AREA, L_EMISSION = 0, 3, 6, 9, 12, 13
 B_LEFT, B_RIGHT, B_IS_LEAF, B_FIRST, B_COUNT = 0, 1, 2, 0, 1
 BVH_STACK = 64  # > packing.BVH_MAX_DEPTH: the traversal pushes at most one node per level
 
