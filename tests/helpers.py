@@ -142,8 +142,8 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
                           env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kept})
 
 
-# the commands that import the deep-learning stack, which a fresh interpreter takes ~5 s to import here
-STACK_COMMANDS = ("train", "resample", "resample-study", "denoise", "evaluate", "figures")
+# the commands that never import the deep-learning stack (cli.py), which the others take ~5 s to import here
+STACKLESS_COMMANDS = ("render", "shards")
 
 
 def command_env() -> dict:
@@ -154,13 +154,13 @@ def command_env() -> dict:
 
 def start_kpcn(args, cwd) -> "subprocess.Popen | WarmProcess":
     """``kpcn -q ARGS`` started in ``cwd`` in a process of its own (:func:`command_env`), stdout and stderr
-    together, for the tests that kill a command and run it again: a command of the stack in a
-    :class:`WarmProcess`, ``render`` and ``shards`` (which never import it) in a fresh interpreter."""
+    together, for the tests that kill a command and run it again: ``render`` and ``shards`` (which never import
+    the stack) in a fresh interpreter, the others in a :class:`WarmProcess`."""
     args = [str(a) for a in args]
-    if args[0] in STACK_COMMANDS:
-        return WarmProcess(_kpcn_main, (args,), cwd=cwd, env=command_env(), name=f"kpcn {args[0]}")
-    return subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=cwd, env=command_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if args[0] in STACKLESS_COMMANDS:
+        return subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", *args], cwd=cwd, env=command_env(),
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return WarmProcess(_kpcn_main, (args,), cwd=cwd, env=command_env(), name=f"kpcn {args[0]}")
 
 
 def _kpcn_main(args) -> int:
@@ -208,15 +208,12 @@ class WarmProcess:
     def kill(self) -> None:
         self.send_signal(signal.SIGKILL)
 
-    def wait(self, timeout=None) -> int:
+    def communicate(self, timeout=None) -> tuple[str, None]:
+        """(stdout and stderr, None) once the process has ended; its output file is then removed, so call it
+        (rather than a ``wait``, which this class does not have) once the process is started."""
         self._proc.join(timeout)
         if self._proc.exitcode is None:
             raise subprocess.TimeoutExpired(self.args, timeout)
-        return self._proc.exitcode
-
-    def communicate(self, timeout=None) -> tuple[str, None]:
-        """(stdout and stderr, None) once the process has ended."""
-        self.wait(timeout)
         out = Path(self._out).read_text()
         Path(self._out).unlink(missing_ok=True)
         return out, None

@@ -118,7 +118,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path):
             break
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.communicate()
     done = read_state(checkpoint)["epochs_done"]
     assert 1 <= done < 10, f"the run should have been killed mid-way, it had done {done} epochs"
     assert not (run_dir / "diffuse.keras").exists()

@@ -353,7 +353,7 @@ def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
             break
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.communicate()
     state = read_state(ckpt)
     assert state["phase"] == "joint" and 1 <= state["epochs_done"] < 9, state["epochs_done"]
     record = json.loads((run_dir / "config.json").read_text())
