@@ -245,7 +245,7 @@ def pack(scene: Scene) -> PackedScene:
         n_single=n_single, groups=groups, group_bounds=bounds, materials=mats,
         sphere_light=sphere_light, lights=np.asarray(lights.index, dtype=np.int64),
         light_kind=np.asarray(lights.kinds, dtype=np.int64), light_cdf=cdf, light_prob=prob,
-        light_table=lights.table(mats, (quads, quad_mat), (spheres, sphere_mat), (triangles, tri_mat)),
+        light_table=lights.table(mats, quads, quad_mat, spheres, sphere_mat, triangles, tri_mat),
         camera=scene.camera.frame(), tan_half=math.tan(math.radians(scene.camera.fov) / 2),
         lens_radius=float(scene.camera.aperture), focus_distance=scene.camera.focus,
         environment=np.asarray(_vec(scene.environment, "environment")),
@@ -279,18 +279,18 @@ class _Lights:
         self.powers.extend(powers.tolist())
         return first + np.arange(len(index))
 
-    def table(self, materials, quads, spheres, triangles) -> np.ndarray:
-        """The light table (one row of ``LIGHT_*`` per light), from the ``(table, material of each row)`` of the
-        quads, spheres and triangles: the same float64 values as theirs."""
+    def table(self, materials, quads, quad_mat, spheres, sphere_mat, triangles, tri_mat) -> np.ndarray:
+        """The light table (one row of ``LIGHT_*`` per light), from the tables of the quads, spheres and
+        triangles and the material of each of their rows: the same float64 values as theirs."""
         kinds, index = np.asarray(self.kinds, dtype=np.int64), np.asarray(self.index, dtype=np.int64)
         table = np.zeros((len(kinds), LIGHT_COLS))
-        (quads, quad_mat), (spheres, sphere_mat), (triangles, tri_mat) = quads, spheres, triangles
         geometry = {LIGHT_QUAD: quads[:, np.r_[0:12, QUAD_COLS - 1]],  # corner, u, v, normal; area
                     LIGHT_TRIANGLE: triangles, LIGHT_SPHERE: np.pad(spheres, ((0, 0), (0, 9)))}
         for kind, mats in ((LIGHT_QUAD, quad_mat), (LIGHT_TRIANGLE, tri_mat), (LIGHT_SPHERE, sphere_mat)):
-            at = index[kinds == kind]
-            table[kinds == kind, :LIGHT_EMISSION] = geometry[kind][at]
-            table[kinds == kind, LIGHT_EMISSION:] = materials[mats[at], MAT_EMISSION:MAT_EMISSION + 3]
+            of_kind = kinds == kind
+            rows = index[of_kind]
+            table[of_kind, :LIGHT_EMISSION] = geometry[kind][rows]
+            table[of_kind, LIGHT_EMISSION:] = materials[mats[rows], MAT_EMISSION:MAT_EMISSION + 3]
         return table
 
     def selection(self) -> tuple[np.ndarray, np.ndarray]:
