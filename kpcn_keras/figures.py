@@ -35,7 +35,7 @@ import numpy as np
 from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import build_kernel_model, network_input
-from kpcn_keras.multiscale import build_alpha_model
+from kpcn_keras.multiscale import alpha_maps
 from kpcn_keras.run import Run
 from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
@@ -131,8 +131,7 @@ def alpha_figure(den: Denoiser, aovs: dict, path: Path, slope=None) -> Path:
     rows = []
     for branch in BRANCHES:
         feats = network_input(features.branch_features(aovs, branch), den.model_config, branch, slope)
-        alphas = build_alpha_model(den.models[branch]).predict_on_batch(feats[None])
-        rows.append((branch, [_to_numpy(a)[0, ..., 0] for a in alphas]))
+        rows.append((branch, [a[0, ..., 0] for a in alpha_maps(den.models[branch], feats[None])]))
     cols = 1 + len(rows[0][1])
     fig, axes = plt.subplots(len(rows), cols, figsize=(3 * cols, 3 * len(rows)), squeeze=False)
     for ax_row, (branch, alphas) in zip(axes, rows):

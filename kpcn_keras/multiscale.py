@@ -78,6 +78,7 @@ __all__ = [
     "ScaleBlend",
     "Upsample2x",
     "alignment",
+    "alpha_maps",
     "build_alpha_model",
     "build_compositor",
     "build_multiscale_model",
@@ -623,3 +624,10 @@ def build_alpha_model(model: keras.Model) -> keras.Model:
     # model.layers is in graph order and each finer pair reads the coarser pair's output: coarsest first
     maps = [CropLike(2**level)([reg.output, model.input]) for level, reg in enumerate(reversed(regs))]
     return keras.Model(model.input, maps, name=f"{model.name}_alpha")
+
+
+def alpha_maps(model: keras.Model, features) -> list:
+    """The α maps (numpy arrays) of :func:`build_alpha_model` on a batch of ``features``, finest first, always a
+    list: Keras returns a model's lone output bare, so with 2 levels the α model gives one array, not a list."""
+    maps = build_alpha_model(model).predict_on_batch(features)
+    return [keras.ops.convert_to_numpy(m) for m in (maps if isinstance(maps, (list, tuple)) else [maps])]

@@ -25,6 +25,7 @@ from kpcn_keras.multiscale import (
     ScaleBlend,
     Upsample2x,
     alignment,
+    alpha_maps,
     build_alpha_model,
     build_compositor,
     build_multiscale_model,
@@ -466,6 +467,14 @@ def test_alpha_model_is_finest_first_and_shares_weights():
     maps = [to_np(a) for a in build_alpha_model(model)(features((2, 17, 9)))]
     assert [a.shape for a in maps] == [(2, 17, 9, 1), (2, 9, 5, 1)]
     np.testing.assert_allclose(np.concatenate([a.ravel() for a in maps]), 1 / (1 + np.exp(-0.8)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("levels, shapes", [(2, [(2, 17, 9, 1)]), (3, [(2, 17, 9, 1), (2, 9, 5, 1)])])
+def test_alpha_maps_are_a_list_finest_first_at_every_level_count(levels, shapes):
+    # with 2 levels the α model has one output, which Keras returns bare: kpcn figures iterated over its batch
+    maps = alpha_maps(multiscale("kernel", levels=levels), features((2, 17, 9)))
+    assert isinstance(maps, list) and [m.shape for m in maps] == shapes
+    assert all(isinstance(m, np.ndarray) and ((m >= 0) & (m <= 1)).all() for m in maps)
 
 
 def test_alpha_zero_returns_the_single_scale_denoiser_exactly():
