@@ -156,7 +156,7 @@ def cmd_evaluate(args) -> int:
 
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
     rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline,
-                    **({"tile": args.tile} if "tile" in args else {}))
+                    **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
     return 0

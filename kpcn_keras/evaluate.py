@@ -103,8 +103,9 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
-             tile: int = DEFAULT_TILE, baseline: bool = True) -> list[dict]:
-    """Evaluate a run on ``pairs`` (default: its held-out scenes); writes the report and returns the rows."""
+             tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None) -> list[dict]:
+    """Evaluate a run on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
+    input; refused elsewhere); writes the report and returns the rows."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
@@ -117,15 +118,16 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
     check_outputs(written, read + run.read_files(record),
                   "choose another --out (a report folder takes one render of each name)")
+    record.check_slope(slope)
     denoiser = Denoiser.from_run(run, tile, record=record)
-    denoiser.warm_up()
+    denoiser.warm_up(slope)
     rows = []
     for noisy_path, ref_path in pairs:
         scene, spp = exr.parse_render_filename(noisy_path)
         noisy = exr.read_aovs(noisy_path)
         ref = exr.read_aovs(ref_path, variances=False)["default"]
         start = time.perf_counter()
-        out = denoiser(noisy)["default"]
+        out = denoiser(noisy, slope=slope)["default"]
         seconds = time.perf_counter() - start
         row = {
             "scene": scene,
@@ -152,7 +154,8 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         rows.append(row)
     table = format_table(rows)
     atomic_write_text(out_dir / METRICS, json.dumps(rows, indent=2))
-    atomic_write_text(out_dir / REPORT, f"# Evaluation of {run.dir} ({date.today().isoformat()})\n\n{table}\n")
+    at = "" if slope is None else f" at λ = {slope:g}"
+    atomic_write_text(out_dir / REPORT, f"# Evaluation of {run.dir}{at} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 
 

@@ -324,14 +324,16 @@ def _denoise_options(add) -> None:
 
 def _evaluate_options(add) -> None:
     """The options of ``kpcn evaluate``."""
-    from kpcn_keras.config import DEFAULT_TILE, TILE
+    from kpcn_keras.config import DEFAULT_TILE, SLOPE, TILE
 
-    e = add("evaluate", own={"tile": TILE}, help="compare a run with the raw input and NLM on held-out scenes")
+    e = add("evaluate", own={"tile": TILE, "slope": SLOPE}, help="compare a run with the raw input and NLM on "
+            "held-out scenes")
     _run_option(e, required=True)
     e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
                    "each reference is the same scene's render with the most samples in the same folder")
     e.add_argument("--out", default=None, help="report folder (default: <run>/eval)")
     e.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
+    e.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input (as kpcn denoise --slope)")
     e.add_argument("--no-baseline", action="store_true", default=False)
 
 

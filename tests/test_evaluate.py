@@ -127,3 +127,28 @@ def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(
     assert main(["-q", "figures", "--run", str(run), str(noisy)]) == 0
     assert (run / "figures" / "kernels.png").is_file()
     capsys.readouterr()
+
+
+@pytest.mark.slow
+def test_a_slope_input_run_is_evaluated_at_the_slope_given_and_refused_without_one(tmp_path):
+    from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.train import TrainConfig, train
+
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_MODEL, steps=2,
+                                  steps_per_epoch=2, batch_size=2, val_batches=1, loss="asymmetric", slope_input=True)
+    run = Run(train(cfg, tmp_path / "r", verbose=0))
+    res = run_main("evaluate", "--run", run.dir, "--out", tmp_path / "none", "--no-baseline", cwd=tmp_path)
+    assert_one_line_error(res, "--slope is needed", "trained with λ as an input, for λ in [1.0, 8.0]")
+    assert not (tmp_path / "none").exists()
+    res = run_main("evaluate", "--run", run.dir, "--out", tmp_path / "eval", "--no-baseline", "--slope", "3",
+                   cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "at λ = 3 " in (tmp_path / "eval" / "report.md").read_text().splitlines()[0]
+    rows = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    denoiser = Denoiser.from_run(run)
+    for (noisy, ref), row in zip(held_out_pairs(run, run.record()), rows, strict=True):
+        want = denoiser(exr.read_aovs(noisy), slope=3.0)["default"]
+        assert row["denoised"] == metrics.all_metrics(want, exr.read_aovs(ref, variances=False)["default"])
