@@ -118,7 +118,6 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
     check_outputs(written, read + run.read_files(record),
                   "choose another --out (a report folder takes one render of each name)")
-    record.check_slope(slope)
     denoiser = Denoiser.from_run(run, tile, record=record)
     denoiser.warm_up(slope)
     rows = []
