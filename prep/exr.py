@@ -37,6 +37,7 @@ import re
 import sys
 import tempfile
 from contextlib import contextmanager, redirect_stderr, redirect_stdout
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -162,24 +163,92 @@ def _native_detail(path: Path, captured: list[str], exc: Exception) -> str:
     return coded[0] if coded else str(exc)
 
 
-def _open(path: Path, **kwargs):
-    """Run OpenEXR.File on ``path``; returns (header, channels); AOVError naming the file if unreadable."""
+# Header attributes that describe a file's structure, not its content: the writer sets them itself.
+STRUCTURAL_ATTRIBUTES = frozenset({"channels", "chunkCount", "compression", "dataWindow", "lineOrder", "name",
+                                   "type", "tiles", "version"})
+
+
+@dataclass
+class ExrImage:
+    """What one OpenEXR file holds, every part of it: a multi-part file (Blender 5 writes one part per pass)
+    reads as one set of channels. ``channels`` maps each channel's full name to its pixels (empty when read
+    with ``header_only``); a name that two parts share is prefixed by the later part's name. ``attributes``
+    are part 0's header attributes less the structural ones (:data:`STRUCTURAL_ATTRIBUTES`), for an output
+    to carry; ``data_window`` and ``display_window`` are part 0's ((x0, y0), (x1, y1)); ``half`` names the
+    channels stored as half floats."""
+
+    path: Path
+    size: tuple[int, int]
+    names: tuple[str, ...]
+    parts: tuple[str, ...]
+    channels: dict[str, np.ndarray] = field(default_factory=dict)
+    attributes: dict = field(default_factory=dict)
+    data_window: tuple = ((0, 0), (0, 0))
+    display_window: tuple = ((0, 0), (0, 0))
+    half: frozenset = frozenset()
+
+    def components(self) -> dict[str, set[str]]:
+        """``layer -> its component names`` (``a.b.R`` is component R of layer ``a.b``)."""
+        out: dict[str, set[str]] = {}
+        for name in self.names:
+            layer, comp = _split_name(name)
+            out.setdefault(layer, set()).add(comp)
+        return out
+
+
+def _window(value) -> tuple:
+    lo, hi = value
+    return (int(lo[0]), int(lo[1])), (int(hi[0]), int(hi[1]))
+
+
+def read_image(path: str | os.PathLike, *, header_only: bool = False) -> ExrImage:
+    """Every part of the OpenEXR file ``path`` (:class:`ExrImage`); AOVError naming the file if it is not one,
+    or if its parts' data windows differ."""
     import OpenEXR  # imported here so that modules using only the constants stay light
 
+    path = Path(path)
     if path.is_dir():
         raise AOVError(f"{path}: is a folder, expected an OpenEXR file")
     if not path.is_file():
         raise AOVError(f"{path}: no such file")
+    names, parts, channels, half = [], [], {}, set()
     try:
         with _captured_native_output() as captured:
-            with OpenEXR.File(str(path), **kwargs) as f:
+            with OpenEXR.File(str(path), separate_channels=True, header_only=header_only) as f:
                 # the header dict is emptied when the file closes: copy what we need inside
-                header = {"dataWindow": f.header()["dataWindow"], "channels": list(f.header()["channels"])}
-                channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+                header = f.parts[0].header
+                attributes = {k: v for k, v in header.items() if k not in STRUCTURAL_ATTRIBUTES}
+                data_window = _window(header["dataWindow"])
+                display_window = _window(header.get("displayWindow", header["dataWindow"]))
+                for i, part in enumerate(f.parts):
+                    part_name = part.name() or f"part {i}"
+                    parts.append(part_name)
+                    if _window(part.header["dataWindow"]) != data_window:
+                        raise AOVError(f"{path}: part {part_name!r} has data window "
+                                       f"{_window(part.header['dataWindow'])}, part 0 has {data_window}")
+                    listed = part.header["channels"] if header_only else part.channels.values()
+                    for ch in listed:
+                        name = ch.name
+                        if name in names:
+                            name = f"{part_name}.{name}"
+                        names.append(name)
+                        if not header_only:
+                            channels[name] = np.asarray(ch.pixels)
+                            if channels[name].dtype == np.float16:
+                                half.add(name)
+    except AOVError:
+        raise
     except Exception as exc:  # the binding raises bare RuntimeErrors for corrupt files
         raise AOVError(f"{path}: not a readable OpenEXR file ({_native_detail(path, captured, exc)})") from None
-    lo, hi = header["dataWindow"]
-    return (int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)), header, channels
+    (x0, y0), (x1, y1) = data_window
+    return ExrImage(path, (y1 - y0 + 1, x1 - x0 + 1), tuple(names), tuple(parts), channels, attributes,
+                    data_window, display_window, frozenset(half))
+
+
+def _open(path: Path, *, header_only: bool = False):
+    """(size, channel names, channels) of every part of ``path``; AOVError naming the file if unreadable."""
+    image = read_image(path, header_only=header_only)
+    return image.size, image.names, image.channels
 
 
 def _check_layers(path, components: dict[str, set[str]], variances: bool) -> tuple[str, ...]:
@@ -214,13 +283,9 @@ def read_header(path: str | os.PathLike, *, variances: bool = True) -> tuple[int
     Raises AOVError naming the file and the layer.
     """
     path = Path(path)
-    size, header, _ = _open(path, header_only=True)
-    components: dict[str, set[str]] = {}
-    for channel in header["channels"]:
-        layer, comp = _split_name(channel.name)
-        components.setdefault(layer, set()).add(comp)
-    _check_layers(path, components, variances)
-    return size
+    image = read_image(path, header_only=True)
+    _check_layers(path, image.components(), variances)
+    return image.size
 
 
 def repair_nonfinite(image: np.ndarray) -> tuple[np.ndarray, int]:
@@ -249,7 +314,7 @@ def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, n
     derived as diffuse + specular when the file has none. Raises AOVError naming the file and layer.
     """
     path = Path(path)
-    expected, _, channels = _open(path, separate_channels=True)
+    expected, _, channels = _open(path)
     raw = _group_channels(path, channels)
     del channels
     wanted = _check_layers(path, {name: set(comps) for name, comps in raw.items()}, variances)
@@ -287,7 +352,7 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     channels, or those of layer ``default``. Non-finite values are left for the caller to judge.
     Raises AOVError naming the file."""
     path = Path(path)
-    _, _, channels = _open(path, separate_channels=True)
+    _, _, channels = _open(path)
     layers = _group_channels(path, channels)
     comps = layers.get("default", {})
     if not set("RGB") <= set(comps):

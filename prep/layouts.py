@@ -1,0 +1,447 @@
+"""What renderers write, read as kpcn's AOV layout: one adapter per renderer, the only module that knows
+their channel names (docs/formats.md §1b).
+
+:func:`read` opens any OpenEXR file (every part of a multi-part one) and returns a :class:`Frame`: the layers
+of ``prep.exr``'s AOV layout that the file has, under their kpcn names, and the :class:`~prep.inputs.InputSet`
+they make (a diffuse/specular split? variance layers?), with the alpha, the header attributes and windows an
+output keeps, and a note of each repair. The adapter is found from the channels (:data:`LAYOUTS`, tried in
+order; the first that finds what it needs reads the file) or named by the caller (``--layout``). A file no
+adapter reads is refused with one line naming what each looked for and missed.
+
+=========  ===================================================================================================
+layout     what it reads
+=========  ===================================================================================================
+kpcn       ``diffuse specular albedo normal depth`` (R G B / Z) and the six ``<x>Variance`` layers (optional)
+cycles     Blender Cycles, ``<view layer>.<pass>.<C>``: Blender 4 short pass names in one part (``DiffDir``,
+           ``GlossCol``, ``Emit``, ``VolumeDir``), Blender 5 long names (``Diffuse Direct``), one part per
+           pass or interleaved. diffuse = (DiffDir + DiffInd) * DiffCol; specular = (Dir + Ind) * Col of
+           glossy and transmission + Emit + Env + VolumeDir + VolumeInd (Combined - diffuse, clipped at 0,
+           when one of those is missing); colour = Combined; albedo = DiffCol (Denoising Albedo clipped to
+           [0, 1] without a split); normal = Normal (world space; else Denoising Normal, camera space);
+           depth = Denoising Depth (else Depth, with values >= DEPTH_MISS, the background, as 0); alpha =
+           Combined.A. No variance: Cycles 3.0+ writes none.
+mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour ``R G B``, albedo (an AOV
+           named ``albedo``), normal (``sh_normal``/``nn``/``normal``), depth (``dd``/``depth``, channel T or
+           Y or Z), each with its second moment ``m2_<channel>``: variance of the mean = (m2 - mean^2) / spp.
+           No split. Albedo clipped to [0, 1] (metals exceed 1).
+pbrt       PBRT-v4 GBufferFilm: ``R G B``, ``Albedo``, ``Ns`` (camera space unless the film wrote world
+           space), ``P`` (depth = |P|, camera space), ``Variance`` (per sample: divided by the spp). No split.
+rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour layer of the layouts above),
+           with ``albedo`` and ``normal`` layers when present or given as files (as OIDN takes them). No
+           split, no variance; a missing depth is 0, a missing normal 0, a missing albedo 1.
+=========  ===================================================================================================
+
+Every layout: half or float channels, ``X Y Z`` or ``R G B`` for a vector, ``Z``, ``T``, ``Y``, ``R`` or
+a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. The samples per pixel come
+from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles ``cycles.<view layer>.samples``),
+else the caller's ``spp``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from prep import exr
+from prep.errors import OptionError
+from prep.exr import AOVError, ExrImage
+from prep.inputs import InputSet
+
+log = logging.getLogger("kpcn")
+
+DEPTH_MISS = 1e9  # Cycles' Depth pass is 1e10 where a ray leaves the scene
+VECTOR = ("RGB", "XYZ")
+SCALAR = ("Z", "T", "Y", "R")
+
+
+@dataclass
+class Frame:
+    """One frame as read from a renderer's file, in kpcn's names (:mod:`prep.exr`): ``default`` (the colour)
+    always, ``albedo normal depth`` always (filled when the file lacks them: see ``notes``), ``diffuse
+    specular`` when ``inputs.split``, the six variance layers when ``inputs.variance``."""
+
+    path: Path
+    layout: str
+    layers: dict[str, np.ndarray]
+    inputs: InputSet
+    alpha: np.ndarray | None = None
+    attributes: dict = field(default_factory=dict)
+    data_window: tuple = ((0, 0), (0, 0))
+    display_window: tuple = ((0, 0), (0, 0))
+    spp: int | None = None
+    notes: tuple[str, ...] = ()
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.layers["default"].shape[:2]
+
+
+class _Channels:
+    """The channels of one file by layer, and the readers of a layer as a vector or a scalar."""
+
+    def __init__(self, image: ExrImage):
+        self.image, self.layers = image, image.components()
+
+    def has(self, layer: str, kind=VECTOR) -> bool:
+        comps = self.layers.get(layer, set())
+        return any(set(c) <= comps for c in kind) or (kind is SCALAR and len(comps) == 1)
+
+    def _pixels(self, layer: str, comp: str) -> np.ndarray:
+        return self.image.channels[f"{layer}.{comp}" if layer != "default" or f"{layer}.{comp}" in
+                                   self.image.channels else comp]
+
+    def vector(self, layer: str) -> np.ndarray:
+        comps = self.layers[layer]
+        names = next(c for c in VECTOR if set(c) <= comps)
+        return np.stack([self._pixels(layer, c) for c in names], axis=-1).astype(np.float32)
+
+    def scalar(self, layer: str) -> np.ndarray:
+        comps = self.layers[layer]
+        comp = next((c for c in SCALAR if c in comps), None) or next(iter(comps))
+        return self._pixels(layer, comp).astype(np.float32)
+
+    def component(self, layer: str, comp: str) -> np.ndarray | None:
+        return self._pixels(layer, comp).astype(np.float32) if comp in self.layers.get(layer, ()) else None
+
+
+def _sum(*images) -> np.ndarray:
+    return exr.to_float32(np.sum([np.asarray(i, np.float64) for i in images], axis=0))
+
+
+class Layout:
+    """One renderer's layout: :meth:`missing` says what a file lacks for it (None: it reads the file),
+    :meth:`layers` reads it. ``looks_for`` is the one line an error shows."""
+
+    name = ""
+    looks_for = ""
+
+    def missing(self, ch: _Channels) -> str | None:
+        raise NotImplementedError
+
+    def spp(self, ch: _Channels) -> int | None:
+        """The samples per pixel the file's header states, if it states them."""
+        return None
+
+    def layers(self, ch: _Channels, spp: int | None) -> tuple[dict, InputSet, np.ndarray | None, list[str]]:
+        """(layers, inputs, alpha, notes) of a file that :meth:`missing` accepted."""
+        raise NotImplementedError
+
+
+class KpcnLayout(Layout):
+    name = "kpcn"
+    looks_for = "layers diffuse, specular, albedo, normal, depth (and the <x>Variance layers)"
+
+    def missing(self, ch):
+        lacking = [n for n in ("diffuse", "specular", "albedo", "normal") if not ch.has(n)]
+        lacking += [] if ch.has("depth", SCALAR) else ["depth"]
+        return ", ".join(lacking) or None
+
+    def layers(self, ch, spp):
+        out = {n: ch.vector(n) for n in ("diffuse", "specular", "albedo", "normal")}
+        out["depth"] = ch.scalar("depth")
+        out["default"] = ch.vector("default") if ch.has("default") else _sum(out["diffuse"], out["specular"])
+        present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
+        variance = len(present) == len(exr.VARIANCE_LAYERS)
+        notes = []
+        if present and not variance:
+            notes.append(f"variance layers {', '.join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))} "
+                         f"missing: read without variance")
+        if variance:
+            out.update({n: ch.scalar(n) for n in exr.VARIANCE_LAYERS})
+        alpha = ch.component("default", "A")
+        return out, InputSet(split=True, variance=variance), alpha, notes
+
+
+# Cycles pass names: (Blender 5, Blender 4). A light pass is stored divided by its colour pass.
+CYCLES_PASSES = {
+    "combined": ("Combined", "Combined"),
+    "diffuse_direct": ("Diffuse Direct", "DiffDir"),
+    "diffuse_indirect": ("Diffuse Indirect", "DiffInd"),
+    "diffuse_color": ("Diffuse Color", "DiffCol"),
+    "glossy_direct": ("Glossy Direct", "GlossDir"),
+    "glossy_indirect": ("Glossy Indirect", "GlossInd"),
+    "glossy_color": ("Glossy Color", "GlossCol"),
+    "transmission_direct": ("Transmission Direct", "TransDir"),
+    "transmission_indirect": ("Transmission Indirect", "TransInd"),
+    "transmission_color": ("Transmission Color", "TransCol"),
+    "emission": ("Emission", "Emit"),
+    "environment": ("Environment", "Env"),
+    "volume_direct": ("Volume Direct", "VolumeDir"),
+    "volume_indirect": ("Volume Indirect", "VolumeInd"),
+    "normal": ("Normal", "Normal"),
+    "depth": ("Depth", "Depth"),
+    "denoising_normal": ("Denoising Normal", "Denoising Normal"),
+    "denoising_albedo": ("Denoising Albedo", "Denoising Albedo"),
+    "denoising_depth": ("Denoising Depth", "Denoising Depth"),
+}
+CYCLES_DIFFUSE = ("diffuse_direct", "diffuse_indirect", "diffuse_color")
+CYCLES_LOBES = ("glossy", "transmission")
+CYCLES_ADDED = ("emission", "environment", "volume_direct", "volume_indirect")
+
+
+class CyclesLayout(Layout):
+    name = "cycles"
+    looks_for = "<view layer>.Combined with Blender's passes (Diffuse Direct / DiffDir, ...)"
+
+    @staticmethod
+    def view_layers(ch) -> list[str]:
+        return sorted(layer.rpartition(".")[0] for layer in ch.layers
+                      if layer.endswith(".Combined") and ch.has(layer))
+
+    def missing(self, ch):
+        views = self.view_layers(ch)
+        if not views:
+            return "a layer '<view layer>.Combined' (R G B)"
+        passes = self._passes(ch, views[0])
+        if not any(p in passes for p in CYCLES_DIFFUSE + ("normal", "denoising_normal", "denoising_albedo")):
+            return f"Blender's passes beside {views[0]}.Combined (only Combined: read it with --layout rgb)"
+        return None
+
+    @staticmethod
+    def _passes(ch, view) -> dict[str, str]:
+        """role -> the file's layer for each Cycles pass present in ``view``."""
+        found = {}
+        for role, names in CYCLES_PASSES.items():
+            for name in names:
+                layer = f"{view}.{name}"
+                if layer in ch.layers:
+                    found[role] = layer
+                    break
+        return found
+
+    def spp(self, ch):
+        samples = ch.image.attributes.get(f"cycles.{self.view_layers(ch)[0]}.samples")
+        return int(samples) if isinstance(samples, str) and samples.isdigit() else None
+
+    def layers(self, ch, spp):
+        views = self.view_layers(ch)
+        view, notes = views[0], []
+        if len(views) > 1:
+            notes.append(f"view layers {', '.join(views)}: read {view}")
+        p = self._passes(ch, view)
+        rgb = {role: ch.vector(layer) for role, layer in p.items() if role not in ("depth", "denoising_depth")}
+        out = {"default": rgb["combined"][..., :3]}
+        split = all(r in p for r in CYCLES_DIFFUSE)
+        if split:
+            out["diffuse"] = exr.to_float32(
+                (rgb["diffuse_direct"].astype(np.float64) + rgb["diffuse_indirect"]) * rgb["diffuse_color"])
+            terms = [r for lobe in CYCLES_LOBES for r in (f"{lobe}_direct", f"{lobe}_indirect", f"{lobe}_color")]
+            if all(r in p for r in terms + list(CYCLES_ADDED)):
+                out["specular"] = _sum(*[(rgb[f"{lobe}_direct"].astype(np.float64) + rgb[f"{lobe}_indirect"])
+                                         * rgb[f"{lobe}_color"] for lobe in CYCLES_LOBES],
+                                       *[rgb[r] for r in CYCLES_ADDED])
+            else:
+                lacking = [CYCLES_PASSES[r][0] for r in terms + list(CYCLES_ADDED) if r not in p]
+                notes.append(f"passes {', '.join(lacking)} missing: specular = Combined - diffuse, clipped at 0")
+                out["specular"] = exr.to_float32(np.maximum(out["default"].astype(np.float64) - out["diffuse"], 0))
+            out["albedo"] = rgb["diffuse_color"]
+        elif "denoising_albedo" in p:
+            out["albedo"] = np.clip(rgb["denoising_albedo"], 0.0, 1.0)
+            notes.append("albedo = Denoising Albedo clipped to [0, 1]")
+        if "normal" in p:
+            out["normal"] = rgb["normal"]
+        elif "denoising_normal" in p:
+            out["normal"] = rgb["denoising_normal"]
+            notes.append("normal = Denoising Normal (camera space; the networks are trained on world space)")
+        if "denoising_depth" in p:
+            out["depth"] = ch.scalar(p["denoising_depth"])
+        elif "depth" in p:
+            depth = ch.scalar(p["depth"])
+            out["depth"] = np.where(depth >= DEPTH_MISS, np.float32(0), depth)
+            notes.append(f"depth = Depth, {DEPTH_MISS:g} and beyond (the background) as 0")
+        alpha = ch.component(p["combined"], "A")
+        return out, InputSet(split=split, variance=False), alpha, notes
+
+
+MITSUBA_ALBEDO = ("albedo",)
+MITSUBA_NORMAL = ("sh_normal", "nn", "normal")
+MITSUBA_DEPTH = ("depth", "dd")
+MITSUBA_MOMENT = "m2_"
+
+
+class MitsubaLayout(Layout):
+    name = "mitsuba"
+    looks_for = ("R G B with AOVs albedo, sh_normal|nn|normal, depth|dd and their m2_ moments "
+                 "(the moment and aov integrators)")
+
+    @staticmethod
+    def _find(ch, names, kind=VECTOR):
+        return next((n for n in names if ch.has(n, kind)), None)
+
+    def missing(self, ch):
+        lacking = [] if ch.has("default") else ["R G B"]
+        lacking += [] if self._find(ch, MITSUBA_ALBEDO) else ["albedo"]
+        lacking += [] if self._find(ch, MITSUBA_NORMAL) else ["a normal AOV"]
+        lacking += [] if self._find(ch, MITSUBA_DEPTH, SCALAR) else ["a depth AOV"]
+        return ", ".join(lacking) or None
+
+    @staticmethod
+    def _moment_layer(ch, layer):
+        """The layer of ``layer``'s second moments: ``m2_<layer>`` (channels named as the mean's)."""
+        for candidate in (f"{MITSUBA_MOMENT}{layer}", f"{MITSUBA_MOMENT}{layer}".rstrip(".")):
+            if candidate in ch.layers:
+                return candidate
+        return None
+
+    def layers(self, ch, spp):
+        names = {"default": "default", "albedo": self._find(ch, MITSUBA_ALBEDO),
+                 "normal": self._find(ch, MITSUBA_NORMAL), "depth": self._find(ch, MITSUBA_DEPTH, SCALAR)}
+        out = {k: ch.vector(v) for k, v in names.items() if k != "depth"}
+        out["depth"] = ch.scalar(names["depth"])
+        notes = []
+        if float(out["albedo"].max(initial=0.0)) > 1.0:
+            notes.append("albedo clipped to [0, 1] (above 1 on metals)")
+        out["albedo"] = np.clip(out["albedo"], 0.0, 1.0)
+        moments = {k: self._moment_layer(ch, "" if v == "default" else v) for k, v in names.items()}
+        if moments["default"] is None:
+            moments["default"] = "m2_" if "m2_" in ch.layers else None
+        lacking = [k for k, v in moments.items() if v is None]
+        if lacking or spp is None:
+            notes.append(f"read without variance: {'no spp known (name the file <scene>-<spp>spp.exr)' if not lacking else 'no m2_ moments of ' + ', '.join(lacking)}")
+            return out, InputSet(split=False, variance=False), ch.component("default", "A"), notes
+        target = {"default": "colorVariance", "albedo": "albedoVariance", "normal": "normalVariance",
+                  "depth": "depthVariance"}
+        for key, layer in moments.items():
+            m2 = ch.vector(layer) if key != "depth" else ch.scalar(layer)
+            mean = out[key] if key != "albedo" else ch.vector(names["albedo"])
+            var = np.maximum(np.asarray(m2, np.float64) - np.asarray(mean, np.float64) ** 2, 0.0) / spp
+            out[target[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
+        out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
+        return out, InputSet(split=False, variance=True), ch.component("default", "A"), notes
+
+
+class PbrtLayout(Layout):
+    name = "pbrt"
+    looks_for = "R G B with Albedo, Ns, P and Variance (PBRT-v4 GBufferFilm)"
+
+    def missing(self, ch):
+        lacking = [n for n in ("default", "Albedo", "Ns", "P") if not ch.has(n)]
+        return ", ".join("R G B" if n == "default" else n for n in lacking) or None
+
+    def layers(self, ch, spp):
+        out = {"default": ch.vector("default"), "albedo": np.clip(ch.vector("Albedo"), 0.0, 1.0),
+               "normal": ch.vector("Ns")}
+        p = ch.vector("P").astype(np.float64)
+        out["depth"] = exr.to_float32(np.sqrt((p * p).sum(axis=-1)))
+        notes = ["depth = |P| (camera space)", "normal = Ns as written (camera space unless the film wrote world)"]
+        if not ch.has("Variance") or spp is None:
+            notes.append("read without variance: " + ("no Variance layer" if not ch.has("Variance") else
+                                                      "no spp known (name the file <scene>-<spp>spp.exr)"))
+            return out, InputSet(split=False, variance=False), ch.component("default", "A"), notes
+        var = np.maximum(ch.vector("Variance").astype(np.float64), 0.0).mean(axis=-1) / spp
+        out["colorVariance"] = out["diffuseVariance"] = out["specularVariance"] = exr.to_float32(var)
+        for name in ("albedoVariance", "normalVariance", "depthVariance"):  # PBRT writes none of these
+            out[name] = np.zeros(var.shape, np.float32)
+        notes.append("variance = Variance / spp; albedo, normal and depth variance 0 (PBRT writes none)")
+        return out, InputSet(split=False, variance=True), ch.component("default", "A"), notes
+
+
+class RgbLayout(Layout):
+    name = "rgb"
+    looks_for = "R G B (unprefixed, or one colour layer)"
+
+    @staticmethod
+    def colour_layer(ch) -> str | None:
+        if ch.has("default"):
+            return "default"
+        views = CyclesLayout.view_layers(ch)
+        if views:
+            return f"{views[0]}.Combined"
+        rgb = [layer for layer in ch.layers if ch.has(layer, ("RGB",))]
+        return rgb[0] if len(rgb) == 1 else None
+
+    def missing(self, ch):
+        return None if self.colour_layer(ch) else "R G B (unprefixed, or exactly one layer with R G B)"
+
+    def layers(self, ch, spp):
+        layer = self.colour_layer(ch)
+        out, notes = {"default": ch.vector(layer)[..., :3]}, []
+        h, w = out["default"].shape[:2]
+        for name, kind in (("albedo", VECTOR), ("normal", VECTOR), ("depth", SCALAR)):
+            found = next((n for n in (name, name.capitalize()) if ch.has(n, kind)), None)
+            if found:
+                out[name] = ch.vector(found) if kind is VECTOR else ch.scalar(found)
+        return out, InputSet(split=False, variance=False), ch.component(layer, "A"), notes
+
+
+LAYOUTS = {layout.name: layout for layout in (KpcnLayout(), CyclesLayout(), PbrtLayout(), MitsubaLayout(),
+                                              RgbLayout())}
+FILL = {"albedo": 1.0, "normal": 0.0, "depth": 0.0}  # what a layer the file lacks is (the rgb layout)
+
+
+def check_layout(name: str | None, option: str = "layout") -> str | None:
+    if name is not None and name not in LAYOUTS:
+        raise OptionError(option, f"must be one of {', '.join(LAYOUTS)}, got {name!r}")
+    return name
+
+
+def detect(image: ExrImage, layout: str | None = None) -> Layout:
+    """The adapter that reads ``image``: ``layout`` if given (AOVError with what the file lacks for it),
+    else the first of :data:`LAYOUTS` that finds what it needs (AOVError with what each missed)."""
+    ch = _Channels(image)
+    if layout is not None:
+        adapter = LAYOUTS[check_layout(layout)]
+        lacking = adapter.missing(ch)
+        if lacking:
+            raise AOVError(f"{image.path}: not a {layout} file: it lacks {lacking}")
+        return adapter
+    missed = []
+    for adapter in LAYOUTS.values():
+        lacking = adapter.missing(ch)
+        if lacking is None:
+            return adapter
+        missed.append(f"{adapter.name}: no {lacking}")
+    found = ", ".join(sorted(ch.layers)) or "no channels"
+    raise AOVError(f"{image.path}: no layout kpcn reads ({'; '.join(missed)}); the file has layers {found}")
+
+
+def _spp_of(path: Path) -> int | None:
+    try:
+        return exr.parse_render_filename(path)[1]
+    except AOVError:
+        return None
+
+
+def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,
+         albedo: str | os.PathLike | None = None, normal: str | os.PathLike | None = None) -> Frame:
+    """Read any renderer's frame (module docstring); ``layout`` forces an adapter, ``spp`` is used when the
+    file name does not say it; ``albedo``, ``normal``: separate files for an rgb frame's auxiliaries."""
+    path = Path(path)
+    image = exr.read_image(path)
+    adapter = detect(image, layout)
+    ch = _Channels(image)
+    spp = _spp_of(path) or adapter.spp(ch) or spp
+    layers, inputs, alpha, notes = adapter.layers(ch, spp)
+    for name, aux in (("albedo", albedo), ("normal", normal)):
+        if aux is not None:
+            layers[name] = exr.read_rgb(aux)
+            if layers[name].shape != layers["default"].shape:
+                raise AOVError(f"{aux}: {name} is {layers[name].shape[1]}x{layers[name].shape[0]}, "
+                               f"{path} is {image.size[1]}x{image.size[0]}")
+    h, w = image.size
+    for name, value in FILL.items():
+        if name not in layers:
+            layers[name] = np.full((h, w) if name == "depth" else (h, w, 3), value, np.float32)
+            notes.append(f"no {name}: {value:g} everywhere")
+    repaired = {}
+    for name in list(layers):
+        layers[name], count = exr.repair_nonfinite(layers[name])
+        if count:
+            repaired[name] = count
+    if repaired:
+        notes.append("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
+                     + ", ".join(f"{k}: {v}" for k, v in repaired.items()))
+    for note in notes:
+        log.info("%s (%s): %s", path, adapter.name, note)
+    return Frame(path, adapter.name, layers, inputs, alpha, image.attributes, image.data_window,
+                 image.display_window, spp, tuple(notes))
+
+
+def read_header(path: str | os.PathLike, layout: str | None = None) -> tuple[tuple[int, int], str]:
+    """(size, layout name) of a frame, from its header alone: a command checks every input before work."""
+    image = exr.read_image(Path(path), header_only=True)
+    return image.size, detect(image, layout).name
