@@ -128,9 +128,11 @@ def cmd_denoise(args) -> int:
 
     def frame(report):
         print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else "")
-              + f" ({report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
+              + f" ({report['layout']} layout, {report['inputs']}, model {report['model']}; "
+              f"{report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
 
     batch = denoise_files(args.inputs, args.run, args.output, args.reference, png=not args.no_png, on_frame=frame,
+                          layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
                           **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     frames = batch["frames"]
     if batch["skipped"]:
@@ -155,7 +157,7 @@ def cmd_evaluate(args) -> int:
     from kpcn_keras.evaluate import evaluate, format_table, pairs_for_inputs
 
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
-    rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline,
+    rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline, layout=args.layout,
                     **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")

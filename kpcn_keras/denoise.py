@@ -26,6 +26,7 @@ frame leaves every earlier output whole. The default output is ``<input stem>-de
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import os
 import time
@@ -38,9 +39,10 @@ from kpcn_keras.config import DEFAULT_TILE, TILE
 from kpcn_keras.models import network_input, receptive_radius
 from kpcn_keras.multiscale import alignment, build_multiscale_model, multiscale_radius
 from kpcn_keras.run import Run, RunRecord, check_architecture
-from prep import exr, features
+from prep import exr, features, layouts
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
+from prep.inputs import InputSet, pair_layers
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
 from prep.processes import memory_shortfall
 
@@ -52,6 +54,9 @@ PNG_ROWS = 256  # rows of a panel tonemapped at a time
 # (tests/test_denoise.py::test_frame_bytes_bound_what_a_frame_holds_whole), used to refuse a frame the
 # machine cannot hold before any work (frame_bytes).
 FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 384
+# A file of another layout is decoded whole before its layers are made (4 bytes a channel, half or float), and a
+# pair is two frames and their float64 mean and difference.
+FILE_CHANNEL_BYTES, PAIR_BYTES = 4, 512
 
 
 
@@ -226,16 +231,20 @@ def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: st
     return path
 
 
-def frame_bytes(height: int, width: int, *, png: bool = True, reference: bool = False) -> int:
-    """What :func:`denoise_frame` holds whole for a ``height`` x ``width`` frame (see :data:`FRAME_BYTES`)."""
-    return height * width * (FRAME_BYTES + PNG_BYTES * png + REFERENCE_BYTES * reference)
+def frame_bytes(height: int, width: int, *, png: bool = True, reference: bool = False, file_channels: int = 0,
+                pair: bool = False) -> int:
+    """What :func:`denoise_frame` holds whole for a ``height`` x ``width`` frame (see :data:`FRAME_BYTES`): with
+    ``file_channels``, a file of another layout decoded whole (``prep.layouts.read``) beside the layers made
+    from it; with ``pair``, a second render read and the pair's float64 arithmetic."""
+    per_pixel = FRAME_BYTES + PNG_BYTES * png + REFERENCE_BYTES * reference + FILE_CHANNEL_BYTES * file_channels
+    return height * width * (per_pixel + PAIR_BYTES * pair)
 
 
 def check_frame_memory(path, size: tuple[int, int], *, png: bool = True, reference: bool = False,
-                       available_mb: float | None = None) -> None:
+                       available_mb: float | None = None, file_channels: int = 0, pair: bool = False) -> None:
     """KpcnError naming the render ``path`` of ``size`` (height, width) if denoising it would hold more
     than this machine has available (:func:`frame_bytes`; ``prep.processes.memory_shortfall``)."""
-    needed = frame_bytes(*size, png=png, reference=reference)
+    needed = frame_bytes(*size, png=png, reference=reference, file_channels=file_channels, pair=pair)
     short = memory_shortfall(needed, available_mb=available_mb)
     if short:
         with_ref = ", with the reference" if reference else ""
@@ -332,36 +341,71 @@ def process_age() -> float | None:
         return None
 
 
+def read_frame(input_path, *, layout: str | None = None, pair=None, albedo=None, normal=None) -> layouts.Frame:
+    """The frame to denoise: ``input_path`` in its layout (``prep.layouts.read``), or with ``pair`` (a second
+    render of the same frame, another seed) the two as one frame whose variance comes from their difference
+    (``prep.inputs.pair_layers``)."""
+    frame = layouts.read(input_path, layout, albedo=albedo, normal=normal)
+    if pair is None:
+        return frame
+    other = layouts.read(pair, layout, albedo=albedo, normal=normal)
+    if other.size != frame.size or other.layout != frame.layout or other.inputs.split != frame.inputs.split:
+        raise KpcnError(f"{pair} ({other.layout}, {other.size[1]}x{other.size[0]}) is not a second render of "
+                        f"{input_path} ({frame.layout}, {frame.size[1]}x{frame.size[0]})")
+    spp = frame.spp + other.spp if frame.spp and other.spp else None
+    alpha = None if frame.alpha is None else (frame.alpha + other.alpha) / 2
+    return dataclasses.replace(frame, layers=pair_layers(frame.layers, other.layers),
+                               inputs=InputSet(split=frame.inputs.split, variance=True), alpha=alpha, spp=spp,
+                               notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
+
+
+def output_layers(frame: layouts.Frame, result: dict[str, np.ndarray], split: bool) -> dict[str, np.ndarray]:
+    """What an output EXR holds: the denoised colour as layer ``default`` (with the input's alpha as
+    ``default.A``), the denoised ``diffuse`` and ``specular`` where the model had a split, and the frame's
+    albedo, normal and depth as read."""
+    layers = {"default": result["default"]}
+    if frame.alpha is not None:
+        layers["default.A"] = frame.alpha
+    if split:
+        layers.update(diffuse=result["diffuse"], specular=result["specular"])
+    layers.update({k: frame.layers[k] for k in ("albedo", "normal", "depth")})
+    return layers
+
+
 def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png: bool = True,
-                  slope: float | None = None) -> dict:
+                  slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None) -> dict:
     """Denoise one EXR with a loaded (warmed-up) ``denoiser`` at ``slope``: writes ``output`` and, with ``png``, the
-    side-by-side PNG beside it, each atomically. Returns the frame's report: ``input``, ``output``, ``png``
-    (if written), ``seconds`` (features, network and recombination: no file I/O), ``read_s``, ``write_s``,
-    ``png_s``, ``frame_s`` (all of it) and, with a reference, ``metrics`` and ``input_metrics``."""
+    side-by-side PNG beside it, each atomically. ``layout``, ``pair``, ``albedo``, ``normal``: as
+    :func:`read_frame`. The output carries the input's header attributes, data and display windows and alpha.
+    Returns the frame's report: ``input``, ``layout``, ``inputs`` (what the frame gave), ``model`` (the run
+    folder that denoised it), ``output``, ``png`` (if written), ``seconds`` (features, network and
+    recombination: no file I/O), ``read_s``, ``write_s``, ``png_s``, ``frame_s`` (all of it) and, with a
+    reference, ``metrics`` and ``input_metrics``."""
     from prep import metrics
 
     begin = time.perf_counter()
-    noisy = exr.read_aovs(input_path)
-    ref = exr.read_aovs(reference, variances=False) if reference else None
-    if ref is not None and ref["default"].shape != noisy["default"].shape:
+    frame = read_frame(input_path, layout=layout, pair=pair, albedo=albedo, normal=normal)
+    noisy = frame.layers
+    ref = layouts.read(reference).layers["default"] if reference else None
+    if ref is not None and ref.shape != noisy["default"].shape:
         raise KpcnError(
-            f"{reference} is {ref['default'].shape[1]}x{ref['default'].shape[0]} but {input_path} is "
+            f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is "
             f"{noisy['default'].shape[1]}x{noisy['default'].shape[0]}"
         )
     start = time.perf_counter()
     result = denoiser(noisy, slope=slope)
     done = time.perf_counter()
-    layers = dict(result)
-    layers.update({k: noisy[k] for k in ("albedo", "normal", "depth")})
-    exr.write_aovs(output, layers)
+    exr.write_aovs(output, output_layers(frame, result, denoiser.record.inputs.split), attributes=frame.attributes,
+                   windows=(frame.data_window, frame.display_window))
     written = time.perf_counter()
-    report = {"input": str(input_path), "output": str(output), "seconds": done - start,
+    report = {"input": str(input_path), "layout": frame.layout, "inputs": frame.inputs.name,
+              "model": str(denoiser.run.dir), "output": str(output), "seconds": done - start,
               "read_s": start - begin, "write_s": written - done}
     panels = [("input", noisy["default"]), ("denoised", result["default"])]
     if ref is not None:
-        report["input_metrics"] = metrics.all_metrics(noisy["default"], ref["default"])
-        report["metrics"] = metrics.all_metrics(result["default"], ref["default"])
-        panels.append(("reference", ref["default"]))
+        report["input_metrics"] = metrics.all_metrics(noisy["default"], ref)
+        report["metrics"] = metrics.all_metrics(result["default"], ref)
+        panels.append(("reference", ref))
     if png:
         report["png"] = str(panels_png(png_path(output), panels, title=Path(input_path).name))
     report["png_s"] = time.perf_counter() - written
@@ -370,55 +414,78 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
 
 
 def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE,
-                  slope: float | None = None, on_frame=None) -> dict:
-    """Denoise many EXRs in one process: the run is loaded and warmed up once.
+                  slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None,
+                  on_frame=None) -> dict:
+    """Denoise many EXRs in one process: each model is loaded and warmed up once.
 
-    ``inputs``: files and folders (:func:`collect_inputs`); ``output``: see :func:`plan_outputs`;
-    ``reference``: one reference EXR, for a single input only. Every input's header and every output are
-    checked before the run is loaded, so a missing layer, a wrong size or an unwritable output fails before
-    any work. A frame that still fails (a truncated file) stops the batch with a KpcnError naming it; the
-    outputs written before it are complete (each is written atomically) and are named in the message.
-    ``on_frame(report)`` is called after each frame (progress).
+    ``inputs``: files and folders (:func:`collect_inputs`), each in any layout ``prep.layouts`` reads
+    (``layout`` forces one); ``output``: see :func:`plan_outputs`; ``reference``: one reference EXR, and
+    ``pair``: a second render of the input, ``albedo``, ``normal``: files of an rgb frame's auxiliaries
+    (:func:`read_frame`), for a single input only. Each frame is
+    denoised by the model of ``run_dir`` trained for what the frame has (``Run.serving``: the run itself, or
+    one of its ``inputs/`` variants). Every input's header, the model each needs and every output are
+    checked before a model is loaded, so a missing layer, a missing model, a wrong size or an unwritable
+    output fails before any work. A frame that still fails (a truncated file) stops the batch with a KpcnError
+    naming it; the outputs written before it are complete (each is written atomically) and are named in the
+    message. ``on_frame(report)`` is called after each frame (progress).
 
     Returns ``{"startup_s", "load_s", "warmup_s", "threads", "peak_memory_mb", "frames", "skipped"}``: the
-    seconds from process start to this call (None off Linux), of loading the networks and of the warm-up;
+    seconds from process start to this call (None off Linux), of loading the networks and of the warm-ups;
     torch's thread count; the process's peak resident memory at the end (:func:`peak_memory_mb`);
     one :func:`denoise_frame` report per input, in order; the folder entries skipped (earlier outputs).
     """
     startup = process_age()
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
-    if reference is not None and len(inputs) != 1:
-        raise OptionError("reference", f"is for one input, got {len(inputs)}; 'kpcn evaluate' compares many")
-    if reference is not None and Path(reference).is_dir():
-        raise OptionError("reference", f"must be the input's reference EXR file, got {reference}, a folder")
+    singles = (("reference", reference), ("pair", pair), ("albedo", albedo), ("normal", normal))
+    for option, value in singles:
+        if value is not None and len(inputs) != 1:
+            raise OptionError(option, f"is for one input, got {len(inputs)}"
+                              + ("; 'kpcn evaluate' compares many" if option == "reference" else ""))
+        if value is not None and Path(value).is_dir():
+            raise OptionError(option, f"must be an EXR file, got {value}, a folder")
+    layouts.check_layout(layout)
     outputs = plan_outputs(inputs, output)
     run = Run(run_dir)
-    record = run.record()
+    headers = [layouts.read_header(src, layout) for src in inputs]
+    pair_header = layouts.read_header(pair, layout) if pair is not None else None
+    serving = {}  # the run of each input set the inputs give
+    for header in headers:
+        frame_inputs = InputSet(header.inputs.split, True) if pair is not None else header.inputs
+        if frame_inputs not in serving:
+            serving[frame_inputs] = run.serving(frame_inputs)
+    records = {variant.dir: variant.record() for variant in serving.values()}
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
-    read = [("input", src) for src in inputs] + ([("reference", reference)] if reference is not None else [])
-    check_outputs(written, read + run.read_files(record),
-                  "choose another -o" + (" (or --no-png)" if png else ""))
-    ref_size = exr.read_header(reference, variances=False) if reference is not None else None
-    for src in inputs:
-        size = exr.read_header(src)
-        if ref_size is not None and ref_size != size:
-            raise KpcnError(f"{reference} is {ref_size[1]}x{ref_size[0]} but {src} is {size[1]}x{size[0]}")
-        check_frame_memory(src, size, png=png, reference=reference is not None)
+    read = [("input", src) for src in inputs] + [(option, value) for option, value in singles if value is not None]
+    models = [item for variant in serving.values() for item in variant.read_files(records[variant.dir])]
+    check_outputs(written, read + models, "choose another -o" + (" (or --no-png)" if png else ""))
+    ref_size = layouts.read_header(reference).size if reference is not None else None
+    for src, header in zip(inputs, headers):
+        for other, size in (("reference", ref_size), ("pair", pair_header and pair_header.size)):
+            if size is not None and size != header.size:
+                raise KpcnError(f"the {other} is {size[1]}x{size[0]} but {src} is {header.size[1]}x{header.size[0]}")
+        check_frame_memory(src, header.size, png=png, reference=reference is not None,
+                           file_channels=header.channels, pair=pair is not None)
     for out in outputs:
         check_writable(out, "--output")
         if png:
             check_writable(png_path(out), "side-by-side PNG")
     TILE.check("tile", tile)
-    record.finished().check_slope(slope)  # before the networks are loaded
-    begin = time.perf_counter()
-    denoiser = Denoiser.from_run(run, tile, record=record)
-    loaded = time.perf_counter()
-    denoiser.warm_up(slope)
-    warm = time.perf_counter()
+    for record in records.values():
+        record.finished().check_slope(slope)  # before the networks are loaded
+    load_s = warmup_s = 0.0
+    denoisers = {}
     frames = []
-    for src, out in zip(inputs, outputs):
+    for src, out, header in zip(inputs, outputs, headers):
+        variant = serving[InputSet(header.inputs.split, True) if pair is not None else header.inputs]
+        if variant.dir not in denoisers:
+            begin = time.perf_counter()
+            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir])
+            loaded = time.perf_counter()
+            denoisers[variant.dir].warm_up(slope)
+            load_s, warmup_s = load_s + loaded - begin, warmup_s + time.perf_counter() - loaded
         try:
-            frames.append(denoise_frame(denoiser, src, out, reference, png=png, slope=slope))
+            frames.append(denoise_frame(denoisers[variant.dir], src, out, reference, png=png, slope=slope,
+                                        layout=layout, pair=pair, albedo=albedo, normal=normal))
         except KpcnError as exc:
             if frames:
                 raise KpcnError(f"{exc} (stopped after {len(frames)} of {len(inputs)} frames; written: "
@@ -431,14 +498,14 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         import torch
 
         threads = torch.get_num_threads()
-    return {"startup_s": startup, "load_s": loaded - begin, "warmup_s": warm - loaded, "threads": threads,
+    return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads,
             "peak_memory_mb": peak_memory_mb(),
             "frames": frames, "skipped": [str(p) for p in skipped]}
 
 
 def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,
-                 tile: int = DEFAULT_TILE, slope: float | None = None) -> dict:
+                 tile: int = DEFAULT_TILE, slope: float | None = None, **frame_options) -> dict:
     """Denoise one EXR (:func:`denoise_files` with one input); returns its frame report (:func:`denoise_frame`)
     with the batch's ``load_s`` and ``warmup_s``."""
-    batch = denoise_files([input_path], run_dir, output, reference, png=png, tile=tile, slope=slope)
+    batch = denoise_files([input_path], run_dir, output, reference, png=png, tile=tile, slope=slope, **frame_options)
     return {**batch["frames"][0], "load_s": batch["load_s"], "warmup_s": batch["warmup_s"]}

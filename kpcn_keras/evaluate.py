@@ -22,7 +22,7 @@ import numpy as np
 from kpcn_keras.config import DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser, side_by_side_png
 from kpcn_keras.run import Run, RunRecord
-from prep import baselines, exr, metrics
+from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable
 
@@ -103,9 +103,11 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
-             tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None) -> list[dict]:
+             tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None,
+             layout: str | None = None) -> list[dict]:
     """Evaluate a run on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
-    input; refused elsewhere); writes the report and returns the rows."""
+    input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
+    reads (``layout`` forces one), each denoised by the run's model for what it has (``Run.serving``)."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
@@ -113,41 +115,54 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     pairs = pairs or held_out_pairs(run, record)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
+    serving = {}
+    for noisy, _ in pairs:
+        serving[noisy] = run.serving(layouts.read_header(noisy, layout).inputs)
+    records = {variant.dir: variant.record() for variant in serving.values()}
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
-    check_outputs(written, read + run.read_files(record),
-                  "choose another --out (a report folder takes one render of each name)")
-    denoiser = Denoiser.from_run(run, tile, record=record)
-    denoiser.warm_up(slope)
+    variants = {variant.dir: variant for variant in serving.values()}.values()
+    models = [item for variant in variants for item in variant.read_files(records[variant.dir])]
+    check_outputs(written, read + models, "choose another --out (a report folder takes one render of each name)")
+    denoisers = {}
     rows = []
     for noisy_path, ref_path in pairs:
         scene, spp = exr.parse_render_filename(noisy_path)
-        noisy = exr.read_aovs(noisy_path)
-        ref = exr.read_aovs(ref_path, variances=False)["default"]
+        variant = serving[noisy_path]
+        if variant.dir not in denoisers:
+            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir])
+            denoisers[variant.dir].warm_up(slope)
+        frame = layouts.read(noisy_path, layout)
+        noisy = frame.layers
+        ref = layouts.read(ref_path).layers["default"]
         start = time.perf_counter()
-        out = denoiser(noisy, slope=slope)["default"]
+        out = denoisers[variant.dir](noisy, slope=slope)["default"]
         seconds = time.perf_counter() - start
         row = {
             "scene": scene,
             "input spp": spp,
+            "layout": frame.layout,
+            "inputs": frame.inputs.name,
+            "model": str(variant.dir),
             "raw": metrics.all_metrics(noisy["default"], ref),
             "denoised": metrics.all_metrics(out, ref),
             "seconds": seconds,
         }
         panels = [(f"input {spp} spp", noisy["default"]), (f"KPCN relMSE {row['denoised']['relmse']:.4f}", out)]
         if baseline:
-            start = time.perf_counter()
-            nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
-            row["nlm_seconds"] = time.perf_counter() - start
-            row["nlm"] = metrics.all_metrics(nlm, ref)
-            panels.insert(1, (f"NLM relMSE {row['nlm']['relmse']:.4f}", nlm))
+            if frame.inputs.variance:  # NLM weighs by the colour's variance: none without it
+                start = time.perf_counter()
+                nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
+                row["nlm_seconds"] = time.perf_counter() - start
+                row["nlm"] = metrics.all_metrics(nlm, ref)
+                panels.insert(1, (f"NLM relMSE {row['nlm']['relmse']:.4f}", nlm))
             if baselines.oidn_available():
                 start = time.perf_counter()
                 oidn = baselines.oidn_denoise(noisy)
                 row["oidn_seconds"] = time.perf_counter() - start
                 row["oidn"] = metrics.all_metrics(oidn, ref)
-                panels.insert(2, (f"OIDN relMSE {row['oidn']['relmse']:.4f}", oidn))
+                panels.insert(len(panels) - 1, (f"OIDN relMSE {row['oidn']['relmse']:.4f}", oidn))
         panels.append(("reference", ref))
         row["png"] = str(side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene))
         rows.append(row)

@@ -307,8 +307,8 @@ def _denoise_options(add) -> None:
     """The options of ``kpcn denoise``."""
     from kpcn_keras.config import DEFAULT_TILE, SLOPE, TILE
 
-    n = add("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs in the AOV layout: files, or every "
-               "render in a folder, in one process")
+    n = add("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs (kpcn, Blender Cycles, Mitsuba 3, "
+               "PBRT-v4 or plain colour): files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
     _run_option(n, required=True, help="a run folder that finished training (kpcn train)")
@@ -320,6 +320,18 @@ def _denoise_options(add) -> None:
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
     n.add_argument("--no-png", action="store_true", default=False)
+    _layout_option(n)
+    n.add_argument("--pair", default=None, help="a second render of a single input with another seed and the same "
+                   "spp: the two are denoised as one frame, its variance from their difference")
+    n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
+    n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
+
+
+def _layout_option(parser) -> None:
+    from prep.layouts import LAYOUTS
+
+    parser.add_argument("--layout", choices=tuple(LAYOUTS), default=None, help="the renderer layout of the inputs "
+                        "(default: found from each file's channels; docs/formats.md §1b)")
 
 
 def _evaluate_options(add) -> None:
@@ -335,6 +347,7 @@ def _evaluate_options(add) -> None:
     e.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     e.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input (as kpcn denoise --slope)")
     e.add_argument("--no-baseline", action="store_true", default=False)
+    _layout_option(e)
 
 
 def _figures_options(add) -> None:

@@ -164,8 +164,8 @@ def _native_detail(path: Path, captured: list[str], exc: Exception) -> str:
 
 
 # Header attributes that describe a file's structure, not its content: the writer sets them itself.
-STRUCTURAL_ATTRIBUTES = frozenset({"channels", "chunkCount", "compression", "dataWindow", "lineOrder", "name",
-                                   "type", "tiles", "version"})
+STRUCTURAL_ATTRIBUTES = frozenset({"channels", "chunkCount", "compression", "dataWindow", "displayWindow",
+                                   "lineOrder", "name", "type", "tiles", "version"})
 
 
 @dataclass
@@ -361,10 +361,14 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     return np.stack([comps[c] for c in "RGB"], axis=-1).astype(np.float32)
 
 
-def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: bool = False) -> Path:
+def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: bool = False,
+               attributes: dict | None = None, windows: tuple | None = None) -> Path:
     """Write ``layer -> array`` as one multi-layer EXR (ZIP), atomically: a temporary name, then rename.
 
-    Colour layers (H, W, 3) become ``layer.R/G/B``, one-channel layers (H, W) become ``layer.Z``.
+    Colour layers (H, W, 3) become ``layer.R/G/B``, one-channel layers (H, W) become ``layer.Z``; a layer
+    ``<name>.A`` (H, W) is written as that channel (the alpha of colour layer ``name``). ``attributes``:
+    header attributes to carry (an input's :attr:`ExrImage.attributes`); ``windows``: its (data window,
+    display window), each ((x0, y0), (x1, y1)); the data window must be the layers' size.
     """
     import OpenEXR
 
@@ -381,7 +385,9 @@ def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: 
         # a float32 layer goes to a float32 file as it is (the binding writes (H, W, 3) as <layer>.R/G/B):
         # a frame is written without a copy of its pixels; anything else is cast and clamped channel by channel
         as_is = image.dtype == dtype == np.float32 and image.flags.c_contiguous
-        if image.ndim == 3 and image.shape[2] == 3:
+        if name.endswith(".A") and image.ndim == 2:
+            channels[name] = np.ascontiguousarray(to_float32(image, dtype))
+        elif image.ndim == 3 and image.shape[2] == 3:
             if as_is:
                 channels[name] = image
             else:
@@ -391,7 +397,14 @@ def write_aovs(path: str | os.PathLike, layers: dict[str, np.ndarray], *, half: 
             channels[f"{name}.Z"] = image if as_is else np.ascontiguousarray(to_float32(image, dtype))
         else:
             raise AOVError(f"{path}: layer {name!r} has shape {image.shape}, expected (H, W, 3) or (H, W)")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {k: v for k, v in (attributes or {}).items() if k not in STRUCTURAL_ATTRIBUTES}
+    header.update({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage})
+    if windows is not None:
+        (x0, y0), (x1, y1) = windows[0]
+        if shape is not None and (y1 - y0 + 1, x1 - x0 + 1) != tuple(shape):
+            raise AOVError(f"{path}: data window {windows[0]} is not the layers' {shape[1]}x{shape[0]}")
+        for key, window in zip(("dataWindow", "displayWindow"), windows):
+            header[key] = tuple(np.array(corner, np.int32) for corner in window)
     with atomic_path(path) as tmp:
         with OpenEXR.File(header, channels) as f:
             f.write(str(tmp))

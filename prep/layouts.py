@@ -126,8 +126,12 @@ class Layout:
         """The samples per pixel the file's header states, if it states them."""
         return None
 
-    def layers(self, ch: _Channels, spp: int | None) -> tuple[dict, InputSet, np.ndarray | None, list[str]]:
-        """(layers, inputs, alpha, notes) of a file that :meth:`missing` accepted."""
+    def inputs(self, ch: _Channels, spp: int | None) -> InputSet:
+        """What a file that :meth:`missing` accepted gives the networks, from its channel names alone."""
+        raise NotImplementedError
+
+    def layers(self, ch: _Channels, spp: int | None) -> tuple[dict, np.ndarray | None, list[str]]:
+        """(layers, alpha, notes) of a file that :meth:`missing` accepted: the layers :meth:`inputs` says."""
         raise NotImplementedError
 
 
@@ -140,20 +144,22 @@ class KpcnLayout(Layout):
         lacking += [] if ch.has("depth", SCALAR) else ["depth"]
         return ", ".join(lacking) or None
 
+    def inputs(self, ch, spp):
+        return InputSet(split=True, variance=all(ch.has(n, SCALAR) for n in exr.VARIANCE_LAYERS))
+
     def layers(self, ch, spp):
         out = {n: ch.vector(n) for n in ("diffuse", "specular", "albedo", "normal")}
         out["depth"] = ch.scalar("depth")
         out["default"] = ch.vector("default") if ch.has("default") else _sum(out["diffuse"], out["specular"])
         present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
-        variance = len(present) == len(exr.VARIANCE_LAYERS)
+        variance = self.inputs(ch, spp).variance
         notes = []
         if present and not variance:
             notes.append(f"variance layers {', '.join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))} "
                          f"missing: read without variance")
         if variance:
             out.update({n: ch.scalar(n) for n in exr.VARIANCE_LAYERS})
-        alpha = ch.component("default", "A")
-        return out, InputSet(split=True, variance=variance), alpha, notes
+        return out, ch.component("default", "A"), notes
 
 
 # Cycles pass names: (Blender 5, Blender 4). A light pass is stored divided by its colour pass.
@@ -217,6 +223,10 @@ class CyclesLayout(Layout):
         samples = ch.image.attributes.get(f"cycles.{self.view_layers(ch)[0]}.samples")
         return int(samples) if isinstance(samples, str) and samples.isdigit() else None
 
+    def inputs(self, ch, spp):
+        passes = self._passes(ch, self.view_layers(ch)[0])
+        return InputSet(split=all(r in passes for r in CYCLES_DIFFUSE), variance=False)
+
     def layers(self, ch, spp):
         views = self.view_layers(ch)
         view, notes = views[0], []
@@ -225,8 +235,7 @@ class CyclesLayout(Layout):
         p = self._passes(ch, view)
         rgb = {role: ch.vector(layer) for role, layer in p.items() if role not in ("depth", "denoising_depth")}
         out = {"default": rgb["combined"][..., :3]}
-        split = all(r in p for r in CYCLES_DIFFUSE)
-        if split:
+        if self.inputs(ch, spp).split:
             out["diffuse"] = exr.to_float32(
                 (rgb["diffuse_direct"].astype(np.float64) + rgb["diffuse_indirect"]) * rgb["diffuse_color"])
             terms = [r for lobe in CYCLES_LOBES for r in (f"{lobe}_direct", f"{lobe}_indirect", f"{lobe}_color")]
@@ -253,8 +262,7 @@ class CyclesLayout(Layout):
             depth = ch.scalar(p["depth"])
             out["depth"] = np.where(depth >= DEPTH_MISS, np.float32(0), depth)
             notes.append(f"depth = Depth, {DEPTH_MISS:g} and beyond (the background) as 0")
-        alpha = ch.component(p["combined"], "A")
-        return out, InputSet(split=split, variance=False), alpha, notes
+        return out, ch.component(p["combined"], "A"), notes
 
 
 MITSUBA_ALBEDO = ("albedo",)
@@ -281,28 +289,36 @@ class MitsubaLayout(Layout):
 
     @staticmethod
     def _moment_layer(ch, layer):
-        """The layer of ``layer``'s second moments: ``m2_<layer>`` (channels named as the mean's)."""
-        for candidate in (f"{MITSUBA_MOMENT}{layer}", f"{MITSUBA_MOMENT}{layer}".rstrip(".")):
-            if candidate in ch.layers:
-                return candidate
-        return None
+        """The layer of ``layer``'s second moments, ``m2_<layer>`` (the colour's: ``m2_``), or None."""
+        moment = MITSUBA_MOMENT + ("" if layer == "default" else layer)
+        return moment if moment in ch.layers else None
+
+    def _names(self, ch) -> dict[str, str]:
+        """kpcn name -> the file's layer, for the colour and the three AOVs."""
+        return {"default": "default", "albedo": self._find(ch, MITSUBA_ALBEDO),
+                "normal": self._find(ch, MITSUBA_NORMAL), "depth": self._find(ch, MITSUBA_DEPTH, SCALAR)}
+
+    def _moments(self, ch) -> dict[str, str | None]:
+        """kpcn name -> the file's layer of its second moments (None where the file has none)."""
+        return {k: self._moment_layer(ch, v) for k, v in self._names(ch).items()}
+
+    def inputs(self, ch, spp):
+        return InputSet(split=False, variance=spp is not None and None not in self._moments(ch).values())
 
     def layers(self, ch, spp):
-        names = {"default": "default", "albedo": self._find(ch, MITSUBA_ALBEDO),
-                 "normal": self._find(ch, MITSUBA_NORMAL), "depth": self._find(ch, MITSUBA_DEPTH, SCALAR)}
+        names = self._names(ch)
         out = {k: ch.vector(v) for k, v in names.items() if k != "depth"}
         out["depth"] = ch.scalar(names["depth"])
         notes = []
         if float(out["albedo"].max(initial=0.0)) > 1.0:
             notes.append("albedo clipped to [0, 1] (above 1 on metals)")
         out["albedo"] = np.clip(out["albedo"], 0.0, 1.0)
-        moments = {k: self._moment_layer(ch, "" if v == "default" else v) for k, v in names.items()}
-        if moments["default"] is None:
-            moments["default"] = "m2_" if "m2_" in ch.layers else None
-        lacking = [k for k, v in moments.items() if v is None]
-        if lacking or spp is None:
-            notes.append(f"read without variance: {'no spp known (name the file <scene>-<spp>spp.exr)' if not lacking else 'no m2_ moments of ' + ', '.join(lacking)}")
-            return out, InputSet(split=False, variance=False), ch.component("default", "A"), notes
+        moments = self._moments(ch)
+        if not self.inputs(ch, spp).variance:
+            lacking = [k for k, v in moments.items() if v is None]
+            notes.append("read without variance: " + (f"no m2_ moments of {', '.join(lacking)}" if lacking else
+                                                      "no spp known (name the file <scene>-<spp>spp.exr)"))
+            return out, ch.component("default", "A"), notes
         target = {"default": "colorVariance", "albedo": "albedoVariance", "normal": "normalVariance",
                   "depth": "depthVariance"}
         for key, layer in moments.items():
@@ -311,7 +327,7 @@ class MitsubaLayout(Layout):
             var = np.maximum(np.asarray(m2, np.float64) - np.asarray(mean, np.float64) ** 2, 0.0) / spp
             out[target[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
         out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
-        return out, InputSet(split=False, variance=True), ch.component("default", "A"), notes
+        return out, ch.component("default", "A"), notes
 
 
 class PbrtLayout(Layout):
@@ -322,22 +338,25 @@ class PbrtLayout(Layout):
         lacking = [n for n in ("default", "Albedo", "Ns", "P") if not ch.has(n)]
         return ", ".join("R G B" if n == "default" else n for n in lacking) or None
 
+    def inputs(self, ch, spp):
+        return InputSet(split=False, variance=spp is not None and ch.has("Variance"))
+
     def layers(self, ch, spp):
         out = {"default": ch.vector("default"), "albedo": np.clip(ch.vector("Albedo"), 0.0, 1.0),
                "normal": ch.vector("Ns")}
         p = ch.vector("P").astype(np.float64)
         out["depth"] = exr.to_float32(np.sqrt((p * p).sum(axis=-1)))
         notes = ["depth = |P| (camera space)", "normal = Ns as written (camera space unless the film wrote world)"]
-        if not ch.has("Variance") or spp is None:
+        if not self.inputs(ch, spp).variance:
             notes.append("read without variance: " + ("no Variance layer" if not ch.has("Variance") else
                                                       "no spp known (name the file <scene>-<spp>spp.exr)"))
-            return out, InputSet(split=False, variance=False), ch.component("default", "A"), notes
+            return out, ch.component("default", "A"), notes
         var = np.maximum(ch.vector("Variance").astype(np.float64), 0.0).mean(axis=-1) / spp
         out["colorVariance"] = out["diffuseVariance"] = out["specularVariance"] = exr.to_float32(var)
         for name in ("albedoVariance", "normalVariance", "depthVariance"):  # PBRT writes none of these
             out[name] = np.zeros(var.shape, np.float32)
         notes.append("variance = Variance / spp; albedo, normal and depth variance 0 (PBRT writes none)")
-        return out, InputSet(split=False, variance=True), ch.component("default", "A"), notes
+        return out, ch.component("default", "A"), notes
 
 
 class RgbLayout(Layout):
@@ -357,6 +376,9 @@ class RgbLayout(Layout):
     def missing(self, ch):
         return None if self.colour_layer(ch) else "R G B (unprefixed, or exactly one layer with R G B)"
 
+    def inputs(self, ch, spp):
+        return InputSet(split=False, variance=False)
+
     def layers(self, ch, spp):
         layer = self.colour_layer(ch)
         out, notes = {"default": ch.vector(layer)[..., :3]}, []
@@ -365,7 +387,7 @@ class RgbLayout(Layout):
             found = next((n for n in (name, name.capitalize()) if ch.has(n, kind)), None)
             if found:
                 out[name] = ch.vector(found) if kind is VECTOR else ch.scalar(found)
-        return out, InputSet(split=False, variance=False), ch.component(layer, "A"), notes
+        return out, ch.component(layer, "A"), notes
 
 
 LAYOUTS = {layout.name: layout for layout in (KpcnLayout(), CyclesLayout(), PbrtLayout(), MitsubaLayout(),
@@ -415,7 +437,8 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
     adapter = detect(image, layout)
     ch = _Channels(image)
     spp = _spp_of(path) or adapter.spp(ch) or spp
-    layers, inputs, alpha, notes = adapter.layers(ch, spp)
+    inputs = adapter.inputs(ch, spp)
+    layers, alpha, notes = adapter.layers(ch, spp)
     for name, aux in (("albedo", albedo), ("normal", normal)):
         if aux is not None:
             layers[name] = exr.read_rgb(aux)
@@ -441,7 +464,23 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
                  image.display_window, spp, tuple(notes))
 
 
-def read_header(path: str | os.PathLike, layout: str | None = None) -> tuple[tuple[int, int], str]:
-    """(size, layout name) of a frame, from its header alone: a command checks every input before work."""
-    image = exr.read_image(Path(path), header_only=True)
-    return image.size, detect(image, layout).name
+@dataclass(frozen=True)
+class Header:
+    """What a frame's header says: its size, the layout that reads it, the inputs it gives, its samples per
+    pixel (None if unknown) and how many channels the file has."""
+
+    size: tuple[int, int]
+    layout: str
+    inputs: InputSet
+    spp: int | None
+    channels: int
+
+
+def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None) -> Header:
+    """The :class:`Header` of a frame, from the file's header alone: a command checks every input before work."""
+    path = Path(path)
+    image = exr.read_image(path, header_only=True)
+    adapter = detect(image, layout)
+    ch = _Channels(image)
+    spp = _spp_of(path) or adapter.spp(ch) or spp
+    return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp, len(image.names))

@@ -1,0 +1,96 @@
+"""Denoising numpy arrays in a Python process, as small as pyoidn's call (``kpcn.denoise``).
+
+:func:`denoise` makes a frame from the arrays given, in kpcn's names (``prep.layouts.Frame``), and denoises it
+exactly as ``kpcn denoise`` does a file that holds the same layers: the same model (``Run.serving`` picks the
+run's variant for what the arrays give), the same ``denoise.Denoiser``, so the result equals the command's
+output bit for bit (``tests/test_api.py``). What is not given is filled as the rgb layout fills it (albedo 1,
+normal 0, depth 0; ``prep.layouts.FILL``). ``variance`` is the variance of the pixel mean of ``color`` ((H, W)
+or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must be a dict of the six
+``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A loaded model is kept for the
+next call with the same run, tile and input set.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import DEFAULT_TILE
+from prep.errors import KpcnError
+from prep.exr import VARIANCE_LAYERS, to_float32
+from prep.inputs import InputSet
+from prep.layouts import FILL, Frame
+
+
+def _array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float32)
+    if a.shape != shape:
+        raise KpcnError(f"{name} must have shape {shape} (the colour's), got {a.shape}")
+    return a
+
+
+def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None,
+                      specular=None) -> Frame:
+    """The frame :func:`denoise` denoises (module docstring); KpcnError naming the array of a wrong shape."""
+    color = np.asarray(color, dtype=np.float32)
+    if color.ndim != 3 or color.shape[2] not in (3, 4):
+        raise KpcnError(f"color must be (H, W, 3) or (H, W, 4), got {color.shape}")
+    h, w = color.shape[:2]
+    layers = {"default": np.ascontiguousarray(color[..., :3])}
+    for name, value in (("albedo", albedo), ("normal", normal), ("depth", depth)):
+        shape = (h, w) if name == "depth" else (h, w, 3)
+        layers[name] = np.full(shape, FILL[name], np.float32) if value is None else _array(name, value, shape)
+    split = diffuse is not None or specular is not None
+    if split:
+        if diffuse is None or specular is None:
+            raise KpcnError("diffuse and specular go together: got only " + ("diffuse" if specular is None
+                                                                               else "specular"))
+        layers["diffuse"], layers["specular"] = _array("diffuse", diffuse, (h, w, 3)), _array("specular", specular, (h, w, 3))
+    has_variance = variance is not None
+    if isinstance(variance, dict):
+        missing = [n for n in VARIANCE_LAYERS if n not in variance and (split or n not in
+                                                                        ("diffuseVariance", "specularVariance"))]
+        if missing:
+            raise KpcnError(f"variance lacks {', '.join(missing)}; it has {', '.join(sorted(variance)) or 'nothing'}")
+        layers.update({n: _array(n, v, (h, w)) for n, v in variance.items() if n in VARIANCE_LAYERS})
+    elif has_variance:
+        v = np.asarray(variance, dtype=np.float64)
+        if v.shape not in ((h, w), (h, w, 3)):
+            raise KpcnError(f"variance must be (H, W) or (H, W, 3) like the colour, got {v.shape}")
+        if split:  # a split model needs each branch's variance, which one colour variance does not give
+            has_variance = False
+        else:
+            layers["colorVariance"] = to_float32(v.mean(axis=-1) if v.ndim == 3 else v)
+            for n in ("albedoVariance", "normalVariance", "depthVariance"):
+                layers[n] = np.zeros((h, w), np.float32)
+    if has_variance and not split:
+        layers["diffuseVariance"] = layers["specularVariance"] = layers["colorVariance"]
+    alpha = color[..., 3] if color.shape[2] == 4 else None
+    window = ((0, 0), (w - 1, h - 1))
+    return Frame(Path("<arrays>"), "arrays", layers, InputSet(split=split, variance=has_variance), alpha,
+                 data_window=window, display_window=window)
+
+
+@functools.lru_cache(maxsize=4)
+def _denoiser(run_dir: str, inputs: InputSet, tile: int, stamp: float):
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+
+    variant = Run(run_dir).serving(inputs)
+    return Denoiser.from_run(variant, tile)
+
+
+def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
+            run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None) -> np.ndarray:
+    """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
+    auxiliary buffers given (module docstring), by the model of ``run`` (a run folder of ``kpcn train``) at
+    ``slope`` (λ, for a run trained with it as an input)."""
+    if run is None:
+        raise KpcnError("denoise needs run=: a run folder that finished training (kpcn train)")
+    frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
+    record = Path(run) / "config.json"
+    stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
+    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), stamp)(frame.layers, slope=slope)["default"]

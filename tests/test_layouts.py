@@ -1,0 +1,183 @@
+"""``prep.layouts``: each renderer's layout read as kpcn's, against float64 compositions of the same passes;
+multi-part and single-part files alike; the one-line error of a layout kpcn does not read."""
+
+import numpy as np
+import pytest
+from helpers import CYCLES5_RGB, cycles_channels, parts_of, write_channels
+
+from prep import exr, layouts
+from prep.exr import AOVError
+from prep.inputs import InputSet
+
+
+def _f64(channels, layer, comps="RGB"):
+    return np.stack([channels[f"{layer}.{c}"].astype(np.float64) for c in comps], axis=-1)
+
+
+def test_cycles_layers_are_the_composition_of_its_passes(tmp_path):
+    ch = cycles_channels(9, 11, seed=1)
+    frame = layouts.read(write_channels(tmp_path / "shot-00016spp.exr", ch, parts_of(ch)))
+    assert frame.layout == "cycles" and frame.inputs == InputSet(split=True, variance=False)
+    v = "ViewLayer"
+    diffuse = (_f64(ch, f"{v}.Diffuse Direct") + _f64(ch, f"{v}.Diffuse Indirect")) * _f64(ch, f"{v}.Diffuse Color")
+    specular = sum((_f64(ch, f"{v}.{lobe} Direct") + _f64(ch, f"{v}.{lobe} Indirect")) * _f64(ch, f"{v}.{lobe} Color")
+                   for lobe in ("Glossy", "Transmission"))
+    specular += sum(_f64(ch, f"{v}.{p}") for p in ("Emission", "Environment", "Volume Direct", "Volume Indirect"))
+    np.testing.assert_allclose(frame.layers["diffuse"], diffuse, rtol=1e-6)
+    np.testing.assert_allclose(frame.layers["specular"], specular, rtol=1e-6)
+    # diffuse + specular is Combined, the renderer's own sum, to float precision
+    np.testing.assert_allclose(frame.layers["diffuse"].astype(np.float64) + frame.layers["specular"],
+                               frame.layers["default"], rtol=3e-7 * 16)
+    np.testing.assert_array_equal(frame.layers["albedo"], _f64(ch, f"{v}.Diffuse Color").astype(np.float32))
+    np.testing.assert_array_equal(frame.layers["normal"], _f64(ch, f"{v}.Normal", "XYZ").astype(np.float32))
+    np.testing.assert_array_equal(frame.layers["depth"], ch[f"{v}.Denoising Depth.Z"])
+    np.testing.assert_array_equal(frame.alpha, 1.0)
+    assert frame.spp == 16
+
+
+def test_a_multi_part_and_a_single_part_file_of_the_same_pixels_read_alike(tmp_path):
+    ch = cycles_channels(8, 8, seed=2)
+    multi = layouts.read(write_channels(tmp_path / "multi-00004spp.exr", ch, parts_of(ch)))
+    single = layouts.read(write_channels(tmp_path / "single-00004spp.exr", ch))
+    assert exr.read_image(tmp_path / "multi-00004spp.exr").parts != exr.read_image(tmp_path / "single-00004spp.exr").parts
+    assert multi.layers.keys() == single.layers.keys()
+    for name in multi.layers:
+        np.testing.assert_array_equal(multi.layers[name], single.layers[name], err_msg=name)
+
+
+def test_blender_4_short_names_read_as_blender_5_long_names(tmp_path):
+    long_to_short = dict(zip(CYCLES5_RGB[:13], ("DiffDir", "DiffInd", "DiffCol", "GlossDir", "GlossInd", "GlossCol",
+                                                "TransDir", "TransInd", "TransCol", "Emit", "Env", "VolumeDir",
+                                                "VolumeInd")))
+    ch = cycles_channels(6, 7, seed=3, view="RenderLayer")
+    short = {}
+    for name, pixels in ch.items():
+        view, rest = name.split(".", 1)
+        layer, comp = rest.rsplit(".", 1)
+        short[f"{view}.{long_to_short.get(layer, layer)}.{comp}"] = pixels
+    a = layouts.read(write_channels(tmp_path / "long.exr", ch))
+    b = layouts.read(write_channels(tmp_path / "short.exr", short))
+    for name in a.layers:
+        np.testing.assert_array_equal(a.layers[name], b.layers[name], err_msg=name)
+
+
+def test_cycles_without_denoising_depth_takes_depth_with_the_background_as_zero(tmp_path):
+    ch = cycles_channels(5, 5)
+    del ch["ViewLayer.Denoising Depth.Z"]
+    frame = layouts.read(write_channels(tmp_path / "d.exr", ch))
+    assert frame.layers["depth"][0, 0] == 0 and frame.layers["depth"][1, 1] == ch["ViewLayer.Depth.Z"][1, 1]
+
+
+def test_cycles_without_the_diffuse_passes_has_no_split_and_the_clipped_denoising_albedo(tmp_path):
+    ch = {k: v for k, v in cycles_channels(5, 6).items() if ".Diffuse " not in k}
+    ch["ViewLayer.Denoising Albedo.R"] = ch["ViewLayer.Denoising Albedo.R"] * 250
+    frame = layouts.read(write_channels(tmp_path / "nosplit.exr", ch))
+    assert frame.inputs == InputSet(split=False, variance=False) and "diffuse" not in frame.layers
+    assert frame.layers["albedo"].max() <= 1.0
+
+
+def _mitsuba_channels(h, w, seed=0):
+    rng = np.random.default_rng(seed)
+    ch = {}
+    for layer, comps in (("", "RGB"), ("albedo.", "RGB"), ("nn.", "XYZ"), ("dd.", "T")):
+        for c in comps:
+            mean = rng.uniform(0, 1.5, (h, w)).astype(np.float32)
+            ch[f"{layer}{c}"] = mean
+            ch[f"m2_{layer}{c}"] = (mean.astype(np.float64) ** 2 + rng.uniform(0, 0.5, (h, w))).astype(np.float32)
+    return ch
+
+
+def test_mitsuba_variance_is_the_second_moment_less_the_squared_mean_over_the_spp(tmp_path):
+    ch = _mitsuba_channels(7, 8, seed=4)
+    frame = layouts.read(write_channels(tmp_path / "mi-00032spp.exr", ch))
+    assert frame.layout == "mitsuba" and frame.inputs == InputSet(split=False, variance=True)
+
+    def variance(prefix, comps):
+        return np.mean([(ch[f"m2_{prefix}{c}"].astype(np.float64) - ch[f"{prefix}{c}"].astype(np.float64) ** 2) / 32
+                        for c in comps], axis=0)
+
+    np.testing.assert_allclose(frame.layers["colorVariance"], variance("", "RGB"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["albedoVariance"], variance("albedo.", "RGB"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["normalVariance"], variance("nn.", "XYZ"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["depthVariance"], variance("dd.", "T"), rtol=1e-5, atol=1e-9)
+    assert frame.layers["albedo"].max() <= 1.0 < ch["albedo.R"].max()  # clamped: metals exceed 1
+    np.testing.assert_array_equal(frame.layers["depth"], ch["dd.T"])
+
+
+def test_mitsuba_without_a_known_spp_is_read_without_variance(tmp_path):
+    frame = layouts.read(write_channels(tmp_path / "mi.exr", _mitsuba_channels(4, 4)))
+    assert frame.inputs == InputSet(split=False, variance=False)
+    assert any("no spp known" in note for note in frame.notes)
+    assert layouts.read(tmp_path / "mi.exr", spp=8).inputs.variance
+
+
+def test_pbrt_variance_is_per_sample_and_depth_is_the_distance_to_the_camera(tmp_path):
+    rng = np.random.default_rng(5)
+    ch = {}
+    for layer, comps in (("", "RGB"), ("Albedo.", "RGB"), ("Ns.", "XYZ"), ("P.", "XYZ"), ("Variance.", "RGB")):
+        for c in comps:
+            ch[f"{layer}{c}"] = rng.uniform(-1 if layer == "P." else 0, 2, (6, 5)).astype(np.float16)
+    frame = layouts.read(write_channels(tmp_path / "pbrt-00064spp.exr", ch))
+    assert frame.layout == "pbrt" and frame.inputs == InputSet(split=False, variance=True)
+    p = np.stack([ch[f"P.{c}"].astype(np.float64) for c in "XYZ"], axis=-1)
+    np.testing.assert_allclose(frame.layers["depth"], np.sqrt((p * p).sum(-1)), rtol=1e-6)
+    var = np.mean([ch[f"Variance.{c}"].astype(np.float64) for c in "RGB"], axis=0) / 64
+    np.testing.assert_allclose(frame.layers["colorVariance"], var, rtol=1e-6)
+    assert frame.layers["default"].dtype == np.float32
+
+
+def test_an_rgb_file_takes_albedo_and_normal_from_separate_files(tmp_path):
+    rng = np.random.default_rng(6)
+    colour, albedo, normal = (rng.uniform(0, 1, (5, 4, 3)).astype(np.float32) for _ in range(3))
+    for name, image in (("c", colour), ("a", albedo), ("n", normal)):
+        write_channels(tmp_path / f"{name}.exr", {c: image[..., i] for i, c in enumerate("RGB")})
+    frame = layouts.read(tmp_path / "c.exr", albedo=tmp_path / "a.exr", normal=tmp_path / "n.exr")
+    assert frame.layout == "rgb" and frame.inputs == InputSet(split=False, variance=False)
+    np.testing.assert_array_equal(frame.layers["default"], colour)
+    np.testing.assert_array_equal(frame.layers["albedo"], albedo)
+    np.testing.assert_array_equal(frame.layers["normal"], normal)
+    np.testing.assert_array_equal(frame.layers["depth"], 0)
+    alone = layouts.read(tmp_path / "c.exr")
+    np.testing.assert_array_equal(alone.layers["albedo"], 1)
+
+
+def test_the_kpcn_layout_is_found_first_and_without_variance_says_so(tmp_path):
+    from helpers import random_aovs
+
+    aovs = random_aovs(4, 5)
+    frame = layouts.read(exr.write_aovs(tmp_path / "k-00004spp.exr", aovs))
+    assert frame.layout == "kpcn" and frame.inputs == InputSet()
+    for name, image in exr.read_aovs(tmp_path / "k-00004spp.exr").items():
+        np.testing.assert_array_equal(frame.layers[name], image, err_msg=name)
+    no_var = {k: v for k, v in aovs.items() if "Variance" not in k}
+    assert layouts.read(exr.write_aovs(tmp_path / "n-00004spp.exr", no_var)).inputs == InputSet(variance=False)
+
+
+def test_a_file_of_no_layout_kpcn_reads_gets_one_line_naming_what_each_layout_missed(tmp_path):
+    path = write_channels(tmp_path / "odd.exr", {"Y": np.zeros((3, 3), np.float32), "mask.Z": np.zeros((3, 3), np.float32)})
+    with pytest.raises(AOVError) as err:
+        layouts.read(path)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{path}: no layout kpcn reads (")
+    for name in layouts.LAYOUTS:
+        assert f"{name}: no " in message
+    assert "the file has layers default, mask" in message
+    with pytest.raises(AOVError, match=r"not a cycles file: it lacks a layer '<view layer>.Combined'"):
+        layouts.read(path, "cycles")
+
+
+def test_output_keeps_header_attributes_windows_and_alpha(tmp_path):
+    ch = cycles_channels(6, 8)
+    ch["ViewLayer.Combined.A"] = np.linspace(0, 1, 48, dtype=np.float32).reshape(6, 8)
+    window = ((10, 20), (17, 25))
+    header = {"dataWindow": tuple(np.array(c, np.int32) for c in window),
+              "displayWindow": (np.array([0, 0], np.int32), np.array([63, 47], np.int32)),
+              "Software": "Blender 5.0.1", "cycles.ViewLayer.samples": "16", "xDensity": 72.0}
+    frame = layouts.read(write_channels(tmp_path / "in.exr", ch, parts_of(ch), header=header))
+    assert frame.data_window == window and frame.spp == 16
+    out = exr.write_aovs(tmp_path / "out.exr", {"default": frame.layers["default"], "default.A": frame.alpha},
+                         attributes=frame.attributes, windows=(frame.data_window, frame.display_window))
+    back = exr.read_image(out)
+    assert back.data_window == window and back.display_window == ((0, 0), (63, 47))
+    assert back.attributes["Software"] == "Blender 5.0.1" and back.attributes["xDensity"] == 72.0
+    np.testing.assert_array_equal(back.channels["default.A"], ch["ViewLayer.Combined.A"])
