@@ -20,10 +20,11 @@ cycles     Blender Cycles, ``<view layer>.<pass>.<C>``: Blender 4 short pass nam
            [0, 1] without a split); normal = Normal (world space; else Denoising Normal, camera space);
            depth = Denoising Depth (else Depth, with values >= DEPTH_MISS, the background, as 0); alpha =
            Combined.A. No variance: Cycles 3.0+ writes none.
-mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour ``R G B``, albedo (an AOV
-           named ``albedo``), normal (``sh_normal``/``nn``/``normal``), depth (``dd``/``depth``, channel T or
-           Y or Z), each with its second moment ``m2_<channel>``: variance of the mean = (m2 - mean^2) / spp.
-           No split. Albedo clipped to [0, 1] (metals exceed 1).
+mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour = the radiance integrator's
+           layer (``path.X Y Z``; ``R G B`` without ``moment``), albedo, normal, depth = the AOVs named
+           ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare or ``aov.<name>``; depth is
+           the ray length, 0 on a miss), each with its second moment ``m2_<layer>``: variance of the mean =
+           max(m2 - mean^2, 0) / spp. No split. Albedo clipped to [0, 1] (metals exceed 1).
 pbrt       PBRT-v4 GBufferFilm: ``R G B``, ``Albedo``, ``Ns`` (camera space unless the film wrote world
            space), ``P`` (depth = |P|, camera space), ``Variance`` (per sample: divided by the spp). No split.
 rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour layer of the layouts above),
@@ -265,42 +266,62 @@ class CyclesLayout(Layout):
         return out, ch.component(p["combined"], "A"), notes
 
 
+# Mitsuba AOV names (the aov integrator's "<name>:<type>" pairs name them; these are the usual names and types),
+# each bare or under the aov integrator's own prefix ("aov.albedo")
 MITSUBA_ALBEDO = ("albedo",)
 MITSUBA_NORMAL = ("sh_normal", "nn", "normal")
 MITSUBA_DEPTH = ("depth", "dd")
-MITSUBA_MOMENT = "m2_"
+MITSUBA_MOMENT = "m2_"  # the moment integrator's second moment of layer L is layer m2_L
 
 
 class MitsubaLayout(Layout):
     name = "mitsuba"
-    looks_for = ("R G B with AOVs albedo, sh_normal|nn|normal, depth|dd and their m2_ moments "
-                 "(the moment and aov integrators)")
+    looks_for = ("AOVs albedo, sh_normal|nn|normal and depth|dd (the aov integrator), with the moment "
+                 "integrator's m2_ layers for variance")
 
     @staticmethod
     def _find(ch, names, kind=VECTOR):
-        return next((n for n in names if ch.has(n, kind)), None)
+        """The layer of one of ``names``, bare or as the last part of a prefixed name (``aov.nn``)."""
+        for name in names:
+            for layer in sorted(ch.layers):
+                if (layer == name or layer.endswith(f".{name}")) and not layer.startswith(MITSUBA_MOMENT) \
+                        and ch.has(layer, kind):
+                    return layer
+        return None
+
+    @classmethod
+    def _colour(cls, ch) -> str:
+        """The radiance layer: under the moment integrator, a nested integrator's own layer (``path.X Y Z``): one
+        with a moment, not under another layer (as ``aov.albedo`` is under ``aov``) and with none under it (the
+        aov integrator's own ``aov.X Y Z`` is 0); else R G B."""
+        aovs = {cls._find(ch, MITSUBA_ALBEDO), cls._find(ch, MITSUBA_NORMAL), cls._find(ch, MITSUBA_DEPTH, SCALAR)}
+
+        def nested(layer):
+            return (layer in aovs or layer.rpartition(".")[0] in ch.layers
+                    or any(o.startswith(f"{layer}.") for o in ch.layers))
+
+        for layer in sorted(ch.layers):
+            if (f"{MITSUBA_MOMENT}{layer}" in ch.layers and not layer.startswith(MITSUBA_MOMENT) and ch.has(layer)
+                    and not nested(layer)):
+                return layer
+        return "default"
 
     def missing(self, ch):
-        lacking = [] if ch.has("default") else ["R G B"]
-        lacking += [] if self._find(ch, MITSUBA_ALBEDO) else ["albedo"]
-        lacking += [] if self._find(ch, MITSUBA_NORMAL) else ["a normal AOV"]
-        lacking += [] if self._find(ch, MITSUBA_DEPTH, SCALAR) else ["a depth AOV"]
+        lacking = [] if ch.has(self._colour(ch)) else ["R G B"]
+        lacking += [] if self._find(ch, MITSUBA_ALBEDO) else ["albedo AOV"]
+        lacking += [] if self._find(ch, MITSUBA_NORMAL) else ["normal AOV"]
+        lacking += [] if self._find(ch, MITSUBA_DEPTH, SCALAR) else ["depth AOV"]
         return ", ".join(lacking) or None
-
-    @staticmethod
-    def _moment_layer(ch, layer):
-        """The layer of ``layer``'s second moments, ``m2_<layer>`` (the colour's: ``m2_``), or None."""
-        moment = MITSUBA_MOMENT + ("" if layer == "default" else layer)
-        return moment if moment in ch.layers else None
 
     def _names(self, ch) -> dict[str, str]:
         """kpcn name -> the file's layer, for the colour and the three AOVs."""
-        return {"default": "default", "albedo": self._find(ch, MITSUBA_ALBEDO),
+        return {"default": self._colour(ch), "albedo": self._find(ch, MITSUBA_ALBEDO),
                 "normal": self._find(ch, MITSUBA_NORMAL), "depth": self._find(ch, MITSUBA_DEPTH, SCALAR)}
 
     def _moments(self, ch) -> dict[str, str | None]:
         """kpcn name -> the file's layer of its second moments (None where the file has none)."""
-        return {k: self._moment_layer(ch, v) for k, v in self._names(ch).items()}
+        return {k: f"{MITSUBA_MOMENT}{v}" if f"{MITSUBA_MOMENT}{v}" in ch.layers else None
+                for k, v in self._names(ch).items()}
 
     def inputs(self, ch, spp):
         return InputSet(split=False, variance=spp is not None and None not in self._moments(ch).values())
@@ -309,25 +330,28 @@ class MitsubaLayout(Layout):
         names = self._names(ch)
         out = {k: ch.vector(v) for k, v in names.items() if k != "depth"}
         out["depth"] = ch.scalar(names["depth"])
-        notes = []
-        if float(out["albedo"].max(initial=0.0)) > 1.0:
+        notes = [f"{k} = {v}" for k, v in names.items()]
+        raw_albedo = out["albedo"]
+        if float(raw_albedo.max(initial=0.0)) > 1.0:
             notes.append("albedo clipped to [0, 1] (above 1 on metals)")
-        out["albedo"] = np.clip(out["albedo"], 0.0, 1.0)
+        out["albedo"] = np.clip(raw_albedo, 0.0, 1.0)
         moments = self._moments(ch)
         if not self.inputs(ch, spp).variance:
             lacking = [k for k, v in moments.items() if v is None]
             notes.append("read without variance: " + (f"no m2_ moments of {', '.join(lacking)}" if lacking else
                                                       "no spp known (name the file <scene>-<spp>spp.exr)"))
-            return out, ch.component("default", "A"), notes
+            return out, ch.component(names["default"], "A"), notes
         target = {"default": "colorVariance", "albedo": "albedoVariance", "normal": "normalVariance",
                   "depth": "depthVariance"}
         for key, layer in moments.items():
             m2 = ch.vector(layer) if key != "depth" else ch.scalar(layer)
-            mean = out[key] if key != "albedo" else ch.vector(names["albedo"])
+            mean = raw_albedo if key == "albedo" else out[key]
+            # clamped at 0: half-float moments of a constant pixel can round below the squared mean
             var = np.maximum(np.asarray(m2, np.float64) - np.asarray(mean, np.float64) ** 2, 0.0) / spp
             out[target[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
         out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
-        return out, ch.component("default", "A"), notes
+        notes.append("variance = (m2 - mean^2) / spp, clamped at 0")
+        return out, ch.component(names["default"], "A"), notes
 
 
 class PbrtLayout(Layout):

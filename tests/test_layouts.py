@@ -1,6 +1,8 @@
 """``prep.layouts``: each renderer's layout read as kpcn's, against float64 compositions of the same passes;
 multi-part and single-part files alike; the one-line error of a layout kpcn does not read."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from helpers import CYCLES5_RGB, cycles_channels, parts_of, write_channels
@@ -79,7 +81,7 @@ def test_cycles_without_the_diffuse_passes_has_no_split_and_the_clipped_denoisin
 def _mitsuba_channels(h, w, seed=0):
     rng = np.random.default_rng(seed)
     ch = {}
-    for layer, comps in (("", "RGB"), ("albedo.", "RGB"), ("nn.", "XYZ"), ("dd.", "T")):
+    for layer, comps in (("path.", "XYZ"), ("aov.albedo.", "RGB"), ("aov.nn.", "XYZ"), ("aov.dd.", "T")):
         for c in comps:
             mean = rng.uniform(0, 1.5, (h, w)).astype(np.float32)
             ch[f"{layer}{c}"] = mean
@@ -96,12 +98,13 @@ def test_mitsuba_variance_is_the_second_moment_less_the_squared_mean_over_the_sp
         return np.mean([(ch[f"m2_{prefix}{c}"].astype(np.float64) - ch[f"{prefix}{c}"].astype(np.float64) ** 2) / 32
                         for c in comps], axis=0)
 
-    np.testing.assert_allclose(frame.layers["colorVariance"], variance("", "RGB"), rtol=1e-5, atol=1e-9)
-    np.testing.assert_allclose(frame.layers["albedoVariance"], variance("albedo.", "RGB"), rtol=1e-5, atol=1e-9)
-    np.testing.assert_allclose(frame.layers["normalVariance"], variance("nn.", "XYZ"), rtol=1e-5, atol=1e-9)
-    np.testing.assert_allclose(frame.layers["depthVariance"], variance("dd.", "T"), rtol=1e-5, atol=1e-9)
-    assert frame.layers["albedo"].max() <= 1.0 < ch["albedo.R"].max()  # clamped: metals exceed 1
-    np.testing.assert_array_equal(frame.layers["depth"], ch["dd.T"])
+    np.testing.assert_allclose(frame.layers["colorVariance"], variance("path.", "XYZ"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["albedoVariance"], variance("aov.albedo.", "RGB"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["normalVariance"], variance("aov.nn.", "XYZ"), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(frame.layers["depthVariance"], variance("aov.dd.", "T"), rtol=1e-5, atol=1e-9)
+    assert frame.layers["albedo"].max() <= 1.0 < ch["aov.albedo.R"].max()  # clamped: metals exceed 1
+    np.testing.assert_array_equal(frame.layers["depth"], ch["aov.dd.T"])
+    np.testing.assert_array_equal(frame.layers["default"][..., 0], ch["path.X"])
 
 
 def test_mitsuba_without_a_known_spp_is_read_without_variance(tmp_path):
@@ -181,3 +184,85 @@ def test_output_keeps_header_attributes_windows_and_alpha(tmp_path):
     assert back.data_window == window and back.display_window == ((0, 0), (63, 47))
     assert back.attributes["Software"] == "Blender 5.0.1" and back.attributes["xDensity"] == 72.0
     np.testing.assert_array_equal(back.channels["default.A"], ch["ViewLayer.Combined.A"])
+
+
+# ---------------------------------------------------------------- the renderers' own files (tests/fixtures/renderers)
+
+RENDERERS = Path(__file__).parent / "fixtures" / "renderers"
+# Two Cycles CPU renders of one seed differ by up to 4e-6 (fixtures/renderers/README.md), so the multi-part and the
+# interleaved fixture, two renders, agree to that and not bit for bit.
+CYCLES_JITTER = 1e-5
+HALF_EPS = float(np.finfo(np.float16).eps)
+
+
+def _raw(path):
+    image = exr.read_image(path)
+    return {name: pixels.astype(np.float64) for name, pixels in image.channels.items()}
+
+
+@pytest.mark.parametrize("folder, names, precision", [
+    ("cycles5", ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Glossy Direct", "Glossy Indirect",
+                 "Glossy Color", "Transmission Direct", "Transmission Indirect", "Transmission Color", "Emission",
+                 "Environment", "Volume Direct", "Volume Indirect"), 1e-6),
+    ("cycles45", ("DiffDir", "DiffInd", "DiffCol", "GlossDir", "GlossInd", "GlossCol", "TransDir", "TransInd",
+                  "TransCol", "Emit", "Env", "VolumeDir", "VolumeInd"), 4 * HALF_EPS),
+])
+def test_blenders_own_files_compose_to_their_combined(folder, names, precision):
+    path = RENDERERS / folder / "studio-00016spp.exr"
+    raw = _raw(path)
+    frame = layouts.read(path)
+    assert frame.layout == "cycles" and frame.inputs == InputSet(split=True, variance=False) and frame.spp == 16
+
+    def rgb(p):
+        return np.stack([raw[f"ViewLayer.{p}.{c}"] for c in "RGB"], axis=-1)
+
+    dd, di, dc, gd, gi, gc, td, ti, tc, em, en, vd, vi = (rgb(n) for n in names)
+    np.testing.assert_allclose(frame.layers["diffuse"], (dd + di) * dc, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(frame.layers["specular"], (gd + gi) * gc + (td + ti) * tc + em + en + vd + vi,
+                               rtol=1e-6, atol=1e-6)
+    combined = rgb("Combined")
+    total = frame.layers["diffuse"].astype(np.float64) + frame.layers["specular"]
+    assert np.abs(total - combined).max() <= precision * np.abs(combined).max()
+    np.testing.assert_array_equal(frame.alpha, raw["ViewLayer.Combined.A"].astype(np.float32))
+    assert frame.layers["depth"].min() == 0 and frame.layers["depth"].max() < 10  # Denoising Depth, not 1e10
+
+
+def test_blender_5s_multi_part_and_interleaved_files_read_alike():
+    multi = layouts.read(RENDERERS / "cycles5" / "studio-00016spp.exr")
+    interleaved = layouts.read(RENDERERS / "cycles5-interleaved" / "studio-00016spp.exr")
+    assert len(exr.read_image(multi.path, header_only=True).parts) == 19
+    assert len(exr.read_image(interleaved.path, header_only=True).parts) == 1
+    assert multi.layers.keys() == interleaved.layers.keys() and multi.inputs == interleaved.inputs
+    for name in multi.layers:
+        np.testing.assert_allclose(multi.layers[name], interleaved.layers[name], atol=CYCLES_JITTER, err_msg=name)
+
+
+def test_mitsubas_own_file_gives_the_variance_of_its_moments():
+    path = RENDERERS / "mitsuba3" / "cornell-00016spp.exr"
+    raw = _raw(path)
+    frame = layouts.read(path)
+    assert frame.layout == "mitsuba" and frame.inputs == InputSet(split=False, variance=True)
+    colour = np.stack([raw[f"path.{c}"] for c in "XYZ"], axis=-1)
+    np.testing.assert_array_equal(frame.layers["default"], colour.astype(np.float32))
+    var = np.mean([np.maximum(raw[f"m2_path.{c}"] - raw[f"path.{c}"] ** 2, 0) / 16 for c in "XYZ"], axis=0)
+    np.testing.assert_allclose(frame.layers["colorVariance"], var, rtol=1e-6, atol=1e-12)
+    np.testing.assert_array_equal(frame.layers["depth"], raw["aov.dd.T"].astype(np.float32))
+    assert raw["aov.albedo.R"].max() > 1 >= frame.layers["albedo"].max()
+
+
+def test_a_file_in_pbrts_layout_gives_its_variance_over_the_spp():
+    path = RENDERERS / "pbrt4" / "cornell-00016spp.exr"
+    raw = _raw(path)
+    frame = layouts.read(path)
+    assert frame.layout == "pbrt" and frame.inputs == InputSet(split=False, variance=True)
+    var = np.mean([raw[f"Variance.{c}"] for c in "RGB"], axis=0) / 16
+    np.testing.assert_allclose(frame.layers["colorVariance"], var, rtol=1e-6)
+    p = np.stack([raw[f"P.{c}"] for c in "XYZ"], axis=-1)
+    np.testing.assert_allclose(frame.layers["depth"], np.sqrt((p * p).sum(-1)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("path", sorted(RENDERERS.glob("*/*.exr")), ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_every_fixture_is_found_from_its_header_as_read(path):
+    header = layouts.read_header(path)
+    frame = layouts.read(path)
+    assert (header.layout, header.inputs, header.size, header.spp) == (frame.layout, frame.inputs, frame.size, frame.spp)
