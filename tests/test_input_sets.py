@@ -154,6 +154,27 @@ def test_a_no_variance_set_has_zero_relative_variances_and_the_full_sets_other_c
     assert seen == 4 * 7
 
 
+def test_an_error_round_of_a_no_split_set_is_cut_from_the_total_colour(sets):
+    tmp, configs = sets
+    copy = tmp / "shards" / "copy.no-split"  # beside the set: its sources' relative paths still resolve
+    shutil.copytree(configs["no-split"].set_dir, copy)
+    shards.build_error_round(copy, shards.ErrorRound(1, 3, 0.0, "smape", {}), None, progress=False)
+    sset = shards.ShardSet(copy)
+    sources = sset.complete_manifest()["sources"]
+    paths = [p for p in shards.shard_paths(copy, "train") if p.parent.name == "round-001"]
+    seen = 0
+    for path in paths:
+        with shards.open_shard(path) as f:
+            for k in range(len(f["source"])):
+                noisy = exr.read_aovs(sset.resolve(sources[int(f["source"][k])]["path"]))
+                y, x = f["position"][k]
+                want = reference_features(total_colour_frame(noisy), "diffuse")[y:y + 16, x:x + 16]
+                np.testing.assert_allclose(f["diffuse/features"][k], want, rtol=1e-6, atol=1e-6)
+                assert not f["specular/noisy"][k].any() and not f["specular/reference"][k].any()
+                seen += 1
+    assert seen == 2 * 3  # two training inputs
+
+
 def test_kpcn_shards_refuses_an_unknown_input_set_in_one_line(tmp_path):
     res = run_main("shards", "--set", "s", "--inputs", "rgb", cwd=tmp_path)
     assert_one_line_error(res, "--inputs must be one of full, no-variance, no-split, no-split-no-variance, got 'rgb'")
