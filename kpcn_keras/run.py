@@ -68,8 +68,8 @@ import keras
 from kpcn_keras.config import CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.models import build_branch_model
 from prep.errors import KpcnError, OptionError
-from prep.inputs import FULL, INPUT_SETS, InputSet
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
+from prep.inputs import FULL, INPUT_SETS, InputSet
 from prep.shards import ShardSet
 
 RECORD = "config.json"

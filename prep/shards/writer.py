@@ -28,6 +28,7 @@ from prep import exr, features, threads
 from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
+from prep.inputs import InputSet
 from prep.processes import die_with_parent
 from prep.shards.config import ShardConfig
 from prep.shards.format import (
@@ -40,7 +41,6 @@ from prep.shards.format import (
     shard_name,
     write_shard,
 )
-from prep.inputs import InputSet
 from prep.shards.patches import ImagePatches, draw, round_pdf, shard_layers
 from prep.shards.renders import reference_of
 from prep.shards.shardset import SPLITS, ShardSet, round_name
