@@ -14,7 +14,7 @@ STUDY_ARGS  ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 
-.PHONY: venv render shards train resample resample-study evaluate figures compare bench test test-fast test-oldest clean
+.PHONY: venv render shards train train-inputs resample resample-study evaluate figures compare bench test test-fast test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -34,6 +34,14 @@ train: shards
 	$(KPCN) train --set $(SET) --run runs/$(RUN) $(TRAIN_ARGS)
 	$(KPCN) evaluate --run runs/$(RUN)
 	$(KPCN) figures --run runs/$(RUN)
+
+# a network for each input set but the full one (docs/training.md §6), for renders without a diffuse/specular
+# split or variance layers: shards/$(SET).<inputs> and runs/$(RUN)/inputs/<inputs>; the names from prep/inputs.py
+train-inputs: render
+	for inputs in $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS[1:])'); do \
+		$(KPCN) shards --set $(SET) --inputs $$inputs $(SHARD_ARGS) && \
+		$(KPCN) train --set $(SET) --run runs/$(RUN) --inputs $$inputs $(TRAIN_ARGS) || exit 1; \
+	done
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards

@@ -19,7 +19,9 @@ from pathlib import Path
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import OptionError
 from prep.features import BRANCHES
+from prep.inputs import FULL, InputSet
 from prep.render.frame import FRAME_SIDE
+from prep.shards.config import shard_set_dir, without_full_inputs
 
 ARCHS = ("kpcn", "kpal", "dpcn")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
@@ -239,6 +241,14 @@ class TrainConfig:
     ``slope_input`` the network gets λ as an input channel and learns the asymmetric loss for every λ in
     ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.
+
+    ``inputs`` is the input set (``prep.inputs``) the run is trained for, from the shard set cut for it
+    (:attr:`set_dir`). A no-split run's specular input is 0 (``prep.inputs.restrict``), so it trains the
+    diffuse network alone (:attr:`denoised_branches`): no specular phase, and no joint phase (with one
+    branch there is nothing to tune together; ``joint_steps`` of a preset is passed over); one shared
+    network (``shared``) or a compositor, both made for two branches, is refused. A full configuration's
+    dict is the one from before input sets existed (``prep.shards.config.without_full_inputs``), so the
+    runs and checkpoints written before keep their identity.
     """
 
     set_name: str = "default"
@@ -266,6 +276,7 @@ class TrainConfig:
     compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
     val_batches: int = bounded(8, VAL_BATCHES)
     seed: int = bounded(0, SEED)
+    inputs: str = FULL.name
 
     def __post_init__(self):
         self.branches = tuple(self.branches)
@@ -293,6 +304,14 @@ class TrainConfig:
                                   f"{','.join(self.branches)}")
         if isinstance(self.compositor, dict):
             self.compositor = CompositorConfig.from_dict(self.compositor)
+        if not self.input_set.split:
+            one = f"a {self.inputs} run (--inputs {self.inputs}) has the diffuse branch alone, the total colour"
+            if self.shared:
+                raise OptionError("shared", f"trains one network for both branches; {one}")
+            if self.compositor is not None:
+                raise OptionError("compositor", f"composes the scales of both branches; {one}")
+            if "diffuse" not in self.branches:
+                raise OptionError("branches", f"{','.join(self.branches)} leaves out the diffuse branch; {one}")
         given = self.model.to_dict() if isinstance(self.model, ModelConfig) else self.model
         user = {k: v for k, v in given.items() if k not in _CONDITIONING}
         self.model = ModelConfig.from_dict({**user, "branch_channels": self.shared, "slope_channel": self.slope_input})
@@ -313,13 +332,24 @@ class TrainConfig:
         return cls(preset=preset, **values)
 
     @property
+    def input_set(self) -> InputSet:
+        return InputSet.named(self.inputs)
+
+    @property
+    def denoised_branches(self) -> tuple[str, ...]:
+        """The branches the run's denoiser runs: both, or the diffuse alone for a no-split run (its input is
+        the total colour; the specular input is 0, and so is the specular output)."""
+        return BRANCHES if self.input_set.split else ("diffuse",)
+
+    @property
     def set_dir(self) -> Path:
-        return Path(self.shards_root) / self.set_name
+        return shard_set_dir(self.shards_root, self.set_name, self.inputs)
 
     def phases(self) -> list[Phase]:
         """The run's phases in training order, each with its place in the run's epoch numbering."""
-        plan = [(b, self.steps, self.learning_rate) for b in (("shared",) if self.shared else self.branches)]
-        if self.joint_steps:
+        branches = ("shared",) if self.shared else tuple(b for b in self.branches if b in self.denoised_branches)
+        plan = [(b, self.steps, self.learning_rate) for b in branches]
+        if self.joint_steps and self.input_set.split:
             plan.append(("joint", self.joint_steps, self.joint_learning_rate))
         if self.compositor is not None:
             plan.append(("compositor", self.compositor_steps, self.compositor_learning_rate))
@@ -331,7 +361,7 @@ class TrainConfig:
         return phases
 
     def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
+        d = without_full_inputs(dataclasses.asdict(self))
         d["branches"] = list(self.branches)
         d["slope_range"] = list(self.slope_range)
         return d

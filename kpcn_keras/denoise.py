@@ -41,9 +41,9 @@ from kpcn_keras.multiscale import alignment, build_multiscale_model, multiscale_
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features, layouts
 from prep.errors import KpcnError, OptionError
-from prep.features import BRANCHES
 from prep.inputs import InputSet, pair_layers
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
+from prep.inputs import restrict
 from prep.processes import memory_shortfall
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
@@ -68,13 +68,19 @@ class Denoiser:
     a slope input channel (required there, refused elsewhere: ``RunRecord.check_slope``), so one loaded
     denoiser serves every λ. :meth:`without_compositor` is the same networks without a multiscale run's
     compositor (the "without" of a with/without comparison), nothing loaded again.
+
+    A frame is first restricted to the run's input set (``prep.inputs.restrict``, ``RunRecord.inputs``): the
+    networks see what their shards held. A no-split run has the diffuse network alone (:attr:`branches`):
+    its input is the total colour, the specular branch is not run and its output is 0, so ``default`` is the
+    diffuse output.
     """
 
     def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
                  compositor: keras.Model | None = None, tile: int = DEFAULT_TILE):
         self.run, self.record, self.model_config = run, record, record.model
         self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
-        names = {b: "shared" if self.model_config.branch_channels else b for b in BRANCHES}
+        self.inputs, self.branches = record.inputs, record.branches
+        names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
         self.align = 1
         if compositor is not None:
@@ -83,7 +89,7 @@ class Denoiser:
                         for name, net in networks.items()}
             self.margin = multiscale_radius(self.margin, comp_cfg)
             self.align = alignment(comp_cfg)
-        self.models = {b: networks[names[b]] for b in BRANCHES}
+        self.models = {b: networks[names[b]] for b in self.branches}
         # tiles start at multiples of the pyramid's alignment, so every tile pools the image's own 2x2 blocks
         self.margin = -(-self.margin // self.align) * self.align
         self.tile = -(-self.asked_tile // self.align) * self.align
@@ -93,10 +99,11 @@ class Denoiser:
                  multiscale: bool = True, resampling: bool = False) -> Denoiser:
         """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
         ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
-        own use, between the phases of its current round."""
+        own use, between the phases of its current round. Only the networks of the branches the run's input
+        set runs are read (``RunRecord.branches``)."""
         tile = TILE.check("tile", tile)
         record = (run.record() if record is None else record).finished(resampling=resampling)
-        names = dict.fromkeys("shared" if record.model.branch_channels else b for b in BRANCHES)
+        names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
         networks = {}
         for name in names:
             networks[name] = run.load_component(record, name)
@@ -114,7 +121,7 @@ class Denoiser:
 
     def warm_up(self, slope: float | None = None) -> None:
         """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
-        torch)."""
+        torch): through :meth:`__call__`, so restricted to the run's input set as a frame is."""
         size = 2 * self.margin + 1
         black = {name: np.zeros((size, size, 3), np.float32) for name in exr.RGB_LAYERS}
         black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
@@ -150,9 +157,13 @@ class Denoiser:
         return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
 
     def run_branch(self, branch: str, aovs: dict[str, np.ndarray], slope: float | None = None) -> np.ndarray:
-        """Model output (log domain) of one branch for a whole noisy render, tile by tile, at ``slope``."""
+        """Model output (log domain) of one branch for a whole noisy render (restricted to the run's input set
+        first), tile by tile, at ``slope``; 0 (log of 0) for a branch the run does not run."""
         self.record.check_slope(slope)
         h, w = aovs["depth"].shape
+        if branch not in self.models:
+            return np.zeros((h, w, 3), dtype=np.float32)
+        aovs = restrict(aovs, self.inputs)
         scale = features.depth_scale(aovs["depth"])
         out = np.empty((h, w, 3), dtype=np.float32)
         for tile, window in self.tiles(h, w):
@@ -166,8 +177,10 @@ class Denoiser:
 
         Tile by tile, both branches and their recombination: beyond ``aovs`` and the three float32 outputs,
         what this holds is bounded by the tile (features of one window, its network activations, the float64
-        recombination of one tile), at any frame size."""
+        recombination of one tile), at any frame size. The frame is restricted to the run's input set first
+        (what is kept is not copied); the specular branch a no-split run does not run gives 0."""
         self.record.check_slope(slope)
+        aovs = restrict(aovs, self.inputs)
         h, w = aovs["depth"].shape
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
         out = {name: np.empty((h, w, 3), dtype=np.float32) for name in ("diffuse", "specular", "default")}
@@ -175,7 +188,8 @@ class Denoiser:
             y0, y1, x0, x1 = tile
             diffuse = features.diffuse_from_log(self.predict_tile("diffuse", aovs, tile, window, scale, slope),
                                                 aovs["albedo"][y0:y1, x0:x1])
-            specular = features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale, slope))
+            specular = (features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale, slope))
+                        if "specular" in self.models else np.zeros_like(diffuse))
             out["diffuse"][y0:y1, x0:x1] = exr.to_float32(diffuse)
             out["specular"][y0:y1, x0:x1] = exr.to_float32(specular)
             out["default"][y0:y1, x0:x1] = exr.to_float32(diffuse + specular)

@@ -8,7 +8,7 @@ file                   what (seed report figure: docs/method.md §10)
 =====================  ===================================================================================
 ``kernels.png``        per branch, the kernel predicted at a chosen pixel beside the input crop around it
                        and the reference crop, with the filtered value (Fig. 2); not for dpcn, which
-                       predicts colour directly
+                       predicts colour directly; a no-split run's diffuse branch alone
 ``multiscale.png``     input | without the compositor | with it | reference, relMSE in the captions
                        (Fig. 15); a multiscale run only
 ``alpha.png``          the compositor's α maps, per branch and per scale, finest first (Fig. 16); a
@@ -41,6 +41,7 @@ from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import check_outputs, pyplot, save_png
+from prep.inputs import InputSet, restrict
 
 FIGURES = {name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes")}
 
@@ -70,12 +71,16 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
     h, w = aovs["default"].shape[:2]
     if not (r <= y < h - r and r <= x < w - r):
         raise OptionError("pixel", f"must be at least {r} pixels from the border of the {w}x{h} frame, got {y},{x}")
+    # the branches the run's networks denoise, of the layers they read (the pixel is chosen on the frame as
+    # it is: a no-variance run reads no variance)
+    aovs = restrict(aovs, den.inputs)
+    ref = None if ref is None else restrict(ref, InputSet(split=den.inputs.split, variance=False))
     plt = pyplot()
-    fig, axes = plt.subplots(len(BRANCHES), 4, figsize=(10, 2.7 * len(BRANCHES)), squeeze=False)
+    fig, axes = plt.subplots(len(den.branches), 4, figsize=(10, 2.7 * len(den.branches)), squeeze=False)
     # the network sees a window of its receptive radius around the pixel: enough for this pixel's kernel
     m = den.margin
     ya, yb, xa, xb = max(y - m, 0), min(y + m + 1, h), max(x - m, 0), min(x + m + 1, w)
-    for row, branch in zip(axes, BRANCHES):
+    for row, branch in zip(axes, den.branches):
         net = den.networks["shared" if cfg.branch_channels else branch]
         feats = network_input(features.branch_features(aovs, branch, (ya, yb, xa, xb)), cfg, branch, slope)
         kernels = _to_numpy(build_kernel_model(net).predict_on_batch(feats[None]))[0]

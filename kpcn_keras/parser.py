@@ -233,6 +233,8 @@ def _shards_options(add) -> None:
     s.add_argument("--val-scenes", type=_csv, help="explicit held-out scenes (comma-separated)")
     s.add_argument("--input-spp", type=int, help="use only inputs of this spp (default: every input)")
     s.add_argument("--seed", type=int, help=d("seed"))
+    s.add_argument("--inputs", help=f"input set the patches hold: {_input_sets()} {d('inputs')}; another than "
+                   "full writes the shard set <set>.<inputs>")
     _part_option(s, "shards")
 
 
@@ -246,6 +248,8 @@ def _train_options(add) -> None:
     t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
     t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
     _run_option(t, default="runs/default", help="run folder, created or resumed (default: runs/default)")
+    t.add_argument("--inputs", help=f"input set of the network: {_input_sets()} {d('inputs')}; another than full "
+                   "trains on the shard set <set>.<inputs> into <run>/inputs/<inputs>")
     t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
     g = t.add_argument_group("network (each branch, or the shared one)")
     g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm) or dpcn (direct prediction)")
@@ -282,6 +286,12 @@ def _train_options(add) -> None:
     g.add_argument("--no-augment", dest="augment", action="store_false", help="no flips, rotations or colour "
                    "permutations of the training patches")
     g.add_argument("--seed", type=int, help=d("seed"))
+
+
+def _input_sets() -> str:
+    from prep.inputs import INPUT_SETS
+
+    return ", ".join(INPUT_SETS)
 
 
 def _resample_options(add) -> None:

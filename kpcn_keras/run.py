@@ -16,6 +16,13 @@
     <run>/resample/timings.json       seconds per error round (and the run before them)
     <run>/resample/round-<k>.png      the map that drove round k's draw on one training render, its new patches
     <run>/.lock                       held by the one process that trains into the run
+    <run>/inputs/<inputs>/            the run's network for frames without a split or variance: a run folder of
+                                      its own, of this layout, for each input set but the full one
+                                      (``kpcn train --inputs``: :meth:`Run.for_inputs`)
+
+A run's record names its input set (``prep.inputs``; :attr:`RunRecord.inputs`: the full set for a record
+without one), and its denoiser reads frames restricted to it. :meth:`Run.serving` picks, among a run and its
+``inputs/`` variants, the finished one for a frame's input set.
 
 A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``), and
 ``compositor`` for a multiscale run. The record's ``components`` maps each to the phase file that holds its
@@ -62,9 +69,11 @@ from kpcn_keras.config import CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.models import build_branch_model
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
+from prep.inputs import FULL, INPUT_SETS, InputSet
 from prep.shards import ShardSet
 
 RECORD = "config.json"
+INPUTS = "inputs"  # the folder of a run's variants for other input sets
 TIMINGS = "timings.json"  # the seconds of a folder: the one file whose bytes differ between identical runs
 STATE_ENTRY = "kpcn-state.json"
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
@@ -130,6 +139,43 @@ class Run:
 
     def lock(self):
         return exclusive_lock(self.dir, "run folder")
+
+    def for_inputs(self, inputs: InputSet) -> Run:
+        """The run of ``inputs``: this run for the full set, else the run folder ``<run>/inputs/<name>``."""
+        return self if inputs == FULL else Run(self.dir / INPUTS / inputs.name)
+
+    def serving(self, frame: InputSet) -> Run:
+        """The run whose networks denoise a frame that has ``frame``: this run, then its ``inputs/`` variants in
+        the order of ``prep.inputs.INPUT_SETS`` (the most the frame has first), the first that is finished and
+        whose input set serves the frame (``InputSet.serves``). KpcnError naming the run, what the frame lacks
+        and the commands that train the model for it, if none does."""
+        found = []
+        for run in [self] + [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS[1:]]:
+            if not run.has_record():
+                continue
+            record = run.record()
+            try:
+                record.finished()
+            except KpcnError:
+                found.append(f"{record.inputs} (unfinished)")
+                continue
+            if record.inputs.serves(frame):
+                return run
+            found.append(record.inputs.name)
+        lacks = " and ".join(what for what, has in (("a diffuse/specular split", frame.split),
+                                                     ("variance layers", frame.variance)) if not has)
+        from kpcn_keras.parser import command_line
+
+        # the base run's shard set, cut for the frame's input set: the model that serves it best
+        base = self.record().train if self.has_record() else TrainConfig()
+        root = None if base.shards_root == TrainConfig.shards_root else base.shards_root
+        shards = " ".join(["kpcn shards", *command_line("shards", {"set_name": base.set_name, "out_root": root,
+                                                                   "inputs": frame.name})])
+        train = " ".join(["kpcn train", *command_line("train", {"set_name": base.set_name, "shards_root": root,
+                                                                 "run": str(self.dir), "inputs": frame.name})])
+        what = f"without {lacks}" if lacks else "with a split and variance layers"
+        raise KpcnError(f"{self.dir}: no finished model for a frame {what} (the run has: "
+                        f"{', '.join(found) or 'none'}); train it with '{shards}' then '{train}'")
 
     def remove_temporaries(self) -> None:
         """Remove what killed trainers and resample loops left (hold :meth:`lock`; ``eval/`` and ``figures/``
@@ -240,7 +286,9 @@ class Run:
         for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed fork's
             shutil.rmtree(stale)
         tmp = new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}")
-        shutil.copytree(self.dir, tmp, ignore=shutil.ignore_patterns(".*"))
+        # not the variants of other input sets (inputs/): runs of their own, on shard sets of their own
+        shutil.copytree(self.dir, tmp, ignore=lambda folder, names: [
+            n for n in names if n.startswith(".") or (n == INPUTS and Path(folder) == self.dir)])
         data["shards"]["set_dir"] = os.path.relpath(os.path.abspath(sset.dir), os.path.abspath(new.dir))
         Run(tmp).write_record(data)
         os.replace(tmp, new.dir)
@@ -327,6 +375,16 @@ class RunRecord:
     @property
     def compositor(self) -> CompositorConfig | None:
         return self.train.compositor
+
+    @property
+    def inputs(self) -> InputSet:
+        """The input set the run was trained for (the full set for a record written before input sets)."""
+        return self.train.input_set
+
+    @property
+    def branches(self) -> tuple[str, ...]:
+        """The branches its denoiser runs (``TrainConfig.denoised_branches``)."""
+        return self.train.denoised_branches
 
     @property
     def validation_slope(self) -> float | None:

@@ -15,6 +15,10 @@ phase              trains                                            on
                    networks frozen (``--compositor alpha|kernel``)   pyramid of both branches
 =================  ================================================  ==========================================
 
+A run of another input set than the full one (``--inputs``, ``prep.inputs``) trains on the shard set cut for
+it (``TrainConfig.set_dir``) into ``<run>/inputs/<inputs>/`` (``Run.for_inputs``); a no-split run trains the
+diffuse phase alone (``TrainConfig.phases``).
+
 Every phase has its own Adam optimizer (exponential learning-rate decay, gradient-norm clipping) and its own
 checkpoint; the CSV log numbers epochs across phases, so it and ``loss.png`` show one continuous run, and the
 record (``config.json``) lists every phase with its epochs and the components it produced. The run folder's
@@ -65,6 +69,7 @@ from kpcn_keras.run import Run, check_architecture, load_model, read_state, save
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import atomic_path, atomic_write_json, check_writable, pyplot, read_json, save_png
+from prep.inputs import FULL
 from prep.shards import ShardSet
 
 # ---------------------------------------------------------------- what each phase trains
@@ -262,6 +267,10 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     manifest and ``split -> shard paths`` of round 0 (the variance round: a run's own phases train on it;
     error rounds are the resample loop's)."""
     manifest = sset.complete_manifest()
+    cut_for = manifest.get("config", {}).get("inputs", FULL.name)
+    if cut_for != cfg.inputs:
+        raise KpcnError(f"{sset.manifest_path}: the shard set was cut for the input set {cut_for}, not {cfg.inputs} "
+                        f"(--inputs); cut it with 'kpcn shards --set {cfg.set_name} --inputs {cfg.inputs}'")
     if manifest.get("features") is not None and len(manifest["features"]) != cfg.model.in_channels:
         raise OptionError("in_channels", f"is {cfg.model.in_channels} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
@@ -489,8 +498,9 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
 
 def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=(),
           world: distributed.World | None = None) -> Path:
-    """Train every phase of ``cfg`` into the run folder ``run_dir``; returns it. ``callbacks`` are passed
-    to every phase's ``fit`` (a benchmark's step timer).
+    """Train every phase of ``cfg`` into the run folder ``run_dir`` (for an input set other than the full
+    one, into its variant ``<run_dir>/inputs/<inputs>``: ``Run.for_inputs``); returns the folder trained.
+    ``callbacks`` are passed to every phase's ``fit`` (a benchmark's step timer).
 
     ``world``: the processes of a data-parallel run (default: what torchrun's variables say, else this
     process alone; ``kpcn_keras.distributed``). ``cfg.batch_size`` is the global batch, split evenly
@@ -502,7 +512,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
     world = distributed.from_environment() if world is None else world
     if cfg.batch_size % world.size:
         raise OptionError("batch_size", f"{cfg.batch_size} does not split evenly over {world.size} processes")
-    run = Run(run_dir)
+    run = Run(run_dir).for_inputs(cfg.input_set)
     sset = ShardSet(cfg.set_dir)
     manifest, paths = check_inputs(cfg, sset)
     check_run_folder(run, sset, manifest)

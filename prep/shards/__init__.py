@@ -1,7 +1,8 @@
 """65x65 training patches in HDF5 shards (docs/formats.md §4): what ``kpcn shards`` and the error rounds of
 ``kpcn resample`` write, and what training reads.
 
-A shard set is the folder ``<out_root>/<set>/`` (:class:`ShardSet` owns its layout). ``round-000`` is cut by
+A shard set is the folder ``<out_root>/<set>/`` (``<out_root>/<set>.<inputs>/`` for an input set other than
+the full one: ``config.shard_set_dir``; :class:`ShardSet` owns its layout). ``round-000`` is cut by
 ``kpcn shards`` from each input's variance PDF (:func:`build_shards`); round k >= 1 is an error round
 (:func:`build_error_round`), drawn from a model's error. Every round goes through the same per-image step
 (:func:`round_pdf` → :func:`draw` → :class:`ImagePatches` → a shard) and the same writer.
@@ -24,7 +25,7 @@ module           job
 """
 
 from prep.shards.build import build_shards
-from prep.shards.config import PATCH_SIZE, ShardConfig
+from prep.shards.config import PATCH_SIZE, ShardConfig, shard_set_dir
 from prep.shards.format import (
     FORMAT,
     LAYOUTS,
@@ -41,7 +42,7 @@ from prep.shards.format import (
     shard_name,
     write_shard,
 )
-from prep.shards.patches import ImagePatches, draw, image_datasets, round_pdf, variance_patches
+from prep.shards.patches import ImagePatches, draw, image_datasets, round_pdf, shard_layers, variance_patches
 from prep.shards.renders import discover_renders, split_scenes
 from prep.shards.rounds import ErrorRound, RoundResult, build_error_round, training_inputs, used_positions
 from prep.shards.shardset import MANIFEST, ShardEntry, ShardSet, round_index, round_name, shard_paths
@@ -76,7 +77,9 @@ __all__ = [
     "round_pdf",
     "shard_checksum",
     "shard_name",
+    "shard_layers",
     "shard_paths",
+    "shard_set_dir",
     "split_scenes",
     "training_inputs",
     "used_positions",

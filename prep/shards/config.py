@@ -1,6 +1,12 @@
 """The configuration of ``kpcn shards`` (:class:`ShardConfig`): its options, checked when it is made, saved in
 the manifest and in every shard, and the hash of those that change the shards' content (the set's
 configuration, ``config_hash``; with the sources it makes the content key, ``prep.shards.shardset``).
+
+A set is cut for one input set (``inputs``, ``prep.inputs``): its patches hold what a model of that set reads
+(``prep.shards.patches.shard_layers``). Its folder is :func:`shard_set_dir`: ``<out_root>/<set>`` for the full
+set, ``<out_root>/<set>.<inputs>`` for the others, all cut from the same renders (``<render_root>/<set>``). A
+full configuration's dict, and so its hash, is the one from before input sets existed (no ``inputs`` key):
+every set cut before is still the set this code cuts.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from pathlib import Path
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
+from prep.inputs import FULL, InputSet
 from prep.render.frame import SPP
 from prep.shards.format import patch_bytes
 
@@ -25,6 +32,21 @@ MAX_SHARD_BYTES = 2 << 30
 # side, eight times the 65 of the papers; train refuses a kernel or receptive field that the set's patches
 # do not hold (kpcn_keras.train.check_inputs).
 PATCH_SIZE = Bound(3, 512)
+
+
+def shard_set_dir(out_root: str | Path, set_name: str, inputs: str) -> Path:
+    """The folder of the shard set ``set_name`` cut for the input set ``inputs`` (a name of
+    ``prep.inputs.INPUT_SETS``): the one rule, for ``kpcn shards`` and for ``kpcn train``."""
+    return Path(out_root) / (set_name if inputs == FULL.name else f"{set_name}.{inputs}")
+
+
+def without_full_inputs(d: dict) -> dict:
+    """``d`` (a configuration's dict) without its ``inputs`` where that is the full set: the dict of a full
+    configuration is the one written before input sets existed, so its hashes (a shard set's, a run's) and
+    records are unchanged."""
+    if d.get("inputs") == FULL.name:
+        d.pop("inputs")
+    return d
 
 
 @dataclass
@@ -46,11 +68,13 @@ class ShardConfig:
     # each image is complete (with 0, an image without variance has none)
     uniform_mix: float = bounded(0.1, Bound(0.0, 1.0, integer=False, low_open=True))
     seed: int = bounded(0, SEED)
+    inputs: str = FULL.name  # what the set's patches hold (prep.inputs.INPUT_SETS)
     command: str = field(default="", compare=False)
 
     def __post_init__(self):
         self.val_scenes = tuple(self.val_scenes)
         check_set_name(self.set_name)
+        InputSet.named(self.inputs)
         check_fields(self)
         if self.colour_weight < 0 or self.normal_weight < 0 or self.colour_weight + self.normal_weight <= 0:
             raise OptionError("colour_weight", f"and normal_weight must be >= 0 and not both 0, got "
@@ -69,11 +93,15 @@ class ShardConfig:
         return Path(self.render_root) / self.set_name
 
     @property
+    def input_set(self) -> InputSet:
+        return InputSet.named(self.inputs)
+
+    @property
     def set_dir(self) -> Path:
-        return Path(self.out_root) / self.set_name
+        return shard_set_dir(self.out_root, self.set_name, self.inputs)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        return without_full_inputs(dataclasses.asdict(self))
 
     def content_hash(self) -> str:
         """Hash of the options that change the shards' content (not where files are, nor the command)."""

@@ -4,6 +4,12 @@ variance PDF, mixed in an error round with an error map's), the positions drawn 
 full-image datasets of the shard layout (:class:`ImagePatches`). Every round goes through it, round 0
 (:func:`variance_patches`) as every error round, and hands its patches to the same writer
 (``prep.shards.writer``). Deterministic: the same renders, configuration and round give the same patches.
+
+A set of an input set other than the full one (``ShardConfig.inputs``) cuts its patches from the layers a
+model of that set reads (:func:`shard_layers`: ``prep.inputs.restrict`` of the render, its reference's colours
+split the same way), at the positions drawn from the render as it is: the renders a set is cut from are
+``kpcn render``'s, which have every layer, so every input set of a render set holds its patches at the same
+positions, and the variance PDF stays the variance's where the model is given none.
 """
 
 from __future__ import annotations
@@ -13,8 +19,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep import features, sampling
+from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
 from prep.shards.format import empty_patches
+
+
+def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
+    """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
+    reads it (``prep.inputs.restrict``), and the reference restricted alike, without variance (a reference
+    has none, and the shards hold none of it): a no-split set's diffuse reference is the total colour."""
+    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=False))
 
 
 def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
@@ -102,6 +116,8 @@ def draw(pdf: np.ndarray, count: int, config: ShardConfig, source_id: int, k: in
 
 
 def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_id: int) -> ImagePatches:
-    """Round 0 of one input: ``patches_per_image`` positions from its variance PDF."""
+    """Round 0 of one input: ``patches_per_image`` positions from its variance PDF, the patches cut from the
+    layers of the set's input set (:func:`shard_layers`)."""
     positions, pdf = draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
-    return ImagePatches.at(noisy, reference, positions, pdf, source_id=source_id, round=0, patch_size=config.patch_size)
+    return ImagePatches.at(*shard_layers(noisy, reference, config.input_set), positions, pdf, source_id=source_id,
+                           round=0, patch_size=config.patch_size)

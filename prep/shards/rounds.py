@@ -5,7 +5,9 @@ variance PDF, never at a position an earlier round used; the round's manifest en
 (the model's files with their SHA-256, the error metric, the mix weight: :class:`ErrorRound`). The positions
 are drawn first and written as the round's plan (``round-<k>/plan.npz``), then its shards are cut from the
 plan through the same per-image step and writer as round 0 (``prep.shards.patches``,
-``prep.shards.writer``). Both steps resume. Held-out scenes are never resampled.
+``prep.shards.writer``). Both steps resume. Held-out scenes are never resampled. A set of another input set
+than the full one is cut as its round 0 is (``prep.shards.patches.shard_layers``); the ``denoise`` it is given
+(a run's ``Denoiser``) restricts the renders to its run's input set itself.
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ from prep import exr, features, threads
 from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
+from prep.inputs import InputSet
 from prep.processes import die_with_parent
 from prep.shards.config import ShardConfig
 from prep.shards.format import (
@@ -40,7 +41,7 @@ from prep.shards.format import (
     shard_name,
     write_shard,
 )
-from prep.shards.patches import ImagePatches, draw, round_pdf
+from prep.shards.patches import ImagePatches, draw, round_pdf, shard_layers
 from prep.shards.renders import reference_of
 from prep.shards.shardset import SPLITS, ShardSet, round_name
 
@@ -122,7 +123,7 @@ def write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, spe
     atomic_write_json(record_path, manifest)
 
     writer = _RoundWriter(str(sset.dir), manifest["sources"], k, config.patch_size, draw_of,
-                          _shard_attrs(config, manifest, command))
+                          _shard_attrs(config, manifest, command), config.input_set)
 
     def record(spec: ShardSpec, checksum: tuple[str, str]) -> None:
         written[spec.index] = _entry(sset, round_dir / shard_name(spec.index), spec, checksum)
@@ -182,7 +183,8 @@ class _RoundWriter:
 
     It keeps, between shards, the :class:`ImagePatches` of the input it cut last (an input spans at most a
     few consecutive shards) with its reference, and one shard buffer (reused: allocating it per shard
-    costs its page faults each time)."""
+    costs its page faults each time). The positions are drawn from the render as read, the patches cut
+    from the layers of the set's ``inputs`` (``prep.shards.patches.shard_layers``)."""
 
     set_dir: str
     sources: list[dict]
@@ -190,6 +192,7 @@ class _RoundWriter:
     patch_size: int
     draw_of: RoundDraw
     attrs: dict
+    inputs: InputSet = InputSet()
     _current: ImagePatches | None = field(default=None, repr=False)
     _reference: tuple[str, dict] | None = field(default=None, repr=False)
     _buffer: dict[str, np.ndarray] | None = field(default=None, repr=False)
@@ -222,8 +225,8 @@ class _RoundWriter:
             noisy = exr.read_aovs(sset.resolve(src["path"]))
             self._current = None  # free the previous image before the next is cut
             positions, pdf = self.draw_of(source_id, noisy)
-            self._current = ImagePatches.at(noisy, self._reference[1], positions, pdf, source_id=source_id,
-                                            round=self.k, patch_size=self.patch_size)
+            self._current = ImagePatches.at(*shard_layers(noisy, self._reference[1], self.inputs), positions, pdf,
+                                            source_id=source_id, round=self.k, patch_size=self.patch_size)
         return self._current
 
 
