@@ -41,9 +41,8 @@ from kpcn_keras.multiscale import alignment, build_multiscale_model, multiscale_
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features, layouts
 from prep.errors import KpcnError, OptionError
-from prep.inputs import InputSet, pair_layers
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
-from prep.inputs import restrict
+from prep.inputs import InputSet, pair_layers, restrict
 from prep.processes import memory_shortfall
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one

@@ -135,6 +135,10 @@ class Layout:
         """(layers, alpha, notes) of a file that :meth:`missing` accepted: the layers :meth:`inputs` says."""
         raise NotImplementedError
 
+    def read(self, path: Path, header: ExrImage, spp: int | None) -> tuple[dict, np.ndarray | None, list[str]]:
+        """:meth:`layers` of the file whose header is ``header``, its pixels read here."""
+        return self.layers(_Channels(exr.read_image(path)), spp)
+
 
 class KpcnLayout(Layout):
     name = "kpcn"
@@ -148,19 +152,17 @@ class KpcnLayout(Layout):
     def inputs(self, ch, spp):
         return InputSet(split=True, variance=all(ch.has(n, SCALAR) for n in exr.VARIANCE_LAYERS))
 
-    def layers(self, ch, spp):
-        out = {n: ch.vector(n) for n in ("diffuse", "specular", "albedo", "normal")}
-        out["depth"] = ch.scalar("depth")
-        out["default"] = ch.vector("default") if ch.has("default") else _sum(out["diffuse"], out["specular"])
-        present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
+    def read(self, path, header, spp):
+        # prep.exr's own reader: it lets each channel go once its layer is made (what denoise's memory bound counts)
+        ch = _Channels(header)
         variance = self.inputs(ch, spp).variance
-        notes = []
-        if present and not variance:
-            notes.append(f"variance layers {', '.join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))} "
-                         f"missing: read without variance")
-        if variance:
-            out.update({n: ch.scalar(n) for n in exr.VARIANCE_LAYERS})
-        return out, ch.component("default", "A"), notes
+        present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
+        notes = [] if variance or not present else [
+            f"variance layers {', '.join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))} missing: read without variance"]
+        layers = exr.read_aovs(path, variances=variance)
+        if not variance:
+            layers = {k: v for k, v in layers.items() if k not in exr.VARIANCE_LAYERS}
+        return layers, None, notes
 
 
 # Cycles pass names: (Blender 5, Blender 4). A light pass is stored divided by its colour pass.
@@ -457,12 +459,12 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
     """Read any renderer's frame (module docstring); ``layout`` forces an adapter, ``spp`` is used when the
     file name does not say it; ``albedo``, ``normal``: separate files for an rgb frame's auxiliaries."""
     path = Path(path)
-    image = exr.read_image(path)
+    image = exr.read_image(path, header_only=True)
     adapter = detect(image, layout)
     ch = _Channels(image)
     spp = _spp_of(path) or adapter.spp(ch) or spp
     inputs = adapter.inputs(ch, spp)
-    layers, alpha, notes = adapter.layers(ch, spp)
+    layers, alpha, notes = adapter.read(path, image, spp)
     for name, aux in (("albedo", albedo), ("normal", normal)):
         if aux is not None:
             layers[name] = exr.read_rgb(aux)

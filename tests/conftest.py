@@ -52,6 +52,26 @@ def tiny_run(tmp_path_factory):
     return train(cfg, tmp / "runs" / "r", verbose=0)
 
 
+@pytest.fixture(scope="session")
+def tiny_run_of_every_input_set(tmp_path_factory):
+    """A tiny run with a variant for every other input set in its ``inputs/`` folder: what ``make train`` and
+    ``make train-inputs`` make, at toy size, so that a frame of any layout finds its model."""
+    from kpcn_keras.train import TrainConfig, train
+    from prep import shards
+    from prep.inputs import INPUT_SETS
+
+    tmp = tmp_path_factory.mktemp("variants")
+    full = build_tiny_shards(tmp)
+    run = tmp / "runs" / "r"
+    for name in INPUT_SETS:
+        if name != "full":
+            shards.build_shards(shards.ShardConfig(**{**full.to_dict(), "inputs": name}), progress=False)
+        cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=full.out_root, model=TINY_MODEL, steps=4,
+                                      steps_per_epoch=4, batch_size=2, val_batches=1, inputs=name)
+        train(cfg, run, verbose=0)
+    return run
+
+
 @pytest.fixture
 def small_disk(tmp_path):
     """A full disk: :class:`SmallDisk` at ``tmp_path/disk`` (root only; the test is skipped, saying why,
