@@ -11,10 +11,11 @@ SHARD_ARGS  ?=
 TRAIN_ARGS  ?=
 RESAMPLE_ARGS ?=
 STUDY_ARGS  ?=
+INPUTS_ARGS ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 
-.PHONY: venv render shards train train-inputs resample resample-study evaluate figures compare bench test test-fast test-oldest clean
+.PHONY: venv render shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-fast test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -53,6 +54,12 @@ resample: shards
 # error rounds against variance sampling alone, several seeds: reports/resample.{md,json,png}
 resample-study: shards
 	$(KPCN) resample-study --set $(SET) $(STUDY_ARGS)
+
+# a network per input set for the same seconds (INPUTS_ARGS="--budget 300 --frames DIR ..."), on held-out frames
+# and other renderers' frames beside OIDN and Blender: reports/inputs.{md,json,png}
+inputs-study: shards
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(KPCN) inputs-study --set $(SET) $(INPUTS_ARGS)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

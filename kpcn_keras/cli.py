@@ -1,9 +1,9 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study: one
-``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user
-gave; an option left out takes the dataclass's default. The parser, which never retypes a default or a
-bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds (``--tile``, ``--slope``, ...) are
+Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study,
+inputs-study: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the
+options the user gave; an option left out takes the dataclass's default. The parser, which never retypes a
+default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds (``--tile``, ``--slope``, ...) are
 checked against their bounds before the command starts.
 ``render`` and ``shards`` never import keras or torch.
 
@@ -234,6 +234,17 @@ def cmd_resample_study(args) -> int:
     return 0
 
 
+def cmd_inputs_study(args) -> int:
+    from kpcn_keras.studies.config import InputsStudyConfig
+    from kpcn_keras.studies.inputs_study import format_report, study
+
+    cfg = InputsStudyConfig(**_given(args, InputsStudyConfig))
+    record = study(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
+    print(format_report(record))
+    print(f"report: {cfg.out_dir}/inputs.md")
+    return 0
+
+
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)
 COMMANDS = {
     "render": cmd_render,
@@ -246,6 +257,7 @@ COMMANDS = {
     "bench": cmd_bench,
     "compare": cmd_compare,
     "resample-study": cmd_resample_study,
+    "inputs-study": cmd_inputs_study,
 }
 
 # the commands that divide their work between the processes torchrun starts (each its rank's share)

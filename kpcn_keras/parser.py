@@ -450,6 +450,22 @@ def _resample_study_options(add) -> None:
     y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")
 
 
+def _inputs_study_options(add) -> None:
+    """The options of ``kpcn inputs-study``."""
+    from kpcn_keras.studies.config import InputsStudyConfig
+
+    s = add("inputs-study", (InputsStudyConfig,), help="a network per input set for the same seconds, measured on "
+            "held-out frames and on other renderers' frames beside OIDN and Blender; writes reports/inputs.{md,json,png}")
+    d = _defaults(InputsStudyConfig)
+    _experiment_folders(s, d, "the study's runs")
+    s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
+    s.add_argument("--frames", nargs="+", help="other renderers' frames: files or folders, each noisy frame with its "
+                   f"reference beside it {d('frames')}")
+    s.add_argument("--budget", type=float, help=f"seconds of training per input set {d('budget')}")
+    s.add_argument("--preset", help=f"training preset of every run {d('preset')}")
+    s.add_argument("--seed", type=int, help=d("seed"))
+
+
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options
 BUILDERS = {
     "render": _render_options,
@@ -462,4 +478,5 @@ BUILDERS = {
     "bench": _bench_options,
     "compare": _compare_options,
     "resample-study": _resample_study_options,
+    "inputs-study": _inputs_study_options,
 }

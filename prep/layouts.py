@@ -25,8 +25,9 @@ mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour 
            ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare or ``aov.<name>``; depth is
            the ray length, 0 on a miss), each with its second moment ``m2_<layer>``: variance of the mean =
            max(m2 - mean^2, 0) / spp. No split. Albedo clipped to [0, 1] (metals exceed 1).
-pbrt       PBRT-v4 GBufferFilm: ``R G B``, ``Albedo``, ``Ns`` (camera space unless the film wrote world
-           space), ``P`` (depth = |P|, camera space), ``Variance`` (per sample: divided by the spp). No split.
+pbrt       PBRT-v4 GBufferFilm: ``R G B``, ``Albedo``, ``Ns`` (camera space by default: taken to world space by
+           the header's ``worldToCamera``), ``P`` (depth = |P|, camera space), ``Variance`` (per sample:
+           divided by the spp, from the header's ``samplesPerPixel``). No split.
 rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour layer of the layouts above),
            with ``albedo`` and ``normal`` layers when present or given as files (as OIDN takes them). No
            split, no variance; a missing depth is 0, a missing normal 0, a missing albedo 1.
@@ -34,8 +35,8 @@ rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour la
 
 Every layout: half or float channels, ``X Y Z`` or ``R G B`` for a vector, ``Z``, ``T``, ``Y``, ``R`` or
 a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. The samples per pixel come
-from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles ``cycles.<view layer>.samples``),
-else the caller's ``spp``.
+from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles ``cycles.<view layer>.samples``, pbrt
+``samplesPerPixel``), else the caller's ``spp``.
 """
 
 from __future__ import annotations
@@ -364,15 +365,30 @@ class PbrtLayout(Layout):
         lacking = [n for n in ("default", "Albedo", "Ns", "P") if not ch.has(n)]
         return ", ".join("R G B" if n == "default" else n for n in lacking) or None
 
+    def spp(self, ch):
+        samples = ch.image.attributes.get("samplesPerPixel")
+        return int(samples) if isinstance(samples, (int, np.integer)) and samples > 0 else None
+
     def inputs(self, ch, spp):
         return InputSet(split=False, variance=spp is not None and ch.has("Variance"))
 
     def layers(self, ch, spp):
-        out = {"default": ch.vector("default"), "albedo": np.clip(ch.vector("Albedo"), 0.0, 1.0),
-               "normal": ch.vector("Ns")}
+        out = {"default": ch.vector("default"), "albedo": np.clip(ch.vector("Albedo"), 0.0, 1.0)}
         p = ch.vector("P").astype(np.float64)
         out["depth"] = exr.to_float32(np.sqrt((p * p).sum(axis=-1)))
-        notes = ["depth = |P| (camera space)", "normal = Ns as written (camera space unless the film wrote world)"]
+        notes = ["depth = |P| (camera space)"]
+        to_camera = ch.image.attributes.get("worldToCamera")
+        normal = ch.vector("Ns").astype(np.float64)
+        if isinstance(to_camera, np.ndarray) and to_camera.shape == (4, 4):
+            # a normal goes back to world space by the transpose of the point transform's linear part (pbrt's
+            # matrices act on column vectors: n_world = W^T n_camera), then is made unit length again
+            normal = normal @ np.asarray(to_camera, np.float64)[:3, :3]
+            length = np.sqrt((normal * normal).sum(axis=-1, keepdims=True))
+            normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)
+            notes.append("normal = Ns taken to world space by the header's worldToCamera")
+        else:
+            notes.append("normal = Ns as written (camera space: no worldToCamera in the header)")
+        out["normal"] = exr.to_float32(normal)
         if not self.inputs(ch, spp).variance:
             notes.append("read without variance: " + ("no Variance layer" if not ch.has("Variance") else
                                                       "no spp known (name the file <scene>-<spp>spp.exr)"))

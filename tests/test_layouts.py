@@ -266,3 +266,14 @@ def test_every_fixture_is_found_from_its_header_as_read(path):
     header = layouts.read_header(path)
     frame = layouts.read(path)
     assert (header.layout, header.inputs, header.size, header.spp) == (frame.layout, frame.inputs, frame.size, frame.spp)
+
+
+def test_pbrts_camera_space_normal_is_taken_to_world_space_by_its_header():
+    # the pbrt-layout fixture holds Mitsuba's pixels, its normal rotated into pbrt's camera space and face-forwarded
+    # (fixtures/renderers/README.md): back in world space it is Mitsuba's own, but where face-forwarding flipped it
+    pbrt = layouts.read(RENDERERS / "pbrt4" / "cornell-00016spp.exr")
+    world = layouts.read(RENDERERS / "mitsuba3" / "cornell-00016spp.exr").layers["normal"].astype(np.float64)
+    hit = np.abs(world).sum(axis=-1) > 0
+    dot = (pbrt.layers["normal"].astype(np.float64) * world).sum(axis=-1)[hit]
+    assert np.median(dot) > 0.999 and (dot > 0.99).mean() > 0.8
+    assert pbrt.spp == 16  # from the header's samplesPerPixel as well as the name

@@ -1,4 +1,5 @@
-"""The configurations of the studies (``kpcn compare``, ``kpcn bench``, ``kpcn resample-study``) and their
+"""The configurations of the studies (``kpcn compare``, ``kpcn bench``, ``kpcn resample-study``, ``kpcn
+inputs-study``) and their
 tables: :data:`CONFIGURATIONS` (what ``compare`` and ``bench`` train), :data:`ARMS` (the arms of the
 resample study), :data:`BENCH_LADDERS` and :data:`BENCH_PRESETS` (the ladders of ``bench``).
 
@@ -80,6 +81,38 @@ class CompareConfig:
         if unknown or not self.configurations:
             found = f"has unknown {', '.join(map(repr, unknown))}" if unknown else "is empty"
             raise OptionError("configurations", f"{found}; the known ones are {', '.join(known)}")
+        check_fields(self)
+
+
+@dataclass
+class InputsStudyConfig:
+    """Configuration of ``kpcn inputs-study`` (kpcn_keras/studies/inputs_study.py): a run per input set trained for
+    ``budget`` seconds (``preset``, ``seed``) on the render set ``<render_root>/<set_name>`` cut into
+    ``shards_root``, in ``runs_root``; measured on the set's held-out frames and on the other renderers' frames
+    under ``frames``; reports in ``out_dir``."""
+
+    set_name: str = "default"
+    render_root: str = "data/renders"
+    shards_root: str = "shards"
+    runs_root: str = "runs/inputs-study"
+    out_dir: str = "reports"
+    frames: tuple[str, ...] = ("tests/fixtures/renderers",)
+    budget: float = bounded(300, BUDGET)
+    preset: str = "cpu"
+    seed: int = bounded(0, SEED)
+
+    def __post_init__(self):
+        from kpcn_keras.config import PRESETS
+
+        self.frames = tuple(self.frames)
+        check_set_name(self.set_name)
+        for name in ("render_root", "shards_root", "runs_root", "out_dir"):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
+        if not self.frames:
+            raise OptionError("frames", "must name at least one file or folder")
+        if self.preset not in PRESETS:
+            raise OptionError("preset", f"must be one of {', '.join(PRESETS)}, got {self.preset!r}")
         check_fields(self)
 
 

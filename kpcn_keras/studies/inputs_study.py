@@ -1,0 +1,290 @@
+"""``kpcn inputs-study``: kpcn on other renderers' frames beside OIDN and Blender's own denoiser, and what each
+input a renderer may not write costs, at equal training time (issue 22).
+
+The contract:
+
+- **One network per input set, each trained for the same seconds.** For every set of ``prep.inputs.INPUT_SETS``
+  the render set's shards are cut for it (``kpcn shards --inputs``; the full set is ``make shards``' own and is
+  reused) and a run is trained on them for ``budget`` seconds of training steps: the full run in
+  ``<runs_root>/<set>-<budget>s-seed<seed>/run``, the others in its ``inputs/<set>/`` folders, so that the run
+  serves a frame of any layout (``Run.serving``). Seconds become steps as ``kpcn compare`` turns them
+  (:func:`kpcn_keras.studies.compare.probe_configuration`, :func:`~kpcn_keras.studies.compare.budget_steps`): a
+  no-split run, which trains the diffuse branch alone, gets about twice the diffuse steps. The probes and
+  steps are kept in ``plan.json``, so the same command resumes.
+- **What each missing piece costs** is measured on the render set's held-out frames (every validation scene at
+  every input spp), the same frames for every set, each restricted to the set by its denoiser: mean relMSE,
+  DSSIM and relSE p99.9, beside the raw input and OIDN (``pyoidn``, colour + albedo + normal).
+- **Other renderers' frames** are every ``<scene>-<spp>spp.exr`` under ``frames`` (files or folders) that is not
+  its scene's reference (the same folder's render of the scene with the most samples), read in its own layout
+  (``prep.layouts``) and denoised by the run's model for what it has; beside them the raw input, OIDN on the same
+  colour + albedo + normal, and, where the folder has it, the renderer's own denoised frame
+  (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render time).
+- **Writes** ``<out_dir>/inputs.md`` (the tables, with the date and the machine), ``inputs.json`` (every number)
+  and ``inputs.png`` (input | kpcn | OIDN | Blender | reference of every other renderer's frame at the middle
+  spp), through ``prep.studies.report``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import TrainConfig
+from kpcn_keras.studies.compare import (_training_seconds, budget_steps, deep_learning_stack, probe_configuration,
+                                        seconds_per_step, with_steps)
+from kpcn_keras.studies.config import InputsStudyConfig
+from prep import exr, layouts, metrics
+from prep.errors import KpcnError
+from prep.files import atomic_write_json, pyplot, read_json
+from prep.inputs import INPUT_SETS, InputSet
+from prep.studies.report import Report
+
+REPORT = "inputs"
+PLAN = "plan.json"
+RENDERER_DENOISED = "-blender-oidn.exr"  # the validation set's name for Blender's own denoised frame
+SCORES = ("relmse", "dssim", "relse_p999")
+
+
+def group_dir(cfg: InputsStudyConfig) -> Path:
+    return Path(cfg.runs_root) / f"{cfg.set_name}-{cfg.budget:g}s-seed{cfg.seed}"
+
+
+def train_config(cfg: InputsStudyConfig, inputs: str, overrides: dict | None = None) -> TrainConfig:
+    return TrainConfig.from_preset(cfg.preset, set_name=cfg.set_name, shards_root=cfg.shards_root, seed=cfg.seed,
+                                   inputs=inputs, **(overrides or {}))
+
+
+def cut_shards(cfg: InputsStudyConfig, *, log=print) -> None:
+    """The render set's shards cut for every input set (each resumed, or reused when complete)."""
+    from prep.shards import ShardConfig, build_shards
+
+    for inputs in INPUT_SETS:
+        shard_cfg = ShardConfig(set_name=cfg.set_name, render_root=cfg.render_root, out_root=cfg.shards_root,
+                                inputs=inputs)
+        log(f"inputs-study: shards for {inputs}: {shard_cfg.set_dir}")
+        build_shards(shard_cfg, progress=False)
+
+
+def plan_and_train(cfg: InputsStudyConfig, *, overrides: dict | None = None, verbose="auto", log=print) -> dict:
+    """Each input set's steps for ``budget`` seconds (probed once, kept in ``plan.json``) and its trained run."""
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import train
+
+    group = group_dir(cfg)
+    group.mkdir(parents=True, exist_ok=True)
+    plan_path = group / PLAN
+    key = {"budget": cfg.budget, "preset": cfg.preset, "seed": cfg.seed, "overrides": overrides or {}}
+    plans = read_json(plan_path, "the study's plan")["plans"] if plan_path.exists() else {}
+    if plan_path.exists() and read_json(plan_path, "the study's plan")["key"] != key:
+        raise KpcnError(f"{plan_path}: planned for {read_json(plan_path, 'the plan')['key']}, not {key}; "
+                        "choose another --runs folder")
+    run = Run(group / "run")
+    for inputs in INPUT_SETS:
+        base = train_config(cfg, inputs, overrides)
+        if inputs not in plans:
+            per_step = seconds_per_step(probe_configuration(base, group / f"probe-{inputs}"))
+            plans[inputs] = {"seconds_per_step": per_step, "steps": budget_steps(cfg.budget, per_step)}
+            atomic_write_json(plan_path, {"key": key, "plans": plans})
+        log(f"inputs-study: {inputs}: {plans[inputs]['steps']}")
+        train(with_steps(base, plans[inputs]["steps"]), run.dir, verbose=verbose)
+        plans[inputs]["run"] = str(run.for_inputs(InputSet.named(inputs)).dir)
+        plans[inputs]["trained_s"] = _training_seconds(run.for_inputs(InputSet.named(inputs)).dir)
+    return plans
+
+
+def _scores(x: np.ndarray, ref: np.ndarray) -> dict:
+    return {"relmse": metrics.relmse(x, ref), "dssim": metrics.dssim(x, ref), "relse_p999": metrics.relse_p999(x, ref)}
+
+
+def _mean(rows: list[dict], method: str) -> dict:
+    return {m: float(np.mean([r[method][m] for r in rows])) for m in SCORES} if all(method in r for r in rows) else {}
+
+
+def held_out(cfg: InputsStudyConfig, plans: dict, *, log=print) -> dict:
+    """Mean scores of every input set's run, the raw input and OIDN on the render set's held-out frames."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.evaluate import held_out_frames
+    from kpcn_keras.run import Run
+    from prep import baselines
+
+    root = Run(plans["full"]["run"])
+    frames = held_out_frames(root, root.record())
+    rows = [{"frame": f["name"], "raw": _scores(f["noisy"]["default"], f["reference"])} for f in frames]
+    if baselines.oidn_available():
+        for row, f in zip(rows, frames):
+            row["oidn"] = _scores(baselines.oidn_denoise(f["noisy"]), f["reference"])
+    for inputs in INPUT_SETS:
+        den = Denoiser.from_run(Run(plans[inputs]["run"]))
+        for row, f in zip(rows, frames):
+            row[inputs] = _scores(den(f["noisy"])["default"], f["reference"])
+        log(f"inputs-study: held-out {inputs}: relMSE {_mean(rows, inputs)['relmse']:.4f}")
+    return {"frames": rows, "means": {m: _mean(rows, m) for m in ("raw", "oidn", *INPUT_SETS)}}
+
+
+def renderer_pairs(paths) -> list[tuple[Path, Path]]:
+    """(noisy, reference) of every ``<scene>-<spp>spp.exr`` under ``paths`` that is not its scene's reference."""
+    from kpcn_keras.evaluate import pairs_for_inputs
+
+    noisy = []
+    for given in map(Path, paths):
+        files = sorted(given.rglob("*spp.exr")) if given.is_dir() else [given]
+        for path in files:
+            try:
+                scene, spp = exr.parse_render_filename(path)
+            except exr.AOVError:
+                continue
+            most = max(exr.parse_render_filename(p)[1] for p in path.parent.glob(f"{scene}-*spp.exr")
+                       if _is_render(p, scene))
+            if spp < most:
+                noisy.append(path)
+    return [(Path(a), Path(b)) for a, b in pairs_for_inputs([str(p) for p in noisy])]
+
+
+def _is_render(path: Path, scene: str) -> bool:
+    try:
+        return exr.parse_render_filename(path)[0] == scene
+    except exr.AOVError:
+        return False
+
+
+def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[dict], list]:
+    """Per frame of another renderer: its layout and input set, the model that served it, and the scores of the
+    raw input, kpcn, OIDN and the renderer's own denoiser; and the panels of the figure."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+    from prep import baselines
+
+    root = Run(plans["full"]["run"])
+    denoisers, rows, panels = {}, [], []
+    for noisy_path, ref_path in renderer_pairs(cfg.frames):
+        frame = layouts.read(noisy_path)
+        ref = layouts.read(ref_path).layers["default"]
+        variant = root.serving(frame.inputs)
+        if variant.dir not in denoisers:
+            denoisers[variant.dir] = Denoiser.from_run(variant)
+            denoisers[variant.dir].warm_up()
+        start = time.perf_counter()
+        out = denoisers[variant.dir](frame.layers)["default"]
+        seconds = time.perf_counter() - start
+        scene, spp = exr.parse_render_filename(noisy_path)
+        row = {"frame": str(noisy_path), "scene": scene, "spp": spp, "renderer": noisy_path.parent.name,
+               "layout": frame.layout, "inputs": frame.inputs.name, "model": variant.record().inputs.name,
+               "seconds": seconds, "raw": _scores(frame.layers["default"], ref), "kpcn": _scores(out, ref)}
+        images = {"input": frame.layers["default"], "kpcn": out}
+        if baselines.oidn_available():
+            images["OIDN"] = baselines.oidn_denoise(frame.layers)
+            row["oidn"] = _scores(images["OIDN"], ref)
+        own = noisy_path.with_name(noisy_path.name[: -len(".exr")] + RENDERER_DENOISED)
+        if own.exists():
+            images["Blender"] = layouts.read(own).layers["default"]
+            row["blender"] = _scores(images["Blender"], ref)
+        images["reference"] = ref
+        rows.append(row)
+        panels.append((f"{row['renderer']}/{scene} {spp} spp", images))
+        log(f"inputs-study: {noisy_path}: {frame.layout}, {frame.inputs}, kpcn relMSE {row['kpcn']['relmse']:.4f}"
+            + (f", OIDN {row['oidn']['relmse']:.4f}" if "oidn" in row else ""))
+    return rows, panels
+
+
+def study(cfg: InputsStudyConfig, *, overrides: dict | None = None, command: str | None = None, verbose="auto",
+          log=print) -> dict:
+    """Run the study (module docstring); writes the three reports and returns the record."""
+    report = Report(cfg.out_dir, REPORT)
+    report.check_writable()
+    if not renderer_pairs(cfg.frames):
+        raise KpcnError(f"--frames {' '.join(cfg.frames)}: no noisy frame with a reference beside it")
+    session = report.begin()
+    cut_shards(cfg, log=log)
+    plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
+    cost = held_out(cfg, plans, log=log)
+    rows, panels = renderers(cfg, plans, log=log)
+    record = {**session.envelope(command), "config": {**vars(cfg), "frames": list(cfg.frames)},
+              "overrides": overrides or {}, "machine": session.machine(**deep_learning_stack()), "plans": plans,
+              "held_out": cost, "renderers": rows}
+    middle = sorted({r["spp"] for r in rows})[len({r["spp"] for r in rows}) // 2]
+    shown = [p for p, r in zip(panels, rows) if r["spp"] == middle]
+    return report.write(record, format_report(record), lambda _: panels_figure(shown))
+
+
+# ---------------------------------------------------------------- the report
+
+
+def _n(value, fmt="{:.4f}") -> str:
+    return "–" if value is None else fmt.format(value)
+
+
+def _get(row: dict, method: str, metric: str):
+    return row.get(method, {}).get(metric)
+
+
+def wins(rows: list[dict], method: str = "kpcn", other: str = "oidn") -> str:
+    """"k of n": on how many frames ``method``'s relMSE is below ``other``'s."""
+    both = [r for r in rows if method in r and other in r]
+    return f"{sum(r[method]['relmse'] < r[other]['relmse'] for r in both)} of {len(both)}" if both else "–"
+
+
+def format_report(record: dict) -> str:
+    cfg, rows, cost = record["config"], record["renderers"], record["held_out"]
+    lines = [f"# kpcn on other renderers' frames, and what each missing input costs ({record['date']})", "",
+             f"`{record['command']}`, {record['started']} to {record['finished']}; {record['machine']['cpus']} CPUs, "
+             f"load average {record['machine']['load_average_before'][0]:.2f} before. Every input set trained "
+             f"{cfg['budget']:g} s ({cfg['preset']} preset, seed {cfg['seed']}) on the `{cfg['set_name']}` render set "
+             "(kpcn_keras/studies/inputs_study.py says how).", "",
+             "## Other renderers' frames", "",
+             "relMSE, DSSIM and relSE p99.9 against the reference beside each frame. kpcn: the model of the input set "
+             "the frame gives; OIDN: `pyoidn` on the same colour, albedo and normal; Blender: the frame Blender's own "
+             "denoiser wrote at render time.", "",
+             "| frame | layout | inputs | raw relMSE | kpcn relMSE | OIDN relMSE | Blender relMSE | kpcn DSSIM | "
+             "OIDN DSSIM | Blender DSSIM | kpcn relSE p99.9 | OIDN relSE p99.9 | Blender relSE p99.9 |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['renderer']}/{r['scene']} {r['spp']} spp | {r['layout']} | {r['inputs']} | "
+                     + " | ".join(_n(_get(r, m, s)) for m, s in
+                                  (("raw", "relmse"), ("kpcn", "relmse"), ("oidn", "relmse"), ("blender", "relmse"),
+                                   ("kpcn", "dssim"), ("oidn", "dssim"), ("blender", "dssim"),
+                                   ("kpcn", "relse_p999"), ("oidn", "relse_p999"), ("blender", "relse_p999")))
+                     + " |")
+    lines += ["", "| layout | spp | frames | mean raw relMSE | mean kpcn relMSE | mean OIDN relMSE | mean Blender "
+              "relMSE | kpcn below OIDN | kpcn below Blender |", "|---|---|---|---|---|---|---|---|---|"]
+    for layout in sorted({r["layout"] for r in rows}):
+        for spp in sorted({r["spp"] for r in rows if r["layout"] == layout}):
+            group = [r for r in rows if r["layout"] == layout and r["spp"] == spp]
+            means = [_n(float(np.mean([r[m]["relmse"] for r in group])) if all(m in r for r in group) else None)
+                     for m in ("raw", "kpcn", "oidn", "blender")]
+            lines.append(f"| {layout} | {spp} | {len(group)} | {' | '.join(means)} | {wins(group)} | "
+                         f"{wins(group, other='blender')} |")
+    lines += ["", "## What each missing input costs, at equal training time", "",
+              f"The `{cfg['set_name']}` set's {len(cost['frames'])} held-out frames, each denoised by the network of "
+              "each input set (the frame restricted to it as `prep.inputs` says), means over the frames.", "",
+              "| inputs | steps | trained s | relMSE | DSSIM | relSE p99.9 | relMSE / full's | frames below OIDN |",
+              "|---|---|---|---|---|---|---|---|"]
+    full = cost["means"]["full"]["relmse"]
+    for inputs in INPUT_SETS:
+        plan, mean = record["plans"][inputs], cost["means"][inputs]
+        steps = ", ".join(f"{k} {v}" for k, v in plan["steps"].items() if k != "decay_steps")
+        lines.append(f"| {inputs} | {steps} | {plan['trained_s']:.0f} | {mean['relmse']:.4f} | {mean['dssim']:.4f} | "
+                     f"{mean['relse_p999']:.4f} | {mean['relmse'] / full:.2f} | {wins(cost['frames'], inputs)} |")
+    for method, label in (("raw", "raw input"), ("oidn", "OIDN")):
+        mean = cost["means"].get(method) or {}
+        if mean:
+            lines.append(f"| {label} | – | – | {mean['relmse']:.4f} | {mean['dssim']:.4f} | {mean['relse_p999']:.4f} | "
+                         f"{mean['relmse'] / full:.2f} | – |")
+    return "\n".join(lines) + "\n"
+
+
+def panels_figure(panels: list):
+    """input | kpcn | OIDN | Blender | reference, one row per frame (tonemapped, ``prep.metrics.tonemap``)."""
+    plt = pyplot()
+    columns = ["input", "kpcn", "OIDN", "Blender", "reference"]
+    fig, axes = plt.subplots(max(len(panels), 1), len(columns), figsize=(2.2 * len(columns), 2.3 * max(len(panels), 1)),
+                             squeeze=False)
+    for row, (title, images) in zip(axes, panels):
+        for ax, name in zip(row, columns):
+            ax.axis("off")
+            if name in images:
+                ax.imshow(metrics.tonemap(images[name]), interpolation="nearest")
+                ax.set_title(f"{title}\n{name}" if name == "input" else name, fontsize=7)
+    fig.tight_layout()
+    return fig
