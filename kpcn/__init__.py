@@ -1,10 +1,10 @@
 """kpcn's Python API: read what a renderer wrote, denoise numpy arrays.
 
     import kpcn
-    frame = kpcn.read("shot-0016spp.exr")          # any layout kpcn reads: kpcn, cycles, mitsuba, pbrt, rgb
+    frame = kpcn.read("shot-00016spp.exr")         # any layout kpcn reads: kpcn, cycles, mitsuba, pbrt, rgb
     print(frame.layout, frame.inputs)             # e.g. "cycles no-variance"
-    out = kpcn.denoise(frame.layers["default"], albedo=frame.layers["albedo"], normal=frame.layers["normal"],
-                       run="runs/default")         # (H, W, 3) float32
+    out = kpcn.denoise(frame, run="runs/default")  # (H, W, 3) float32, from every layer the frame has
+    out = kpcn.denoise(colour, albedo=albedo, normal=normal, run="runs/default")  # numpy arrays, as pyoidn
 
 :func:`read` is ``prep.layouts.read``; :func:`denoise` is ``kpcn_keras.api.denoise``. Importing this package
 imports neither keras nor torch; the first :func:`denoise` does.

@@ -86,11 +86,15 @@ def _denoiser(run_dir: str, inputs: InputSet, tile: int, stamp: float):
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
             run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
-    auxiliary buffers given (module docstring), by the model of ``run`` (a run folder of ``kpcn train``) at
-    ``slope`` (λ, for a run trained with it as an input)."""
+    auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
+    by the model of ``run`` (a run folder of ``kpcn train``) at ``slope`` (λ, for a run trained with it as an
+    input)."""
     if run is None:
         raise KpcnError("denoise needs run=: a run folder that finished training (kpcn train)")
-    frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
+    if isinstance(color, Frame):  # kpcn.read's frame, as it was read
+        frame = color
+    else:
+        frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
     return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), stamp)(frame.layers, slope=slope)["default"]

@@ -1,4 +1,5 @@
-"""``prep.inputs``: what a model of each input set reads, and the variance of two half-sample renders."""
+"""``prep.inputs``: the input sets and which serves which, and the variance of two renders of one frame (what a
+model of each set reads, ``restrict``, is held in ``test_input_sets.py`` with the shards and runs cut for it)."""
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ from helpers import random_aovs
 
 from prep import exr
 from prep.errors import OptionError
-from prep.inputs import INPUT_SETS, InputSet, pair_layers, pair_variance, restrict
+from prep.inputs import INPUT_SETS, InputSet, pair_layers, pair_variance
 
 
 def test_input_sets_are_named_and_named_back():
@@ -24,24 +25,6 @@ def test_a_set_serves_every_frame_that_has_at_least_what_it_reads():
     assert not full.serves(no_var) and not full.serves(no_split)
     assert no_split.serves(full) and not no_split.serves(no_var)
     assert no_var.serves(full) and not no_var.serves(no_split)
-
-
-def test_restrict_fills_what_each_set_lacks_as_the_table_says():
-    aovs = random_aovs(6, 7, seed=3)
-    assert restrict(aovs, InputSet()) == {k: aovs[k] for k in restrict(aovs, InputSet())}
-    no_var = restrict(aovs, InputSet(variance=False))
-    for name in exr.VARIANCE_LAYERS:
-        np.testing.assert_array_equal(no_var[name], 0)
-    np.testing.assert_array_equal(no_var["diffuse"], aovs["diffuse"])
-    no_split = restrict(aovs, InputSet(split=False))
-    np.testing.assert_array_equal(no_split["diffuse"], aovs["default"])
-    np.testing.assert_array_equal(no_split["specular"], 0)
-    np.testing.assert_array_equal(no_split["diffuseVariance"], aovs["colorVariance"])
-    np.testing.assert_array_equal(no_split["specularVariance"], 0)
-    np.testing.assert_array_equal(no_split["normalVariance"], aovs["normalVariance"])
-    unsplit_frame = {k: v for k, v in aovs.items() if k not in ("diffuse", "specular")}
-    neither = restrict(unsplit_frame, InputSet(split=False, variance=False))
-    assert set(neither) == set(exr.BASE_LAYERS) | {"default"} | set(exr.VARIANCE_LAYERS)
 
 
 def test_the_variance_of_two_half_renders_matches_the_analytic_variance_within_a_statistical_bound():

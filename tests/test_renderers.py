@@ -71,6 +71,7 @@ def test_the_apis_output_equals_the_commands_on_the_same_frame(tiny_run_of_every
                            variance={k: frame.layers[k] for k in VARIANCE_LAYERS if k in frame.layers})
     assert api.dtype == np.float32
     np.testing.assert_array_equal(api, np.stack([command[f"default.{c}"] for c in "RGB"], axis=-1))
+    np.testing.assert_array_equal(kpcn.denoise(frame, run=run), api)  # the frame itself, as read
 
 
 def test_kpcn_evaluate_takes_renderers_files_each_by_its_model(tiny_run_of_every_input_set, tmp_path):

@@ -88,8 +88,8 @@ class CompareConfig:
 class InputsStudyConfig:
     """Configuration of ``kpcn inputs-study`` (kpcn_keras/studies/inputs_study.py): a run per input set trained for
     ``budget`` seconds (``preset``, ``seed``) on the render set ``<render_root>/<set_name>`` cut into
-    ``shards_root``, in ``runs_root``; measured on the set's held-out frames and on the other renderers' frames
-    under ``frames``; reports in ``out_dir``."""
+    ``shards_root``, in ``runs_root``; measured on the set's held-out frames, on the other renderers' frames
+    under ``frames`` and on the pairs of renders under ``pairs``; reports in ``out_dir``."""
 
     set_name: str = "default"
     render_root: str = "data/renders"
@@ -97,6 +97,7 @@ class InputsStudyConfig:
     runs_root: str = "runs/inputs-study"
     out_dir: str = "reports"
     frames: tuple[str, ...] = ("tests/fixtures/renderers",)
+    pairs: tuple[str, ...] = ()
     budget: float = bounded(300, BUDGET)
     preset: str = "cpu"
     seed: int = bounded(0, SEED)
@@ -104,7 +105,7 @@ class InputsStudyConfig:
     def __post_init__(self):
         from kpcn_keras.config import PRESETS
 
-        self.frames = tuple(self.frames)
+        self.frames, self.pairs = tuple(self.frames), tuple(self.pairs)
         check_set_name(self.set_name)
         for name in ("render_root", "shards_root", "runs_root", "out_dir"):
             if not isinstance(getattr(self, name), str) or not getattr(self, name):

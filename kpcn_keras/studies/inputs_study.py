@@ -19,6 +19,10 @@ The contract:
   (``prep.layouts``) and denoised by the run's model for what it has; beside them the raw input, OIDN on the same
   colour + albedo + normal, and, where the folder has it, the renderer's own denoised frame
   (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render time).
+- **Two renders of half the samples** (``pairs``: folders of ``<scene>-<spp>spp.exr`` with its second render
+  ``<scene>-<spp>spp-b.exr``, another seed, and the scene's reference; ``scripts/render_blender_pairs.py``): their
+  mean denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), the
+  same pixels either way.
 - **Writes** ``<out_dir>/inputs.md`` (the tables, with the date and the machine), ``inputs.json`` (every number)
   and ``inputs.png`` (input | kpcn | OIDN | Blender | reference of every other renderer's frame at the middle
   spp), through ``prep.studies.report``.
@@ -57,12 +61,18 @@ def train_config(cfg: InputsStudyConfig, inputs: str, overrides: dict | None = N
 
 
 def cut_shards(cfg: InputsStudyConfig, *, log=print) -> None:
-    """The render set's shards cut for every input set (each resumed, or reused when complete)."""
-    from prep.shards import ShardConfig, build_shards
+    """The render set's shards cut for every input set as its full set was cut (``make shards``' options, read
+    from its manifest; the defaults where there is none yet), each resumed, or reused when complete."""
+    from prep.shards import ShardConfig, ShardSet, build_shards
 
+    full = ShardConfig(set_name=cfg.set_name, render_root=cfg.render_root, out_root=cfg.shards_root)
+    options = {}
+    if (full.set_dir / "manifest.json").exists():
+        options = {k: v for k, v in ShardSet(full.set_dir).complete_manifest()["config"].items()
+                   if k not in ("set_name", "render_root", "out_root", "inputs", "command")}
     for inputs in INPUT_SETS:
         shard_cfg = ShardConfig(set_name=cfg.set_name, render_root=cfg.render_root, out_root=cfg.shards_root,
-                                inputs=inputs)
+                                inputs=inputs, **options)
         log(f"inputs-study: shards for {inputs}: {shard_cfg.set_dir}")
         build_shards(shard_cfg, progress=False)
 
@@ -188,6 +198,45 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
     return rows, panels
 
 
+PAIR_SUFFIX = "-b.exr"  # <scene>-<spp>spp.exr's second render, another seed (scripts/render_blender_pairs.py)
+
+
+def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
+    """Per pair of renders under ``cfg.pairs`` (``<stem>.exr`` and ``<stem>-b.exr``): the scores of their mean
+    denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), each by the
+    run's model for it, beside the mean's raw scores and OIDN's on it."""
+    from kpcn_keras.denoise import Denoiser, read_frame
+    from kpcn_keras.run import Run
+    from prep import baselines
+    from prep.exr import VARIANCE_LAYERS
+
+    root = Run(plans["full"]["run"])
+    denoisers, rows = {}, []
+    for first, ref_path in renderer_pairs(cfg.pairs):
+        second = first.with_name(first.name[: -len(".exr")] + PAIR_SUFFIX)
+        if not second.exists():
+            continue
+        with_variance = read_frame(first, pair=second)
+        layers = {k: v for k, v in with_variance.layers.items() if k not in VARIANCE_LAYERS}
+        without = InputSet(split=with_variance.inputs.split, variance=False)
+        ref = layouts.read(ref_path).layers["default"]
+        scene, spp = exr.parse_render_filename(first)
+        row = {"scene": scene, "spp": 2 * spp, "raw": _scores(layers["default"], ref)}
+        for key, frame_layers, inputs in (("without", layers, without), ("pair", with_variance.layers,
+                                                                         with_variance.inputs)):
+            variant = root.serving(inputs)
+            if variant.dir not in denoisers:
+                denoisers[variant.dir] = Denoiser.from_run(variant)
+            row[key] = _scores(denoisers[variant.dir](frame_layers)["default"], ref)
+            row[f"{key}_model"] = variant.record().inputs.name
+        if baselines.oidn_available():
+            row["oidn"] = _scores(baselines.oidn_denoise(layers), ref)
+        rows.append(row)
+        log(f"inputs-study: pair {first.name} + {second.name}: relMSE without variance "
+            f"{row['without']['relmse']:.4f}, with the pair's {row['pair']['relmse']:.4f}")
+    return rows
+
+
 def study(cfg: InputsStudyConfig, *, overrides: dict | None = None, command: str | None = None, verbose="auto",
           log=print) -> dict:
     """Run the study (module docstring); writes the three reports and returns the record."""
@@ -200,9 +249,10 @@ def study(cfg: InputsStudyConfig, *, overrides: dict | None = None, command: str
     plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
     cost = held_out(cfg, plans, log=log)
     rows, panels = renderers(cfg, plans, log=log)
-    record = {**session.envelope(command), "config": {**vars(cfg), "frames": list(cfg.frames)},
+    record = {**session.envelope(command), "config": {**vars(cfg), "frames": list(cfg.frames),
+                                                      "pairs": list(cfg.pairs)},
               "overrides": overrides or {}, "machine": session.machine(**deep_learning_stack()), "plans": plans,
-              "held_out": cost, "renderers": rows}
+              "held_out": cost, "renderers": rows, "pairs": pairs(cfg, plans, log=log)}
     middle = sorted({r["spp"] for r in rows})[len({r["spp"] for r in rows}) // 2]
     shown = [p for p, r in zip(panels, rows) if r["spp"] == middle]
     return report.write(record, format_report(record), lambda _: panels_figure(shown))
@@ -255,6 +305,21 @@ def format_report(record: dict) -> str:
                      for m in ("raw", "kpcn", "oidn", "blender")]
             lines.append(f"| {layout} | {spp} | {len(group)} | {' | '.join(means)} | {wins(group)} | "
                          f"{wins(group, other='blender')} |")
+    if record["pairs"]:
+        lines += ["", "## Two renders of half the samples: variance from their difference", "",
+                  "Each frame is the mean of two renders of the scene with different seeds and half the samples, "
+                  "denoised without variance (the no-variance model) and with the variance of the mean estimated "
+                  "from their difference (`kpcn denoise A --pair B`: the full model); the same pixels either way.", "",
+                  "| scene | total spp | raw relMSE | kpcn without variance | kpcn with the pair's variance | OIDN "
+                  "relMSE | DSSIM without | DSSIM with | relSE p99.9 without | relSE p99.9 with |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in record["pairs"]:
+            lines.append(f"| {r['scene']} | {r['spp']} | {r['raw']['relmse']:.4f} | {r['without']['relmse']:.4f} | "
+                         f"{r['pair']['relmse']:.4f} | {_n(_get(r, 'oidn', 'relmse'))} | {r['without']['dssim']:.4f} | "
+                         f"{r['pair']['dssim']:.4f} | {r['without']['relse_p999']:.4f} | "
+                         f"{r['pair']['relse_p999']:.4f} |")
+        better = sum(r["pair"]["relmse"] < r["without"]["relmse"] for r in record["pairs"])
+        lines += ["", f"The pair's variance lowers relMSE on {better} of {len(record['pairs'])} frames."]
     lines += ["", "## What each missing input costs, at equal training time", "",
               f"The `{cfg['set_name']}` set's {len(cost['frames'])} held-out frames, each denoised by the network of "
               "each input set (the frame restricted to it as `prep.inputs` says), means over the frames.", "",

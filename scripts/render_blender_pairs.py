@@ -1,0 +1,48 @@
+"""Pairs of Blender Cycles renders of the validation scenes, for measuring `kpcn denoise A.exr --pair B.exr`.
+
+For each scene of the validation set's script (shared/validation/render_blender_validation.py, which builds the
+scenes) and each total spp N of its ladder (4, 16, 64): two renders of N/2 spp with different seeds,
+OUT/<scene>-<N/2>spp.exr and OUT/<scene>-<N/2>spp-b.exr, with every pass of the validation frames (so their
+mean has N spp, as the validation set's own N-spp frame), and the validation set's reference copied beside them
+(OUT/<scene>-<ref>spp.exr), so `kpcn inputs-study --pairs OUT` compares, at the same samples, the mean without
+variance against the mean with the variance of their difference.
+
+Runs in Blender's Python (the `bpy` wheel; 5.0.1 wants numpy < 2, so its own venv):
+
+  V/bin/python scripts/render_blender_pairs.py OUT --validation ../shared/validation [--scenes a,b] [--res 256]
+"""
+import argparse
+import os
+import shutil
+import sys
+
+SPPS = (4, 16, 64)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("out")
+    ap.add_argument("--validation", required=True, help="the folder of render_blender_validation.py and blender/")
+    ap.add_argument("--scenes", default="kitchen,bathroom,studio")
+    ap.add_argument("--res", type=int, default=256)
+    a = ap.parse_args()
+    sys.path.insert(0, a.validation)
+    import render_blender_validation as validation  # noqa: E402  (Blender's scenes; needs bpy)
+
+    os.makedirs(a.out, exist_ok=True)
+    references = sorted(f for f in os.listdir(os.path.join(a.validation, "blender")) if f.endswith("02048spp.exr"))
+    for si, name in enumerate(a.scenes.split(",")):
+        for li, total in enumerate(SPPS):
+            half = total // 2
+            for suffix, seed in (("", 5000 + 100 * si + 10 * li + 1), ("-b", 5000 + 100 * si + 10 * li + 2)):
+                path = os.path.join(a.out, f"{name}-{half:05d}spp{suffix}.exr")
+                seconds = validation.render(path, name=name, res=a.res, spp=half, seed=seed, denoise=False,
+                                            passes=True)
+                print(f"{path}: {seconds:.1f} s", flush=True)
+        for ref in references:
+            if ref.startswith(f"{name}-"):
+                shutil.copy(os.path.join(a.validation, "blender", ref), os.path.join(a.out, ref))
+
+
+if __name__ == "__main__":
+    main()
