@@ -455,7 +455,8 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
             raise OptionError(option, f"is for one input, got {len(inputs)}"
                               + ("; 'kpcn evaluate' compares many" if option == "reference" else ""))
         if value is not None and Path(value).is_dir():
-            raise OptionError(option, f"must be an EXR file, got {value}, a folder")
+            what = {"reference": "the input's reference", "pair": "a second render's"}.get(option, f"the {option}")
+            raise OptionError(option, f"must be {what} EXR file, got {value}, a folder")
     layouts.check_layout(layout)
     outputs = plan_outputs(inputs, output)
     run = Run(run_dir)

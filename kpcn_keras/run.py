@@ -149,10 +149,12 @@ class Run:
         the order of ``prep.inputs.INPUT_SETS`` (the most the frame has first), the first that is finished and
         whose input set serves the frame (``InputSet.serves``). KpcnError naming the run, what the frame lacks
         and the commands that train the model for it, if none does."""
+        runs = [run for run in [self] + [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS[1:]]
+                if run.has_record()]
+        if not runs:
+            self.record()  # the one line that says this is not a run folder
         found = []
-        for run in [self] + [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS[1:]]:
-            if not run.has_record():
-                continue
+        for run in runs:
             record = run.record()
             try:
                 record.finished()

@@ -143,7 +143,7 @@ class Layout:
 
 class KpcnLayout(Layout):
     name = "kpcn"
-    looks_for = "layers diffuse, specular, albedo, normal, depth (and the <x>Variance layers)"
+    looks_for = "diffuse, specular, albedo, normal, depth"
 
     def missing(self, ch):
         lacking = [n for n in ("diffuse", "specular", "albedo", "normal") if not ch.has(n)]
@@ -195,7 +195,7 @@ CYCLES_ADDED = ("emission", "environment", "volume_direct", "volume_indirect")
 
 class CyclesLayout(Layout):
     name = "cycles"
-    looks_for = "<view layer>.Combined with Blender's passes (Diffuse Direct / DiffDir, ...)"
+    looks_for = "<view layer>.Combined and Blender's passes"
 
     @staticmethod
     def view_layers(ch) -> list[str]:
@@ -205,10 +205,10 @@ class CyclesLayout(Layout):
     def missing(self, ch):
         views = self.view_layers(ch)
         if not views:
-            return "a layer '<view layer>.Combined' (R G B)"
+            return "<view layer>.Combined (R G B)"
         passes = self._passes(ch, views[0])
         if not any(p in passes for p in CYCLES_DIFFUSE + ("normal", "denoising_normal", "denoising_albedo")):
-            return f"Blender's passes beside {views[0]}.Combined (only Combined: read it with --layout rgb)"
+            return f"Blender's passes beside {views[0]}.Combined (Combined alone is read as rgb)"
         return None
 
     @staticmethod
@@ -279,8 +279,7 @@ MITSUBA_MOMENT = "m2_"  # the moment integrator's second moment of layer L is la
 
 class MitsubaLayout(Layout):
     name = "mitsuba"
-    looks_for = ("AOVs albedo, sh_normal|nn|normal and depth|dd (the aov integrator), with the moment "
-                 "integrator's m2_ layers for variance")
+    looks_for = "a colour and the aov integrator's albedo, sh_normal|nn|normal, depth|dd"
 
     @staticmethod
     def _find(ch, names, kind=VECTOR):
@@ -359,7 +358,7 @@ class MitsubaLayout(Layout):
 
 class PbrtLayout(Layout):
     name = "pbrt"
-    looks_for = "R G B with Albedo, Ns, P and Variance (PBRT-v4 GBufferFilm)"
+    looks_for = "R G B, Albedo, Ns, P (GBufferFilm)"
 
     def missing(self, ch):
         lacking = [n for n in ("default", "Albedo", "Ns", "P") if not ch.has(n)]
@@ -403,7 +402,7 @@ class PbrtLayout(Layout):
 
 class RgbLayout(Layout):
     name = "rgb"
-    looks_for = "R G B (unprefixed, or one colour layer)"
+    looks_for = "R G B, or one layer of R G B"
 
     @staticmethod
     def colour_layer(ch) -> str | None:
@@ -416,7 +415,7 @@ class RgbLayout(Layout):
         return rgb[0] if len(rgb) == 1 else None
 
     def missing(self, ch):
-        return None if self.colour_layer(ch) else "R G B (unprefixed, or exactly one layer with R G B)"
+        return None if self.colour_layer(ch) else "R G B"
 
     def inputs(self, ch, spp):
         return InputSet(split=False, variance=False)
@@ -451,16 +450,17 @@ def detect(image: ExrImage, layout: str | None = None) -> Layout:
         adapter = LAYOUTS[check_layout(layout)]
         lacking = adapter.missing(ch)
         if lacking:
-            raise AOVError(f"{image.path}: not a {layout} file: it lacks {lacking}")
+            raise AOVError(f"{image.path}: not a {layout} file: {layout} looks for {adapter.looks_for} and it lacks "
+                           f"{lacking}")
         return adapter
     missed = []
     for adapter in LAYOUTS.values():
         lacking = adapter.missing(ch)
         if lacking is None:
             return adapter
-        missed.append(f"{adapter.name}: no {lacking}")
+        missed.append(f"{adapter.name} looks for {adapter.looks_for}, missed {lacking}")
     found = ", ".join(sorted(ch.layers)) or "no channels"
-    raise AOVError(f"{image.path}: no layout kpcn reads ({'; '.join(missed)}); the file has layers {found}")
+    raise AOVError(f"{image.path}: no layout kpcn reads: {'; '.join(missed)}; the file has layers {found}")
 
 
 def _spp_of(path: Path) -> int | None:

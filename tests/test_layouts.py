@@ -161,11 +161,13 @@ def test_a_file_of_no_layout_kpcn_reads_gets_one_line_naming_what_each_layout_mi
     with pytest.raises(AOVError) as err:
         layouts.read(path)
     message = str(err.value)
-    assert "\n" not in message and message.startswith(f"{path}: no layout kpcn reads (")
-    for name in layouts.LAYOUTS:
-        assert f"{name}: no " in message
-    assert "the file has layers default, mask" in message
-    with pytest.raises(AOVError, match=r"not a cycles file: it lacks a layer '<view layer>.Combined'"):
+    assert "\n" not in message and message.startswith(f"{path}: no layout kpcn reads: kpcn looks for ")
+    for name, adapter in layouts.LAYOUTS.items():
+        assert f"{name} looks for {adapter.looks_for}, missed " in message
+    assert "kpcn looks for diffuse, specular, albedo, normal, depth, missed diffuse, specular, albedo, normal" in message
+    assert message.endswith("; the file has layers default, mask")
+    with pytest.raises(AOVError, match=r"not a cycles file: cycles looks for <view layer>.Combined and Blender's "
+                                       r"passes and it lacks <view layer>.Combined \(R G B\)"):
         layouts.read(path, "cycles")
 
 

@@ -92,11 +92,12 @@ def test_kpcn_evaluate_takes_renderers_files_each_by_its_model(tiny_run_of_every
 def test_a_file_of_a_layout_kpcn_does_not_read_is_one_line_before_any_work(tiny_run_of_every_input_set, tmp_path):
     odd = write_channels(tmp_path / "odd.exr", {"Y": np.zeros((4, 4), np.float32)})
     res = run_main("denoise", odd, "--run", tiny_run_of_every_input_set, cwd=tmp_path)
-    assert_one_line_error(res, f"{odd}: no layout kpcn reads (kpcn: no diffuse", "rgb: no R G B")
+    assert_one_line_error(res, f"{odd}: no layout kpcn reads: kpcn looks for", "rgb looks for R G B, or one layer of "
+                          "R G B, missed R G B; the file has layers default")
     assert not (tmp_path / "odd-denoised.exr").exists()
     res = run_main("denoise", RENDERERS / "mitsuba3" / "cornell-00016spp.exr", "--layout", "cycles", "--run",
                    tiny_run_of_every_input_set, cwd=tmp_path)
-    assert_one_line_error(res, "not a cycles file: it lacks a layer '<view layer>.Combined'")
+    assert_one_line_error(res, "not a cycles file: cycles looks for <view layer>.Combined and Blender's passes")
 
 
 def test_a_pair_of_renders_without_variance_is_denoised_as_one_frame_with_variance(tiny_run_of_every_input_set,
