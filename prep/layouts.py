@@ -76,6 +76,9 @@ class Frame:
     display_window: tuple = ((0, 0), (0, 0))
     spp: int | None = None
     notes: tuple[str, ...] = ()
+    # layers the adapter could have taken instead (Cycles' clipped Denoising Albedo for its Diffuse Color), for
+    # a study to measure which denoises better
+    alternatives: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -252,6 +255,8 @@ class CyclesLayout(Layout):
                 notes.append(f"passes {', '.join(lacking)} missing: specular = Combined - diffuse, clipped at 0")
                 out["specular"] = exr.to_float32(np.maximum(out["default"].astype(np.float64) - out["diffuse"], 0))
             out["albedo"] = rgb["diffuse_color"]
+            if "denoising_albedo" in p:
+                out["alternative.albedo"] = np.clip(rgb["denoising_albedo"], 0.0, 1.0)
         elif "denoising_albedo" in p:
             out["albedo"] = np.clip(rgb["denoising_albedo"], 0.0, 1.0)
             notes.append("albedo = Denoising Albedo clipped to [0, 1]")
@@ -434,6 +439,7 @@ class RgbLayout(Layout):
 LAYOUTS = {layout.name: layout for layout in (KpcnLayout(), CyclesLayout(), PbrtLayout(), MitsubaLayout(),
                                               RgbLayout())}
 FILL = {"albedo": 1.0, "normal": 0.0, "depth": 0.0}  # what a layer the file lacks is (the rgb layout)
+ALTERNATIVE = "alternative."  # an adapter's layer named so goes to Frame.alternatives
 
 
 def check_layout(name: str | None, option: str = "layout") -> str | None:
@@ -487,6 +493,7 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
             if layers[name].shape != layers["default"].shape:
                 raise AOVError(f"{aux}: {name} is {layers[name].shape[1]}x{layers[name].shape[0]}, "
                                f"{path} is {image.size[1]}x{image.size[0]}")
+    alternatives = {k.removeprefix(ALTERNATIVE): layers.pop(k) for k in list(layers) if k.startswith(ALTERNATIVE)}
     h, w = image.size
     for name, value in FILL.items():
         if name not in layers:
@@ -503,7 +510,7 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
     for note in notes:
         log.info("%s (%s): %s", path, adapter.name, note)
     return Frame(path, adapter.name, layers, inputs, alpha, image.attributes, image.data_window,
-                 image.display_window, spp, tuple(notes))
+                 image.display_window, spp, tuple(notes), alternatives)
 
 
 @dataclass(frozen=True)

@@ -182,6 +182,9 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
         row = {"frame": str(noisy_path), "scene": scene, "spp": spp, "renderer": noisy_path.parent.name,
                "layout": frame.layout, "inputs": frame.inputs.name, "model": variant.record().inputs.name,
                "seconds": seconds, "raw": _scores(frame.layers["default"], ref), "kpcn": _scores(out, ref)}
+        for name, layer in frame.alternatives.items():  # the layer the adapter could have taken instead
+            row[f"kpcn_alternative_{name}"] = _scores(denoisers[variant.dir]({**frame.layers, name: layer})["default"],
+                                                      ref)
         images = {"input": frame.layers["default"], "kpcn": out}
         if baselines.oidn_available():
             images["OIDN"] = baselines.oidn_denoise(frame.layers)
@@ -296,6 +299,12 @@ def format_report(record: dict) -> str:
                                    ("kpcn", "dssim"), ("oidn", "dssim"), ("blender", "dssim"),
                                    ("kpcn", "relse_p999"), ("oidn", "relse_p999"), ("blender", "relse_p999")))
                      + " |")
+    alt = [r for r in rows if "kpcn_alternative_albedo" in r]
+    if alt:
+        lines += ["", f"Cycles' albedo: with Diffuse Color (the default) kpcn's mean relMSE over these {len(alt)} "
+                  f"frames is {np.mean([r['kpcn']['relmse'] for r in alt]):.4f}, with Denoising Albedo clipped to "
+                  f"[0, 1] {np.mean([r['kpcn_alternative_albedo']['relmse'] for r in alt]):.4f} (lower on "
+                  f"{wins(alt, 'kpcn_alternative_albedo', 'kpcn')} frames)."]
     lines += ["", "| layout | spp | frames | mean raw relMSE | mean kpcn relMSE | mean OIDN relMSE | mean Blender "
               "relMSE | kpcn below OIDN | kpcn below Blender |", "|---|---|---|---|---|---|---|---|---|"]
     for layout in sorted({r["layout"] for r in rows}):
