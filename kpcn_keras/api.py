@@ -48,7 +48,8 @@ def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None
         if diffuse is None or specular is None:
             raise KpcnError("diffuse and specular go together: got only " + ("diffuse" if specular is None
                                                                                else "specular"))
-        layers["diffuse"], layers["specular"] = _array("diffuse", diffuse, (h, w, 3)), _array("specular", specular, (h, w, 3))
+        layers["diffuse"] = _array("diffuse", diffuse, (h, w, 3))
+        layers["specular"] = _array("specular", specular, (h, w, 3))
     has_variance = variance is not None
     if isinstance(variance, dict):
         missing = [n for n in VARIANCE_LAYERS if n not in variance and (split or n not in

@@ -455,7 +455,8 @@ def _inputs_study_options(add) -> None:
     from kpcn_keras.studies.config import InputsStudyConfig
 
     s = add("inputs-study", (InputsStudyConfig,), help="a network per input set for the same seconds, measured on "
-            "held-out frames and on other renderers' frames beside OIDN and Blender; writes reports/inputs.{md,json,png}")
+            "held-out frames and on other renderers' frames beside OIDN and Blender; writes "
+            "reports/inputs.{md,json,png}")
     d = _defaults(InputsStudyConfig)
     _experiment_folders(s, d, "the study's runs")
     s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")

@@ -161,8 +161,8 @@ class KpcnLayout(Layout):
         ch = _Channels(header)
         variance = self.inputs(ch, spp).variance
         present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
-        notes = [] if variance or not present else [
-            f"variance layers {', '.join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))} missing: read without variance"]
+        lacking = ", ".join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))
+        notes = [] if variance or not present else [f"variance layers {lacking} missing: read without variance"]
         layers = exr.read_aovs(path, variances=variance)
         if not variance:
             layers = {k: v for k, v in layers.items() if k not in exr.VARIANCE_LAYERS}

@@ -14,8 +14,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import (TINY_MODEL, assert_one_line_error, build_tiny_shards, random_aovs, reference_features,
-                     reference_log_colour, run_main)
+from helpers import (
+    TINY_MODEL,
+    assert_one_line_error,
+    build_tiny_shards,
+    random_aovs,
+    reference_features,
+    reference_log_colour,
+    run_main,
+)
 
 from prep import exr, features, metrics, shards
 from prep.errors import KpcnError, OptionError

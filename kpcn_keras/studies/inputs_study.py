@@ -36,8 +36,14 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.config import TrainConfig
-from kpcn_keras.studies.compare import (_training_seconds, budget_steps, deep_learning_stack, probe_configuration,
-                                        seconds_per_step, with_steps)
+from kpcn_keras.studies.compare import (
+    _training_seconds,
+    budget_steps,
+    deep_learning_stack,
+    probe_configuration,
+    seconds_per_step,
+    with_steps,
+)
 from kpcn_keras.studies.config import InputsStudyConfig
 from prep import exr, layouts, metrics
 from prep.errors import KpcnError
