@@ -21,10 +21,12 @@ cycles     Blender Cycles, ``<view layer>.<pass>.<C>``: Blender 4 short pass nam
            depth = Denoising Depth (else Depth, with values >= DEPTH_MISS, the background, as 0); alpha =
            Combined.A. No variance: Cycles 3.0+ writes none.
 mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour = the radiance integrator's
-           layer (``path.X Y Z``; ``R G B`` without ``moment``), albedo, normal, depth = the AOVs named
-           ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare or ``aov.<name>``; depth is
-           the ray length, 0 on a miss), each with its second moment ``m2_<layer>``: variance of the mean =
-           max(m2 - mean^2, 0) / spp. No split. Albedo clipped to [0, 1] (metals exceed 1).
+           layer (``path.X Y Z``, CIE XYZ, taken to linear sRGB; ``R G B`` without ``moment``); albedo,
+           normal, depth = the AOVs named ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare
+           or ``aov.<name>``; depth is the ray length, 0 on a miss), each with its second moment
+           ``m2_<layer>``: variance of the mean = max(m2 - mean^2, 0) / spp (the colour's taken to sRGB as if
+           its XYZ channels were fully correlated: no cross moments are written). No split. Albedo clipped
+           to [0, 1] (metals exceed 1).
 pbrt       PBRT-v4 GBufferFilm: ``R G B``, ``Albedo``, ``Ns`` (camera space by default: taken to world space by
            the header's ``worldToCamera``), ``P`` (depth = |P|, camera space), ``Variance`` (per sample:
            divided by the spp, from the header's ``samplesPerPixel``). No split.
@@ -280,6 +282,11 @@ MITSUBA_ALBEDO = ("albedo",)
 MITSUBA_NORMAL = ("sh_normal", "nn", "normal")
 MITSUBA_DEPTH = ("depth", "dd")
 MITSUBA_MOMENT = "m2_"  # the moment integrator's second moment of layer L is layer m2_L
+# Mitsuba writes a nested integrator's radiance (path.X Y Z) as CIE XYZ: back to linear sRGB by Mitsuba's own
+# xyz_to_srgb (the columns of mi.xyz_to_srgb of the unit vectors, Mitsuba 3.9.1)
+MITSUBA_XYZ_TO_RGB = np.array([[3.240479, -1.537150, -0.498535],
+                               [-0.969256, 1.875991, 0.041556],
+                               [0.055648, -0.204043, 1.057311]])
 
 
 class MitsubaLayout(Layout):
@@ -333,11 +340,19 @@ class MitsubaLayout(Layout):
     def inputs(self, ch, spp):
         return InputSet(split=False, variance=spp is not None and None not in self._moments(ch).values())
 
+    @staticmethod
+    def _is_xyz(ch, layer) -> bool:
+        return layer != "default" and not set("RGB") <= ch.layers[layer] and set("XYZ") <= ch.layers[layer]
+
     def layers(self, ch, spp):
         names = self._names(ch)
         out = {k: ch.vector(v) for k, v in names.items() if k != "depth"}
         out["depth"] = ch.scalar(names["depth"])
         notes = [f"{k} = {v}" for k, v in names.items()]
+        xyz = self._is_xyz(ch, names["default"])
+        if xyz:
+            out["default"] = exr.to_float32(out["default"].astype(np.float64) @ MITSUBA_XYZ_TO_RGB.T)
+            notes.append(f"colour = {names['default']} (CIE XYZ) in linear sRGB")
         raw_albedo = out["albedo"]
         if float(raw_albedo.max(initial=0.0)) > 1.0:
             notes.append("albedo clipped to [0, 1] (above 1 on metals)")
@@ -352,9 +367,13 @@ class MitsubaLayout(Layout):
                   "depth": "depthVariance"}
         for key, layer in moments.items():
             m2 = ch.vector(layer) if key != "depth" else ch.scalar(layer)
-            mean = raw_albedo if key == "albedo" else out[key]
+            mean = {"albedo": raw_albedo, "default": ch.vector(names["default"])}.get(key, out[key])
             # clamped at 0: half-float moments of a constant pixel can round below the squared mean
             var = np.maximum(np.asarray(m2, np.float64) - np.asarray(mean, np.float64) ** 2, 0.0) / spp
+            if key == "default" and xyz:
+                # the moment integrator writes no cross moments: each sRGB channel's variance as if the XYZ
+                # channels were fully correlated (a sample's colour varies in brightness more than in hue)
+                var = (np.sqrt(var) @ MITSUBA_XYZ_TO_RGB.T) ** 2
             out[target[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
         out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
         notes.append("variance = (m2 - mean^2) / spp, clamped at 0")
