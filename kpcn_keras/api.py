@@ -3,7 +3,7 @@
 :func:`denoise` makes a frame from the arrays given, in kpcn's names (``prep.layouts.Frame``), and denoises it
 exactly as ``kpcn denoise`` does a file that holds the same layers: the same model (``Run.serving`` picks the
 run's variant for what the arrays give), the same ``denoise.Denoiser``, so the result equals the command's
-output bit for bit (``tests/test_api.py``). What is not given is filled as the rgb layout fills it (albedo 1,
+output bit for bit (``tests/test_renderers.py``). What is not given is filled as the rgb layout fills it (albedo 1,
 normal 0, depth 0; ``prep.layouts.FILL``). ``variance`` is the variance of the pixel mean of ``color`` ((H, W)
 or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must be a dict of the six
 ``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A loaded model is kept for the

@@ -462,11 +462,9 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     run = Run(run_dir)
     headers = [layouts.read_header(src, layout) for src in inputs]
     pair_header = layouts.read_header(pair, layout) if pair is not None else None
-    serving = {}  # the run of each input set the inputs give
-    for header in headers:
-        frame_inputs = InputSet(header.inputs.split, True) if pair is not None else header.inputs
-        if frame_inputs not in serving:
-            serving[frame_inputs] = run.serving(frame_inputs)
+    # what each frame gives: a pair brings the variance its renders lack
+    given = [InputSet(h.inputs.split, True) if pair is not None else h.inputs for h in headers]
+    serving = {inputs: run.serving(inputs) for inputs in dict.fromkeys(given)}  # the run of each input set
     records = {variant.dir: variant.record() for variant in serving.values()}
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
     read = [("input", src) for src in inputs] + [(option, value) for option, value in singles if value is not None]
@@ -489,8 +487,8 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     load_s = warmup_s = 0.0
     denoisers = {}
     frames = []
-    for src, out, header in zip(inputs, outputs, headers):
-        variant = serving[InputSet(header.inputs.split, True) if pair is not None else header.inputs]
+    for src, out, frame_inputs in zip(inputs, outputs, given):
+        variant = serving[frame_inputs]
         if variant.dir not in denoisers:
             begin = time.perf_counter()
             denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir])

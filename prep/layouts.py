@@ -98,8 +98,10 @@ class _Channels:
         return any(set(c) <= comps for c in kind) or (kind is SCALAR and len(comps) == 1)
 
     def _pixels(self, layer: str, comp: str) -> np.ndarray:
-        return self.image.channels[f"{layer}.{comp}" if layer != "default" or f"{layer}.{comp}" in
-                                   self.image.channels else comp]
+        name = f"{layer}.{comp}"
+        if layer == "default" and name not in self.image.channels:
+            name = comp  # the unprefixed channels (R G B) are layer default's (prep.exr._split_name)
+        return self.image.channels[name]
 
     def vector(self, layer: str) -> np.ndarray:
         comps = self.layers[layer]
@@ -115,6 +117,19 @@ class _Channels:
         return self._pixels(layer, comp).astype(np.float32) if comp in self.layers.get(layer, ()) else None
 
 
+def _repaired(layers: dict[str, np.ndarray], notes: list[str]) -> dict[str, np.ndarray]:
+    """``layers`` with ``prep.exr``'s repair of non-finite values, each repair counted in ``notes``."""
+    repaired = {}
+    for name in list(layers):
+        layers[name], count = exr.repair_nonfinite(layers[name])
+        if count:
+            repaired[name] = count
+    if repaired:
+        notes.append("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
+                     + ", ".join(f"{k}: {v}" for k, v in repaired.items()))
+    return layers
+
+
 def _sum(*images) -> np.ndarray:
     return exr.to_float32(np.sum([np.asarray(i, np.float64) for i in images], axis=0))
 
@@ -125,6 +140,7 @@ class Layout:
 
     name = ""
     looks_for = ""
+    decodes_whole = True  # its reader holds every channel of the file beside the layers it makes
 
     def missing(self, ch: _Channels) -> str | None:
         raise NotImplementedError
@@ -142,8 +158,10 @@ class Layout:
         raise NotImplementedError
 
     def read(self, path: Path, header: ExrImage, spp: int | None) -> tuple[dict, np.ndarray | None, list[str]]:
-        """:meth:`layers` of the file whose header is ``header``, its pixels read here."""
-        return self.layers(_Channels(exr.read_image(path)), spp)
+        """:meth:`layers` of the file whose header is ``header``, its pixels read here (the whole file decoded,
+        :attr:`decodes_whole`), each layer repaired by ``prep.exr``'s rule for non-finite values."""
+        layers, alpha, notes = self.layers(_Channels(exr.read_image(path)), spp)
+        return _repaired(layers, notes), alpha, notes
 
 
 class KpcnLayout(Layout):
@@ -158,17 +176,17 @@ class KpcnLayout(Layout):
     def inputs(self, ch, spp):
         return InputSet(split=True, variance=all(ch.has(n, SCALAR) for n in exr.VARIANCE_LAYERS))
 
+    decodes_whole = False
+
     def read(self, path, header, spp):
         # prep.exr's own reader: it lets each channel go once its layer is made (what denoise's memory bound counts)
+        # and repairs non-finite values itself
         ch = _Channels(header)
         variance = self.inputs(ch, spp).variance
         present = [n for n in exr.VARIANCE_LAYERS if ch.has(n, SCALAR)]
         lacking = ", ".join(sorted(set(exr.VARIANCE_LAYERS) - set(present)))
         notes = [] if variance or not present else [f"variance layers {lacking} missing: read without variance"]
-        layers = exr.read_aovs(path, variances=variance)
-        if not variance:
-            layers = {k: v for k, v in layers.items() if k not in exr.VARIANCE_LAYERS}
-        return layers, None, notes
+        return exr.read_aovs(path, variances=variance), None, notes
 
 
 # Cycles pass names: (Blender 5, Blender 4). A light pass is stored divided by its colour pass.
@@ -508,7 +526,7 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
     layers, alpha, notes = adapter.read(path, image, spp)
     for name, aux in (("albedo", albedo), ("normal", normal)):
         if aux is not None:
-            layers[name] = exr.read_rgb(aux)
+            layers[name] = _repaired({name: exr.read_rgb(aux)}, notes)[name]
             if layers[name].shape != layers["default"].shape:
                 raise AOVError(f"{aux}: {name} is {layers[name].shape[1]}x{layers[name].shape[0]}, "
                                f"{path} is {image.size[1]}x{image.size[0]}")
@@ -518,14 +536,6 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
         if name not in layers:
             layers[name] = np.full((h, w) if name == "depth" else (h, w, 3), value, np.float32)
             notes.append(f"no {name}: {value:g} everywhere")
-    repaired = {}
-    for name in list(layers):
-        layers[name], count = exr.repair_nonfinite(layers[name])
-        if count:
-            repaired[name] = count
-    if repaired:
-        notes.append("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
-                     + ", ".join(f"{k}: {v}" for k, v in repaired.items()))
     for note in notes:
         log.info("%s (%s): %s", path, adapter.name, note)
     return Frame(path, adapter.name, layers, inputs, alpha, image.attributes, image.data_window,
@@ -535,7 +545,8 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
 @dataclass(frozen=True)
 class Header:
     """What a frame's header says: its size, the layout that reads it, the inputs it gives, its samples per
-    pixel (None if unknown) and how many channels the file has."""
+    pixel (None if unknown) and how many channels its reader decodes whole beside the layers it makes (0 for
+    the kpcn layout, whose reader lets each go: ``Layout.decodes_whole``)."""
 
     size: tuple[int, int]
     layout: str
@@ -551,4 +562,5 @@ def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int 
     adapter = detect(image, layout)
     ch = _Channels(image)
     spp = _spp_of(path) or adapter.spp(ch) or spp
-    return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp, len(image.names))
+    return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp,
+                  len(image.names) if adapter.decodes_whole else 0)
