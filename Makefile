@@ -15,7 +15,7 @@ INPUTS_ARGS ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 
-.PHONY: venv render shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-fast test-oldest clean
+.PHONY: venv render shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -79,14 +79,15 @@ bench: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) bench --set $(SET) $(BENCH_ARGS)
 
-# one worker process per core, each taking whole test files (a file's module fixtures are built once) in the
-# order of tests/conftest.py, longest first
+# the fast suite: every test not marked slow, one worker process per core, each taking whole test files (a
+# file's module fixtures are built once) in the order of tests/conftest.py, longest first
+PYTEST_PARALLEL := -n auto --dist loadfile --no-loadscope-reorder
 test: $(KPCN)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
+	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL) -m "not slow"
 
-# the inner loop: every test but those marked slow (subprocesses, training, renders)
-test-fast: $(KPCN)
-	$(BIN)/python -m pytest -q -m "not slow"
+# everything, the slow tests too (subprocesses, kills and resumes, trainings, renders, kernel compiles): what CI runs
+test-all: $(KPCN)
+	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL)
 
 # the training tests on the oldest Keras that pyproject.toml allows, in an environment of its own
 KERAS_OLDEST := $(shell sed -n 's/.*"keras>=\([0-9.]*\)".*/\1/p' pyproject.toml)

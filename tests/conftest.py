@@ -9,13 +9,13 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 # one all-effects kernel compiled for every scene rather than one per effect set, in this process and in the
 # commands it starts (docs/scenes.md §2); the tests of specialisation name their kernel's effects
 os.environ.setdefault("KPCN_KERNELS", "all")
-# make test runs a worker per core: OpenMP threads (torch's) that spin while they wait would take the cores
+# make test and make test-all run a worker per core: OpenMP threads (torch's) that spin while they wait would take the cores
 # from the other workers (it does not change a result)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards, process_state_kept  # noqa: E402
 
-# the files that take longest from a fresh clone, longest first; the rest follow in collection order. make test's
+# the files that take longest from a fresh clone, longest first; the rest follow in collection order. The
 # workers (pytest-xdist, --dist loadfile --no-loadscope-reorder) take whole files in this order, so that none is
 # left alone at the end on a long one
 LONGEST_FIRST = ("test_resample_resume.py", "test_cli_resume.py", "test_distributed.py", "test_render.py",
