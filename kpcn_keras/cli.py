@@ -131,7 +131,7 @@ def cmd_denoise(args) -> int:
               + f" ({report['layout']} layout, {report['inputs']}, model {report['model']}; "
               f"{report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
 
-    batch = denoise_files(args.inputs, args.run, args.output, args.reference, png=not args.no_png, on_frame=frame,
+    batch = denoise_files(args.inputs, args.run, args.output, args.reference, png=args.png, on_frame=frame,
                           layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
                           **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     frames = batch["frames"]

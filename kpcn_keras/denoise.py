@@ -262,7 +262,7 @@ def check_frame_memory(path, size: tuple[int, int], *, png: bool = True, referen
     if short:
         with_ref = ", with the reference" if reference else ""
         raise KpcnError(f"{path}: denoising its {size[1]}x{size[0]} frame ({needed // (size[0] * size[1])} bytes a "
-                        f"pixel held whole{with_ref}) {short}" + ("; --no-png holds less" if png else ""))
+                        f"pixel held whole{with_ref}) {short}" + ("; without --png it holds less" if png else ""))
 
 
 def default_output(input_path: str | os.PathLike, folder: str | os.PathLike | None = None) -> Path:
@@ -469,7 +469,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
     read = [("input", src) for src in inputs] + [(option, value) for option, value in singles if value is not None]
     models = [item for variant in serving.values() for item in variant.read_files(records[variant.dir])]
-    check_outputs(written, read + models, "choose another -o" + (" (or --no-png)" if png else ""))
+    check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
     ref_size = layouts.read_header(reference).size if reference is not None else None
     for src, header in zip(inputs, headers):
         for other, size in (("reference", ref_size), ("pair", pair_header and pair_header.size)):

@@ -76,7 +76,7 @@ def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_pa
     src = tmp_path / name
     exr.write_aovs(src, random_aovs(20, 24))
     before = checksums(tmp_path)
-    res = run_main("denoise", name, "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", name, "--run", tiny_run, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     stem = src.name[:-4] if src.name.lower().endswith(".exr") else src.name
     out = src.with_name(stem + "-denoised.exr")
@@ -113,7 +113,7 @@ def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_pat
     os.link(tmp_path / "in.exr", tmp_path / "hard.exr")
     model = Path(tiny_run) / json.loads((Path(tiny_run) / "config.json").read_text())["components"]["diffuse"]["file"]
     before, models = checksums(tmp_path), checksums(tiny_run)
-    res = run_main("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", cwd=tmp_path)
+    res = run_main("denoise", "pp/frame.png", "--run", tiny_run, "-o", "pp/frame.exr", "--png", cwd=tmp_path)
     assert_one_line_error(res, "side-by-side PNG pp/frame.png is the input file pp/frame.png itself")
     monkeypatch.chdir(tmp_path)
     for inputs, output, reference, message in [
@@ -169,7 +169,7 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
 
 def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_it(tmp_path, tiny_run, small_disk):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
-    args = ("denoise", "in.exr", "--run", tiny_run, "-o", "disk/out.exr")
+    args = ("denoise", "in.exr", "--run", tiny_run, "-o", "disk/out.exr", "--png")
     assert_one_line_error(run_main(*args, cwd=tmp_path), "disk/out.exr: cannot write (No space left on device)")
     assert list(small_disk.path.iterdir()) == []
     small_disk.grow()
@@ -225,13 +225,13 @@ def test_denoise_many_inputs_into_a_folder_and_refuses_a_file_output(tmp_path, t
     res = run_main("denoise", "in/a.exr", "in/b.exr", "--run", tiny_run, "-o", "one.exr", cwd=tmp_path)
     assert_one_line_error(res, "--output", "one.exr", "folder")
     assert checksums(tmp_path) == before
-    res = run_main("--quiet", "denoise", "in", "--run", tiny_run, "-o", "out", "--threads", "1", cwd=tmp_path)
+    res = run_main("--quiet", "denoise", "in", "--run", tiny_run, "-o", "out", "--threads", "1", "--png", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
         "a-denoised.exr", "a-denoised.png", "b-denoised.exr", "b-denoised.png"]
     assert "model load" in res.stdout and "warm-up" in res.stdout and "(1 thread)" in res.stdout
     # a second run over the folder beside the inputs skips nothing silently: earlier outputs are named
-    res = run_main("denoise", "out", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", "out", "--run", tiny_run, cwd=tmp_path)
     assert res.returncode == 2 and "no renders to denoise" in res.stderr
 
 
@@ -239,7 +239,7 @@ def test_denoise_batch_stopped_by_a_bad_frame_keeps_the_outputs_before_it(tmp_pa
     exr.write_aovs(tmp_path / "a.exr", random_aovs(12, 12))
     data = (tmp_path / "a.exr").read_bytes()
     (tmp_path / "b.exr").write_bytes(data[: len(data) - 200])  # header intact, pixels cut off
-    res = run_main("denoise", "a.exr", "b.exr", "--run", tiny_run, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", "a.exr", "b.exr", "--run", tiny_run, cwd=tmp_path)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
     assert "b.exr" in lines[0] and "a-denoised.exr" in lines[0]  # names the bad frame and what was written
@@ -434,9 +434,9 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
     assert record["train"]["steps"] == 20 and set(record["results"]) == {"diffuse", "specular"}
 
     noisy = next(p for p in renders if p.name.endswith("00004spp.exr"))
-    assert main(["-q", "denoise", str(noisy), "--run", "runs/toy", "-o", "out/ours.exr", "--tile", "16"]) == 0
+    assert main(["-q", "denoise", str(noisy), "--run", "runs/toy", "-o", "out/ours.exr", "--tile", "16", "--png"]) == 0
     assert main(["-q", "denoise", str(fixture_noisy), "--run", "runs/toy", "-o", "out/mitsuba.exr",
-                 "--reference", str(fixture_reference)]) == 0
+                 "--reference", str(fixture_reference), "--png"]) == 0
     for name, shape in (("ours", (40, 48, 3)), ("mitsuba", (64, 64, 3))):
         out = exr.read_aovs(tmp_path / f"out/{name}.exr", variances=False)
         assert out["default"].shape == shape and np.isfinite(out["default"]).all()

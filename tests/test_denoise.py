@@ -137,7 +137,7 @@ def test_a_frame_the_machine_cannot_hold_is_refused_before_any_work(tiny_run, tm
     assert str(err.value) == (f"x.exr: denoising its 4000x3000 frame ({frame_bytes(1, 1, png=False)} bytes a pixel "
                               f"held whole) needs {need_mb / 1024:.1f} GiB, more than the "
                               f"{(need_mb - 1) / 1024:.1f} GiB this machine has available")
-    with pytest.raises(KpcnError, match="with the reference.*; --no-png holds less"):
+    with pytest.raises(KpcnError, match="with the reference.*; without --png it holds less"):
         check_frame_memory("x.exr", (3000, 4000), reference=True, available_mb=need_mb)
 
 

@@ -33,7 +33,7 @@ def test_kpcn_denoise_takes_each_renderers_file_without_a_flag(tiny_run_of_every
     run = tiny_run_of_every_input_set
     layout, inputs, served_by = FILES[name]
     out = tmp_path / "out.exr"
-    res = run_main("denoise", RENDERERS / name, "--run", run, "-o", out, "--no-png", cwd=tmp_path)
+    res = run_main("denoise", RENDERERS / name, "--run", run, "-o", out, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert f"({layout} layout, {inputs}, model {run / served_by};" in res.stdout, res.stdout
     back = exr.read_image(out)
@@ -45,7 +45,7 @@ def test_kpcn_denoise_takes_each_renderers_file_without_a_flag(tiny_run_of_every
 
 def test_a_denoise_keeps_the_inputs_alpha_header_attributes_and_windows(tiny_run_of_every_input_set, tmp_path):
     src = RENDERERS / "cycles5" / "studio-00016spp.exr"
-    res = run_main("denoise", src, "--run", tiny_run_of_every_input_set, "-o", tmp_path / "o.exr", "--no-png",
+    res = run_main("denoise", src, "--run", tiny_run_of_every_input_set, "-o", tmp_path / "o.exr",
                    cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     given, got = exr.read_image(src), exr.read_image(tmp_path / "o.exr")
@@ -58,7 +58,7 @@ def test_a_denoise_keeps_the_inputs_alpha_header_attributes_and_windows(tiny_run
 @pytest.mark.parametrize("name", ["cycles5/studio-00016spp.exr", "mitsuba3/cornell-00016spp.exr"])
 def test_the_apis_output_equals_the_commands_on_the_same_frame(tiny_run_of_every_input_set, tmp_path, name):
     run = tiny_run_of_every_input_set
-    res = run_main("denoise", RENDERERS / name, "--run", run, "-o", tmp_path / "o.exr", "--no-png", cwd=tmp_path)
+    res = run_main("denoise", RENDERERS / name, "--run", run, "-o", tmp_path / "o.exr", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     command = exr.read_image(tmp_path / "o.exr").channels
     frame = kpcn.read(RENDERERS / name)
@@ -106,7 +106,7 @@ def test_a_pair_of_renders_without_variance_is_denoised_as_one_frame_with_varian
     pa = write_channels(tmp_path / "a-00008spp.exr", a, parts_of(a))
     pb = write_channels(tmp_path / "b-00008spp.exr", b, parts_of(b))
     run = tiny_run_of_every_input_set
-    res = run_main("denoise", pa, "--pair", pb, "--run", run, "-o", tmp_path / "o.exr", "--no-png", cwd=tmp_path)
+    res = run_main("denoise", pa, "--pair", pb, "--run", run, "-o", tmp_path / "o.exr", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert f"(cycles layout, full, model {run};" in res.stdout  # the pair's variance brings the full model
     res = run_main("denoise", pa, tmp_path / "o.exr", "--pair", pb, "--run", run, "-o", tmp_path / "x", cwd=tmp_path)

@@ -194,7 +194,7 @@ def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
     exr.write_aovs(path, frame)
     start = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", "denoise", str(path), "--run", run,
-                          "-o", str(scratch) + os.sep, "--no-png"], capture_output=True, text=True)
+                          "-o", str(scratch) + os.sep], capture_output=True, text=True)
     seconds = time.perf_counter() - start
     if res.returncode != 0:
         raise KpcnError(f"kpcn denoise {path} failed: {res.stderr.strip()[-500:]}")
