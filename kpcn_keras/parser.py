@@ -329,8 +329,8 @@ def _denoise_options(add) -> None:
     n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
-    n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each output: input | "
-                   "denoised (| reference), side by side")
+    n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each "
+                   "output: input | denoised (| reference), side by side")
     _layout_option(n)
     n.add_argument("--pair", default=None, help="a second render of a single input with another seed and the same "
                    "spp: the two are denoised as one frame, its variance from their difference")

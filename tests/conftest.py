@@ -9,8 +9,8 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 # one all-effects kernel compiled for every scene rather than one per effect set, in this process and in the
 # commands it starts (docs/scenes.md §2); the tests of specialisation name their kernel's effects
 os.environ.setdefault("KPCN_KERNELS", "all")
-# make test and make test-all run a worker per core: OpenMP threads (torch's) that spin while they wait would take the cores
-# from the other workers (it does not change a result)
+# make test and make test-all run a worker per core: OpenMP threads (torch's) that spin while they wait would
+# take the cores from the other workers (it does not change a result)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards, process_state_kept  # noqa: E402
