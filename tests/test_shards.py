@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, reference_relse
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, reference_relse, run_main
 
 from prep import exr, features, shards
 from prep.files import is_temporary
@@ -307,3 +307,20 @@ def test_a_shard_of_an_older_format_is_refused_with_the_command_that_rebuilds_it
     message = str(err.value)
     assert "\n" not in message and str(path) in message and "'kpcn-shard/2'" in message
     assert f"rm -r {tmp_path / 's'} && kpcn shards --set s" in message
+
+
+@pytest.mark.slow
+def test_a_set_of_an_older_format_is_one_line_naming_the_manifest_and_the_rebuild_for_shards_and_train(tmp_path):
+    make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"), size=(20, 22))
+    cfg = config(tmp_path, patches_per_image=2)
+    shards.build_shards(cfg, progress=False)
+    manifest_path = cfg.set_dir / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["format"] = "kpcn-shard/2"
+    manifest_path.write_text(json.dumps(manifest))
+    rebuild = f"rm -r {cfg.set_dir} && kpcn shards --set s"
+    for args in (["shards", "--set", "s", "--renders", cfg.render_root, "--out", cfg.out_root, "--patch-size", "16",
+                  "--patches-per-image", "2", "--patches-per-shard", "5", "--val-fraction", "0.5", "--seed", "3"],
+                 ["train", "--set", "s", "--shards", cfg.out_root, "--run", str(tmp_path / "run")]):
+        assert_one_line_error(run_main(*args, cwd=tmp_path), str(manifest_path), "'kpcn-shard/2'", rebuild)
+    assert not (tmp_path / "run").exists()
