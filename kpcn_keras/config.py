@@ -248,7 +248,7 @@ class TrainConfig:
 
     ``reference_tau`` τ weighs each pixel of the branch phases' losses by 1 / (1 + (relSE / τ)^2), relSE the
     reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0 does not
-    weigh. The joint and compositor phases are never weighted (docs/training.md §3). A record written before
+    weigh. The joint and compositor phases are never weighted (docs/training.md §2). A record written before
     the weighting existed has no ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes
     none (:meth:`to_dict`), so those runs keep their identity.
 

@@ -137,7 +137,7 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
 
 def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
     schedule = keras.optimizers.schedules.ExponentialDecay(phase.learning_rate, cfg.decay_steps, cfg.decay_rate)
-    # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §3)
+    # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §2)
     tau = cfg.reference_tau if cfg.weights_reference(phase) else UNWEIGHTED_TAU
     if cfg.loss == "asymmetric":
         loss = AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)

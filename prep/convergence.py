@@ -21,9 +21,10 @@ relSE of the diffuse target too.
 
 :func:`frame_summary` reduces one frame to the figures ``kpcn references`` reports: median and p99 relSE,
 the fraction of converged pixels, and the spp at which p99 would reach ``CONVERGED_RELSE`` were the error
-to fall as 1 / sqrt(spp) (``spp * (p99 / CONVERGED_RELSE) ** 2``); a family whose rare paths only appear at
-more samples (caustics, fireflies) can see relSE *rise* with spp, which is why ``kpcn references`` measures,
-not extrapolates, where it matters. No numba, no torch: numpy only.
+to fall as 1 / sqrt(spp) (``spp * (p99 / CONVERGED_RELSE) ** 2``). That is an estimate, not a promise: a
+family whose rare paths only appear at more samples sees relSE *rise* with spp (caustics did, from 512 to
+2048 spp: docs/scenes.md §4), so a change of sample counts is measured, not extrapolated. No numba, no
+torch: numpy only.
 """
 
 from __future__ import annotations
