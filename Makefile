@@ -15,7 +15,7 @@ INPUTS_ARGS ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 
-.PHONY: venv render shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
+.PHONY: venv render references shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -27,6 +27,10 @@ venv: $(KPCN)
 
 render: $(KPCN)
 	$(KPCN) render --set $(SET) $(RENDER_ARGS)
+
+# how converged the set's references are: data/renders/$(SET)/convergence.{md,json,png}
+references: render
+	$(KPCN) references --set $(SET)
 
 shards: render
 	$(KPCN) shards --set $(SET) $(SHARD_ARGS)

@@ -1,11 +1,11 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study,
+Subcommands: render, references, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study,
 inputs-study: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default. The parser, which never retypes a
 default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds (``--tile``, ``--slope``, ...) are
 checked against their bounds before the command starts.
-``render`` and ``shards`` never import keras or torch.
+``render``, ``references`` and ``shards`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
 one line naming the file, layer or option, and exit status 2; an option is named by its flag. Anything
@@ -72,6 +72,17 @@ def cmd_render_scene(args) -> int:
                                png="no_png" not in args)
     print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
     print(f"rendered in {report['seconds']:.2f} s")
+    return 0
+
+
+def cmd_references(args) -> int:
+    from prep.render import RenderConfig
+    from prep.render.renderset import CONVERGENCE_REPORT, convergence_markdown, convergence_report
+
+    cfg = RenderConfig(**_given(args, RenderConfig))
+    report = convergence_report(cfg, progress=not args.quiet)
+    print(convergence_markdown(report), end="")
+    print("wrote " + ", ".join(f"{cfg.out_root}/{cfg.set_name}/{name}" for name in CONVERGENCE_REPORT))
     return 0
 
 
@@ -248,6 +259,7 @@ def cmd_inputs_study(args) -> int:
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)
 COMMANDS = {
     "render": cmd_render,
+    "references": cmd_references,
     "shards": cmd_shards,
     "train": cmd_train,
     "resample": cmd_resample,

@@ -53,6 +53,10 @@ SLOPE = Bound(1.0, 1000.0, integer=False)  # λ of the asymmetric loss: 1 is SMA
 GAMMA = Bound(0.0, 100.0, integer=False)
 DROPOUT = Bound(0.0, 1.0, integer=False, high_open=True)
 ROUNDS = Bound(1, 100)
+# τ of the reference weighting (kpcn_keras.losses): the reference relSE at which a pixel weighs 1/2; 0 is off.
+# 100 is 2000 times the relSE a converged pixel has (prep.convergence.CONVERGED_RELSE): every weight ~1.
+REFERENCE_TAU = Bound(0.0, 100.0, integer=False)
+UNWEIGHTED_TAU = 0.0  # reference_tau of an unweighted loss: what a run record without the key was trained with
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
 
@@ -242,6 +246,12 @@ class TrainConfig:
     ``slope_range`` (drawn per patch, log-uniform); ``slope`` is then the λ of validation. The run folder
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.
 
+    ``reference_tau`` τ weighs each pixel of the branch phases' losses by 1 / (1 + (relSE / τ)^2), relSE the
+    reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0 does not
+    weigh. The joint and compositor phases are never weighted (docs/training.md §2). A record written before
+    the weighting existed has no ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes
+    none (:meth:`to_dict`), so those runs keep their identity.
+
     ``inputs`` is the input set (``prep.inputs``) the run is trained for, from the shard set cut for it
     (:attr:`set_dir`). A no-split run's specular input is 0 (``prep.inputs.restrict``), so it trains the
     diffuse network alone (:attr:`denoised_branches`): no specular phase, and no joint phase (with one
@@ -269,6 +279,7 @@ class TrainConfig:
     slope_input: bool = False
     slope_range: tuple[float, float] = bounded((1.0, 8.0), SLOPE)
     augment: bool = True
+    reference_tau: float = bounded(0.1, REFERENCE_TAU)
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
@@ -331,9 +342,18 @@ class TrainConfig:
         values.update({k: v for k, v in overrides.items() if v is not None})
         return cls(preset=preset, **values)
 
+    @classmethod
+    def from_record(cls, train: dict) -> TrainConfig:
+        """The configuration a run record's ``train`` holds (one without ``reference_tau`` was unweighted)."""
+        return cls(**{"reference_tau": UNWEIGHTED_TAU, **train})
+
     @property
     def input_set(self) -> InputSet:
         return InputSet.named(self.inputs)
+
+    def weights_reference(self, phase: Phase) -> bool:
+        """Whether ``phase``'s loss is weighted by the reference's relSE: a branch phase, with τ > 0."""
+        return self.reference_tau != UNWEIGHTED_TAU and not phase.trains_on_final_colour
 
     @property
     def denoised_branches(self) -> tuple[str, ...]:
@@ -362,6 +382,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         d = without_full_inputs(dataclasses.asdict(self))
+        if d["reference_tau"] == UNWEIGHTED_TAU:
+            del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
         d["branches"] = list(self.branches)
         d["slope_range"] = list(self.slope_range)
         return d

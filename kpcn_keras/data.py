@@ -13,6 +13,10 @@ source        x (network input, ``models.network_input``)                   y (t
 
 ``loss_target`` extends y for the asymmetric loss: ``"reference+noisy"`` appends the noisy colour of the same
 domain (6 channels), and a network with a slope channel gets λ as a seventh, the same λ its input carries.
+``reference_relse`` (a branch source only) appends, last of all, the branch reference's relative standard
+error per pixel (the shards' ``<branch>/ref_relse``), for the reference-weighted loss (``kpcn_keras.losses``):
+moved by the patch's flip or rotation like the reference, never colour-permuted (it is one channel, the
+reference's mean over R G B, which a permutation leaves as it is).
 
 Per patch, a training stream draws (from a generator seeded by (seed, batch number), so resume is exact):
 an augmentation (``kpcn_keras.augment``: one of 8 flips/rotations times one of 6 colour permutations), and,
@@ -81,12 +85,14 @@ class ShardPatches(keras.utils.PyDataset):
                  model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0,
                  loss_target: str = "reference", augment: bool = False, slope: float = 2.0,
                  slope_range: tuple[float, float] = (1.0, 8.0),
-                 weights=None, rank: int = 0, world: int = 1, **kwargs):
+                 weights=None, rank: int = 0, world: int = 1, reference_relse: bool = False, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
         if loss_target not in LOSS_TARGETS:
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
+        if reference_relse and source not in BRANCHES + ("both",):
+            raise ValueError(f"reference_relse is a branch reference's: source {source!r} has none")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if not is_integer(world) or world < 1:
@@ -98,7 +104,7 @@ class ShardPatches(keras.utils.PyDataset):
             raise ShardError(f"no shards given for the {source} patches")
         model = ModelConfig() if model is None else model
         self.source, self.model, self.batch_size, self.shuffle, self.seed = source, model, batch_size, shuffle, seed
-        self.offset, self.loss_target = offset, loss_target
+        self.offset, self.loss_target, self.reference_relse = offset, loss_target, reference_relse
         self.rank, self.world = rank, world
         # a validation stream is read whole by every process: each reports the same validation loss
         self.global_batch = batch_size * world if shuffle else batch_size
@@ -204,15 +210,20 @@ class ShardPatches(keras.utils.PyDataset):
             reference, noisy = data["reference"], data.get("noisy")
         else:
             branch = BRANCHES[branch_id]
-            data = self._read(shard, patch, branch_datasets(branch, noisy=with_noisy))
+            names = branch_datasets(branch, noisy=with_noisy)
+            names += [f"{branch}/ref_relse"] if self.reference_relse else []
+            data = self._read(shard, patch, names)
             x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
             reference, noisy = data[f"{branch}/reference"], data.get(f"{branch}/noisy")
-        y = augment.augment_colour(reference, aug)
-        if not with_noisy:
-            return x, y
-        y = [y, augment.augment_colour(noisy, aug)]
-        if slope is not None:
-            y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
+        y = [augment.augment_colour(reference, aug)]
+        if with_noisy:
+            y.append(augment.augment_colour(noisy, aug))
+            if slope is not None:
+                y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
+        if self.reference_relse:
+            y.append(augment.augment_spatial(data[f"{branch}/ref_relse"], aug))
+        if len(y) == 1:
+            return x, y[0]
         return x, np.concatenate(y, axis=-1).astype(np.float32)
 
     def __getstate__(self):

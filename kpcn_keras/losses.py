@@ -17,6 +17,20 @@ output stays 3 channels. ``AsymmetricSMAPE(slope=None)`` takes λ per element fr
 (``models.network_input``), where each patch has its own λ. Both losses are registered for ``.keras`` saving. All
 inputs are in the domain the network is trained in (log(1 + x) branch colour, or the final colour for joint
 fine-tuning).
+
+**Reference weighting** (issue 23; docs/training.md §2). Where a reference is itself noisy (caustics,
+fireflies), a network trained on it learns its speckles as signal. With ``reference_tau`` τ > 0 either loss
+takes one more channel, the **last** of ``y_true``: the reference's relative standard error per pixel
+(``prep.convergence``, the shards' ``<branch>/ref_relse``), and weighs each pixel by
+
+    w = 1 / (1 + (relSE / τ)^2)          (no gradient: it depends on the data alone)
+
+as a weighted mean per sample: ``loss = Σ_pixels,channels w e / (C Σ_pixels w)`` (C colour channels, e the
+elementwise loss). With every w = 1 this is the plain mean; a pixel's gradient is its unweighted one times
+``w P / Σ w`` (P pixels), so a pixel whose relSE is large (w -> 0) has none, and the others keep their relative
+sizes. ``Σ w`` is floored at :data:`WEIGHT_FLOOR` (a patch whose every pixel is unconverged still has a
+finite loss). τ = 0 (the default of the loss classes; a loss saved before weighting existed) is the unweighted
+loss, the same operations as before.
 """
 
 from __future__ import annotations
@@ -32,11 +46,13 @@ __all__ = [
     "SMAPE",
     "asymmetric_smape",
     "asymmetric_weight",
+    "reference_weight",
     "smape",
     "smape_elementwise",
 ]
 
 SMAPE_EPS = 0.01  # the report's constant; keeps the ratio finite where out and gt are both ~0
+WEIGHT_FLOOR = 1e-12  # the least Σ w of a weighted sample: a sum of weights that each underflowed stays finite
 
 
 def _check_slope(slope) -> float:
@@ -79,42 +95,106 @@ def _per_sample_mean(values):
     return ops.mean(ops.reshape(values, (ops.shape(values)[0], -1)), axis=-1)
 
 
+def _check_tau(tau) -> float:
+    if not is_number(tau) or not tau >= 0.0 or tau == float("inf"):
+        raise ValueError(f"reference_tau must be a finite number >= 0, received {tau!r}")
+    return float(tau)
+
+
+def reference_weight(relse, tau: float):
+    """Per-pixel weight 1 / (1 + (relSE / τ)^2) of the module docstring, without gradient; τ > 0."""
+    relse = ops.stop_gradient(ops.convert_to_tensor(relse))
+    return 1.0 / (1.0 + ops.square(relse / tau))
+
+
+def _weighted_per_sample_mean(values, weight):
+    """Σ w e / (C Σ w) per sample (module docstring): ``values`` (B, H, W, C), ``weight`` (B, H, W, 1)."""
+    batch = ops.shape(values)[0]
+    channels = values.shape[-1]
+    total = ops.sum(ops.reshape(values * weight, (batch, -1)), axis=-1)
+    weights = ops.sum(ops.reshape(weight, (batch, -1)), axis=-1)
+    return total / (channels * ops.maximum(weights, WEIGHT_FLOOR))
+
+
+def _split_relse(loss, y_true, expected: int):
+    """``(y_true without its relSE channel, relSE or None)``, ValueError unless it has ``expected`` channels
+    (the loss's own, and one more with reference weighting)."""
+    weighted = loss.reference_tau > 0.0
+    channels = y_true.shape[-1]
+    if channels != expected + weighted:
+        raise ValueError(
+            f"{type(loss).__name__}({loss.describe()}) expects y_true with {expected + weighted} channels "
+            f"({loss.channel_names}{', reference relSE' if weighted else ''}), received shape {tuple(y_true.shape)}"
+        )
+    if not weighted:
+        return y_true, None
+    return y_true[..., :expected], y_true[..., expected:]
+
+
+def _reduce(loss, values, relse):
+    if relse is None:
+        return _per_sample_mean(values)
+    return _weighted_per_sample_mean(values, reference_weight(relse, loss.reference_tau))
+
+
 @keras.saving.register_keras_serializable(package="kpcn")
 class SMAPE(keras.losses.Loss):
-    """SMAPE as a Keras loss: ``call(y_true, y_pred)`` returns the per-sample mean, reduced over the batch."""
+    """SMAPE as a Keras loss: ``call(y_true, y_pred)`` returns the per-sample mean, reduced over the batch.
+    With ``reference_tau`` > 0, ``y_true`` is (B, H, W, 4), the reference relSE last, and the mean is
+    weighted (module docstring)."""
 
-    def __init__(self, name: str = "smape", reduction: str = "sum_over_batch_size", dtype=None):
+    channel_names = "gt"
+
+    def __init__(self, name: str = "smape", reduction: str = "sum_over_batch_size", dtype=None,
+                 reference_tau: float = 0.0):
         super().__init__(name=name, reduction=reduction, dtype=dtype)
+        self.reference_tau = _check_tau(reference_tau)
+
+    def describe(self) -> str:
+        return f"reference_tau={self.reference_tau}"
 
     def call(self, y_true, y_pred):
-        return _per_sample_mean(smape_elementwise(y_true, y_pred))
+        if self.reference_tau == 0.0:
+            return _per_sample_mean(smape_elementwise(y_true, y_pred))
+        gt, relse = _split_relse(self, y_true, 3)
+        return _reduce(self, smape_elementwise(gt, y_pred), relse)
+
+    def get_config(self):
+        config = super().get_config()
+        config["reference_tau"] = self.reference_tau
+        return config
 
 
 @keras.saving.register_keras_serializable(package="kpcn")
 class AsymmetricSMAPE(keras.losses.Loss):
     """Asymmetric SMAPE with slope λ >= 1. ``y_true`` is (B, H, W, 6): gt in channels 0..2, noisy in 3..5;
-    with ``slope=None`` it is (B, H, W, 7) and channel 6 is λ per element. ``y_pred`` is (B, H, W, 3)."""
+    with ``slope=None`` it is (B, H, W, 7) and channel 6 is λ per element. ``y_pred`` is (B, H, W, 3).
+    With ``reference_tau`` > 0 the reference relSE is one more channel, the last, and the mean is weighted
+    (module docstring)."""
 
     def __init__(self, slope: float | None = 2.0, name: str = "asymmetric_smape",
-                 reduction: str = "sum_over_batch_size", dtype=None):
+                 reduction: str = "sum_over_batch_size", dtype=None, reference_tau: float = 0.0):
         super().__init__(name=name, reduction=reduction, dtype=dtype)
         self.slope = None if slope is None else _check_slope(slope)
+        self.reference_tau = _check_tau(reference_tau)
+
+    @property
+    def channel_names(self) -> str:
+        return "gt, noisy" + ("" if self.slope is not None else ", slope")
+
+    def describe(self) -> str:
+        return f"slope={self.slope}" + (f", reference_tau={self.reference_tau}" if self.reference_tau else "")
 
     def call(self, y_true, y_pred):
-        channels = y_true.shape[-1]
-        expected = 6 if self.slope is not None else 7
-        if channels != expected:
-            raise ValueError(
-                f"AsymmetricSMAPE(slope={self.slope}) expects y_true with {expected} channels (gt, noisy"
-                f"{'' if self.slope is not None else ', slope'}), received shape {tuple(y_true.shape)}"
-            )
+        y_true, relse = _split_relse(self, y_true, 6 if self.slope is not None else 7)
         gt = y_true[..., :3]
         noisy = y_true[..., 3:6]
         slope = self.slope if self.slope is not None else y_true[..., 6:7]
         values = smape_elementwise(gt, y_pred) * asymmetric_weight(noisy, gt, y_pred, slope)
-        return _per_sample_mean(values)
+        return _reduce(self, values, relse)
 
     def get_config(self):
         config = super().get_config()
         config["slope"] = self.slope
+        config["reference_tau"] = self.reference_tau
         return config

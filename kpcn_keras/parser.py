@@ -216,6 +216,17 @@ def _render_options(add) -> None:
     _part_option(r, "renders")
 
 
+def _references_options(add) -> None:
+    """The options of ``kpcn references``: the render set whose references are measured."""
+    from prep.render import RenderConfig
+
+    r = add("references", (RenderConfig,), help="how converged a render set's references are, per family and "
+            "frame: writes convergence.{md,json,png} into the set's folder")
+    d = _defaults(RenderConfig)
+    r.add_argument("--set", dest="set_name", help=f"render set, a folder under --out {d('set_name')}")
+    r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}")
+
+
 def _shards_options(add) -> None:
     """The options of ``kpcn shards``."""
     from prep.shards import ShardConfig
@@ -285,6 +296,9 @@ def _train_options(add) -> None:
     g.add_argument("--slope-range", type=_csv_floats, help=f"low,high {d('slope_range')}")
     g.add_argument("--no-augment", dest="augment", action="store_false", help="no flips, rotations or colour "
                    "permutations of the training patches")
+    g.add_argument("--reference-tau", type=float, help="τ of the branch losses' reference weighting: a pixel weighs "
+                   "1/(1+(relSE/τ)^2), relSE its reference's relative standard error; 0 weighs none "
+                   f"{d('reference_tau')}")
     g.add_argument("--seed", type=int, help=d("seed"))
 
 
@@ -474,6 +488,7 @@ def _inputs_study_options(add) -> None:
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options
 BUILDERS = {
     "render": _render_options,
+    "references": _references_options,
     "shards": _shards_options,
     "train": _train_options,
     "resample": _resample_options,

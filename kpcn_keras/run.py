@@ -350,7 +350,7 @@ class RunRecord:
         record that is damaged (missing, of the wrong type, or a configuration out of its bounds)."""
         part = "train"
         try:
-            train = TrainConfig(**data["train"])
+            train = TrainConfig.from_record(data["train"])
             part = "shards"
             set_dir, content_key = data["shards"]["set_dir"], data["shards"].get("content_key")
             part = "components"

@@ -60,7 +60,7 @@ import keras
 import numpy as np
 
 from kpcn_keras import distributed
-from kpcn_keras.config import LOCATION_FIELDS, Phase, TrainConfig
+from kpcn_keras.config import LOCATION_FIELDS, UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model, receptive_radius
@@ -137,10 +137,12 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
 
 def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
     schedule = keras.optimizers.schedules.ExponentialDecay(phase.learning_rate, cfg.decay_steps, cfg.decay_rate)
+    # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §2)
+    tau = cfg.reference_tau if cfg.weights_reference(phase) else UNWEIGHTED_TAU
     if cfg.loss == "asymmetric":
-        loss = AsymmetricSMAPE(None if cfg.slope_input else cfg.slope)
+        loss = AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)
     else:
-        loss = SMAPE()
+        loss = SMAPE(reference_tau=tau)
     # a fixed name: Keras numbers unnamed optimizers per process (adam, adam_1, ...), and the name is
     # saved with the model and its variables, so two identical runs would otherwise differ in bytes
     model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
@@ -156,7 +158,7 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
     common = dict(source=source, batch_size=cfg.batch_size, model=cfg.model,
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
-                  slope=cfg.slope, slope_range=cfg.slope_range)
+                  slope=cfg.slope, slope_range=cfg.slope_range, reference_relse=cfg.weights_reference(phase))
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
                          seed=cfg.seed, offset=start * phase.epoch_steps, augment=cfg.augment,
                          weights=paths.get("train_weights"), rank=world.rank, world=world.size,

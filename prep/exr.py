@@ -251,9 +251,10 @@ def _open(path: Path, *, header_only: bool = False):
     return image.size, image.names, image.channels
 
 
-def _check_layers(path, components: dict[str, set[str]], variances: bool) -> tuple[str, ...]:
+def _check_layers(path, components: dict[str, set[str]], variances: bool | None) -> tuple[str, ...]:
     """The layers to read from a file whose channels are ``layer -> component names``; AOVError for a
-    missing layer or a colour layer without R G B."""
+    missing layer or a colour layer without R G B. ``variances``: True needs every variance layer, False
+    reads none, None reads those present."""
     needed = BASE_LAYERS + (VARIANCE_LAYERS if variances else ())
     missing = [n for n in needed if n not in components]
     if missing:
@@ -262,6 +263,8 @@ def _check_layers(path, components: dict[str, set[str]], variances: bool) -> tup
             f"{', '.join(sorted(components)) or 'no layers'}"
         )
     wanted = needed + (("default",) if "default" in components else ())
+    if variances is None:
+        wanted += tuple(n for n in VARIANCE_LAYERS if n in components)
     for name in wanted:
         comps = components[name]
         if name in RGB_LAYERS and not set("RGB") <= comps:
@@ -276,7 +279,7 @@ def _split_name(full_name: str) -> tuple[str, str]:
     return layer or "default", comp  # unprefixed R, G, B is the beauty pass in many renderers
 
 
-def read_header(path: str | os.PathLike, *, variances: bool = True) -> tuple[int, int]:
+def read_header(path: str | os.PathLike, *, variances: bool | None = True) -> tuple[int, int]:
     """Check a render's header against the layout without decoding pixels; returns (height, width).
 
     Lets a command find a missing layer or a wrong size in every input before it writes anything.
@@ -307,10 +310,12 @@ def repair_nonfinite(image: np.ndarray) -> tuple[np.ndarray, int]:
     return out, count
 
 
-def read_aovs(path: str | os.PathLike, *, variances: bool = True) -> dict[str, np.ndarray]:
+def read_aovs(path: str | os.PathLike, *, variances: bool | None = True) -> dict[str, np.ndarray]:
     """Read one render; returns ``layer -> float32 array`` with every layer of the contract.
 
-    ``variances=False`` reads a reference render, which needs no variance layers. ``default`` is
+    ``variances=False`` reads a reference render, which needs no variance layers, and reads none of them;
+    ``variances=None`` reads the variance layers the file has, needing none (a reference whose convergence
+    is measured: ``prep.convergence``). ``default`` is
     derived as diffuse + specular when the file has none. Raises AOVError naming the file and layer.
     """
     path = Path(path)

@@ -58,21 +58,30 @@ def random_aovs(h: int, w: int, seed: int = 0, variances: bool = True) -> dict:
     return {k: v.astype(np.float32) for k, v in aovs.items()}
 
 
-def make_renders(root: Path, scenes=("a-000", "a-001", "b-000", "b-001"), size=(40, 44)) -> Path:
-    """A folder of random noisy (4 spp) and reference (64 spp) renders in the AOV layout."""
+def make_renders(root: Path, scenes=("a-000", "a-001", "b-000", "b-001"), size=(40, 44),
+                 reference_variances: bool = False) -> Path:
+    """A folder of random noisy (4 spp) and reference (64 spp) renders in the AOV layout; the references
+    without variance layers unless ``reference_variances``."""
     from prep import exr
 
     for i, scene in enumerate(scenes):
         exr.write_aovs(root / exr.render_filename(scene, 4), random_aovs(*size, seed=10 + i))
-        exr.write_aovs(root / exr.render_filename(scene, 64), random_aovs(*size, seed=100 + i, variances=False))
+        exr.write_aovs(root / exr.render_filename(scene, 64),
+                       random_aovs(*size, seed=100 + i, variances=reference_variances))
     return root
+
+
+def reference_relse(colour, variance) -> np.ndarray:
+    """float64 relSE of prep.convergence, written out again: sqrt(max(v, 0)) / (max(mean_RGB c, 0) + 0.01)."""
+    colour, variance = np.asarray(colour, np.float64), np.asarray(variance, np.float64)
+    return np.sqrt(np.maximum(variance, 0.0)) / (np.maximum(colour.mean(axis=-1), 0.0) + 0.01)
 
 
 def build_tiny_shards(tmp_path: Path, **kw):
     """Random renders cut into a small shard set; returns its ShardConfig."""
     from prep import shards
 
-    make_renders(tmp_path / "renders" / "s")
+    make_renders(tmp_path / "renders" / "s", reference_variances=kw.pop("reference_variances", False))
     values = dict(set_name="s", render_root=str(tmp_path / "renders"), out_root=str(tmp_path / "shards"),
                   patch_size=16, patches_per_image=7, patches_per_shard=5, val_fraction=0.5, seed=3)
     values.update(kw)

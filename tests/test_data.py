@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from helpers import build_tiny_shards
 
+from kpcn_keras import augment
 from kpcn_keras.data import ShardPatches
 from prep.shards import ShardError, open_shard, shard_paths
 
@@ -120,3 +121,36 @@ def test_a_rank_outside_the_world_is_refused_naming_the_value(train_paths, rank,
 def test_a_global_batch_larger_than_the_shards_is_refused_saying_so(train_paths):
     with pytest.raises(ShardError, match="batch_size=4 x 4 processes"):
         ShardPatches(train_paths, "diffuse", batch_size=4, world=4)
+
+
+@pytest.fixture(scope="module")
+def relse_paths(tmp_path_factory):
+    """Training shards whose references have variance layers: ref_relse not all 0."""
+    cfg = build_tiny_shards(tmp_path_factory.mktemp("relse"), reference_variances=True)
+    return shard_paths(cfg.set_dir, "train")
+
+
+@pytest.mark.parametrize("source,loss_target", [("diffuse", "reference"), ("both", "reference+noisy")])
+def test_the_reference_relse_is_the_last_target_channel_moved_with_the_patch_never_permuted(
+        relse_paths, source, loss_target):
+    ds = ShardPatches(relse_paths, source, batch_size=4, seed=2, augment=True, steps=3, loss_target=loss_target,
+                      reference_relse=True)
+    plain = ShardPatches(relse_paths, source, batch_size=4, seed=2, augment=True, steps=3, loss_target=loss_target)
+    found = set()
+    for i in range(len(ds)):
+        (x, y), (x0, y0) = ds[i], plain[i]
+        np.testing.assert_array_equal(x, x0)
+        np.testing.assert_array_equal(y[..., :-1], y0)  # the rest of the target is as it was
+        assert y.shape[-1] == y0.shape[-1] + 1
+        for k, (b, s, p) in enumerate(_provenance(ds, i)):
+            branch = ("diffuse", "specular")[b]
+            with open_shard(relse_paths[s]) as f:
+                relse, ref = f[f"{branch}/ref_relse"][p], f[f"{branch}/reference"][p]
+            # the augmentation this patch got is the one that moves its reference to the target's
+            augs = [a for a in augment.ALL if np.array_equal(augment.augment_colour(ref, a), y[k, ..., :3])]
+            assert augs and any(np.array_equal(augment.augment_spatial(relse, a), y[k, ..., -1:]) for a in augs)
+            found.add(augs[0].spatial)
+            assert relse.max() > 0
+    assert len(found) > 1  # flips and rotations were drawn, and the relSE moved with them
+    with pytest.raises(ValueError, match="'final' has none"):
+        ShardPatches(relse_paths, "final", batch_size=2, reference_relse=True)

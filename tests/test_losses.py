@@ -186,3 +186,89 @@ def test_smape_over_the_colour_range_matches_float64_with_finite_gradient(out_va
     assert value == pytest.approx(want, rel=1e-6, abs=1e-12) and 0.0 <= value <= 1.0
     loss.backward()
     assert torch.isfinite(out.grad).all()
+
+
+# ---------------------------------------------------------------- reference weighting (issue 23)
+
+
+def np_smape_grad(gt, out):
+    """d/d out of |out - gt| / (|out| + |gt| + eps), float64, elementwise (out != gt, out != 0)."""
+    d = np.abs(out) + np.abs(gt) + 0.01
+    return np.sign(out - gt) / d - np.abs(out - gt) * np.sign(out) / d**2
+
+
+def weighted_case(seed=11, shape=(2, 4, 5, 3)):
+    rng = np.random.default_rng(seed)
+    gt = rng.uniform(0.1, 2.0, shape)
+    out = gt + rng.choice([-1.0, 1.0], shape) * rng.uniform(0.05, 0.5, shape)
+    relse = np.zeros(shape[:-1] + (1,))
+    relse[0, 1, 2] = 1e3  # a speckle of the reference: weight ~1e-8
+    relse[1, 3, 0] = 5.0
+    relse[1, 0, 4] = 0.1  # τ itself: weight 1/2
+    return gt, out, relse
+
+
+@pytest.mark.parametrize("loss_kind", ["smape", "asymmetric"])
+def test_reference_weighting_removes_a_speckled_pixel_and_rescales_the_others_exactly(loss_kind):
+    tau = 0.1
+    gt, out, relse = weighted_case()
+    b, h, w, c = gt.shape
+    weight = 1.0 / (1.0 + (relse / tau) ** 2)
+    if loss_kind == "smape":
+        loss, y = SMAPE(reference_tau=tau), np.concatenate([gt, relse], -1)
+        factor = np.ones_like(gt)
+    else:
+        noisy = gt - 0.3 * (out - gt)  # the far side: every element's factor is the slope
+        loss, y = AsymmetricSMAPE(3.0, reference_tau=tau), np.concatenate([gt, noisy, relse], -1)
+        factor = np.full_like(gt, 3.0)
+    out_t = torch.tensor(out, dtype=torch.float32, requires_grad=True)
+    value = loss(torch.tensor(y, dtype=torch.float32), out_t)
+    (grad,) = torch.autograd.grad(value, out_t)
+    grad = grad.numpy().astype(np.float64)
+    # float64: loss = mean over samples of Σ w e / (C Σ w); unweighted: the plain mean
+    e = np.abs(out - gt) / (np.abs(out) + np.abs(gt) + 0.01) * factor
+    sums = weight.reshape(b, -1).sum(1)
+    want = np.mean((e * weight).reshape(b, -1).sum(1) / (c * sums))
+    assert float(value.detach()) == pytest.approx(want, rel=1e-6)
+    unweighted = np_smape_grad(gt, out) * factor / (b * h * w * c)
+    # the normalisation: a pixel's gradient is its unweighted one times w P / Σ w of its sample
+    scale = weight * (h * w) / sums[:, None, None, None]
+    np.testing.assert_allclose(grad, unweighted * scale, rtol=2e-5, atol=0)
+    assert np.abs(grad[0, 1, 2]).max() < 1e-7 * np.abs(unweighted[0, 1, 2]).min()
+    clean = relse[..., 0] == 0
+    np.testing.assert_allclose(grad[clean], (unweighted * (h * w) / sums[:, None, None, None])[clean], rtol=2e-5)
+
+
+def test_tau_zero_is_exactly_the_unweighted_loss():
+    _, gt, out = random_triplet(4)
+    noisy = random_triplet(5)[0]
+    # the loss before weighting existed: the per-sample mean of the elementwise loss, over the batch
+    old = to_np(keras.ops.mean(keras.ops.mean(keras.ops.reshape(smape_elementwise(gt, out), (3, -1)), axis=-1)))
+    assert to_np(SMAPE(reference_tau=0.0)(gt, out)) == old
+    assert float(old) == pytest.approx(np_smape(gt, out), rel=1e-6)
+    packed = np.concatenate([gt, noisy], -1)
+    assert to_np(AsymmetricSMAPE(2.0, reference_tau=0.0)(packed, out)) == to_np(AsymmetricSMAPE(2.0)(packed, out))
+    with pytest.raises(ValueError, match="6 channels"):
+        AsymmetricSMAPE(2.0, reference_tau=0.0)(np.concatenate([packed, gt[..., :1]], -1), out)
+    # τ > 0 with every relSE 0 weighs every pixel 1: the same value
+    zero = np.zeros(gt.shape[:-1] + (1,), np.float32)
+    assert float(to_np(SMAPE(reference_tau=0.1)(np.concatenate([gt, zero], -1), out))) == pytest.approx(
+        float(old), rel=1e-6)
+
+
+def test_weighted_losses_check_their_channels_and_tau_and_serialise():
+    x = np.zeros((1, 2, 2, 3), np.float32)
+    with pytest.raises(ValueError, match="4 channels"):
+        SMAPE(reference_tau=0.1)(x, x)
+    with pytest.raises(ValueError, match="8 channels"):
+        AsymmetricSMAPE(None, reference_tau=0.1)(np.zeros((1, 2, 2, 7), np.float32), x)
+    for bad in (-0.1, float("nan"), float("inf"), "0.1", True):
+        with pytest.raises(ValueError, match="reference_tau"):
+            SMAPE(reference_tau=bad)
+    for loss in (SMAPE(reference_tau=0.2), AsymmetricSMAPE(2.5, reference_tau=0.3)):
+        clone = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(loss))
+        assert clone.get_config() == loss.get_config() and clone.reference_tau == loss.reference_tau
+    # a loss saved before weighting existed has no reference_tau: unweighted
+    config = keras.saving.serialize_keras_object(SMAPE())
+    config["config"].pop("reference_tau")
+    assert keras.saving.deserialize_keras_object(config).reference_tau == 0.0

@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, reference_relse, run_main
 
 from prep import exr, features, shards
 from prep.files import is_temporary
@@ -264,3 +264,63 @@ def test_shards_refused_a_write_by_the_file_system_end_in_one_line_and_resume(tm
     assert _temporaries(tmp_path / "out") == []
     assert kpcn(*args, cwd=tmp_path).returncode == 0
     assert checksums(tmp_path / "out" / "s") == _uninterrupted(tmp_path, *args)
+
+
+@pytest.mark.parametrize("reference_variances", [True, False])
+def test_shards_carry_the_reference_relse_of_each_branch(tmp_path, reference_variances):
+    make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"), size=(20, 22),
+                 reference_variances=reference_variances)
+    cfg = config(tmp_path, patches_per_image=3)
+    manifest = shards.build_shards(cfg, progress=False)
+    sset = shards.ShardSet(cfg.set_dir)
+    seen = 0
+    for split in ("train", "val"):
+        for path in shards.shard_paths(cfg.set_dir, split):
+            with shards.open_shard(path) as f:
+                assert f.attrs["format"] == "kpcn-shard/3"
+                for k in range(len(f["source"])):
+                    src = manifest["sources"][int(f["source"][k])]
+                    ref_path = next(s["path"] for s in manifest["sources"]
+                                    if s["scene"] == src["scene"] and s["role"] == "reference")
+                    ref = exr.read_aovs(sset.resolve(ref_path), variances=reference_variances)
+                    y, x = f["position"][k]
+                    win = np.s_[y:y + 16, x:x + 16]
+                    for branch, variance in (("diffuse", "diffuseVariance"), ("specular", "specularVariance")):
+                        got = f[f"{branch}/ref_relse"][k]
+                        assert got.shape == (16, 16, 1) and got.dtype == np.float32
+                        want = (reference_relse(ref[branch], ref[variance])[win] if reference_variances
+                                else np.zeros((16, 16)))
+                        np.testing.assert_allclose(got[..., 0], want, rtol=1e-6, atol=0)
+                    seen += 1
+    assert seen == 2 * 3
+
+
+def test_a_shard_of_an_older_format_is_refused_with_the_command_that_rebuilds_it(tmp_path):
+    path = tmp_path / "s" / "round-000" / "shard-00000.h5"
+    path.parent.mkdir(parents=True)
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "kpcn-shard/2"
+        f.attrs["complete"] = True
+        f.attrs["config"] = json.dumps({"set_name": "s"})
+    with pytest.raises(shards.ShardError) as err:
+        shards.open_shard(path)
+    message = str(err.value)
+    assert "\n" not in message and str(path) in message and "'kpcn-shard/2'" in message
+    assert f"rm -r {tmp_path / 's'} && kpcn shards --set s" in message
+
+
+@pytest.mark.slow
+def test_a_set_of_an_older_format_is_one_line_naming_the_manifest_and_the_rebuild_for_shards_and_train(tmp_path):
+    make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"), size=(20, 22))
+    cfg = config(tmp_path, patches_per_image=2)
+    shards.build_shards(cfg, progress=False)
+    manifest_path = cfg.set_dir / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["format"] = "kpcn-shard/2"
+    manifest_path.write_text(json.dumps(manifest))
+    rebuild = f"rm -r {cfg.set_dir} && kpcn shards --set s"
+    for args in (["shards", "--set", "s", "--renders", cfg.render_root, "--out", cfg.out_root, "--patch-size", "16",
+                  "--patches-per-image", "2", "--patches-per-shard", "5", "--val-fraction", "0.5", "--seed", "3"],
+                 ["train", "--set", "s", "--shards", cfg.out_root, "--run", str(tmp_path / "run")]):
+        assert_one_line_error(run_main(*args, cwd=tmp_path), str(manifest_path), "'kpcn-shard/2'", rebuild)
+    assert not (tmp_path / "run").exists()

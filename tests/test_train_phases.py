@@ -32,7 +32,7 @@ from kpcn_keras.run import Run, read_state
 from kpcn_keras.train import train
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
-from prep.shards import ShardSet, open_shard
+from prep.shards import ShardSet, open_shard, shard_paths
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 TINY_COMPOSITOR = {"width": 4, "depth": 3, "kernel_size": 3}
@@ -401,3 +401,46 @@ def test_a_record_of_an_older_kpcn_is_one_clear_error(shards, tmp_path):
     (run_dir / "config.json").write_text(json.dumps(record))
     with pytest.raises(KpcnError, match="older kpcn"):
         Run(run_dir).read_record()
+
+
+# ---------------------------------------------------------------- reference weighting (issue 23)
+
+
+def test_reference_tau_weighs_the_branch_phases_only_and_an_older_record_reads_as_unweighted():
+    cfg = TrainConfig.from_preset("cpu", joint_steps=2, compositor={"kind": "alpha"})
+    assert cfg.reference_tau == 0.1 and cfg.to_dict()["reference_tau"] == 0.1
+    weighted = {p.name: cfg.weights_reference(p) for p in cfg.phases()}
+    assert weighted == {"diffuse": True, "specular": True, "joint": False, "compositor": False}
+    off = TrainConfig.from_preset("cpu", reference_tau=0.0)
+    assert "reference_tau" not in off.to_dict() and not any(off.weights_reference(p) for p in off.phases())
+    record = cfg.to_dict()
+    del record["reference_tau"]  # a run trained before the weighting existed
+    assert TrainConfig.from_record(record).reference_tau == 0.0
+    assert TrainConfig.from_record(record).to_dict() == record  # read back, it is the record it was
+    for bad in (-0.1, 101.0, float("nan"), "x"):
+        with pytest.raises(OptionError, match="reference_tau"):
+            TrainConfig(reference_tau=bad)
+    res = run_main("train", "--reference-tau", "-1", "--set", "none", cwd=Path.cwd())
+    assert_one_line_error(res, "--reference-tau", "-1")
+
+
+def test_the_branch_phases_compile_the_weighted_loss_and_read_the_relse_the_final_colour_phases_do_not(tmp_path):
+    from kpcn_keras import distributed
+    from kpcn_keras.train import _compile, _data
+
+    shard_cfg = build_tiny_shards(tmp_path, reference_variances=True)
+    cfg = tiny_config(shard_cfg, loss="asymmetric", joint_steps=2, reference_tau=0.2)
+    paths = {split: shard_paths(shard_cfg.set_dir, split) for split in ("train", "val")}
+    model = build_branch_model(cfg.model)
+    for phase in cfg.phases():
+        if phase.trains_on_final_colour:
+            _compile(model, cfg, phase)
+            assert model.loss.reference_tau == 0.0
+            continue
+        _compile(model, cfg, phase)
+        assert isinstance(model.loss, AsymmetricSMAPE) and model.loss.reference_tau == 0.2
+        train_data, val = _data(cfg, phase, paths, 0, 1, distributed.World())
+        for data in (train_data, val):
+            x, y = data[0]
+            assert y.shape[-1] == 7  # gt, noisy, relSE
+            assert np.isfinite(float(model.loss(y, predict(model, x))))

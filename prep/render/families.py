@@ -454,7 +454,13 @@ FAMILIES = {"cornell": cornell, "spheres": spheres, "boxes": boxes, "indirect": 
 # Families with light paths that only BSDF sampling finds (caustics through glass and off mirrors, small
 # lights seen in glossy surfaces, a room lit through a gap): their references take this many times a
 # render set's reference_spp, so that the targets the network learns from are not themselves noisy.
-REFERENCE_SPP_FACTOR = {"caustics": 4, "fireflies": 4, "indirect": 2, "textures": 2}
+# `kpcn references` measures how far they get (docs/scenes.md §4, p99 relSE at 64x64, 2026-12-02). indirect's
+# fell as 1/sqrt(spp), 0.19-0.25 at 1024 to 0.13-0.16 at 2048, so it takes 4 (about 80 s more of make train's
+# render than 2); 8 (0.09-0.11) would cost about 4 min more, past make train's 30 min. The tails of textures
+# (0.11-0.18 at 1024, 89-93 % of pixels converged) and caustics are left to the loss weighting
+# (kpcn_keras.losses): caustics' p99 rose from 0.05-0.08 at 512 to 0.56-0.62 at 2048 in two of three scenes,
+# as rare paths appear.
+REFERENCE_SPP_FACTOR = {"caustics": 4, "fireflies": 4, "indirect": 4, "textures": 2}
 
 
 def check_families(families) -> None:

@@ -8,6 +8,7 @@ long it took in ``timings.json`` (the one file that differs between runs). This 
     <set>/timings.json                     seconds per render
     <set>/timings.part-<i>-of-<N>.json     a part's seconds (``prep.parts``), until the last part folds them in
     <set>/contact-sheet.png                the references, one row per family
+    <set>/convergence.{md,json,png}        ``kpcn references``: how converged the references are
     <set>/.lock, .lock-part-<i>-of-<N>     the set's lock (its records), a part's lock (its renders)
 """
 
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from prep.bounds import SEED, Bound, bounded, check_fields, is_integer
-from prep.errors import OptionError
+from prep.errors import KpcnError, OptionError
 from prep.exr import render_filename, write_aovs
 from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
 from prep.parts import Part
@@ -253,3 +254,107 @@ def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
             axes[i, j].set_title(name, fontsize=8)
     fig.tight_layout()
     return save_png(fig, out_dir / CONTACT_SHEET, dpi=80)
+
+
+# ``kpcn references``: how converged a set's references are (prep.convergence), written into the set's folder
+CONVERGENCE_REPORT = ("convergence.md", "convergence.json", "convergence.png")
+# the colours a reference is judged by: each branch's target, and the final colour
+REPORT_BRANCHES = ("diffuse", "specular", "default")
+
+
+def convergence_report(config: RenderConfig, progress: bool = True) -> dict:
+    """Measure every reference of the finished render set ``<out_root>/<set_name>`` (``prep.convergence``:
+    per scene and per colour, diffuse, specular and final, the median and p99 relSE, the converged fraction
+    and the spp p99 would need) and write :data:`CONVERGENCE_REPORT` into the set's folder, each atomically,
+    under the set's lock. Returns the JSON's content. KpcnError naming the folder if there is no such set or
+    ``kpcn render`` has not finished it; AOVError naming a reference without its variance layers."""
+    from tqdm import tqdm
+
+    from prep import convergence
+    from prep.exr import read_aovs
+    from prep.files import atomic_write_text
+
+    check_set_name(config.set_name)
+    out_dir = Path(config.out_root) / config.set_name
+    if not (out_dir / "config.json").is_file():
+        raise KpcnError(f"{out_dir}: no render set there (no config.json); render it with "
+                        f"'kpcn render --set {config.set_name}'")
+    with exclusive_lock(out_dir, "render set"):
+        scenes = read_json(out_dir / "config.json", "render set record", keys=("config", "scenes"))["scenes"]
+        if not scenes:
+            raise KpcnError(f"{out_dir}: the render set is unfinished (no scenes in config.json); "
+                            f"'kpcn render --set {config.set_name}' finishes it")
+        frames = []
+        for scene in tqdm(scenes, desc=f"references {config.set_name}", unit="frame", disable=not progress):
+            spp = max(int(k) for k in scene["files"])
+            path = out_dir / scene["files"][str(spp)]
+            layers = read_aovs(path, variances=None)
+            frame = {"family": scene["family"], "scene": scene["name"], "file": path.name, "spp": spp}
+            for branch in REPORT_BRANCHES:
+                frame[branch] = convergence.frame_summary(convergence.branch_relse(layers, branch, path), spp)
+            frames.append(frame)
+        report = {"set": config.set_name, "constants": {"CONVERGENCE_EPS": convergence.CONVERGENCE_EPS,
+                                                        "CONVERGED_RELSE": convergence.CONVERGED_RELSE,
+                                                        "percentile": convergence.SUMMARY_PERCENTILE},
+                  "families": _family_summaries(frames), "frames": frames}
+        md, js, png = (out_dir / name for name in CONVERGENCE_REPORT)
+        atomic_write_json(js, report)
+        atomic_write_text(md, convergence_markdown(report))
+        _convergence_png(report, png)
+    return report
+
+
+def _family_summaries(frames: list[dict]) -> dict:
+    """family -> its references' spp, the worst p99 relSE of each colour and the most spp any frame needs."""
+    out: dict[str, dict] = {}
+    for frame in frames:
+        fam = out.setdefault(frame["family"], {"frames": 0, "spp": frame["spp"]})
+        fam["frames"] += 1
+        for branch in REPORT_BRANCHES:
+            key = f"{branch}_p99_max"
+            fam[key] = max(fam.get(key, 0.0), frame[branch]["p99"])
+        fam["spp_needed_max"] = max(fam.get("spp_needed_max", 0), frame["default"]["spp_needed"])
+    return out
+
+
+def convergence_markdown(report: dict) -> str:
+    """``convergence.md``: one row per reference, then one per family."""
+    c = report["constants"]
+    lines = [f"# Reference convergence of render set `{report['set']}`", "",
+             f"relSE = sqrt(variance of the mean) / (mean over R G B + {c['CONVERGENCE_EPS']}) per pixel; a pixel is "
+             f"converged at relSE <= {c['CONVERGED_RELSE']}; p{c['percentile']:g} over the frame's pixels; spp needed: "
+             f"where the final colour's p{c['percentile']:g} would reach {c['CONVERGED_RELSE']} were it to fall as "
+             "1/sqrt(spp) (prep/convergence.py).", "",
+             "| scene | spp | diffuse p99 | specular p99 | final median | final p99 | final converged | spp needed |",
+             "|---|---|---|---|---|---|---|---|"]
+    for f in report["frames"]:
+        d = f["default"]
+        lines.append(f"| {f['scene']} | {f['spp']} | {f['diffuse']['p99']:.4f} | {f['specular']['p99']:.4f} | "
+                     f"{d['median']:.4f} | {d['p99']:.4f} | {d['converged']:.3f} | {d['spp_needed']} |")
+    lines += ["", "| family | frames | spp | worst diffuse p99 | worst specular p99 | worst final p99 | "
+              "most spp needed |", "|---|---|---|---|---|---|---|"]
+    for name, fam in report["families"].items():
+        lines.append(f"| {name} | {fam['frames']} | {fam['spp']} | {fam['diffuse_p99_max']:.4f} | "
+                     f"{fam['specular_p99_max']:.4f} | {fam['default_p99_max']:.4f} | {fam['spp_needed_max']} |")
+    return "\n".join(lines) + "\n"
+
+
+def _convergence_png(report: dict, path: Path) -> Path:
+    """``convergence.png``: per family, a box of its references' final-colour p99 relSE, with the line of
+    CONVERGED_RELSE (log scale: the families span two decades)."""
+    from prep.files import pyplot, save_png
+
+    plt = pyplot()
+    families = list(report["families"])
+    values = [[f["default"]["p99"] for f in report["frames"] if f["family"] == fam] for fam in families]
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.0 + 0.9 * len(families)), 3.6))
+    ax.boxplot(values, whis=(0, 100))
+    ax.set_xticks(range(1, len(families) + 1), families, rotation=30, ha="right")
+    ax.axhline(report["constants"]["CONVERGED_RELSE"], color="tab:red", linestyle="--",
+               label=f"converged: relSE {report['constants']['CONVERGED_RELSE']}")
+    ax.set_yscale("log")
+    ax.set_ylabel("reference p99 relSE (final colour)")
+    ax.set_title(f"render set {report['set']}: reference convergence", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return save_png(fig, path, dpi=80)

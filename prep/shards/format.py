@@ -16,13 +16,20 @@ specular/reference       (N, P, P, 3)
 albedo                   (N, P, P, 3)     noisy albedo (rebuilds the final colour)
 noisy                    (N, P, P, 3)     noisy final colour, linear
 reference                (N, P, P, 3)     reference final colour, linear
+diffuse/ref_relse        (N, P, P, 1)     relative standard error of the diffuse reference, per pixel
+specular/ref_relse       (N, P, P, 1)     likewise, specular (0 where the reference has no variance layer)
 source                   (N,) int32       index into the manifest's (and the ``sources`` attribute's) sources
 position                 (N, 2) int32     top-left (y, x) in the source render
 round                    (N,) int32       sampling round
 pdf                      (N,) float64     probability of the position under the round's PDF
 =======================  ===============  ===============================================
 
-The reference diffuse colour is divided by the reference's own albedo (a clean irradiance target).
+The reference diffuse colour is divided by the reference's own albedo (a clean irradiance target). The
+``ref_relse`` datasets are ``prep.convergence.branch_relse`` of the reference render, each branch from its own
+colour and variance layer (a relative error is unchanged by the albedo division to first order); a reference
+without that variance layer (another renderer's) has 0 there, i.e. full weight in a weighted loss.
+Every per-patch dataset is a row of :data:`PATCH_DATASETS` (name -> channels) and nothing else: a new one is a
+new row, cut by ``prep.shards.patches.image_datasets``.
 
 A shard is written atomically under a per-process temporary name, marked ``complete`` inside last
 (:func:`write_shard`), and opened only if it is a complete shard of this :data:`FORMAT` (:func:`open_shard`).
@@ -32,6 +39,7 @@ safe against a power cut, not an fsync. This module knows nothing of sets, round
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from dataclasses import dataclass
@@ -45,7 +53,9 @@ from prep import features
 from prep.errors import KpcnError
 from prep.files import atomic_path, crc32_file, sha256_file
 
-FORMAT = "kpcn-shard/2"
+# /3 added the ref_relse datasets (issue 23); a shard or set of another format is refused with the command
+# that rebuilds it (:func:`rebuild_hint`)
+FORMAT = "kpcn-shard/3"
 SHARD_RE = re.compile(r"^shard-(\d{5})\.h5$")
 PATCH_DATASETS = {
     "diffuse/features": features.NUM_FEATURES,
@@ -57,6 +67,8 @@ PATCH_DATASETS = {
     "albedo": 3,
     "noisy": 3,
     "reference": 3,
+    "diffuse/ref_relse": 1,
+    "specular/ref_relse": 1,
 }
 # A shard's checksum, listed in the manifest and checked by every reader and by the next run, is there to
 # find a torn or damaged shard, which CRC-32 does at 6.4 GB/s here against SHA-256's 1.9 (hashing a set of
@@ -103,6 +115,11 @@ SHARD_LAYOUT = LAYOUTS["none"]
 
 class ShardError(KpcnError, ValueError):
     """A shard or shard set that cannot be used; the message names the file and what was found."""
+
+
+def rebuild_hint(set_dir, set_name: str | None) -> str:
+    """The command that rebuilds a shard set of another format: the folder removed, then ``kpcn shards``."""
+    return f"rebuild it with 'rm -r {set_dir} && kpcn shards --set {set_name or '<set>'}'"
 
 
 def shard_name(i: int) -> str:
@@ -213,6 +230,11 @@ def open_shard(path: str | os.PathLike) -> h5py.File:
     except (OSError, RuntimeError, KeyError) as exc:
         f.close()
         raise ShardError(f"{path}: damaged HDF5 file ({exc})") from None
+    if found != FORMAT and complete and isinstance(found, str) and found.startswith(FORMAT.split("/")[0] + "/"):
+        set_name = _set_name(f)
+        f.close()
+        raise ShardError(f"{path}: shard of format {found!r}, this kpcn reads {FORMAT!r}; "
+                         f"{rebuild_hint(path.parent.parent, set_name)}")
     if found != FORMAT or not complete:
         f.close()
         raise ShardError(f"{path}: incomplete or foreign shard (format={found!r}, complete={complete}; "
@@ -221,6 +243,14 @@ def open_shard(path: str | os.PathLike) -> h5py.File:
         f.close()
         raise ShardError(f"{path}: missing datasets {missing}")
     return f
+
+
+def _set_name(f: h5py.File) -> str | None:
+    """The set name a shard's ``config`` attribute records, if it can be read."""
+    try:
+        return json.loads(f.attrs["config"])["set_name"]
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def config_hash_of(path: Path) -> str | None:

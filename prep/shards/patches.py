@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prep import features, sampling
+from prep import convergence, features, sampling
+from prep.exr import VARIANCE_LAYERS
 from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
 from prep.shards.format import empty_patches
@@ -26,9 +27,12 @@ from prep.shards.format import empty_patches
 
 def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
     """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
-    reads it (``prep.inputs.restrict``), and the reference restricted alike, without variance (a reference
-    has none, and the shards hold none of it): a no-split set's diffuse reference is the total colour."""
-    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=False))
+    reads it (``prep.inputs.restrict``), and the reference restricted alike: a no-split set's diffuse
+    reference is the total colour, and its variance ``colorVariance``, whatever the set's inputs (the
+    reference's variance is no network input, only its ``ref_relse``). A reference without every variance
+    layer (read with ``variances=None``: another renderer's) is given zeros, so its ``ref_relse`` is 0."""
+    has_variance = all(name in reference for name in VARIANCE_LAYERS)
+    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=has_variance))
 
 
 def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
@@ -43,7 +47,14 @@ def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
         "albedo": noisy["albedo"],
         "noisy": noisy["default"],
         "reference": reference["default"],
+        "diffuse/ref_relse": _relse(reference, "diffuse"),
+        "specular/ref_relse": _relse(reference, "specular"),
     }
+
+
+def _relse(reference: dict, branch: str) -> np.ndarray:
+    """(H, W, 1) relSE of the reference's ``branch`` colour (``prep.convergence``)."""
+    return convergence.branch_relse(reference, branch)[..., None]
 
 
 @dataclass

@@ -44,7 +44,7 @@ from prep.files import (
     sha256_file,
 )
 from prep.parts import Part
-from prep.shards.format import FORMAT, ShardError, listed_checksum, open_shard, shard_intact
+from prep.shards.format import FORMAT, ShardError, listed_checksum, open_shard, rebuild_hint, shard_intact
 
 MANIFEST = "manifest.json"
 PARTS = "parts"
@@ -129,7 +129,7 @@ class ShardSet:
         if manifest["format"] != FORMAT:
             raise ShardError(
                 f"{self.manifest_path}: shard set of format {manifest['format']!r}, this kpcn reads {FORMAT!r}; "
-                f"remove {self.dir} and run 'kpcn shards' again"
+                f"{rebuild_hint(self.dir, manifest.get('set'))}"
             )
         return manifest
 

@@ -221,7 +221,7 @@ class _RoundWriter:
             ref_path = reference_of(self.sources, src)["path"]
             if self._reference is None or self._reference[0] != ref_path:
                 self._reference = None
-                self._reference = (ref_path, exr.read_aovs(sset.resolve(ref_path), variances=False))
+                self._reference = (ref_path, exr.read_aovs(sset.resolve(ref_path), variances=None))
             noisy = exr.read_aovs(sset.resolve(src["path"]))
             self._current = None  # free the previous image before the next is cut
             positions, pdf = self.draw_of(source_id, noisy)

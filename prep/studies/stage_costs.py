@@ -126,7 +126,7 @@ def _cut_patches(render_pairs, patches_per_image: int, patch_size: int, seed: in
     out = shards.empty_patches(len(render_pairs) * patches_per_image, patch_size)
     for source_id, (noisy_path, reference_path) in enumerate(render_pairs):
         noisy = exr.read_aovs(noisy_path)
-        reference = exr.read_aovs(reference_path, variances=False)
+        reference = exr.read_aovs(reference_path, variances=None)  # its relSE, as kpcn shards cuts it
         size = noisy["depth"].shape
         if min(size) < patch_size:
             raise ValueError(f"{noisy_path} is {size[1]}x{size[0]}, smaller than a {patch_size}x{patch_size} "
