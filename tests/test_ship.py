@@ -79,6 +79,18 @@ def test_denoise_without_run_uses_the_default_model(shipped, fixture_noisy, tmp_
     assert f"model {shipped}" in res.stdout
 
 
+def test_the_python_api_without_run_uses_the_default_model(shipped, fixture_noisy, monkeypatch):
+    import kpcn
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+
+    monkeypatch.setenv("KPCN_MODEL", str(shipped))
+    frame = kpcn.read(fixture_noisy)
+    ours = kpcn.denoise(frame)
+    theirs = Denoiser.from_run(Run(shipped).serving(frame.inputs))(frame.layers)["default"]
+    np.testing.assert_array_equal(ours, theirs)
+
+
 def test_denoise_without_run_and_no_model_shipped_says_how_to_train_one(fixture_noisy, tmp_path, monkeypatch):
     from kpcn_keras import config
 
