@@ -12,6 +12,9 @@ The card is generated, never written by hand, from what the run itself holds, so
   ``<run>/eval/metrics.json`` (relMSE and DSSIM of the input, NLM, OIDN where it was installed, and the run).
 - **Validation table**, where the run was evaluated on another renderer's frames (``<run>/eval-validation/``,
   ``make model``'s ``VALIDATION`` frames): one row per frame, beside OIDN when ``pyoidn`` was installed.
+- **Speed**: seconds of the full model on a 1920×1080 frame (:data:`SPEED_FRAME`) beside OIDN's, in one
+  process, alternating, with the peak memory of the timing (:func:`speed`; the goal, :data:`SPEED_GOAL`: within
+  3× OIDN's time).
 - **Learning curve**: ``loss.png`` and, per phase, the validation loss (the held-out patches' loss after each
   epoch) at its first, best and last epoch: a best before the last says the phase stopped improving.
 
@@ -30,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_MODEL
+from kpcn_keras.config import DEFAULT_MODEL, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
 from prep.errors import KpcnError
 from prep.files import read_json
@@ -171,6 +174,91 @@ def learning_curve(variant: Run, record: RunRecord) -> list[str]:
     return lines
 
 
+def frame_of_size(layers: dict[str, np.ndarray], width: int, height: int) -> dict[str, np.ndarray]:
+    """The frame's layers wrapped around (tiled) or cropped to ``height`` x ``width``: a frame of that size
+    with the content of a real render, for timing."""
+    out = {}
+    for name, a in layers.items():
+        h, w = a.shape[:2]
+        tiled = np.pad(a, ((0, max(height - h, 0)), (0, max(width - w, 0))) + ((0, 0),) * (a.ndim - 2), mode="wrap")
+        out[name] = np.ascontiguousarray(tiled[:height, :width])
+    return out
+
+
+def _reset_peak_memory() -> bool:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``), so that the peak read after
+    is the timing's; False where it cannot be."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
+          repeats: int = SPEED_REPEATS) -> dict:
+    """Seconds to denoise a ``frame_size`` (width, height) frame, made of the run's first held-out frame
+    (:func:`frame_of_size`), by the run's full model and by OIDN when ``pyoidn`` is installed: side by side in
+    this process, each warmed up, then called alternately ``repeats`` times, the best of each; with torch's
+    threads, the peak resident memory during the timed calls and what the frame holds whole
+    (``denoise.frame_bytes``: beyond it, memory is bounded by the tile)."""
+    import time
+
+    import keras
+
+    from kpcn_keras.denoise import Denoiser, frame_bytes, peak_memory_mb
+    from kpcn_keras.evaluate import held_out_pairs
+    from prep import baselines, layouts
+
+    noisy, _ = held_out_pairs(run, record)[0]
+    width, height = frame_size
+    layers = frame_of_size(layouts.read(noisy).layers, width, height)
+    denoiser = Denoiser.from_run(run, record=record)
+    slope = record.validation_slope
+    calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
+    if baselines.oidn_available():
+        calls["oidn"] = lambda: baselines.oidn_denoise(layers)
+    for call in calls.values():
+        call()  # the warm-up: first-call allocations, OIDN's device
+    reset = _reset_peak_memory()
+    best = dict.fromkeys(calls, float("inf"))
+    for _ in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            best[name] = min(best[name], time.perf_counter() - start)
+    threads = None
+    if keras.backend.backend() == "torch":
+        import torch
+
+        threads = torch.get_num_threads()
+    return {"width": width, "height": height, "frame": Path(noisy).name, "kpcn_s": best["kpcn"],
+            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads,
+            "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
+
+
+def speed_lines(found: dict) -> list[str]:
+    size = f"{found['width']}×{found['height']}"
+    lines = [f"A {size} frame (`{found['frame']}`, a held-out frame wrapped around to that size), denoised in one "
+             f"process beside OIDN, alternately, the best of {found['repeats']} calls each after a warm-up, "
+             f"{found['threads']} torch threads, {os.cpu_count()} CPUs:", ""]
+    rows = [["kpcn (this model)", f"{found['kpcn_s']:.2f}"]]
+    if found["oidn_s"] is None:
+        rows.append(["OIDN", "not installed (pip install -e '.[oidn]')"])
+    else:
+        ratio = found["kpcn_s"] / found["oidn_s"]
+        rows.append(["OIDN", f"{found['oidn_s']:.2f}"])
+        rows.append(["kpcn / OIDN", f"{ratio:.2f}× ({'within' if ratio <= SPEED_GOAL else 'over'} the goal of "
+                     f"{SPEED_GOAL:g}×)"])
+    lines += _table(["denoiser", f"seconds a {size} frame"], rows) + [""]
+    peak = "" if found["peak_mb"] is None else "peak resident memory of the process during the timing (torch and " \
+        f"the networks included) {found['peak_mb']:.0f} MB; "
+    lines.append(f"Memory: {peak}the frame's own layers and outputs {found['frame_mb']:.0f} MB, the rest bounded "
+                 "by the tile (docs/denoise.md §3).")
+    return lines
+
+
 def check_report(run: Run, record: RunRecord, folder: Path, command: str) -> None:
     """KpcnError unless the report in ``folder`` is newer than every model file it evaluates."""
     report = folder / METRICS
@@ -183,9 +271,10 @@ def check_report(run: Run, record: RunRecord, folder: Path, command: str) -> Non
         raise KpcnError(f"{report}: older than {newer[0]}, which it should evaluate; evaluate again with '{command}'")
 
 
-def make_card(run: Run, dest: str | os.PathLike, command: str) -> str:
-    """The card of the shipped model ``dest`` made from ``run`` by ``command``; KpcnError (one line) for a run
-    that cannot be shipped (see the module docstring)."""
+def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME) -> str:
+    """The card of the shipped model ``dest`` made from ``run`` by ``command``, its speed timed on a
+    ``speed_frame`` (width, height) frame (:func:`speed`); KpcnError (one line) for a run that cannot be
+    shipped (see the module docstring)."""
     records = run.shippable_records()
     record = records[0]
     if not (run.eval_dir / METRICS).is_file():
@@ -220,6 +309,7 @@ def make_card(run: Run, dest: str | os.PathLike, command: str) -> str:
                   f"Another renderer's frames, from `{Path(run.validation_dir.name) / METRICS}`; "
                   "*model* is the input set of the network that served the frame:", ""]
         lines += validation_table(read_rows(run.validation_dir)) + [""]
+    lines += ["## Speed", ""] + speed_lines(speed(run, record, speed_frame)) + [""]
     lines += ["## Learning curve", "", "![training and validation loss per epoch](loss.png)", "",
               "Validation loss (the held-out patches, after each epoch) per phase of each input set's run; a best "
               "epoch before the last says the phase had stopped improving:", ""]
@@ -228,10 +318,12 @@ def make_card(run: Run, dest: str | os.PathLike, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str) -> Run:
+def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str,
+         speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
     """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``)."""
     run = Run(run_dir)
-    card = make_card(run, dest, command)
+    run.check_ship_destination(Run(dest))
+    card = make_card(run, dest, command, speed_frame)
     return run.ship(dest, {CARD: card})
 
 

@@ -169,7 +169,10 @@ def cmd_evaluate(args) -> int:
 def cmd_ship(args) -> int:
     from kpcn_keras.card import ship
 
-    shipped = ship(args.run, args.out, _command_line(args, DATA_INVARIANT))
+    if "speed_frame" in args and len(args.speed_frame) != 2:
+        raise OptionError("speed_frame", f"must be WIDTH,HEIGHT, got {list(args.speed_frame)}")
+    shipped = ship(args.run, args.out, _command_line(args, DATA_INVARIANT),
+                   **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
     size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
     print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MB); its card: {shipped.card_path}")
     return 0

@@ -368,13 +368,17 @@ def _evaluate_options(add) -> None:
 
 def _ship_options(add) -> None:
     """The options of ``kpcn ship``."""
-    from kpcn_keras.config import SHIPPED_MAX_BYTES
+    from kpcn_keras.config import SHIPPED_MAX_BYTES, SPEED_FRAME
+    from prep.render.frame import FRAME_SIDE
 
-    s = add("ship", help="copy a finished, evaluated run with a model for every input set into a model folder with "
-            f"its card (CARD.md), for git: no checkpoints, at most {SHIPPED_MAX_BYTES / 2**20:.0f} MB")
+    s = add("ship", own={"speed_frame": FRAME_SIDE}, help="copy a finished, evaluated run with a model for every "
+            f"input set into a model folder with its card (CARD.md), for git: no checkpoints, at most "
+            f"{SHIPPED_MAX_BYTES / 2**20:.0f} MB")
     _run_option(s, required=True, help="the run folder: finished, for every input set (kpcn train --inputs), "
                 "evaluated (kpcn evaluate)")
     s.add_argument("--out", required=True, help="the model folder, e.g. models/<name>; an earlier one is replaced")
+    s.add_argument("--speed-frame", type=_csv_ints, help="WIDTH,HEIGHT of the frame the card times beside OIDN "
+                   f"(default: {','.join(map(str, SPEED_FRAME))})")
 
 
 def _figures_options(add) -> None:

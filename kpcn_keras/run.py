@@ -232,19 +232,32 @@ class Run:
                      for name in REPORT_TABLES]
         return files + [f for f in optional if (self.dir / f).is_file()]
 
+    def check_ship_destination(self, new: Run) -> None:
+        """KpcnError unless ``new`` may be written by :meth:`ship`: neither this run, in it, nor holding it,
+        and absent or an earlier shipped model (which it replaces): never a folder of anything else."""
+        here, there = Path(os.path.abspath(self.dir)), Path(os.path.abspath(new.dir))
+        if here == there or here in there.parents or there in here.parents:
+            raise KpcnError(f"{new.dir}: the model folder (--out) cannot be the run {self.dir}, in it or hold it; "
+                            "choose another, e.g. models/<name>")
+        if new.dir.exists() and not (new.card_path.is_file() and new.has_record() and not new.checkpoint_dir.exists()):
+            raise KpcnError(f"{new.dir}: exists and is not a shipped model (no {CARD}, or a run with checkpoints), "
+                            "which shipping would replace; choose another --out")
+
     def ship(self, dest: str | os.PathLike, extra: Mapping[str, str] | None = None, *,
              max_bytes: int = SHIPPED_MAX_BYTES) -> Run:
         """Copy this finished run, with a finished run for every input set, to ``dest`` as a shipped model (see
         the module docstring): :meth:`shipped_files` of each variant, each record's shard set path made
         relative to the copy, and ``extra`` (file name -> text: the card) at its top. Refused (KpcnError, one
         line) for a run :meth:`shippable_records` refuses, or one whose copy would exceed ``max_bytes``
-        (``config.SHIPPED_MAX_BYTES``: a shipped model is kept in git). Written under a temporary name and
+        (``config.SHIPPED_MAX_BYTES``: a shipped model is kept in git), or a ``dest`` that
+        :meth:`check_ship_destination` refuses. Written under a temporary name and
         renamed: ``dest`` is the earlier shipped model or the new one, whole. Every variant's lock is held while
         it is read, so no trainer writes it meanwhile."""
         import shutil
         from contextlib import ExitStack
 
         new = Run(dest)
+        self.check_ship_destination(new)
         self.shippable_records()  # before any lock: a lock would make the folder of a missing variant
         with ExitStack() as locks:
             for variant in self.variants():  # each variant has its own trainer, and lock

@@ -41,7 +41,8 @@ def evaluated_run(tiny_run_of_every_input_set, tmp_path_factory):
 @pytest.fixture(scope="module")
 def shipped(evaluated_run, tmp_path_factory):
     dest = tmp_path_factory.mktemp("models") / "tiny"
-    res = run_main("ship", "--run", evaluated_run.dir, "--out", dest, cwd=evaluated_run.dir.parent)
+    res = run_main("ship", "--run", evaluated_run.dir, "--out", dest, "--speed-frame", "96,80",
+                   cwd=evaluated_run.dir.parent)
     assert res.returncode == 0, res.stderr
     return dest
 
@@ -214,3 +215,40 @@ def test_a_model_over_the_size_limit_is_refused(evaluated_run, tmp_path):
     Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "one"})
     Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "two"})
     assert (tmp_path / "m" / "CARD.md").read_text() == "two" and not list(tmp_path.glob(".m.tmp-*"))
+
+
+def test_shipping_never_replaces_the_run_or_a_folder_that_is_not_a_shipped_model(evaluated_run, tmp_path):
+    for dest in (evaluated_run.dir, evaluated_run.dir / "inputs", evaluated_run.dir.parent):
+        res = run_main("ship", "--run", evaluated_run.dir, "--out", dest, cwd=tmp_path)
+        assert res.returncode == 2 and "cannot be the run" in res.stderr, res.stderr
+    other = tmp_path / "other"
+    (other / "checkpoints").mkdir(parents=True)
+    (other / "mine.txt").write_text("kept")
+    res = run_main("ship", "--run", evaluated_run.dir, "--out", other, cwd=tmp_path)
+    assert res.returncode == 2 and "is not a shipped model" in res.stderr
+    assert (other / "mine.txt").read_text() == "kept"
+    assert evaluated_run.finished_record()
+
+
+def test_the_speed_frame_wraps_a_render_around_to_the_size_asked():
+    from kpcn_keras.card import frame_of_size
+
+    rng = np.random.default_rng(0)
+    layers = {"default": rng.random((5, 7, 3), dtype=np.float32), "depth": rng.random((5, 7), dtype=np.float32)}
+    big = frame_of_size(layers, 17, 12)
+    for name, a in layers.items():
+        assert big[name].shape[:2] == (12, 17) and big[name].dtype == a.dtype
+        ys, xs = np.meshgrid(np.arange(12) % 5, np.arange(17) % 7, indexing="ij")
+        np.testing.assert_array_equal(big[name], a[ys, xs])
+    small = frame_of_size(layers, 3, 2)
+    np.testing.assert_array_equal(small["default"], layers["default"][:2, :3])
+
+
+def test_the_card_times_the_frame_asked_and_names_oidn(shipped):
+    from kpcn_keras.card import card_tables
+
+    text = (shipped / "CARD.md").read_text()
+    speed = card_tables(text)["Speed"]
+    assert speed[0] == ["denoiser", "seconds a 96×80 frame"]
+    assert speed[1][0] == "kpcn (this model)" and float(speed[1][1]) > 0
+    assert speed[2][0] == "OIDN"
