@@ -297,7 +297,9 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
              f"{platform.system()} {platform.release()}.", ""]
     for variant, rec in zip(run.variants(), records):
         lines += configuration(variant, rec) + [""]
-    lines += ["## Training data", ""] + training_data(run, record) + [""]
+    lines += ["## Training data", ""] + training_data(run, record)
+    others = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec in zip(run.variants()[1:], records[1:])]
+    lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(others)}", ""]
     lines += ["## Held-out frames", "",
               f"Means over the held-out scenes per input spp, from `{Path('eval') / METRICS}` "
               "(`kpcn evaluate`; relMSE and DSSIM as in docs/method.md):", ""]
