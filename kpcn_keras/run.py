@@ -251,10 +251,13 @@ class Run:
         line) for a run :meth:`shippable_records` refuses, or one whose copy would exceed ``max_bytes``
         (``config.SHIPPED_MAX_BYTES``: a shipped model is kept in git), or a ``dest`` that
         :meth:`check_ship_destination` refuses. Written under a temporary name and
-        renamed: ``dest`` is the earlier shipped model or the new one, whole. Every variant's lock is held while
-        it is read, so no trainer writes it meanwhile."""
+        renamed: ``dest`` is the earlier shipped model or the new one, whole (a kill between the two renames
+        that replace an earlier one leaves none, until shipped again). Every variant's lock is held while it is
+        read, so no trainer writes it meanwhile."""
         import shutil
         from contextlib import ExitStack
+
+        from prep.files import write_failure
 
         new = Run(dest)
         self.check_ship_destination(new)
@@ -296,8 +299,12 @@ class Run:
                 if new.dir.exists():
                     os.replace(new.dir, old)  # a folder is not replaced whole by one rename
                 os.replace(tmp.dir, new.dir)
-            except BaseException:
+            except BaseException as exc:
                 shutil.rmtree(tmp.dir, ignore_errors=True)
+                failure = write_failure(getattr(exc, "filename", None) or new.dir, exc) \
+                    if isinstance(exc, OSError) else None
+                if failure is not None:  # a full disk: one line naming the file
+                    raise failure from exc
                 raise
             shutil.rmtree(old, ignore_errors=True)
         return new

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import run_main
+from helpers import assert_one_line_error, run_main
 
 from prep.inputs import INPUT_SETS, InputSet
 
@@ -252,3 +252,16 @@ def test_the_card_times_the_frame_asked_and_names_oidn(shipped):
     assert speed[0] == ["denoiser", "seconds a 96×80 frame"]
     assert speed[1][0] == "kpcn (this model)" and float(speed[1][1]) > 0
     assert speed[2][0] == "OIDN"
+
+
+def test_shipping_on_a_full_disk_ends_in_one_line_and_leaves_nothing(evaluated_run, small_disk, tmp_path):
+    from kpcn_keras.run import Run
+
+    dest = small_disk.path / "m"
+    args = ("ship", "--run", evaluated_run.dir, "--out", dest, "--speed-frame", "32,32")
+    assert_one_line_error(run_main(*args, cwd=tmp_path), "cannot write (No space left on device)")
+    assert list(small_disk.path.iterdir()) == []
+    small_disk.grow()
+    res = run_main(*args, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert Run(dest).finished_record() and [p.name for p in small_disk.path.iterdir()] == ["m"]
