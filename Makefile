@@ -14,8 +14,16 @@ STUDY_ARGS  ?=
 INPUTS_ARGS ?=
 COMPARE_ARGS ?=
 BENCH_ARGS  ?=
+# the shipped model, its configuration in one place: make model trains it (every input set) into $(MODEL_RUN),
+# evaluates it and ships it to models/$(MODEL), the model 'kpcn denoise' uses without --run. MODEL is
+# kpcn_keras/config.py's DEFAULT_MODEL; VALIDATION, another renderer's frames, is evaluated when it is there.
+# MODEL_ARGS must suit every input set (no --shared or --compositor: a no-split network has one branch).
+MODEL      ?= $(shell sed -n 's/^DEFAULT_MODEL = "\(.*\)".*/\1/p' kpcn_keras/config.py)
+MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000
+MODEL_RUN  ?= runs/model
+VALIDATION ?= ../shared/validation/blender
 
-.PHONY: venv render references shards train train-inputs resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
+.PHONY: venv render references shards train train-inputs model resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -47,6 +55,19 @@ train-inputs: render
 		$(KPCN) shards --set $(SET) --inputs $$inputs $(SHARD_ARGS) && \
 		$(KPCN) train --set $(SET) --run runs/$(RUN) --inputs $$inputs $(TRAIN_ARGS) || exit 1; \
 	done
+
+# the shipped model (docs/training.md §7): one command trains it, resuming an interrupted training where it stopped
+# (a run folder resumes by itself), then evaluates it and ships it with its card; run it again after an interrupt
+model: render
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]' || \
+		echo "kpcn: pyoidn not installed: the model's tables go without OIDN"
+	for inputs in $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)'); do \
+		$(KPCN) shards --set $(SET) --inputs $$inputs $(SHARD_ARGS) && \
+		$(KPCN) train --set $(SET) --run $(MODEL_RUN) --inputs $$inputs $(MODEL_ARGS) || exit 1; \
+	done
+	$(KPCN) evaluate --run $(MODEL_RUN)
+	if [ -d "$(VALIDATION)" ]; then $(KPCN) evaluate --run $(MODEL_RUN) --out $(MODEL_RUN)/eval-validation $(VALIDATION); fi
+	$(KPCN) ship --run $(MODEL_RUN) --out models/$(MODEL)
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards

@@ -88,10 +88,12 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
             run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
-    by the model of ``run`` (a run folder of ``kpcn train``) at ``slope`` (λ, for a run trained with it as an
-    input)."""
+    by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
+    at ``slope`` (λ, for a run trained with it as an input)."""
     if run is None:
-        raise KpcnError("denoise needs run=: a run folder that finished training (kpcn train)")
+        from kpcn_keras.run import default_model
+
+        run = default_model().dir
     if isinstance(color, Frame):  # kpcn.read's frame, as it was read
         frame = color
     else:

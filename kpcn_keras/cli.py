@@ -1,7 +1,7 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, references, shards, train, resample, denoise, evaluate, figures, bench, compare, resample-study,
-inputs-study: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the
+Subcommands: render, references, shards, train, resample, denoise, evaluate, ship, figures, bench, compare,
+resample-study, inputs-study: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the
 options the user gave; an option left out takes the dataclass's default. The parser, which never retypes a
 default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds (``--tile``, ``--slope``, ...) are
 checked against their bounds before the command starts.
@@ -136,13 +136,15 @@ def cmd_resample(args) -> int:
 
 def cmd_denoise(args) -> int:
     from kpcn_keras.denoise import denoise_files
+    from kpcn_keras.run import default_model
 
     def frame(report):
         print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else "")
               + f" ({report['layout']} layout, {report['inputs']}, model {report['model']}; "
               f"{report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
 
-    batch = denoise_files(args.inputs, args.run, args.output, args.reference, png=args.png, on_frame=frame,
+    run = args.run if "run" in args else default_model().dir
+    batch = denoise_files(args.inputs, run, args.output, args.reference, png=args.png, on_frame=frame,
                           layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
                           **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     frames = batch["frames"]
@@ -172,6 +174,18 @@ def cmd_evaluate(args) -> int:
                     **{k: getattr(args, k) for k in ("tile", "slope") if k in args})
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
+    return 0
+
+
+def cmd_ship(args) -> int:
+    from kpcn_keras.card import ship
+
+    if "speed_frame" in args and len(args.speed_frame) != 2:
+        raise OptionError("speed_frame", f"must be WIDTH,HEIGHT, got {list(args.speed_frame)}")
+    shipped = ship(args.run, args.out, _command_line(args, DATA_INVARIANT),
+                   **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
+    size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
+    print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MB); its card: {shipped.card_path}")
     return 0
 
 
@@ -265,6 +279,7 @@ COMMANDS = {
     "resample": cmd_resample,
     "denoise": cmd_denoise,
     "evaluate": cmd_evaluate,
+    "ship": cmd_ship,
     "figures": cmd_figures,
     "bench": cmd_bench,
     "compare": cmd_compare,

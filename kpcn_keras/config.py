@@ -27,6 +27,17 @@ ARCHS = ("kpcn", "kpal", "dpcn")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
 TILE = Bound(1, FRAME_SIDE.high)
 DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
+# The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
+# (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
+# serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's
+# own). The Makefile reads DEFAULT_MODEL from this line (``make model`` ships to models/<it>).
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+DEFAULT_MODEL = "default"
+MODEL_ENV = "KPCN_MODEL"
+SHIPPED_MAX_BYTES = 25 * 2**20  # a shipped model lives in git: refused above this
+# issue 23: the shipped model denoises a 1920x1080 frame within 3x OIDN's time on the same CPU; its card times
+# the two side by side (kpcn_keras/card.py), the best of SPEED_REPEATS alternating calls after a warm-up
+SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS = (1920, 1080), 3.0, 2
 COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
 BRANCH_CHANNELS = len(BRANCHES)  # one-hot branch indicator of a shared network
 

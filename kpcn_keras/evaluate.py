@@ -21,7 +21,7 @@ import numpy as np
 
 from kpcn_keras.config import DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser, side_by_side_png
-from kpcn_keras.run import Run, RunRecord
+from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
 from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable
@@ -73,11 +73,30 @@ def frame_scores(outputs: list[np.ndarray], frames: list[dict]) -> dict:
     return {**means, "frames": per_frame}
 
 
+def noisy_renders(folder: str | Path) -> list[Path]:
+    """The noisy renders of a folder: every ``<scene>-<spp>spp.exr`` in it but each scene's render with the
+    most samples (its reference), in name order; files named otherwise (a renderer's own denoised frame,
+    ``<scene>-<spp>spp-blender-oidn.exr``) are passed over."""
+    renders = {}
+    for path in sorted(Path(folder).glob("*spp.exr")):
+        try:
+            scene, spp = exr.parse_render_filename(path)
+        except exr.AOVError:
+            continue
+        if not path.name.startswith("."):
+            renders.setdefault(scene, []).append((spp, path))
+    return sorted(path for found in renders.values() for _, path in sorted(found)[:-1])
+
+
 def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
     """Each noisy render with the reference of its scene: the same folder's render of that scene with the
     most samples. Only the input's own scene is looked at: other files in the folder (of other scenes, or
-    not named ``<scene>-<spp>spp.exr``) are neither read nor judged."""
+    not named ``<scene>-<spp>spp.exr``) are neither read nor judged. A folder stands for its
+    :func:`noisy_renders`."""
     pairs = []
+    inputs = [str(p) for path in inputs for p in (noisy_renders(path) if Path(path).is_dir() else [path])]
+    if not inputs:
+        raise KpcnError("no noisy renders (<scene>-<spp>spp.exr with a reference beside it) in the inputs")
     for path in inputs:
         scene, spp = exr.parse_render_filename(path)
         ref, ref_spp = None, spp
@@ -92,9 +111,6 @@ def pairs_for_inputs(inputs: list[str]) -> list[tuple[str, str]]:
             raise KpcnError(f"{path}: no reference with more samples than {spp} spp beside it")
         pairs.append((str(path), str(ref)))
     return pairs
-
-
-REPORT, METRICS = "report.md", "metrics.json"
 
 
 def frame_png(out_dir: Path, scene: str, spp: int) -> Path:

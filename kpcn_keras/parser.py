@@ -335,7 +335,10 @@ def _denoise_options(add) -> None:
                "PBRT-v4 or plain colour): files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
-    _run_option(n, required=True, help="a run folder that finished training (kpcn train)")
+    from kpcn_keras.config import DEFAULT_MODEL, MODEL_ENV
+
+    _run_option(n, help="a run folder that finished training (kpcn train), or a shipped model (default: the "
+                f"folder ${MODEL_ENV} names, else the shipped models/{DEFAULT_MODEL}: make model)")
     n.add_argument("-o", "--output", default=None, help="output EXR, or a folder for <input stem>-denoised.exr "
                    "(a folder with several inputs; default: beside each input)")
     n.add_argument("--reference", default=None, help="reference EXR of a single input: prints MSE, relMSE, SMAPE, "
@@ -365,14 +368,31 @@ def _evaluate_options(add) -> None:
 
     e = add("evaluate", own={"tile": TILE, "slope": SLOPE}, help="compare a run with the raw input and NLM on "
             "held-out scenes")
-    _run_option(e, required=True)
-    e.add_argument("inputs", nargs="*", default=[], help="noisy renders (default: the run's held-out scenes); "
-                   "each reference is the same scene's render with the most samples in the same folder")
+    _run_option(e, required=True, help="a run folder that finished training (kpcn train), or a shipped model "
+                "(models/<name>)")
+    e.add_argument("inputs", nargs="*", default=[], help="noisy renders, or folders of them (default: the run's "
+                   "held-out scenes); each reference is the same scene's render with the most samples in the same "
+                   "folder")
     e.add_argument("--out", default=None, help="report folder (default: <run>/eval)")
     e.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     e.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input (as kpcn denoise --slope)")
     e.add_argument("--no-baseline", action="store_true", default=False)
     _layout_option(e)
+
+
+def _ship_options(add) -> None:
+    """The options of ``kpcn ship``."""
+    from kpcn_keras.config import SHIPPED_MAX_BYTES, SPEED_FRAME
+    from prep.render.frame import FRAME_SIDE
+
+    s = add("ship", own={"speed_frame": FRAME_SIDE}, help="copy a finished, evaluated run with a model for every "
+            f"input set into a model folder with its card (CARD.md), for git: no checkpoints, at most "
+            f"{SHIPPED_MAX_BYTES / 2**20:.0f} MB")
+    _run_option(s, required=True, help="the run folder: finished, for every input set (kpcn train --inputs), "
+                "evaluated (kpcn evaluate)")
+    s.add_argument("--out", required=True, help="the model folder, e.g. models/<name>; an earlier one is replaced")
+    s.add_argument("--speed-frame", type=_csv_ints, help="WIDTH,HEIGHT of the frame the card times beside OIDN "
+                   f"(default: {','.join(map(str, SPEED_FRAME))})")
 
 
 def _figures_options(add) -> None:
@@ -494,6 +514,7 @@ BUILDERS = {
     "resample": _resample_options,
     "denoise": _denoise_options,
     "evaluate": _evaluate_options,
+    "ship": _ship_options,
     "figures": _figures_options,
     "bench": _bench_options,
     "compare": _compare_options,

@@ -10,7 +10,9 @@
     <run>/checkpoints/<phase>.keras   the phase being trained, with its optimizer and training state
     <run>/log.csv                     loss and validation loss per epoch, every phase in one numbering
     <run>/loss.png                    the log as a curve, phases shaded
-    <run>/eval/                       ``kpcn evaluate``'s report
+    <run>/eval/                       ``kpcn evaluate``'s report on the held-out frames
+    <run>/eval-validation/            ``kpcn evaluate --out <run>/eval-validation FRAMES``: on another
+                                      renderer's validation frames (``make model``)
     <run>/figures/                    ``kpcn figures``' PNGs
     <run>/resample/rounds.json        ``kpcn resample``: one record per error round (and the run before them)
     <run>/resample/timings.json       seconds per error round (and the run before them)
@@ -19,6 +21,12 @@
     <run>/inputs/<inputs>/            the run's network for frames without a split or variance: a run folder of
                                       its own, of this layout, for each input set but the full one
                                       (``kpcn train --inputs``: :meth:`Run.for_inputs`)
+
+A *shipped model* (``models/<name>/``, :meth:`Run.ship`) is a run folder of this layout holding what serving
+needs and nothing else: the record, timings, the component files, the log and its curve, the reports' tables
+(``eval/`` and ``eval-validation/`` without their PNGs), the same for each ``inputs/<inputs>/`` (one for every
+input set), and its card ``CARD.md``; no checkpoints, no locks. ``kpcn denoise`` without ``--run`` uses
+:func:`default_model`.
 
 A run's record names its input set (``prep.inputs``; :attr:`RunRecord.inputs`: the full set for a record
 without one), and its denoiser reads frames restricted to it. :meth:`Run.serving` picks, among a run and its
@@ -65,7 +73,7 @@ from types import MappingProxyType
 
 import keras
 
-from kpcn_keras.config import CompositorConfig, ModelConfig, TrainConfig
+from kpcn_keras.config import SHIPPED_MAX_BYTES, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.models import build_branch_model
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
@@ -76,6 +84,9 @@ RECORD = "config.json"
 INPUTS = "inputs"  # the folder of a run's variants for other input sets
 TIMINGS = "timings.json"  # the seconds of a folder: the one file whose bytes differ between identical runs
 STATE_ENTRY = "kpcn-state.json"
+CARD = "CARD.md"  # a shipped model's card (kpcn_keras/card.py)
+REPORT, METRICS = "report.md", "metrics.json"  # kpcn evaluate's tables in a report folder (eval/)
+REPORT_TABLES = (REPORT, METRICS)  # what a shipped model keeps of a report folder: not its PNGs
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
 
@@ -99,6 +110,14 @@ class Run:
     @property
     def eval_dir(self) -> Path:
         return self.dir / "eval"
+
+    @property
+    def validation_dir(self) -> Path:
+        return self.dir / "eval-validation"
+
+    @property
+    def card_path(self) -> Path:
+        return self.dir / CARD
 
     @property
     def figures_dir(self) -> Path:
@@ -168,18 +187,127 @@ class Run:
             found.append(record.inputs.name)
         lacks = " and ".join(what for what, has in (("a diffuse/specular split", frame.split),
                                                      ("variance layers", frame.variance)) if not has)
+        what = f"without {lacks}" if lacks else "with a split and variance layers"
+        raise KpcnError(f"{self.dir}: no finished model for a frame {what} (the run has: "
+                        f"{', '.join(found) or 'none'}); train it with {self._training_commands(frame)}")
+
+    def _training_commands(self, inputs: InputSet) -> str:
+        """'kpcn shards ...' then 'kpcn train ...': what trains this run's model for ``inputs``, on the base
+        run's shard set cut for that input set (the model that serves it best)."""
         from kpcn_keras.parser import command_line
 
-        # the base run's shard set, cut for the frame's input set: the model that serves it best
         base = self.record().train if self.has_record() else TrainConfig()
         root = None if base.shards_root == TrainConfig.shards_root else base.shards_root
         shards = " ".join(["kpcn shards", *command_line("shards", {"set_name": base.set_name, "out_root": root,
-                                                                   "inputs": frame.name})])
+                                                                   "inputs": inputs.name})])
         train = " ".join(["kpcn train", *command_line("train", {"set_name": base.set_name, "shards_root": root,
-                                                                 "run": str(self.dir), "inputs": frame.name})])
-        what = f"without {lacks}" if lacks else "with a split and variance layers"
-        raise KpcnError(f"{self.dir}: no finished model for a frame {what} (the run has: "
-                        f"{', '.join(found) or 'none'}); train it with '{shards}' then '{train}'")
+                                                                 "run": str(self.dir), "inputs": inputs.name})])
+        return f"'{shards}' then '{train}'"
+
+    def variants(self) -> list[Run]:
+        """The run of every input set, in the order of ``prep.inputs.INPUT_SETS`` (this run first)."""
+        return [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS]
+
+    def shippable_records(self) -> list[RunRecord]:
+        """The finished record of every input set's run (:meth:`variants`): what :meth:`ship` needs. KpcnError
+        in one line naming the first that is missing (and the commands that train it) or unfinished (and the
+        command that resumes it)."""
+        records = []
+        for variant, name in zip(self.variants(), INPUT_SETS):
+            if not variant.has_record():
+                if variant is self:
+                    self.record()  # the one line that says this is not a run folder
+                raise KpcnError(f"{self.dir}: no model for the {name} input set ({variant.dir} is missing), which a "
+                                f"shipped model needs; train it with {self._training_commands(InputSet.named(name))}")
+            records.append(variant.finished_record())
+        return records
+
+    def shipped_files(self, record: RunRecord) -> list[str]:
+        """The files of this run (not of its variants), relative to its folder, that a shipped model holds:
+        the record, each component's file (what serving loads: a phase whose networks a later phase's file
+        holds too is left out), the timings, the log, its curve and the reports' tables, those that exist."""
+        files = [RECORD, *dict.fromkeys(entry.file for entry in record.components.values())]
+        optional = [TIMINGS, self.relative(self.log_path), self.relative(self.loss_curve_path)]
+        optional += [self.relative(folder / name) for folder in (self.eval_dir, self.validation_dir)
+                     for name in REPORT_TABLES]
+        return files + [f for f in optional if (self.dir / f).is_file()]
+
+    def check_ship_destination(self, new: Run) -> None:
+        """KpcnError unless ``new`` may be written by :meth:`ship`: neither this run, in it, nor holding it,
+        and absent or an earlier shipped model (which it replaces): never a folder of anything else."""
+        here, there = Path(os.path.abspath(self.dir)), Path(os.path.abspath(new.dir))
+        if here == there or here in there.parents or there in here.parents:
+            raise KpcnError(f"{new.dir}: the model folder (--out) cannot be the run {self.dir}, in it or hold it; "
+                            "choose another, e.g. models/<name>")
+        if new.dir.exists() and not (new.card_path.is_file() and new.has_record() and not new.checkpoint_dir.exists()):
+            raise KpcnError(f"{new.dir}: exists and is not a shipped model (no {CARD}, or a run with checkpoints), "
+                            "which shipping would replace; choose another --out")
+
+    def ship(self, dest: str | os.PathLike, extra: Mapping[str, str] | None = None, *,
+             max_bytes: int = SHIPPED_MAX_BYTES) -> Run:
+        """Copy this finished run, with a finished run for every input set, to ``dest`` as a shipped model (see
+        the module docstring): :meth:`shipped_files` of each variant, each record's shard set path made
+        relative to the copy, and ``extra`` (file name -> text: the card) at its top. Refused (KpcnError, one
+        line) for a run :meth:`shippable_records` refuses, or one whose copy would exceed ``max_bytes``
+        (``config.SHIPPED_MAX_BYTES``: a shipped model is kept in git), or a ``dest`` that
+        :meth:`check_ship_destination` refuses. Written under a temporary name and
+        renamed: ``dest`` is the earlier shipped model or the new one, whole (a kill between the two renames
+        that replace an earlier one leaves none, until shipped again). Every variant's lock is held while it is
+        read, so no trainer writes it meanwhile."""
+        import shutil
+        from contextlib import ExitStack
+
+        from prep.files import write_failure
+
+        new = Run(dest)
+        self.check_ship_destination(new)
+        self.shippable_records()  # before any lock: a lock would make the folder of a missing variant
+        with ExitStack() as locks:
+            for variant in self.variants():  # each variant has its own trainer, and lock
+                locks.enter_context(variant.lock())
+            copies = []
+            for variant, record in zip(self.variants(), self.shippable_records()):
+                files = variant.shipped_files(record)
+                for file in files:
+                    variant.check_file(record, file)  # the copy is what training wrote
+                copies.append((variant, record, files))
+            size = sum((variant.dir / f).stat().st_size for variant, _, files in copies for f in files)
+            size += sum(len(text.encode()) for text in (extra or {}).values())
+            if size > max_bytes:
+                raise KpcnError(f"{self.dir}: a shipped model of {size / 2**20:.1f} MB is over the "
+                                f"{max_bytes / 2**20:.0f} MB a model kept in git may have; train a smaller one")
+            new.dir.parent.mkdir(parents=True, exist_ok=True)
+            for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed ship's
+                shutil.rmtree(stale)
+            tmp = Run(new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}"))
+            try:
+                for variant, record, files in copies:
+                    where = os.path.relpath(variant.dir, self.dir)
+                    target = Run(tmp.dir / where)
+                    for file in files:
+                        (target.dir / file).parent.mkdir(parents=True, exist_ok=True)
+                        if file != RECORD:
+                            shutil.copy2(variant.dir / file, target.dir / file)
+                    data = copy.deepcopy(dict(record.data))
+                    final = new.dir / where  # where the copy's record will be read from
+                    data["shards"] = {**data["shards"], "set_dir": os.path.relpath(
+                        os.path.abspath(variant.shard_set(record).dir), os.path.abspath(final))}
+                    target.write_record(data)
+                for name, text in (extra or {}).items():
+                    (tmp.dir / name).write_text(text)
+                old = new.dir.with_name(f".{new.dir.name}.tmp-old-{os.getpid()}")
+                if new.dir.exists():
+                    os.replace(new.dir, old)  # a folder is not replaced whole by one rename
+                os.replace(tmp.dir, new.dir)
+            except BaseException as exc:
+                shutil.rmtree(tmp.dir, ignore_errors=True)
+                failure = write_failure(getattr(exc, "filename", None) or new.dir, exc) \
+                    if isinstance(exc, OSError) else None
+                if failure is not None:  # a full disk: one line naming the file
+                    raise failure from exc
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        return new
 
     def remove_temporaries(self) -> None:
         """Remove what killed trainers and resample loops left (hold :meth:`lock`; ``eval/`` and ``figures/``
@@ -263,8 +391,14 @@ class Run:
         if model.name != network:
             raise KpcnError(f"{path}: holds a {model.name} network where the run needs its {network} network "
                             f"(a copy of another phase's file?); restore the run's own file or train it again")
+        self.check_file(record, file)
+
+    def check_file(self, record: RunRecord, file: str) -> None:
+        """KpcnError naming the run's model file ``file`` unless it has the SHA-256 the record lists (none
+        listed: nothing to check)."""
         listed = record.models.get(file)
         if listed is not None:
+            path = self.dir / file
             found = sha256_file(path)
             if found != listed.sha256:
                 raise KpcnError(f"{path}: not the file this run wrote (SHA-256 {found[:12]}…, the record "
@@ -301,6 +435,21 @@ class Run:
     def shard_set(self, record: RunRecord) -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""
         return ShardSet(os.path.normpath(self.dir / record.set_dir))
+
+
+def default_model() -> Run:
+    """The model ``kpcn denoise`` uses without ``--run``: the folder the environment variable
+    ``config.MODEL_ENV`` names, else the shipped ``models/<config.DEFAULT_MODEL>`` beside the package. KpcnError
+    in one line, saying how to train one, if it holds no model."""
+    from kpcn_keras import config  # read when called: a test points it elsewhere
+
+    chosen = os.environ.get(config.MODEL_ENV)
+    run = Run(chosen or config.MODELS_DIR / config.DEFAULT_MODEL)
+    if not run.has_record():
+        where = f"{run.dir} (named by {config.MODEL_ENV})" if chosen else f"{run.dir}"
+        raise KpcnError(f"no model is shipped at {where}: train one with 'make model', or with 'make train' "
+                        "and pass --run runs/default")
+    return run
 
 
 @dataclass(frozen=True)

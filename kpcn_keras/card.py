@@ -1,0 +1,341 @@
+"""A shipped model's card, ``CARD.md``, and shipping: a finished run (with a run for every input set) into
+``models/<name>/`` (``kpcn ship``, the last step of ``make model``; docs/formats.md §5b).
+
+The card is generated, never written by hand, from what the run itself holds, so it cannot disagree with it:
+
+- **Configuration**, per input set: preset, architecture and every model field, each phase's steps and
+  learning rate with the seconds it trained (``timings.json``), the batch size, the command that trained it,
+  and the versions and machine.
+- **Training data**: the shard set, the render set it was cut from, the scene families, the patches (train and
+  held-out) and the spp ladder of the inputs, from the shard set's manifest.
+- **Held-out table**: the means per input spp over the held-out scenes of ``kpcn evaluate``'s
+  ``<run>/eval/metrics.json`` (relMSE and DSSIM of the input, NLM, OIDN where it was installed, and the run).
+- **Validation table**, where the run was evaluated on another renderer's frames (``<run>/eval-validation/``,
+  ``make model``'s ``VALIDATION`` frames): one row per frame, beside OIDN when ``pyoidn`` was installed.
+- **Speed**: seconds of the full model on a 1920×1080 frame (:data:`SPEED_FRAME`) beside OIDN's, in one
+  process, alternating, with the peak memory of the timing (:func:`speed`; the goal, :data:`SPEED_GOAL`: within
+  3× OIDN's time).
+- **Learning curve**: ``loss.png`` and, per phase, the validation loss (the held-out patches' loss after each
+  epoch) at its first, best and last epoch: a best before the last says the phase stopped improving.
+
+Shipping is refused, in one line naming what to run, for a run that is unfinished, lacks an input set
+(``Run.shippable_records``), has no held-out report, or whose report is older than a model file it evaluates
+(trained on after it was evaluated). The copy is ``Run.ship``'s: atomic, size-checked, no checkpoints.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from kpcn_keras.config import DEFAULT_MODEL, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
+from kpcn_keras.run import CARD, METRICS, Run, RunRecord
+from prep.errors import KpcnError
+from prep.files import read_json
+from prep.shards import round_name
+
+# held-out table: (header, method of the eval row, metric), after the spp and the frame count
+HELD_OUT_COLUMNS = (
+    ("raw relMSE", "raw", "relmse"), ("NLM relMSE", "nlm", "relmse"), ("OIDN relMSE", "oidn", "relmse"),
+    ("kpcn relMSE", "denoised", "relmse"),
+    ("raw DSSIM", "raw", "dssim"), ("NLM DSSIM", "nlm", "dssim"), ("OIDN DSSIM", "oidn", "dssim"),
+    ("kpcn DSSIM", "denoised", "dssim"),
+)
+# validation table: after the scene, the spp and the input set of the model that served the frame
+VALIDATION_COLUMNS = (
+    ("raw relMSE", "raw", "relmse"), ("OIDN relMSE", "oidn", "relmse"), ("kpcn relMSE", "denoised", "relmse"),
+    ("raw DSSIM", "raw", "dssim"), ("OIDN DSSIM", "oidn", "dssim"), ("kpcn DSSIM", "denoised", "dssim"),
+)
+MISSING = "–"  # a method the evaluation did not run (OIDN not installed, NLM on a frame without variance)
+
+
+def _number(value) -> str:
+    return MISSING if value is None or not np.isfinite(value) else f"{value:.4f}"
+
+
+def _metric(row: dict, method: str, metric: str) -> float | None:
+    value = row.get(method, {}).get(metric)
+    return None if value is None else float(value)
+
+
+def _mean(values) -> float | None:
+    """The mean, or None where any value is missing (a method run on some frames only is not comparable)."""
+    values = list(values)
+    return None if not values or any(v is None for v in values) else float(np.mean(values))
+
+
+def read_rows(folder: Path) -> list[dict]:
+    """The rows of an evaluation report folder's ``metrics.json``; KpcnError naming it if unreadable."""
+    rows = read_json(folder / METRICS, "evaluation report")
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and "input spp" in r for r in rows):
+        raise KpcnError(f"{folder / METRICS}: not an evaluation report of kpcn evaluate; evaluate again")
+    return rows
+
+
+def held_out_means(rows: list[dict]) -> list[dict]:
+    """Per input spp, ascending: ``spp``, ``frames`` and the mean of each column of :data:`HELD_OUT_COLUMNS`
+    over the rows of that spp (None for a method some of them lack)."""
+    out = []
+    for spp in sorted({int(r["input spp"]) for r in rows}):
+        of = [r for r in rows if int(r["input spp"]) == spp]
+        out.append({"spp": spp, "frames": len(of),
+                    **{header: _mean(_metric(r, m, k) for r in of) for header, m, k in HELD_OUT_COLUMNS}})
+    return out
+
+
+def _table(headers: list[str], lines: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)] + ["| " + " | ".join(c) + " |"
+                                                                               for c in lines]
+
+
+def held_out_table(rows: list[dict]) -> list[str]:
+    means = held_out_means(rows)
+    return _table(["input spp", "frames", *(h for h, _, _ in HELD_OUT_COLUMNS)],
+                  [[str(m["spp"]), str(m["frames"]), *(_number(m[h]) for h, _, _ in HELD_OUT_COLUMNS)]
+                   for m in means])
+
+
+def validation_table(rows: list[dict]) -> list[str]:
+    lines = [[str(r["scene"]), str(r["input spp"]), str(r.get("inputs", "full")),
+              *(_number(_metric(r, m, k)) for _, m, k in VALIDATION_COLUMNS)] for r in rows]
+    if len(rows) > 1:
+        lines.append(["**mean**", "", "", *(_number(_mean(_metric(r, m, k) for r in rows))
+                                            for _, m, k in VALIDATION_COLUMNS)])
+    return _table(["scene", "input spp", "model", *(h for h, _, _ in VALIDATION_COLUMNS)], lines)
+
+
+def _family(scene: str) -> str:
+    """The family of a built-in scene, ``<family>-<index>`` (``prep.render.families.make_scene``)."""
+    family, _, index = scene.rpartition("-")
+    return family if family and index.isdigit() else scene
+
+
+def training_data(run: Run, record: RunRecord) -> list[str]:
+    """The lines of the card's training-data section for ``run``, from its shard set's manifest."""
+    sset = run.shard_set(record)
+    manifest = sset.complete_manifest()
+    sources = manifest.get("sources", [])
+    inputs = [s for s in sources if s.get("role") == "input"]
+    shards = manifest["rounds"][round_name(0)]["shards"]
+    patches = {split: sum(s["patches"] for s in shards if s["split"] == split) for split in ("train", "val")}
+    config = manifest.get("config", {})
+    scenes = {split: sorted({s["scene"] for s in sources if s.get("split") == split}) for split in ("train", "val")}
+    references = sorted({int(s["spp"]) for s in sources if s.get("role") == "reference"})
+    rounds = len(manifest.get("rounds", {}))
+    return [
+        f"- shard set `{sset.dir.name}` (input set {record.inputs.name}), cut from the render set "
+        f"`{config.get('set_name', '?')}` (under `{config.get('render_root', '?')}`)",
+        f"- scene families: {', '.join(sorted({_family(s) for s in scenes['train'] + scenes['val']}))}; "
+        f"{len(scenes['train'])} training scenes, {len(scenes['val'])} held out "
+        f"({', '.join(scenes['val'])})",
+        f"- patches: {patches['train']} for training, {patches['val']} held out ({config.get('patch_size', '?')} px"
+        f" a side{'' if rounds <= 1 else f'; {rounds} sampling rounds'})",
+        f"- input spp ladder: {', '.join(map(str, sorted({int(s['spp']) for s in inputs})))}; references at "
+        f"{', '.join(map(str, references))} spp",
+    ]
+
+
+def configuration(variant: Run, record: RunRecord) -> list[str]:
+    """The card's configuration lines of one input set's run."""
+    train, model = record.train, record.model.to_dict()
+    timings = read_json(variant.timings_path, "run timings") if variant.timings_path.is_file() else {}
+    phases = record.data.get("phases", {})
+    lines = [f"### {record.inputs.name}", "",
+             f"- preset `{train.preset}`, architecture `{record.model.arch}`; model: "
+             + ", ".join(f"{k} {v}" for k, v in model.items()),
+             f"- batch {train.batch_size}, loss {train.loss}, augmentation {'on' if train.augment else 'off'}, "
+             f"seed {train.seed}",
+             f"- command: `{record.command or '?'}`", ""]
+    lines += _table(["phase", "steps", "learning rate", "seconds"],
+                    [[name, str(plan.get("steps", "?")), f"{plan.get('learning_rate', float('nan')):g}",
+                      f"{timings[name]:.0f}" if name in timings else "?"] for name, plan in phases.items()])
+    return lines
+
+
+def learning_curve(variant: Run, record: RunRecord) -> list[str]:
+    """Per phase of one input set's run: its epochs and the validation loss at its first, best and last."""
+    from kpcn_keras.train import read_log
+
+    rows = {int(r["epoch"]): r for r in read_log(variant.log_path)}
+    lines = []
+    for name, plan in record.data.get("phases", {}).items():
+        epochs = range(plan["first_epoch"], plan["first_epoch"] + plan["epochs"])
+        losses = [(e, float(rows[e]["val_loss"])) for e in epochs if rows.get(e, {}).get("val_loss") not in (None, "")]
+        if not losses:
+            continue
+        best = min(losses, key=lambda p: p[1])
+        lines.append([record.inputs.name, name, str(len(losses)), f"{losses[0][1]:.4f}",
+                      f"{best[1]:.4f} (epoch {best[0] - plan['first_epoch'] + 1})", f"{losses[-1][1]:.4f}"])
+    return lines
+
+
+def frame_of_size(layers: dict[str, np.ndarray], width: int, height: int) -> dict[str, np.ndarray]:
+    """The frame's layers wrapped around (tiled) or cropped to ``height`` x ``width``: a frame of that size
+    with the content of a real render, for timing."""
+    out = {}
+    for name, a in layers.items():
+        h, w = a.shape[:2]
+        tiled = np.pad(a, ((0, max(height - h, 0)), (0, max(width - w, 0))) + ((0, 0),) * (a.ndim - 2), mode="wrap")
+        out[name] = np.ascontiguousarray(tiled[:height, :width])
+    return out
+
+
+def _reset_peak_memory() -> bool:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``), so that the peak read after
+    is the timing's; False where it cannot be."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
+          repeats: int = SPEED_REPEATS) -> dict:
+    """Seconds to denoise a ``frame_size`` (width, height) frame, made of the run's first held-out frame
+    (:func:`frame_of_size`), by the run's full model and by OIDN when ``pyoidn`` is installed: side by side in
+    this process, each warmed up, then called alternately ``repeats`` times, the best of each; with torch's
+    threads, the peak resident memory during the timed calls and what the frame holds whole
+    (``denoise.frame_bytes``: beyond it, memory is bounded by the tile)."""
+    import time
+
+    import keras
+
+    from kpcn_keras.denoise import Denoiser, frame_bytes, peak_memory_mb
+    from kpcn_keras.evaluate import held_out_pairs
+    from prep import baselines, layouts
+
+    noisy, _ = held_out_pairs(run, record)[0]
+    width, height = frame_size
+    layers = frame_of_size(layouts.read(noisy).layers, width, height)
+    denoiser = Denoiser.from_run(run, record=record)
+    slope = record.validation_slope
+    calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
+    if baselines.oidn_available():
+        calls["oidn"] = lambda: baselines.oidn_denoise(layers)
+    for call in calls.values():
+        call()  # the warm-up: first-call allocations, OIDN's device
+    reset = _reset_peak_memory()
+    best = dict.fromkeys(calls, float("inf"))
+    for _ in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            best[name] = min(best[name], time.perf_counter() - start)
+    threads = None
+    if keras.backend.backend() == "torch":
+        import torch
+
+        threads = torch.get_num_threads()
+    return {"width": width, "height": height, "frame": Path(noisy).name, "kpcn_s": best["kpcn"],
+            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads,
+            "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
+
+
+def speed_lines(found: dict) -> list[str]:
+    size = f"{found['width']}×{found['height']}"
+    lines = [f"A {size} frame (`{found['frame']}`, a held-out frame wrapped around to that size), denoised in one "
+             f"process beside OIDN, alternately, the best of {found['repeats']} calls each after a warm-up, "
+             f"{found['threads']} torch threads, {os.cpu_count()} CPUs:", ""]
+    rows = [["kpcn (this model)", f"{found['kpcn_s']:.2f}"]]
+    if found["oidn_s"] is None:
+        rows.append(["OIDN", "not installed (pip install -e '.[oidn]')"])
+    else:
+        ratio = found["kpcn_s"] / found["oidn_s"]
+        rows.append(["OIDN", f"{found['oidn_s']:.2f}"])
+        rows.append(["kpcn / OIDN", f"{ratio:.2f}× ({'within' if ratio <= SPEED_GOAL else 'over'} the goal of "
+                     f"{SPEED_GOAL:g}×)"])
+    lines += _table(["denoiser", f"seconds a {size} frame"], rows) + [""]
+    peak = "" if found["peak_mb"] is None else "peak resident memory of the process during the timing (torch and " \
+        f"the networks included) {found['peak_mb']:.0f} MB; "
+    lines.append(f"Memory: {peak}the frame's own layers and outputs {found['frame_mb']:.0f} MB, the rest bounded "
+                 "by the tile (docs/denoise.md §3).")
+    return lines
+
+
+def check_report(run: Run, record: RunRecord, folder: Path, command: str) -> None:
+    """KpcnError unless the report in ``folder`` is newer than every model file it evaluates."""
+    report = folder / METRICS
+    models = [run.dir / entry.file for entry in record.components.values()]
+    for variant in run.variants():
+        if variant is not run and variant.has_record():
+            models += [variant.dir / e.file for e in variant.record().components.values()]
+    newer = [m for m in models if m.stat().st_mtime > report.stat().st_mtime]
+    if newer:
+        raise KpcnError(f"{report}: older than {newer[0]}, which it should evaluate; evaluate again with '{command}'")
+
+
+def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME) -> str:
+    """The card of the shipped model ``dest`` made from ``run`` by ``command``, its speed timed on a
+    ``speed_frame`` (width, height) frame (:func:`speed`); KpcnError (one line) for a run that cannot be
+    shipped (see the module docstring)."""
+    records = run.shippable_records()
+    record = records[0]
+    if not (run.eval_dir / METRICS).is_file():
+        raise KpcnError(f"{run.dir}: no held-out report ({run.eval_dir / METRICS}) for the model's card; "
+                        f"evaluate it first with 'kpcn evaluate --run {run.dir}'")
+    check_report(run, record, run.eval_dir, f"kpcn evaluate --run {run.dir}")
+    name = Path(dest).name
+    versions = record.data.get("versions", {})
+    made = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [f"# kpcn model `{name}`", "",
+             f"Made {made} by `{command}` from the run `{run.dir}` (generated by kpcn_keras/card.py: do not edit).",
+             f"Denoise with `kpcn denoise FILE --run {dest}` (`kpcn denoise FILE` where it is the default model, "
+             f"models/{DEFAULT_MODEL}); `kpcn evaluate --run {dest} --out DIR` reproduces the held-out table (from "
+             "the same renders and shard set: `make shards`).", "",
+             "## Configuration", "",
+             "One network per input set (docs/training.md §6): a frame is denoised by the model trained for what it "
+             "has (`Run.serving`).", "",
+             f"Versions: keras {versions.get('keras', '?')}, torch {versions.get('torch', '?')}, numpy "
+             f"{versions.get('numpy', '?')}; machine: {platform.machine()}, {os.cpu_count()} CPUs, "
+             f"{platform.system()} {platform.release()}.", ""]
+    for variant, rec in zip(run.variants(), records):
+        lines += configuration(variant, rec) + [""]
+    lines += ["## Training data", ""] + training_data(run, record)
+    others = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec in zip(run.variants()[1:], records[1:])]
+    lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(others)}", ""]
+    lines += ["## Held-out frames", "",
+              f"Means over the held-out scenes per input spp, from `{Path('eval') / METRICS}` "
+              "(`kpcn evaluate`; relMSE and DSSIM as in docs/method.md):", ""]
+    lines += held_out_table(read_rows(run.eval_dir)) + [""]
+    if (run.validation_dir / METRICS).is_file():
+        check_report(run, record, run.validation_dir,
+                     f"kpcn evaluate --run {run.dir} --out {run.validation_dir} FRAMES")
+        lines += ["## Validation frames", "",
+                  f"Another renderer's frames, from `{Path(run.validation_dir.name) / METRICS}`; "
+                  "*model* is the input set of the network that served the frame:", ""]
+        lines += validation_table(read_rows(run.validation_dir)) + [""]
+    lines += ["## Speed", ""] + speed_lines(speed(run, record, speed_frame)) + [""]
+    lines += ["## Learning curve", "", "![training and validation loss per epoch](loss.png)", "",
+              "Validation loss (the held-out patches, after each epoch) per phase of each input set's run; a best "
+              "epoch before the last says the phase had stopped improving:", ""]
+    lines += _table(["input set", "phase", "epochs", "first", "best", "last"],
+                    [line for variant, rec in zip(run.variants(), records) for line in learning_curve(variant, rec)])
+    return "\n".join(lines) + "\n"
+
+
+def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str,
+         speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
+    """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``)."""
+    run = Run(run_dir)
+    run.check_ship_destination(Run(dest))
+    card = make_card(run, dest, command, speed_frame)
+    return run.ship(dest, {CARD: card})
+
+
+def card_tables(text: str) -> dict[str, list[list[str]]]:
+    """The tables of a card, by the section (``## ...``) they are in: rows of cells, header first (for tests
+    and for readers that compare a card with its run's reports)."""
+    tables, section = {}, None
+    for line in text.splitlines():
+        if line.startswith("## "):
+            section = line[3:].strip()
+        elif line.startswith("|") and not re.fullmatch(r"\|(---\|)+", line):
+            tables.setdefault(section, []).append([c.strip() for c in line.strip("|").split("|")])
+    return tables

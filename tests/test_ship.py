@@ -1,0 +1,267 @@
+"""Shipping a run as a model folder (``kpcn ship``, ``Run.ship``, ``kpcn_keras/card.py``) and the default model
+of ``kpcn denoise`` without ``--run``."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import assert_one_line_error, run_main
+
+from prep.inputs import INPUT_SETS, InputSet
+
+
+@pytest.fixture(scope="module")
+def evaluated_run(tiny_run_of_every_input_set, tmp_path_factory):
+    """A copy of the tiny run of every input set, evaluated on its held-out frames and, as validation frames,
+    on a folder of renders without a split or variance layers (served by its no-split-no-variance variant)."""
+    from kpcn_keras.evaluate import evaluate, held_out_pairs, pairs_for_inputs
+    from kpcn_keras.run import Run
+    from prep import exr
+
+    tmp = tmp_path_factory.mktemp("ship")
+    src = Path(tiny_run_of_every_input_set)
+    # beside the original, so that its records' relative shard set paths hold
+    run = Run(src.with_name("evaluated"))
+    if not run.dir.exists():
+        shutil.copytree(src, run.dir)
+    evaluate(run.dir, baseline=True)
+    frames = tmp / "frames"
+    frames.mkdir()
+    for noisy, ref in held_out_pairs(run, run.record())[:1]:
+        for path in (noisy, ref):
+            aovs = exr.read_aovs(path, variances=False)
+            exr.write_aovs(frames / Path(path).name, {"default": aovs["default"], "albedo": aovs["albedo"],
+                                                     "normal": aovs["normal"], "depth": aovs["depth"]})
+    evaluate(run.dir, pairs_for_inputs([str(frames)]), out_dir=run.validation_dir)
+    return run
+
+
+@pytest.fixture(scope="module")
+def shipped(evaluated_run, tmp_path_factory):
+    dest = tmp_path_factory.mktemp("models") / "tiny"
+    res = run_main("ship", "--run", evaluated_run.dir, "--out", dest, "--speed-frame", "96,80",
+                   cwd=evaluated_run.dir.parent)
+    assert res.returncode == 0, res.stderr
+    return dest
+
+
+def test_a_shipped_model_holds_what_serving_needs_and_no_checkpoints(evaluated_run, shipped):
+    files = {str(p.relative_to(shipped)) for p in shipped.rglob("*") if p.is_file()}
+    assert not [f for f in files if "checkpoints" in f or Path(f).name.startswith(".")]
+    assert "CARD.md" in files and "config.json" in files and "loss.png" in files and "log.csv" in files
+    assert "eval/metrics.json" in files and not [f for f in files if f.endswith(".png") and "eval" in f]
+    for name in INPUT_SETS[1:]:
+        assert f"inputs/{name}/config.json" in files
+    record = json.loads((shipped / "config.json").read_text())
+    for entry in record["components"].values():
+        assert (shipped / entry["file"]).read_bytes() == (evaluated_run.dir / entry["file"]).read_bytes()
+    # its shard set is found from its own folder
+    assert (shipped / record["shards"]["set_dir"]).resolve() == \
+        (evaluated_run.dir / evaluated_run.record().set_dir).resolve()
+
+
+def test_denoise_and_evaluate_accept_a_shipped_model(shipped, evaluated_run, fixture_noisy, tmp_path):
+    res = run_main("denoise", fixture_noisy, "--run", shipped, "-o", tmp_path / "out.exr", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "out.exr").is_file()
+    res = run_main("evaluate", "--run", shipped, "--out", tmp_path / "eval", "--no-baseline", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    ours = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    theirs = json.loads((evaluated_run.eval_dir / "metrics.json").read_text())
+    assert [r["denoised"] for r in ours] == [r["denoised"] for r in theirs]  # the same networks, the same bits
+
+
+def test_denoise_without_run_uses_the_default_model(shipped, fixture_noisy, tmp_path, monkeypatch):
+    monkeypatch.setenv("KPCN_MODEL", str(shipped))
+    res = run_main("denoise", fixture_noisy, "-o", tmp_path / "out.exr", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert f"model {shipped}" in res.stdout
+
+
+def test_the_python_api_without_run_uses_the_default_model(shipped, fixture_noisy, monkeypatch):
+    import kpcn
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+
+    monkeypatch.setenv("KPCN_MODEL", str(shipped))
+    frame = kpcn.read(fixture_noisy)
+    ours = kpcn.denoise(frame)
+    theirs = Denoiser.from_run(Run(shipped).serving(frame.inputs))(frame.layers)["default"]
+    np.testing.assert_array_equal(ours, theirs)
+
+
+def test_denoise_without_run_and_no_model_shipped_says_how_to_train_one(fixture_noisy, tmp_path, monkeypatch):
+    from kpcn_keras import config
+
+    monkeypatch.delenv("KPCN_MODEL", raising=False)
+    monkeypatch.setattr(config, "MODELS_DIR", tmp_path / "models")
+    res = run_main("denoise", fixture_noisy, cwd=tmp_path)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no model is shipped" in lines[0] and "make model" in lines[0], res.stderr
+    monkeypatch.setenv("KPCN_MODEL", str(tmp_path / "nowhere"))
+    res = run_main("denoise", fixture_noisy, cwd=tmp_path)
+    assert res.returncode == 2 and "KPCN_MODEL" in res.stderr
+
+
+def test_the_default_model_is_found_beside_the_package():
+    import kpcn_keras
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+
+    assert MODELS_DIR == Path(kpcn_keras.__file__).resolve().parent.parent / "models"
+    assert DEFAULT_MODEL and "/" not in DEFAULT_MODEL
+
+
+def test_make_model_ships_where_denoise_looks_and_evaluates_where_the_card_reads():
+    import subprocess
+
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+    from kpcn_keras.run import Run
+
+    plan = subprocess.run(["make", "-n", "--no-print-directory", "model"], cwd=MODELS_DIR.parent, text=True,
+                          capture_output=True, check=True).stdout
+    ship = next(line for line in plan.splitlines() if " ship " in line)
+    assert ship.endswith(f"--out models/{DEFAULT_MODEL}")
+    run = Run(ship.split("--run ")[1].split()[0])
+    assert f"--out {run.validation_dir} " in plan
+    assert f"evaluate --run {run.dir}\n" in plan
+
+
+def _means(rows, spp, method, metric):
+    """The float64 mean over the rows of ``spp``; None where a row lacks the method."""
+    of = [r for r in rows if r["input spp"] == spp]
+    if any(method not in r for r in of):
+        return None
+    return float(np.mean(np.asarray([r[method][metric] for r in of], dtype=np.float64)))
+
+
+def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
+    from kpcn_keras.card import HELD_OUT_COLUMNS, VALIDATION_COLUMNS, card_tables
+
+    tables = card_tables((shipped / "CARD.md").read_text())
+    rows = json.loads((evaluated_run.eval_dir / "metrics.json").read_text())
+    held = tables["Held-out frames"]
+    assert held[0][:2] == ["input spp", "frames"]
+    assert [int(line[0]) for line in held[1:]] == sorted({r["input spp"] for r in rows})
+    for line in held[1:]:
+        spp = int(line[0])
+        assert int(line[1]) == sum(r["input spp"] == spp for r in rows)
+        for cell, (_, method, metric) in zip(line[2:], HELD_OUT_COLUMNS):
+            mean = _means(rows, spp, method, metric)
+            if mean is None or not np.isfinite(mean):
+                assert cell == "–"
+            else:
+                assert float(cell) == pytest.approx(mean, abs=5e-5)
+    validation = json.loads((evaluated_run.validation_dir / "metrics.json").read_text())
+    lines = tables["Validation frames"][1:]
+    assert len(lines) == len(validation) + (len(validation) > 1)
+    for line, row in zip(lines, validation):
+        assert line[:3] == [row["scene"], str(row["input spp"]), "no-split-no-variance"]
+        for cell, (_, method, metric) in zip(line[3:], VALIDATION_COLUMNS):
+            value = row.get(method, {}).get(metric)
+            assert cell == "–" if value is None else float(cell) == pytest.approx(value, abs=5e-5)
+    curve = tables["Learning curve"]
+    assert {line[0] for line in curve[1:]} == set(INPUT_SETS)
+
+
+def test_an_unfinished_or_incomplete_run_is_refused_in_one_line(tiny_run, evaluated_run, tmp_path):
+    from kpcn_keras.run import Run
+
+    # no variant for the other input sets: the line names the first missing one and how to train it
+    res = run_main("ship", "--run", tiny_run, "--out", tmp_path / "m", cwd=tmp_path)
+    assert res.returncode == 2
+    line, = res.stderr.strip().splitlines()
+    assert f"no model for the {INPUT_SETS[1]} input set" in line and "kpcn train" in line and "--inputs" in line
+    assert not (tmp_path / "m").exists() and not (Path(tiny_run) / "inputs").exists()
+    # an unfinished phase of a variant
+    run = Run(tmp_path / "copy")
+    shutil.copytree(evaluated_run.dir, run.dir)
+    variant = run.for_inputs(InputSet.named(INPUT_SETS[2]))
+    data = json.loads(variant.record_path.read_text())
+    next(iter(data["phases"].values()))["status"] = "pending"
+    variant.record_path.write_text(json.dumps(data))
+    res = run_main("ship", "--run", run.dir, "--out", tmp_path / "m", cwd=tmp_path)
+    assert res.returncode == 2
+    line, = res.stderr.strip().splitlines()
+    assert "unfinished" in line and "kpcn train" in line
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_run_not_evaluated_or_evaluated_before_more_training_is_refused(evaluated_run, tmp_path):
+    import os
+
+    run = tmp_path / "r"
+    shutil.copytree(evaluated_run.dir, run, copy_function=shutil.copy2)
+    later = os.stat(run / "eval" / "metrics.json").st_mtime + 10  # trained on after it was evaluated
+    os.utime(run / "diffuse.keras", (later, later))
+    res = run_main("ship", "--run", run, "--out", tmp_path / "m", cwd=tmp_path)
+    assert res.returncode == 2 and "evaluate again" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    os.remove(run / "eval" / "metrics.json")
+    res = run_main("ship", "--run", run, "--out", tmp_path / "m", cwd=tmp_path)
+    assert res.returncode == 2 and "kpcn evaluate --run" in res.stderr
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_model_over_the_size_limit_is_refused(evaluated_run, tmp_path):
+    from kpcn_keras.run import Run
+
+    size = sum(f.stat().st_size for f in Run(evaluated_run.dir).dir.rglob("*.keras") if "checkpoints" not in f.parts)
+    with pytest.raises(Exception, match="MB a model kept in git may have"):
+        Run(evaluated_run.dir).ship(tmp_path / "m", max_bytes=size // 2)
+    assert not (tmp_path / "m").exists() and not list(tmp_path.glob(".m.tmp-*"))
+    # within the limit it is written, and shipping again replaces it whole
+    Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "one"})
+    Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "two"})
+    assert (tmp_path / "m" / "CARD.md").read_text() == "two" and not list(tmp_path.glob(".m.tmp-*"))
+
+
+def test_shipping_never_replaces_the_run_or_a_folder_that_is_not_a_shipped_model(evaluated_run, tmp_path):
+    for dest in (evaluated_run.dir, evaluated_run.dir / "inputs", evaluated_run.dir.parent):
+        res = run_main("ship", "--run", evaluated_run.dir, "--out", dest, cwd=tmp_path)
+        assert res.returncode == 2 and "cannot be the run" in res.stderr, res.stderr
+    other = tmp_path / "other"
+    (other / "checkpoints").mkdir(parents=True)
+    (other / "mine.txt").write_text("kept")
+    res = run_main("ship", "--run", evaluated_run.dir, "--out", other, cwd=tmp_path)
+    assert res.returncode == 2 and "is not a shipped model" in res.stderr
+    assert (other / "mine.txt").read_text() == "kept"
+    assert evaluated_run.finished_record()
+
+
+def test_the_speed_frame_wraps_a_render_around_to_the_size_asked():
+    from kpcn_keras.card import frame_of_size
+
+    rng = np.random.default_rng(0)
+    layers = {"default": rng.random((5, 7, 3), dtype=np.float32), "depth": rng.random((5, 7), dtype=np.float32)}
+    big = frame_of_size(layers, 17, 12)
+    for name, a in layers.items():
+        assert big[name].shape[:2] == (12, 17) and big[name].dtype == a.dtype
+        ys, xs = np.meshgrid(np.arange(12) % 5, np.arange(17) % 7, indexing="ij")
+        np.testing.assert_array_equal(big[name], a[ys, xs])
+    small = frame_of_size(layers, 3, 2)
+    np.testing.assert_array_equal(small["default"], layers["default"][:2, :3])
+
+
+def test_the_card_times_the_frame_asked_and_names_oidn(shipped):
+    from kpcn_keras.card import card_tables
+
+    text = (shipped / "CARD.md").read_text()
+    speed = card_tables(text)["Speed"]
+    assert speed[0] == ["denoiser", "seconds a 96×80 frame"]
+    assert speed[1][0] == "kpcn (this model)" and float(speed[1][1]) > 0
+    assert speed[2][0] == "OIDN"
+
+
+def test_shipping_on_a_full_disk_ends_in_one_line_and_leaves_nothing(evaluated_run, small_disk, tmp_path):
+    from kpcn_keras.run import Run
+
+    dest = small_disk.path / "m"
+    args = ("ship", "--run", evaluated_run.dir, "--out", dest, "--speed-frame", "32,32")
+    assert_one_line_error(run_main(*args, cwd=tmp_path), "cannot write (No space left on device)")
+    assert list(small_disk.path.iterdir()) == []
+    small_disk.grow()
+    res = run_main(*args, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert Run(dest).finished_record() and [p.name for p in small_disk.path.iterdir()] == ["m"]
