@@ -213,7 +213,7 @@ def cmd_compare(args) -> int:
     from kpcn_keras.studies.config import CompareConfig
 
     cfg = CompareConfig(**_given(args, CompareConfig))
-    if args.report_only:
+    if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
         record = rewrite_reports(cfg.out_dir)
     else:
         record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
@@ -250,7 +250,7 @@ def cmd_quality(args) -> int:
     from kpcn_keras.studies.quality import format_report, quality, rewrite_reports
 
     cfg = QualityConfig(**_given(args, QualityConfig))
-    if args.report_only:
+    if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
         record = rewrite_reports(cfg.out_dir)
     else:
         record = quality(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
