@@ -16,7 +16,7 @@ from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_ma
 from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies import quality as qs
 from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig, combine
-from prep import layouts
+from prep import exr, layouts
 from prep.errors import OptionError
 
 RENDERERS = Path(__file__).parent / "fixtures" / "renderers"
@@ -253,7 +253,12 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     assert studio["raw"]["relmse"] == pytest.approx(_relmse64(x, ref), rel=1e-9)
     assert studio["blender"]["relmse"] == 0.0
     held = [r for r in record["frames"] if r["kind"] == "held-out"]
-    assert len(held) == 4 and all(set(r["levers"]) == set(cfg.levers) for r in held)
+    assert [r["frame"] for r in held] == ["a-001 4 spp", "b-001 4 spp"]  # the tiny set's validation scenes
+    assert all(set(r["levers"]) == set(cfg.levers) for r in held)
+    for r in held:
+        noisy = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00004spp.exr")["default"]
+        reference = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00064spp.exr", variances=False)
+        assert r["raw"]["relmse"] == pytest.approx(_relmse64(noisy, reference["default"]), rel=1e-9)
     md = (out / "quality.md").read_text()
     assert "Best lever by held-out relMSE" in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
     assert [p["title"].split(" (")[0] for p in record["panels"]] == ["cycles5/studio 16 spp", "mitsuba3/cornell 16 spp"]

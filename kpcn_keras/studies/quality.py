@@ -16,7 +16,9 @@ The contract:
 - **Every input layout served.** The input sets the validation frames give (``prep.inputs``: Cycles writes no
   variance, a Mitsuba or PBRT frame no split) besides the full set are the networks each lever trains: the full
   run in ``<runs_root>/<set>-<budget>s-seed<seed>/<lever>``, the others in its ``inputs/<set>/`` folders
-  (``Run.for_inputs``), so that ``Run.serving`` picks each frame's network.
+  (``Run.for_inputs``), so that ``Run.serving`` picks each frame's network. A network for frames without a
+  split has the diffuse branch alone, so a lever's compositor, shared network or joint fine-tuning is left out
+  of it (:data:`WITHOUT_SPLIT`).
 - **Equal training time.** A lever's ``budget`` seconds are shared evenly by its networks (the full network and
   one per other input set: ``budget / networks`` each); within a network, seconds become steps as ``kpcn
   compare`` turns them (:func:`kpcn_keras.studies.compare.plan_steps`: probed steps, the branch phases' share,
@@ -68,6 +70,9 @@ PLAN = "plan.json"
 KINDS = ("held-out", "validation")
 BASELINES = ("raw", "oidn", "blender")
 LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
+# a network for frames without a diffuse/specular split has the diffuse branch alone: what joins both branches
+# (a compositor, one shared network, joint fine-tuning) is left out of a lever's network for them
+WITHOUT_SPLIT = {"compositor": None, "shared": False, "joint_steps": 0}
 
 
 # ---------------------------------------------------------------- levers and their data
@@ -142,6 +147,8 @@ def train_config(cfg: QualityConfig, lever: str, set_name: str, inputs: str,
     overrides = dict(overrides or {})
     values = {**own, **overrides}
     values["model"] = {**own.get("model", {}), **(overrides.get("model") or {})}
+    if not InputSet.named(inputs).split:
+        values.update(WITHOUT_SPLIT)
     return TrainConfig.from_preset(preset, set_name=set_name, shards_root=cfg.shards_root, seed=cfg.seed,
                                    inputs=inputs, **values)
 
