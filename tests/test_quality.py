@@ -252,6 +252,14 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     ref = layouts.read(frames / "cycles5" / "studio-00256spp.exr").layers["default"]
     assert studio["raw"]["relmse"] == pytest.approx(_relmse64(x, ref), rel=1e-9)
     assert studio["blender"]["relmse"] == 0.0
+    from prep import baselines
+
+    if baselines.oidn_available():
+        frame = layouts.read(frames / "cycles5" / "studio-00016spp.exr")
+        assert studio["oidn"]["relmse"] == pytest.approx(_relmse64(baselines.oidn_denoise(frame.layers), ref), rel=1e-9)
+        wins = sum(r["levers"]["cpu"]["relmse"] < r["oidn"]["relmse"] for r in record["frames"])
+        row = next(line for line in (out / "quality.md").read_text().splitlines() if line.startswith("| `cpu` |"))
+        assert f"| {wins} of {len(record['frames'])} |" in row
     held = [r for r in record["frames"] if r["kind"] == "held-out"]
     assert [r["frame"] for r in held] == ["a-001 4 spp", "b-001 4 spp"]  # the tiny set's validation scenes
     assert all(set(r["levers"]) == set(cfg.levers) for r in held)

@@ -499,8 +499,9 @@ def format_report(record: dict) -> str:
         f"- **Same budget.** Each lever's {cfg['budget']:g} s are shared evenly by its networks: the full one (the "
         "held-out frames) and one per input set a validation frame gives (`Run.serving` picks each frame's). "
         "Within a network, seconds become steps as `kpcn compare` turns them: each phase's steps are timed by a "
-        "scratch training, the branch phases get their share, a compositor the rest. Building, validation and "
-        "checkpoints come on top: *trained s* is what the run's phases took.",
+        "scratch training, the branch phases get their share, a compositor the rest. A network for frames without "
+        "a split has the diffuse branch alone: a lever's compositor, shared network or joint fine-tuning is left "
+        "out of it. Building, validation and checkpoints come on top: *trained s* is what the run's phases took.",
         "- **Same frames.** A lever with a render set of its own trains on a larger set rendered from the study's "
         "(the renders they share linked, the same bytes) whose validation scenes are the study's held-out scenes: "
         "no lever trains on a frame any lever is judged on.",
