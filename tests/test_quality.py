@@ -277,3 +277,40 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     assert [r["levers"] for r in again["frames"]] == [r["levers"] for r in record["frames"]]
     rewritten = qs.rewrite_reports(out)
     assert (out / "quality.md").read_text() == qs.format_report(rewritten)
+
+
+@pytest.mark.slow
+def test_the_data_lever_renders_a_larger_set_sharing_the_renders_and_the_held_out_scenes(tmp_path, monkeypatch):
+    from prep import shards
+    from prep.render.renderset import RenderConfig, render_set
+
+    base = RenderConfig(set_name="b", families=("cornell", "spheres"), per_family=2, width=24, height=24,
+                        input_spp=(4,), reference_spp=8, out_root=str(tmp_path / "renders"))
+    render_set(base, progress=False)
+    shards.build_shards(shards.ShardConfig(set_name="b", render_root=base.out_root, out_root=str(tmp_path / "shards"),
+                                           patch_size=16, patches_per_image=2, patches_per_shard=8, val_fraction=0.5),
+                        progress=False)
+    monkeypatch.setitem(QUALITY_LEVERS, "data", ("more scenes, a longer ladder", "cpu", {},
+                                                 {"per_family": 3, "input_spp": (2, 4)}))
+    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
+    cfg = QualityConfig(set_name="b", render_root=base.out_root, shards_root=str(tmp_path / "shards"),
+                        runs_root=str(tmp_path / "runs"), out_dir=str(tmp_path / "reports"), budget=2.0,
+                        levers=("cpu", "data"), frames=(str(RENDERERS / "cycles5"),))
+    record = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
+    larger = qs.lever_set(cfg, "data")
+    assert record["plans"]["data"]["set"] == larger != "b" and record["plans"]["cpu"]["set"] == "b"
+    made = tmp_path / "renders" / larger
+    names = sorted(p.name for p in made.glob("*.exr"))
+    assert len(names) == 2 * 3 * 3  # two families, three scenes each, at 2 and 4 spp and the reference
+    shared = sorted(p.name for p in (tmp_path / "renders" / "b").glob("*.exr"))
+    assert set(shared) <= set(names)
+    assert all((made / n).samefile(tmp_path / "renders" / "b" / n) for n in shared)  # linked, not rendered again
+    for inputs in record["input_sets"]:
+        sset = shards.ShardSet(shards.shard_set_dir(cfg.shards_root, larger, inputs))
+        manifest = sset.complete_manifest()
+        val = sorted({s["scene"] for s in manifest["sources"] if s["split"] == "val"})
+        train = sorted({s["scene"] for s in manifest["sources"] if s["split"] == "train"})
+        assert val == ["cornell-001", "spheres-001"] == qs.held_out_scenes(cfg)
+        assert train == ["cornell-000", "cornell-002", "spheres-000", "spheres-002"]
+    held = [r["frame"] for r in record["frames"] if r["kind"] == "held-out"]
+    assert held == ["cornell-001 4 spp", "spheres-001 4 spp"]  # the study set's, for both levers
