@@ -23,7 +23,9 @@ MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000
 MODEL_RUN  ?= runs/model
 VALIDATION ?= ../shared/validation/blender
 
-.PHONY: venv render references shards train train-inputs model resample resample-study inputs-study evaluate figures compare bench test test-all test-oldest clean
+QUALITY_ARGS ?=
+
+.PHONY: venv render references shards train train-inputs model resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -85,6 +87,13 @@ resample-study: shards
 inputs-study: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) inputs-study --set $(SET) $(INPUTS_ARGS)
+
+# each lever for beating OIDN, alone and combined, for the same seconds (QUALITY_ARGS="--budget 600 --levers ..."),
+# on held-out frames and the validation frames (../shared/validation/blender, ../shared/fixtures/mitsuba) beside
+# OIDN and Blender's own denoiser: reports/quality.{md,json,png}; a lever with a render set of its own renders it
+quality: shards
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(KPCN) quality --set $(SET) $(QUALITY_ARGS)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

@@ -1,10 +1,10 @@
 """``kpcn``: the command line of the toolkit.
 
 Subcommands: render, references, shards, train, resample, denoise, evaluate, ship, figures, bench, compare,
-resample-study, inputs-study: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the
-options the user gave; an option left out takes the dataclass's default. The parser, which never retypes a
-default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds (``--tile``, ``--slope``, ...) are
-checked against their bounds before the command starts.
+resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's
+config dataclass from the options the user gave; an option left out takes the dataclass's default. The parser,
+which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds
+(``--tile``, ``--slope``, ...) are checked against their bounds before the command starts.
 ``render``, ``references`` and ``shards`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
@@ -238,7 +238,7 @@ def cmd_compare(args) -> int:
     from kpcn_keras.studies.config import CompareConfig
 
     cfg = CompareConfig(**_given(args, CompareConfig))
-    if args.report_only:
+    if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
         record = rewrite_reports(cfg.out_dir)
     else:
         record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
@@ -270,6 +270,20 @@ def cmd_inputs_study(args) -> int:
     return 0
 
 
+def cmd_quality(args) -> int:
+    from kpcn_keras.studies.config import QualityConfig
+    from kpcn_keras.studies.quality import format_report, quality, rewrite_reports
+
+    cfg = QualityConfig(**_given(args, QualityConfig))
+    if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
+        record = rewrite_reports(cfg.out_dir)
+    else:
+        record = quality(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
+    print(format_report(record))
+    print(f"report: {cfg.out_dir}/quality.md")
+    return 0
+
+
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)
 COMMANDS = {
     "render": cmd_render,
@@ -285,6 +299,7 @@ COMMANDS = {
     "compare": cmd_compare,
     "resample-study": cmd_resample_study,
     "inputs-study": cmd_inputs_study,
+    "quality": cmd_quality,
 }
 
 # the commands that divide their work between the processes torchrun starts (each its rank's share)

@@ -52,8 +52,13 @@ def held_out_pairs(run: Run, record: RunRecord) -> list[tuple[str, str]]:
 
 def held_out_frames(run: Run, record: RunRecord) -> list[dict]:
     """The run's held-out frames read once: ``name`` ("<scene> <spp> spp"), ``noisy`` AOVs, ``reference`` colour."""
+    return read_frames(held_out_pairs(run, record))
+
+
+def read_frames(pairs) -> list[dict]:
+    """(noisy, reference) render paths in the AOV layout read as :func:`held_out_frames` reads them."""
     frames = []
-    for noisy_path, ref_path in held_out_pairs(run, record):
+    for noisy_path, ref_path in pairs:
         scene, spp = exr.parse_render_filename(noisy_path)
         frames.append({"name": f"{scene} {spp} spp", "noisy": exr.read_aovs(noisy_path),
                        "reference": exr.read_aovs(ref_path, variances=False)["default"]})

@@ -505,6 +505,26 @@ def _inputs_study_options(add) -> None:
     s.add_argument("--seed", type=int, help=d("seed"))
 
 
+def _quality_options(add) -> None:
+    """The options of ``kpcn quality``."""
+    from kpcn_keras.studies.config import QualityConfig
+
+    q = add("quality", (QualityConfig,), help="each lever for beating OIDN, alone and combined, for the same "
+            "seconds, measured on held-out and validation frames beside OIDN and Blender; writes "
+            "reports/quality.{md,json,png}")
+    d = _defaults(QualityConfig)
+    _experiment_folders(q, d, "the study's runs")
+    q.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
+    q.add_argument("--levers", type=_csv, help=f"comma-separated {d('levers')}")
+    q.add_argument("--frames", nargs="+", help="validation frames: files or folders, each noisy frame with its "
+                   f"reference beside it {d('frames')}")
+    q.add_argument("--budget", type=float, help=f"seconds of training per lever, shared by its networks {d('budget')}")
+    q.add_argument("--panel-spp", type=int, help=f"input spp of the validation frames in the panels {d('panel_spp')}")
+    q.add_argument("--seed", type=int, help=d("seed"))
+    q.add_argument("--report-only", action="store_true", help="write quality.md and quality.png again from the "
+                   "--out folder's quality.json (and the frames and runs it names), training nothing")
+
+
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options
 BUILDERS = {
     "render": _render_options,
@@ -520,4 +540,5 @@ BUILDERS = {
     "compare": _compare_options,
     "resample-study": _resample_study_options,
     "inputs-study": _inputs_study_options,
+    "quality": _quality_options,
 }

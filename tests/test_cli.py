@@ -392,7 +392,8 @@ def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_
         assert "no repeats" in action.help, (command, action.dest)
         flag = max(action.option_strings, key=len)
         valid = {"families": "cornell", "branches": "diffuse", "configurations": "cpu", "presets": "cpu",
-                 "arms": "error", "val_scenes": "a", "budget_fractions": "0.5", "slopes": "2.5"}.get(action.dest, "4")
+                 "levers": "cpu", "arms": "error", "val_scenes": "a", "budget_fractions": "0.5",
+                 "slopes": "2.5"}.get(action.dest, "4")
         argv = [command, *_NEEDS.get(command, []), *_NEEDS_FOR.get((command, action.dest), []), flag,
                 f"{valid},{valid}"]
         line = _error_line(capsys, tmp_path, argv)

@@ -266,3 +266,11 @@ def test_report_only_without_a_record_is_a_one_line_error(tmp_path):
     res = run_main("compare", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
     assert_one_line_error(res, str(tmp_path / "compare.json"), "no such comparison record")
     assert not any(tmp_path.iterdir())
+
+
+def test_a_comparison_without_report_only_reaches_the_study(tmp_path):
+    # the parser leaves an option out of the namespace when it is not given: --report-only too
+    res = run_main("compare", "--set", "nothing", "--shards", str(tmp_path), "--budget", "1", cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert res.stderr.strip().splitlines() == [
+        f"kpcn compare: error: {tmp_path / 'nothing' / 'manifest.json'}: no shard manifest (run 'kpcn shards' first)"]

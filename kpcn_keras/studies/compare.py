@@ -212,6 +212,18 @@ def probe_configuration(base: TrainConfig, scratch: Path) -> dict[str, list[floa
     return times
 
 
+def plan_steps(base: TrainConfig, budget: float, scratch: Path, times: dict | None = None) -> dict:
+    """The plan of ``base`` for ``budget`` seconds: the step ``probes`` (``times`` when given, else a probe
+    training in ``scratch``), each phase's ``seconds_per_step``, its share of the budget (``shares``), the
+    TrainConfig ``steps`` fields and the ``phase_steps`` they give."""
+    if times is None:
+        times = probe_configuration(base, scratch)
+    per_step = seconds_per_step(times)
+    steps = budget_steps(budget, per_step)
+    return {"probes": times, "seconds_per_step": per_step, "shares": budget_shares(per_step), "steps": steps,
+            "phase_steps": {p.name: p.steps for p in with_steps(base, steps).phases()}}
+
+
 def _fmt_phases(values: dict, fmt: str) -> str:
     return ", ".join(f"{k} {fmt.format(v)}" for k, v in values.items())
 
@@ -249,16 +261,9 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
                     raise KpcnError(f"{run_dir}: trained for other settings than this comparison's (another "
                                     f"configuration or shard set); choose another --runs or remove {run_dir}")
                 known = (probes or {}).get(name)
-                if known is not None and known["train"] == key["train"]:
-                    times = known["probes"]
-                else:
-                    times = probe_configuration(base, scratch / name)
-                per_step = seconds_per_step(times)
-                steps = budget_steps(cfg.budget, per_step)
-                planned = with_steps(base, steps)
-                entry = {**key, "probes": times, "seconds_per_step": per_step,
-                         "shares": budget_shares(per_step), "steps": steps,
-                         "phase_steps": {p.name: p.steps for p in planned.phases()}}
+                times = known["probes"] if known is not None and known["train"] == key["train"] else None
+                entry = {**key, **plan_steps(base, cfg.budget, scratch / name, times)}
+                per_step = entry["seconds_per_step"]
                 log(f"[{name}] seconds per step: {_fmt_phases(per_step, '{:.4f}')}; for {cfg.budget:g} s: "
                     f"{_fmt_phases(entry['phase_steps'], '{}')} steps")
                 stored[name] = entry

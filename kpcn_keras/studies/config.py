@@ -1,7 +1,7 @@
 """The configurations of the studies (``kpcn compare``, ``kpcn bench``, ``kpcn resample-study``, ``kpcn
-inputs-study``) and their
-tables: :data:`CONFIGURATIONS` (what ``compare`` and ``bench`` train), :data:`ARMS` (the arms of the
-resample study), :data:`BENCH_LADDERS` and :data:`BENCH_PRESETS` (the ladders of ``bench``).
+inputs-study``, ``kpcn quality``) and their tables: :data:`CONFIGURATIONS` (what ``compare`` and ``bench``
+train), :data:`QUALITY_LEVERS` (what ``quality`` trains), :data:`ARMS` (the arms of the resample study),
+:data:`BENCH_LADDERS` and :data:`BENCH_PRESETS` (the ladders of ``bench``).
 
 No keras, no torch: the command line builds its parser from these. Each default is written once, here,
 with its bound (``prep.bounds``), as in :mod:`kpcn_keras.config`, whose training configuration the studies
@@ -35,6 +35,41 @@ CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
     "kernel-21": ("cpu with the papers' 21×21 kernels", "cpu", {"model": {"kernel_size": 21}}),
     "kpal": ("cpu-sized residual network", "cpu", {"model": {"arch": "kpal", "depth": 3}}),
 }
+
+
+def combine(*names: str, levers: dict | None = None) -> tuple[str, str, dict, dict | None]:
+    """One lever that pulls every lever of ``names`` (of ``levers``, default :data:`QUALITY_LEVERS`) at once: their
+    TrainConfig overrides merged (``model`` and ``compositor`` field by field), their render-set options merged,
+    and the one preset among them other than ``cpu`` (ValueError where two differ)."""
+    levers = QUALITY_LEVERS if levers is None else levers
+    presets = {levers[n][1] for n in names} - {"cpu"}
+    if len(presets) > 1:
+        raise ValueError(f"levers {list(names)} need different presets {sorted(presets)}")
+    overrides: dict = {}
+    render: dict = {}
+    for name in names:
+        _, _, own, renders = levers[name]
+        for key, value in own.items():
+            overrides[key] = {**overrides.get(key, {}), **value} if isinstance(value, dict) else value
+        render.update(renders or {})
+    return ("every lever together: " + ", ".join(names), presets.pop() if presets else "cpu", overrides,
+            render or None)
+
+
+# The levers of ``kpcn quality`` (kpcn_keras/studies/quality.py): name -> (what it is, preset, TrainConfig
+# overrides, the options of a render set of its own or None). A render-set entry (RenderConfig fields: scenes
+# per family, the input spp ladder) makes the study render and cut a larger set from the study's own (its seed,
+# size and reference spp), whose held-out scenes are the study's; every other lever trains on the study's set.
+# Adding a lever is one entry; "combination" names the levers it combines.
+# the data lever's render set: 8 scenes per family instead of 3, and the ladder from the lowest spp a render has
+MORE_DATA = {"per_family": 8, "input_spp": (2, 4, 8, 16, 32, 64)}
+QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
+    "cpu": ("the default (cpu preset), the baseline", "cpu", {}, None),
+    "multiscale-kernel": (CONFIGURATIONS["multiscale-kernel"][0], *CONFIGURATIONS["multiscale-kernel"][1:], None),
+    "data": (f"cpu on {MORE_DATA['per_family']} scenes per family and inputs at "
+             f"{', '.join(map(str, MORE_DATA['input_spp']))} spp", "cpu", {}, MORE_DATA),
+}
+QUALITY_LEVERS["combination"] = combine("multiscale-kernel", "data")
 
 # name -> (what it is, the loop's settings besides the study's)
 ARMS: dict[str, tuple[str, dict]] = {
@@ -114,6 +149,51 @@ class InputsStudyConfig:
             raise OptionError("frames", "must name at least one file or folder")
         if self.preset not in PRESETS:
             raise OptionError("preset", f"must be one of {', '.join(PRESETS)}, got {self.preset!r}")
+        check_fields(self)
+
+
+def _all_levers() -> tuple[str, ...]:
+    return tuple(QUALITY_LEVERS)
+
+
+# the repository's parent holds shared/: Blender's frames with its own denoiser's, and a Mitsuba 3 fixture
+VALIDATION_FRAMES = ("../shared/validation/blender", "../shared/fixtures/mitsuba")
+
+
+@dataclass
+class QualityConfig:
+    """Configuration of ``kpcn quality`` (kpcn_keras/studies/quality.py): each of ``levers``
+    (:data:`QUALITY_LEVERS`) trained for ``budget`` seconds (all its networks together; ``seed``) on the render
+    set ``<render_root>/<set_name>`` cut into ``shards_root`` (or on the larger set a lever renders from it), in
+    ``runs_root``; measured on the set's held-out frames and on the frames under ``frames``, with panels of the
+    frames at ``panel_spp``; reports in ``out_dir``."""
+
+    set_name: str = "default"
+    render_root: str = "data/renders"
+    shards_root: str = "shards"
+    runs_root: str = "runs/quality"
+    out_dir: str = "reports"
+    levers: tuple[str, ...] = bounded(default_factory=_all_levers, distinct=True)
+    frames: tuple[str, ...] = VALIDATION_FRAMES
+    budget: float = bounded(600, BUDGET)
+    panel_spp: int = bounded(16, SPP)
+    seed: int = bounded(0, SEED)
+
+    def __post_init__(self):
+        known = _all_levers()
+        if isinstance(self.levers, str):
+            self.levers = tuple(c.strip() for c in self.levers.split(",") if c.strip())
+        self.levers, self.frames = tuple(self.levers), tuple(self.frames)
+        check_set_name(self.set_name)
+        for name in ("render_root", "shards_root", "runs_root", "out_dir"):
+            if not isinstance(getattr(self, name), str) or not getattr(self, name):
+                raise OptionError(name, f"must be a folder, got {getattr(self, name)!r}")
+        unknown = [c for c in self.levers if c not in known]
+        if unknown or not self.levers:
+            found = f"has unknown {', '.join(map(repr, unknown))}" if unknown else "is empty"
+            raise OptionError("levers", f"{found}; the known ones are {', '.join(known)}")
+        if not self.frames:
+            raise OptionError("frames", "must name at least one file or folder")
         check_fields(self)
 
 

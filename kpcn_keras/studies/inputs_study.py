@@ -45,16 +45,16 @@ from kpcn_keras.studies.compare import (
     with_steps,
 )
 from kpcn_keras.studies.config import InputsStudyConfig
-from prep import exr, layouts, metrics
+from kpcn_keras.studies.frames import SCORES, beside, panels_figure, renderer_pairs, wins
+from kpcn_keras.studies.frames import scores as _scores
+from prep import exr, layouts
 from prep.errors import KpcnError
-from prep.files import atomic_write_json, pyplot, read_json
+from prep.files import atomic_write_json, read_json
 from prep.inputs import INPUT_SETS, InputSet
 from prep.studies.report import Report
 
 REPORT = "inputs"
 PLAN = "plan.json"
-RENDERER_DENOISED = "-blender-oidn.exr"  # the validation set's name for Blender's own denoised frame
-SCORES = ("relmse", "dssim", "relse_p999")
 
 
 def group_dir(cfg: InputsStudyConfig) -> Path:
@@ -66,21 +66,36 @@ def train_config(cfg: InputsStudyConfig, inputs: str, overrides: dict | None = N
                                    inputs=inputs, **(overrides or {}))
 
 
-def cut_shards(cfg: InputsStudyConfig, *, log=print) -> None:
-    """The render set's shards cut for every input set as its full set was cut (``make shards``' options, read
-    from its manifest; the defaults where there is none yet), each resumed, or reused when complete."""
-    from prep.shards import ShardConfig, ShardSet, build_shards
+def shard_options(set_name: str, render_root: str, shards_root: str) -> dict:
+    """The options the full shard set ``<shards_root>/<set_name>`` was cut with (``make shards``' own, read from
+    its manifest; none, the defaults, where there is no set yet), less where it is and what it holds."""
+    from prep.shards import ShardConfig, ShardSet
 
-    full = ShardConfig(set_name=cfg.set_name, render_root=cfg.render_root, out_root=cfg.shards_root)
-    options = {}
-    if (full.set_dir / "manifest.json").exists():
-        options = {k: v for k, v in ShardSet(full.set_dir).complete_manifest()["config"].items()
-                   if k not in ("set_name", "render_root", "out_root", "inputs", "command")}
-    for inputs in INPUT_SETS:
-        shard_cfg = ShardConfig(set_name=cfg.set_name, render_root=cfg.render_root, out_root=cfg.shards_root,
-                                inputs=inputs, **options)
-        log(f"inputs-study: shards for {inputs}: {shard_cfg.set_dir}")
+    full = ShardConfig(set_name=set_name, render_root=render_root, out_root=shards_root)
+    if not (full.set_dir / "manifest.json").exists():
+        return {}
+    return {k: v for k, v in ShardSet(full.set_dir).complete_manifest()["config"].items()
+            if k not in ("set_name", "render_root", "out_root", "inputs", "command")}
+
+
+def cut_input_shards(set_name: str, render_root: str, shards_root: str, input_sets=INPUT_SETS, *,
+                     options: dict | None = None, log=print) -> None:
+    """The render set ``<render_root>/<set_name>`` cut into shards for each of ``input_sets`` with ``options``
+    (ShardConfig fields), each resumed, or reused when complete."""
+    from prep.shards import ShardConfig, build_shards
+
+    for inputs in input_sets:
+        shard_cfg = ShardConfig(set_name=set_name, render_root=render_root, out_root=shards_root, inputs=inputs,
+                                **(options or {}))
+        log(f"shards for {inputs}: {shard_cfg.set_dir}")
         build_shards(shard_cfg, progress=False)
+
+
+def cut_shards(cfg: InputsStudyConfig, *, log=print) -> None:
+    """The render set's shards cut for every input set as its full set was cut (:func:`shard_options`)."""
+    cut_input_shards(cfg.set_name, cfg.render_root, cfg.shards_root, INPUT_SETS,
+                     options=shard_options(cfg.set_name, cfg.render_root, cfg.shards_root),
+                     log=lambda line: log(f"inputs-study: {line}"))
 
 
 def plan_and_train(cfg: InputsStudyConfig, *, overrides: dict | None = None, verbose="auto", log=print) -> dict:
@@ -110,10 +125,6 @@ def plan_and_train(cfg: InputsStudyConfig, *, overrides: dict | None = None, ver
     return plans
 
 
-def _scores(x: np.ndarray, ref: np.ndarray) -> dict:
-    return {"relmse": metrics.relmse(x, ref), "dssim": metrics.dssim(x, ref), "relse_p999": metrics.relse_p999(x, ref)}
-
-
 def _mean(rows: list[dict], method: str) -> dict:
     return {m: float(np.mean([r[method][m] for r in rows])) for m in SCORES} if all(method in r for r in rows) else {}
 
@@ -139,38 +150,11 @@ def held_out(cfg: InputsStudyConfig, plans: dict, *, log=print) -> dict:
     return {"frames": rows, "means": {m: _mean(rows, m) for m in ("raw", "oidn", *INPUT_SETS)}}
 
 
-def renderer_pairs(paths) -> list[tuple[Path, Path]]:
-    """(noisy, reference) of every ``<scene>-<spp>spp.exr`` under ``paths`` that is not its scene's reference."""
-    from kpcn_keras.evaluate import pairs_for_inputs
-
-    noisy = []
-    for given in map(Path, paths):
-        files = sorted(given.rglob("*spp.exr")) if given.is_dir() else [given]
-        for path in files:
-            try:
-                scene, spp = exr.parse_render_filename(path)
-            except exr.AOVError:
-                continue
-            most = max(exr.parse_render_filename(p)[1] for p in path.parent.glob(f"{scene}-*spp.exr")
-                       if _is_render(p, scene))
-            if spp < most:
-                noisy.append(path)
-    return [(Path(a), Path(b)) for a, b in pairs_for_inputs([str(p) for p in noisy])]
-
-
-def _is_render(path: Path, scene: str) -> bool:
-    try:
-        return exr.parse_render_filename(path)[0] == scene
-    except exr.AOVError:
-        return False
-
-
 def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[dict], list]:
     """Per frame of another renderer: its layout and input set, the model that served it, and the scores of the
     raw input, kpcn, OIDN and the renderer's own denoiser; and the panels of the figure."""
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
-    from prep import baselines
 
     root = Run(plans["full"]["run"])
     denoisers, rows, panels = {}, [], []
@@ -191,15 +175,10 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
         for name, layer in frame.alternatives.items():  # the layer the adapter could have taken instead
             row[f"kpcn_alternative_{name}"] = _scores(denoisers[variant.dir]({**frame.layers, name: layer})["default"],
                                                       ref)
-        images = {"input": frame.layers["default"], "kpcn": out}
-        if baselines.oidn_available():
-            images["OIDN"] = baselines.oidn_denoise(frame.layers)
-            row["oidn"] = _scores(images["OIDN"], ref)
-        own = noisy_path.with_name(noisy_path.name[: -len(".exr")] + RENDERER_DENOISED)
-        if own.exists():
-            images["Blender"] = layouts.read(own).layers["default"]
-            row["blender"] = _scores(images["Blender"], ref)
-        images["reference"] = ref
+        images = {"input": frame.layers["default"], "kpcn": out, **beside(noisy_path, frame.layers), "reference": ref}
+        for name in ("OIDN", "Blender"):
+            if name in images:
+                row[name.lower()] = _scores(images[name], ref)
         rows.append(row)
         panels.append((f"{row['renderer']}/{scene} {spp} spp", images))
         log(f"inputs-study: {noisy_path}: {frame.layout}, {frame.inputs}, kpcn relMSE {row['kpcn']['relmse']:.4f}"
@@ -278,12 +257,6 @@ def _get(row: dict, method: str, metric: str):
     return row.get(method, {}).get(metric)
 
 
-def wins(rows: list[dict], method: str = "kpcn", other: str = "oidn") -> str:
-    """"k of n": on how many frames ``method``'s relMSE is below ``other``'s."""
-    both = [r for r in rows if method in r and other in r]
-    return f"{sum(r[method]['relmse'] < r[other]['relmse'] for r in both)} of {len(both)}" if both else "–"
-
-
 def format_report(record: dict) -> str:
     cfg, rows, cost = record["config"], record["renderers"], record["held_out"]
     lines = [f"# kpcn on other renderers' frames, and what each missing input costs ({record['date']})", "",
@@ -357,19 +330,3 @@ def format_report(record: dict) -> str:
             lines.append(f"| {label} | – | – | {mean['relmse']:.4f} | {median:.4f} | {mean['dssim']:.4f} | "
                          f"{mean['relse_p999']:.4f} | {wins(frames, method, 'full')} | – |")
     return "\n".join(lines) + "\n"
-
-
-def panels_figure(panels: list):
-    """input | kpcn | OIDN | Blender | reference, one row per frame (tonemapped, ``prep.metrics.tonemap``)."""
-    plt = pyplot()
-    columns = ["input", "kpcn", "OIDN", "Blender", "reference"]
-    fig, axes = plt.subplots(max(len(panels), 1), len(columns), figsize=(2.2 * len(columns), 2.3 * max(len(panels), 1)),
-                             squeeze=False)
-    for row, (title, images) in zip(axes, panels):
-        for ax, name in zip(row, columns):
-            ax.axis("off")
-            if name in images:
-                ax.imshow(metrics.tonemap(images[name]), interpolation="nearest")
-                ax.set_title(f"{title}\n{name}" if name == "input" else name, fontsize=7)
-    fig.tight_layout()
-    return fig

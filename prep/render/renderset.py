@@ -15,6 +15,8 @@ long it took in ``timings.json`` (the one file that differs between runs). This 
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 import time
 import zlib
 from dataclasses import asdict, dataclass
@@ -25,7 +27,15 @@ import numpy as np
 from prep.bounds import SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import KpcnError, OptionError
 from prep.exr import render_filename, write_aovs
-from prep.files import atomic_write_json, check_set_name, check_writable, exclusive_lock, read_json, remove_temporaries
+from prep.files import (
+    atomic_path,
+    atomic_write_json,
+    check_set_name,
+    check_writable,
+    exclusive_lock,
+    read_json,
+    remove_temporaries,
+)
 from prep.parts import Part
 from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
@@ -148,6 +158,41 @@ def render_set(config: RenderConfig, progress: bool = True, part: Part = Part())
     with exclusive_lock(out_dir, "render set"):
         _finish(config, out_dir, renders, part)
     return [out_dir / r.name for r in mine]
+
+
+def reuse_renders(config: RenderConfig, source: str | os.PathLike) -> list[str]:
+    """Hard-link (copy, where the file system cannot link) into ``config``'s set folder every render of
+    ``config`` that the finished render set in ``source`` holds with the same pixels, so that a larger set made
+    from a smaller one (more scenes per family, a longer spp ladder) renders only what it adds. A render is the
+    same when the two sets share width, height and seed and ``source``'s record gives the file the seed
+    :func:`render_seed` gives it here: the same scene at the same samples and seed, hence the same bytes
+    (:func:`render_set` writes the same bytes for the same command). Renders already there are left as they are;
+    a source that is not a finished set gives nothing. Returns the names it linked."""
+    config.validate()
+    source, out_dir = Path(source), Path(config.out_root) / config.set_name
+    meta_path = source / "config.json"
+    if source.resolve() == out_dir.resolve() or not meta_path.exists():
+        return []
+    meta = read_json(meta_path, "render set record", keys=("config", "scenes"))
+    if any(meta["config"].get(k) != getattr(config, k) for k in _PIXEL_FIELDS) or not meta["scenes"]:
+        return []
+    seeds = {(sc["family"], sc["index"], int(spp)): (seed, sc["files"][spp]) for sc in meta["scenes"]
+             for spp, seed in sc["seeds"].items()}
+    linked = []
+    check_writable(out_dir, "render set folder (--out)", directory=True)
+    with exclusive_lock(out_dir, "render set"):
+        for r in _renders(config):
+            found = seeds.get((r.family, r.index, r.spp))
+            if found is None or found != (r.seed, r.name) or (out_dir / r.name).exists() \
+                    or not (source / r.name).is_file():
+                continue
+            with atomic_path(out_dir / r.name) as tmp:
+                try:
+                    os.link(source / r.name, tmp)
+                except OSError:  # another file system, or one without hard links
+                    shutil.copyfile(source / r.name, tmp)
+            linked.append(r.name)
+    return linked
 
 
 def _open_record(config: RenderConfig, out_dir: Path) -> None:

@@ -1,0 +1,523 @@
+"""``kpcn quality``: each lever that may make kpcn beat Open Image Denoise, alone and combined, at equal training
+time, on the project's held-out frames and on other renderers' validation frames, beside OIDN (issue 23).
+
+The contract:
+
+- **Levers** are :data:`kpcn_keras.studies.config.QUALITY_LEVERS` (name -> what it is, preset, TrainConfig
+  overrides, the options of a render set of its own or None), the one place they are defined; ``combination``
+  is an entry that merges others (``config.combine``).
+- **Data.** A lever without render options trains on the study's render set ``<render_root>/<set_name>`` as
+  ``make shards`` cut it. A lever with render options (more scenes per family, a longer spp ladder) trains on a
+  larger set rendered from the study's own (its seed, size, reference spp and families, the lever's options on
+  top) in ``<render_root>/<set_name>-r<hash of the options>``: the renders the two sets share are hard-linked
+  from the study's set (``prep.render.renderset.reuse_renders``: the same bytes), the rest rendered, resumably;
+  it is cut with the study's shard options and the study's held-out scenes as its validation scenes, so that no
+  lever trains on a scene any lever is judged on. Levers of the same render options share the set.
+- **Every input layout served.** The input sets the validation frames give (``prep.inputs``: Cycles writes no
+  variance, a Mitsuba or PBRT frame no split) besides the full set are the networks each lever trains: the full
+  run in ``<runs_root>/<set>-<budget>s-seed<seed>/<lever>``, the others in its ``inputs/<set>/`` folders
+  (``Run.for_inputs``), so that ``Run.serving`` picks each frame's network. A network for frames without a
+  split has the diffuse branch alone, so a lever's compositor, shared network or joint fine-tuning is left out
+  of it (:data:`WITHOUT_SPLIT`).
+- **Equal training time.** A lever's ``budget`` seconds are shared evenly by its networks (the full network and
+  one per other input set: ``budget / networks`` each); within a network, seconds become steps as ``kpcn
+  compare`` turns them (:func:`kpcn_keras.studies.compare.plan_steps`: probed steps, the branch phases' share,
+  the compositor's). The probes and steps are kept in ``plan.json`` beside the runs, keyed by the training's
+  identity, its seconds and its shard set's content key, so the same command resumes; a run that was trained
+  for other settings is refused.
+- **Measured on the same frames for every lever:** the study set's held-out frames (every validation scene at
+  every input spp; the full network) and the validation frames under ``frames`` (``<scene>-<spp>spp.exr`` that
+  are not their scene's reference, read in their own layout, each served by the lever's network for what it
+  gives), beside the raw input, OIDN (``pyoidn``: colour, albedo, normal; "not installed" without it) and, where
+  the folder has it, the renderer's own denoised frame. Per frame relMSE, DSSIM and relSE p99.9
+  (``kpcn_keras.studies.frames.scores``); the report's means per input spp, per lever the frames where its
+  relMSE is below OIDN's of how many, and the median of the ratio (``compare.against``).
+- **The headline judges by frames** (:func:`verdict`): the lever with the lowest mean held-out relMSE, then on
+  how many of all the frames its relMSE is below OIDN's; "beats OIDN" means on most frames.
+- **Writes** ``<out_dir>/quality.md`` (the tables, the date, the machine, the rules), ``quality.json`` (every
+  number, per frame) and ``quality.png`` (input | kpcn (the headline's lever) | OIDN | Blender | reference of the
+  validation frames at ``panel_spp``, every image tonemapped by the one ``prep.metrics.tonemap``) through
+  ``prep.studies.report``. ``kpcn quality --report-only`` writes the md again from ``quality.json`` alone and
+  the png from the frames and runs it names (:func:`rewrite_reports`), training nothing.
+
+The table of levers and :class:`kpcn_keras.studies.config.QualityConfig` are in ``kpcn_keras/studies/config.py``.
+This module imports keras and torch only inside the functions that train or denoise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shutil
+import statistics
+from datetime import date
+from pathlib import Path
+
+from kpcn_keras.config import TrainConfig
+from kpcn_keras.studies.compare import _training_seconds, against, deep_learning_stack, plan_steps, with_steps
+from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig
+from kpcn_keras.studies.frames import SCORES, beside, by_spp, panels_figure, renderer_pairs, scores
+from kpcn_keras.studies.inputs_study import cut_input_shards, shard_options
+from prep import exr, layouts
+from prep.errors import KpcnError
+from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json
+from prep.inputs import FULL, INPUT_SETS, InputSet
+from prep.studies.report import Report
+
+REPORT = "quality"  # quality.json, quality.md, quality.png in the report folder
+PLAN = "plan.json"
+KINDS = ("held-out", "validation")
+BASELINES = ("raw", "oidn", "blender")
+LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
+# a network for frames without a diffuse/specular split has the diffuse branch alone: what joins both branches
+# (a compositor, one shared network, joint fine-tuning) is left out of a lever's network for them
+WITHOUT_SPLIT = {"compositor": None, "shared": False, "joint_steps": 0}
+
+
+# ---------------------------------------------------------------- levers and their data
+
+
+def group_dir(cfg: QualityConfig) -> Path:
+    # budget and seed in the name: another budget is another set of runs, not a clash with these
+    return Path(cfg.runs_root) / f"{cfg.set_name}-{cfg.budget:g}s-seed{cfg.seed}"
+
+
+def lever_set(cfg: QualityConfig, lever: str) -> str:
+    """The render and shard set ``lever`` trains on: the study's, or the larger one its render options make."""
+    options = QUALITY_LEVERS[lever][3]
+    if not options:
+        return cfg.set_name
+    digest = hashlib.sha256(json.dumps(options, sort_keys=True, default=list).encode()).hexdigest()[:8]
+    return f"{cfg.set_name}-r{digest}"
+
+
+def render_config(cfg: QualityConfig, lever: str):
+    """The RenderConfig of ``lever``'s own render set: the study set's record with the lever's options."""
+    from prep.render.renderset import RenderConfig
+
+    base = Path(cfg.render_root) / cfg.set_name / "config.json"
+    if not base.exists():
+        raise KpcnError(f"{base.parent}: not a render set (run 'kpcn render --set {cfg.set_name}' first); lever "
+                        f"{lever!r} renders a larger set from it")
+    recorded = read_json(base, "render set record", keys=("config",))["config"]
+    fields = {f.name for f in dataclasses.fields(RenderConfig)}
+    values = {**{k: v for k, v in recorded.items() if k in fields}, **QUALITY_LEVERS[lever][3],
+              "set_name": lever_set(cfg, lever), "out_root": cfg.render_root}
+    return RenderConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
+def held_out_scenes(cfg: QualityConfig) -> list[str]:
+    """The validation scenes of the study's full shard set: every lever's held-out scenes."""
+    from prep.shards import ShardSet
+
+    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    return sorted({s["scene"] for s in manifest["sources"] if s["split"] == "val"})
+
+
+def prepare_data(cfg: QualityConfig, input_sets: tuple[str, ...], *, log=print) -> dict[str, str]:
+    """Render and cut what every lever of ``cfg`` trains on, for each of ``input_sets``; returns lever -> set."""
+    from prep.render.renderset import render_set, reuse_renders
+
+    options = shard_options(cfg.set_name, cfg.render_root, cfg.shards_root)
+    cut_input_shards(cfg.set_name, cfg.render_root, cfg.shards_root, input_sets, options=options,
+                     log=lambda line: log(f"quality: {line}"))
+    sets, done = {}, {cfg.set_name}
+    for lever in cfg.levers:
+        sets[lever] = name = lever_set(cfg, lever)
+        if name in done:
+            continue
+        rc = render_config(cfg, lever)
+        linked = reuse_renders(rc, Path(cfg.render_root) / cfg.set_name)
+        log(f"quality: {lever}: render set {Path(rc.out_root) / rc.set_name} ({len(linked)} renders linked from "
+            f"{cfg.set_name}, the rest rendered)")
+        render_set(rc, progress=False)
+        cut_input_shards(name, cfg.render_root, cfg.shards_root, input_sets,
+                         options={**options, "val_scenes": tuple(held_out_scenes(cfg))},
+                         log=lambda line: log(f"quality: {line}"))
+        done.add(name)
+    return sets
+
+
+def train_config(cfg: QualityConfig, lever: str, set_name: str, inputs: str,
+                 overrides: dict | None = None) -> TrainConfig:
+    """The TrainConfig of ``lever``'s network for ``inputs`` before its steps are set; ``overrides`` apply after
+    the lever's own (``model`` merged)."""
+    _, preset, own, _ = QUALITY_LEVERS[lever]
+    overrides = dict(overrides or {})
+    values = {**own, **overrides}
+    values["model"] = {**own.get("model", {}), **(overrides.get("model") or {})}
+    if not InputSet.named(inputs).split:
+        values.update(WITHOUT_SPLIT)
+    return TrainConfig.from_preset(preset, set_name=set_name, shards_root=cfg.shards_root, seed=cfg.seed,
+                                   inputs=inputs, **values)
+
+
+def plan_and_train(cfg: QualityConfig, sets: dict[str, str], input_sets: tuple[str, ...], *,
+                   overrides: dict | None = None, verbose="auto", log=print) -> dict:
+    """Every lever's networks planned (or their plan reused) and trained; lever -> {set, run, networks}."""
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import train
+    from prep.shards import ShardSet
+    from prep.shards.config import shard_set_dir
+
+    group = group_dir(cfg)
+    check_writable(group, "runs folder (--runs)", directory=True)
+    seconds = cfg.budget / len(input_sets)
+    plans = {}
+    with exclusive_lock(group, "quality study folder"):
+        scratch = group / "probes"
+        if scratch.exists():
+            shutil.rmtree(scratch)  # what a killed study's probes left
+        plan_path = group / PLAN
+        stored = read_json(plan_path, "quality plan") if plan_path.is_file() else {}
+        for lever in cfg.levers:
+            run = Run(group / lever)
+            networks = {}
+            for inputs in input_sets:
+                base = train_config(cfg, lever, sets[lever], inputs, overrides)
+                manifest = ShardSet(shard_set_dir(cfg.shards_root, sets[lever], inputs)).complete_manifest()
+                key = {"train": base.identity(), "seconds": seconds, "content_key": manifest["content_key"]}
+                entry = stored.get(lever, {}).get(inputs)
+                variant = run.for_inputs(InputSet.named(inputs))
+                if entry is None or {k: entry.get(k) for k in key} != key:
+                    if variant.has_record():
+                        raise KpcnError(f"{variant.dir}: trained for other settings than this study's (another "
+                                        f"lever, shard set or budget); choose another --runs or remove {run.dir}")
+                    entry = {**key, **plan_steps(base, seconds, scratch / f"{lever}-{inputs}")}
+                    stored.setdefault(lever, {})[inputs] = entry
+                    atomic_write_json(plan_path, stored)
+                log(f"quality: [{lever}] {inputs}: {seconds:g} s, steps "
+                    + ", ".join(f"{k} {v}" for k, v in entry["phase_steps"].items()))
+                train(with_steps(base, entry["steps"]), run.dir, verbose=verbose)
+                networks[inputs] = {**entry, "run": str(variant.dir), "trained_s": _training_seconds(variant.dir)}
+            plans[lever] = {"set": sets[lever], "run": str(run.dir), "networks": networks}
+        if scratch.exists():
+            shutil.rmtree(scratch)
+    return plans
+
+
+# ---------------------------------------------------------------- the frames
+
+
+def validation_frames(cfg: QualityConfig) -> list[dict]:
+    """Every validation frame under ``cfg.frames`` read once, with its reference and the denoisers beside kpcn."""
+    for given in cfg.frames:
+        if not Path(given).exists():
+            raise KpcnError(f"--frames {given}: no such file or folder")
+    pairs = renderer_pairs(cfg.frames)
+    if not pairs:
+        raise KpcnError(f"--frames {' '.join(cfg.frames)}: no noisy frame with a reference beside it")
+    frames = []
+    for noisy_path, ref_path in pairs:
+        frame = layouts.read(noisy_path)
+        scene, spp = exr.parse_render_filename(noisy_path)
+        frames.append({"path": noisy_path, "reference_path": ref_path, "scene": scene, "spp": spp,
+                       "renderer": noisy_path.parent.name, "frame": frame,
+                       "reference": layouts.read(ref_path).layers["default"],
+                       "beside": beside(noisy_path, frame.layers)})
+    return frames
+
+
+def input_sets_for(frames: list[dict]) -> tuple[str, ...]:
+    """The networks every lever trains: the full set, and each set a validation frame gives, in the order of
+    ``prep.inputs.INPUT_SETS``."""
+    given = {FULL.name} | {f["frame"].inputs.name for f in frames}
+    return tuple(s for s in INPUT_SETS if s in given)
+
+
+def held_out_frames(cfg: QualityConfig) -> list[dict]:
+    """The study set's held-out frames (every validation scene at every input spp), read once."""
+    from kpcn_keras.evaluate import read_frames
+    from prep.shards import ShardSet
+
+    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    frames = read_frames(sset.pairs(sset.complete_manifest(), "val"))
+    if not frames:
+        raise KpcnError(f"{sset.dir}: no held-out scenes to measure on")
+    return frames
+
+
+# ---------------------------------------------------------------- measuring
+
+
+def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict], *, log=print) -> tuple:
+    """Per-frame rows of both kinds (raw input, OIDN, Blender's own, every lever) and each lever's outputs on
+    the validation frames at ``cfg.panel_spp`` (for the panels)."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+    from prep import baselines
+
+    rows, outputs = [], {}
+    oidn = baselines.oidn_available()
+    for f in held:
+        scene, spp = f["name"].split(" ")[0], int(f["name"].split(" ")[1])
+        row = {"kind": "held-out", "frame": f["name"], "scene": scene, "spp": spp,
+               "raw": scores(f["noisy"]["default"], f["reference"]), "levers": {}}
+        if oidn:
+            row["oidn"] = scores(baselines.oidn_denoise(f["noisy"]), f["reference"])
+        rows.append(row)
+    for f in frames:
+        row = {"kind": "validation", "frame": f"{f['renderer']}/{f['scene']} {f['spp']} spp", "scene": f["scene"],
+               "spp": f["spp"], "path": str(f["path"]), "reference_path": str(f["reference_path"]),
+               "renderer": f["renderer"], "layout": f["frame"].layout, "inputs": f["frame"].inputs.name,
+               "raw": scores(f["frame"].layers["default"], f["reference"]), "levers": {}}
+        for name, image in f["beside"].items():
+            row[name.lower()] = scores(image, f["reference"])
+        rows.append(row)
+    denoisers = {}
+
+    def denoiser(variant):
+        if variant.dir not in denoisers:
+            denoisers[variant.dir] = Denoiser.from_run(variant)
+        return denoisers[variant.dir]
+
+    for lever, plan in plans.items():
+        run = Run(plan["run"])
+        for row, f in zip(rows, held):
+            row["levers"][lever] = {**scores(denoiser(run)(f["noisy"])["default"], f["reference"]), "model": FULL.name}
+        for row, f in zip(rows[len(held):], frames):
+            variant = run.serving(f["frame"].inputs)
+            out = denoiser(variant)(f["frame"].layers)["default"]
+            row["levers"][lever] = {**scores(out, f["reference"]), "model": variant.record().inputs.name,
+                                    "run": str(variant.dir)}
+            if f["spp"] == cfg.panel_spp:
+                outputs[lever, str(f["path"])] = out
+        held_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[:len(held)])
+        val_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[len(held):])
+        log(f"quality: [{lever}] mean relMSE held-out {held_mean:.4f}, validation {val_mean:.4f}")
+    return rows, outputs
+
+
+# ---------------------------------------------------------------- the command
+
+
+def quality(cfg: QualityConfig, *, overrides: dict | None = None, command: str | None = None, verbose="auto",
+            log=print) -> dict:
+    """Run the study (module docstring); writes the three reports and returns the record.
+
+    ``overrides``: TrainConfig fields applied to every lever after its own (a tiny network for a test); they are
+    part of the plan's key and of the record. ``command``: the command line that asked, for the report."""
+    from prep import baselines
+
+    report = Report(cfg.out_dir, REPORT)
+    report.check_writable()
+    frames = validation_frames(cfg)
+    session = report.begin()
+    input_sets = input_sets_for(frames)
+    log(f"quality: {len(cfg.levers)} levers, {cfg.budget:g} s of training each over {len(input_sets)} networks "
+        f"({', '.join(input_sets)}); {len(frames)} validation frames")
+    sets = prepare_data(cfg, input_sets, log=log)
+    plans = plan_and_train(cfg, sets, input_sets, overrides=overrides, verbose=verbose, log=log)
+    held = held_out_frames(cfg)
+    rows, outputs = measure(cfg, plans, held, frames, log=log)
+    record = {
+        **session.envelope(command),
+        "config": {**dataclasses.asdict(cfg), "levers": list(cfg.levers), "frames": list(cfg.frames)},
+        "levers": {n: {"what": QUALITY_LEVERS[n][0], "preset": QUALITY_LEVERS[n][1],
+                       "overrides": QUALITY_LEVERS[n][2], "renders": QUALITY_LEVERS[n][3]} for n in cfg.levers},
+        "overrides": overrides or {},
+        "input_sets": list(input_sets),
+        "rules": {"seconds_per_network": cfg.budget / len(input_sets)},
+        "oidn": baselines.oidn_available(),
+        "machine": session.machine(**deep_learning_stack()),
+        "plans": plans,
+        "frames": rows,
+    }
+    record["panels"] = panel_entries(record)
+    top = best(record)
+    shown = []
+    for entry, f in zip(record["panels"], [f for f in frames if f["spp"] == cfg.panel_spp]):
+        images = {"input": f["frame"].layers["default"], "kpcn": outputs[top, str(f["path"])], **f["beside"],
+                  "reference": f["reference"]}
+        shown.append((entry["title"], images))
+    return report.write(record, format_report(record), lambda _: panels_figure(shown))
+
+
+def panel_entries(record: dict) -> list[dict]:
+    """The panels' frames: each validation frame at the panel spp, with the run of the headline's lever that
+    served it (what ``--report-only`` reads again)."""
+    top = best(record)
+    return [{"title": f"{r['frame']} ({top})", "path": r["path"], "reference_path": r["reference_path"],
+             "run": r["levers"][top]["run"]}
+            for r in record["frames"] if r["kind"] == "validation" and r["spp"] == record["config"]["panel_spp"]]
+
+
+def redraw_panels(record: dict):
+    """quality.png from the frames and runs the record's panels name (``--report-only``)."""
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+
+    shown = []
+    for entry in record["panels"]:
+        frame = layouts.read(entry["path"])
+        out = Denoiser.from_run(Run(entry["run"]))(frame.layers)["default"]
+        shown.append((entry["title"], {"input": frame.layers["default"], "kpcn": out,
+                                       **beside(Path(entry["path"]), frame.layers),
+                                       "reference": layouts.read(entry["reference_path"]).layers["default"]}))
+    return panels_figure(shown)
+
+
+RECORD_KEYS = ("date", "config", "levers", "input_sets", "rules", "oidn", "machine", "plans", "frames", "panels")
+
+
+def rewrite_reports(out_dir: str | Path) -> dict:
+    """``quality.md`` written again from ``<out_dir>/quality.json`` and ``quality.png`` from the frames and runs
+    it names (``kpcn quality --report-only``), nothing trained; returns the record as the report read it (with
+    ``rewritten``; ``quality.json`` is left as it is)."""
+    report = Report(out_dir, REPORT)
+    record = read_json(report.path(".json"), "quality record", RECORD_KEYS)
+    report.check_writable((".md", ".png"))
+    record = {**record, "rewritten": f"`kpcn quality --report-only` on {date.today().isoformat()}"}
+    report.write_text(record, format_report(record), redraw_panels)
+    return record
+
+
+# ---------------------------------------------------------------- judging
+
+
+def of_kind(record: dict, kind: str) -> list[dict]:
+    return [r for r in record["frames"] if r["kind"] == kind]
+
+
+def mean(rows: list[dict], method: str, metric: str, lever: bool = False) -> float | None:
+    """The mean over ``rows`` of ``metric`` of ``method`` (a lever's with ``lever``); None where a row lacks it."""
+    values = [(r["levers"] if lever else r).get(method, {}).get(metric) for r in rows]
+    return None if not values or None in values else statistics.fmean(values)
+
+
+def against_oidn(rows: list[dict], lever: str) -> dict | None:
+    """``lever`` against OIDN on the ``rows`` that have OIDN's scores (``compare.against``: ``lower``, of
+    ``frames``, ``median_ratio``); None where none has."""
+    both = [r for r in rows if "oidn" in r]
+    if not both:
+        return None
+    return against({"frames": [r["levers"][lever] for r in both]}, {"frames": [r["oidn"] for r in both]})
+
+
+def best(record: dict) -> str:
+    """The lever with the lowest mean relMSE on the held-out frames (``compare``'s rule)."""
+    held = of_kind(record, "held-out")
+    return min(record["config"]["levers"], key=lambda lever: mean(held, lever, "relmse", lever=True))
+
+
+def verdict(record: dict) -> str:
+    """The headline: the best lever, then how it does against OIDN judged by frames, both kinds together."""
+    top = best(record)
+    line = (f"**Best lever by held-out relMSE: `{top}`** (mean "
+            f"{mean(of_kind(record, 'held-out'), top, 'relmse', lever=True):.4f})")
+    if not record["oidn"]:
+        return line + "; OIDN, the denoiser to beat, is not installed here."
+    parts = {kind: against_oidn(of_kind(record, kind), top) for kind in KINDS}
+    total = against_oidn(record["frames"], top)
+    lower, n = total["lower"], total["frames"]
+    judged = ("it beats OIDN on most frames" if 2 * lower > n else
+              "OIDN is better on most frames" if 2 * lower < n else "level with OIDN: lower on half the frames")
+    each = "; ".join(f"{p['lower']} of {p['frames']} {kind} frames" for kind, p in parts.items() if p)
+    return (line + f". Against OIDN: lower relMSE on {lower} of {n} frames ({each}), the median ratio of its "
+            f"relMSE to OIDN's {total['median_ratio']:.2f}×: {judged}.")
+
+
+# ---------------------------------------------------------------- the report
+
+
+def _n(value, fmt="{:.4f}") -> str:
+    return "—" if value is None else fmt.format(value)
+
+
+def _count(got: dict | None) -> str:
+    return "—" if got is None else f"{got['lower']} of {got['frames']}"
+
+
+def _ratio(got: dict | None) -> str:
+    return "—" if got is None else f"{got['median_ratio']:.2f}×"
+
+
+def _kind_table(record: dict, kind: str) -> list[str]:
+    rows = of_kind(record, kind)
+    lines = ["| spp | method | frames | relMSE | DSSIM | relSE p99.9 | frames below OIDN's relMSE | median relMSE "
+             "/ OIDN's |", "|---|---|---|---|---|---|---|---|"]
+    for spp, group in by_spp(rows).items():
+        for lever in record["config"]["levers"]:
+            got = against_oidn(group, lever)
+            lines.append(f"| {spp} | `{lever}` | {len(group)} | "
+                         + " | ".join(_n(mean(group, lever, m, lever=True)) for m in SCORES)
+                         + f" | {_count(got)} | {_ratio(got)} |")
+        for method in BASELINES:
+            if any(method in r for r in group):
+                have = [r for r in group if method in r]
+                lines.append(f"| {spp} | {LABELS[method]} | {len(have)} | "
+                             + " | ".join(_n(mean(have, method, m)) for m in SCORES) + " | — | — |")
+        if not record["oidn"]:
+            lines.append(f"| {spp} | OIDN | — | not installed (pip install '.[oidn]') | — | — | — | — |")
+    return lines
+
+
+def format_report(record: dict) -> str:
+    """quality.md: the levers, the tables of both kinds per input spp, each validation frame, the rules."""
+    cfg, machine = record["config"], record["machine"]
+    held, val = of_kind(record, "held-out"), of_kind(record, "validation")
+    lines = [
+        f"# Each lever against OIDN, at equal training time ({record['date']})", "",
+        (f"`{record['command']}`, {record['started']} to {record['finished']}. " if record.get("command") else "")
+        + f"Every lever trained {cfg['budget']:g} s on this machine, shared evenly by its "
+        f"{len(record['input_sets'])} networks ({', '.join(record['input_sets'])}: "
+        f"{record['rules']['seconds_per_network']:g} s each), then measured on the same {len(held)} held-out frames "
+        f"of the `{cfg['set_name']}` set and {len(val)} validation frames ({', '.join(cfg['frames'])})."
+        + (f" This report was written again from `quality.json` by {record['rewritten']}; every number is the "
+           "record's." if record.get("rewritten") else ""),
+        "", verdict(record), "",
+        "## The levers", "",
+        "| lever | what it is | trains on | steps per network (trained s) | held-out frames below OIDN's relMSE | "
+        "validation frames below OIDN's | all frames | median relMSE / OIDN's |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for lever in cfg["levers"]:
+        plan = record["plans"][lever]
+        steps = "; ".join(f"{inputs}: " + ", ".join(f"{k} {v}" for k, v in n["phase_steps"].items())
+                          + f" ({n['trained_s']:.0f} s)" for inputs, n in plan["networks"].items())
+        total = against_oidn(record["frames"], lever)
+        lines.append(f"| `{lever}` | {record['levers'][lever]['what']} | `{plan['set']}` | {steps} | "
+                     f"{_count(against_oidn(held, lever))} | {_count(against_oidn(val, lever))} | {_count(total)} | "
+                     f"{_ratio(total)} |")
+    for kind, what in (("held-out", f"The `{cfg['set_name']}` set's held-out frames (every validation scene at "
+                                    "every input spp; each lever's full network)"),
+                       ("validation", "The validation frames, each denoised by the lever's network for the inputs "
+                                      "it gives; Blender's own: the frame Blender's denoiser wrote at render time")):
+        lines += ["", f"## {kind.capitalize()} frames", "", f"{what}. Means over the frames of each input spp.", "",
+                  *_kind_table(record, kind)]
+    lines += ["", "## Each validation frame (relMSE)", "",
+              "| frame | layout | inputs | raw | " + " | ".join(f"`{lv}`" for lv in cfg["levers"])
+              + " | OIDN | Blender's own |", "|---|---|---|---|" + "---|" * len(cfg["levers"]) + "---|---|"]
+    for r in val:
+        lines.append(f"| {r['frame']} | {r['layout']} | {r['inputs']} | {r['raw']['relmse']:.4f} | "
+                     + " | ".join(f"{r['levers'][lv]['relmse']:.4f}" for lv in cfg["levers"])
+                     + f" | {_n(r.get('oidn', {}).get('relmse'))} | {_n(r.get('blender', {}).get('relmse'))} |")
+    load_b, load_a = machine["load_average_before"][0], machine["load_average_after"][0]
+    lines += [
+        "", "## The rules", "",
+        f"- **Same budget.** Each lever's {cfg['budget']:g} s are shared evenly by its networks: the full one (the "
+        "held-out frames) and one per input set a validation frame gives (`Run.serving` picks each frame's). "
+        "Within a network, seconds become steps as `kpcn compare` turns them: each phase's steps are timed by a "
+        "scratch training, the branch phases get their share, a compositor the rest. A network for frames without "
+        "a split has the diffuse branch alone: a lever's compositor, shared network or joint fine-tuning is left "
+        "out of it. Building, validation and checkpoints come on top: *trained s* is what the run's phases took.",
+        "- **Same frames.** A lever with a render set of its own trains on a larger set rendered from the study's "
+        "(the renders they share linked, the same bytes) whose validation scenes are the study's held-out scenes: "
+        "no lever trains on a frame any lever is judged on.",
+        "- **By frames.** *Frames below OIDN's relMSE* counts the frames where the lever's relMSE is strictly "
+        "below OIDN's, of the frames OIDN has; the median ratio is over the same frames. A mean over frames can "
+        "be carried by one frame (`caustics`, whose reference is itself speckled); these cannot.",
+        "- **Metrics** (`prep/metrics.py`): relMSE = mean((x − r)² / (r² + 0.01)); relSE p99.9, the error of the "
+        "worst 0.1 % of pixels; DSSIM = (1 − SSIM) / 2 on tonemapped images. `quality.json` has every frame's "
+        "values; `quality.png` shows input | kpcn (the best lever) | OIDN | Blender's own | reference of the "
+        f"validation frames at {cfg['panel_spp']} spp, every image through one tonemap.",
+        f"- **Machine:** {machine['cpus']} CPUs, load average {load_b:.2f} before and {load_a:.2f} after; "
+        f"{machine['platform']}, Python {machine['python']}, torch {machine['torch']}, keras {machine['keras']}, "
+        f"{machine['torch_threads']} torch threads. What else ran on the machine is for the caller to note: on a "
+        "busy machine the probed steps, and so the budgets, are not the same.",
+    ]
+    if record.get("overrides"):
+        lines.append(f"- **Every lever overridden** with `{json.dumps(record['overrides'])}` (TrainConfig fields, "
+                     "after the lever's own).")
+    return "\n".join(lines) + "\n"

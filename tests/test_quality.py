@@ -1,0 +1,316 @@
+"""``kpcn quality``: the lever table and its combination, the frames each lever beats OIDN on counted against
+a hand-built per-frame table, the report written again from its record, a bad lever a one-line error, a larger
+render set reusing the renders it shares, and (slow) a tiny study whose raw scores a float64 computation from
+the EXRs reproduces."""
+
+import dataclasses
+import datetime
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+
+from kpcn_keras.studies import compare as cmp
+from kpcn_keras.studies import quality as qs
+from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig, combine
+from prep import exr, layouts
+from prep.errors import OptionError
+
+RENDERERS = Path(__file__).parent / "fixtures" / "renderers"
+OVERRIDES = {"model": TINY_MODEL, "batch_size": 2, "val_batches": 1}
+
+
+def test_every_lever_is_an_entry_and_the_combination_merges_them():
+    for what, preset, overrides, renders in QUALITY_LEVERS.values():
+        assert what and preset and isinstance(overrides, dict) and (renders is None or renders)
+    levers = {"a": ("a", "cpu", {"model": {"depth": 3}, "compositor": {"kind": "kernel"}}, None),
+              "b": ("b", "unet", {"model": {"width": 8}, "reference_tau": 0.1}, {"per_family": 5}),
+              "c": ("c", "kpcn-paper", {}, None)}
+    what, preset, overrides, renders = combine("a", "b", levers=levers)
+    assert preset == "unet" and renders == {"per_family": 5}
+    assert overrides == {"model": {"depth": 3, "width": 8}, "compositor": {"kind": "kernel"}, "reference_tau": 0.1}
+    assert "a, b" in what
+    with pytest.raises(ValueError, match="different presets"):
+        combine("b", "c", levers=levers)
+    assert QUALITY_LEVERS["combination"][2:] == combine(*[n for n in QUALITY_LEVERS if n not in ("cpu", "combination")
+                                                           ])[2:]
+    cfg = QualityConfig()
+    assert qs.lever_set(cfg, "cpu") == qs.lever_set(cfg, "multiscale-kernel") == "default"
+    # the data lever and the combination render the same larger set once
+    assert qs.lever_set(cfg, "data") == qs.lever_set(cfg, "combination") != "default"
+
+
+def test_a_bad_lever_is_one_line_naming_it_and_the_known_ones(tmp_path):
+    with pytest.raises(OptionError, match="levers has unknown 'bogus'"):
+        QualityConfig(levers=("cpu", "bogus"))
+    for bad in ({"budget": 0}, {"levers": ()}, {"frames": ()}, {"levers": ("cpu", "cpu")}):
+        with pytest.raises(OptionError):
+            QualityConfig(**bad)
+    res = run_main("quality", "--levers", "cpu,bogus", "--out", str(tmp_path / "reports"), cwd=tmp_path)
+    assert_one_line_error(res, "--levers", "'bogus'", *QUALITY_LEVERS)
+    assert not any(tmp_path.iterdir())
+    res = run_main("quality", "--frames", str(tmp_path / "nowhere"), "--out", str(tmp_path / "reports"), cwd=tmp_path)
+    assert_one_line_error(res, "--frames", "nowhere", "no such file or folder")
+
+
+# relMSE per frame: (kind, spp, raw, cpu, data, OIDN, Blender's own or None)
+TABLE = [
+    ("held-out", 4, 0.50, 0.010, 0.020, 0.015, None),
+    ("held-out", 4, 0.40, 0.030, 0.010, 0.020, None),
+    ("held-out", 16, 0.20, 0.004, 0.006, 0.005, None),
+    ("held-out", 16, 0.10, 0.009, 0.002, 0.003, None),
+    ("held-out", 64, 0.05, 0.002, 0.001, 0.001, None),  # data ties OIDN: not below
+    ("validation", 4, 0.30, 0.020, 0.010, 0.005, 0.004),
+    ("validation", 16, 0.08, 0.006, 0.003, 0.004, 0.002),
+    ("validation", 64, 0.02, 0.001, 0.002, 0.003, 0.001),
+]
+LEVERS = ("cpu", "data")
+
+
+def _scores(relmse):
+    return {"relmse": relmse, "dssim": relmse / 2, "relse_p999": relmse * 10}
+
+
+def hand_record(oidn=True) -> dict:
+    frames = []
+    for i, (kind, spp, raw, cpu, data, o, blender) in enumerate(TABLE):
+        row = {"kind": kind, "frame": f"s{i} {spp} spp", "scene": f"s{i}", "spp": spp, "raw": _scores(raw),
+               "levers": {"cpu": {**_scores(cpu), "model": "full"}, "data": {**_scores(data), "model": "full"}}}
+        if oidn:
+            row["oidn"] = _scores(o)
+        if kind == "validation":
+            row.update(path=f"v/s{i}-{spp:05d}spp.exr", reference_path="v/ref.exr", renderer="v", layout="cycles",
+                       inputs="no-variance")
+            row["blender"] = _scores(blender)
+        frames.append(row)
+    network = {"phase_steps": {"diffuse": 3, "specular": 3}, "trained_s": 4.0}
+    return {
+        "date": "2026-12-02", "command": "kpcn quality --budget 10", "started": "s", "finished": "f",
+        "config": {**dataclasses.asdict(QualityConfig(levers=LEVERS, budget=10)), "levers": list(LEVERS),
+                   "frames": ["v"]},
+        "levers": {n: {"what": QUALITY_LEVERS[n][0]} for n in LEVERS},
+        "overrides": {}, "input_sets": ["full", "no-variance"], "rules": {"seconds_per_network": 5.0},
+        "oidn": oidn,
+        "machine": {"cpus": 2, "platform": "p", "python": "3.11", "torch": "t", "keras": "k", "torch_threads": 2,
+                    "load_average_before": [0.0] * 3, "load_average_after": [0.0] * 3},
+        "plans": {n: {"set": "default", "run": f"runs/{n}", "networks": {"full": network, "no-variance": network}}
+                  for n in LEVERS},
+        "frames": frames, "panels": [],
+    }
+
+
+def _expected(column: int, kinds=("held-out", "validation"), spp=None):
+    """(frames where the lever's relMSE is strictly below OIDN's, frames, median of the ratio), by hand."""
+    rows = [t for t in TABLE if t[0] in kinds and (spp is None or t[1] == spp)]
+    ratios = sorted(t[column] / t[5] for t in rows)
+    n = len(ratios)
+    median = ratios[n // 2] if n % 2 else (ratios[n // 2 - 1] + ratios[n // 2]) / 2
+    return sum(t[column] < t[5] for t in rows), n, median
+
+
+def _tables(md: str) -> list[list[list[str]]]:
+    tables, current = [], []
+    for line in md.splitlines() + [""]:
+        if line.startswith("|"):
+            current.append([c.strip() for c in line.strip("|").split("|")])
+        elif current:
+            tables.append(current[2:])
+            current = []
+    return tables
+
+
+def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
+    record = hand_record()
+    md = qs.format_report(record)
+    levers, held, val, each = _tables(md)
+    for lever, column in (("cpu", 3), ("data", 4)):
+        row = next(r for r in levers if r[0] == f"`{lever}`")
+        for cell, kinds in ((row[4], ("held-out",)), (row[5], ("validation",)), (row[6], KINDS_ALL)):
+            lower, n, _ = _expected(column, kinds)
+            assert cell == f"{lower} of {n}"
+        assert row[7] == f"{_expected(column)[2]:.2f}×"
+        for table, kind in ((held, "held-out"), (val, "validation")):
+            for spp in (4, 16, 64):
+                cells = next(r for r in table if r[0] == str(spp) and r[1] == f"`{lever}`")
+                lower, n, median = _expected(column, (kind,), spp)
+                values = [t[column] for t in TABLE if t[0] == kind and t[1] == spp]
+                assert cells[2] == str(n) and cells[3] == f"{np.mean(values):.4f}"
+                assert cells[4] == f"{np.mean(values) / 2:.4f}" and cells[5] == f"{np.mean(values) * 10:.4f}"
+                assert cells[6] == f"{lower} of {n}" and cells[7] == f"{median:.2f}×"
+    # Blender's own appears beside the validation frames only
+    assert any(r[1] == "Blender's own" for r in val) and not any(r[1] == "Blender's own" for r in held)
+    blender64 = next(r for r in val if r[0] == "64" and r[1] == "Blender's own")
+    assert blender64[3] == "0.0010"
+    assert [r[0] for r in each] == [f"s{i} {t[1]} spp" for i, t in enumerate(TABLE) if t[0] == "validation"]
+    # the headline: data has the lower mean held-out relMSE, and is below OIDN on 4 of 8 frames: level
+    assert qs.best(record) == "data"
+    lower, n, median = _expected(4)
+    assert (lower, n) == (4, 8)
+    headline = next(line for line in md.splitlines() if line.startswith("**Best"))
+    assert f"lower relMSE on {lower} of {n} frames (2 of 5 held-out frames; 2 of 3 validation frames)" in headline
+    assert f"{median:.2f}×" in headline and "level with OIDN" in headline
+
+
+KINDS_ALL = ("held-out", "validation")
+
+
+def test_without_oidn_the_report_says_so_and_counts_nothing():
+    md = qs.format_report(hand_record(oidn=False))
+    assert "OIDN, the denoiser to beat, is not installed here" in md
+    levers = _tables(md)[0]
+    assert all(set(r[4:]) == {"—"} for r in levers)
+    assert "not installed (pip install '.[oidn]')" in md
+
+
+def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
+    record = hand_record()
+    (tmp_path / "quality.json").write_text(json.dumps(record, indent=2) + "\n")
+    (tmp_path / "quality.md").write_text("an older report\n")
+    before = datetime.date.today()
+    res = run_main("quality", "--report-only", "--out", str(tmp_path), cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    md = (tmp_path / "quality.md").read_text()
+    days = [f"`kpcn quality --report-only` on {d.isoformat()}" for d in {before, datetime.date.today()}]
+    assert any(md == qs.format_report({**record, "rewritten": day}) for day in days)
+    assert (tmp_path / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((tmp_path / "quality.json").read_text()) == record
+    res = run_main("quality", "--report-only", "--out", str(tmp_path / "empty"), cwd=tmp_path)
+    assert_one_line_error(res, str(tmp_path / "empty" / "quality.json"))
+
+
+def test_a_larger_render_set_links_the_renders_it_shares_with_the_same_seed(tmp_path):
+    from prep.render.renderset import RenderConfig, _renders, render_seed, reuse_renders
+
+    small = RenderConfig(set_name="small", families=("cornell",), per_family=1, width=8, height=8,
+                         input_spp=(4,), reference_spp=8, out_root=str(tmp_path))
+    folder = tmp_path / "small"
+    folder.mkdir()
+    scenes = {}
+    for r in _renders(small):
+        (folder / r.name).write_bytes(r.name.encode())
+        scene = scenes.setdefault(r.index, {"family": r.family, "index": r.index, "seeds": {}, "files": {}})
+        scene["seeds"][str(r.spp)], scene["files"][str(r.spp)] = r.seed, r.name
+    record = {"config": {**dataclasses.asdict(small), "families": ["cornell"], "input_spp": [4]},
+              "scenes": list(scenes.values())}
+    (folder / "config.json").write_text(json.dumps(record))
+    large = dataclasses.replace(small, set_name="large", per_family=2, input_spp=(2, 4))
+    linked = reuse_renders(large, folder)
+    assert sorted(linked) == sorted(r.name for r in _renders(small))
+    assert all((tmp_path / "large" / n).read_bytes() == n.encode() for n in linked)
+    assert reuse_renders(large, folder) == []  # already there
+    # another seed renders other pixels: nothing is shared
+    assert reuse_renders(dataclasses.replace(large, set_name="other", seed=1), folder) == []
+    # a record whose seed for a file is not the one this set gives it: that file is rendered, not linked
+    scenes[0]["seeds"]["4"] = render_seed(0, "cornell", 0, 4) + 1
+    (folder / "config.json").write_text(json.dumps(record))
+    assert "cornell-000-00004spp.exr" not in reuse_renders(dataclasses.replace(large, set_name="third"), folder)
+
+
+def _fake_probe(base, scratch):
+    return {p.name: [1.0] * cmp.PROBE_SKIP + [0.05] * (cmp.PROBE_STEPS - cmp.PROBE_SKIP) for p in base.phases()}
+
+
+def _relmse64(x, r) -> float:
+    x, r = np.asarray(x, np.float64), np.asarray(r, np.float64)
+    return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
+
+
+@pytest.mark.slow
+def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(tmp_path, monkeypatch):
+    full = build_tiny_shards(tmp_path)
+    frames = tmp_path / "frames"
+    shutil.copytree(RENDERERS / "cycles5", frames / "cycles5")
+    shutil.copytree(RENDERERS / "mitsuba3", frames / "mitsuba3")
+    # a stand-in for Blender's own denoised frame: the reference itself, so its relMSE is 0
+    shutil.copy(frames / "cycles5" / "studio-00256spp.exr", frames / "cycles5" / "studio-00016spp-blender-oidn.exr")
+    cfg = QualityConfig(set_name="s", render_root=full.render_root, shards_root=full.out_root,
+                        runs_root=str(tmp_path / "runs"), out_dir=str(tmp_path / "reports"), budget=3.0,
+                        levers=("cpu", "multiscale-kernel"), frames=(str(frames),))
+    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
+    record = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
+    out = tmp_path / "reports"
+    assert json.loads((out / "quality.json").read_text()) == json.loads(json.dumps(record))
+    assert (out / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert record["input_sets"] == ["full", "no-variance", "no-split"]
+    # 3 s over three networks, 1 s each, at 0.05 s per step of every phase: the two branches together get all
+    # of it (80 % beside a compositor, which gets the rest); a no-split network trains its diffuse branch alone
+    expected = {"cpu": {"full": {"diffuse": 10, "specular": 10}, "no-split": {"diffuse": 20}},
+                "multiscale-kernel": {"full": {"diffuse": 8, "specular": 8, "compositor": 4}}}
+    for lever in cfg.levers:
+        networks = record["plans"][lever]["networks"]
+        assert list(networks) == record["input_sets"]
+        assert all(n["seconds"] == 1.0 for n in networks.values())
+        for inputs, steps in expected[lever].items():
+            assert networks[inputs]["phase_steps"] == steps
+    served = {r["frame"]: r["levers"]["cpu"]["model"] for r in record["frames"] if r["kind"] == "validation"}
+    assert served == {"cycles5/studio 16 spp": "no-variance", "mitsuba3/cornell 16 spp": "no-split"}
+    studio = next(r for r in record["frames"] if r["frame"] == "cycles5/studio 16 spp")
+    x = layouts.read(frames / "cycles5" / "studio-00016spp.exr").layers["default"]
+    ref = layouts.read(frames / "cycles5" / "studio-00256spp.exr").layers["default"]
+    assert studio["raw"]["relmse"] == pytest.approx(_relmse64(x, ref), rel=1e-9)
+    assert studio["blender"]["relmse"] == 0.0
+    from prep import baselines
+
+    if baselines.oidn_available():
+        frame = layouts.read(frames / "cycles5" / "studio-00016spp.exr")
+        assert studio["oidn"]["relmse"] == pytest.approx(_relmse64(baselines.oidn_denoise(frame.layers), ref), rel=1e-9)
+        wins = sum(r["levers"]["cpu"]["relmse"] < r["oidn"]["relmse"] for r in record["frames"])
+        row = next(line for line in (out / "quality.md").read_text().splitlines() if line.startswith("| `cpu` |"))
+        assert f"| {wins} of {len(record['frames'])} |" in row
+    held = [r for r in record["frames"] if r["kind"] == "held-out"]
+    assert [r["frame"] for r in held] == ["a-001 4 spp", "b-001 4 spp"]  # the tiny set's validation scenes
+    assert all(set(r["levers"]) == set(cfg.levers) for r in held)
+    for r in held:
+        noisy = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00004spp.exr")["default"]
+        reference = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00064spp.exr", variances=False)
+        assert r["raw"]["relmse"] == pytest.approx(_relmse64(noisy, reference["default"]), rel=1e-9)
+    md = (out / "quality.md").read_text()
+    assert "Best lever by held-out relMSE" in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
+    assert [p["title"].split(" (")[0] for p in record["panels"]] == ["cycles5/studio 16 spp", "mitsuba3/cornell 16 spp"]
+
+    # the same command again: the plan is reused and the runs are done; the report written again from the record
+    lines = []
+    again = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lines.append)
+    assert [r["levers"] for r in again["frames"]] == [r["levers"] for r in record["frames"]]
+    rewritten = qs.rewrite_reports(out)
+    assert (out / "quality.md").read_text() == qs.format_report(rewritten)
+
+
+@pytest.mark.slow
+def test_the_data_lever_renders_a_larger_set_sharing_the_renders_and_the_held_out_scenes(tmp_path, monkeypatch):
+    from prep import shards
+    from prep.render.renderset import RenderConfig, render_set
+
+    base = RenderConfig(set_name="b", families=("cornell", "spheres"), per_family=2, width=24, height=24,
+                        input_spp=(4,), reference_spp=8, out_root=str(tmp_path / "renders"))
+    render_set(base, progress=False)
+    shards.build_shards(shards.ShardConfig(set_name="b", render_root=base.out_root, out_root=str(tmp_path / "shards"),
+                                           patch_size=16, patches_per_image=2, patches_per_shard=8, val_fraction=0.5),
+                        progress=False)
+    monkeypatch.setitem(QUALITY_LEVERS, "data", ("more scenes, a longer ladder", "cpu", {},
+                                                 {"per_family": 3, "input_spp": (2, 4)}))
+    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
+    cfg = QualityConfig(set_name="b", render_root=base.out_root, shards_root=str(tmp_path / "shards"),
+                        runs_root=str(tmp_path / "runs"), out_dir=str(tmp_path / "reports"), budget=2.0,
+                        levers=("cpu", "data"), frames=(str(RENDERERS / "cycles5"),))
+    record = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
+    larger = qs.lever_set(cfg, "data")
+    assert record["plans"]["data"]["set"] == larger != "b" and record["plans"]["cpu"]["set"] == "b"
+    made = tmp_path / "renders" / larger
+    names = sorted(p.name for p in made.glob("*.exr"))
+    assert len(names) == 2 * 3 * 3  # two families, three scenes each, at 2 and 4 spp and the reference
+    shared = sorted(p.name for p in (tmp_path / "renders" / "b").glob("*.exr"))
+    assert set(shared) <= set(names)
+    assert all((made / n).samefile(tmp_path / "renders" / "b" / n) for n in shared)  # linked, not rendered again
+    for inputs in record["input_sets"]:
+        sset = shards.ShardSet(shards.shard_set_dir(cfg.shards_root, larger, inputs))
+        manifest = sset.complete_manifest()
+        val = sorted({s["scene"] for s in manifest["sources"] if s["split"] == "val"})
+        train = sorted({s["scene"] for s in manifest["sources"] if s["split"] == "train"})
+        assert val == ["cornell-001", "spheres-001"] == qs.held_out_scenes(cfg)
+        assert train == ["cornell-000", "cornell-002", "spheres-000", "spheres-002"]
+    held = [r["frame"] for r in record["frames"] if r["kind"] == "held-out"]
+    assert held == ["cornell-001 4 spp", "spheres-001 4 spp"]  # the study set's, for both levers
