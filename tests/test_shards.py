@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs
+from helpers import assert_one_line_error, assert_read_features_close, checksums, kpcn, make_renders, random_aovs
 
 from prep import exr, features, shards
 from prep.files import is_temporary
@@ -50,17 +50,15 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
                     ref = exr.read_aovs(sset.resolve(ref_path), variances=False)
                     y, x = f["position"][k]
                     win = np.s_[y:y + 16, x:x + 16]
-                    np.testing.assert_array_equal(f["diffuse/features"][k],
-                                                  features.branch_features(noisy, "diffuse")[win])
-                    np.testing.assert_array_equal(f["specular/features"][k],
-                                                  features.branch_features(noisy, "specular")[win])
-                    np.testing.assert_array_equal(f["specular/reference"][k],
-                                                  features.branch_colour(ref, "specular")[win])
-                    np.testing.assert_array_equal(f["diffuse/reference"][k],
-                                                  features.branch_colour(ref, "diffuse")[win])
-                    np.testing.assert_array_equal(f["reference"][k], ref["default"][win])
-                    np.testing.assert_array_equal(f["albedo"][k], noisy["albedo"][win])
-                    assert f["diffuse/features"].chunks == (1, 16, 16, features.NUM_FEATURES)
+                    got = shards.read_patch(f, list(shards.VIEWS), k)
+                    for branch in features.BRANCHES:
+                        assert_read_features_close(got[f"{branch}/features"],
+                                                   features.branch_features(noisy, branch)[win], branch)
+                        np.testing.assert_array_equal(got[f"{branch}/reference"],
+                                                      features.branch_colour(ref, branch)[win])
+                    np.testing.assert_array_equal(got["reference"], ref["default"][win])
+                    np.testing.assert_allclose(got["albedo"], noisy["albedo"][win], rtol=2.0**-11, atol=2.0**-25)
+                    assert f["guides"].chunks == (1, 17, 17, 7)
                     seen += 1
     assert seen == 4 * 7
     assert json.loads((cfg.set_dir / "manifest.json").read_text())["config_hash"] == cfg.content_hash()
@@ -84,7 +82,8 @@ def test_same_seed_same_shards_and_a_second_run_keeps_them(tmp_path, render_set)
     for pa, pb in zip(shards.shard_paths(a.set_dir, "train"), shards.shard_paths(b.set_dir, "train")):
         with h5py.File(pa) as fa, h5py.File(pb) as fb:
             np.testing.assert_array_equal(fa["position"][()], fb["position"][()])
-            np.testing.assert_array_equal(fa["diffuse/features"][()], fb["diffuse/features"][()])
+            for name in shards.DATASETS:
+                np.testing.assert_array_equal(fa[name][()], fb[name][()], err_msg=name)
     first = shards.shard_paths(a.set_dir, "train")[0]
     mtime = first.stat().st_mtime_ns
     shards.build_shards(a, progress=False)
@@ -116,7 +115,9 @@ def slow_create(self, *args, **kwargs):
     return out
 h5py.Group.create_dataset = slow_create
 rng = np.random.default_rng(0)
-arrays = {{name: rng.normal(size=(40, 65, 65, c)).astype(np.float32) for name, c in shards.PATCH_DATASETS.items()}}
+arrays = shards.empty_patches(40, 65)
+for name in shards.DATASETS:
+    arrays[name][...] = rng.normal(size=arrays[name].shape)
 print('ready', flush=True)
 shards.write_shard(Path({str(out)!r}) / 'shard-00000.h5', arrays, {{'format': shards.FORMAT}})
 """
@@ -182,8 +183,9 @@ def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
     manifest = shards.build_shards(cfg, progress=False)
     assert manifest["split"] == {"train": ["fixture"], "val": []}
     with shards.open_shard(shards.shard_paths(cfg.set_dir, "train")[0]) as f:
-        assert f["diffuse/features"].shape == (10, 32, 32, 27)
-        assert np.isfinite(f["diffuse/features"][()]).all()
+        got = shards.read_patches(f, ["diffuse/features", "specular/features"], range(len(f["source"])))
+    assert got["diffuse/features"].shape == (10, 32, 32, 27)
+    assert np.isfinite(got["diffuse/features"]).all() and np.isfinite(got["specular/features"]).all()
 
 
 def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_detected(tmp_path):
@@ -192,18 +194,22 @@ def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_dete
     for _name, data in arrays.items():
         data[...] = rng.normal(size=data.shape) if data.dtype.kind == "f" else rng.integers(0, 9, data.shape)
     path = tmp_path / "shard-00000.h5"
-    shards.write_shard(path, arrays, {"format": shards.FORMAT})
+    shards.write_shard(path, arrays, {"format": shards.FORMAT, "patch_size": 8})
+    buffers = np.concatenate([arrays["diffuse/log_colour"], arrays["guides"]], axis=-1)
+    relvar = np.concatenate([arrays["diffuse/relvar"], arrays["guide_relvar"]], axis=-1)
+    want = features.features_from_buffers(buffers, relvar)
     with shards.open_shard(path) as f:
-        dset = f["diffuse/features"]
-        assert dset.chunks == (1, 8, 8, features.NUM_FEATURES) and dset.compression is None and dset.fletcher32
-        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 1)["diffuse/features"],
-                                      arrays["diffuse/features"][1])
-        chunk = dset.id.get_chunk_info(1)
+        for name, dataset in shards.DATASETS.items():
+            dset = f[name]
+            assert dset.chunks == (1,) + shards.format.dataset_shape(dataset, 8), name
+            assert dset.compression is None and dset.fletcher32, name
+        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 1)["diffuse/features"], want[1])
+        chunk = f["guides"].id.get_chunk_info(1)
     data = bytearray(path.read_bytes())
-    data[chunk.byte_offset + 100] ^= 0xFF  # one byte of patch 1's features, the file's size unchanged
+    data[chunk.byte_offset + 100] ^= 0xFF  # one byte of patch 1's guides, the file's size unchanged
     path.write_bytes(bytes(data))
     with shards.open_shard(path) as f:
-        np.testing.assert_array_equal(f["diffuse/features"][0], arrays["diffuse/features"][0])
+        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 0)["diffuse/features"], want[0])
         with pytest.raises(OSError):
             shards.read_patch(f, ["diffuse/features"], 1)
 
@@ -216,7 +222,7 @@ def test_cut_into_a_shard_buffer_equals_cut(tmp_path):
     want = image.cut(2, 6)
     for name, data in want.items():
         np.testing.assert_array_equal(out[name][5:9], data, err_msg=name)
-    assert (want["source"] == 4).all() and want["diffuse/features"].dtype == np.float32
+    assert (want["source"] == 4).all() and want["diffuse/log_colour"].dtype == np.float16
 
 
 # --- a full disk (issue 20) ---
