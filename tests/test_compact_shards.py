@@ -162,3 +162,16 @@ def test_an_older_set_is_refused_in_one_line_naming_the_rebuild_and_kpcn_shards_
     assert res.returncode == 0, res.stderr[-2000:]
     assert json.loads(manifest_path.read_text())["format"] == shards.FORMAT
     assert shards.ShardSet(cfg.set_dir).verified_shards("train")
+
+
+def test_the_format_benchmark_counts_the_table_and_the_files_and_times_both_reads(tmp_path):
+    from kpcn_keras.studies import bench_stages
+
+    cfg = build_tiny_shards(tmp_path)
+    paths = shards.shard_paths(cfg.set_dir, "train")
+    got = bench_stages.shard_bytes(paths, 16)
+    assert got[shards.FORMAT] == shards.patch_bytes(16) <= got["file"] and got["kpcn-shard/2"] == 4 * 16 * 16 * 75
+    assert got["patches_in_40GB"] == int(40e9 // got["file"])
+    times = bench_stages.read_only_costs(paths[0], batch_size=2)
+    assert times["compact_s"] > 0 and times["v2_s"] > 0
+    assert not list(paths[0].parent.glob(".v2-*"))  # its copy in the old layout is removed

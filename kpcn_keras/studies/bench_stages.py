@@ -119,8 +119,48 @@ def shard_format_costs(paths, model_config: ModelConfig, batch_size: int, seed: 
         patch_size = int(f.attrs["patch_size"])
     read = shard_read_cost(paths, model_config, batch_size, seed)
     step = net_costs.train_step_cost(model_config, batch_size=batch_size, patch=patch_size)
-    return {"bytes_per_patch": shard_bytes(paths, patch_size), "read": read, "step_s": step["keras_s"],
+    return {"bytes_per_patch": shard_bytes(paths, patch_size), "read": read,
+            "read_only": read_only_costs(paths[0], batch_size, seed), "step_s": step["keras_s"],
             "step_patches_per_s": batch_size / step["keras_s"], "read_over_step": read["batch_s"] / step["keras_s"]}
+
+
+def read_only_costs(path, batch_size: int, seed: int = 0) -> dict:
+    """The HDF5 read of a diffuse training batch alone (no augmentation, no network input), median of
+    :data:`SHARD_READ_BATCHES` batches, the same patches in both: from the shard ``path``, its stored
+    datasets then the features recomputed (``prep.shards.read_stored``, ``derive``: ``compact_s``), against
+    the same patches' features and reference read from a copy in ``kpcn-shard/2``'s layout (float32, one
+    patch a chunk, Fletcher-32: ``v2_s``), written beside it for the measure and removed."""
+    import h5py
+
+    from prep.shards import branch_datasets, derive, open_shard, read_patches, read_stored, stored_datasets
+
+    names = branch_datasets("diffuse")
+    stored = stored_datasets(names)
+    with open_shard(path) as f:
+        n, p = len(f["source"]), int(f.attrs["patch_size"])
+        whole = read_patches(f, names, range(n))
+    v2 = Path(path).with_name(".v2-layout-copy.h5")
+    try:
+        with h5py.File(v2, "w") as g:
+            for name in names:
+                g.create_dataset(name, data=whole[name], chunks=(1,) + whole[name].shape[1:], fletcher32=True)
+        rng = np.random.default_rng(seed)
+        times = {"compact_s": [], "v2_s": []}
+        with open_shard(path) as f, h5py.File(v2, "r") as g:
+            ds = {name: f[name] for name in stored}
+            old = {name: g[name] for name in names}
+            for _ in range(SHARD_READ_BATCHES):
+                ids = [int(i) for i in rng.integers(0, n, batch_size)]
+                start = time.perf_counter()
+                reads = [read_stored(ds, stored, i) for i in ids]
+                derive({k: np.stack([r[k] for r in reads]) for k in stored}, names, p)
+                times["compact_s"].append(time.perf_counter() - start)
+                start = time.perf_counter()
+                np.stack([old[names[0]][i] for i in ids]), np.stack([old[names[1]][i] for i in ids])
+                times["v2_s"].append(time.perf_counter() - start)
+    finally:
+        v2.unlink(missing_ok=True)
+    return {key: float(np.median(t)) for key, t in times.items()} | {"batch_size": batch_size}
 
 
 def shard_read_cost(paths, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
