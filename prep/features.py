@@ -31,6 +31,14 @@ against the transformed buffer and compressed by log(1 + .), so every feature is
 the range above for any finite input (arithmetic is float64; the bounds are those of float32
 input). Negative variances (a renderer's rounding) count as 0.
 
+The features are made in two steps, one function each, so that the feature definition has one owner:
+:func:`branch_buffers` (the numba kernel) computes the per-pixel buffers, the transformed colour, normal,
+albedo and depth (:data:`BUFFERS`) over the window and the next row and column, and the relative variances
+23-26; :func:`features_from_buffers` (vectorised numpy, any leading batch axes) takes the values and forward
+differences of the buffers. :func:`branch_features` is the two at render time, on float64 buffers; a shard
+stores the buffers in float16 and its reader makes the features with the same second function
+(``prep.shards.format``).
+
 The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba

@@ -44,7 +44,8 @@ What a reader gets (:data:`VIEWS`, float32): ``{branch}/features`` (P, P, 27), r
 albedo (what rebuilds the final colour: ``kpcn_keras.layers.FinalColour`` clips it anyway); and every
 dataset of the table read ``as is``. Error of a recomputed feature against the float64 features of the same
 render (``prep.features.reference_features``), u = 2**-11, each stored value v within u |v| (2**-25 absolute
-below float16's smallest normal, 2**-14): channels 0-2 and 23-26 within u |f| of the feature f; a
+below float16's smallest normal, 2**-14; 2u |v| in the last float16 step below its range's top, where
+:func:`to_half` rounds down to stay inside the range): channels 0-2 and 23-26 within u |f| of the feature f; a
 difference (3-22) of the buffer values a, b within u (|a| + |b|): at most 2u = 2**-10 for normal, albedo and
 depth (values in [-1, 1]), u (2 |c| + |dc|) for colour. ``tests/test_compact_shards.py`` holds reads to it.
 
