@@ -175,3 +175,10 @@ def test_the_format_benchmark_counts_the_table_and_the_files_and_times_both_read
     times = bench_stages.read_only_costs(paths[0], batch_size=2)
     assert times["compact_s"] > 0 and times["v2_s"] > 0
     assert not list(paths[0].parent.glob(".v2-*"))  # its copy in the old layout is removed
+
+
+def test_the_rebuild_named_for_a_set_of_another_input_set_carries_its_inputs():
+    assert shards.format.rebuild_command({"set_name": "d", "inputs": "no-split"}) == \
+        "'kpcn shards --set d --inputs no-split'"
+    assert "'kpcn shards --set d'" in shards.format.rebuild_command({"set_name": "d"})
+    assert "'kpcn shards --set NAME'" in shards.format.rebuild_command(None)

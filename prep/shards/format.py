@@ -75,6 +75,7 @@ from h5py import h5s
 from prep import features
 from prep.errors import KpcnError
 from prep.files import atomic_path, crc32_file, sha256_file
+from prep.inputs import FULL
 
 FORMAT_FAMILY = "kpcn-shard/"
 FORMAT = FORMAT_FAMILY + "4"
@@ -353,9 +354,15 @@ def read_patch(f, names, patch: int, patch_size: int | None = None) -> dict[str,
     return {n: a[0] for n, a in read_patches(f, names, [patch], patch_size).items()}
 
 
-def rebuild_command(set_name: str | None) -> str:
-    """The commands that rebuild a shard set, as a refusal names them."""
-    name = set_name or "NAME"
+def rebuild_command(config) -> str:
+    """The commands that rebuild a shard set, as a refusal names them, from its configuration (a set's
+    ``config``, a dict; None where it cannot be read): a set of another input set than the full one is
+    rebuilt with its ``--inputs``."""
+    config = config if isinstance(config, dict) else {}
+    name = config.get("set_name") or "NAME"
+    inputs = config.get("inputs")
+    if inputs and inputs != FULL.name:
+        return f"'kpcn shards --set {name} --inputs {inputs}'"
     return f"'kpcn shards --set {name}' (or 'make shards SET={name}')"
 
 
@@ -385,11 +392,11 @@ def open_shard(path: str | os.PathLike) -> h5py.File:
     if older_format(found):
         f.close()
         try:
-            set_name = json.loads(config).get("set_name") if config else None
-        except (ValueError, AttributeError):
-            set_name = None
+            config = json.loads(config) if config else None
+        except ValueError:
+            config = None
         raise ShardError(f"{path}: a shard of format {found!r}, this kpcn reads {FORMAT!r}; rebuild the set with "
-                         f"{rebuild_command(set_name)}")
+                         f"{rebuild_command(config)}")
     if found != FORMAT or not complete:
         f.close()
         raise ShardError(f"{path}: incomplete or foreign shard (format={found!r}, complete={complete}; "

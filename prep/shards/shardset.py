@@ -141,7 +141,7 @@ class ShardSet:
         if older_format(manifest["format"]):
             raise OlderFormatError(
                 f"{self.manifest_path}: a shard set of format {manifest['format']!r}, this kpcn reads {FORMAT!r}; "
-                f"rebuild it with {rebuild_command(manifest.get('set'))}"
+                f"rebuild it with {rebuild_command(manifest.get('config'))}"
             )
         if manifest["format"] != FORMAT:
             raise ShardError(
