@@ -11,6 +11,10 @@ source        x (network input, ``models.network_input``)                   y (t
 ``final``     ``{"diffuse_input", "specular_input", "albedo"}``              reference final colour, linear
 ============  ===========================================================  =================================
 
+The features are not stored: each batch's are recomputed from the stored per-pixel buffers of its patches,
+once per branch for the whole batch (``prep.shards.derive``, by ``prep.features.features_from_buffers``, the
+function that makes them at render time; their error against full precision: docs/formats.md §4).
+
 ``loss_target`` extends y for the asymmetric loss: ``"reference+noisy"`` appends the noisy colour of the same
 domain (6 channels), and a network with a slope channel gets λ as a seventh, the same λ its input carries.
 ``reference_relse`` (a branch source only) appends, last of all, the branch reference's relative standard
@@ -52,7 +56,7 @@ from kpcn_keras import augment
 from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
 from prep.bounds import is_integer
 from prep.features import BRANCHES
-from prep.shards import ShardError, branch_datasets, open_shard, read_patch
+from prep.shards import ShardError, branch_datasets, derive, open_shard, read_stored, stored_datasets
 
 SOURCES = BRANCHES + ("both", "final")
 LOSS_TARGETS = ("reference", "reference+noisy")
@@ -110,10 +114,14 @@ class ShardPatches(keras.utils.PyDataset):
         self.global_batch = batch_size * world if shuffle else batch_size
         self.augment = augment and shuffle
         self.slope, self.slope_range = slope, tuple(slope_range)
-        counts = []
+        counts, sizes = [], set()
         for p in self.paths:
             with open_shard(p) as f:
                 counts.append(len(f["source"]))
+                sizes.add(int(f.attrs["patch_size"]))
+        if len(sizes) != 1:
+            raise ShardError(f"the shards {self.paths[0]} ... hold patches of sizes {sorted(sizes)}; one set has one")
+        self.patch_size = sizes.pop()
         # (branch, shard, patch) of every sample, in shard order; a shared network sees each patch once
         # per branch, so both branches weigh the same
         branches = range(len(BRANCHES)) if source == "both" else [BRANCHES.index(source) if source in BRANCHES else -1]
@@ -163,14 +171,39 @@ class ShardPatches(keras.utils.PyDataset):
             self._files = {pid: [_Datasets(open_shard(p)) for p in self.paths]}
         return self._files[pid]
 
-    def _read(self, shard: int, patch: int, names) -> dict[str, np.ndarray]:
+    def _read(self, shard: int, patch: int, stored) -> dict[str, np.ndarray]:
+        """The stored datasets ``stored`` of one patch, as stored (``prep.shards.read_stored``)."""
         f = self._handles()[shard]
         try:
-            return read_patch(f, names, patch)
+            return read_stored(f, stored, patch)
         except OSError as exc:  # a chunk whose Fletcher-32 checksum fails, or a damaged file
             raise ShardError(
                 f"{self.paths[shard]}: cannot read patch {patch} ({exc}); run 'kpcn shards' again to rebuild it"
             ) from None
+
+    def _names(self, branch: str | None) -> list[str]:
+        """What a sample of ``branch`` (None: the final colour) reads (``prep.shards.VIEWS``)."""
+        with_noisy = self.loss_target == "reference+noisy"  # else the noisy colour is not read at all
+        if branch is None:
+            return [f"{b}/features" for b in BRANCHES] + ["albedo", "reference"] + (["noisy"] if with_noisy else [])
+        return branch_datasets(branch, noisy=with_noisy) + ([f"{branch}/ref_relse"] if self.reference_relse else [])
+
+    def _batch_data(self, ids) -> list[dict[str, np.ndarray]]:
+        """The float32 data of each (branch, shard, patch) of ``ids``: the stored datasets read one patch at a
+        time, then made into what is read (the features recomputed) once per branch for the whole batch
+        (``prep.shards.derive``, vectorised over the batch)."""
+        out: list = [None] * len(ids)
+        groups: dict[int, list[int]] = {}
+        for k, (b, _, _) in enumerate(ids):
+            groups.setdefault(int(b), []).append(k)
+        for b, members in groups.items():
+            names = self._names(BRANCHES[b] if b >= 0 else None)
+            stored = stored_datasets(names)
+            reads = [self._read(int(ids[k][1]), int(ids[k][2]), stored) for k in members]
+            data = derive({n: np.stack([r[n] for r in reads]) for n in stored}, names, self.patch_size)
+            for j, k in enumerate(members):
+                out[k] = {n: a[j] for n, a in data.items()}
+        return out
 
     def _slopes(self, rng: np.random.Generator, n: int) -> list[float | None]:
         if not self.model.slope_channel:
@@ -190,8 +223,9 @@ class ShardPatches(keras.utils.PyDataset):
         augs = [augment.draw(rng) if self.augment else augment.IDENTITY for _ in ids]
         slopes = self._slopes(rng, len(ids))
         mine = self._mine()
-        samples = [self._sample(b, s, p, aug, slope)
-                   for (b, s, p), aug, slope in zip(ids[mine], augs[mine], slopes[mine])]
+        samples = [self._sample(int(b), data, aug, slope)
+                   for (b, _, _), data, aug, slope in zip(ids[mine], self._batch_data(ids[mine]), augs[mine],
+                                                           slopes[mine])]
         x = samples[0][0]
         if isinstance(x, dict):
             x = {k: np.stack([s[0][k] for s in samples]) for k in x}
@@ -199,20 +233,15 @@ class ShardPatches(keras.utils.PyDataset):
             x = np.stack([s[0] for s in samples])
         return x, np.stack([s[1] for s in samples])
 
-    def _sample(self, branch_id: int, shard: int, patch: int, aug, slope):
-        with_noisy = self.loss_target == "reference+noisy"  # else the noisy colour is not read at all
+    def _sample(self, branch_id: int, data: dict[str, np.ndarray], aug, slope):
+        with_noisy = self.loss_target == "reference+noisy"
         if self.source == "final":
-            names = [f"{b}/features" for b in BRANCHES] + ["albedo", "reference"] + (["noisy"] if with_noisy else [])
-            data = self._read(shard, patch, names)
             x = {FINAL_INPUTS[b]: network_input(augment.augment_features(data[f"{b}/features"], aug),
                                                 self.model, b, slope) for b in BRANCHES}
             x["albedo"] = augment.augment_colour(data["albedo"], aug)
             reference, noisy = data["reference"], data.get("noisy")
         else:
             branch = BRANCHES[branch_id]
-            names = branch_datasets(branch, noisy=with_noisy)
-            names += [f"{branch}/ref_relse"] if self.reference_relse else []
-            data = self._read(shard, patch, names)
             x = network_input(augment.augment_features(data[f"{branch}/features"], aug), self.model, branch, slope)
             reference, noisy = data[f"{branch}/reference"], data.get(f"{branch}/noisy")
         y = [augment.augment_colour(reference, aug)]

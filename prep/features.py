@@ -31,6 +31,14 @@ against the transformed buffer and compressed by log(1 + .), so every feature is
 the range above for any finite input (arithmetic is float64; the bounds are those of float32
 input). Negative variances (a renderer's rounding) count as 0.
 
+The features are made in two steps, one function each, so that the feature definition has one owner:
+:func:`branch_buffers` (the numba kernel) computes the per-pixel buffers, the transformed colour, normal,
+albedo and depth (:data:`BUFFERS`) over the window and the next row and column, and the relative variances
+23-26; :func:`features_from_buffers` (vectorised numpy, any leading batch axes) takes the values and forward
+differences of the buffers. :func:`branch_features` is the two at render time, on float64 buffers; a shard
+stores the buffers in float16 and its reader makes the features with the same second function
+(``prep.shards.format``).
+
 The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
@@ -47,6 +55,10 @@ REL_EPS = 0.01
 # Largest log colour any float32 input can give: log1p(float32 max / ALBEDO_EPS), about 94.48. The
 # colour features (and every network output in the log domain) lie in [0, LOG_COLOUR_MAX].
 LOG_COLOUR_MAX = float(np.log1p(np.float64(np.finfo(np.float32).max) / ALBEDO_EPS))
+# Largest relative variance any float32 input can give: a depth variance of float32 max at a miss (d = 0) in
+# an image whose largest depth is the smallest subnormal (depth scale 1 / that), about 299.89.
+RELVAR_MAX = float(np.log1p(np.float64(np.finfo(np.float32).max)
+                            / np.float64(np.finfo(np.float32).smallest_subnormal) ** 2 / REL_EPS))
 NUM_FEATURES = 27
 FEATURE_NAMES = (
     ["colour.R", "colour.G", "colour.B"]
@@ -77,21 +89,13 @@ def _depth_max(depth):
 
 
 @numba.njit(cache=True, nogil=True)
-def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo,
-                     dscale, scratch, out):
-    """Fill ``out`` (h, w, 27) for one branch; colour is linear, albedo divided when divide_albedo.
-
-    The inputs cover out's pixels and at most one row and one column more: the neighbours the forward
-    differences read (where they are absent, out's last row or column is the image's, and its differences
-    are 0). ``scratch`` (input rows, input columns, 10) holds the transformed buffers the differences read.
-    """
-    h, w = out.shape[0], out.shape[1]
+def _buffers_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo,
+                    dscale, buffers, relvar):
+    """Fill the pixel buffers of one branch (:func:`branch_buffers`): ``buffers`` (input rows, input columns,
+    BUFFER_CHANNELS) with the transformed buffers the differences read, ``relvar`` (h, w, 4) with the relative
+    variances of out's own pixels; colour is linear, albedo divided when divide_albedo."""
+    h, w = relvar.shape[0], relvar.shape[1]
     hi, wi = depth.shape
-    logc = scratch[:, :, 0:3]
-    nrm = scratch[:, :, 3:6]
-    alb = scratch[:, :, 6:9]
-
-    # pass 1: per-pixel transformed buffers (the relative variances only for out's own pixels)
     for y in range(hi):
         for x in range(wi):
             vc = max(float(colour_var[y, x]), 0.0)
@@ -101,9 +105,9 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
             vlog = 0.0
             for c in range(3):
                 a = min(max(float(albedo[y, x, c]), 0.0), 1.0)
-                alb[y, x, c] = a
+                buffers[y, x, 6 + c] = a
                 n = min(max(float(normal[y, x, c]), -1.0), 1.0)
-                nrm[y, x, c] = n
+                buffers[y, x, 3 + c] = n
                 v = float(colour[y, x, c])
                 var_c = vc
                 if divide_albedo:
@@ -111,37 +115,29 @@ def _features_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var,
                     var_c = vc / ((a + ALBEDO_EPS) * (a + ALBEDO_EPS))
                 v = max(v, 0.0)
                 lc = np.log1p(v)
-                logc[y, x, c] = lc
+                buffers[y, x, c] = lc
                 vlog += var_c / ((1.0 + v) * (1.0 + v))
                 sq_c += lc * lc
                 sq_n += n * n
                 sq_a += a * a
             d = max(float(depth[y, x]), 0.0) * dscale
-            scratch[y, x, 9] = d
+            buffers[y, x, 9] = d
             if y < h and x < w:
-                out[y, x, 23] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
-                out[y, x, 24] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
-                out[y, x, 25] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
-                out[y, x, 26] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
-
-    # pass 2: values and forward differences (0 on the image's last column / row)
-    for y in range(h):
-        for x in range(w):
-            xn = min(x + 1, wi - 1)
-            yn = min(y + 1, hi - 1)
-            for c in range(3):
-                out[y, x, c] = logc[y, x, c]
-                out[y, x, 3 + c] = logc[y, xn, c] - logc[y, x, c]
-                out[y, x, 6 + c] = nrm[y, xn, c] - nrm[y, x, c]
-                out[y, x, 9 + c] = alb[y, xn, c] - alb[y, x, c]
-                out[y, x, 13 + c] = logc[yn, x, c] - logc[y, x, c]
-                out[y, x, 16 + c] = nrm[yn, x, c] - nrm[y, x, c]
-                out[y, x, 19 + c] = alb[yn, x, c] - alb[y, x, c]
-            out[y, x, 12] = scratch[y, xn, 9] - scratch[y, x, 9]
-            out[y, x, 22] = scratch[yn, x, 9] - scratch[y, x, 9]
+                relvar[y, x, 0] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
+                relvar[y, x, 1] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
+                relvar[y, x, 2] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
+                relvar[y, x, 3] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
 
 
-SCRATCH_CHANNELS = 10  # float64 per input pixel in the kernel: log colour, normal, albedo (3 each), depth
+# The per-pixel buffers the features are made of, in two kinds (what a shard stores: ``prep.shards.format``):
+# the transformed buffers whose forward differences are features (BUFFERS, read at a pixel and its next
+# neighbours), and the relative variances (RELVARS, read at the pixel alone). The buffers' channel order is that
+# of the dx (and dy) block, so channels 3-22 are their differences in one operation each.
+BUFFERS = (("colour", 3), ("normal", 3), ("albedo", 3), ("depth", 1))
+BUFFER_CHANNELS = sum(n for _, n in BUFFERS)  # 10 float64 per pixel of the window grown by one row and column
+RELVARS = ("colour", "normal", "albedo", "depth")
+COLOUR, DX, DY, RELVAR = slice(0, 3), slice(3, 13), slice(13, 23), slice(23, 27)
+assert DX.stop - DX.start == BUFFER_CHANNELS and RELVAR.stop - RELVAR.start == len(RELVARS)
 
 _KERNEL_LAYERS = ("{b}", "{b}Variance", "albedo", "albedoVariance", "normal", "normalVariance", "depth",
                   "depthVariance")
@@ -154,16 +150,17 @@ def depth_scale(depth: np.ndarray) -> float:
     return 1.0 / dmax if dmax > 0.0 else 0.0
 
 
-def branch_features(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, int, int, int] | None = None,
-                    *, scale: float | None = None) -> np.ndarray:
-    """The (H, W, 27) float32 network input of ``branch`` ('diffuse' or 'specular') for one render.
+def branch_buffers(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, int, int, int] | None = None,
+                   *, scale: float | None = None, relvar: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The per-pixel buffers of ``branch``'s features over ``window`` (y0, y1, x0, x1; default the whole
+    image) of a noisy render: ``(buffers, relvar)``, what :func:`features_from_buffers` makes the features of.
 
-    ``aovs`` is a noisy render as returned by :func:`prep.exr.read_aovs` (variance layers needed).
-    ``window`` = (y0, y1, x0, x1): only those rows and columns, equal bit for bit to the same pixels of the
-    whole image's features, from the window's pixels and the next row and column alone; ``scale``: the
-    whole image's :func:`depth_scale` (computed here when not given: a caller cutting many windows passes it).
-    Memory: the result, a float32 copy of the window of the 14 input channels and ``SCRATCH_CHANNELS`` float64
-    per pixel of the window grown by one row and column.
+    ``buffers`` (h + 1, w + 1, BUFFER_CHANNELS) float64: the log colour, clipped normal, clipped albedo and
+    scaled depth (:data:`BUFFERS`) of the window's pixels and of the next row and column; past the image's
+    last row or column that row or column is the last one repeated, so its forward differences are the 0 of
+    the table. ``relvar`` (h, w, 4): channels 23-26 of the table, written into the array given (any float
+    dtype, a view of the features' own: :func:`branch_features`), else a new float64 one. ``scale``: the whole
+    image's :func:`depth_scale` (computed here when not given).
     """
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
@@ -174,15 +171,68 @@ def branch_features(aovs: dict[str, np.ndarray], branch: str, window: tuple[int,
     if scale is None:
         scale = depth_scale(aovs["depth"])
     rows, cols = slice(y0, min(y1 + 1, h)), slice(x0, min(x1 + 1, w))
-    out = np.empty((y1 - y0, x1 - x0, NUM_FEATURES), dtype=np.float32)
     names = [n.format(b=branch) for n in _KERNEL_LAYERS]
     # The kernel widens each value to float64 itself: float32 renders (what prep.exr reads) go in without a
     # float64 copy of every layer; anything else is widened here, so at most two specialisations compile.
     dtype = np.float32 if all(aovs[n].dtype == np.float32 for n in names) else np.float64
     layers = [np.ascontiguousarray(aovs[n][rows, cols], dtype=dtype) for n in names]
-    scratch = np.empty(layers[-2].shape + (SCRATCH_CHANNELS,))
-    _features_kernel(*layers, branch == "diffuse", float(scale), scratch, out)
+    hi, wi = layers[-2].shape
+    buffers = np.empty((y1 - y0 + 1, x1 - x0 + 1, BUFFER_CHANNELS))
+    if relvar is None:
+        relvar = np.empty((y1 - y0, x1 - x0, len(RELVARS)))
+    _buffers_kernel(*layers, branch == "diffuse", float(scale), buffers[:hi, :wi], relvar)
+    if hi == y1 - y0:  # the image's last row: its neighbour is itself
+        buffers[hi] = buffers[hi - 1]
+    if wi == x1 - x0:
+        buffers[:, wi] = buffers[:, wi - 1]
+    return buffers, relvar
+
+
+def features_from_buffers(buffers: np.ndarray, relvar: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The features (..., h, w, 27) float32 of per-pixel buffers (..., h + 1, w + 1, BUFFER_CHANNELS) and
+    relative variances (..., h, w, 4) (:func:`branch_buffers`), any number of leading (batch) axes: the one
+    place the table's values and differences are made, at render time (:func:`branch_features`, float64
+    buffers) and when a shard's stored buffers are read (``prep.shards.format.read_patches``, float16 ones).
+
+    The differences are taken in float64 for float64 buffers (each feature is the float64 value rounded once
+    to float32, as the table's reference :func:`reference_features` is) and in float32 otherwise, which is
+    exact for two float16 values of like magnitude: a stored buffer's rounding is the only error it adds.
+    No temporary the size of the features is made (the bound of tiled inference's memory counts on it).
+    """
+    h, w = relvar.shape[-3], relvar.shape[-2]
+    if buffers.shape[-3:] != (h + 1, w + 1, BUFFER_CHANNELS) or buffers.shape[:-3] != relvar.shape[:-3]:
+        raise ValueError(f"buffers {buffers.shape} do not fit relative variances {relvar.shape}")
+    if out is None:
+        out = np.empty(relvar.shape[:-1] + (NUM_FEATURES,), np.float32)
+    loop = np.result_type(buffers.dtype, np.float32)
+    value = buffers[..., :h, :w, :]
+    np.copyto(out[..., COLOUR], value[..., COLOUR], casting="same_kind")
+    np.subtract(buffers[..., :h, 1:, :], value, out=out[..., DX], dtype=loop, casting="same_kind")
+    np.subtract(buffers[..., 1:, :w, :], value, out=out[..., DY], dtype=loop, casting="same_kind")
+    if not np.shares_memory(relvar, out):
+        np.copyto(out[..., RELVAR], relvar, casting="same_kind")
     return out
+
+
+def branch_features(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, int, int, int] | None = None,
+                    *, scale: float | None = None) -> np.ndarray:
+    """The (H, W, 27) float32 network input of ``branch`` ('diffuse' or 'specular') for one render.
+
+    ``aovs`` is a noisy render as returned by :func:`prep.exr.read_aovs` (variance layers needed).
+    ``window`` = (y0, y1, x0, x1): only those rows and columns, equal bit for bit to the same pixels of the
+    whole image's features, from the window's pixels and the next row and column alone; ``scale``: the
+    whole image's :func:`depth_scale` (computed here when not given: a caller cutting many windows passes it).
+    :func:`branch_buffers`, then :func:`features_from_buffers`. Memory: the result, a float32 copy of the
+    window of the 14 input channels and ``BUFFER_CHANNELS`` float64 per pixel of the window grown by one row
+    and column.
+    """
+    if branch not in BRANCHES:
+        raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
+    h, w = aovs["depth"].shape
+    y0, y1, x0, x1 = (0, h, 0, w) if window is None else window
+    out = np.empty((max(y1 - y0, 0), max(x1 - x0, 0), NUM_FEATURES), dtype=np.float32)
+    buffers, relvar = branch_buffers(aovs, branch, window, scale=scale, relvar=out[..., RELVAR])
+    return features_from_buffers(buffers, relvar, out)
 
 
 def reference_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:

@@ -518,6 +518,17 @@ def assert_features_match_reference(aovs: dict) -> None:
         np.testing.assert_allclose(got, reference_features(aovs, branch), rtol=1e-6, atol=1e-6, err_msg=branch)
 
 
+def assert_read_features_close(got: np.ndarray, want: np.ndarray, err_msg: str = "") -> None:
+    """Features read back from a shard (recomputed from its float16 buffers) against the same pixels'
+    features at full precision, within the format's bound (docs/formats.md §4) taken over the patch: a value
+    within 2**-11 of itself, a difference within 2**-11 of the two values it is made of, which are at most
+    1 (normal, albedo, depth) or the patch's largest colour and colour difference together. The exact
+    per-channel bound is held in test_compact_shards.py."""
+    colour = float(np.abs(want[..., 0:3]).max() + np.abs(want[..., 3:6]).max() + np.abs(want[..., 13:16]).max())
+    np.testing.assert_allclose(got, want, rtol=2.0**-11 + 2.0**-22, atol=2.0**-10 * max(colour, 1.0) + 2.0**-24,
+                               err_msg=err_msg)
+
+
 def assert_pdf_is_a_distribution(pdf: np.ndarray, want: np.ndarray) -> None:
     assert pdf.shape == want.shape and pdf.dtype == np.float64
     assert np.isfinite(pdf).all() and pdf.min() >= 0.0

@@ -8,7 +8,7 @@ from helpers import build_tiny_shards
 
 from kpcn_keras import augment
 from kpcn_keras.data import ShardPatches
-from prep.shards import ShardError, open_shard, shard_paths
+from prep.shards import ShardError, open_shard, read_patches, shard_paths
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +21,8 @@ def train_paths(tmp_path_factory):
 def all_patches(paths, name):
     out = []
     for p in paths:
-        with open_shard(p) as f:
-            out += list(f[name][()])
+        with open_shard(p) as f:  # one patch at a time, as a training batch reads them, then recomputed
+            out += list(read_patches(f, [name], range(len(f["source"])))[name])
     return np.stack(out)
 
 
@@ -65,7 +65,7 @@ def test_bad_arguments_are_echoed(train_paths):
 def test_a_damaged_chunk_is_an_error_naming_the_shard(train_paths, tmp_path):
     path = Path(shutil.copy(train_paths[0], tmp_path))
     with open_shard(path) as f:
-        chunk = f["diffuse/features"].id.get_chunk_info(0)
+        chunk = f["guides"].id.get_chunk_info(0)  # what the features of both branches are made of
     data = bytearray(path.read_bytes())
     data[chunk.byte_offset + 10] ^= 0xFF  # the file keeps its size; its Fletcher-32 no longer matches
     path.write_bytes(bytes(data))

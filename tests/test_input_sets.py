@@ -17,6 +17,7 @@ import pytest
 from helpers import (
     TINY_MODEL,
     assert_one_line_error,
+    assert_read_features_close,
     build_tiny_shards,
     random_aovs,
     reference_features,
@@ -103,14 +104,26 @@ def sets(tmp_path_factory):
     return tmp, {"full": full, "no-split": no_split, "no-variance": no_variance}
 
 
+class Read:
+    """An open shard's names (``prep.shards.VIEWS``, the features recomputed) and provenance, every patch."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def __getitem__(self, name):
+        if name not in shards.VIEWS:
+            return self.f[name]
+        return shards.read_patches(self.f, [name], range(len(self.f["source"])))[name]
+
+
 def shard_pairs(full, other):
-    """(full set's shard, the other set's) of every round-0 shard, both splits, as open h5py files."""
+    """(full set's shard, the other set's) of every round-0 shard, both splits, read as :class:`Read`."""
     for split in ("train", "val"):
         a, b = shards.shard_paths(full.set_dir, split), shards.shard_paths(other.set_dir, split)
         assert [p.name for p in a] == [p.name for p in b] and a
         for pa, pb in zip(a, b):
             with shards.open_shard(pa) as fa, shards.open_shard(pb) as fb:
-                yield fa, fb
+                yield Read(fa), Read(fb)
 
 
 def test_a_no_split_set_holds_the_features_of_the_total_colour_and_no_specular(sets):
@@ -134,7 +147,7 @@ def test_a_no_split_set_holds_the_features_of_the_total_colour_and_no_specular(s
             y, x = f["position"][k]
             win = np.s_[y:y + 16, x:x + 16]
             want = reference_features(total_colour_frame(noisy), "diffuse")[win]
-            np.testing.assert_allclose(f["diffuse/features"][k], want, rtol=1e-6, atol=1e-6)
+            assert_read_features_close(f["diffuse/features"][k], want)
             np.testing.assert_allclose(f["diffuse/reference"][k],
                                        reference_log_colour(ref["default"], ref["albedo"])[win], rtol=1e-6, atol=1e-6)
             for name in ("specular/noisy", "specular/reference"):
@@ -171,12 +184,13 @@ def test_an_error_round_of_a_no_split_set_is_cut_from_the_total_colour(sets):
     paths = [p for p in shards.shard_paths(copy, "train") if p.parent.name == "round-001"]
     seen = 0
     for path in paths:
-        with shards.open_shard(path) as f:
+        with shards.open_shard(path) as opened:
+            f = Read(opened)
             for k in range(len(f["source"])):
                 noisy = exr.read_aovs(sset.resolve(sources[int(f["source"][k])]["path"]))
                 y, x = f["position"][k]
                 want = reference_features(total_colour_frame(noisy), "diffuse")[y:y + 16, x:x + 16]
-                np.testing.assert_allclose(f["diffuse/features"][k], want, rtol=1e-6, atol=1e-6)
+                assert_read_features_close(f["diffuse/features"][k], want)
                 assert not f["specular/noisy"][k].any() and not f["specular/reference"][k].any()
                 seen += 1
     assert seen == 2 * 3  # two training inputs

@@ -233,9 +233,10 @@ def test_shards_are_cut_in_memory_bounded_by_one_shard_not_by_the_patch_count(tm
         tracemalloc.stop()
         peaks[ppi] = min(peaks.get(ppi, peak), peak)
         total[ppi] = 2 * ppi * shards.patch_bytes(8)
-    # twelve times the patches: the peak stays that of one image and one shard
+    # twelve times the patches: the peak stays that of one image and one shard (kpcn-shard/4's patch is a
+    # third of kpcn-shard/2's, so the set's bytes are fewer against the same peak than they were)
     assert peaks[1200] < 1.5 * peaks[100] + 2**20
-    assert peaks[1200] < total[1200] / 4
+    assert peaks[1200] < total[1200] / 2
 
 
 @pytest.mark.slow

@@ -10,7 +10,15 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, reference_relse, run_main
+from helpers import (
+    assert_one_line_error,
+    assert_read_features_close,
+    checksums,
+    kpcn,
+    make_renders,
+    random_aovs,
+    reference_relse,
+)
 
 from prep import exr, features, shards
 from prep.files import is_temporary
@@ -50,17 +58,15 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
                     ref = exr.read_aovs(sset.resolve(ref_path), variances=False)
                     y, x = f["position"][k]
                     win = np.s_[y:y + 16, x:x + 16]
-                    np.testing.assert_array_equal(f["diffuse/features"][k],
-                                                  features.branch_features(noisy, "diffuse")[win])
-                    np.testing.assert_array_equal(f["specular/features"][k],
-                                                  features.branch_features(noisy, "specular")[win])
-                    np.testing.assert_array_equal(f["specular/reference"][k],
-                                                  features.branch_colour(ref, "specular")[win])
-                    np.testing.assert_array_equal(f["diffuse/reference"][k],
-                                                  features.branch_colour(ref, "diffuse")[win])
-                    np.testing.assert_array_equal(f["reference"][k], ref["default"][win])
-                    np.testing.assert_array_equal(f["albedo"][k], noisy["albedo"][win])
-                    assert f["diffuse/features"].chunks == (1, 16, 16, features.NUM_FEATURES)
+                    got = shards.read_patch(f, list(shards.VIEWS), k)
+                    for branch in features.BRANCHES:
+                        assert_read_features_close(got[f"{branch}/features"],
+                                                   features.branch_features(noisy, branch)[win], branch)
+                        np.testing.assert_array_equal(got[f"{branch}/reference"],
+                                                      features.branch_colour(ref, branch)[win])
+                    np.testing.assert_array_equal(got["reference"], ref["default"][win])
+                    np.testing.assert_allclose(got["albedo"], noisy["albedo"][win], rtol=2.0**-11, atol=2.0**-25)
+                    assert f["guides"].chunks == (1, 17, 17, 7)
                     seen += 1
     assert seen == 4 * 7
     assert json.loads((cfg.set_dir / "manifest.json").read_text())["config_hash"] == cfg.content_hash()
@@ -84,7 +90,8 @@ def test_same_seed_same_shards_and_a_second_run_keeps_them(tmp_path, render_set)
     for pa, pb in zip(shards.shard_paths(a.set_dir, "train"), shards.shard_paths(b.set_dir, "train")):
         with h5py.File(pa) as fa, h5py.File(pb) as fb:
             np.testing.assert_array_equal(fa["position"][()], fb["position"][()])
-            np.testing.assert_array_equal(fa["diffuse/features"][()], fb["diffuse/features"][()])
+            for name in shards.DATASETS:
+                np.testing.assert_array_equal(fa[name][()], fb[name][()], err_msg=name)
     first = shards.shard_paths(a.set_dir, "train")[0]
     mtime = first.stat().st_mtime_ns
     shards.build_shards(a, progress=False)
@@ -116,7 +123,9 @@ def slow_create(self, *args, **kwargs):
     return out
 h5py.Group.create_dataset = slow_create
 rng = np.random.default_rng(0)
-arrays = {{name: rng.normal(size=(40, 65, 65, c)).astype(np.float32) for name, c in shards.PATCH_DATASETS.items()}}
+arrays = shards.empty_patches(40, 65)
+for name in shards.DATASETS:
+    arrays[name][...] = rng.normal(size=arrays[name].shape)
 print('ready', flush=True)
 shards.write_shard(Path({str(out)!r}) / 'shard-00000.h5', arrays, {{'format': shards.FORMAT}})
 """
@@ -182,8 +191,9 @@ def test_mitsuba_fixture_is_sharded(tmp_path, fixture_noisy, fixture_reference):
     manifest = shards.build_shards(cfg, progress=False)
     assert manifest["split"] == {"train": ["fixture"], "val": []}
     with shards.open_shard(shards.shard_paths(cfg.set_dir, "train")[0]) as f:
-        assert f["diffuse/features"].shape == (10, 32, 32, 27)
-        assert np.isfinite(f["diffuse/features"][()]).all()
+        got = shards.read_patches(f, ["diffuse/features", "specular/features"], range(len(f["source"])))
+    assert got["diffuse/features"].shape == (10, 32, 32, 27)
+    assert np.isfinite(got["diffuse/features"]).all() and np.isfinite(got["specular/features"]).all()
 
 
 def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_detected(tmp_path):
@@ -192,18 +202,22 @@ def test_shards_are_uncompressed_one_patch_per_chunk_and_a_damaged_chunk_is_dete
     for _name, data in arrays.items():
         data[...] = rng.normal(size=data.shape) if data.dtype.kind == "f" else rng.integers(0, 9, data.shape)
     path = tmp_path / "shard-00000.h5"
-    shards.write_shard(path, arrays, {"format": shards.FORMAT})
+    shards.write_shard(path, arrays, {"format": shards.FORMAT, "patch_size": 8})
+    buffers = np.concatenate([arrays["diffuse/log_colour"], arrays["guides"]], axis=-1)
+    relvar = np.concatenate([arrays["diffuse/relvar"], arrays["guide_relvar"]], axis=-1)
+    want = features.features_from_buffers(buffers, relvar)
     with shards.open_shard(path) as f:
-        dset = f["diffuse/features"]
-        assert dset.chunks == (1, 8, 8, features.NUM_FEATURES) and dset.compression is None and dset.fletcher32
-        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 1)["diffuse/features"],
-                                      arrays["diffuse/features"][1])
-        chunk = dset.id.get_chunk_info(1)
+        for name, dataset in shards.DATASETS.items():
+            dset = f[name]
+            assert dset.chunks == (1,) + shards.format.dataset_shape(dataset, 8), name
+            assert dset.compression is None and dset.fletcher32, name
+        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 1)["diffuse/features"], want[1])
+        chunk = f["guides"].id.get_chunk_info(1)
     data = bytearray(path.read_bytes())
-    data[chunk.byte_offset + 100] ^= 0xFF  # one byte of patch 1's features, the file's size unchanged
+    data[chunk.byte_offset + 100] ^= 0xFF  # one byte of patch 1's guides, the file's size unchanged
     path.write_bytes(bytes(data))
     with shards.open_shard(path) as f:
-        np.testing.assert_array_equal(f["diffuse/features"][0], arrays["diffuse/features"][0])
+        np.testing.assert_array_equal(shards.read_patch(f, ["diffuse/features"], 0)["diffuse/features"], want[0])
         with pytest.raises(OSError):
             shards.read_patch(f, ["diffuse/features"], 1)
 
@@ -216,7 +230,7 @@ def test_cut_into_a_shard_buffer_equals_cut(tmp_path):
     want = image.cut(2, 6)
     for name, data in want.items():
         np.testing.assert_array_equal(out[name][5:9], data, err_msg=name)
-    assert (want["source"] == 4).all() and want["diffuse/features"].dtype == np.float32
+    assert (want["source"] == 4).all() and want["diffuse/log_colour"].dtype == np.float16
 
 
 # --- a full disk (issue 20) ---
@@ -277,7 +291,7 @@ def test_shards_carry_the_reference_relse_of_each_branch(tmp_path, reference_var
     for split in ("train", "val"):
         for path in shards.shard_paths(cfg.set_dir, split):
             with shards.open_shard(path) as f:
-                assert f.attrs["format"] == "kpcn-shard/3"
+                assert f.attrs["format"] == shards.FORMAT
                 for k in range(len(f["source"])):
                     src = manifest["sources"][int(f["source"][k])]
                     ref_path = next(s["path"] for s in manifest["sources"]
@@ -293,34 +307,3 @@ def test_shards_carry_the_reference_relse_of_each_branch(tmp_path, reference_var
                         np.testing.assert_allclose(got[..., 0], want, rtol=1e-6, atol=0)
                     seen += 1
     assert seen == 2 * 3
-
-
-def test_a_shard_of_an_older_format_is_refused_with_the_command_that_rebuilds_it(tmp_path):
-    path = tmp_path / "s" / "round-000" / "shard-00000.h5"
-    path.parent.mkdir(parents=True)
-    with h5py.File(path, "w") as f:
-        f.attrs["format"] = "kpcn-shard/2"
-        f.attrs["complete"] = True
-        f.attrs["config"] = json.dumps({"set_name": "s"})
-    with pytest.raises(shards.ShardError) as err:
-        shards.open_shard(path)
-    message = str(err.value)
-    assert "\n" not in message and str(path) in message and "'kpcn-shard/2'" in message
-    assert f"rm -r {tmp_path / 's'} && kpcn shards --set s" in message
-
-
-@pytest.mark.slow
-def test_a_set_of_an_older_format_is_one_line_naming_the_manifest_and_the_rebuild_for_shards_and_train(tmp_path):
-    make_renders(tmp_path / "renders" / "s", scenes=("a-000", "b-000"), size=(20, 22))
-    cfg = config(tmp_path, patches_per_image=2)
-    shards.build_shards(cfg, progress=False)
-    manifest_path = cfg.set_dir / "manifest.json"
-    manifest = json.loads(manifest_path.read_text())
-    manifest["format"] = "kpcn-shard/2"
-    manifest_path.write_text(json.dumps(manifest))
-    rebuild = f"rm -r {cfg.set_dir} && kpcn shards --set s"
-    for args in (["shards", "--set", "s", "--renders", cfg.render_root, "--out", cfg.out_root, "--patch-size", "16",
-                  "--patches-per-image", "2", "--patches-per-shard", "5", "--val-fraction", "0.5", "--seed", "3"],
-                 ["train", "--set", "s", "--shards", cfg.out_root, "--run", str(tmp_path / "run")]):
-        assert_one_line_error(run_main(*args, cwd=tmp_path), str(manifest_path), "'kpcn-shard/2'", rebuild)
-    assert not (tmp_path / "run").exists()

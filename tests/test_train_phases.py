@@ -32,7 +32,7 @@ from kpcn_keras.run import Run, read_state
 from kpcn_keras.train import train
 from prep import exr, features
 from prep.errors import KpcnError, OptionError
-from prep.shards import ShardSet, open_shard, shard_paths
+from prep.shards import VIEWS, ShardSet, open_shard, read_patches, shard_paths
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 TINY_COMPOSITOR = {"width": 4, "depth": 3, "kernel_size": 3}
@@ -193,10 +193,11 @@ def _train_paths(shard_cfg):
 
 
 def _patches(paths, name):
+    """Every patch of ``name`` (a name a reader asks for, the features recomputed, or provenance)."""
     out = []
     for p in paths:
         with open_shard(p) as f:
-            out.append(f[name][:])
+            out.append(read_patches(f, [name], range(len(f["source"])))[name] if name in VIEWS else f[name][:])
     return np.concatenate(out)
 
 

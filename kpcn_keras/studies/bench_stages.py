@@ -8,6 +8,12 @@ kernel sizes of :data:`KERNEL_SIZES`); inference start-up, then a frame of the h
 ``large_frame`` frame against OIDN for the configurations of :data:`INFERENCE`, and ``kpcn denoise`` of the
 large frame as a command with its own peak memory. ``kpcn shards`` end to end is timed as a command too
 (:func:`shards_command_cost`). The bench itself (:mod:`kpcn_keras.studies.bench`) calls these.
+
+:func:`shard_format_costs` alone (whether the reader keeps a training step fed, and the format's bytes) is a
+command of its own, on a set's training shards, or on a scratch set of random renders cut for it (the
+reading time does not depend on the pixels)::
+
+    python -m kpcn_keras.studies.bench_stages [--set-dir shards/default] [--batch-size 8]
 """
 
 from __future__ import annotations
@@ -60,9 +66,11 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     ours = planned_train_config(plans.get(cfg.budget, {}).get(OURS))
     model_config, batch = ours.model, ours.batch_size
     stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
-    stages["shard_read"] = shard_read_cost(sset, manifest, model_config, batch, cfg.seed)
+    paths = [e.path for e in sset.verified_shards("train", manifest, rounds=(0,))]
+    stages["shard_read"] = shard_read_cost(paths, model_config, batch, cfg.seed)
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
     stages["shard_read"]["ratio"] = stages["shard_read"]["batch_s"] / stages["train_step"]["keras_s"]
+    stages["shard_read"]["bytes_per_patch"] = shard_bytes(paths, manifest["patch_size"])
     log("stage costs: kernel application")
     bandwidth = net_costs.memory_bandwidth()  # one floor for every kernel size of the report
     stages["kernel_application"] = [net_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
@@ -84,12 +92,82 @@ def planned_train_config(plan: dict | None):
     return Run(plan["run"]).record().train
 
 
-def shard_read_cost(sset, manifest, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
-    """Seconds of reading one training batch (``ShardPatches``, augmented, diffuse) from the set's shards:
-    the median of :data:`SHARD_READ_BATCHES` batches after one that opens the files."""
+def shard_bytes(paths, patch_size: int) -> dict:
+    """Bytes a patch: of ``kpcn-shard/2`` and of this format from the format's table
+    (``prep.shards.v2_patch_bytes``, ``patch_bytes``), of the files ``paths`` on disk, and the patches of
+    this format that 40 GB hold."""
+    from prep.shards import FORMAT, open_shard, patch_bytes, v2_patch_bytes
+
+    count = 0
+    for path in paths:
+        with open_shard(path) as f:
+            count += len(f["source"])
+    on_disk = sum(Path(p).stat().st_size for p in paths) / count
+    return {"kpcn-shard/2": v2_patch_bytes(patch_size), FORMAT: patch_bytes(patch_size), "file": on_disk,
+            "patch_size": patch_size, "patches_in_40GB": int(40e9 // on_disk)}
+
+
+def shard_format_costs(paths, model_config: ModelConfig, batch_size: int, seed: int = 0) -> dict:
+    """Side by side in one process: the bytes a patch (:func:`shard_bytes`), reading a training batch from
+    ``paths`` (:func:`shard_read_cost`: the features recomputed) and a Keras training step of ``model_config``
+    at that batch size on patches of the shards' size (``kpcn_keras.studies.stage_costs.train_step_cost``),
+    and the patches a second that the reader feeds against those that the step takes."""
+    from kpcn_keras.studies import stage_costs as net_costs
+    from prep.shards import open_shard
+
+    with open_shard(paths[0]) as f:
+        patch_size = int(f.attrs["patch_size"])
+    read = shard_read_cost(paths, model_config, batch_size, seed)
+    step = net_costs.train_step_cost(model_config, batch_size=batch_size, patch=patch_size)
+    return {"bytes_per_patch": shard_bytes(paths, patch_size), "read": read,
+            "read_only": read_only_costs(paths[0], batch_size, seed), "step_s": step["keras_s"],
+            "step_patches_per_s": batch_size / step["keras_s"], "read_over_step": read["batch_s"] / step["keras_s"]}
+
+
+def read_only_costs(path, batch_size: int, seed: int = 0) -> dict:
+    """The HDF5 read of a diffuse training batch alone (no augmentation, no network input), median of
+    :data:`SHARD_READ_BATCHES` batches, the same patches in both: from the shard ``path``, its stored
+    datasets then the features recomputed (``prep.shards.read_stored``, ``derive``: ``compact_s``), against
+    the same patches' features and reference read from a copy in ``kpcn-shard/2``'s layout (float32, one
+    patch a chunk, Fletcher-32: ``v2_s``), written beside it for the measure and removed."""
+    import h5py
+
+    from prep.shards import branch_datasets, derive, open_shard, read_patches, read_stored, stored_datasets
+
+    names = branch_datasets("diffuse")
+    stored = stored_datasets(names)
+    with open_shard(path) as f:
+        n, p = len(f["source"]), int(f.attrs["patch_size"])
+        whole = read_patches(f, names, range(n))
+    v2 = Path(path).with_name(".v2-layout-copy.h5")
+    try:
+        with h5py.File(v2, "w") as g:
+            for name in names:
+                g.create_dataset(name, data=whole[name], chunks=(1,) + whole[name].shape[1:], fletcher32=True)
+        rng = np.random.default_rng(seed)
+        times = {"compact_s": [], "v2_s": []}
+        with open_shard(path) as f, h5py.File(v2, "r") as g:
+            ds = {name: f[name] for name in stored}
+            old = {name: g[name] for name in names}
+            for _ in range(SHARD_READ_BATCHES):
+                ids = [int(i) for i in rng.integers(0, n, batch_size)]
+                start = time.perf_counter()
+                reads = [read_stored(ds, stored, i) for i in ids]
+                derive({k: np.stack([r[k] for r in reads]) for k in stored}, names, p)
+                times["compact_s"].append(time.perf_counter() - start)
+                start = time.perf_counter()
+                np.stack([old[names[0]][i] for i in ids]), np.stack([old[names[1]][i] for i in ids])
+                times["v2_s"].append(time.perf_counter() - start)
+    finally:
+        v2.unlink(missing_ok=True)
+    return {key: float(np.median(t)) for key, t in times.items()} | {"batch_size": batch_size}
+
+
+def shard_read_cost(paths, model_config: ModelConfig, batch_size: int, seed: int) -> dict:
+    """Seconds of reading one training batch (``ShardPatches``, augmented, diffuse, the features recomputed)
+    from the shards ``paths``: the median of :data:`SHARD_READ_BATCHES` batches after one that opens the files."""
     from kpcn_keras.data import ShardPatches
 
-    paths = [e.path for e in sset.verified_shards("train", manifest, rounds=(0,))]
     data = ShardPatches(paths, "diffuse", batch_size, steps=SHARD_READ_BATCHES + 1, model=model_config,
                         seed=seed, augment=True)
     data[0]
@@ -242,3 +320,55 @@ def inference_cost(cfg: BenchConfig, plans: dict, aovs: dict) -> dict:
                     "ratio": ours.get("large_ratio"), "tile": ours["tile"],
                     **denoise_command_cost(plans[OURS]["run"], large, Path(cfg.runs_root) / "large-frame")}
     return out
+
+
+def _scratch_set(folder: Path, patch_size: int) -> list[Path]:
+    """The training shards of a set cut, with the default options but ``patch_size``, from random renders
+    (4 scenes, 128 x 128, a noisy and a reference render each) written into ``folder``."""
+    from prep import exr
+    from prep.shards import ShardConfig, build_shards, shard_paths
+
+    rng = np.random.default_rng(0)
+    renders = folder / "renders" / "bench"
+    for i in range(4):
+        for spp, variances in ((4, True), (256, False)):
+            size = (128, 128)
+            aovs = {"diffuse": rng.gamma(1.0, 0.5, size + (3,)), "specular": rng.gamma(0.3, 1.0, size + (3,)),
+                    "albedo": rng.uniform(0, 1, size + (3,)), "normal": rng.uniform(-1, 1, size + (3,)),
+                    "depth": rng.uniform(0, 10, size)}
+            aovs["default"] = aovs["diffuse"] + aovs["specular"]
+            if variances:
+                aovs.update({f"{n}Variance": rng.gamma(0.5, 0.1, size)
+                             for n in ("diffuse", "specular", "color", "albedo", "normal", "depth")})
+            exr.write_aovs(renders / exr.render_filename(f"s{i}-000", spp),
+                           {k: v.astype(np.float32) for k, v in aovs.items()})
+    cfg = ShardConfig(set_name="bench", render_root=str(folder / "renders"), out_root=str(folder / "shards"),
+                      patch_size=patch_size, val_fraction=0.0)
+    build_shards(cfg, progress=False)
+    return shard_paths(cfg.set_dir, "train")
+
+
+def main(argv=None) -> int:
+    """Print :func:`shard_format_costs` for the ``cpu`` preset (module docstring) as JSON."""
+    import argparse
+    import json
+    import tempfile
+
+    from kpcn_keras.config import TrainConfig
+    from prep.shards import shard_paths
+
+    parser = argparse.ArgumentParser(prog="python -m kpcn_keras.studies.bench_stages", description=main.__doc__)
+    parser.add_argument("--set-dir", help="a complete shard set (default: a scratch set of random renders)")
+    parser.add_argument("--batch-size", type=int, help="default: the cpu preset's")
+    args = parser.parse_args(argv)
+    train = TrainConfig.from_preset(OURS)
+    batch = args.batch_size or train.batch_size
+    with tempfile.TemporaryDirectory(prefix="bench-shards-") as tmp:
+        paths = shard_paths(args.set_dir, "train") if args.set_dir else _scratch_set(Path(tmp), 65)
+        print(json.dumps({"preset": OURS, "batch_size": batch, "model": dataclasses.asdict(train.model),
+                          **shard_format_costs(paths, train.model, batch)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -13,7 +13,7 @@ this table (never the package itself, whose names are the interface for the rest
 ===============  =========================================================================================
 module           job
 ===============  =========================================================================================
-``format``       one shard file: datasets, storage layouts, writing, opening, reading a patch, checksums
+``format``       one shard file: its dataset table, storage layouts, writing, opening, reading, checksums
 ``config``       :class:`ShardConfig`: the options of ``kpcn shards``, checked, and their content hash
 ``shardset``     :class:`ShardSet`: the set's folder, manifest and round names; the shards a reader may take
 ``renders``      the set's sources: finding the renders, the split, checking them against the options
@@ -27,19 +27,26 @@ module           job
 from prep.shards.build import build_shards
 from prep.shards.config import PATCH_SIZE, ShardConfig, shard_set_dir
 from prep.shards.format import (
+    DATASETS,
     FORMAT,
     LAYOUTS,
-    PATCH_DATASETS,
     SHARD_LAYOUT,
+    VIEWS,
+    Dataset,
     Layout,
     ShardError,
     branch_datasets,
+    derive,
     empty_patches,
     open_shard,
     patch_bytes,
     read_patch,
+    read_patches,
+    read_stored,
     shard_checksum,
     shard_name,
+    stored_datasets,
+    v2_patch_bytes,
     write_shard,
 )
 from prep.shards.patches import ImagePatches, draw, image_datasets, round_pdf, shard_layers, variance_patches
@@ -48,15 +55,17 @@ from prep.shards.rounds import ErrorRound, RoundResult, build_error_round, train
 from prep.shards.shardset import MANIFEST, ShardEntry, ShardSet, round_index, round_name, shard_paths
 
 __all__ = [
+    "DATASETS",
     "FORMAT",
     "MANIFEST",
-    "PATCH_DATASETS",
     "PATCH_SIZE",
     "ErrorRound",
     "ImagePatches",
     "LAYOUTS",
     "Layout",
     "SHARD_LAYOUT",
+    "VIEWS",
+    "Dataset",
     "RoundResult",
     "ShardConfig",
     "ShardEntry",
@@ -66,12 +75,15 @@ __all__ = [
     "branch_datasets",
     "build_shards",
     "discover_renders",
+    "derive",
     "draw",
     "empty_patches",
     "image_datasets",
     "open_shard",
     "patch_bytes",
     "read_patch",
+    "read_patches",
+    "read_stored",
     "round_index",
     "round_name",
     "round_pdf",
@@ -81,8 +93,10 @@ __all__ = [
     "shard_paths",
     "shard_set_dir",
     "split_scenes",
+    "stored_datasets",
     "training_inputs",
     "used_positions",
+    "v2_patch_bytes",
     "variance_patches",
     "write_shard",
 ]

@@ -26,7 +26,7 @@ from prep.parts import Part
 from prep.shards.config import ShardConfig
 from prep.shards.format import FORMAT, ShardError, config_hash_of, listed_checksum
 from prep.shards.renders import find_sources, source_changes
-from prep.shards.shardset import PARTS, ShardSet, content_key, round_name
+from prep.shards.shardset import PARTS, OlderFormatError, ShardSet, content_key, round_name
 from prep.shards.writer import RoundDraw, ShardSpec, shard_specs, write_round
 
 log = logging.getLogger("kpcn")
@@ -59,8 +59,12 @@ def _previous_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict
     if sset.manifest_path.is_file():
         try:
             manifest = sset.read_manifest()
+        except OlderFormatError as exc:  # ours, of an older format: derived data, rebuilt in this one
+            log.warning("%s; rebuilding the set", str(exc).split(";")[0])
+            _empty_set(sset)
+            return None
         except ShardError:
-            raise  # another format: not ours to overwrite
+            raise  # a foreign format: not ours to overwrite
         except KpcnError as exc:  # a damaged manifest is derived data: rebuild rather than stop
             log.warning("%s; rebuilding the set", exc)
             manifest = None
@@ -119,6 +123,13 @@ def build_shards(config: ShardConfig, *, progress: bool = True, workers: int | N
         return _merge_round_zero(sset, manifest, record, part, len(plan.shards))
 
 
+def _empty_set(sset: ShardSet) -> None:
+    """Remove every round and part list of a set whose shards are not to be kept (the manifest is rewritten)."""
+    for old in [*sorted(sset.dir.glob("round-*")), sset.dir / PARTS]:
+        if old.is_dir():
+            shutil.rmtree(old)
+
+
 def _open_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict:
     """The manifest this run builds round 0 into, the set's lock held: the set's error rounds and round 0's
     listed shards are kept when the renders are the same; the set is emptied when they changed. A new
@@ -129,9 +140,7 @@ def _open_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict:
         log.warning("%s: renders changed since the set was written (%s); rebuilding it", sset.dir,
                     source_changes(previous.get("sources", []), plan.sources))
         previous = None
-        for old in [*sorted(sset.dir.glob("round-*")), sset.dir / PARTS]:
-            if old.is_dir():
-                shutil.rmtree(old)
+        _empty_set(sset)
     remove_temporaries(sset.dir)
     first = round_name(0)
     rounds = dict((previous or {}).get("rounds", {}))

@@ -1,7 +1,7 @@
 """The per-image step of every round: an input's PDF over its patch positions (:func:`round_pdf`: the
 variance PDF, mixed in an error round with an error map's), the positions drawn from it
 (:func:`draw`, a generator per input and round: :func:`round_rng`), and the patches cut at them from the
-full-image datasets of the shard layout (:class:`ImagePatches`). Every round goes through it, round 0
+full-image datasets of the shard table (:class:`ImagePatches`). Every round goes through it, round 0
 (:func:`variance_patches`) as every error round, and hands its patches to the same writer
 (``prep.shards.writer``). Deterministic: the same renders, configuration and round give the same patches.
 
@@ -19,42 +19,39 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep import convergence, features, sampling
-from prep.exr import VARIANCE_LAYERS
 from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
-from prep.shards.format import empty_patches
+from prep.shards.format import DATASETS, empty_patches, to_half
 
 
 def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
     """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
-    reads it (``prep.inputs.restrict``), and the reference restricted alike: a no-split set's diffuse
-    reference is the total colour, and its variance ``colorVariance``, whatever the set's inputs (the
-    reference's variance is no network input, only its ``ref_relse``). A reference without every variance
-    layer (read with ``variances=None``: another renderer's) is given zeros, so its ``ref_relse`` is 0."""
-    has_variance = all(name in reference for name in VARIANCE_LAYERS)
-    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=has_variance))
+    reads it (``prep.inputs.restrict``), and the reference restricted alike, without variance (a reference
+    has none, and the shards hold none of it): a no-split set's diffuse reference is the total colour."""
+    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=False))
 
 
 def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
-    """Full-image arrays of every per-patch dataset of the shard layout, for one (noisy, reference) pair."""
-    return {
-        "diffuse/features": features.branch_features(noisy, "diffuse"),
-        "specular/features": features.branch_features(noisy, "specular"),
-        "diffuse/noisy": features.branch_colour(noisy, "diffuse"),
-        "diffuse/reference": features.branch_colour(reference, "diffuse"),
-        "specular/noisy": features.branch_colour(noisy, "specular"),
-        "specular/reference": features.branch_colour(reference, "specular"),
-        "albedo": noisy["albedo"],
-        "noisy": noisy["default"],
-        "reference": reference["default"],
-        "diffuse/ref_relse": _relse(reference, "diffuse"),
-        "specular/ref_relse": _relse(reference, "specular"),
-    }
-
-
-def _relse(reference: dict, branch: str) -> np.ndarray:
-    """(H, W, 1) relSE of the reference's ``branch`` colour (``prep.convergence``)."""
-    return convergence.branch_relse(reference, branch)[..., None]
+    """Full-image arrays of every per-patch dataset of the shard table (``prep.shards.format.DATASETS``), for
+    one (noisy, reference) pair, in its dtype: a dataset with a border is (H + 1, W + 1, C), the last row and
+    column repeated (``prep.features.branch_buffers``), so a patch at (y, x) is [y : y + P + 1, x : x + P + 1].
+    The float16 ones are rounded once from the float64 buffers, kept inside their features' ranges
+    (``to_half``)."""
+    scale = features.depth_scale(noisy["depth"])
+    out = {}
+    for b in features.BRANCHES:
+        buffers, relvar = features.branch_buffers(noisy, b, scale=scale)
+        out[f"{b}/log_colour"] = to_half(buffers[..., features.COLOUR], features.LOG_COLOUR_MAX)
+        out[f"{b}/relvar"] = to_half(relvar[..., :1], features.RELVAR_MAX)
+        # the guides are the same for both branches (the kernel computes them alike): the specular's are kept.
+        # Normal, albedo and depth lie in [-1, 1], where float16 rounding stays
+        out["guides"] = buffers[..., features.COLOUR.stop:].astype(np.float16)
+        out["guide_relvar"] = to_half(relvar[..., 1:], features.RELVAR_MAX)
+        out[f"{b}/reference"] = features.branch_colour(reference, b)
+        out[f"{b}/ref_relse"] = convergence.branch_relse(reference, b)[..., None]
+    out["noisy"] = noisy["default"]
+    out["reference"] = reference["default"]
+    return out
 
 
 @dataclass
@@ -72,7 +69,10 @@ class ImagePatches:
     @classmethod
     def at(cls, noisy: dict, reference: dict, positions: np.ndarray, pdf: np.ndarray, *, source_id: int, round: int,
            patch_size: int) -> ImagePatches:
-        return cls(source_id, round, patch_size, positions, pdf, image_datasets(noisy, reference))
+        images = image_datasets(noisy, reference)
+        if set(images) != set(DATASETS):  # a patch of a dataset not cut would be written uninitialised
+            raise KeyError(f"image_datasets gives {sorted(images)}, the shard table has {sorted(DATASETS)}")
+        return cls(source_id, round, patch_size, positions, pdf, images)
 
     def cut(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """Patches ``start:stop`` (in drawing order) with their provenance datasets."""
@@ -83,13 +83,13 @@ class ImagePatches:
     def cut_into(self, start: int, stop: int, out: dict[str, np.ndarray], at: int) -> None:
         """Patches ``start:stop`` into rows ``at:`` of ``out`` (:func:`empty_patches`): a shard's arrays are
         filled in place, never stacked and concatenated (that copying was a tenth of the writer's time)."""
-        p = self.patch_size
         pos = self.positions[start:stop]
         rows = slice(at, at + len(pos))
         for name, image in self.images.items():
             target = out[name]
+            side = target.shape[1]  # the patch size, or one more for a dataset with a border
             for k, (y, x) in enumerate(pos):
-                target[at + k] = image[y : y + p, x : x + p]
+                target[at + k] = image[y : y + side, x : x + side]
         out["source"][rows] = self.source_id
         out["position"][rows] = pos
         out["round"][rows] = self.round

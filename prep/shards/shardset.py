@@ -44,13 +44,25 @@ from prep.files import (
     sha256_file,
 )
 from prep.parts import Part
-from prep.shards.format import FORMAT, ShardError, listed_checksum, open_shard, rebuild_hint, shard_intact
+from prep.shards.format import (
+    FORMAT,
+    ShardError,
+    listed_checksum,
+    older_format,
+    open_shard,
+    rebuild_command,
+    shard_intact,
+)
 
 MANIFEST = "manifest.json"
 PARTS = "parts"
 SPLITS = ("train", "val")
 ROUND_RE = re.compile(r"^round-(\d{3,})$")
 PLAN = "plan.npz"
+
+
+class OlderFormatError(ShardError):
+    """A set of an older ``kpcn-shard`` format: refused by readers, rebuilt by ``kpcn shards``."""
 
 
 def round_name(k: int) -> str:
@@ -126,10 +138,15 @@ class ShardSet:
         if not self.manifest_path.is_file():
             raise ShardError(f"{self.manifest_path}: no shard manifest (run 'kpcn shards' first)")
         manifest = read_json(self.manifest_path, "shard manifest", keys=("format", "status", "rounds", "sources"))
+        if older_format(manifest["format"]):
+            raise OlderFormatError(
+                f"{self.manifest_path}: a shard set of format {manifest['format']!r}, this kpcn reads {FORMAT!r}; "
+                f"rebuild it with {rebuild_command(manifest.get('config'))}"
+            )
         if manifest["format"] != FORMAT:
             raise ShardError(
                 f"{self.manifest_path}: shard set of format {manifest['format']!r}, this kpcn reads {FORMAT!r}; "
-                f"{rebuild_hint(self.dir, manifest.get('set'))}"
+                f"remove {self.dir} and run 'kpcn shards' again"
             )
         return manifest
 
@@ -207,7 +224,7 @@ class ShardSet:
         covers the sources' patch counts and checksums, recomputed from the manifest's lists)."""
         try:
             with open_shard(entry.path) as f:
-                found = {"patch_size": int(f.attrs["patch_size"]), "shape": f["diffuse/features"].shape[1:3],
+                found = {"patch_size": int(f.attrs["patch_size"]), "shape": f["diffuse/reference"].shape[1:3],
                          "patches": len(f["source"]), "config": json.loads(f.attrs["config"]),
                          "config_hash": f.attrs["config_hash"], "content_key": f.attrs["content_key"],
                          "features": json.loads(f.attrs["features"])}

@@ -146,10 +146,12 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
     "repeats", "layouts": {name: {...}}}``, per layout: ``write_patches_per_s`` (``write_shard`` then the
     file's checksum, as ``kpcn shards`` does per shard; best of ``repeats``), ``bytes_per_patch`` (file size
     over N), ``read_batch_s`` (``batch_size`` random patches of the ``diffuse`` datasets, read one patch and
-    dataset at a time by ``prep.shards.read_patch`` from files opened once: the training read; median over
-    ``repeats`` x BATCHES_PER_REPEAT batches), ``dtype``, ``compression``, ``patches_per_chunk``,
-    ``max_abs_error`` and ``max_rel_error`` (every patch dataset read back against what was cut, relative to
-    max(|value|, REL_ERROR_FLOOR): 0 but for float16 storage, <= 2**-11 for it) and ``exact``.
+    at a time by ``prep.shards.read_patch``, the features recomputed, from files opened once: the training
+    read; median over ``repeats`` x BATCHES_PER_REPEAT batches), ``dtype`` (``"table"``: each dataset's own,
+    ``prep.shards.DATASETS``), ``compression``, ``patches_per_chunk``, ``max_abs_error`` and
+    ``max_rel_error`` (every stored dataset read back against what was cut, in the table's dtypes, relative
+    to max(|value|, REL_ERROR_FLOOR): 0 but where a layout overrides the dtype with float16, <= 2**-11 there)
+    and ``exact``.
     """
     _check_repeats(repeats)
     if not render_pairs:
@@ -163,7 +165,7 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
     _warm_features()
     patches = _cut_patches(render_pairs, patches_per_image, patch_size, seed)
     n = len(patches["source"])
-    attrs = {"format": shards.FORMAT}
+    attrs = {"format": shards.FORMAT, "patch_size": patch_size}
     rng = np.random.default_rng(seed)
     write_s = {name: [] for name in names}
     read_s = {name: [] for name in names}
@@ -192,7 +194,7 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
             layout = shards.LAYOUTS[name]
             with shards.open_shard(paths[name]) as f:
                 abs_err, rel_err = 0.0, 0.0
-                for dataset in shards.PATCH_DATASETS:
+                for dataset in shards.DATASETS:
                     got = f[dataset][()].astype(np.float64)
                     want = patches[dataset].astype(np.float64)
                     with np.errstate(invalid="ignore", over="ignore"):
@@ -205,7 +207,7 @@ def shard_layout_costs(render_pairs: list[tuple[str, str]], out_dir, patches_per
                 "write_patches_per_s": n / _best(write_s[name]),
                 "bytes_per_patch": paths[name].stat().st_size / n,
                 "read_batch_s": float(statistics.median(read_s[name])),
-                "dtype": layout.dtype,
+                "dtype": layout.dtype or "table",
                 "compression": layout.compression or "none",
                 "patches_per_chunk": layout.patches_per_chunk,
                 "max_abs_error": abs_err,
