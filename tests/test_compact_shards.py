@@ -10,6 +10,8 @@ import pytest
 from helpers import assert_one_line_error, build_tiny_shards, random_aovs, run_main
 
 from prep import exr, features, shards
+from prep.inputs import FULL
+from prep.shards.patches import shard_layers
 
 U = 2.0**-11  # float16's unit roundoff: a stored value v is within U |v|
 TINY = 2.0**-25  # half float16's smallest subnormal step: the absolute error below its smallest normal
@@ -49,7 +51,9 @@ def _bound(aovs: dict, branch: str, y: int, x: int, p: int) -> np.ndarray:
 def compact_shard(tmp_path, fixture_noisy, fixture_reference):
     """One shard of 16x16 patches of the fixture render, at its corners (the last row and column, where
     the differences are 0) and inside (where a patch's border differences are the image's)."""
-    noisy, reference = exr.read_aovs(fixture_noisy), exr.read_aovs(fixture_reference, variances=False)
+    # as the writer reads them: a reference without variance layers is given zeros (ref_relse 0)
+    noisy, reference = shard_layers(exr.read_aovs(fixture_noisy), exr.read_aovs(fixture_reference, variances=None),
+                                    FULL)
     h, w = noisy["depth"].shape
     p = 16
     positions = np.array([(0, 0), (h - p, w - p), (h - p, 5), (7, w - p), (20, 31)], np.int32)
@@ -117,7 +121,7 @@ def test_features_from_float64_buffers_are_the_render_time_features_bit_for_bit(
 
 def test_a_patch_of_the_default_size_fits_100000_in_40_GB(tmp_path):
     p = shards.ShardConfig().patch_size  # the default, 65
-    noisy, reference = random_aovs(p + 9, p + 7, seed=1), random_aovs(p + 9, p + 7, seed=2, variances=False)
+    noisy, reference = random_aovs(p + 9, p + 7, seed=1), random_aovs(p + 9, p + 7, seed=2)
     n = 6
     rng = np.random.default_rng(0)
     positions = np.stack([rng.integers(0, 10, n), rng.integers(0, 8, n)], axis=1).astype(np.int32)

@@ -28,9 +28,11 @@ diffuse/reference     (N, P, P, 3)     float32  reference colour in the branch's
 specular/reference    (N, P, P, 3)     float32  likewise
 noisy                 (N, P, P, 3)     float32  noisy final colour, linear: HDR, float16 overflows at 65504
 reference             (N, P, P, 3)     float32  reference final colour, linear: likewise
-diffuse/ref_relse     (N, P, P, 1)     float32  relative standard error of the diffuse reference, per pixel:
-                                                an unbounded ratio, so float32 as the targets
-specular/ref_relse    (N, P, P, 1)     float32  likewise, specular (0 where the reference has no variance
+diffuse/ref_relse     (N, P, P, 1)     float16  relative standard error of the diffuse reference, per pixel,
+                                                clipped to :data:`RELSE_MAX`: it only sets a loss weight
+                                                (``kpcn_keras.losses``), which 2**-11 relative leaves as it
+                                                is and which is 0 in float32 long before the clip
+specular/ref_relse    (N, P, P, 1)     float16  likewise, specular (0 where the reference has no variance
                                                 layer)
 source                (N,) int32                index into the manifest's (and the ``sources`` attribute's)
                                                 sources
@@ -43,7 +45,7 @@ The reference diffuse colour is divided by the reference's own albedo (a clean i
 ``ref_relse`` datasets are ``prep.convergence.branch_relse`` of the reference render, each branch from its own
 colour and variance layer (a relative error is unchanged by the albedo division to first order); a reference
 without that variance layer (another renderer's) has 0 there, i.e. full weight in a weighted loss. At 65x65
-a patch is 392 kB (:func:`patch_bytes`), 100,000 patches 39 GB; ``kpcn-shard/2`` stored the 27 features
+a patch is 375 kB (:func:`patch_bytes`), 100,000 patches 38 GB; ``kpcn-shard/2`` stored the 27 features
 of each branch in float32, 1.27 MB a patch (:func:`v2_patch_bytes`).
 
 What a reader gets (:data:`VIEWS`, float32): ``{branch}/features`` (P, P, 27), recomputed;
@@ -88,6 +90,9 @@ FORMAT_FAMILY = "kpcn-shard/"
 FORMAT = FORMAT_FAMILY + "4"
 SHARD_RE = re.compile(r"^shard-(\d{5})\.h5$")
 
+# the largest float16: a stored relSE is clipped to it (a reference pixel that far from converged has weight 0)
+RELSE_MAX = float(np.finfo(np.float16).max)
+
 AS_IS = "as is"  # served float32 under its own name
 FEATURES = "features"  # an input of the features (:data:`FEATURE_INPUTS`), not served by name
 
@@ -118,8 +123,8 @@ DATASETS = {d.name: d for d in (
     Dataset("specular/reference", 3, "float32", AS_IS),
     Dataset("noisy", 3, "float32", AS_IS),
     Dataset("reference", 3, "float32", AS_IS),
-    Dataset("diffuse/ref_relse", 1, "float32", AS_IS),
-    Dataset("specular/ref_relse", 1, "float32", AS_IS),
+    Dataset("diffuse/ref_relse", 1, "float16", AS_IS),
+    Dataset("specular/ref_relse", 1, "float16", AS_IS),
 )}
 # What the features of a branch are made of (``prep.features.features_from_buffers``): the stored buffers and
 # the stored relative variances, each the datasets concatenated along channels in this order.

@@ -19,16 +19,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep import convergence, features, sampling
+from prep.exr import VARIANCE_LAYERS
 from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
-from prep.shards.format import DATASETS, empty_patches, to_half
+from prep.shards.format import DATASETS, RELSE_MAX, empty_patches, to_half
 
 
 def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
     """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
-    reads it (``prep.inputs.restrict``), and the reference restricted alike, without variance (a reference
-    has none, and the shards hold none of it): a no-split set's diffuse reference is the total colour."""
-    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=False))
+    reads it (``prep.inputs.restrict``), and the reference restricted alike: a no-split set's diffuse
+    reference is the total colour, and its variance ``colorVariance``, whatever the set's inputs (the
+    reference's variance is no network input, only its ``ref_relse``). A reference without every variance
+    layer (read with ``variances=None``: another renderer's) is given zeros, so its ``ref_relse`` is 0."""
+    has_variance = all(name in reference for name in VARIANCE_LAYERS)
+    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=has_variance))
 
 
 def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
@@ -48,7 +52,7 @@ def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
         out["guides"] = buffers[..., features.COLOUR.stop:].astype(np.float16)
         out["guide_relvar"] = to_half(relvar[..., 1:], features.RELVAR_MAX)
         out[f"{b}/reference"] = features.branch_colour(reference, b)
-        out[f"{b}/ref_relse"] = convergence.branch_relse(reference, b)[..., None]
+        out[f"{b}/ref_relse"] = to_half(convergence.branch_relse(reference, b)[..., None], RELSE_MAX)
     out["noisy"] = noisy["default"]
     out["reference"] = reference["default"]
     return out
