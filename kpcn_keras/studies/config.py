@@ -63,13 +63,19 @@ def combine(*names: str, levers: dict | None = None) -> tuple[str, str, dict, di
 # Adding a lever is one entry; "combination" names the levers it combines.
 # the data lever's render set: 8 scenes per family instead of 3, and the ladder from the lowest spp a render has
 MORE_DATA = {"per_family": 8, "input_spp": (2, 4, 8, 16, 32, 64)}
+# What every lever starts from, under its own overrides: the training before issue 23's levers (no reference
+# weighting), so that each lever is measured alone against the baseline ``cpu``.
+QUALITY_BASE = {"reference_tau": 0.0}
 QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
-    "cpu": ("the default (cpu preset), the baseline", "cpu", {}, None),
+    "cpu": ("the cpu preset without reference weighting, the baseline", "cpu", {}, None),
+    "unet": ("the kernel-predicting network on a U-Net trunk (unet preset)", "unet", {}, None),
     "multiscale-kernel": (CONFIGURATIONS["multiscale-kernel"][0], *CONFIGURATIONS["multiscale-kernel"][1:], None),
+    "reference-weight": ("cpu, each reference pixel's loss weighted by its convergence (τ = 0.1)", "cpu",
+                         {"reference_tau": 0.1}, None),
     "data": (f"cpu on {MORE_DATA['per_family']} scenes per family and inputs at "
              f"{', '.join(map(str, MORE_DATA['input_spp']))} spp", "cpu", {}, MORE_DATA),
 }
-QUALITY_LEVERS["combination"] = combine("multiscale-kernel", "data")
+QUALITY_LEVERS["combination"] = combine("unet", "multiscale-kernel", "reference-weight", "data")
 
 # name -> (what it is, the loop's settings besides the study's)
 ARMS: dict[str, tuple[str, dict]] = {

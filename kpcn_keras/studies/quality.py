@@ -56,7 +56,7 @@ from pathlib import Path
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.studies.compare import _training_seconds, against, deep_learning_stack, plan_steps, with_steps
-from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig
+from kpcn_keras.studies.config import QUALITY_BASE, QUALITY_LEVERS, QualityConfig
 from kpcn_keras.studies.frames import SCORES, beside, by_spp, panels_figure, renderer_pairs, scores
 from kpcn_keras.studies.inputs_study import cut_input_shards, shard_options
 from prep import exr, layouts
@@ -141,11 +141,11 @@ def prepare_data(cfg: QualityConfig, input_sets: tuple[str, ...], *, log=print) 
 
 def train_config(cfg: QualityConfig, lever: str, set_name: str, inputs: str,
                  overrides: dict | None = None) -> TrainConfig:
-    """The TrainConfig of ``lever``'s network for ``inputs`` before its steps are set; ``overrides`` apply after
-    the lever's own (``model`` merged)."""
+    """The TrainConfig of ``lever``'s network for ``inputs`` before its steps are set: :data:`QUALITY_BASE`, the
+    lever's own overrides on it, then ``overrides`` (``model`` merged)."""
     _, preset, own, _ = QUALITY_LEVERS[lever]
     overrides = dict(overrides or {})
-    values = {**own, **overrides}
+    values = {**QUALITY_BASE, **own, **overrides}
     values["model"] = {**own.get("model", {}), **(overrides.get("model") or {})}
     if not InputSet.named(inputs).split:
         values.update(WITHOUT_SPLIT)
@@ -316,6 +316,7 @@ def quality(cfg: QualityConfig, *, overrides: dict | None = None, command: str |
         "config": {**dataclasses.asdict(cfg), "levers": list(cfg.levers), "frames": list(cfg.frames)},
         "levers": {n: {"what": QUALITY_LEVERS[n][0], "preset": QUALITY_LEVERS[n][1],
                        "overrides": QUALITY_LEVERS[n][2], "renders": QUALITY_LEVERS[n][3]} for n in cfg.levers},
+        "base": QUALITY_BASE,
         "overrides": overrides or {},
         "input_sets": list(input_sets),
         "rules": {"seconds_per_network": cfg.budget / len(input_sets)},
@@ -517,6 +518,9 @@ def format_report(record: dict) -> str:
         f"{machine['torch_threads']} torch threads. What else ran on the machine is for the caller to note: on a "
         "busy machine the probed steps, and so the budgets, are not the same.",
     ]
+    if record.get("base"):
+        lines.append(f"- **Every lever starts from** `{json.dumps(record['base'])}` (TrainConfig fields, under the "
+                     "lever's own), so that each lever is measured alone against `cpu`.")
     if record.get("overrides"):
         lines.append(f"- **Every lever overridden** with `{json.dumps(record['overrides'])}` (TrainConfig fields, "
                      "after the lever's own).")
