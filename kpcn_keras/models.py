@@ -1,4 +1,4 @@
-"""Branch denoising networks: vanilla KPCN, residual KPAL and direct-prediction DPCN (docs/method.md §4).
+"""Branch denoising networks: KPCN, residual KPAL, direct-prediction DPCN and U-Net KPCN (docs/method.md §4).
 
 A branch network (diffuse or specular) maps its input (B, H, W, ``input_channels``), channels last, any H and W,
 to the filtered colour in the log domain log(1 + x), (B, H, W, 3). The input is the ``in_channels`` features of
@@ -23,8 +23,7 @@ Architectures (``ModelConfig.arch``):
 - ``"dpcn"``: the ``"kpcn"`` trunk with a 1x1 convolution to 3 channels that is **added to the noisy
   colour** (residual direct prediction): the network predicts a correction, not the colour itself. The sum
   is clamped to the colour feature's range [0, ``prep.features.LOG_COLOUR_MAX``], which a kernel output
-  never leaves (it is a convex combination of the input colour).
-
+  never leaves beyond float32 rounding (it is a convex combination of the input colour).
 - ``"unet"``: a kernel-predicting network on a U-Net trunk (issue 23: the ``cpu`` stack sees 15 x 15 pixels,
   and low-frequency blotches 10-30 pixels across survive it). ``levels`` resolutions L, level l of
   ``ModelConfig.unet_widths()[l]`` filters (``width`` growing by ``width_growth`` a level, at most
@@ -48,7 +47,7 @@ Architectures (``ModelConfig.arch``):
   pixel sits in the 2**(L-1) pooling grid, so tiles of a tiled inference must start on that grid
   (:func:`input_alignment`; ``denoise.Denoiser``), not only overlap by R.
 
-Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL therefore predicts
+Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL/U-Net therefore predicts
 all-equal logits, i.e. a uniform k x k box filter (a sensible smoother rather than noise), and an untrained
 DPCN returns its input unchanged. Gradients still reach the trunk from the second step on.
 
