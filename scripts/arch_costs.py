@@ -14,9 +14,11 @@ busiest other processes when it starts. Untrained weights: the time of a convolu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -61,8 +63,9 @@ def trained_runs(root: Path) -> dict:
     cfg = shards.ShardConfig(set_name="s", render_root=str(root / "renders"), out_root=str(root / "shards"),
                              patches_per_image=8, patches_per_shard=8, val_fraction=0.5, seed=3)
     shards.build_shards(cfg, progress=False)
-    return {p: train(TrainConfig.from_preset(p, set_name="s", shards_root=cfg.out_root, steps=1, val_batches=1),
-                     root / "runs" / p, verbose=0) for p in PRESETS}
+    with contextlib.redirect_stdout(sys.stderr):  # training's one line a phase: stdout is the JSON alone
+        return {p: train(TrainConfig.from_preset(p, set_name="s", shards_root=cfg.out_root, steps=1, val_batches=1),
+                         root / "runs" / p, verbose=0) for p in PRESETS}
 
 
 def main() -> int:
