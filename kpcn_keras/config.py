@@ -23,7 +23,7 @@ from prep.inputs import FULL, InputSet
 from prep.render.frame import FRAME_SIDE
 from prep.shards.config import shard_set_dir, without_full_inputs
 
-ARCHS = ("kpcn", "kpal", "dpcn")
+ARCHS = ("kpcn", "kpal", "dpcn", "unet")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
 TILE = Bound(1, FRAME_SIDE.high)
 DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
@@ -53,6 +53,9 @@ WIDTH = Bound(1, 1024)
 DEPTH = Bound(1, 100)
 IN_CHANNELS = Bound(COLOUR_CHANNELS, 1024)  # channels 0..2 are the colour
 LEVELS = Bound(2, 8)  # one level is the denoiser alone; 8 halves a frame 7 times
+# a U-Net's resolutions: 6 pools 5 times, a 32-pixel alignment and a receptive field past a 65-pixel patch
+UNET_LEVELS = Bound(2, 6)
+WIDTH_GROWTH = Bound(1.0, 4.0, integer=False)  # filters per level down: constant up to quadrupling
 STEPS = Bound(1, 10_000_000)  # ten days at 12 steps/s
 BATCH_SIZE = Bound(1, 4096)
 VAL_BATCHES = Bound(1, 10_000)
@@ -78,6 +81,13 @@ def check_kernel_size(k) -> int:
     return int(k)
 
 
+# arch "unet": what its fields are when not given (ModelConfig); the "unet" preset trains these, 32/48/72/96
+# filters over four levels, with one convolution per level each way
+UNET_DEFAULTS = {"levels": 4, "width_growth": 1.5}
+UNET_CAP_FACTOR = 3  # width_cap not given: three times the first level's width
+UNET_FIELDS = ("levels", "width_growth", "width_cap")
+
+
 def _strict_from_dict(cls, d: dict, option: str):
     """``cls(**d)``, but an unknown key is an OptionError naming ``option`` (a typo would pass silently)."""
     names = {f.name for f in dataclasses.fields(cls)}
@@ -95,6 +105,13 @@ class ModelConfig:
     rate (the report's keep probability 0.7 is ``dropout=0.3``); it is applied after every trunk
     convolution when > 0. ``kernel_size`` is the predicted kernel's side (odd; paper 21) and is ignored by
     dpcn.
+
+    Fields of arch "unet" alone (None for every other arch, and then left out of :meth:`to_dict`, so the
+    configurations and run records of the other archs are the ones written before "unet" existed; setting one
+    with another arch is refused): ``levels`` resolutions (the encoder pools ``levels - 1`` times), the width
+    at level l ``min(width_cap, round(width * width_growth**l))``. None with arch "unet" takes the defaults
+    of :data:`UNET_DEFAULTS`, ``width_cap`` ``UNET_CAP_FACTOR * width``; ``depth`` is the convolutions per
+    level each way (models.py).
     """
 
     arch: str = "kpcn"
@@ -107,11 +124,28 @@ class ModelConfig:
     batchnorm: bool | None = None
     branch_channels: bool = False
     slope_channel: bool = False
+    levels: int | None = bounded(None, UNET_LEVELS)
+    width_growth: float | None = bounded(None, WIDTH_GROWTH)
+    width_cap: int | None = bounded(None, WIDTH)
 
     def __post_init__(self):
         if self.arch not in ARCHS:
             raise OptionError("arch", f"must be one of {ARCHS}, received {self.arch!r}")
         check_fields(self)
+        if self.arch == "unet":
+            for name, default in UNET_DEFAULTS.items():
+                if getattr(self, name) is None:
+                    setattr(self, name, default)
+            if self.width_cap is None:
+                self.width_cap = UNET_CAP_FACTOR * self.width
+            if self.width_cap < self.width:
+                raise OptionError("width_cap", f"must be at least the width {self.width} (the first level's), "
+                                  f"received {self.width_cap}")
+        else:
+            for name in UNET_FIELDS:
+                if getattr(self, name) is not None:
+                    raise OptionError(name, f"is a setting of arch unet alone, received {getattr(self, name)!r} "
+                                      f"with arch {self.arch}")
         if self.batchnorm is None:
             self.batchnorm = self.arch == "kpal"
         elif not isinstance(self.batchnorm, bool):
@@ -126,8 +160,18 @@ class ModelConfig:
         return self.in_channels + BRANCH_CHANNELS * self.branch_channels + self.slope_channel
 
     def to_dict(self) -> dict:
-        """Plain JSON-able dict; ``batchnorm`` is resolved (never None)."""
-        return dataclasses.asdict(self)
+        """Plain JSON-able dict; ``batchnorm`` is resolved (never None); the unet fields only for a unet."""
+        d = dataclasses.asdict(self)
+        if self.arch != "unet":
+            for name in UNET_FIELDS:
+                del d[name]
+        return d
+
+    def unet_widths(self) -> tuple[int, ...]:
+        """The filters of each level of a unet, finest first (ValueError for another arch)."""
+        if self.arch != "unet":
+            raise ValueError(f"a {self.arch} network has no levels")
+        return tuple(min(self.width_cap, round(self.width * self.width_growth**level)) for level in range(self.levels))
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
@@ -170,7 +214,8 @@ class CompositorConfig:
         return _strict_from_dict(cls, d, "compositor")
 
 
-# "cpu" (the TrainConfig defaults) trains a useful model on a 2-core CPU in minutes. The paper presets are
+# "cpu" (the TrainConfig defaults) trains a useful model on a 2-core CPU in minutes; "unet" trains as cpu does
+# with a 4-level U-Net trunk (models.py), whose 59-pixel field sees blotches cpu's 15 cannot. The paper presets are
 # for a GPU: "kpcn-paper" is Bako et al. 2017's vanilla network (9 layers: 8 hidden 5x5 convolutions of 100
 # filters and the kernel head; 21x21 kernels), "kpal-paper" the report's 28-layer residual network (§2.2:
 # batch norm, keep probability 0.7). Both train as the report did (§2.3.2, §3.5.2): batch 12, lr 1e-4 with
@@ -191,6 +236,8 @@ PRESETS = {
         "model": {"arch": "kpcn", "width": 100, "depth": 8, "conv_size": 5, "kernel_size": 21},
         **_PAPER_TRAINING,
     },
+    # cpu's training with a 4-level U-Net trunk (UNET_DEFAULTS: 32/48/72/96 filters) and cpu's 13x13 kernels
+    "unet": {"model": {"arch": "unet", "depth": 1}},
     "kpal-paper": {
         "model": {"arch": "kpal", "width": 100, "depth": 13, "conv_size": 3, "kernel_size": 21, "dropout": 0.3},
         **_PAPER_TRAINING,

@@ -7,8 +7,9 @@ test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile``): a tile's 
 window alone, with the frame's depth scale computed once (``prep.features``), and equal those pixels of the
 whole frame's bit for bit. A tile's margin is the model's receptive radius
 (trunk + kernel, ``models.receptive_radius``; ``multiscale.multiscale_radius`` with a compositor), and only
-its centre is kept, so the result equals an untiled run up to float rounding. With a compositor, tiles and
-margins are multiples of the pyramid's alignment, so each tile pools the same 2x2 blocks as the whole image. The
+its centre is kept, so the result equals an untiled run up to float rounding. Tiles and margins are multiples
+of the network's alignment (``models.input_alignment``: a unet's pooling grid), times the pyramid's with a
+compositor (``multiscale.tile_alignment``), so each tile pools the same 2x2 blocks as the whole image. The
 branches are mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64
 and clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
 
@@ -36,8 +37,8 @@ import keras
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_TILE, TILE
-from kpcn_keras.models import network_input, receptive_radius
-from kpcn_keras.multiscale import alignment, build_multiscale_model, multiscale_radius
+from kpcn_keras.models import input_alignment, network_input, receptive_radius
+from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, tile_alignment
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features, layouts
 from prep.errors import KpcnError, OptionError
@@ -81,15 +82,16 @@ class Denoiser:
         self.inputs, self.branches = record.inputs, record.branches
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
-        self.align = 1
+        self.align = input_alignment(self.model_config)
         if compositor is not None:
             comp_cfg = record.compositor
             networks = {name: build_multiscale_model(net, comp_cfg, compositor=compositor, name=f"multiscale_{name}")
                         for name, net in networks.items()}
             self.margin = multiscale_radius(self.margin, comp_cfg)
-            self.align = alignment(comp_cfg)
+            self.align = tile_alignment(comp_cfg, self.align)
         self.models = {b: networks[names[b]] for b in self.branches}
-        # tiles start at multiples of the pyramid's alignment, so every tile pools the image's own 2x2 blocks
+        # tiles start at multiples of the alignment, so every tile pools the image's own 2x2 blocks (the pyramid's
+        # and the unet's at each of its levels)
         self.margin = -(-self.margin // self.align) * self.align
         self.tile = -(-self.asked_tile // self.align) * self.align
 

@@ -12,6 +12,12 @@ them). Everything is written with ``keras.ops`` so the layer is backend-agnostic
 torch, where ``KernelApply`` takes a fused fast path (:func:`kernel_apply`, same result up to float
 rounding; the tests hold both paths to the same float64 reference). No epsilon is needed: after max
 subtraction the softmax denominator is >= 1.
+
+The other layers of the networks: ``FusedConv2D`` (a convolution with its bias fused on torch),
+``TakeChannels`` (a channel slice), ``FinalColour`` (the branches back to the linear colour), and the pair
+that lets a network with 2x2 pooling take any H and W: ``PadToMultiple`` (edge-replicate at the bottom and
+right up to a multiple) and ``CropLike`` (cut back to a reference's size), used by the U-Net trunk
+(``models``) and the multiscale pyramid (``multiscale``, which re-exports them from where they were first).
 """
 
 from __future__ import annotations
@@ -25,9 +31,11 @@ from prep.bounds import is_integer
 from prep.features import ALBEDO_EPS
 
 __all__ = [
+    "CropLike",
     "FinalColour",
     "FusedConv2D",
     "KernelApply",
+    "PadToMultiple",
     "TakeChannels",
     "apply_kernels",
     "check_kernel_size",
@@ -403,3 +411,92 @@ class FinalColour(keras.layers.Layer):
 
     def compute_output_shape(self, input_shape):
         return tuple(input_shape[0])
+
+
+def _positive_int(name: str, value) -> int:
+    if not is_integer(value) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, received {value!r}")
+    return value
+
+
+def _round_up(n, m):
+    return None if n is None else -(-n // m) * m
+
+
+def _ceil_div(n, m):
+    return None if n is None else -(-n // m)
+
+
+def _shape_str(shape) -> str:
+    return str(tuple(shape))
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class PadToMultiple(keras.layers.Layer):
+    """(B, H, W, C) -> (B, H', W', C), H' and W' the next multiples of ``multiple``, padded at the bottom and
+    right by replicating the last row / column (a constant image stays constant)."""
+
+    def __init__(self, multiple: int, **kwargs):
+        super().__init__(**kwargs)
+        self.multiple = _positive_int("multiple", multiple)
+        self.input_spec = keras.layers.InputSpec(ndim=4)
+
+    def call(self, x):
+        h, w = ops.shape(x)[1], ops.shape(x)[2]
+        pad_h, pad_w = -h % self.multiple, -w % self.multiple
+        if pad_h:
+            x = ops.concatenate([x, ops.repeat(x[:, -1:], pad_h, axis=1)], axis=1)
+        if pad_w:
+            x = ops.concatenate([x, ops.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
+        return x
+
+    def compute_output_shape(self, input_shape):
+        b, h, w, c = input_shape
+        return (b, _round_up(h, self.multiple), _round_up(w, self.multiple), c)
+
+    def get_config(self):
+        config = super().get_config()
+        config["multiple"] = self.multiple
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class CropLike(keras.layers.Layer):
+    """Inputs ``[x (B, H', W', C), reference (B, H, W, *)]`` -> x[:, :ceil(H/factor), :ceil(W/factor)]: undoes
+    ``PadToMultiple`` at the level whose pixels are ``factor`` reference pixels wide."""
+
+    def __init__(self, factor: int = 1, **kwargs):
+        super().__init__(**kwargs)
+        self.factor = _positive_int("factor", factor)
+        self.input_spec = [keras.layers.InputSpec(ndim=4), keras.layers.InputSpec(ndim=4)]
+
+    def _target(self, shape):
+        return _ceil_div(shape[1], self.factor), _ceil_div(shape[2], self.factor)
+
+    def _check(self, x_shape, ref_shape):
+        th, tw = self._target(ref_shape)
+        for have, want in ((x_shape[1], th), (x_shape[2], tw)):
+            if have is not None and want is not None and have < want:
+                raise ValueError(
+                    f"CropLike(factor={self.factor}) cannot crop shape {_shape_str(x_shape)} to the size of "
+                    f"reference shape {_shape_str(ref_shape)}: it is too small"
+                )
+
+    def build(self, input_shape):
+        self._check(*input_shape)
+
+    def call(self, inputs):
+        x, reference = inputs
+        self._check(ops.shape(x), ops.shape(reference))
+        th, tw = self._target(ops.shape(reference))
+        return x[:, :th, :tw]
+
+    def compute_output_shape(self, input_shape):
+        x_shape, ref_shape = input_shape
+        th, tw = self._target(ref_shape)
+        return (x_shape[0], th, tw, x_shape[3])
+
+    def get_config(self):
+        config = super().get_config()
+        config["factor"] = self.factor
+        return config

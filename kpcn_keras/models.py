@@ -1,4 +1,4 @@
-"""Branch denoising networks: vanilla KPCN, residual KPAL and direct-prediction DPCN (docs/method.md §4).
+"""Branch denoising networks: KPCN, residual KPAL, direct-prediction DPCN and U-Net KPCN (docs/method.md §4).
 
 A branch network (diffuse or specular) maps its input (B, H, W, ``input_channels``), channels last, any H and W,
 to the filtered colour in the log domain log(1 + x), (B, H, W, 3). The input is the ``in_channels`` features of
@@ -23,9 +23,31 @@ Architectures (``ModelConfig.arch``):
 - ``"dpcn"``: the ``"kpcn"`` trunk with a 1x1 convolution to 3 channels that is **added to the noisy
   colour** (residual direct prediction): the network predicts a correction, not the colour itself. The sum
   is clamped to the colour feature's range [0, ``prep.features.LOG_COLOUR_MAX``], which a kernel output
-  never leaves (it is a convex combination of the input colour).
+  never leaves beyond float32 rounding (it is a convex combination of the input colour).
+- ``"unet"``: a kernel-predicting network on a U-Net trunk (issue 23: the ``cpu`` stack sees 15 x 15 pixels,
+  and low-frequency blotches 10-30 pixels across survive it). ``levels`` resolutions L, level l of
+  ``ModelConfig.unet_widths()[l]`` filters (``width`` growing by ``width_growth`` a level, at most
+  ``width_cap``). Encoder: at every level ``depth`` conv units, then (above the coarsest) 2x2 average
+  pooling to the next; the coarsest level's ``depth`` units are the bottleneck. Decoder, coarsest to
+  finest: 2x2 nearest upsampling of the level below, concatenated with the encoder's output at this
+  level (the skip connection), then ``depth`` conv units, so the first of them is the "resize + conv" and
+  reads both. Then the same zero-initialised 1x1 kernel head and ``KernelApply`` on the noisy colour at
+  full resolution. Any H and W: the features are edge-padded at the bottom and right to a multiple of
+  :func:`input_alignment` = 2**(L-1) (``layers.PadToMultiple``) and the logits cropped back
+  (``layers.CropLike``) before the kernels are applied, so the kernel sees the frame's own border. The
+  ``unet`` preset (config.PRESETS) is cpu's training with 4 levels of 32/48/72/96 filters, one convolution
+  per level each way, 13x13 kernels.
 
-Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL therefore predicts
+  Receptive radius (exact, :func:`trunk_radius`; a = conv_size // 2, d = depth): per axis the trunk at an
+  output pixel reaches d a (2**(L-1) - 1) fine pixels through the decoder convolutions of levels 0..L-2,
+  d a (2**L - 1) through the bottleneck and the encoder convolutions below it, and up to 2**(L-1) - 1 more
+  where the upsampling rounds a level's reach out to whole pixels of the next level (2**l at the step from
+  l to l + 1; some output pixel takes every step's worst case, as its coordinate's bits choose each
+  rounding), so R = (d a + 1)(2**(L-1) - 1) + d a (2**L - 1): 29 for the preset. It depends on where a
+  pixel sits in the 2**(L-1) pooling grid, so tiles of a tiled inference must start on that grid
+  (:func:`input_alignment`; ``denoise.Denoiser``), not only overlap by R.
+
+Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL/U-Net therefore predicts
 all-equal logits, i.e. a uniform k x k box filter (a sensible smoother rather than noise), and an untrained
 DPCN returns its input unchanged. Gradients still reach the trunk from the second step on.
 
@@ -51,7 +73,15 @@ import keras
 import numpy as np
 
 from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, ModelConfig
-from kpcn_keras.layers import FinalColour, FusedConv2D, KernelApply, TakeChannels, softmax_kernels
+from kpcn_keras.layers import (
+    CropLike,
+    FinalColour,
+    FusedConv2D,
+    KernelApply,
+    PadToMultiple,
+    TakeChannels,
+    softmax_kernels,
+)
 from prep.errors import OptionError
 from prep.features import BRANCHES, LOG_COLOUR_MAX
 
@@ -62,6 +92,7 @@ __all__ = [
     "build_branch_model",
     "build_final_model",
     "build_kernel_model",
+    "input_alignment",
     "load_model",
     "network_input",
     "receptive_radius",
@@ -105,10 +136,22 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
 
 
 def trunk_radius(cfg: ModelConfig) -> int:
-    """Chebyshev radius of the trunk's receptive field (pixels), i.e. of the logits' dependence on features."""
+    """Chebyshev radius of the trunk's receptive field (pixels), i.e. of the logits' dependence on features.
+
+    For a unet the largest over the positions of the pooling grid (the module docstring derives it)."""
     per_conv = cfg.conv_size // 2
+    if cfg.arch == "unet":
+        reach, coarsest = cfg.depth * per_conv, 2 ** (cfg.levels - 1)
+        return (reach + 1) * (coarsest - 1) + reach * (2 * coarsest - 1)
     n_convs = cfg.depth if cfg.arch in ("kpcn", "dpcn") else 1 + 2 * cfg.depth
     return n_convs * per_conv  # the 1x1 head adds nothing
+
+
+def input_alignment(cfg: ModelConfig) -> int:
+    """The multiple an input's height and width must start on for exact tiling: a tile whose window starts
+    at a multiple of it pools the frame's own blocks. 1 for the single-resolution archs, 2**(levels-1) for
+    a unet (which pads any input to a multiple of it itself)."""
+    return 2 ** (cfg.levels - 1) if cfg.arch == "unet" else 1
 
 
 def receptive_radius(cfg: ModelConfig) -> int:
@@ -130,10 +173,11 @@ def _conv_class(data_format: str):
     return FusedConv2D if data_format == "channels_first" else keras.layers.Conv2D
 
 
-def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str):
-    """Conv -> [BN] -> [ReLU] -> [Dropout]. The conv has no bias when batch norm follows (BN's beta is it)."""
+def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str, width: int | None = None):
+    """Conv -> [BN] -> [ReLU] -> [Dropout] of ``width`` filters (default ``cfg.width``). The conv has no bias
+    when batch norm follows (BN's beta is it)."""
     x = _conv_class(data_format)(
-        cfg.width,
+        cfg.width if width is None else width,
         cfg.conv_size,
         padding="same",
         use_bias=not cfg.batchnorm,
@@ -149,7 +193,29 @@ def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str)
     return x
 
 
+def _unet_trunk(x, cfg: ModelConfig, prefix: str, data_format: str):
+    """The U-Net of the module docstring on ``x`` (its sides multiples of ``input_alignment(cfg)``)."""
+    axis = 1 if data_format == "channels_first" else -1
+    widths = cfg.unet_widths()
+    skips = []
+    for level, width in enumerate(widths):
+        if level:
+            x = keras.layers.AveragePooling2D(2, data_format=data_format, name=f"{prefix}pool{level}")(x)
+        for i in range(cfg.depth):
+            x = _conv_unit(x, cfg, f"{prefix}enc{level}_{i:02d}", True, data_format, width)
+        skips.append(x)
+    for level in reversed(range(cfg.levels - 1)):
+        x = keras.layers.UpSampling2D(2, data_format=data_format, interpolation="nearest",
+                                      name=f"{prefix}up{level}")(x)
+        x = keras.layers.Concatenate(axis=axis, name=f"{prefix}skip{level}")([x, skips[level]])
+        for i in range(cfg.depth):
+            x = _conv_unit(x, cfg, f"{prefix}dec{level}_{i:02d}", True, data_format, widths[level])
+    return x
+
+
 def _trunk(features, cfg: ModelConfig, prefix: str, data_format: str):
+    if cfg.arch == "unet":
+        return _unet_trunk(features, cfg, prefix, data_format)
     if cfg.arch in ("kpcn", "dpcn"):
         x = features
         for i in range(cfg.depth):
@@ -184,7 +250,9 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
     p = f"{name}_"
     features = keras.Input(shape=(None, None, cfg.input_channels), name="features")
     colour = TakeChannels(0, COLOUR_CHANNELS, name=f"{p}noisy_colour")(features)
-    x = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{p}to_channels_first")(features) if first else features
+    align = input_alignment(cfg)
+    x = PadToMultiple(align, name=f"{p}pad")(features) if align > 1 else features
+    x = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{p}to_channels_first")(x) if first else x
     x = _trunk(x, cfg, p, data_format)
     if cfg.arch == "dpcn":
         correction = _conv_class(data_format)(
@@ -205,6 +273,8 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
         if first:
             # a free view: torch already holds the logits in channels-last memory, each pixel's taps contiguous
             logits = keras.layers.Permute(TO_CHANNELS_LAST, name=f"{p}logits_last")(logits)
+        if align > 1:  # the kernels filter the frame's own colour, edge-replicated at its own border
+            logits = CropLike(name=f"{p}crop")([logits, features])
         out = KernelApply(cfg.kernel_size, name=f"{p}kernel_apply")([colour, logits])
     return keras.Model(features, out, name=name)
 

@@ -42,7 +42,8 @@ input and output:
    with ``add_loss``, so ``model.fit`` minimises the compiled loss plus these terms; it does not change α.
 
 Tiled inference: :func:`multiscale_radius` bounds the receptive radius R in fine pixels. A tile's input
-must start at a multiple of ``alignment(cfg)`` (so that it pools the image's own 2x2 blocks) and reach at
+must start at a multiple of ``alignment(cfg)`` (so that it pools the image's own 2x2 blocks), times the
+denoiser's own alignment for a unet denoiser (:func:`tile_alignment`), and reach at
 least R pixels past the kept region on every inner side; the kept pixels then equal an untiled run up to
 float rounding (the end of a tile's input needs no alignment).
 
@@ -61,7 +62,17 @@ import keras
 from keras import ops
 
 from kpcn_keras.config import CompositorConfig
-from kpcn_keras.layers import KernelApply, kernel_apply
+
+# PadToMultiple and CropLike live in layers.py (the U-Net pads too); imported here, where they were first
+from kpcn_keras.layers import (
+    CropLike,
+    KernelApply,
+    PadToMultiple,
+    _ceil_div,
+    _positive_int,
+    _shape_str,
+    kernel_apply,
+)
 from prep.bounds import is_integer, is_number
 from prep.features import FEATURE_NAMES, NUM_FEATURES
 
@@ -88,6 +99,7 @@ __all__ = [
     "feature_runs",
     "multiscale_output",
     "multiscale_radius",
+    "tile_alignment",
 ]
 
 COLOUR_CHANNELS = 3  # the denoiser's output, and the compositor's colour inputs
@@ -106,6 +118,13 @@ def alignment(cfg: CompositorConfig) -> int:
 
 
 ALIGN = alignment(CompositorConfig())
+
+
+def tile_alignment(cfg: CompositorConfig, denoiser_alignment: int = 1) -> int:
+    """What a tile's input must start at a multiple of for exact tiling: ``alignment(cfg)`` times the
+    denoiser's own (``models.input_alignment``, a unet's pooling grid), since the denoiser runs on level
+    l's image, whose pixel (y, x) is fine pixel (2**l y, 2**l x), for every l < levels."""
+    return alignment(cfg) * _positive_int("denoiser_alignment", denoiser_alignment)
 
 
 def compositor_trunk_radius(cfg: CompositorConfig) -> int:
@@ -172,10 +191,6 @@ def feature_runs(channels: int) -> tuple[tuple[int, int, str], ...]:
 # ---------------------------------------------------------------- ops
 
 
-def _shape_str(shape) -> str:
-    return str(tuple(shape))
-
-
 def _check_even(layer, shape) -> None:
     """Static dims may be None (unknown); runtime dims are ints on torch."""
     h, w = shape[1], shape[2]
@@ -216,92 +231,9 @@ def _pool_relvar(a, b, c, d):
     return ops.where(m > _RELVAR_DIRECT_MAX, shifted, direct)
 
 
-def _positive_int(name: str, value) -> int:
-    if not is_integer(value) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, received {value!r}")
-    return value
-
-
-def _round_up(n, m):
-    return None if n is None else -(-n // m) * m
-
-
-def _ceil_div(n, m):
-    return None if n is None else -(-n // m)
 
 
 # ---------------------------------------------------------------- layers
-
-
-@keras.saving.register_keras_serializable(package="kpcn")
-class PadToMultiple(keras.layers.Layer):
-    """(B, H, W, C) -> (B, H', W', C), H' and W' the next multiples of ``multiple``, padded at the bottom and
-    right by replicating the last row / column (a constant image stays constant)."""
-
-    def __init__(self, multiple: int, **kwargs):
-        super().__init__(**kwargs)
-        self.multiple = _positive_int("multiple", multiple)
-        self.input_spec = keras.layers.InputSpec(ndim=4)
-
-    def call(self, x):
-        h, w = ops.shape(x)[1], ops.shape(x)[2]
-        pad_h, pad_w = -h % self.multiple, -w % self.multiple
-        if pad_h:
-            x = ops.concatenate([x, ops.repeat(x[:, -1:], pad_h, axis=1)], axis=1)
-        if pad_w:
-            x = ops.concatenate([x, ops.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
-        return x
-
-    def compute_output_shape(self, input_shape):
-        b, h, w, c = input_shape
-        return (b, _round_up(h, self.multiple), _round_up(w, self.multiple), c)
-
-    def get_config(self):
-        config = super().get_config()
-        config["multiple"] = self.multiple
-        return config
-
-
-@keras.saving.register_keras_serializable(package="kpcn")
-class CropLike(keras.layers.Layer):
-    """Inputs ``[x (B, H', W', C), reference (B, H, W, *)]`` -> x[:, :ceil(H/factor), :ceil(W/factor)]: undoes
-    ``PadToMultiple`` at the level whose pixels are ``factor`` reference pixels wide."""
-
-    def __init__(self, factor: int = 1, **kwargs):
-        super().__init__(**kwargs)
-        self.factor = _positive_int("factor", factor)
-        self.input_spec = [keras.layers.InputSpec(ndim=4), keras.layers.InputSpec(ndim=4)]
-
-    def _target(self, shape):
-        return _ceil_div(shape[1], self.factor), _ceil_div(shape[2], self.factor)
-
-    def _check(self, x_shape, ref_shape):
-        th, tw = self._target(ref_shape)
-        for have, want in ((x_shape[1], th), (x_shape[2], tw)):
-            if have is not None and want is not None and have < want:
-                raise ValueError(
-                    f"CropLike(factor={self.factor}) cannot crop shape {_shape_str(x_shape)} to the size of "
-                    f"reference shape {_shape_str(ref_shape)}: it is too small"
-                )
-
-    def build(self, input_shape):
-        self._check(*input_shape)
-
-    def call(self, inputs):
-        x, reference = inputs
-        self._check(ops.shape(x), ops.shape(reference))
-        th, tw = self._target(ops.shape(reference))
-        return x[:, :th, :tw]
-
-    def compute_output_shape(self, input_shape):
-        x_shape, ref_shape = input_shape
-        th, tw = self._target(ref_shape)
-        return (x_shape[0], th, tw, x_shape[3])
-
-    def get_config(self):
-        config = super().get_config()
-        config["factor"] = self.factor
-        return config
 
 
 @keras.saving.register_keras_serializable(package="kpcn")

@@ -251,7 +251,7 @@ def _shards_options(add) -> None:
 
 def _train_options(add) -> None:
     """The options of ``kpcn train``: the network, the phases, the optimisation."""
-    from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig
+    from kpcn_keras.config import PRESETS, UNET_CAP_FACTOR, UNET_DEFAULTS, CompositorConfig, ModelConfig, TrainConfig
 
     t = add("train", (TrainConfig, ModelConfig, CompositorConfig), help="train a denoiser in phases: branches, joint "
                "fine-tuning, compositor (resumes by itself)")
@@ -263,9 +263,17 @@ def _train_options(add) -> None:
                    "trains on the shard set <set>.<inputs> into <run>/inputs/<inputs>")
     t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
     g = t.add_argument_group("network (each branch, or the shared one)")
-    g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm) or dpcn (direct prediction)")
-    g.add_argument("--width", type=int, help="filters per convolution")
-    g.add_argument("--depth", type=int, help="convolutions (kpcn, dpcn) or residual blocks (kpal)")
+    g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm), dpcn (direct prediction) "
+                   "or unet (kernel prediction on a U-Net trunk)")
+    g.add_argument("--width", type=int, help="filters per convolution (unet: of the finest level)")
+    g.add_argument("--depth", type=int, help="convolutions (kpcn, dpcn), residual blocks (kpal) or convolutions per "
+                   "level each way (unet)")
+    g.add_argument("--levels", type=int, help="unet only: resolutions, the finest included "
+                   f"(default: {UNET_DEFAULTS['levels']})")
+    g.add_argument("--width-growth", type=float, help="unet only: filters multiplied by this a level down "
+                   f"(default: {UNET_DEFAULTS['width_growth']})")
+    g.add_argument("--width-cap", type=int, help=f"unet only: most filters of a level (default: {UNET_CAP_FACTOR} x "
+                   "--width)")
     g.add_argument("--conv-size", type=int, help="convolution size (odd)")
     g.add_argument("--kernel-size", type=int, help="predicted kernel side (odd; the papers use 21)")
     g.add_argument("--dropout", type=float, help="drop rate after every convolution (the report's keep 0.7 is 0.3)")

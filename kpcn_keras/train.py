@@ -259,9 +259,11 @@ def check_fits_patches(model: ModelConfig, patch: int, where) -> None:
                           f"{model.kernel_size}")
     field = 2 * receptive_radius(model) + 1
     if field > patch:
-        raise OptionError("depth", f"{model.depth} with --conv-size {model.conv_size} gives a {model.arch} network "
-                          f"a receptive field of {field}x{field} pixels, larger than {fits}: use a smaller "
-                          f"--depth or --conv-size, or a --patch-size of at least {field}")
+        levels = f" and --levels {model.levels}" if model.arch == "unet" else ""
+        raise OptionError("depth", f"{model.depth} with --conv-size {model.conv_size}{levels} gives a {model.arch} "
+                          f"network a receptive field of {field}x{field} pixels, larger than {fits}: use a smaller "
+                          f"--depth or --conv-size{' or --levels' if levels else ''}, or a --patch-size of at least "
+                          f"{field}")
 
 
 def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:

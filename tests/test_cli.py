@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
+from helpers import assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders, random_aovs, run_main
 
 from kpcn_keras.cli import main
 from prep import exr
@@ -412,6 +412,23 @@ def test_every_seed_option_takes_the_one_seed_range():
     seeds = {c: a.help for c, a in _options() if a.dest in ("seed", "seeds")}
     assert set(seeds) >= {"render", "shards", "train", "bench", "compare", "resample-study"}
     assert all(SEED.text() in text for text in seeds.values()), seeds
+
+
+@pytest.mark.slow
+def test_train_unet_options_reach_the_record_and_are_refused_with_another_arch(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    for flag, value in (("--levels", "3"), ("--width-growth", "2"), ("--width-cap", "12")):
+        line = _error_line(capsys, tmp_path, ["train", flag, value])  # the cpu preset: a kpcn
+        field = flag[2:].replace("-", "_")
+        assert line.startswith(f"kpcn train: error: {flag} is a setting of arch unet alone, received {value}"), line
+        assert field not in line.replace(flag, "")
+    shard_cfg = build_tiny_shards(tmp_path, patch_size=32, patches_per_image=4, patches_per_shard=4)
+    assert main(["-q", "train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/u", "--steps", "2",
+                 "--batch-size", "2", "--arch", "unet", "--levels", "3", "--width-growth", "2", "--width-cap", "12",
+                 "--width", "4", "--depth", "1", "--kernel-size", "5", "--branches", "diffuse"]) == 0
+    record = json.loads((tmp_path / "runs/u/config.json").read_text())
+    model = record["train"]["model"]
+    assert (model["arch"], model["levels"], model["width_growth"], model["width_cap"]) == ("unet", 3, 2.0, 12)
 
 
 # --- the whole pipeline ---

@@ -1,7 +1,7 @@
 import keras
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, build_tiny_shards, random_aovs
+from helpers import TINY_MODEL, build_tiny_shards, random_aovs, randomise
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file
@@ -39,6 +39,46 @@ def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
         np.testing.assert_allclose(image, want[name], rtol=2e-5, atol=1e-6, err_msg=name)
     for branch in features.BRANCHES:
         np.testing.assert_allclose(tiled.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
+
+
+TINY_UNET = {"arch": "unet", "width": 4, "depth": 1, "levels": 3, "kernel_size": 5}  # radius 13, alignment 4
+
+
+@pytest.fixture(scope="module")
+def tiny_unet_run(tmp_path_factory):
+    """A tiny unet run with an alpha compositor of 2 levels (tiles then align to 4 x 2 = 8 pixels), on 32x32
+    patches (its 27x27 receptive field does not fit the suite's usual 16)."""
+    tmp = tmp_path_factory.mktemp("unet")
+    shard_cfg = build_tiny_shards(tmp, patch_size=32, patches_per_image=4, patches_per_shard=4)
+    cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_UNET, steps=2,
+                                  steps_per_epoch=2, batch_size=2, val_batches=1, compositor_steps=2,
+                                  compositor={"kind": "alpha", "levels": 2, "width": 4, "depth": 2})
+    return train(cfg, tmp / "runs" / "r", verbose=0)
+
+
+def _randomised(denoiser):
+    """Random weights in every network (the trained heads are still near zero: near-box kernels, which
+    would hide a tile that pools other blocks); the multiscale models share these objects."""
+    for i, net in enumerate([*denoiser.networks.values(), *([denoiser.compositor] if denoiser.compositor else [])]):
+        randomise(net, seed=20 + i, scale=0.2)
+    return denoiser
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("multiscale", [False, True], ids=["unet", "unet+compositor"])
+def test_unet_tiles_aligned_to_its_pooling_grid_equal_an_untiled_run(tiny_unet_run, multiscale):
+    aovs = random_aovs(45, 61, seed=9)  # odd: partial tiles, and the unet pads each window itself
+    denoiser = _randomised(Denoiser.from_run(Run(tiny_unet_run), tile=16, multiscale=multiscale))
+    assert (denoiser.align, denoiser.margin) == ((8, 32) if multiscale else (4, 16))
+    logs, want = _untiled(denoiser, aovs)
+    out = denoiser(aovs)
+    for name, image in out.items():
+        np.testing.assert_allclose(image, want[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    for branch in features.BRANCHES:
+        np.testing.assert_allclose(denoiser.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
+    # the alignment matters: the same margins from tile starts off the grid pool other blocks
+    denoiser.tile = 16 + denoiser.align // 2
+    assert np.abs(denoiser.run_branch("diffuse", aovs) - logs["diffuse"]).max() > 1e-4
 
 
 @pytest.mark.slow

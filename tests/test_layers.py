@@ -12,9 +12,11 @@ from hypothesis import strategies as st
 
 from kpcn_keras import layers as layers_module
 from kpcn_keras.layers import (
+    CropLike,
     FinalColour,
     FusedConv2D,
     KernelApply,
+    PadToMultiple,
     TakeChannels,
     _softmax_kernels_ops,
     apply_kernels,
@@ -154,6 +156,8 @@ LAYER_CASES = {
     "TakeChannels": (lambda: TakeChannels(0, 3, name="tc"), [(8, 6, 5)]),
     "FusedConv2D": (lambda: FusedConv2D(4, 3, padding="same"), [(8, 6, 3)]),
     "FinalColour": (lambda: FinalColour(), [(8, 6, 3), (8, 6, 3), (8, 6, 3)]),
+    "PadToMultiple": (lambda: PadToMultiple(4), [(7, 5, 5)]),
+    "CropLike": (lambda: CropLike(2), [(11, 8, 4), (8, 6, 1)]),
 }
 
 
@@ -161,6 +165,26 @@ LAYER_CASES = {
 def test_layer_keeps_the_keras_layer_contract(name, tmp_path):
     factory, shapes = LAYER_CASES[name]
     check_keras_layer(factory, shapes, tmp_path)
+
+
+@pytest.mark.parametrize("h, w, m", [(7, 5, 4), (1, 1, 8), (8, 9, 8), (3, 6, 1)])
+def test_pad_to_multiple_replicates_the_edges_and_crop_like_undoes_it(h, w, m):
+    x = np.random.default_rng(h * w).normal(size=(2, h, w, 3)).astype(np.float32)
+    padded = to_np(PadToMultiple(m)(x))
+    want = np.pad(x, ((0, 0), (0, -h % m), (0, -w % m), (0, 0)), mode="edge")
+    np.testing.assert_array_equal(padded, want)
+    np.testing.assert_array_equal(to_np(CropLike()([padded, x[..., :1]])), x)
+
+
+def test_pad_and_crop_are_the_multiscale_modules_and_load_from_files_that_name_it(tmp_path):
+    """Moved from multiscale.py: the same classes there, and a layer serialised under its old module loads."""
+    from kpcn_keras import multiscale
+
+    assert multiscale.PadToMultiple is PadToMultiple and multiscale.CropLike is CropLike
+    config = keras.saving.serialize_keras_object(PadToMultiple(4, name="pad"))
+    config["module"] = "kpcn_keras.multiscale"  # what a .keras file saved before the move holds
+    layer = keras.saving.deserialize_keras_object(config)
+    assert type(layer) is PadToMultiple and layer.multiple == 4
 
 
 def test_take_channels_validates():

@@ -6,6 +6,7 @@ import pytest
 import torch
 from helpers import extreme_features, finite_loss_and_gradients, randomise
 
+from kpcn_keras.config import PRESETS, TrainConfig
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
 from kpcn_keras.models import (
@@ -13,11 +14,13 @@ from kpcn_keras.models import (
     ModelConfig,
     build_branch_model,
     build_kernel_model,
+    input_alignment,
     receptive_radius,
     trunk_radius,
 )
 from prep import exr
 from prep import features as prep_features
+from prep.errors import OptionError
 from prep.features import LOG_COLOUR_MAX, NUM_FEATURES
 
 
@@ -57,7 +60,11 @@ def test_config_defaults_and_round_trip():
 @pytest.mark.parametrize(
     "kw,echo",
     [
-        (dict(arch="unet"), "'unet'"),
+        (dict(arch="unt"), "'unt'"),
+        (dict(arch="unet", levels=7), "7"),
+        (dict(arch="unet", levels=1), "1"),
+        (dict(arch="unet", width_growth=0.5), "0.5"),
+        (dict(arch="unet", width=32, width_cap=16), "16"),
         (dict(kernel_size=12), "12"),
         (dict(conv_size=4), "4"),
         (dict(dropout=1.0), "1.0"),
@@ -72,6 +79,42 @@ def test_config_defaults_and_round_trip():
 def test_config_validation_echoes_value(kw, echo):
     with pytest.raises(ValueError, match=echo):
         ModelConfig(**kw)
+
+
+@pytest.mark.parametrize("arch", ["kpcn", "kpal", "dpcn"])
+@pytest.mark.parametrize("name, value", [("levels", 3), ("width_growth", 2.0), ("width_cap", 64)])
+def test_unet_fields_are_refused_with_another_arch_and_left_out_of_its_dict(arch, name, value):
+    with pytest.raises(OptionError, match=rf"^{name} is a setting of arch unet alone, received {value}"):
+        ModelConfig(arch=arch, **{name: value})
+    d = ModelConfig(arch=arch).to_dict()
+    # the dict written before unet existed, key for key and in order: old records stay byte-identical
+    assert list(d) == ["arch", "in_channels", "width", "depth", "conv_size", "kernel_size", "dropout", "batchnorm",
+                       "branch_channels", "slope_channel"]
+    assert ModelConfig.from_dict(d) == ModelConfig(arch=arch)
+
+
+def test_unet_fields_resolve_and_round_trip():
+    cfg = ModelConfig(arch="unet")
+    assert (cfg.levels, cfg.width_growth, cfg.width_cap) == (4, 1.5, 96)
+    assert cfg.unet_widths() == (32, 48, 72, 96)
+    assert ModelConfig(arch="unet", width=20, levels=3, width_growth=2.0).unet_widths() == (20, 40, 60)
+    assert ModelConfig(arch="unet", width=8, width_growth=1.0).unet_widths() == (8, 8, 8, 8)
+    d = ModelConfig(arch="unet", levels=2, width_cap=40).to_dict()
+    assert (d["levels"], d["width_growth"], d["width_cap"]) == (2, 1.5, 40)
+    assert ModelConfig.from_dict(d) == ModelConfig(arch="unet", levels=2, width_cap=40)
+    with pytest.raises(ValueError, match="kpcn network has no levels"):
+        ModelConfig().unet_widths()
+
+
+def test_unet_preset_is_cpus_training_with_a_four_level_unet():
+    unet, cpu = TrainConfig.from_preset("unet"), TrainConfig.from_preset("cpu")
+    assert unet.model.unet_widths() == (32, 48, 72, 96)
+    assert (unet.model.depth, unet.model.kernel_size, unet.model.conv_size) == (1, 13, 3)
+    assert {k: v for k, v in unet.to_dict().items() if k not in ("model", "preset")} == \
+        {k: v for k, v in cpu.to_dict().items() if k not in ("model", "preset")}
+    assert set(PRESETS["unet"]) == {"model"}
+    with pytest.raises(OptionError, match="^levels is a setting of arch unet alone"):
+        TrainConfig.from_preset("cpu", model={"levels": 3})
 
 
 def test_from_dict_rejects_unknown_keys():
@@ -110,10 +153,10 @@ def box_filter(colour, k):
     return out / (k * k)
 
 
-@pytest.mark.parametrize("arch", ["kpcn", "kpal"])
+@pytest.mark.parametrize("arch", ["kpcn", "kpal", "unet"])
 def test_untrained_kernel_model_is_box_filter(arch):
     model = build_branch_model(tiny(arch))
-    x = features((2, 9, 11, 27), seed=1)
+    x = features((2, 9, 11, 27), seed=1)  # odd: the unet pads to 16 x 16 and crops the logits back
     np.testing.assert_allclose(predict(model, x), box_filter(x[..., :3], 5), rtol=1e-5, atol=1e-5)
 
 
@@ -156,11 +199,53 @@ def test_receptive_radius_is_exact(cfg):
     assert changed >= 3  # a ReLU may mask one path; the bound must be reached, not just respected
 
 
+def _probed_radius(model, cfg, seeds=(11, 12)) -> int:
+    """The largest Chebyshev distance from an output pixel to an input pixel its gradient reaches, over one
+    output pixel at every offset of the pooling grid (along the diagonal: each axis sees every offset), in
+    a frame large enough that no border is reached; the union over a few random inputs, so that a ReLU off
+    at one input does not hide a path."""
+    radius, align = trunk_radius(cfg), input_alignment(cfg)
+    base = radius + 2 * align
+    size = 2 * base + align
+    reached = 0
+    for seed in seeds:
+        x = torch.tensor(features((1, size, size, 27), seed=seed), requires_grad=True)
+        out = model(x, training=False)
+        for offset in range(align):
+            c = base + offset
+            (grad,) = torch.autograd.grad(out[0, c, c].sum(), x, retain_graph=True)
+            ys, xs = np.nonzero(to_np(grad[0]).any(axis=-1))
+            reached = max(reached, int(np.abs(ys - c).max()), int(np.abs(xs - c).max()))
+    return reached
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(levels=2, depth=1, conv_size=3),  # (1 + 1) * 1 + 1 * 3 = 5
+        dict(levels=3, depth=2, conv_size=3),  # 3 * 3 + 2 * 7 = 23
+        dict(levels=3, depth=1, conv_size=5),  # 3 * 3 + 2 * 7 = 23
+        dict(levels=4, depth=1, conv_size=3),  # the preset's trunk: 2 * 7 + 15 = 29
+    ],
+)
+def test_unet_receptive_radius_is_the_probed_one(kw):
+    cfg = ModelConfig(arch="unet", width=8, kernel_size=3, **kw)
+    model = build_branch_model(cfg)
+    randomise(model, seed=5, scale=0.1)  # moderate logits: a saturated softmax would pass no gradient back
+    a, coarsest = cfg.depth * (cfg.conv_size // 2), 2 ** (cfg.levels - 1)
+    assert trunk_radius(cfg) == (a + 1) * (coarsest - 1) + a * (2 * coarsest - 1)
+    assert _probed_radius(model, cfg) == trunk_radius(cfg) == receptive_radius(cfg)
+
+
 def test_radius_formulas():
     assert trunk_radius(ModelConfig()) == 7
     assert receptive_radius(ModelConfig()) == 7
     assert receptive_radius(ModelConfig(kernel_size=21)) == 10
     assert trunk_radius(ModelConfig(arch="kpal", depth=13)) == 27
+    assert receptive_radius(ModelConfig(arch="unet", depth=1)) == 29  # the unet preset
+    assert receptive_radius(ModelConfig(arch="unet", depth=1, levels=2, kernel_size=21)) == 10  # the kernel's
+    assert [input_alignment(ModelConfig(arch=a)) for a in ("kpcn", "kpal", "dpcn")] == [1, 1, 1]
+    assert [input_alignment(ModelConfig(arch="unet", levels=n)) for n in (2, 4, 6)] == [2, 8, 32]
 
 
 # ---------------------------------------------------------------- save / load, kernels

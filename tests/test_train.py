@@ -171,6 +171,8 @@ def test_the_projects_seed_range_is_the_one_training_seeds_take():
     ({"width": 4, "depth": 1, "kernel_size": 17}, "kernel_size", ["17 is larger than the 16x16 patches", "at most 15"]),
     ({"width": 4, "depth": 8, "kernel_size": 5}, "depth", ["receptive field of 17x17 pixels", "16x16 patches"]),
     ({"arch": "kpal", "width": 4, "depth": 4, "kernel_size": 5}, "depth", ["kpal", "19x19", "16x16 patches"]),
+    ({"arch": "unet", "width": 4, "depth": 1, "levels": 3, "kernel_size": 5}, "depth",
+     ["unet", "--levels 3", "27x27", "16x16 patches", "or --levels"]),
 ])
 def test_a_network_larger_than_the_shard_patches_is_refused_naming_both_before_the_run_is_written(
         tmp_path, model, option, needles):
@@ -179,6 +181,30 @@ def test_a_network_larger_than_the_shard_patches_is_refused_naming_both_before_t
         train(tiny_config(shard_cfg, model=model), tmp_path / "runs" / "r", verbose=0)
     assert err.value.option == option and all(n in str(err.value) for n in needles), str(err.value)
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_the_unet_preset_trains_and_denoises(tmp_path):
+    """The preset as it is (4 levels, 32/48/72/96 filters, batch 8), 2 steps a branch on 65x65 patches (its
+    receptive field is 59 pixels), then a frame of odd size denoised by the finished run."""
+    from helpers import make_renders, random_aovs
+
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+    from prep import shards
+
+    make_renders(tmp_path / "renders" / "s", size=(72, 70))
+    shard_cfg = shards.ShardConfig(set_name="s", render_root=str(tmp_path / "renders"),
+                                   out_root=str(tmp_path / "shards"), patches_per_image=8, patches_per_shard=8,
+                                   val_fraction=0.5, seed=3)
+    shards.build_shards(shard_cfg, progress=False)
+    cfg = TrainConfig.from_preset("unet", set_name="s", shards_root=shard_cfg.out_root, steps=2, val_batches=1)
+    assert (cfg.batch_size, cfg.model.unet_widths(), shard_cfg.patch_size) == (8, (32, 48, 72, 96), 65)
+    run_dir = train(cfg, tmp_path / "runs" / "u", verbose=0)
+    moved = [w for w in weights(run_dir, "diffuse") if w.ndim == 4 and w.shape[-1] == 13 * 13]
+    assert len(moved) == 1 and np.abs(moved[0]).max() > 0  # the zero-initialised kernel head trained
+    out = Denoiser.from_run(Run(run_dir), tile=32)(random_aovs(37, 29, seed=1))["default"]
+    assert out.shape == (37, 29, 3) and np.isfinite(out).all()
 
 
 def test_the_largest_network_that_fits_the_patches_is_accepted():

@@ -1,6 +1,6 @@
 """The branch networks of ``models.build_branch_model`` as plain ``torch.nn.Module``s, to measure Keras's overhead.
 
-Contract: ``TorchBranch(cfg)`` for any ``ModelConfig`` (arch "kpcn", "kpal" or "dpcn") takes the same input as
+Contract: ``TorchBranch(cfg)`` for any ``ModelConfig`` (arch "kpcn", "kpal", "dpcn" or "unet") takes the same input as
 the Keras model, features (B, H, W, ``cfg.input_channels``) channels last, and returns its output, log colour
 (B, H, W, 3). :func:`copy_keras_weights` copies a Keras branch model's weights (matched by layer name, the
 branch prefix removed) into it; the two then agree to float rounding (tested). Nothing in training or
@@ -9,6 +9,9 @@ inference uses this module: it exists so that ``stage_costs`` can time the same 
 Layout as in the Keras model: one permute to channels first at the input (the convolutions then run on
 torch's channels-last memory format, no copies), the kernel application channels last. Keras layer
 defaults are reproduced where torch's differ: "same" padding of an odd kernel is k // 2 on each side;
+a unet's input is edge-padded at the bottom and right to its alignment and its logits cropped back, the
+pooling is 2x2 average pooling, the upsampling 2x2 nearest, the skip concatenated after the upsampled
+level (the Keras ``Concatenate`` order);
 batch norm eps 1e-3 and momentum 0.01 (Keras's 0.99 counts the other way). The kernel layer is the same
 torch function Keras's ``KernelApply`` runs (``layers.kernel_apply``), so a difference in time between the
 two is the rest of Keras.
@@ -23,6 +26,7 @@ from torch import nn
 
 from kpcn_keras.config import COLOUR_CHANNELS, ModelConfig
 from kpcn_keras.layers import kernel_apply
+from kpcn_keras.models import input_alignment
 from prep.features import LOG_COLOUR_MAX
 
 __all__ = ["TorchBranch", "copy_keras_weights", "torch_branch_from_keras"]
@@ -34,10 +38,11 @@ KERAS_BN_MOMENTUM = 0.01  # torch's momentum is 1 - Keras's 0.99
 class _ConvUnit(nn.Module):
     """Conv -> [BN] -> [ReLU] -> [Dropout], as ``models._conv_unit``."""
 
-    def __init__(self, cin: int, cfg: ModelConfig, activate: bool):
+    def __init__(self, cin: int, cfg: ModelConfig, activate: bool, width: int | None = None):
         super().__init__()
-        self.conv = nn.Conv2d(cin, cfg.width, cfg.conv_size, padding=cfg.conv_size // 2, bias=not cfg.batchnorm)
-        self.bn = nn.BatchNorm2d(cfg.width, eps=KERAS_BN_EPSILON, momentum=KERAS_BN_MOMENTUM) if cfg.batchnorm else None
+        width = cfg.width if width is None else width
+        self.conv = nn.Conv2d(cin, width, cfg.conv_size, padding=cfg.conv_size // 2, bias=not cfg.batchnorm)
+        self.bn = nn.BatchNorm2d(width, eps=KERAS_BN_EPSILON, momentum=KERAS_BN_MOMENTUM) if cfg.batchnorm else None
         self.activate = activate
         self.drop = nn.Dropout(cfg.dropout) if cfg.dropout > 0.0 else None
 
@@ -55,8 +60,8 @@ class _ConvUnit(nn.Module):
 class TorchBranch(nn.Module):
     """A branch network, features (B, H, W, C) -> log colour (B, H, W, 3); see the module docstring.
 
-    ``units`` maps the Keras layer names without the branch prefix (``trunk00``, ``stem``, ``res03a``) to
-    conv units; ``head`` is the 1x1 layer (``kernel_logits`` or ``correction``).
+    ``units`` maps the Keras layer names without the branch prefix (``trunk00``, ``stem``, ``res03a``,
+    ``enc1_00``, ``dec0_00``) to conv units; ``head`` is the 1x1 layer (``kernel_logits`` or ``correction``).
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -65,7 +70,21 @@ class TorchBranch(nn.Module):
             raise TypeError(f"cfg must be a ModelConfig, received {type(cfg).__name__}")
         self.cfg = cfg
         units = {}
-        if cfg.arch in ("kpcn", "dpcn"):
+        head_in = cfg.width
+        if cfg.arch == "unet":
+            widths = cfg.unet_widths()
+            cin = cfg.input_channels
+            for level, width in enumerate(widths):
+                for i in range(cfg.depth):
+                    units[f"enc{level}_{i:02d}"] = _ConvUnit(cin, cfg, True, width)
+                    cin = width
+            for level in reversed(range(cfg.levels - 1)):
+                cin = widths[level + 1] + widths[level]
+                for i in range(cfg.depth):
+                    units[f"dec{level}_{i:02d}"] = _ConvUnit(cin, cfg, True, widths[level])
+                    cin = widths[level]
+            head_in = widths[0]
+        elif cfg.arch in ("kpcn", "dpcn"):
             cin = cfg.input_channels
             for i in range(cfg.depth):
                 units[f"trunk{i:02d}"] = _ConvUnit(cin, cfg, activate=True)
@@ -77,13 +96,32 @@ class TorchBranch(nn.Module):
                 units[f"res{i:02d}b"] = _ConvUnit(cfg.width, cfg, activate=False)
         self.units = nn.ModuleDict(units)
         head_channels = COLOUR_CHANNELS if cfg.arch == "dpcn" else cfg.kernel_size**2
-        self.head = nn.Conv2d(cfg.width, head_channels, 1)
+        self.head = nn.Conv2d(head_in, head_channels, 1)
         self.head_name = "correction" if cfg.arch == "dpcn" else "kernel_logits"
+
+    def _unet(self, x):
+        cfg, skips = self.cfg, []
+        for level in range(cfg.levels):
+            if level:
+                x = nn.functional.avg_pool2d(x, 2)
+            for i in range(cfg.depth):
+                x = self.units[f"enc{level}_{i:02d}"](x)
+            skips.append(x)
+        for level in reversed(range(cfg.levels - 1)):
+            x = torch.cat([nn.functional.interpolate(x, scale_factor=2, mode="nearest"), skips[level]], dim=1)
+            for i in range(cfg.depth):
+                x = self.units[f"dec{level}_{i:02d}"](x)
+        return x
 
     def forward(self, features):
         colour = features[..., :COLOUR_CHANNELS]
         x = features.permute(0, 3, 1, 2)
-        if self.cfg.arch in ("kpcn", "dpcn"):
+        h, w = x.shape[2:]
+        if self.cfg.arch == "unet":
+            align = input_alignment(self.cfg)
+            x = nn.functional.pad(x, (0, -w % align, 0, -h % align), mode="replicate")
+            x = self._unet(x)
+        elif self.cfg.arch in ("kpcn", "dpcn"):
             for unit in self.units.values():
                 x = unit(x)
         else:
@@ -91,7 +129,7 @@ class TorchBranch(nn.Module):
             for i in range(self.cfg.depth):
                 y = self.units[f"res{i:02d}b"](self.units[f"res{i:02d}a"](x))
                 x = torch.relu(x + y)
-        head = self.head(x).permute(0, 2, 3, 1)
+        head = self.head(x)[:, :, :h, :w].permute(0, 2, 3, 1)
         if self.cfg.arch == "dpcn":
             return torch.clamp(colour + head, 0.0, LOG_COLOUR_MAX)
         return kernel_apply(colour, head, self.cfg.kernel_size)
