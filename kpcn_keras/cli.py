@@ -233,18 +233,25 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def cmd_compare(args) -> int:
-    from kpcn_keras.studies.compare import compare, format_report, rewrite_reports
-    from kpcn_keras.studies.config import CompareConfig
-
-    cfg = CompareConfig(**_given(args, CompareConfig))
+def _study(args, config_class, study, rewrite_reports, format_report, report: str) -> int:
+    """A study that trains runs of its own and writes ``<out_dir>/<report>.md``, or with ``--report-only``
+    writes its reports again from their JSON."""
+    cfg = config_class(**_given(args, config_class))
     if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
         record = rewrite_reports(cfg.out_dir)
     else:
-        record = compare(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
+        record = study(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
     print(format_report(record))
-    print(f"report: {cfg.out_dir}/compare.md")
+    print(f"report: {cfg.out_dir}/{report}.md")
     return 0
+
+
+def cmd_compare(args) -> int:
+    from kpcn_keras.studies import compare
+    from kpcn_keras.studies.config import CompareConfig
+
+    return _study(args, CompareConfig, compare.compare, compare.rewrite_reports, compare.format_report,
+                  compare.REPORT)
 
 
 def cmd_resample_study(args) -> int:
@@ -271,17 +278,11 @@ def cmd_inputs_study(args) -> int:
 
 
 def cmd_quality(args) -> int:
+    from kpcn_keras.studies import quality
     from kpcn_keras.studies.config import QualityConfig
-    from kpcn_keras.studies.quality import format_report, quality, rewrite_reports
 
-    cfg = QualityConfig(**_given(args, QualityConfig))
-    if getattr(args, "report_only", False):  # a flag left out is absent: the parser suppresses defaults
-        record = rewrite_reports(cfg.out_dir)
-    else:
-        record = quality(cfg, command=_command_line(args), verbose=0 if args.quiet else "auto")
-    print(format_report(record))
-    print(f"report: {cfg.out_dir}/quality.md")
-    return 0
+    return _study(args, QualityConfig, quality.quality, quality.rewrite_reports, quality.format_report,
+                  quality.REPORT)
 
 
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)
