@@ -305,8 +305,8 @@ class TrainConfig:
     is not part of the configuration (:class:`kpcn_keras.run.Run` owns that), so a renamed run resumes.
 
     ``reference_tau`` τ weighs each pixel of the branch phases' losses by 1 / (1 + (relSE / τ)^2), relSE the
-    reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0 does not
-    weigh. The joint and compositor phases are never weighted (docs/training.md §2). A record written before
+    reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0, the
+    default, does not weigh (it has not won yet: docs/results.md §10a). The joint and compositor phases are never weighted (docs/training.md §2). A record written before
     the weighting existed has no ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes
     none (:meth:`to_dict`), so those runs keep their identity.
 
@@ -337,7 +337,7 @@ class TrainConfig:
     slope_input: bool = False
     slope_range: tuple[float, float] = bounded((1.0, 8.0), SLOPE)
     augment: bool = True
-    reference_tau: float = bounded(0.1, REFERENCE_TAU)
+    reference_tau: float = bounded(UNWEIGHTED_TAU, REFERENCE_TAU)
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
