@@ -164,7 +164,7 @@ def learning_curve(variant: Run, record: RunRecord) -> list[str]:
     rows = {int(r["epoch"]): r for r in read_log(variant.log_path)}
     lines = []
     for name, plan in record.data.get("phases", {}).items():
-        epochs = range(plan["first_epoch"], plan["first_epoch"] + plan["epochs"])
+        epochs = range(plan["first_epoch"], plan["first_epoch"] + plan.get("epochs_trained", plan["epochs"]))
         losses = [(e, float(rows[e]["val_loss"])) for e in epochs if rows.get(e, {}).get("val_loss") not in (None, "")]
         if not losses:
             continue

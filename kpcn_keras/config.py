@@ -71,6 +71,8 @@ ROUNDS = Bound(1, 100)
 # 100 is 2000 times the relSE a converged pixel has (prep.convergence.CONVERGED_RELSE): every weight ~1.
 REFERENCE_TAU = Bound(0.0, 100.0, integer=False)
 UNWEIGHTED_TAU = 0.0  # reference_tau of an unweighted loss: what a run record without the key was trained with
+PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a phase stops
+TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 
 
@@ -306,9 +308,16 @@ class TrainConfig:
 
     ``reference_tau`` τ weighs each pixel of the branch phases' losses by 1 / (1 + (relSE / τ)^2), relSE the
     reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0, the
-    default, does not weigh (it has not won yet: docs/results.md §10a). The joint and compositor phases are never weighted (docs/training.md §2). A record written before
-    the weighting existed has no ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes
-    none (:meth:`to_dict`), so those runs keep their identity.
+    default, does not weigh (it has not won yet: docs/results.md §10a). The joint and compositor phases are
+    never weighted (docs/training.md §2). A record written before the weighting existed has no
+    ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes none (:meth:`to_dict`),
+    so those runs keep their identity.
+
+    ``patience`` P > 0 stops a phase once P epochs in a row have not lowered its validation loss (the held-out
+    scenes' patches) below its best, and makes the best epoch's weights the phase's model: a run trains as long
+    as held-out error keeps falling, ``steps`` (and with it the learning-rate schedule) the most it may take.
+    0, the default, trains every step; like τ = 0 it is written nowhere, so the runs from before keep their
+    identity. It needs held-out scenes (a shard set cut with ``--val-fraction`` 0 has none).
 
     ``inputs`` is the input set (``prep.inputs``) the run is trained for, from the shard set cut for it
     (:attr:`set_dir`). A no-split run's specular input is 0 (``prep.inputs.restrict``), so it trains the
@@ -344,6 +353,7 @@ class TrainConfig:
     compositor_steps: int = bounded(600, STEPS)
     compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
     val_batches: int = bounded(8, VAL_BATCHES)
+    patience: int = bounded(TRAIN_EVERY_STEP, PATIENCE)
     seed: int = bounded(0, SEED)
     inputs: str = FULL.name
 
@@ -402,8 +412,9 @@ class TrainConfig:
 
     @classmethod
     def from_record(cls, train: dict) -> TrainConfig:
-        """The configuration a run record's ``train`` holds (one without ``reference_tau`` was unweighted)."""
-        return cls(**{"reference_tau": UNWEIGHTED_TAU, **train})
+        """The configuration a run record's ``train`` holds (one without ``reference_tau`` was unweighted, one
+        without ``patience`` trained every step)."""
+        return cls(**{"reference_tau": UNWEIGHTED_TAU, "patience": TRAIN_EVERY_STEP, **train})
 
     @property
     def input_set(self) -> InputSet:
@@ -442,6 +453,8 @@ class TrainConfig:
         d = without_full_inputs(dataclasses.asdict(self))
         if d["reference_tau"] == UNWEIGHTED_TAU:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
+        if d["patience"] == TRAIN_EVERY_STEP:
+            del d["patience"]  # likewise: a run of every step, as written before early stopping existed
         d["branches"] = list(self.branches)
         d["slope_range"] = list(self.slope_range)
         return d

@@ -307,6 +307,9 @@ def _train_options(add) -> None:
     g.add_argument("--reference-tau", type=float, help="τ of the branch losses' reference weighting: a pixel weighs "
                    "1/(1+(relSE/τ)^2), relSE its reference's relative standard error; 0 weighs none "
                    f"{d('reference_tau')}")
+    g.add_argument("--patience", type=int, help="stop a phase after this many epochs without a lower validation "
+                   "(held-out) loss and keep its best epoch; --steps is then the most it trains; 0 trains every "
+                   f"step {d('patience')}")
     g.add_argument("--seed", type=int, help=d("seed"))
 
 

@@ -8,6 +8,7 @@
                                       between identical runs)
     <run>/<phase>.keras               what a finished training phase trained (one file per phase)
     <run>/checkpoints/<phase>.keras   the phase being trained, with its optimizer and training state
+    <run>/checkpoints/<phase>-best.keras  with early stopping, the phase's best epoch so far (its model at the end)
     <run>/log.csv                     loss and validation loss per epoch, every phase in one numbering
     <run>/loss.png                    the log as a curve, phases shaded
     <run>/eval/                       ``kpcn evaluate``'s report on the held-out frames
@@ -147,6 +148,10 @@ class Run:
 
     def checkpoint_path(self, phase: str) -> Path:
         return self.checkpoint_dir / f"{phase}.keras"
+
+    def best_checkpoint_path(self, phase: str) -> Path:
+        """The phase's best epoch so far (the model alone), kept under early stopping (``--patience``)."""
+        return self.checkpoint_dir / f"{phase}-best.keras"
 
     @property
     def log_path(self) -> Path:

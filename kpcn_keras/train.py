@@ -33,6 +33,10 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 - **Exactly the steps asked.** A phase's epochs are ``steps_per_epoch`` steps (``Phase.epoch_steps``), the
   last one shorter where the phase's steps are not a multiple of it, so its optimizer, and with it the
   learning-rate schedule, takes exactly the steps the record gives.
+- **Or as long as held-out error falls** (``patience`` > 0: :class:`_StopOnPlateau`): a phase stops after
+  ``patience`` epochs in a row without a validation loss below its best, and its model is the best epoch's
+  (``checkpoints/<phase>-best.keras``, written at each new best); the record gives the epochs it trained and
+  its best (``epochs_trained``, ``best_epoch``), and the next phase keeps its place in the epoch numbering.
 - **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
@@ -209,16 +213,50 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 
 
 class _Checkpoint(keras.callbacks.Callback):
-    """After every epoch: the model, its optimizer and the training state, as one atomic .keras file."""
+    """After every epoch: the model, its optimizer and the training state, as one atomic .keras file; with
+    ``best`` (early stopping), before it, the model alone whenever the epoch is the phase's best so far (a kill
+    between the two repeats the epoch, which writes the same best again)."""
 
-    def __init__(self, path: Path, cfg: TrainConfig, phase: Phase, history: list[dict]):
+    def __init__(self, path: Path, cfg: TrainConfig, phase: Phase, history: list[dict], best: Path | None = None):
         super().__init__()
-        self.path, self.cfg, self.phase, self.history = path, cfg, phase, history
+        self.path, self.cfg, self.phase, self.history, self.best = path, cfg, phase, history, best
 
     def on_epoch_end(self, epoch, logs=None):
         self.history.append({"epoch": epoch, **{k: float(v) for k, v in (logs or {}).items()}})
+        if self.best is not None and best_epoch(self.history) == len(self.history) - 1:
+            save_model(self.model, self.best)
         done = epoch + 1 - self.phase.first_epoch
         save_model(self.model, self.path, _state(self.cfg, self.phase, done, self.history))
+
+
+def best_epoch(history: list[dict]) -> int | None:
+    """Index (within the phase) of the first epoch with the lowest validation loss; None without one."""
+    losses = [(h["val_loss"], i) for i, h in enumerate(history) if math.isfinite(h.get("val_loss", math.nan))]
+    return min(losses)[1] if losses else None
+
+
+def plateaued(history: list[dict], patience: int) -> bool:
+    """Whether the last ``patience`` epochs of ``history`` all came after its best (0: never)."""
+    best = best_epoch(history)
+    return patience > 0 and best is not None and len(history) - 1 - best >= patience
+
+
+class _StopOnPlateau(keras.callbacks.Callback):
+    """Early stopping on the phase's validation losses, from the checkpoint's history on (so a resumed phase
+    stops where an uninterrupted one would). Every process keeps its own copy and stops at the same epoch:
+    validation, read whole by each, gives them the same loss."""
+
+    def __init__(self, history: list[dict], patience: int):
+        super().__init__()
+        self.history, self.patience = [{"val_loss": h.get("val_loss", math.nan)} for h in history], patience
+
+    @property
+    def stopped(self) -> bool:
+        return plateaued(self.history, self.patience)
+
+    def on_epoch_end(self, epoch, logs=None):
+        self.history.append({"val_loss": float((logs or {}).get("val_loss", math.nan))})
+        self.model.stop_training = self.stopped
 
 
 def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]) -> dict:
@@ -285,6 +323,9 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     patches = sum(e.patches for e in entries["train"])
     if patches < cfg.batch_size:
         raise OptionError("batch_size", f"{cfg.batch_size} exceeds the {patches} training patches of {sset.dir}")
+    if cfg.patience and not paths["val"]:
+        raise OptionError("patience", f"{cfg.patience} stops on the validation loss, and {sset.dir} holds no held-out "
+                          "scenes (cut with --val-fraction 0): cut the shards with some, or train without --patience")
     return manifest, paths
 
 
@@ -349,22 +390,34 @@ def _phase_plan(phase: Phase) -> dict:
     return plan
 
 
-def _check_log(run: Run, epochs: int) -> None:
-    """KpcnError naming the CSV log unless it holds the run's first ``epochs`` epochs (what the checkpoint and
-    the finished phases say were trained), numbered in order, each row whole: resuming on a log that was
-    emptied, cut or torn would lose those epochs from it and from ``loss.png`` for good. Refused rather than
-    rebuilt: the log is kept as Keras wrote it, and a rebuilt one could only claim to be that."""
+def logged_epochs(record: dict, phase: Phase, done: int) -> list[int]:
+    """The epoch numbers the CSV log holds once ``phase`` has trained ``done`` epochs: every earlier phase's
+    (all its planned epochs, or those it trained before it stopped early), then ``done`` of its own."""
+    epochs = []
+    for name, plan in record["phases"].items():
+        if name == phase.name:
+            break
+        epochs += range(plan["first_epoch"], plan["first_epoch"] + plan.get("epochs_trained", plan["epochs"]))
+    return epochs + list(range(phase.first_epoch, phase.first_epoch + done))
+
+
+def _check_log(run: Run, epochs: list[int]) -> None:
+    """KpcnError naming the CSV log unless its first rows are the run's ``epochs`` (what the checkpoint and the
+    finished phases say were trained: :func:`logged_epochs`), in order, each row whole: resuming on a log that
+    was emptied, cut or torn would lose those epochs from it and from ``loss.png`` for good. Refused rather
+    than rebuilt: the log is kept as Keras wrote it, and a rebuilt one could only claim to be that."""
     try:
         rows = read_log(run.log_path)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise KpcnError(f"{run.log_path}: unreadable training log ({type(exc).__name__}: {exc})") from None
-    bad = next((i for i, row in enumerate(rows[:epochs])
-                if row.get("epoch") != str(i) or None in row or any(v in (None, "") for v in row.values())), None)
-    if len(rows) < epochs or bad is not None:
+    bad = next((e for e, row in zip(epochs, rows)
+                if row.get("epoch") != str(e) or None in row or any(v in (None, "") for v in row.values())), None)
+    if len(rows) < len(epochs) or bad is not None:
         found = f"{len(rows)} epochs" if bad is None else f"a damaged row for epoch {bad}"
         raise KpcnError(
-            f"{run.log_path}: holds {found} where the run has trained {epochs} (it was emptied, cut or edited); "
-            f"resuming would lose them from the log and loss.png. Restore it, or train again under another --run"
+            f"{run.log_path}: holds {found} where the run has trained {len(epochs)} (it was emptied, cut or "
+            f"edited); resuming would lose them from the log and loss.png. Restore it, or train again under "
+            f"another --run"
         )
 
 
@@ -401,7 +454,9 @@ def loss_curve_png(run: Run, record: dict) -> Path:
             ax.plot(*zip(*points), style, label=key.replace("_", " "))
     for i, (name, plan) in enumerate(record["phases"].items()):
         a = plan["first_epoch"] + 0.5
-        ax.axvspan(a, a + plan["epochs"], color=f"C{i % 10}", alpha=0.08)
+        ax.axvspan(a, a + plan.get("epochs_trained", plan["epochs"]), color=f"C{i % 10}", alpha=0.08)
+        if "best_epoch" in plan:
+            ax.axvline(plan["first_epoch"] + plan["best_epoch"] + 1, color=f"C{i % 10}", lw=0.8, ls=":")
         ax.text(a + 0.1, 0.98, name, transform=ax.get_xaxis_transform(), va="top", rotation=90, fontsize=7)
     ax.set_xlabel("epoch (all phases)")
     ax.set_ylabel("loss (SMAPE; final colour in joint and compositor)")
@@ -421,11 +476,11 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     processes (``world``) each starts from rank 0's weights, gradients are averaged, and only rank 0 writes
     (the checkpoint, the log, the model)."""
     final = run.model_path(phase.name)
-    if final.is_file():
-        if world.writer:
-            _check_log(run, phase.first_epoch + phase.epochs)  # what _finish_phase and loss.png read
-        return 0  # written once, after its last epoch: the phase is done (the record may lag after a kill)
     ckpt = run.checkpoint_path(phase.name)
+    if final.is_file():
+        if world.writer:  # what _finish_phase and loss.png read
+            _check_log(run, logged_epochs(record, phase, _epochs_trained(cfg, phase, ckpt)))
+        return 0  # written once, after its last epoch: the phase is done (the record may lag after a kill)
     epochs_done, history = 0, []
     if ckpt.is_file():
         state = read_state(ckpt)
@@ -449,22 +504,28 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
     _check_registered(model)
     distributed.broadcast_weights(model, world)
     distributed.average_gradients(model, world)
+    resumed_at = epochs_done
     if world.writer:
-        _check_log(run, phase.first_epoch + epochs_done)
-        _cut_log(run.log_path, phase.first_epoch + epochs_done)
+        logged = logged_epochs(record, phase, epochs_done)
+        _check_log(run, logged)
+        _cut_log(run.log_path, len(logged))
 
-    writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True), _Checkpoint(ckpt, cfg, phase, history)]
+    best = run.best_checkpoint_path(phase.name) if cfg.patience else None
+    stopper = _StopOnPlateau(history, cfg.patience)
+    writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True),
+              _Checkpoint(ckpt, cfg, phase, history, best if world.writer else None)]
     callbacks = [
         _MeanOverProcesses(world),
         _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
+        stopper,
         *callbacks,
     ]
     # Keras's fit gives every epoch the same steps: the whole epochs are one fit, a shorter last epoch
     # (what is left of the phase's steps) another, so the optimizer takes exactly ``phase.steps`` steps
     whole = phase.steps // phase.epoch_steps
     for start, end in ((epochs_done, whole), (max(epochs_done, whole), phase.epochs)):
-        if start >= end:
+        if start >= end or stopper.stopped:
             continue
         train, val = _data(cfg, phase, paths, start, end, world)
         # shuffle=False: the stream is already a seeded permutation, and Keras walks it in order
@@ -472,9 +533,24 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         model.fit(train, epochs=phase.first_epoch + end, initial_epoch=phase.first_epoch + start,
                   steps_per_epoch=phase.epoch_length(start), validation_data=val, callbacks=callbacks,
                   verbose=verbose if world.writer else 0, shuffle=False)
+    trained = len(stopper.history)
     if world.writer:
+        if best is not None:
+            model = load_model(best)  # the phase's model is its best epoch's
+            if stopper.stopped:
+                print(f"[{phase.name}] stopped after epoch {trained} of {phase.epochs}: the validation loss has "
+                      f"not fallen for {cfg.patience} epochs since epoch {best_epoch(stopper.history) + 1}, whose "
+                      "weights the phase keeps")
         save_model(model, final)
-    return sum(phase.epoch_length(i) for i in range(epochs_done, phase.epochs))
+    return sum(phase.epoch_length(i) for i in range(resumed_at, trained))
+
+
+def _epochs_trained(cfg: TrainConfig, phase: Phase, ckpt: Path) -> int:
+    """Epochs a finished ``phase`` trained: all of them, or, with early stopping, what its checkpoint says."""
+    if not cfg.patience:
+        return phase.epochs
+    state = read_state(ckpt) if ckpt.is_file() else None
+    return int(state["epochs_done"]) if state and "epochs_done" in state else phase.epochs
 
 
 def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, seconds: float,
@@ -489,6 +565,10 @@ def _finish_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, second
     # rank 0 only: another process may get here before rank 0 has written the file, and its copy of the
     # record, without the checksum, has its networks checked by their names (Run.check_model)
     run.record_model(record, run.model_path(phase.name).name, phase.component)
+    if cfg.patience:  # what logged_epochs reads for the phases after it
+        state = read_state(run.checkpoint_path(phase.name)) or {}
+        record["phases"][phase.name].update(epochs_trained=int(state.get("epochs_done", phase.epochs)),
+                                            best_epoch=best_epoch(state.get("history", [])))
     rows = [r for r in read_log(run.log_path)
             if phase.first_epoch <= int(r["epoch"]) < phase.first_epoch + phase.epochs]
     record["results"][phase.name] = {"last_epoch": rows[-1] if rows else {}}

@@ -144,6 +144,81 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
     assert checksums(run_dir) == before
 
 
+# --- as long as held-out error falls: early stopping (issue 23) ---
+
+def _val_losses(run_dir: Path, plan: dict) -> list[float]:
+    rows = (run_dir / "log.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    epochs = range(plan["first_epoch"], plan["first_epoch"] + plan["epochs"])
+    return [float(dict(zip(header, r.split(",")))["val_loss"]) for r in rows[1:] if int(r.split(",")[0]) in epochs]
+
+
+@pytest.mark.slow
+def test_patience_stops_a_phase_once_validation_loss_stops_falling_and_keeps_its_best_epoch(tmp_path):
+    from kpcn_keras import distributed
+    from kpcn_keras.train import _data, check_inputs
+    from prep.shards import ShardSet
+
+    patience = 2
+    cfg = tiny_config(build_tiny_shards(tmp_path), steps=120, steps_per_epoch=2, decay_steps=120,
+                      learning_rate=0.05, patience=patience)
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    record = json.loads((run_dir / "config.json").read_text())
+    for branch in ("diffuse", "specular"):
+        plan = record["phases"][branch]
+        val = _val_losses(run_dir, plan)
+        # the stopping rule, recomputed from the log: the first epoch `patience` after the best so far
+        best = int(np.argmin(val))
+        stop = next((e for e in range(len(val)) if e - int(np.argmin(val[: e + 1])) >= patience), None)
+        assert stop is not None and len(val) == stop + 1 < plan["epochs"] == 60, (branch, val)
+        assert (plan["epochs_trained"], plan["best_epoch"]) == (len(val), best)
+        # the phase's model is the best epoch's: its validation loss, measured again, is the logged best
+        phase = next(p for p in cfg.phases() if p.name == branch)
+        _, paths = check_inputs(cfg, ShardSet(cfg.set_dir))
+        _, stream = _data(cfg, phase, paths, 0, 1, distributed.World())
+        measured = load_model(run_dir / f"{branch}.keras").evaluate(stream, verbose=0)
+        measured = measured[0] if isinstance(measured, list) else measured
+        assert measured == pytest.approx(val[best], rel=1e-5)
+        assert measured < val[-1]
+    # the next phase kept its place in the numbering: the log has a gap where diffuse stopped
+    assert record["phases"]["specular"]["first_epoch"] == 60
+
+
+@pytest.mark.slow
+def test_a_stopped_run_resumes_after_a_kill_to_the_same_files(tmp_path):
+    """A kill after a stopped phase's last checkpoint but before its model (the record says pending): the
+    rerun trains nothing, accepts the log with its gap, and writes the same model."""
+    cfg = tiny_config(build_tiny_shards(tmp_path), steps=120, steps_per_epoch=2, decay_steps=120,
+                      learning_rate=0.05, patience=2)
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    model = (run_dir / "specular.keras").read_bytes()
+    (run_dir / "specular.keras").unlink()
+    record = json.loads((run_dir / "config.json").read_text())
+    record["phases"]["specular"].update(status="pending")
+    del record["phases"]["specular"]["epochs_trained"], record["phases"]["specular"]["best_epoch"]
+    (run_dir / "config.json").write_text(json.dumps(record))
+    log = (run_dir / "log.csv").read_bytes()
+    train(cfg, run_dir, verbose=0)
+    assert (run_dir / "specular.keras").read_bytes() == model
+    assert (run_dir / "log.csv").read_bytes() == log
+
+
+@pytest.mark.slow
+def test_patience_without_held_out_scenes_is_refused_before_the_run_is_written(tmp_path):
+    cfg = tiny_config(build_tiny_shards(tmp_path, val_fraction=0.0), patience=2)
+    with pytest.raises(OptionError, match=r"patience.*2 stops on the validation loss.*no held-out scenes"):
+        train(cfg, tmp_path / "runs" / "r", verbose=0)
+    assert not (tmp_path / "runs" / "r").exists()
+
+
+def test_a_run_without_early_stopping_keeps_the_identity_it_had_before_patience_existed():
+    cfg = TrainConfig()
+    assert "patience" not in cfg.to_dict() and TrainConfig.from_record(cfg.to_dict()) == cfg
+    assert TrainConfig(patience=3).to_dict()["patience"] == 3
+    with pytest.raises(OptionError, match="patience"):
+        TrainConfig(patience=-1)
+
+
 # --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
 
 @pytest.mark.slow
