@@ -18,9 +18,15 @@ BENCH_ARGS  ?=
 # evaluates it and ships it to models/$(MODEL), the model 'kpcn denoise' uses without --run. MODEL is
 # kpcn_keras/config.py's DEFAULT_MODEL; VALIDATION, another renderer's frames, is evaluated when it is there.
 # MODEL_ARGS must suit every input set (no --shared or --compositor: a no-split network has one branch).
+# It trains on the quality study's data lever (kpcn_keras/studies/config.py MORE_DATA: 8 scenes per family,
+# inputs 2-64 spp), the set make quality renders as $(MODEL_SET), held out the scenes make train holds out.
 MODEL      ?= $(shell sed -n 's/^DEFAULT_MODEL = "\(.*\)".*/\1/p' kpcn_keras/config.py)
-MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000
+MODEL_ARGS ?= --preset cpu --steps 3000 --decay-steps 3000
 MODEL_RUN  ?= runs/model
+MODEL_SET  ?= $(SET)-r14bdd0f2
+MODEL_RENDER_ARGS ?= --per-family 8 --input-spp 2,4,8,16,32,64
+MODEL_SHARD_ARGS  ?= --val-scenes $(subst $(eval) ,$(comma),$(foreach f,boxes caustics cornell fireflies indirect outdoor spheres textures,$(f)-002))
+comma := ,
 VALIDATION ?= ../shared/validation/blender
 
 QUALITY_ARGS ?=
@@ -60,12 +66,13 @@ train-inputs: render
 
 # the shipped model (docs/training.md §7): one command trains it, resuming an interrupted training where it stopped
 # (a run folder resumes by itself), then evaluates it and ships it with its card; run it again after an interrupt
-model: render
+model: $(KPCN)
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]' || \
 		echo "kpcn: pyoidn not installed: the model's tables go without OIDN"
+	$(KPCN) render --set $(MODEL_SET) $(MODEL_RENDER_ARGS)
 	for inputs in $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)'); do \
-		$(KPCN) shards --set $(SET) --inputs $$inputs $(SHARD_ARGS) && \
-		$(KPCN) train --set $(SET) --run $(MODEL_RUN) --inputs $$inputs $(MODEL_ARGS) || exit 1; \
+		$(KPCN) shards --set $(MODEL_SET) --inputs $$inputs $(MODEL_SHARD_ARGS) && \
+		$(KPCN) train --set $(MODEL_SET) --run $(MODEL_RUN) --inputs $$inputs $(MODEL_ARGS) || exit 1; \
 	done
 	$(KPCN) evaluate --run $(MODEL_RUN)
 	if [ -d "$(VALIDATION)" ]; then $(KPCN) evaluate --run $(MODEL_RUN) --out $(MODEL_RUN)/eval-validation $(VALIDATION); fi

@@ -314,3 +314,16 @@ def test_the_data_lever_renders_a_larger_set_sharing_the_renders_and_the_held_ou
         assert train == ["cornell-000", "cornell-002", "spheres-000", "spheres-002"]
     held = [r["frame"] for r in record["frames"] if r["kind"] == "held-out"]
     assert held == ["cornell-001 4 spp", "spheres-001 4 spp"]  # the study set's, for both levers
+
+
+def _make_variable(name: str) -> str:
+    text = (Path(__file__).parent.parent / "Makefile").read_text()
+    return next(line.split("?=", 1)[1].strip() for line in text.splitlines() if line.startswith(f"{name} ") and "?=" in line)
+
+
+def test_make_model_trains_on_the_data_levers_set_as_make_quality_names_and_renders_it():
+    """The Makefile writes the data lever's set out for make model; this keeps it the study's."""
+    options = QUALITY_LEVERS["data"][3]
+    assert _make_variable("MODEL_SET") == "$(SET)" + qs.lever_set(QualityConfig(), "data")[len("default"):]
+    assert _make_variable("MODEL_RENDER_ARGS") == (f"--per-family {options['per_family']} --input-spp "
+                                                   f"{','.join(map(str, options['input_spp']))}")
