@@ -265,3 +265,42 @@ def test_shipping_on_a_full_disk_ends_in_one_line_and_leaves_nothing(evaluated_r
     res = run_main(*args, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert Run(dest).finished_record() and [p.name for p in small_disk.path.iterdir()] == ["m"]
+
+
+# --- the model in the repository (issue 23): what `kpcn denoise FILE` uses without --run ---
+
+FIXTURES = Path(__file__).parent / "fixtures" / "renderers"
+
+
+def test_the_shipped_model_is_small_carded_and_has_a_network_for_every_input_set():
+    from kpcn_keras.config import SHIPPED_MAX_BYTES
+    from kpcn_keras.run import default_model
+
+    model = default_model()
+    size = sum(f.stat().st_size for f in model.dir.rglob("*") if f.is_file())
+    assert size < SHIPPED_MAX_BYTES
+    assert (model.dir / "CARD.md").is_file() and not (model.dir / "checkpoints").exists()
+    assert [model.for_inputs(InputSet.named(n)).has_record() for n in INPUT_SETS] == [True] * len(INPUT_SETS)
+
+
+@pytest.mark.parametrize("fixture, served_by", [("cycles5/studio-00016spp.exr", "no-variance"),
+                                                ("mitsuba3/cornell-00016spp.exr", "no-split"),
+                                                ("pbrt4/cornell-00016spp.exr", "no-split")])
+def test_the_shipped_model_denoises_each_renderers_frame_with_the_network_for_what_it_has(fixture, served_by):
+    """Each frame comes out finite and closer to the renderer's own high-spp render than it went in."""
+    import kpcn
+    from kpcn_keras.run import default_model
+    from prep import exr
+
+    frame = kpcn.read(FIXTURES / fixture)
+    assert default_model().serving(frame.inputs).record().inputs.name == served_by
+    out = kpcn.denoise(frame)
+    scene, _ = exr.parse_render_filename(FIXTURES / fixture)
+    ref_path = max((FIXTURES / fixture).parent.glob(f"{scene}-*spp.exr"), key=lambda p: exr.parse_render_filename(p)[1])
+    ref = kpcn.read(ref_path).layers["default"].astype(np.float64)
+    noisy = frame.layers["default"].astype(np.float64)
+
+    def relmse(x):  # a float64 reference of the metric, as docs/method.md defines it
+        return float(np.mean((x - ref) ** 2 / (ref ** 2 + 0.01)))
+
+    assert np.isfinite(out).all() and relmse(out) < relmse(noisy)
