@@ -318,7 +318,8 @@ def test_the_data_lever_renders_a_larger_set_sharing_the_renders_and_the_held_ou
 
 def _make_variable(name: str) -> str:
     text = (Path(__file__).parent.parent / "Makefile").read_text()
-    return next(line.split("?=", 1)[1].strip() for line in text.splitlines() if line.startswith(f"{name} ") and "?=" in line)
+    return next(line.split("?=", 1)[1].strip() for line in text.splitlines()
+                if line.startswith(f"{name} ") and "?=" in line)
 
 
 def test_make_model_trains_on_the_data_levers_set_as_make_quality_names_and_renders_it():
