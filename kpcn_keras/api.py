@@ -7,7 +7,7 @@ output bit for bit (``tests/test_renderers.py``). What is not given is filled as
 normal 0, depth 0; ``prep.layouts.FILL``). ``variance`` is the variance of the pixel mean of ``color`` ((H, W)
 or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must be a dict of the six
 ``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A loaded model is kept for the
-next call with the same run, tile and input set.
+next call with the same run, tile, precision and input set.
 """
 
 from __future__ import annotations
@@ -76,20 +76,22 @@ def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None
 
 
 @functools.lru_cache(maxsize=4)
-def _denoiser(run_dir: str, inputs: InputSet, tile: int, stamp: float):
+def _denoiser(run_dir: str, inputs: InputSet, tile: int, precision: str | None, stamp: float):
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
 
     variant = Run(run_dir).serving(inputs)
-    return Denoiser.from_run(variant, tile)
+    return Denoiser.from_run(variant, tile, precision=precision)
 
 
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
-            run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None) -> np.ndarray:
+            run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None,
+            precision: str | None = None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
     by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
-    at ``slope`` (λ, for a run trained with it as an input)."""
+    at ``slope`` (λ, for a run trained with it as an input), its trunks in ``precision`` (``"auto"``, ``"float32"`` or
+    ``"bfloat16"``: ``kpcn_keras.precision``)."""
     if run is None:
         from kpcn_keras.run import default_model
 
@@ -100,4 +102,5 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
         frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
-    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), stamp)(frame.layers, slope=slope)["default"]
+    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, stamp)(frame.layers,
+                                                                                         slope=slope)["default"]

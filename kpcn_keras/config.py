@@ -27,6 +27,10 @@ ARCHS = ("kpcn", "kpal", "dpcn", "unet")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
 TILE = Bound(1, FRAME_SIDE.high)
 DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
+# The arithmetic of a network's trunk at inference (kpcn_keras/precision.py): "auto" is bfloat16 where the CPU
+# multiplies it natively, float32 elsewhere
+PRECISIONS = ("auto", "float32", "bfloat16")
+DEFAULT_PRECISION = "auto"
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
 # serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's

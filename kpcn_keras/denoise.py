@@ -39,6 +39,8 @@ import numpy as np
 from kpcn_keras.config import DEFAULT_TILE, TILE
 from kpcn_keras.models import input_alignment, network_input, receptive_radius
 from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, tile_alignment
+from kpcn_keras.precision import apply as apply_precision
+from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features, layouts
 from prep.errors import KpcnError, OptionError
@@ -76,9 +78,13 @@ class Denoiser:
     """
 
     def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
-                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE):
+                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE, precision: str | None = None):
         self.run, self.record, self.model_config = run, record, record.model
         self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
+        # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16"
+        self.precision = resolve(precision)
+        for net in networks.values():
+            apply_precision(net, self.precision)
         self.inputs, self.branches = record.inputs, record.branches
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
@@ -97,11 +103,12 @@ class Denoiser:
 
     @classmethod
     def from_run(cls, run: Run, tile: int = DEFAULT_TILE, *, record: RunRecord | None = None,
-                 multiscale: bool = True, resampling: bool = False) -> Denoiser:
+                 multiscale: bool = True, resampling: bool = False, precision: str | None = None) -> Denoiser:
         """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
         ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
         own use, between the phases of its current round. Only the networks of the branches the run's input
-        set runs are read (``RunRecord.branches``)."""
+        set runs are read (``RunRecord.branches``). ``precision``: the trunks' arithmetic (``--precision``;
+        default ``"auto"``: ``kpcn_keras.precision``)."""
         tile = TILE.check("tile", tile)
         record = (run.record() if record is None else record).finished(resampling=resampling)
         names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
@@ -112,13 +119,13 @@ class Denoiser:
         compositor = None
         if multiscale and "compositor" in record.components:
             compositor = run.load_component(record, "compositor")
-        return cls(run, record, networks, compositor, tile)
+        return cls(run, record, networks, compositor, tile, precision)
 
     def without_compositor(self) -> Denoiser:
         """The same networks without the compositor (itself for a run that has none)."""
         if self.compositor is None:
             return self
-        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile)
+        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision)
 
     def warm_up(self, slope: float | None = None) -> None:
         """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
@@ -430,7 +437,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
 
 def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE,
                   slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None,
-                  on_frame=None) -> dict:
+                  on_frame=None, precision: str | None = None) -> dict:
     """Denoise many EXRs in one process: each model is loaded and warmed up once.
 
     ``inputs``: files and folders (:func:`collect_inputs`), each in any layout ``prep.layouts`` reads
@@ -442,12 +449,14 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     checked before a model is loaded, so a missing layer, a missing model, a wrong size or an unwritable
     output fails before any work. A frame that still fails (a truncated file) stops the batch with a KpcnError
     naming it; the outputs written before it are complete (each is written atomically) and are named in the
-    message. ``on_frame(report)`` is called after each frame (progress).
+    message. ``on_frame(report)`` is called after each frame (progress). ``precision``: the networks' trunks'
+    arithmetic (``kpcn_keras.precision``; default "auto").
 
-    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "peak_memory_mb", "frames", "skipped"}``: the
-    seconds from process start to this call (None off Linux), of loading the networks and of the warm-ups;
-    torch's thread count; the process's peak resident memory at the end (:func:`peak_memory_mb`);
-    one :func:`denoise_frame` report per input, in order; the folder entries skipped (earlier outputs).
+    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "precision", "peak_memory_mb", "frames",
+    "skipped"}``: the seconds from process start to this call (None off Linux), of loading the networks and of
+    the warm-ups; torch's thread count; the precision it resolved to; the process's peak resident memory at the
+    end (:func:`peak_memory_mb`); one :func:`denoise_frame` report per input, in order; the folder entries
+    skipped (earlier outputs).
     """
     startup = process_age()
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
@@ -484,6 +493,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         if png:
             check_writable(png_path(out), "side-by-side PNG")
     TILE.check("tile", tile)
+    precision = resolve(precision)
     for record in records.values():
         record.finished().check_slope(slope)  # before the networks are loaded
     load_s = warmup_s = 0.0
@@ -493,7 +503,8 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         variant = serving[frame_inputs]
         if variant.dir not in denoisers:
             begin = time.perf_counter()
-            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir])
+            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
+                                                       precision=precision)
             loaded = time.perf_counter()
             denoisers[variant.dir].warm_up(slope)
             load_s, warmup_s = load_s + loaded - begin, warmup_s + time.perf_counter() - loaded
@@ -512,14 +523,16 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         import torch
 
         threads = torch.get_num_threads()
-    return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads,
+    return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads, "precision": precision,
             "peak_memory_mb": peak_memory_mb(),
             "frames": frames, "skipped": [str(p) for p in skipped]}
 
 
 def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,
-                 tile: int = DEFAULT_TILE, slope: float | None = None, **frame_options) -> dict:
+                 tile: int = DEFAULT_TILE, slope: float | None = None, precision: str | None = None,
+                 **frame_options) -> dict:
     """Denoise one EXR (:func:`denoise_files` with one input); returns its frame report (:func:`denoise_frame`)
     with the batch's ``load_s`` and ``warmup_s``."""
-    batch = denoise_files([input_path], run_dir, output, reference, png=png, tile=tile, slope=slope, **frame_options)
+    batch = denoise_files([input_path], run_dir, output, reference, png=png, tile=tile, slope=slope,
+                          precision=precision, **frame_options)
     return {**batch["frames"][0], "load_s": batch["load_s"], "warmup_s": batch["warmup_s"]}

@@ -125,10 +125,11 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None,
-             layout: str | None = None) -> list[dict]:
+             layout: str | None = None, precision: str | None = None) -> list[dict]:
     """Evaluate a run on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
-    reads (``layout`` forces one), each denoised by the run's model for what it has (``Run.serving``)."""
+    reads (``layout`` forces one), each denoised by the run's model for what it has (``Run.serving``), its
+    trunks in ``precision`` (``kpcn_keras.precision``; default "auto")."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
@@ -152,7 +153,8 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         scene, spp = exr.parse_render_filename(noisy_path)
         variant = serving[noisy_path]
         if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir])
+            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
+                                                       precision=precision)
             denoisers[variant.dir].warm_up(slope)
         frame = layouts.read(noisy_path, layout)
         noisy = frame.layers

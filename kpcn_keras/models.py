@@ -96,6 +96,7 @@ __all__ = [
     "load_model",
     "network_input",
     "receptive_radius",
+    "trunk_layers",
     "trunk_radius",
 ]
 
@@ -104,6 +105,9 @@ TRUNK_FORMAT = "channels_first"  # the convolutions' layout inside a branch mode
 DATA_FORMATS = ("channels_first", "channels_last")  # "channels_last": the layout of models saved before
 TO_CHANNELS_FIRST = (3, 1, 2)  # keras.layers.Permute dims: (H, W, C) -> (C, H, W)
 TO_CHANNELS_LAST = (2, 3, 1)  # and back
+# The names of a trunk's layers after the model's prefix (``diffuse_trunk03_relu``, ``specular_enc1_00_conv``,
+# ``shared_skip0``): what :func:`trunk_layers` finds, and what the builders below name them
+TRUNK_PARTS = ("trunk", "stem", "res", "enc", "dec", "pool", "up", "skip")
 
 
 def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.ndarray:
@@ -166,6 +170,14 @@ def receptive_radius(cfg: ModelConfig) -> int:
     if cfg.arch == "dpcn":
         return t
     return max(t, cfg.kernel_size // 2)
+
+
+def trunk_layers(model: keras.Model) -> list:
+    """The layers of a branch model's trunk (:data:`TRUNK_PARTS`), from the features up to, not including, the
+    kernel head (or a dpcn's correction): what ``kpcn_keras.precision`` may run in bfloat16."""
+    prefix = f"{model.name}_"
+    return [layer for layer in model.layers if layer.name.startswith(prefix)
+            and layer.name[len(prefix):].startswith(TRUNK_PARTS)]
 
 
 def _conv_class(data_format: str):

@@ -357,6 +357,7 @@ def _denoise_options(add) -> None:
     n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
+    _precision_option(n)
     n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each "
                    "output: input | denoised (| reference), side by side")
     _layout_option(n)
@@ -364,6 +365,14 @@ def _denoise_options(add) -> None:
                    "spp: the two are denoised as one frame, its variance from their difference")
     n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
     n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
+
+
+def _precision_option(parser) -> None:
+    from kpcn_keras.config import DEFAULT_PRECISION, PRECISIONS
+
+    parser.add_argument("--precision", choices=PRECISIONS, help="the networks' arithmetic: bfloat16 convolutions "
+                        "are faster where the CPU has them natively, and change the output slightly; auto takes "
+                        f"bfloat16 there and float32 elsewhere (default: {DEFAULT_PRECISION})")
 
 
 def _layout_option(parser) -> None:
@@ -388,6 +397,7 @@ def _evaluate_options(add) -> None:
     e.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     e.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input (as kpcn denoise --slope)")
     e.add_argument("--no-baseline", action="store_true", default=False)
+    _precision_option(e)
     _layout_option(e)
 
 
