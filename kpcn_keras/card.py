@@ -199,9 +199,10 @@ def _reset_peak_memory() -> bool:
 def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
           repeats: int = SPEED_REPEATS) -> dict:
     """Seconds to denoise a ``frame_size`` (width, height) frame, made of the run's first held-out frame
-    (:func:`frame_of_size`), by the run's full model and by OIDN when ``pyoidn`` is installed: side by side in
-    this process, each warmed up, then called alternately ``repeats`` times, the best of each; with torch's
-    threads, the peak resident memory during the timed calls and what the frame holds whole
+    (:func:`frame_of_size`), by the run's full model (in the default precision, ``kpcn_keras.precision``, as
+    ``kpcn denoise`` runs it) and by OIDN when ``pyoidn`` is installed: side by side in this process, each
+    warmed up, then called alternately ``repeats`` times, the best of each; with torch's threads, the precision,
+    the peak resident memory during the timed calls and what the frame holds whole
     (``denoise.frame_bytes``: beyond it, memory is bounded by the tile)."""
     import time
 
@@ -234,7 +235,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
         threads = torch.get_num_threads()
     return {"width": width, "height": height, "frame": Path(noisy).name, "kpcn_s": best["kpcn"],
-            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads,
+            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads, "precision": denoiser.precision,
             "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
 
 
@@ -242,7 +243,8 @@ def speed_lines(found: dict) -> list[str]:
     size = f"{found['width']}×{found['height']}"
     lines = [f"A {size} frame (`{found['frame']}`, a held-out frame wrapped around to that size), denoised in one "
              f"process beside OIDN, alternately, the best of {found['repeats']} calls each after a warm-up, "
-             f"{found['threads']} torch threads, {os.cpu_count()} CPUs:", ""]
+             f"{found['threads']} torch threads, {os.cpu_count()} CPUs, the networks' trunks in "
+             f"{found.get('precision', 'float32')} (`--precision`, docs/denoise.md §5):", ""]
     rows = [["kpcn (this model)", f"{found['kpcn_s']:.2f}"]]
     if found["oidn_s"] is None:
         rows.append(["OIDN", "not installed (pip install -e '.[oidn]')"])

@@ -226,6 +226,25 @@ def test_torch_path_is_taken_and_gradchecks_with_dilation(monkeypatch):
     assert calls and calls[0] == (3, 2) and calls[-1] == (3, 1)
 
 
+@pytest.mark.parametrize("k,d,h,w", [(13, 1, 9, 4), (5, 2, 6, 9), (3, 1, 1, 6)])
+def test_inference_takes_the_forward_alone_and_equals_the_training_path(monkeypatch, k, d, h, w):
+    calls = []
+    original = layers_module._inference_kernel_apply
+    monkeypatch.setattr(layers_module, "_inference_kernel_apply", lambda *a: calls.append(a[2:]) or original(*a))
+    monkeypatch.setattr(layers_module, "KERNEL_BLOCK_BYTES", 1)  # a block a row: the blocks' offsets matter
+    rng = np.random.default_rng(k + d)
+    colour = torch.tensor(rng.uniform(0, 5, size=(2, h, w, 3)), dtype=torch.float32)
+    logits = torch.tensor(rng.normal(size=(2, h, w, k * k)) * 3.0, dtype=torch.float32)
+    trained = kernel_apply(colour, logits.clone().requires_grad_(True), k, d)
+    assert not calls  # a gradient asked for: the autograd path
+    with torch.no_grad():
+        inferred = kernel_apply(colour, logits, k, d)
+    assert calls == [(k, d)]
+    np.testing.assert_allclose(to_np(inferred), to_np(trained), rtol=1e-6, atol=1e-6)
+    want = apply_kernels(colour.double(), _softmax_kernels_ops(logits.double()), k, d)
+    np.testing.assert_allclose(to_np(inferred), to_np(want), rtol=1e-5, atol=1e-5)
+
+
 def test_softmax_kernels_equals_ops_formulation_and_survives_extremes():
     logits = np.random.default_rng(6).normal(size=(2, 3, 4, 25)).astype(np.float32) * 1e4
     np.testing.assert_allclose(to_np(softmax_kernels(logits)), to_np(_softmax_kernels_ops(logits)), atol=1e-6)
@@ -342,3 +361,6 @@ def test_kernel_application_matches_float64_and_stays_inside_each_window(case):
     assert (got >= windows.min(axis=3) - tol).all() and (got <= windows.max(axis=3) + tol).all()
     (out * out.detach().sign()).sum().backward()
     assert torch.isfinite(colour_t.grad).all() and torch.isfinite(logits_t.grad).all()
+    with torch.no_grad():  # inference: the forward alone, on the colour planes (layers._inference_kernel_apply)
+        inferred = to_np(KernelApply(k)([colour_t, logits_t])).astype(np.float64)
+    assert np.isfinite(inferred).all() and (np.abs(inferred - want) <= tol).all()
