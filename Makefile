@@ -16,7 +16,8 @@ COMPARE_ARGS ?=
 BENCH_ARGS  ?=
 # the shipped model, its configuration in one place: make model trains it (every input set) into $(MODEL_RUN),
 # evaluates it and ships it to models/$(MODEL), the model 'kpcn denoise' uses without --run. MODEL is
-# kpcn_keras/config.py's DEFAULT_MODEL; VALIDATION, another renderer's frames, is evaluated when it is there.
+# kpcn_keras/config.py's DEFAULT_MODEL; VALIDATION, other renderers' frames (kpcn_keras/studies/config.py's
+# VALIDATION_FRAMES, as make quality measures them), is evaluated where it is there.
 # MODEL_ARGS must suit every input set (no --shared or --compositor: a no-split network has one branch).
 # It trains on the quality study's data lever (kpcn_keras/studies/config.py MORE_DATA: 8 scenes per family,
 # inputs 2-64 spp), the set make quality renders as $(MODEL_SET), held out the scenes make train holds out.
@@ -27,7 +28,7 @@ MODEL_SET  ?= $(SET)-r14bdd0f2
 MODEL_RENDER_ARGS ?= --per-family 8 --input-spp 2,4,8,16,32,64
 MODEL_SHARD_ARGS  ?= --val-scenes $(subst $(eval) ,$(comma),$(foreach f,boxes caustics cornell fireflies indirect outdoor spheres textures,$(f)-002))
 comma := ,
-VALIDATION ?= ../shared/validation/blender
+VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/studies/config.py | tr -d '",')
 
 QUALITY_ARGS ?=
 
@@ -75,7 +76,8 @@ model: $(KPCN)
 		$(KPCN) train --set $(MODEL_SET) --run $(MODEL_RUN) --inputs $$inputs $(MODEL_ARGS) || exit 1; \
 	done
 	$(KPCN) evaluate --run $(MODEL_RUN)
-	if [ -d "$(VALIDATION)" ]; then $(KPCN) evaluate --run $(MODEL_RUN) --out $(MODEL_RUN)/eval-validation $(VALIDATION); fi
+	frames=$$(for f in $(VALIDATION); do [ -e "$$f" ] && echo "$$f"; done); \
+	if [ -n "$$frames" ]; then $(KPCN) evaluate --run $(MODEL_RUN) --out $(MODEL_RUN)/eval-validation $$frames; fi
 	$(KPCN) ship --run $(MODEL_RUN) --out models/$(MODEL)
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)

@@ -274,3 +274,28 @@ def test_a_comparison_without_report_only_reaches_the_study(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-2000:]
     assert res.stderr.strip().splitlines() == [
         f"kpcn compare: error: {tmp_path / 'nothing' / 'manifest.json'}: no shard manifest (run 'kpcn shards' first)"]
+
+
+def test_planned_runs_make_a_plan_once_keep_it_and_refuse_a_run_trained_for_another(tmp_path, tiny_run):
+    group = tmp_path / "group"
+    (group / "probes" / "left").mkdir(parents=True)  # what a killed study's probe left
+    made = []
+
+    def plan(scratch):
+        made.append(scratch)
+        return {"steps": {"steps": 7}}
+
+    key = {"train": {"seed": 0}, "budget": 5.0}
+    with cmp.PlannedRuns(group, "test study") as planned:
+        assert not (group / "probes").exists()
+        entry, reused = planned.entry(("lever", "full"), key, group / "lever", plan)
+        assert (entry, reused) == ({**key, "steps": {"steps": 7}}, False)
+        assert made == [group / "probes" / "lever-full"]
+    assert json.loads((group / "plan.json").read_text()) == {"lever": {"full": entry}}
+    with cmp.PlannedRuns(group, "test study") as planned:  # the same key again: kept, not planned again
+        assert planned.entry(("lever", "full"), key, group / "lever", plan) == (entry, True)
+        assert len(made) == 1
+        # another key where a run was already trained: its steps would not be these
+        with pytest.raises(cmp.KpcnError, match=rf"{tiny_run}: trained for other settings than this test study's"):
+            planned.entry(("lever", "full"), {**key, "budget": 6.0}, tiny_run, plan)
+    assert len(made) == 1

@@ -41,6 +41,7 @@ or denoise.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import shutil
@@ -52,7 +53,7 @@ from pathlib import Path
 from kpcn_keras.config import PRESETS, TrainConfig
 from kpcn_keras.studies.config import CONFIGURATIONS, CompareConfig
 from prep.errors import KpcnError
-from prep.files import atomic_write_text, check_writable, exclusive_lock, pyplot, read_json
+from prep.files import atomic_write_json, check_writable, exclusive_lock, pyplot, read_json
 from prep.studies.report import Report
 
 PROBE_STEPS = 10
@@ -224,6 +225,65 @@ def plan_steps(base: TrainConfig, budget: float, scratch: Path, times: dict | No
             "phase_steps": {p.name: p.steps for p in with_steps(base, steps).phases()}}
 
 
+class PlannedRuns:
+    """The plans of a study that trains for seconds (``compare``, ``quality``, ``inputs-study``), in its group
+    folder: the one owner of ``<group>/plan.json`` and ``<group>/probes/``.
+
+    Entered, it holds the folder's lock (one study at a time), empties the probes' scratch folder (what a killed
+    study left) and reads the plans stored; :meth:`entry` gives a training's plan, reused when it was made for the
+    same key, else made and saved at once (so an interrupted study resumes with the same steps); leaving it
+    empties the scratch folder again. Plans are stored under a path of names (a configuration; a lever and an
+    input set)."""
+
+    def __init__(self, group: Path, what: str):
+        self.group, self.what = Path(group), what
+        self.path, self.scratch = self.group / PLAN, self.group / "probes"
+        self.stored: dict = {}
+
+    def __enter__(self) -> PlannedRuns:
+        check_writable(self.group, "runs folder (--runs)", directory=True)
+        self._lock = exclusive_lock(self.group, f"{self.what} folder")
+        self._lock.__enter__()
+        try:
+            if self.scratch.exists():
+                shutil.rmtree(self.scratch)
+            self.stored = read_json(self.path, f"{self.what} plan") if self.path.is_file() else {}
+        except BaseException:
+            self._lock.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if exc[0] is None and self.scratch.exists():
+                shutil.rmtree(self.scratch)
+        finally:
+            self._lock.__exit__(*exc)
+
+    def entry(self, names: tuple[str, ...], key: dict, run_dir: Path, plan) -> tuple[dict, bool]:
+        """``(plan entry, reused)``: the entry stored under ``names`` when its ``key`` fields equal ``key``; else
+        ``{**key, **plan(scratch)}`` (``plan`` probes in the scratch folder it is given), stored and saved. A run
+        already trained in ``run_dir`` for another key is refused (KpcnError): its steps would not be these."""
+        node = self.stored
+        for name in names[:-1]:
+            node = node.get(name, {})
+        entry = node.get(names[-1])
+        if entry is not None and {k: entry.get(k) for k in key} == key:
+            return entry, True
+        from kpcn_keras.run import Run
+
+        if Run(run_dir).has_record():
+            raise KpcnError(f"{run_dir}: trained for other settings than this {self.what}'s (another "
+                            "configuration, shard set or budget); choose another --runs or remove it")
+        entry = {**key, **plan(self.scratch / "-".join(names))}
+        node = self.stored
+        for name in names[:-1]:
+            node = node.setdefault(name, {})
+        node[names[-1]] = entry
+        atomic_write_json(self.path, self.stored)
+        return entry, False
+
+
 def _fmt_phases(values: dict, fmt: str) -> str:
     return ", ".join(f"{k} {fmt.format(v)}" for k, v in values.items())
 
@@ -235,44 +295,29 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
     ``probes``: ``name -> {"train": identity, "probes": step times}`` of probes already made (another budget's
     plan entries): a configuration of the same identity takes its steps from them instead of probing again.
     """
-    from kpcn_keras.run import Run
     from kpcn_keras.train import train
     from prep.shards import ShardSet
 
     manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
     group = _group_dir(cfg)
-    check_writable(group, "runs folder (--runs)", directory=True)
     plans = {}
-    with exclusive_lock(group, "comparison folder"):
-        scratch = group / "probes"
-        if scratch.exists():
-            shutil.rmtree(scratch)  # what a killed comparison's probes left
-        plan_path = group / PLAN
-        stored = read_json(plan_path, "comparison plan") if plan_path.is_file() else {}
+    with PlannedRuns(group, "comparison") as planned:
         for name in cfg.configurations:
             base = train_config(name, cfg, overrides)
             run_dir = group / name
             key = {"train": base.identity(), "budget": cfg.budget, "content_key": manifest["content_key"]}
-            entry = stored.get(name)
-            if entry is not None and {k: entry.get(k) for k in key} == key:
-                log(f"[{name}] steps from {plan_path}: {_fmt_phases(entry['phase_steps'], '{}')}")
+            known = (probes or {}).get(name)
+            times = known["probes"] if known is not None and known["train"] == key["train"] else None
+            entry, reused = planned.entry((name,), key, run_dir,
+                                          functools.partial(plan_steps, base, cfg.budget, times=times))
+            if reused:
+                log(f"[{name}] steps from {planned.path}: {_fmt_phases(entry['phase_steps'], '{}')}")
             else:
-                if Run(run_dir).has_record():
-                    raise KpcnError(f"{run_dir}: trained for other settings than this comparison's (another "
-                                    f"configuration or shard set); choose another --runs or remove {run_dir}")
-                known = (probes or {}).get(name)
-                times = known["probes"] if known is not None and known["train"] == key["train"] else None
-                entry = {**key, **plan_steps(base, cfg.budget, scratch / name, times)}
-                per_step = entry["seconds_per_step"]
-                log(f"[{name}] seconds per step: {_fmt_phases(per_step, '{:.4f}')}; for {cfg.budget:g} s: "
-                    f"{_fmt_phases(entry['phase_steps'], '{}')} steps")
-                stored[name] = entry
-                atomic_write_text(plan_path, json.dumps(stored, indent=2) + "\n")
+                log(f"[{name}] seconds per step: {_fmt_phases(entry['seconds_per_step'], '{:.4f}')}; for "
+                    f"{cfg.budget:g} s: {_fmt_phases(entry['phase_steps'], '{}')} steps")
             log(f"[{name}] training into {run_dir}")
             train(with_steps(base, entry["steps"]), run_dir, verbose=verbose)
             plans[name] = {**entry, "run": str(run_dir)}
-        if scratch.exists():
-            shutil.rmtree(scratch)
     return plans
 
 

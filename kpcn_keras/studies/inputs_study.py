@@ -30,31 +30,23 @@ The contract:
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
 import numpy as np
 
 from kpcn_keras.config import TrainConfig
-from kpcn_keras.studies.compare import (
-    _training_seconds,
-    budget_steps,
-    deep_learning_stack,
-    probe_configuration,
-    seconds_per_step,
-    with_steps,
-)
+from kpcn_keras.studies.compare import PlannedRuns, _training_seconds, deep_learning_stack, plan_steps, with_steps
 from kpcn_keras.studies.config import InputsStudyConfig
 from kpcn_keras.studies.frames import SCORES, beside, panels_figure, renderer_pairs, wins
 from kpcn_keras.studies.frames import scores as _scores
 from prep import exr, layouts
 from prep.errors import KpcnError
-from prep.files import atomic_write_json, read_json
 from prep.inputs import INPUT_SETS, InputSet
 from prep.studies.report import Report
 
 REPORT = "inputs"
-PLAN = "plan.json"
 
 
 def group_dir(cfg: InputsStudyConfig) -> Path:
@@ -104,24 +96,17 @@ def plan_and_train(cfg: InputsStudyConfig, *, overrides: dict | None = None, ver
     from kpcn_keras.train import train
 
     group = group_dir(cfg)
-    group.mkdir(parents=True, exist_ok=True)
-    plan_path = group / PLAN
-    key = {"budget": cfg.budget, "preset": cfg.preset, "seed": cfg.seed, "overrides": overrides or {}}
-    plans = read_json(plan_path, "the study's plan")["plans"] if plan_path.exists() else {}
-    if plan_path.exists() and read_json(plan_path, "the study's plan")["key"] != key:
-        raise KpcnError(f"{plan_path}: planned for {read_json(plan_path, 'the plan')['key']}, not {key}; "
-                        "choose another --runs folder")
     run = Run(group / "run")
-    for inputs in INPUT_SETS:
-        base = train_config(cfg, inputs, overrides)
-        if inputs not in plans:
-            per_step = seconds_per_step(probe_configuration(base, group / f"probe-{inputs}"))
-            plans[inputs] = {"seconds_per_step": per_step, "steps": budget_steps(cfg.budget, per_step)}
-            atomic_write_json(plan_path, {"key": key, "plans": plans})
-        log(f"inputs-study: {inputs}: {plans[inputs]['steps']}")
-        train(with_steps(base, plans[inputs]["steps"]), run.dir, verbose=verbose)
-        plans[inputs]["run"] = str(run.for_inputs(InputSet.named(inputs)).dir)
-        plans[inputs]["trained_s"] = _training_seconds(run.for_inputs(InputSet.named(inputs)).dir)
+    plans = {}
+    with PlannedRuns(group, "inputs study") as planned:
+        for inputs in INPUT_SETS:
+            base = train_config(cfg, inputs, overrides)
+            variant = run.for_inputs(InputSet.named(inputs))
+            key = {"train": base.identity(), "budget": cfg.budget}
+            entry, _ = planned.entry((inputs,), key, variant.dir, functools.partial(plan_steps, base, cfg.budget))
+            log(f"inputs-study: {inputs}: {entry['steps']}")
+            train(with_steps(base, entry["steps"]), run.dir, verbose=verbose)
+            plans[inputs] = {**entry, "run": str(variant.dir), "trained_s": _training_seconds(variant.dir)}
     return plans
 
 

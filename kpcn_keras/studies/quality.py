@@ -47,26 +47,32 @@ This module imports keras and torch only inside the functions that train or deno
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
-import shutil
 import statistics
 from datetime import date
 from pathlib import Path
 
 from kpcn_keras.config import TrainConfig
-from kpcn_keras.studies.compare import _training_seconds, against, deep_learning_stack, plan_steps, with_steps
+from kpcn_keras.studies.compare import (
+    PlannedRuns,
+    _training_seconds,
+    against,
+    deep_learning_stack,
+    plan_steps,
+    with_steps,
+)
 from kpcn_keras.studies.config import QUALITY_BASE, QUALITY_LEVERS, QualityConfig
 from kpcn_keras.studies.frames import SCORES, beside, by_spp, panels_figure, renderer_pairs, scores
 from kpcn_keras.studies.inputs_study import cut_input_shards, shard_options
 from prep import exr, layouts
 from prep.errors import KpcnError
-from prep.files import atomic_write_json, check_writable, exclusive_lock, read_json
+from prep.files import read_json
 from prep.inputs import FULL, INPUT_SETS, InputSet
 from prep.studies.report import Report
 
 REPORT = "quality"  # quality.json, quality.md, quality.png in the report folder
-PLAN = "plan.json"
 KINDS = ("held-out", "validation")
 BASELINES = ("raw", "oidn", "blender")
 LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
@@ -162,15 +168,9 @@ def plan_and_train(cfg: QualityConfig, sets: dict[str, str], input_sets: tuple[s
     from prep.shards.config import shard_set_dir
 
     group = group_dir(cfg)
-    check_writable(group, "runs folder (--runs)", directory=True)
     seconds = cfg.budget / len(input_sets)
     plans = {}
-    with exclusive_lock(group, "quality study folder"):
-        scratch = group / "probes"
-        if scratch.exists():
-            shutil.rmtree(scratch)  # what a killed study's probes left
-        plan_path = group / PLAN
-        stored = read_json(plan_path, "quality plan") if plan_path.is_file() else {}
+    with PlannedRuns(group, "quality study") as planned:
         for lever in cfg.levers:
             run = Run(group / lever)
             networks = {}
@@ -178,22 +178,14 @@ def plan_and_train(cfg: QualityConfig, sets: dict[str, str], input_sets: tuple[s
                 base = train_config(cfg, lever, sets[lever], inputs, overrides)
                 manifest = ShardSet(shard_set_dir(cfg.shards_root, sets[lever], inputs)).complete_manifest()
                 key = {"train": base.identity(), "seconds": seconds, "content_key": manifest["content_key"]}
-                entry = stored.get(lever, {}).get(inputs)
                 variant = run.for_inputs(InputSet.named(inputs))
-                if entry is None or {k: entry.get(k) for k in key} != key:
-                    if variant.has_record():
-                        raise KpcnError(f"{variant.dir}: trained for other settings than this study's (another "
-                                        f"lever, shard set or budget); choose another --runs or remove {run.dir}")
-                    entry = {**key, **plan_steps(base, seconds, scratch / f"{lever}-{inputs}")}
-                    stored.setdefault(lever, {})[inputs] = entry
-                    atomic_write_json(plan_path, stored)
+                entry, _ = planned.entry((lever, inputs), key, variant.dir,
+                                         functools.partial(plan_steps, base, seconds))
                 log(f"quality: [{lever}] {inputs}: {seconds:g} s, steps "
                     + ", ".join(f"{k} {v}" for k, v in entry["phase_steps"].items()))
                 train(with_steps(base, entry["steps"]), run.dir, verbose=verbose)
                 networks[inputs] = {**entry, "run": str(variant.dir), "trained_s": _training_seconds(variant.dir)}
             plans[lever] = {"set": sets[lever], "run": str(run.dir), "networks": networks}
-        if scratch.exists():
-            shutil.rmtree(scratch)
     return plans
 
 
