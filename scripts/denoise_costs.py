@@ -25,7 +25,8 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 PRECISIONS = ("float32", "bfloat16")
 SIZE = (1920, 1080)
 # torch profiler op names -> the part of the denoise they are (the rest is features, recombination, glue)
-PARTS = {"aten::mkldnn_convolution": "convolutions", "TorchKernelApply": "kernel application",
+KERNEL_APPLICATION = ("TorchKernelApply", "KernelApply")  # the autograd path's Function, the inference path's label
+PARTS = {"aten::mkldnn_convolution": "convolutions", **dict.fromkeys(KERNEL_APPLICATION, "kernel application"),
          "aten::clamp_min": "ReLU", "aten::relu": "ReLU"}
 
 
@@ -47,7 +48,7 @@ def profile(call) -> dict[str, float]:
     for event in prof.key_averages():
         if event.key in PARTS:
             # the kernel application's own ops run inside it: its total, not its self time
-            seconds = event.cpu_time_total if event.key == "TorchKernelApply" else event.self_cpu_time_total
+            seconds = event.cpu_time_total if event.key in KERNEL_APPLICATION else event.self_cpu_time_total
             parts[PARTS[event.key]] += seconds / 1e6
     parts["the rest"] = total - sum(parts.values())
     return {"profiled_s": total, **parts}
