@@ -5,7 +5,7 @@ resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMA
 config dataclass from the options the user gave; an option left out takes the dataclass's default. The parser,
 which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds
 (``--tile``, ``--slope``, ...) are checked against their bounds before the command starts.
-``render``, ``references`` and ``shards`` never import keras or torch.
+``render``, ``references``, ``shards`` and ``figures --set`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
 one line naming the file, layer or option, and exit status 2; an option is named by its flag. Anything
@@ -190,6 +190,12 @@ def cmd_ship(args) -> int:
 
 
 def cmd_figures(args) -> int:
+    if "run" not in args:
+        return cmd_shard_set_figures(args)
+    shard_set = [dest for dest in ("set_name", "shards_root") if dest in args]
+    if shard_set:
+        raise OptionError(shard_set[0], "is for the figures of a shard set alone: a run's figures are drawn from "
+                          "its own shard set; leave out --run or this option")
     from kpcn_keras.evaluate import pairs_for_inputs
     from kpcn_keras.figures import make_figures
 
@@ -197,6 +203,23 @@ def cmd_figures(args) -> int:
     if "pixel" in args and len(args.pixel) != 2:
         raise OptionError("pixel", f"must be two integers y,x, got {','.join(map(str, args.pixel))}")
     written = make_figures(args.run, frame, **{k: getattr(args, k) for k in ("pixel", "slopes", "tile") if k in args})
+    for name, path in written.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def cmd_shard_set_figures(args) -> int:
+    """``kpcn figures --set NAME``: the data figures of a shard set (prep.figures), no keras nor torch."""
+    from prep.figures import shard_set_figures
+    from prep.shards import ShardConfig
+
+    if "set_name" not in args and "shards_root" not in args:
+        raise KpcnError("give --run RUN (a run's figures) or --set NAME (a shard set's sampling and input figures)")
+    for dest in ("pixel", "slopes", "tile"):
+        if dest in args:
+            raise OptionError(dest, "is an option of a run's figures: it needs --run")
+    written = shard_set_figures(getattr(args, "shards_root", ShardConfig.out_root),
+                                getattr(args, "set_name", ShardConfig.set_name), args.input)
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0

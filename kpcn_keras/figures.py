@@ -15,14 +15,20 @@ file                   what (seed report figure: docs/method.md §10)
                        multiscale run only
 ``slopes.png``         the same frame denoised at a sweep of λ (Fig. 17); a run trained with
                        ``--slope-input`` only (a network trained at one λ has nothing to sweep)
+``sampling.png``       the run's shard set: a render's sampling PDF and the patches cut from it (Fig. 3)
+``inputs.png``         the run's shard set: the network inputs of one of those patches (Fig. 4)
 =====================  ===================================================================================
 
+The last two are the data figures of ``prep.figures`` (which draws them for a shard set alone too), on the
+frame when it is an input of the run's shard set, else on the set's first held-out input; a run whose
+shard set, or that render, is not there (a shipped model) draws the others.
+
 The chosen pixel defaults to the pixel of the highest noisy-colour variance at least a kernel radius from
-the border: where a kernel has the most to do. Each of the four files is checked against every file the
-figures read (the frame, its reference, the run's models) before the run is loaded. The run's record is
-read once and its networks loaded once (``Denoiser.from_run``): every figure, the λ sweep and the
-comparison without the compositor use that one denoiser, λ given per call (the run's validation λ,
-``RunRecord.validation_slope``, but for the sweep).
+the border: where a kernel has the most to do. Each of the six files is checked against every file the
+figures read (the frame, its reference, the run's models, the shard set's manifest, render and shards)
+before the run is loaded. The run's record is read once and its networks loaded once
+(``Denoiser.from_run``): every figure, the λ sweep and the comparison without the compositor use that one
+denoiser, λ given per call (the run's validation λ, ``RunRecord.validation_slope``, but for the sweep).
 """
 
 from __future__ import annotations
@@ -40,10 +46,11 @@ from kpcn_keras.run import Run
 from prep import exr, features, metrics
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
+from prep.figures import DATA_FIGURES, data_plan
 from prep.files import check_outputs, pyplot, save_png
 from prep.inputs import InputSet, restrict
 
-FIGURES = {name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes")}
+FIGURES = {**{name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes")}, **DATA_FIGURES}
 
 
 def _to_numpy(x) -> np.ndarray:
@@ -179,7 +186,9 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
             raise KpcnError(f"{run_dir}: no held-out scenes; give a noisy render")
         frame = min(pairs, key=lambda pair: exr.parse_render_filename(pair[0]))  # (scene, spp)
     noisy_path, ref_path = frame
+    data = data_plan(run.shard_set(record).dir, noisy_path, for_run=True)
     read = [("input", noisy_path)] + ([("reference", ref_path)] if ref_path else []) + run.read_files(record)
+    read += data.reads() if data else []
     check_outputs([("figure", run.figures_dir / name) for name in FIGURES.values()], read,
                   f"give a render from outside {run.figures_dir}")
     aovs = exr.read_aovs(noisy_path)
@@ -196,6 +205,8 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
         written["alpha"] = alpha_figure(den, aovs, out_dir / FIGURES["alpha"], slope)
     if slope is not None:
         written["slopes"] = slope_figure(den, aovs, ref, out_dir / FIGURES["slopes"], slopes)
+    if data:
+        written.update(data.draw(out_dir))
     return written
 
 

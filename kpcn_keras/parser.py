@@ -419,13 +419,20 @@ def _ship_options(add) -> None:
 def _figures_options(add) -> None:
     """The options of ``kpcn figures``."""
     from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PIXEL, SLOPE, TILE
+    from prep.shards import ShardConfig
 
     f = add("figures", own={"tile": TILE, "slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",),
-            help="draw the report's figures from a run: kernels, α maps, with and without multiscale, a λ sweep "
-            "(into <run>/figures)")
-    _run_option(f, required=True)
+            help="draw the report's figures from a run: kernels, α maps, with and without multiscale, a λ sweep, "
+            "and its shard set's sampling PDF and network inputs (into <run>/figures); or, with --set, the last "
+            "two of a shard set alone (into <set>/figures)")
+    _run_option(f, help="a run folder that finished training (kpcn train)")
     f.add_argument("input", nargs="?", default=None, help="noisy render (default: the run's first held-out scene "
-                   "at its lowest spp); its reference is the same scene's render with the most samples beside it")
+                   "at its lowest spp); its reference is the same scene's render with the most samples beside it; "
+                   "with --set, an input render of the set (default: its first held-out one)")
+    d = _defaults(ShardConfig)
+    f.add_argument("--set", dest="set_name", help=f"instead of --run: the shard set, a folder under --shards "
+                   f"{d('set_name')}")
+    f.add_argument("--shards", dest="shards_root", help=f"with --set: folder holding shard sets {d('out_root')}")
     f.add_argument("--pixel", type=_csv_ints, help="y,x of the kernel figure's pixel (default: the noisiest)")
     slopes = ",".join(f"{s:g}" for s in DEFAULT_SLOPES)
     f.add_argument("--slopes", type=_csv_floats, help=f"the λ of the sweep (default: {slopes})")

@@ -45,7 +45,8 @@ def test_denoise_without_a_run_names_the_folder(tmp_path, fixture_noisy):
 
 @pytest.mark.slow
 def test_render_and_shards_do_not_import_the_deep_learning_stack():
-    code = ("import sys; import kpcn_keras.cli, prep.render, prep.shards, prep.features, prep.sampling; "
+    # prep.figures: kpcn figures --set (a shard set's figures) too
+    code = ("import sys; import kpcn_keras.cli, prep.render, prep.shards, prep.features, prep.sampling, prep.figures; "
             "bad = [m for m in ('keras', 'torch', 'tensorflow') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr

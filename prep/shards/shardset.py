@@ -7,6 +7,7 @@
     <set>/round-<k>/plan.npz        an error round's positions, drawn before its shards are cut (k >= 1)
     <set>/parts/part-<i>-of-<N>.json   round 0's shards that part i of N wrote (``prep.parts``), until the merge
     <set>/.lock-part-<i>-of-<N>     held by the process that writes part i of N
+    <set>/figures/                  ``kpcn figures --set``'s PNGs (``prep.figures``): read by nothing here
 
 A round's name is made here (:func:`round_name`), as the set's folders are. A round's entry has a ``status``;
 readers take only complete rounds, so a set whose round k is being written stays usable with rounds 0..k-1.
@@ -113,6 +114,10 @@ class ShardSet:
 
     def round_dir(self, k: int) -> Path:
         return self.dir / round_name(k)
+
+    @property
+    def figures_dir(self) -> Path:
+        return self.dir / "figures"
 
     def lock(self, part: Part = Part()):
         """The set's lock (held to change the manifest), or the lock of ``part`` (held while it writes its shards)."""
