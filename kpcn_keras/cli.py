@@ -110,10 +110,17 @@ def cmd_train(args) -> int:
 
     given = _given(args, TrainConfig)
     given["model"] = _given(args, ModelConfig)
-    # the compositor's own options (its width and depth are not the network's --width and --depth)
-    compositor = {k: getattr(args, k) for k in ("gamma",) if k in args}
-    if compositor and "compositor" not in args:
-        raise OptionError("gamma", "is a setting of the multiscale compositor: it needs --compositor alpha|kernel")
+    # the compositor's own options (its width and depth are not the network's --width and --depth; its
+    # kernel_size is --compositor-kernel, not the network's --kernel-size)
+    compositor = {k: getattr(args, k) for k in ("gamma", "downsample", "scale_supervision") if k in args}
+    if "compositor_kernel" in args:
+        compositor["kernel_size"] = args.compositor_kernel
+        if args.__dict__.get("compositor") != "kernel":
+            raise OptionError("compositor_kernel", "is the kernel-predicting compositor's kernel side: it needs "
+                              "--compositor kernel")
+    for name in compositor:
+        if "compositor" not in args:
+            raise OptionError(name, "is a setting of the multiscale compositor: it needs --compositor alpha|kernel")
     if "compositor" in args:
         given["compositor"] = {"kind": args.compositor, **compositor}
     cfg = TrainConfig.from_preset(given.pop("preset", None), **given)

@@ -69,6 +69,7 @@ SHARE = Bound(0.0, 1.0, integer=False)  # [0, 1]: a mix weight
 CLIPNORM = Bound(0.0, 1e6, integer=False, low_open=True)
 SLOPE = Bound(1.0, 1000.0, integer=False)  # λ of the asymmetric loss: 1 is SMAPE itself
 GAMMA = Bound(0.0, 100.0, integer=False)
+SCALE_SUPERVISION = Bound(0.0, 100.0, integer=False)  # weight of each coarser level's loss term; 0 is off
 DROPOUT = Bound(0.0, 1.0, integer=False, high_open=True)
 ROUNDS = Bound(1, 100)
 # τ of the reference weighting (kpcn_keras.losses): the reference relSE at which a pixel weighs 1/2; 0 is off.
@@ -186,6 +187,12 @@ class ModelConfig:
 
 
 COMPOSITOR_KINDS = ("alpha", "kernel")
+# the pyramid's 2x downsampling (kpcn_keras/multiscale.py): 2x2 average pooling, or the bicubic (Keys, a = -0.5)
+# filter of the report's §2.2.1 and Choi et al.'s pyramid (§3.1.1)
+DOWNSAMPLES = ("average", "bicubic")
+# the fields a run record of an earlier kpcn lacks, with the value it was trained with: left out of
+# CompositorConfig.to_dict at that value, so those runs keep their identity
+_COMPOSITOR_ADDED = {"downsample": "average", "scale_supervision": 0.0}
 
 
 @dataclass
@@ -193,8 +200,15 @@ class CompositorConfig:
     """The multiscale module: compositor ``kind`` ("alpha": Vogels' scale compositor, "kernel": the
     report's kernel-predicting one, §3.1.1), pyramid ``levels`` (>= 2), the compositor network (``depth``
     conv layers in all, the last the 1x1 head(s); ``width`` filters of ``conv_size``), the kernel
-    compositor's upsampling kernel side ``kernel_size`` (odd, in coarse pixels) and the α regulariser
-    weight ``gamma`` (>= 0)."""
+    compositor's upsampling kernel side ``kernel_size`` (odd, in coarse pixels; the report's is 21) and the
+    α regulariser weight ``gamma`` (>= 0).
+
+    ``downsample`` is how the pyramid halves an image (:data:`DOWNSAMPLES`; the blend's own D stays the 2x2
+    average, docs/method.md §7). ``scale_supervision`` w > 0 adds to the compositor phase's loss, for every
+    level between the finest and the coarsest, w times the training loss of that level's composite output
+    against the reference downsampled the same way (Choi et al.'s supervision of every scale, report §3.1.1);
+    0, the default, is off. A record without these two fields was trained with the defaults, and
+    :meth:`to_dict` leaves them out at their defaults, so those runs keep their identity."""
 
     kind: str = "alpha"
     levels: int = bounded(3, LEVELS)
@@ -203,16 +217,27 @@ class CompositorConfig:
     conv_size: int = bounded(3, CONV_SIZE)
     kernel_size: int = bounded(5, COMPOSITOR_KERNEL_SIZE)
     gamma: float = bounded(0.01, GAMMA)
+    downsample: str = _COMPOSITOR_ADDED["downsample"]
+    scale_supervision: float = bounded(_COMPOSITOR_ADDED["scale_supervision"], SCALE_SUPERVISION)
 
     def __post_init__(self):
         if self.kind not in COMPOSITOR_KINDS:
             # the option a user types is --compositor KIND
             raise OptionError("compositor", f"must be one of {COMPOSITOR_KINDS}, received {self.kind!r}")
+        if self.downsample not in DOWNSAMPLES:
+            raise OptionError("downsample", f"must be one of {DOWNSAMPLES}, received {self.downsample!r}")
         check_fields(self)
+        if self.scale_supervision and self.levels < 3:
+            raise OptionError("scale_supervision", f"supervises the levels between the finest and the coarsest, "
+                              f"and {self.levels} levels have none: it needs levels >= 3")
 
     def to_dict(self) -> dict:
-        """Plain JSON-able dict."""
-        return dataclasses.asdict(self)
+        """Plain JSON-able dict, without the fields added since the first runs where they hold their defaults."""
+        d = dataclasses.asdict(self)
+        for name, default in _COMPOSITOR_ADDED.items():
+            if d[name] == default:
+                del d[name]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> CompositorConfig:
@@ -428,6 +453,18 @@ class TrainConfig:
         """Whether ``phase``'s loss is weighted by the reference's relSE: a branch phase, with τ > 0."""
         return self.reference_tau != UNWEIGHTED_TAU and not phase.trains_on_final_colour
 
+    def supervises_scales(self, phase: Phase) -> bool:
+        """Whether ``phase``'s loss adds the per-scale terms (``CompositorConfig.scale_supervision``): the
+        compositor phase of a run that asks for them; its batches then carry the target as an input too."""
+        return phase.component == "compositor" and bool(self.compositor and self.compositor.scale_supervision)
+
+    @property
+    def target_channels(self) -> int:
+        """Channels of a final-colour batch's target (``kpcn_keras.data``): the reference, then for the
+        asymmetric loss the noisy colour, and λ for a network with a slope channel."""
+        asymmetric = self.loss == "asymmetric"
+        return COLOUR_CHANNELS * (1 + asymmetric) + int(asymmetric and self.slope_input)
+
     @property
     def denoised_branches(self) -> tuple[str, ...]:
         """The branches the run's denoiser runs: both, or the diffuse alone for a no-split run (its input is
@@ -455,6 +492,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         d = without_full_inputs(dataclasses.asdict(self))
+        if self.compositor is not None:
+            d["compositor"] = self.compositor.to_dict()  # asdict would write the fields its to_dict leaves out
         if d["reference_tau"] == UNWEIGHTED_TAU:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
         if d["patience"] == TRAIN_EVERY_STEP:

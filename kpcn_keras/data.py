@@ -17,6 +17,9 @@ function that makes them at render time; their error against full precision: doc
 
 ``loss_target`` extends y for the asymmetric loss: ``"reference+noisy"`` appends the noisy colour of the same
 domain (6 channels), and a network with a slope channel gets λ as a seventh, the same λ its input carries.
+``target_input`` (the ``final`` source only) also gives x the target, as ``x["target"]``: the compositor
+phase's per-scale supervision takes it down the pyramid inside the model (``multiscale.ScaleSupervision``).
+
 ``reference_relse`` (a branch source only) appends, last of all, the branch reference's relative standard
 error per pixel (the shards' ``<branch>/ref_relse``), for the reference-weighted loss (``kpcn_keras.losses``):
 moved by the patch's flip or rotation like the reference, never colour-permuted (it is one channel, the
@@ -89,7 +92,8 @@ class ShardPatches(keras.utils.PyDataset):
                  model: ModelConfig | None = None, shuffle: bool = True, seed: int = 0, offset: int = 0,
                  loss_target: str = "reference", augment: bool = False, slope: float = 2.0,
                  slope_range: tuple[float, float] = (1.0, 8.0),
-                 weights=None, rank: int = 0, world: int = 1, reference_relse: bool = False, **kwargs):
+                 weights=None, rank: int = 0, world: int = 1, reference_relse: bool = False,
+                 target_input: bool = False, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -97,6 +101,8 @@ class ShardPatches(keras.utils.PyDataset):
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
         if reference_relse and source not in BRANCHES + ("both",):
             raise ValueError(f"reference_relse is a branch reference's: source {source!r} has none")
+        if target_input and source != "final":
+            raise ValueError(f"target_input is the final colour's: source {source!r} gives x one tensor")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if not is_integer(world) or world < 1:
@@ -109,7 +115,7 @@ class ShardPatches(keras.utils.PyDataset):
         model = ModelConfig() if model is None else model
         self.source, self.model, self.batch_size, self.shuffle, self.seed = source, model, batch_size, shuffle, seed
         self.offset, self.loss_target, self.reference_relse = offset, loss_target, reference_relse
-        self.rank, self.world = rank, world
+        self.rank, self.world, self.target_input = rank, world, target_input
         # a validation stream is read whole by every process: each reports the same validation loss
         self.global_batch = batch_size * world if shuffle else batch_size
         self.augment = augment and shuffle
@@ -231,7 +237,10 @@ class ShardPatches(keras.utils.PyDataset):
             x = {k: np.stack([s[0][k] for s in samples]) for k in x}
         else:
             x = np.stack([s[0] for s in samples])
-        return x, np.stack([s[1] for s in samples])
+        y = np.stack([s[1] for s in samples])
+        if self.target_input:
+            x["target"] = y
+        return x, y
 
     def _sample(self, branch_id: int, data: dict[str, np.ndarray], aug, slope):
         with_noisy = self.loss_target == "reference+noisy"

@@ -251,10 +251,20 @@ def _shards_options(add) -> None:
 
 def _train_options(add) -> None:
     """The options of ``kpcn train``: the network, the phases, the optimisation."""
-    from kpcn_keras.config import PRESETS, UNET_CAP_FACTOR, UNET_DEFAULTS, CompositorConfig, ModelConfig, TrainConfig
+    from kpcn_keras.config import (
+        COMPOSITOR_KERNEL_SIZE,
+        DOWNSAMPLES,
+        PRESETS,
+        UNET_CAP_FACTOR,
+        UNET_DEFAULTS,
+        CompositorConfig,
+        ModelConfig,
+        TrainConfig,
+    )
 
-    t = add("train", (TrainConfig, ModelConfig, CompositorConfig), help="train a denoiser in phases: branches, joint "
-               "fine-tuning, compositor (resumes by itself)")
+    # --compositor-kernel is CompositorConfig.kernel_size, whose name --kernel-size (the branch network's) holds
+    t = add("train", (TrainConfig, ModelConfig, CompositorConfig), {"compositor_kernel": COMPOSITOR_KERNEL_SIZE},
+            help="train a denoiser in phases: branches, joint fine-tuning, compositor (resumes by itself)")
     d = _defaults(TrainConfig)
     t.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
     t.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
@@ -290,6 +300,15 @@ def _train_options(add) -> None:
     g.add_argument("--compositor-lr", dest="compositor_learning_rate", type=float, help=d("compositor_learning_rate"))
     g.add_argument("--gamma", type=float, help=f"weight of the compositor's α regulariser "
                    f"(default: {_default(CompositorConfig, 'gamma')})")
+    g.add_argument("--compositor-kernel", dest="compositor_kernel", type=int, help="side of the kernel "
+                   "compositor's upsampling kernels, in coarse pixels (the report's is 21; default: "
+                   f"{_default(CompositorConfig, 'kernel_size')})")
+    g.add_argument("--downsample", choices=DOWNSAMPLES, help="how the compositor's pyramid halves the image: 2x2 "
+                   "average pooling, or the bicubic filter (less noise at the coarse levels, a wider footprint) "
+                   f"(default: {_default(CompositorConfig, 'downsample')})")
+    g.add_argument("--scale-supervision", type=float, help="weight of each inner pyramid level's loss term, its "
+                   "composite output against the reference downsampled the same way; 0 is off "
+                   f"(default: {_default(CompositorConfig, 'scale_supervision')})")
     g = t.add_argument_group("optimisation")
     g.add_argument("--batch-size", type=int, help=d("batch_size"))
     g.add_argument("--lr", dest="learning_rate", type=float, help=f"initial learning rate {d('learning_rate')}")

@@ -12,7 +12,9 @@ phase              trains                                            on
 ``joint``          both branch networks at once, fine-tuned at       the final colour (remodulated diffuse +
                    ``joint_learning_rate`` (``--joint-steps`` > 0)   specular), linear
 ``compositor``     the multiscale scale compositor, the branch       the final colour, through the three-level
-                   networks frozen (``--compositor alpha|kernel``)   pyramid of both branches
+                   networks frozen (``--compositor alpha|kernel``)   pyramid of both branches (and, with
+                                                                     ``--scale-supervision``, each inner
+                                                                     level's against the target taken down)
 =================  ================================================  ==========================================
 
 A run of another input set than the full one (``--inputs``, ``prep.inputs``) trains on the shard set cut for
@@ -66,9 +68,16 @@ import numpy as np
 from kpcn_keras import distributed
 from kpcn_keras.config import LOCATION_FIELDS, UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
+from kpcn_keras.layers import FinalColour
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model, receptive_radius
-from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_output
+from kpcn_keras.multiscale import (
+    InferenceOnly,
+    ScaleSupervision,
+    build_compositor,
+    image_pyramid,
+    multiscale_output,
+)
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
@@ -113,9 +122,26 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
     compositor = build_compositor(comp_cfg)
     # one graph for both branches: they share the compositor (and a shared network its frozen wrapper)
     frozen = {name: InferenceOnly(net, name=f"{name}_denoiser") for name, net in nets.items()}
-    pyramids = {b: (lambda x, b=b: multiscale_output(x, frozen[names[b]], comp_cfg, compositor, prefix=f"{b}_"))
+    levels = {b: [] for b in BRANCHES}
+    pyramids = {b: (lambda x, b=b: multiscale_output(x, frozen[names[b]], comp_cfg, compositor, prefix=f"{b}_",
+                                                     levels=levels[b]))
                 for b in BRANCHES}
-    return build_final_model(pyramids, model_cfg.input_channels, name="multiscale")
+    model = build_final_model(pyramids, model_cfg.input_channels, name="multiscale")
+    if not cfg.supervises_scales(phase):
+        return model
+    # per-scale supervision (multiscale.py): each inner level's final colour, from its composite branch
+    # colours and the albedo taken down the pyramid, against the target taken down the same way
+    target = keras.Input(shape=(None, None, cfg.target_channels), name="target")
+    albedos = image_pyramid(model.input["albedo"], comp_cfg, "albedo_pyramid")
+    targets = image_pyramid(target, comp_cfg, "target_pyramid")
+    pairs = []
+    for level in range(1, comp_cfg.levels - 1):
+        colour = FinalColour(name=f"final_colour{level}")(
+            [levels[b][level - 1] for b in BRANCHES] + [albedos[level]])
+        pairs += [targets[level], colour]
+    out = ScaleSupervision(_loss(cfg, phase), comp_cfg.scale_supervision, name="scale_supervision")(
+        [model.output, *pairs])
+    return keras.Model({**model.input, "target": target}, out, name="multiscale")
 
 
 def _check_registered(model: keras.Model) -> None:
@@ -139,14 +165,18 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     return {"compositor": {"file": file, "layers": ["compositor"], "phase": phase.name}}
 
 
-def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
-    schedule = keras.optimizers.schedules.ExponentialDecay(phase.learning_rate, cfg.decay_steps, cfg.decay_rate)
+def _loss(cfg: TrainConfig, phase: Phase) -> keras.losses.Loss:
+    """The training loss of ``phase`` (compiled, and per-scale supervision's at every inner level)."""
     # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §2)
     tau = cfg.reference_tau if cfg.weights_reference(phase) else UNWEIGHTED_TAU
     if cfg.loss == "asymmetric":
-        loss = AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)
-    else:
-        loss = SMAPE(reference_tau=tau)
+        return AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)
+    return SMAPE(reference_tau=tau)
+
+
+def _compile(model: keras.Model, cfg: TrainConfig, phase: Phase) -> None:
+    schedule = keras.optimizers.schedules.ExponentialDecay(phase.learning_rate, cfg.decay_steps, cfg.decay_rate)
+    loss = _loss(cfg, phase)
     # a fixed name: Keras numbers unnamed optimizers per process (adam, adam_1, ...), and the name is
     # saved with the model and its variables, so two identical runs would otherwise differ in bytes
     model.compile(optimizer=keras.optimizers.Adam(schedule, clipnorm=cfg.clipnorm, name="adam"), loss=loss)
@@ -162,7 +192,8 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
     common = dict(source=source, batch_size=cfg.batch_size, model=cfg.model,
                   loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
-                  slope=cfg.slope, slope_range=cfg.slope_range, reference_relse=cfg.weights_reference(phase))
+                  slope=cfg.slope, slope_range=cfg.slope_range, reference_relse=cfg.weights_reference(phase),
+                  target_input=cfg.supervises_scales(phase))
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
                          seed=cfg.seed, offset=start * phase.epoch_steps, augment=cfg.augment,
                          weights=paths.get("train_weights"), rank=world.rank, world=world.size,

@@ -328,7 +328,9 @@ _POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame"}
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
           "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
-              ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"]}
+              ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"],
+              ("train", "compositor_kernel"): ["--compositor", "kernel"],
+              ("train", "scale_supervision"): ["--compositor", "kernel"]}
 
 
 def _options():
@@ -379,6 +381,39 @@ def test_every_numeric_option_states_both_bounds_and_refuses_a_value_beyond_each
             line = _error_line(capsys, tmp_path, argv)
             assert line.startswith(f"kpcn {command}: error: {flag} must be {stated}"), (argv, line)
             assert f"got {value}" in line, (argv, line)
+
+
+def test_train_compositor_options_reach_its_config_and_are_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    import kpcn_keras.train
+
+    monkeypatch.chdir(tmp_path)
+    trained = []
+    monkeypatch.setattr(kpcn_keras.train, "train", lambda cfg, run, verbose: trained.append(cfg) or tmp_path)
+    from kpcn_keras.cli import main
+
+    assert main(["-q", "train", "--compositor", "kernel", "--compositor-kernel", "21", "--downsample", "bicubic",
+                 "--scale-supervision", "0.5", "--kernel-size", "7"]) == 0
+    comp = trained[0].compositor
+    assert (comp.kind, comp.kernel_size, comp.downsample, comp.scale_supervision) == ("kernel", 21, "bicubic", 0.5)
+    assert trained[0].model.kernel_size == 7  # --kernel-size stays the branch network's
+    assert main(["-q", "train", "--compositor", "alpha"]) == 0  # the defaults, written once in the config
+    assert (trained[1].compositor.kernel_size, trained[1].compositor.downsample,
+            trained[1].compositor.scale_supervision) == (5, "average", 0.0)
+    capsys.readouterr()
+    for argv, words in (
+        (["--compositor", "kernel", "--compositor-kernel", "22"], ["--compositor-kernel", "odd", "got 22"]),
+        (["--compositor", "kernel", "--compositor-kernel=43"], ["--compositor-kernel", "got 43"]),
+        (["--compositor", "alpha", "--compositor-kernel", "9"], ["--compositor-kernel", "--compositor kernel"]),
+        (["--downsample", "bicubic"], ["--downsample", "--compositor"]),
+        (["--scale-supervision", "1"], ["--scale-supervision", "--compositor"]),
+        (["--compositor", "kernel", "--scale-supervision", "-1"], ["--scale-supervision", "got -1"]),
+    ):
+        line = _error_line(capsys, tmp_path, ["train", *argv])
+        assert all(w in line for w in words), (argv, line)
+    with pytest.raises(SystemExit) as exc:  # argparse's own choice check: exit 2, one usage line and the error
+        main(["-q", "train", "--compositor", "kernel", "--downsample", "lanczos"])
+    assert exc.value.code == 2 and "--downsample" in capsys.readouterr().err
+    assert len(trained) == 2
 
 
 def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_path, monkeypatch, capsys):

@@ -9,11 +9,13 @@ import pytest
 import torch
 from helpers import check_keras_layer, randomise
 
+from kpcn_keras.config import TrainConfig
 from kpcn_keras.layers import apply_kernels
-from kpcn_keras.losses import SMAPE
+from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import ModelConfig, build_branch_model, receptive_radius
 from kpcn_keras.multiscale import (
     ALIGN,
+    BICUBIC_TAPS,
     AlphaRegulariser,
     CompositorConfig,
     CropLike,
@@ -23,6 +25,7 @@ from kpcn_keras.multiscale import (
     InferenceOnly,
     PadToMultiple,
     ScaleBlend,
+    ScaleSupervision,
     Upsample2x,
     alignment,
     alpha_maps,
@@ -32,6 +35,7 @@ from kpcn_keras.multiscale import (
     compositor_of,
     denoiser_of,
     feature_runs,
+    image_pyramid,
     multiscale_output,
     multiscale_radius,
 )
@@ -79,6 +83,35 @@ def down(f):
     return f.reshape(b, h // 2, 2, w // 2, 2, c).mean(axis=(2, 4))
 
 
+def keys(x, a=-0.5):
+    """Keys' cubic convolution kernel, float64, written from the paper's formula."""
+    x = np.abs(x)
+    return np.where(x <= 1, (a + 2) * x**3 - (a + 3) * x**2 + 1,
+                    np.where(x < 2, a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a, 0.0))
+
+
+def bicubic_weights():
+    """The antialiased bicubic 2x filter: fine pixel 2Y + k, k = -3 .. 4, weighs keys((k - 1/2) / 2) / 2."""
+    k = np.arange(-3, 5)
+    return k, keys((k - 0.5) / 2.0) / 2.0
+
+
+def bicubic_down(f, square=False):
+    """float64 loops: coarse (Y, X) = Σ_ij w_i w_j f[2Y + i, 2X + j], coordinates clamped (``square``: the
+    weights squared, the variance of the filtered noise)."""
+    offsets, w = bicubic_weights()
+    w = w**2 if square else w
+    b, h, wd, c = f.shape
+    out = np.zeros((b, h // 2, wd // 2, c))
+    for yy in range(h // 2):
+        for xx in range(wd // 2):
+            for i, wi in zip(offsets, w):
+                for j, wj in zip(offsets, w):
+                    sy, sx = min(max(2 * yy + i, 0), h - 1), min(max(2 * xx + j, 0), wd - 1)
+                    out[:, yy, xx] += wi * wj * f[:, sy, sx]
+    return out
+
+
 # ---------------------------------------------------------------- config, alignment, radius formula
 
 
@@ -86,9 +119,27 @@ def test_config_defaults_and_round_trip():
     cfg = CompositorConfig()
     assert (cfg.kind, cfg.levels, cfg.width, cfg.depth, cfg.conv_size, cfg.kernel_size, cfg.gamma) == (
         "alpha", 3, 32, 6, 3, 5, 0.01)
+    assert (cfg.downsample, cfg.scale_supervision) == ("average", 0.0)  # 2x2 pooling, no per-scale terms
     d = CompositorConfig(kind="kernel", levels=4, gamma=0).to_dict()
     assert d["gamma"] == 0.0 and isinstance(d["gamma"], float)
     assert CompositorConfig.from_dict(d) == CompositorConfig(kind="kernel", levels=4, gamma=0.0)
+    # the fields added since the first runs are written only where they are not their defaults, so a record
+    # of an earlier run (which lacks them) is the same run
+    assert "downsample" not in d and "scale_supervision" not in d
+    new = CompositorConfig(kind="kernel", kernel_size=21, downsample="bicubic", scale_supervision=1)
+    assert new.to_dict()["downsample"] == "bicubic" and new.to_dict()["scale_supervision"] == 1.0
+    assert CompositorConfig.from_dict(new.to_dict()) == new
+    assert TrainConfig(compositor=new).to_dict()["compositor"] == new.to_dict()
+    assert "downsample" not in TrainConfig(compositor={"kind": "alpha"}).to_dict()["compositor"]
+
+
+def test_per_scale_supervision_is_off_by_default_and_on_in_the_compositor_phase_alone():
+    off = TrainConfig(compositor={"kind": "kernel"})
+    assert not any(off.supervises_scales(p) for p in off.phases())
+    on = TrainConfig(compositor={"kind": "kernel", "scale_supervision": 0.5}, joint_steps=2)
+    assert {p.name: on.supervises_scales(p) for p in on.phases()} == {
+        "diffuse": False, "specular": False, "joint": False, "compositor": True}
+    assert (on.target_channels, TrainConfig(loss="asymmetric", slope_input=True).target_channels) == (3, 7)
 
 
 @pytest.mark.parametrize(
@@ -104,6 +155,10 @@ def test_config_defaults_and_round_trip():
         (dict(gamma=-0.5), "-0.5"),
         (dict(gamma=float("inf")), "inf"),
         (dict(gamma="0.1"), "'0.1'"),
+        (dict(kernel_size=43), "43"),
+        (dict(downsample="lanczos"), "'lanczos'"),
+        (dict(scale_supervision=-1.0), "-1.0"),
+        (dict(scale_supervision=1.0, levels=2), "levels >= 3"),
     ],
 )
 def test_config_validation_echoes_value(kw, echo):
@@ -123,6 +178,10 @@ def test_alignment_and_radius_formula():
     assert multiscale_radius(7, CompositorConfig()) == 7 * 4 + 6 * 3
     assert multiscale_radius(7, CompositorConfig(kind="kernel", kernel_size=21)) == 7 * 4 + 21 * 3
     assert multiscale_radius(0, CompositorConfig(levels=2, depth=1)) == 1
+    # bicubic reads 3 finer pixels past each 2x2 block: + 3 (2**(L-1) - 1)
+    assert multiscale_radius(7, CompositorConfig(downsample="bicubic")) == 7 * 4 + (6 + 3) * 3
+    assert multiscale_radius(7, CompositorConfig(kind="kernel", kernel_size=21, downsample="bicubic")) == \
+        7 * 4 + (21 + 3) * 3
     with pytest.raises(ValueError, match="-1"):
         multiscale_radius(-1, CompositorConfig())
 
@@ -187,10 +246,14 @@ LAYER_CASES = {
     "CropLike": (lambda: CropLike(2), lambda h, w: [(h + 3, w + 2, 4), (h, w, 1)], False),
     "Upsample2x": (lambda: Upsample2x(), lambda h, w: [(h, w, 3)], False),
     "Downsample2x": (lambda: Downsample2x(), lambda h, w: [(h, w, 3)], True),
+    "Downsample2x-bicubic": (lambda: Downsample2x("bicubic"), lambda h, w: [(h, w, 3)], True),
     "FeatureDownsample": (lambda: FeatureDownsample(), lambda h, w: [(h, w, 29)], True),
+    "FeatureDownsample-bicubic": (lambda: FeatureDownsample("bicubic"), lambda h, w: [(h, w, 29)], True),
     "ScaleBlend": (lambda: ScaleBlend(), lambda h, w: [(h, w, 3), (h, w, 3), (h, w, 1)], True),
     "DilatedKernelApply": (lambda: DilatedKernelApply(3, 2), lambda h, w: [(h, w, 3), (h, w, 9)], False),
     "AlphaRegulariser": (lambda: AlphaRegulariser(0.1), lambda h, w: [(h, w, 1)], False),
+    "ScaleSupervision": (lambda: ScaleSupervision(AsymmetricSMAPE(2.0), 0.5),
+                         lambda h, w: [(h, w, 3), (h, w, 6), (h, w, 3)], False),
     "InferenceOnly": (lambda: InferenceOnly(tiny_wrapped_model()), lambda h, w: [(h, w, 4)], False),
 }
 
@@ -232,6 +295,12 @@ def test_layers_refuse_bad_arguments_and_shapes():
         PadToMultiple(0)
     with pytest.raises(ValueError, match="-1"):
         AlphaRegulariser(-1.0)
+    with pytest.raises(ValueError, match="'nearest'"):
+        Downsample2x("nearest")
+    with pytest.raises(ValueError, match="-0.5"):
+        ScaleSupervision(SMAPE(), -0.5)
+    with pytest.raises(ValueError, match="2 inputs"):
+        ScaleSupervision(SMAPE(), 1.0)([np.zeros((1, 2, 2, 3), np.float32)] * 2)
     with pytest.raises(ValueError, match=r"\(1, 4, 4, 26\)"):
         FeatureDownsample()(np.zeros((1, 4, 4, 26), np.float32))
     with pytest.raises(ValueError, match=r"\(1, 4, 4, 3\).*\(1, 4, 6, 3\)"):
@@ -296,6 +365,33 @@ def test_kernel_upsampling_reads_coarse_pixels_at_coarse_offsets():
                     want[0, y, x] += w[0, y, x, i * k + j] * c[0, cy, cx]
     got = run(DilatedKernelApply(k, 2), up(c), logits)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("tap", [(10, 10), (0, 0), (20, 20), (3, 17), (20, 0)])
+def test_21x21_compositor_kernels_read_coarse_pixels_at_the_reports_offsets(tap):
+    """Report §3.1.1: U'c[k] = Σ_j f[j] c[k/2 + j]. The compositor's kernel head with all the weight on tap
+    (i, j) (row-major, centre (10, 10)) makes U'c the coarse image shifted by (i - 10, j - 10) coarse pixels,
+    clamped at its edges: checked against float64 numpy through the compositor's own head and softmax."""
+    k, (i, j) = 21, tap
+    r = k // 2
+    cfg = tiny_compositor("kernel", kernel_size=k)
+    compositor = build_compositor(cfg)
+    head = compositor.get_layer("compositor_kernel_logits")
+    head.kernel.assign(np.zeros(head.kernel.shape, np.float32))
+    bias = np.zeros(k * k, np.float32)
+    bias[i * k + j] = 1e4  # the others' weight, exp(-1e4) after the max subtraction, is exactly 0
+    head.bias.assign(bias)
+    rng = np.random.default_rng(15)
+    c = rng.normal(size=(1, 26, 24, 3))  # wider than the kernel's 21 coarse pixels: a shift is more than a clamp
+    fine = rng.normal(size=(1, 52, 48, 3))
+    _, logits = run(compositor, fine, up(c))
+    got = run(DilatedKernelApply(k, 2), up(c), logits)
+    ys = np.clip(np.arange(52)[:, None] // 2 + (i - r), 0, 25)
+    xs = np.clip(np.arange(48)[None, :] // 2 + (j - r), 0, 23)
+    want = c[0][ys, xs][None]
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    if (i, j) != (r, r):
+        assert np.abs(got - up(c)).max() > 0.1  # a shift, not the identity
 
 
 # ---------------------------------------------------------------- the feature pyramid
@@ -373,6 +469,57 @@ def test_pyramid_relvar_pools_variances_and_stays_finite():
     assert torch.isfinite(t.grad).all()
 
 
+def test_bicubic_taps_are_keys_cubic_stretched_by_two():
+    _, w = bicubic_weights()
+    np.testing.assert_array_equal(np.asarray(BICUBIC_TAPS), w)
+    np.testing.assert_array_equal(w * 256, [-3, -9, 29, 111, 111, 29, -9, -3])  # sums to 1, exact in float32
+
+
+def test_bicubic_downsampling_matches_float64_numpy():
+    f = np.random.default_rng(16).normal(size=(2, 10, 14, 3))
+    np.testing.assert_allclose(run(Downsample2x("bicubic"), f), bicubic_down(f), rtol=1e-5, atol=1e-6)
+
+
+def test_bicubic_downsampling_keeps_constants_and_linear_ramps():
+    h, w = 16, 20
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    image = np.stack([np.full((h, w), 1.7), 0.3 * xx, -0.2 * yy + 0.1 * xx + 2.0], axis=-1)[None]
+    got = run(Downsample2x("bicubic"), image)
+    np.testing.assert_allclose(got[..., 0], 1.7, rtol=1e-6)  # everywhere: edge replication keeps a constant
+    # a ramp comes back at the coarse pixel's centre, 2Y + 1/2, as 2x2 pooling gives it, where the 8 taps
+    # (2Y - 3 .. 2Y + 4) stay inside the image
+    inner = np.s_[:, 2:-2, 2:-2]
+    np.testing.assert_allclose(got[inner], down(image)[inner], rtol=1e-5, atol=1e-5)
+    assert np.abs(got[:, 0, 0, 1:] - down(image)[:, 0, 0, 1:]).max() > 1e-3  # the clamped edge does not
+
+
+def test_bicubic_pyramid_adjusts_gradients_and_relative_variances_like_pooling():
+    rng = np.random.default_rng(17)
+    x = np.zeros((2, 12, 10, 30))
+    x[..., PLAIN] = rng.uniform(0, 3, size=(2, 12, 10, len(PLAIN)))
+    x[..., 27:] = rng.uniform(0, 1, size=(2, 12, 10, 3))
+    x[..., GRADIENT] = rng.normal(size=(2, 12, 10, len(GRADIENT)))
+    # tiny, moderate, past the direct form's 20 and up to the features' 300
+    x[..., RELVAR] = (rng.choice([1e-4, 0.3, 4.0, 19.0, 25.0, 90.0, 300.0], size=(2, 12, 10, 4))
+                      * rng.uniform(0.5, 1.0, size=(2, 12, 10, 4)))
+    got = run(FeatureDownsample("bicubic"), x.astype(np.float32))
+    filtered = bicubic_down(x)
+    plain = PLAIN + [27, 28, 29]
+    np.testing.assert_allclose(got[..., plain], filtered[..., plain], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got[..., GRADIENT], 2 * filtered[..., GRADIENT], rtol=1e-5, atol=1e-5)
+    # the variance of Σ w x over independent pixels is Σ w² v: log1p of it, in float64 (expm1(300) fits)
+    relvar = np.log1p(bicubic_down(np.expm1(x[..., RELVAR]), square=True))
+    np.testing.assert_allclose(got[..., RELVAR], relvar, rtol=2e-6, atol=1e-7)
+    t = torch.tensor(x, dtype=torch.float32, requires_grad=True)
+    FeatureDownsample("bicubic")(t).sum().backward()
+    assert torch.isfinite(t.grad).all()
+    # a constant relative variance v comes down to 0.164 v (2x2 pooling: v / 4)
+    const = np.zeros((1, 8, 8, 27), np.float32)
+    const[..., RELVAR] = np.log1p(2.0)
+    gain = sum(w * w for w in BICUBIC_TAPS) ** 2
+    np.testing.assert_allclose(np.expm1(run(FeatureDownsample("bicubic"), const)[..., RELVAR]), 2.0 * gain, rtol=1e-5)
+
+
 # ---------------------------------------------------------------- α regulariser
 
 
@@ -427,13 +574,70 @@ def test_multiscale_loss_is_smape_plus_one_term_per_compositor_application(level
     np.testing.assert_allclose(model.evaluate(x, y, verbose=0), want, rtol=1e-5)
 
 
+# ---------------------------------------------------------------- per-scale supervision
+
+
+def smape64(gt, out):
+    return np.mean(np.abs(out - gt) / (np.abs(out) + np.abs(gt) + 0.01))
+
+
+@pytest.mark.parametrize("downsample", ["average", "bicubic"])
+def test_per_scale_supervision_adds_the_weighted_loss_of_every_inner_level(downsample):
+    """4 levels: the inner levels 1 and 2 each compared with the target padded (to 8) and taken down the same
+    pyramid, weight w each; numpy float64 computes the terms; the output passes unchanged."""
+    weight = 0.7
+    cfg = CompositorConfig(levels=4, downsample=downsample, scale_supervision=weight)
+    rng = np.random.default_rng(18)
+    target = rng.uniform(0, 2, size=(2, 13, 11, 3))  # odd: padded at the bottom and right by edge replication
+    colours = [rng.uniform(0, 2, size=(2, 16 >> level, 16 >> level, 3)) for level in (1, 2)]
+    inputs = [keras.Input(shape=(None, None, 3)) for _ in range(4)]
+    output, target_in, *colour_in = inputs
+    targets = image_pyramid(target_in, cfg, "target_pyramid")
+    layer = ScaleSupervision(SMAPE(), cfg.scale_supervision)
+    pairs = [t for level in (1, 2) for t in (targets[level], colour_in[level - 1])]
+    model = keras.Model(inputs, layer([output, *pairs]))
+    fine = rng.uniform(0, 2, size=(2, 13, 11, 3)).astype(np.float32)
+    got = run(model, fine, target, *colours)
+    np.testing.assert_array_equal(got, fine)
+    taken = np.pad(target, ((0, 0), (0, 3), (0, 5), (0, 0)), mode="edge")
+    want = 0.0
+    for colour in colours:
+        taken = down(taken) if downsample == "average" else bicubic_down(taken)
+        want += weight * smape64(taken, colour)
+    (loss,) = model.losses
+    np.testing.assert_allclose(float(to_np(loss)), want, rtol=1e-5)
+    # in fit's loss: the compiled loss on the output plus the terms
+    model.compile(optimizer="sgd", loss=SMAPE())
+    y = rng.uniform(0, 2, size=(2, 13, 11, 3)).astype(np.float32)
+    evaluated = model.evaluate([fine, target.astype(np.float32), *(c.astype(np.float32) for c in colours)], y,
+                               verbose=0)
+    np.testing.assert_allclose(evaluated, smape64(y, fine) + want, rtol=1e-5)
+
+
+def test_multiscale_output_gives_the_composite_outputs_of_the_inner_levels():
+    cfg = tiny_compositor("kernel", levels=4)
+    compositor = build_compositor(cfg)
+    features_in = keras.Input(shape=(None, None, 27))
+    levels = []
+    out = multiscale_output(features_in, build_branch_model(TINY_DENOISER), cfg, compositor, levels=levels)
+    model = keras.Model(features_in, [out, *levels])
+    randomise(model, seed=19)
+    got = run(model, features((1, 21, 19), seed=20))
+    assert [g.shape for g in got] == [(1, 21, 19, 3), (1, 12, 12, 3), (1, 6, 6, 3)]  # padded to 24, halved
+    blends = [layer.output for layer in model.layers if isinstance(layer, ScaleBlend)]  # coarsest first
+    want = run(keras.Model(features_in, blends[:2]), features((1, 21, 19), seed=20))
+    for g, w in zip(got[1:], reversed(want)):
+        np.testing.assert_array_equal(g, w)
+
+
 # ---------------------------------------------------------------- the whole model
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["alpha", "kernel"])
-def test_multiscale_model_save_load_identical(kind, tmp_path):
-    model = multiscale(kind)
+@pytest.mark.parametrize("kind,extra", [("alpha", {}), ("kernel", {}), ("alpha", dict(downsample="bicubic")),
+                                        ("kernel", dict(kernel_size=21, downsample="bicubic"))])
+def test_multiscale_model_save_load_identical(kind, extra, tmp_path):
+    model = multiscale(kind, **extra)
     x = features((2, 13, 10), seed=1)
     before = run(model, x)
     model.save(tmp_path / "ms.keras")
@@ -553,7 +757,8 @@ def test_flat_two_branch_model_sharing_compositor_and_denoiser_reloads(tmp_path)
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "kind,levels,extra",
-    [("alpha", 2, {}), ("kernel", 3, {}), ("kernel", 2, dict(depth=2, kernel_size=5)), ("alpha", 3, dict(depth=1))],
+    [("alpha", 2, {}), ("kernel", 3, {}), ("kernel", 2, dict(depth=2, kernel_size=5)), ("alpha", 3, dict(depth=1)),
+     ("kernel", 2, dict(kernel_size=21))],
 )
 def test_radius_bound_holds_and_is_reached(kind, levels, extra):
     model = multiscale(kind, seed=11, levels=levels, **extra)
@@ -577,6 +782,28 @@ def test_radius_bound_holds_and_is_reached(kind, levels, extra):
     assert reached >= 2  # the bound is exact for some centre phase, not merely respected
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("kind,extra", [("alpha", {}), ("alpha", dict(downsample="bicubic")),
+                                        ("kernel", dict(kernel_size=21, downsample="bicubic"))])
+def test_radius_bound_is_the_reach_of_the_gradient(kind, extra):
+    """The support of d out[c, c] / d input, over every centre phase: within R, and R for some. (The bicubic
+    pyramid reaches its last pixels through its outer taps' products, (3/256)² a step: a perturbation there
+    moves the output by less than float32 resolves, so the perturbation test above cannot see them.)"""
+    model = multiscale(kind, seed=11, **extra)
+    cfg = tiny_compositor(kind, **extra)
+    radius = multiscale_radius(receptive_radius(TINY_DENOISER), cfg)
+    a = alignment(cfg)
+    size = 2 * radius + 2 * a + 8
+    reach = []
+    for offset in range(a):
+        c = radius + 4 + offset
+        x = torch.tensor(features((1, size, size), seed=12), requires_grad=True)
+        model(x)[0, c, c].sum().backward()
+        rows, cols = (np.nonzero(to_np(x.grad[0]).any(axis=(2, axis)))[0] - c for axis in (1, 0))
+        reach += [-rows.min(), rows.max(), -cols.min(), cols.max()]
+    assert max(reach) == radius, reach
+
+
 def tiled(model, x, tile, margin, align):
     """Tiles starting at multiples of ``align``, each read with ``margin`` pixels of context (start rounded
     down to the alignment); only the tile's own pixels are kept."""
@@ -593,13 +820,30 @@ def tiled(model, x, tile, margin, align):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["alpha", "kernel"])
-def test_aligned_tiles_with_radius_margins_reproduce_the_untiled_output(kind):
-    cfg = tiny_compositor(kind)
-    model = multiscale(kind, seed=13)
+@pytest.mark.parametrize("kind,extra", [("alpha", {}), ("kernel", {}), ("alpha", dict(downsample="bicubic"))])
+def test_aligned_tiles_with_radius_margins_reproduce_the_untiled_output(kind, extra):
+    cfg = tiny_compositor(kind, **extra)
+    model = multiscale(kind, seed=13, **extra)
     radius = multiscale_radius(receptive_radius(TINY_DENOISER), cfg)
-    x = features((1, 45, 38), seed=14)
+    x = features((1, 45 + 2 * radius - 20, 38 + 2 * radius - 20), seed=14)
     whole = run(model, x)
     np.testing.assert_allclose(tiled(model, x, 8, radius, alignment(cfg)), whole, rtol=1e-5, atol=1e-5)
     # the alignment matters: the same margins from unaligned starts pool other 2x2 blocks
     assert np.abs(tiled(model, x, 8, radius + 1, 1) - whole).max() > 1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("downsample", ["average", "bicubic"])
+def test_tiles_of_the_21x21_compositor_reproduce_the_untiled_output(downsample):
+    """R = 4 r + (21 + b) 3 (63 past the denoiser's own reach, 72 with bicubic): tiles whose inputs are smaller
+    than the image, read with margins R, give the untiled output; margins short of R do not."""
+    cfg = tiny_compositor("kernel", kernel_size=21, downsample=downsample)
+    model = multiscale("kernel", seed=21, kernel_size=21, downsample=downsample)
+    radius = multiscale_radius(receptive_radius(TINY_DENOISER), cfg)
+    assert radius == 4 * receptive_radius(TINY_DENOISER) + (21 + 3 * (downsample == "bicubic")) * 3
+    size, tile = 2 * radius + 40, 24
+    x = features((1, size, size - 6), seed=22)
+    whole = run(model, x)
+    np.testing.assert_allclose(tiled(model, x, tile, radius, alignment(cfg)), whole, rtol=1e-5, atol=1e-5)
+    assert tile + 2 * radius < size - 6  # a middle tile's input is smaller than the image
+    assert np.abs(tiled(model, x, tile, radius // 2 // 4 * 4, alignment(cfg)) - whole).max() > 1e-4

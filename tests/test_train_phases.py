@@ -342,6 +342,26 @@ def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
 
 
 @pytest.mark.slow
+def test_a_compositor_of_21x21_kernels_on_a_bicubic_pyramid_with_every_scale_supervised_trains_and_tiles(
+        shards, tmp_path):
+    comp = {**TINY_COMPOSITOR, "kind": "kernel", "kernel_size": 21, "downsample": "bicubic", "scale_supervision": 0.5}
+    cfg = tiny_config(shards, compositor=comp, compositor_steps=2, loss="asymmetric")
+    run_dir = train(cfg, tmp_path / "r", verbose=0)
+    record = json.loads((run_dir / "config.json").read_text())
+    assert {k: record["train"]["compositor"][k] for k in comp} == comp
+    phase = keras.models.load_model(run_dir / "compositor.keras", compile=False)  # the checkpoint's layers load
+    supervision = phase.get_layer("scale_supervision")
+    assert isinstance(supervision.loss_fn, AsymmetricSMAPE) and supervision.weight == 0.5
+    assert sorted(i.name for i in phase.inputs) == ["albedo", "diffuse_input", "specular_input", "target"]
+    x = _final_inputs(cfg.model)
+    phase({**x, "target": np.concatenate([x["albedo"], x["albedo"]], axis=-1)})
+    assert len(phase.losses) == 2 * 2 + 1  # an α term per pair and branch, and the per-scale terms
+    aovs = random_aovs(37, 53, seed=5)
+    whole = Denoiser.from_run(Run(run_dir), tile=512)(aovs)["default"]
+    np.testing.assert_allclose(Denoiser.from_run(Run(run_dir), tile=8)(aovs)["default"], whole, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
 def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
     cfg = tiny_config(shards, joint_steps=40, steps_per_epoch=4)
     reference = train(cfg, tmp_path / "ref", verbose=0)

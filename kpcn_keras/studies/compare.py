@@ -161,7 +161,13 @@ def describe(name: str, cfg: TrainConfig) -> str:
     if cfg.joint_steps:
         net += f", joint lr {cfg.joint_learning_rate:g}"
     if cfg.compositor:
-        net += f", {cfg.compositor.levels} levels"
+        c = cfg.compositor
+        net += f", {c.levels} levels"
+        if c.kind == "kernel":
+            net += f", {c.kernel_size}×{c.kernel_size} compositor kernels"
+        net += f", {c.downsample} downsampling"
+        if c.scale_supervision:
+            net += f", inner scales supervised at weight {c.scale_supervision:g}"
     if cfg.loss == "asymmetric":
         net += f", λ = {cfg.slope:g}"
     scaled = " (scaled to the budget)" if preset != TrainConfig.preset else ""

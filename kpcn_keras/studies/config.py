@@ -29,6 +29,13 @@ CONFIGURATIONS: dict[str, tuple[str, str, dict]] = {
     "joint": ("cpu, then both branches fine-tuned together on the final colour", "cpu", {"joint_steps": 1}),
     "multiscale-alpha": ("cpu + Vogels' scale compositor", "cpu", {"compositor": {"kind": "alpha"}}),
     "multiscale-kernel": ("cpu + the kernel-predicting compositor", "cpu", {"compositor": {"kind": "kernel"}}),
+    # each of the three below changes one thing of multiscale-kernel (report §2.2.1, §3.1.1)
+    "multiscale-kernel-21": ("multiscale-kernel with the report's 21×21 upsampling kernels (5×5)", "cpu",
+                             {"compositor": {"kind": "kernel", "kernel_size": 21}}),
+    "multiscale-bicubic": ("multiscale-kernel on a bicubic pyramid (2×2 average pooling)", "cpu",
+                           {"compositor": {"kind": "kernel", "downsample": "bicubic"}}),
+    "multiscale-scales": ("multiscale-kernel, each inner scale supervised too (the finest alone)", "cpu",
+                          {"compositor": {"kind": "kernel", "scale_supervision": 1.0}}),
     "asymmetric": ("cpu, asymmetric loss instead of SMAPE", "cpu", {"loss": "asymmetric", "slope": 2.0}),
     "no-augment": ("cpu without flips, rotations and colour permutations", "cpu", {"augment": False}),
     "kernel-5": ("cpu with 5×5 kernels", "cpu", {"model": {"kernel_size": 5}}),
