@@ -153,7 +153,7 @@ def cmd_denoise(args) -> int:
     run = args.run if "run" in args else default_model().dir
     batch = denoise_files(args.inputs, run, args.output, args.reference, png=args.png, on_frame=frame,
                           layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
-                          **{k: getattr(args, k) for k in ("tile", "slope", "precision") if k in args})
+                          **{k: getattr(args, k) for k in ("tile", "slope", "precision", "slope_map") if k in args})
     frames = batch["frames"]
     if batch["skipped"]:
         print(f"skipped {len(batch['skipped'])} earlier outputs or temporaries: {', '.join(batch['skipped'])}")

@@ -59,6 +59,8 @@ IN_CHANNELS = Bound(COLOUR_CHANNELS, 1024)  # channels 0..2 are the colour
 LEVELS = Bound(2, 8)  # one level is the denoiser alone; 8 halves a frame 7 times
 # a U-Net's resolutions: 6 pools 5 times, a 32-pixel alignment and a receptive field past a 65-pixel patch
 UNET_LEVELS = Bound(2, 6)
+# the specialisation module's 1x1 convolutions after λ joins (models.py): 0 puts λ at the input
+SLOPE_MODULE = Bound(0, 8)
 WIDTH_GROWTH = Bound(1.0, 4.0, integer=False)  # filters per level down: constant up to quadrupling
 STEPS = Bound(1, 10_000_000)  # ten days at 12 steps/s
 BATCH_SIZE = Bound(1, 4096)
@@ -119,6 +121,10 @@ class ModelConfig:
     at level l ``min(width_cap, round(width * width_growth**l))``. None with arch "unet" takes the defaults
     of :data:`UNET_DEFAULTS`, ``width_cap`` ``UNET_CAP_FACTOR * width``; ``depth`` is the convolutions per
     level each way (models.py).
+
+    ``slope_module`` > 0 (with ``slope_channel``): λ bypasses the trunk and joins it after, through that many
+    1x1 convolutions before the kernel head (the loss-specialisation module, models.py), so a new λ map
+    re-runs only those; left out of :meth:`to_dict` when 0.
     """
 
     arch: str = "kpcn"
@@ -134,6 +140,7 @@ class ModelConfig:
     levels: int | None = bounded(None, UNET_LEVELS)
     width_growth: float | None = bounded(None, WIDTH_GROWTH)
     width_cap: int | None = bounded(None, WIDTH)
+    slope_module: int = bounded(0, SLOPE_MODULE)
 
     def __post_init__(self):
         if self.arch not in ARCHS:
@@ -160,6 +167,11 @@ class ModelConfig:
         for flag in ("branch_channels", "slope_channel"):
             if not isinstance(getattr(self, flag), bool):
                 raise OptionError(flag, f"must be a bool, received {getattr(self, flag)!r}")
+        if self.slope_module and not self.slope_channel:
+            raise OptionError("slope_module", f"joins λ to the network ({self.slope_module} layers); it needs "
+                              "--slope-input (λ as an input, --loss asymmetric)")
+        if self.slope_module and self.arch == "dpcn":
+            raise OptionError("slope_module", "specialises predicted kernels; arch dpcn predicts colour directly")
 
     @property
     def input_channels(self) -> int:
@@ -172,6 +184,8 @@ class ModelConfig:
         if self.arch != "unet":
             for name in UNET_FIELDS:
                 del d[name]
+        if not self.slope_module:  # the records of networks without the module stay as they were written
+            del d["slope_module"]
         return d
 
     def unet_widths(self) -> tuple[int, ...]:

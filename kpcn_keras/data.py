@@ -27,8 +27,9 @@ reference's mean over R G B, which a permutation leaves as it is).
 
 Per patch, a training stream draws (from a generator seeded by (seed, batch number), so resume is exact):
 an augmentation (``kpcn_keras.augment``: one of 8 flips/rotations times one of 6 colour permutations), and,
-for a network with a slope channel, λ log-uniform in ``slope_range``. A validation stream
-(``shuffle=False``) augments nothing and uses the fixed ``slope``.
+for a network with a slope channel, λ log-uniform in ``slope_range`` (with a specialisation module, a λ map
+of the patch's size instead: ``kpcn_keras.slope_map.draw``). A validation stream (``shuffle=False``) augments
+nothing and uses the fixed ``slope``.
 
 Files are opened lazily, once per process, so a dataset object can be pickled into workers. Batch ``i`` is
 a pure function of (seed, offset + i): patches are visited in a fresh seeded permutation every pass over
@@ -55,7 +56,7 @@ import h5py
 import keras
 import numpy as np
 
-from kpcn_keras import augment
+from kpcn_keras import augment, slope_map
 from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
 from prep.bounds import is_integer
 from prep.features import BRANCHES
@@ -211,11 +212,13 @@ class ShardPatches(keras.utils.PyDataset):
                 out[k] = {n: a[j] for n, a in data.items()}
         return out
 
-    def _slopes(self, rng: np.random.Generator, n: int) -> list[float | None]:
+    def _slopes(self, rng: np.random.Generator, n: int) -> list:
         if not self.model.slope_channel:
             return [None] * n
         if not self.shuffle:
             return [self.slope] * n
+        if self.model.slope_module:  # a map per patch, λ varying inside it
+            return [slope_map.draw(rng, self.patch_size, self.slope_range) for _ in range(n)]
         lo, hi = self.slope_range
         return list(np.exp(rng.uniform(math.log(lo), math.log(hi), n)))
 
@@ -257,7 +260,7 @@ class ShardPatches(keras.utils.PyDataset):
         if with_noisy:
             y.append(augment.augment_colour(noisy, aug))
             if slope is not None:
-                y.append(np.full(reference.shape[:-1] + (1,), slope, np.float32))
+                y.append(np.broadcast_to(np.asarray(slope, np.float32), reference.shape[:-1])[..., None])
         if self.reference_relse:
             y.append(augment.augment_spatial(data[f"{branch}/ref_relse"], aug))
         if len(y) == 1:

@@ -36,8 +36,9 @@ from pathlib import Path
 import keras
 import numpy as np
 
+from kpcn_keras import slope_map
 from kpcn_keras.config import DEFAULT_TILE, TILE
-from kpcn_keras.models import input_alignment, network_input, receptive_radius
+from kpcn_keras.models import input_alignment, network_input, receptive_radius, slope_module_parts, with_slope
 from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, tile_alignment
 from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
@@ -133,7 +134,8 @@ class Denoiser:
         size = 2 * self.margin + 1
         black = {name: np.zeros((size, size, 3), np.float32) for name in exr.RGB_LAYERS}
         black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
-        self(black, slope=slope)
+        # a map's own first λ: the black frame is not its shape
+        self(black, slope=slope if slope is None or np.ndim(slope) == 0 else float(np.ravel(slope)[0]))
 
     def tiles(self, h: int, w: int):
         """Each tile of an (h, w) frame as ((y0, y1, x0, x1), (ya, yb, xa, xb)): the pixels it gives and the
@@ -153,7 +155,7 @@ class Denoiser:
         # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
         # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
         feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,
-                              branch, slope)
+                              branch, _window_of(slope, window))
         # predict_on_batch, not a direct call under torch.inference_mode: measured alike (within 10%, the
         # noise) at 64- and 256-pixel tiles; the convolutions, not the per-call setup, take the time
         pred = keras.ops.convert_to_numpy(self.models[branch].predict_on_batch(feats[None]))[0]
@@ -164,11 +166,24 @@ class Denoiser:
         gc.collect(1)
         return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
 
+    def check_slope(self, slope, shape: tuple[int, int]) -> None:
+        """OptionError unless ``slope`` is what this run takes for an (H, W) = ``shape`` frame: a number (or
+        None) as ``RunRecord.check_slope`` says, or a map of the frame's shape for a run with a specialisation
+        module (``kpcn_keras.slope_map``)."""
+        self.record.check_slope(slope)
+        if slope is None or np.ndim(slope) == 0:
+            return
+        if not self.model_config.slope_module:
+            raise OptionError("slope_map", f"is for a run trained with --slope-module; {self.run.dir} takes one "
+                              "λ for the whole frame (--slope)")
+        if np.shape(slope) != tuple(shape):
+            raise OptionError("slope_map", f"has shape {np.shape(slope)}, the frame {tuple(shape)}")
+
     def run_branch(self, branch: str, aovs: dict[str, np.ndarray], slope: float | None = None) -> np.ndarray:
         """Model output (log domain) of one branch for a whole noisy render (restricted to the run's input set
         first), tile by tile, at ``slope``; 0 (log of 0) for a branch the run does not run."""
-        self.record.check_slope(slope)
         h, w = aovs["depth"].shape
+        self.check_slope(slope, (h, w))
         if branch not in self.models:
             return np.zeros((h, w, 3), dtype=np.float32)
         aovs = restrict(aovs, self.inputs)
@@ -187,21 +202,89 @@ class Denoiser:
         what this holds is bounded by the tile (features of one window, its network activations, the float64
         recombination of one tile), at any frame size. The frame is restricted to the run's input set first
         (what is kept is not copied); the specular branch a no-split run does not run gives 0."""
-        self.record.check_slope(slope)
         aovs = restrict(aovs, self.inputs)
         h, w = aovs["depth"].shape
+        self.check_slope(slope, (h, w))
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
+        return self.assemble(aovs["albedo"], lambda branch, tile, window: self.predict_tile(
+            branch, aovs, tile, window, scale, slope))
+
+    def assemble(self, albedo: np.ndarray, predict) -> dict[str, np.ndarray]:
+        """``diffuse``, ``specular`` and ``default`` (linear, float32) of a frame with noisy ``albedo`` (H, W, 3),
+        tile by tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels,
+        each branch mapped back to linear colour and the two summed in float64 (the module docstring)."""
+        h, w = albedo.shape[:2]
         out = {name: np.empty((h, w, 3), dtype=np.float32) for name in ("diffuse", "specular", "default")}
         for tile, window in self.tiles(h, w):
             y0, y1, x0, x1 = tile
-            diffuse = features.diffuse_from_log(self.predict_tile("diffuse", aovs, tile, window, scale, slope),
-                                                aovs["albedo"][y0:y1, x0:x1])
-            specular = (features.specular_from_log(self.predict_tile("specular", aovs, tile, window, scale, slope))
+            diffuse = features.diffuse_from_log(predict("diffuse", tile, window), albedo[y0:y1, x0:x1])
+            specular = (features.specular_from_log(predict("specular", tile, window))
                         if "specular" in self.models else np.zeros_like(diffuse))
             out["diffuse"][y0:y1, x0:x1] = exr.to_float32(diffuse)
             out["specular"][y0:y1, x0:x1] = exr.to_float32(specular)
             out["default"][y0:y1, x0:x1] = exr.to_float32(diffuse + specular)
         return out
+
+    def prepare(self, aovs: dict[str, np.ndarray]) -> PreparedFrame:
+        """The frame ``aovs`` with each branch's trunk run once, for λ maps applied to it by
+        :class:`PreparedFrame` (the interactive case: a new map re-runs only the specialisation module and the
+        kernels). KpcnError for a run without the module, or with a compositor (whose pyramid re-runs the
+        whole network at every scale)."""
+        if not self.model_config.slope_module:
+            raise KpcnError(f"{self.run.dir}: a prepared frame needs a run trained with --slope-module (λ joined "
+                            "after the trunk); this one takes λ at its input or not at all")
+        if self.compositor is not None:
+            raise KpcnError(f"{self.run.dir}: a prepared frame runs the networks without a compositor; load the run "
+                            "with multiscale=False (Denoiser.from_run) or denoise it whole")
+        return PreparedFrame(self, aovs)
+
+
+def _window_of(slope, window):
+    """``slope`` for the pixels of ``window`` (ya, yb, xa, xb): a map's window, a number (or None) as it is."""
+    if slope is None or np.ndim(slope) == 0:
+        return slope
+    ya, yb, xa, xb = window
+    return np.asarray(slope)[ya:yb, xa:xb]
+
+
+class PreparedFrame:
+    """One frame with its trunks run once (:meth:`Denoiser.prepare`), for a run with a specialisation module:
+    calling it with λ (a number or an (H, W) map, ``kpcn_keras.slope_map``) re-runs only, per tile, the module,
+    the kernel head and the kernel application, and gives what ``denoiser(aovs, slope)`` gives (the same tiles,
+    the same layers: equal to float rounding, tested). It holds each tile window's network input and trunk
+    activations for both branches: about (in_channels + width) float32s a pixel and branch, times the tiles'
+    overlap, so a 1920 x 1080 frame of the cpu preset holds about 1.5 GB."""
+
+    def __init__(self, denoiser: Denoiser, aovs: dict[str, np.ndarray]):
+        self.denoiser = denoiser
+        aovs = restrict(aovs, denoiser.inputs)
+        self.albedo = aovs["albedo"]
+        self.shape = aovs["depth"].shape
+        scale = features.depth_scale(aovs["depth"])
+        cfg = denoiser.model_config
+        self.modules, self.tiles = {}, {}
+        for branch, model in denoiser.models.items():
+            trunk, self.modules[branch] = slope_module_parts(model)
+            for tile, window in denoiser.tiles(*self.shape):
+                # λ = 1 holds the place of the map each call writes
+                feats = network_input(features.branch_features(aovs, branch, window, scale=scale), cfg, branch, 1.0)
+                activations = keras.ops.convert_to_numpy(trunk.predict_on_batch(feats[None]))
+                self.tiles[branch, tile] = (feats, activations)
+            gc.collect(1)
+
+    def __call__(self, slope) -> dict[str, np.ndarray]:
+        """``diffuse``, ``specular`` and ``default`` (linear, float32) at ``slope``."""
+        self.denoiser.check_slope(slope, self.shape)
+        return self.denoiser.assemble(self.albedo, lambda branch, tile, window: self._predict(branch, tile, window,
+                                                                                              slope))
+
+    def _predict(self, branch: str, tile, window, slope) -> np.ndarray:
+        (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
+        feats, activations = self.tiles[branch, tile]
+        feats = with_slope(feats, _window_of(slope, window))
+        pred = keras.ops.convert_to_numpy(self.modules[branch].predict_on_batch([activations, feats[None]]))[0]
+        gc.collect(1)  # as in Denoiser.predict_tile
+        return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
 
 
 def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
@@ -437,7 +520,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
 
 def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE,
                   slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None,
-                  on_frame=None, precision: str | None = None) -> dict:
+                  on_frame=None, precision: str | None = None, slope_map=None) -> dict:
     """Denoise many EXRs in one process: each model is loaded and warmed up once.
 
     ``inputs``: files and folders (:func:`collect_inputs`), each in any layout ``prep.layouts`` reads
@@ -450,7 +533,8 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     output fails before any work. A frame that still fails (a truncated file) stops the batch with a KpcnError
     naming it; the outputs written before it are complete (each is written atomically) and are named in the
     message. ``on_frame(report)`` is called after each frame (progress). ``precision``: the networks' trunks'
-    arithmetic (``kpcn_keras.precision``; default "auto").
+    arithmetic (``kpcn_keras.precision``; default "auto"). ``slope_map``: a painted λ map (``kpcn_keras.slope_map``)
+    instead of ``slope``, for a run with a specialisation module, read for each frame's size before any work.
 
     Returns ``{"startup_s", "load_s", "warmup_s", "threads", "precision", "peak_memory_mb", "frames",
     "skipped"}``: the seconds from process start to this call (None off Linux), of loading the networks and of
@@ -479,6 +563,8 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     records = {variant.dir: variant.record() for variant in serving.values()}
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
     read = [("input", src) for src in inputs] + [(option, value) for option, value in singles if value is not None]
+    if slope_map is not None:
+        read.append(("--slope-map", slope_map))
     models = [item for variant in serving.values() for item in variant.read_files(records[variant.dir])]
     check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
     ref_size = layouts.read_header(reference).size if reference is not None else None
@@ -494,8 +580,11 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
             check_writable(png_path(out), "side-by-side PNG")
     TILE.check("tile", tile)
     precision = resolve(precision)
+    slopes = [slope] * len(inputs)
+    if slope_map is not None:
+        slopes = _read_slope_maps(slope_map, slope, [records[serving[g].dir] for g in given], headers)
     for record in records.values():
-        record.finished().check_slope(slope)  # before the networks are loaded
+        record.finished().check_slope(slopes[0])  # before the networks are loaded
     load_s = warmup_s = 0.0
     denoisers = {}
     frames = []
@@ -506,10 +595,10 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
             denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
                                                        precision=precision)
             loaded = time.perf_counter()
-            denoisers[variant.dir].warm_up(slope)
+            denoisers[variant.dir].warm_up(slopes[0])
             load_s, warmup_s = load_s + loaded - begin, warmup_s + time.perf_counter() - loaded
         try:
-            frames.append(denoise_frame(denoisers[variant.dir], src, out, reference, png=png, slope=slope,
+            frames.append(denoise_frame(denoisers[variant.dir], src, out, reference, png=png, slope=slopes[len(frames)],
                                         layout=layout, pair=pair, albedo=albedo, normal=normal))
         except KpcnError as exc:
             if frames:
@@ -526,6 +615,23 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads, "precision": precision,
             "peak_memory_mb": peak_memory_mb(),
             "frames": frames, "skipped": [str(p) for p in skipped]}
+
+
+def _read_slope_maps(path, slope, records: list[RunRecord], headers) -> list[np.ndarray]:
+    """The λ map ``path`` for each frame (its record's λ range, its header's size); OptionError for a run that
+    cannot take one or with ``--slope`` beside it."""
+    if slope is not None:
+        raise OptionError("slope_map", "and --slope both give λ: give one")
+    maps = {}
+    for record, header in zip(records, headers):
+        if not record.model.slope_module:
+            raise OptionError("slope_map", f"is for a run trained with --slope-module (λ joined after the trunk); "
+                              f"{record.dir} takes " + ("one λ for the whole frame (--slope)" if
+                                                        record.model.slope_channel else "no λ"))
+        key = (tuple(record.train.slope_range), tuple(header.size))
+        if key not in maps:
+            maps[key] = slope_map.read(path, header.size, record.train.slope_range)
+    return [maps[tuple(r.train.slope_range), tuple(h.size)] for r, h in zip(records, headers)]
 
 
 def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,

@@ -96,8 +96,10 @@ __all__ = [
     "load_model",
     "network_input",
     "receptive_radius",
+    "slope_module_parts",
     "trunk_layers",
     "trunk_radius",
+    "with_slope",
 ]
 
 FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
@@ -137,6 +139,17 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
     spatial = features.shape[:-1]
     planes = [np.broadcast_to(np.asarray(e, np.float32), spatial)[..., None] for e in extra]
     return np.concatenate([features] + planes, axis=-1)
+
+
+def with_slope(net_input: np.ndarray, slope) -> np.ndarray:
+    """A copy of ``net_input`` (a :func:`network_input` with a slope channel) with λ = ``slope`` (a number or
+    an array broadcastable to its (..., H, W)) in place of its own: the slope channel is the last."""
+    slope = np.asarray(slope, np.float64)
+    if not np.all(np.isfinite(slope)) or np.any(slope < 1.0):
+        raise OptionError("slope", f"must be finite and >= 1, received {slope if slope.ndim == 0 else slope.min()}")
+    out = np.array(net_input, np.float32)
+    out[..., -1] = np.log(slope)
+    return out
 
 
 def trunk_radius(cfg: ModelConfig) -> int:
@@ -242,6 +255,43 @@ def _trunk(features, cfg: ModelConfig, prefix: str, data_format: str):
     return x
 
 
+def _slope_module(x, features, cfg: ModelConfig, prefix: str, data_format: str):
+    """The loss-specialisation module on the trunk's activations ``x``: log λ (the features' last channel,
+    laid out as ``x``) joined (``<prefix>slope_join``, what :func:`slope_module_parts` cuts at), then
+    ``cfg.slope_module`` 1x1 convolutions of ``cfg.width`` filters and ReLUs. 1x1, so that λ at a pixel sets
+    that pixel's kernel alone, whose taps read colour, not λ: a map changed in a region changes the output in
+    that region alone."""
+    first = data_format == "channels_first"
+    slope = TakeChannels(cfg.input_channels - 1, cfg.input_channels, name=f"{prefix}slope")(features)
+    align = input_alignment(cfg)
+    if align > 1:
+        slope = PadToMultiple(align, name=f"{prefix}slope_pad")(slope)
+    if first:
+        slope = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{prefix}slope_first")(slope)
+    x = keras.layers.Concatenate(axis=1 if first else -1, name=f"{prefix}slope_join")([x, slope])
+    for i in range(cfg.slope_module):
+        x = _conv_class(data_format)(cfg.width, 1, data_format=data_format, name=f"{prefix}special{i:02d}_conv")(x)
+        x = keras.layers.ReLU(name=f"{prefix}special{i:02d}_relu")(x)
+    return x
+
+
+def slope_module_parts(model: keras.Model) -> tuple[keras.Model, keras.Model]:
+    """``(trunk, module)`` of a branch model with a specialisation module, with its weights (copied): ``trunk`` maps
+    the network input to the activations λ joins (one input's worth of them: run it once per frame);
+    ``module`` maps ``[activations, network input]`` to the model's output, reading only the colour and λ of
+    the input (run it again for each λ map). ValueError for a model without the module."""
+    join = f"{model.name}_slope_join"
+    if join not in {layer.name for layer in model.layers}:
+        raise ValueError(f"model {model.name!r} has no slope module (trained without --slope-module)")
+    # cut from a copy: Keras clones the graph nodes of a model whose input is an intermediate tensor, and the
+    # model cut from then no longer saves ("could not find node key")
+    copy = keras.models.clone_model(model)
+    copy.set_weights(model.get_weights())
+    activations = copy.get_layer(join).input[0]
+    return (keras.Model(copy.input, activations, name=f"{model.name}_trunk"),
+            keras.Model([activations, copy.input], copy.output, name=f"{model.name}_module"))
+
+
 def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: str = TRUNK_FORMAT) -> keras.Model:
     """Functional model: input ``features`` (None, None, cfg.input_channels) -> filtered colour (None, None, 3).
 
@@ -263,9 +313,14 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
     features = keras.Input(shape=(None, None, cfg.input_channels), name="features")
     colour = TakeChannels(0, COLOUR_CHANNELS, name=f"{p}noisy_colour")(features)
     align = input_alignment(cfg)
-    x = PadToMultiple(align, name=f"{p}pad")(features) if align > 1 else features
+    trunk_input = features
+    if cfg.slope_module:  # λ, the last channel, bypasses the trunk
+        trunk_input = TakeChannels(0, cfg.input_channels - 1, name=f"{p}features_without_slope")(features)
+    x = PadToMultiple(align, name=f"{p}pad")(trunk_input) if align > 1 else trunk_input
     x = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{p}to_channels_first")(x) if first else x
     x = _trunk(x, cfg, p, data_format)
+    if cfg.slope_module:
+        x = _slope_module(x, features, cfg, p, data_format)
     if cfg.arch == "dpcn":
         correction = _conv_class(data_format)(
             COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", data_format=data_format,

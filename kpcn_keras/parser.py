@@ -287,6 +287,9 @@ def _train_options(add) -> None:
     g.add_argument("--conv-size", type=int, help="convolution size (odd)")
     g.add_argument("--kernel-size", type=int, help="predicted kernel side (odd; the papers use 21)")
     g.add_argument("--dropout", type=float, help="drop rate after every convolution (the report's keep 0.7 is 0.3)")
+    g.add_argument("--slope-module", type=int, help="λ joined after the trunk through this many 1x1 convolutions, "
+                   "trained on λ maps (needs --slope-input): a new map re-runs only those (kpcn denoise --slope-map; "
+                   "default: 0, λ at the input)")
     g.add_argument("--shared", action="store_true", help="one network for both branches, told apart by a one-hot "
                    "input (default: one network per branch)")
     g = t.add_argument_group("phases")
@@ -376,6 +379,9 @@ def _denoise_options(add) -> None:
     n.add_argument("--tile", type=int, help=f"tile size in pixels, bounds memory (default: {DEFAULT_TILE})")
     n.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input: higher keeps more of the "
                    "input's detail (and noise)")
+    n.add_argument("--slope-map", help="a painted λ map, for a run trained with --slope-module: a one-channel EXR "
+                   "of λ, or a greyscale PNG from the low (black) to the high end (white) of the run's λ range, "
+                   "resized to the frame if its aspect ratio matches")
     _precision_option(n)
     n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each "
                    "output: input | denoised (| reference), side by side")

@@ -154,3 +154,20 @@ def test_the_reference_relse_is_the_last_target_channel_moved_with_the_patch_nev
     assert len(found) > 1  # flips and rotations were drawn, and the relSE moved with them
     with pytest.raises(ValueError, match="'final' has none"):
         ShardPatches(relse_paths, "final", batch_size=2, reference_relse=True)
+
+
+def test_a_network_with_a_slope_module_learns_from_a_lambda_map_per_patch_its_loss_sees_too(train_paths):
+    from kpcn_keras.config import ModelConfig
+
+    model = ModelConfig(slope_channel=True, slope_module=1)
+    ds = ShardPatches(train_paths, "diffuse", batch_size=7, model=model, loss_target="reference+noisy",
+                      slope_range=(1.0, 8.0), seed=3)
+    x, y = ds[0]
+    log_input, loss_slope = x[..., -1].astype(np.float64), y[..., 6].astype(np.float64)
+    np.testing.assert_allclose(np.exp(log_input), loss_slope, rtol=1e-6)  # the λ the loss weighs is the input's
+    assert loss_slope.min() >= 1.0 - 1e-6 and loss_slope.max() <= 8.0 + 1e-5
+    varying = [np.ptp(m) > 0 for m in loss_slope]
+    assert any(varying)  # λ varies inside a patch
+    validation = ShardPatches(train_paths, "diffuse", batch_size=7, model=model, loss_target="reference+noisy",
+                              shuffle=False, slope=2.0)
+    assert np.all(validation[0][1][..., 6] == 2.0)  # validation keeps one λ

@@ -1,0 +1,113 @@
+"""λ maps: the per-pixel slope of the asymmetric loss, for a network with a loss-specialisation module
+(``ModelConfig.slope_module``; Vogels et al. 2018 §5.3; docs/denoise.md §6).
+
+- **Training maps** (:func:`draw`): per patch, with probability :data:`CONSTANT_SHARE` one λ for the whole
+  patch (log-uniform in the run's ``slope_range``, as a uniform-λ network draws it), else a smooth map: log λ
+  drawn log-uniform at the nodes of a coarse grid of :data:`GRID_NODES` nodes a side, spanning the patch
+  corner to corner, bilinearly interpolated between them (:func:`bilinear`), so that λ varies inside a patch
+  as a painted map does and every value stays within the range.
+- **Painted maps** (:func:`read`): a one-channel OpenEXR file holds λ itself, each value finite and within
+  the run's range (a value outside it is refused, not clipped: the network never learned it); a greyscale
+  PNG (8 or 16 bit) maps grey g in [0, 1] to λ = low (high / low)^g, log-linear as the training draws, so
+  black is the range's low end, white its high end and mid grey its geometric middle. A map of another size
+  than the frame is resized in log λ (:func:`bilinear`) when its aspect ratio matches the frame's to within
+  a pixel, and refused otherwise. Errors are one line naming the file and what was found.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from prep.errors import KpcnError
+
+CONSTANT_SHARE = 0.5  # training patches with one λ: the uniform case stays as well learned as before
+GRID_NODES = (2, 4)  # nodes a side of a training map's coarse grid, inclusive: a ramp up to a few bumps
+PNG_SUFFIXES = (".png",)
+EXR_SUFFIXES = (".exr",)
+
+
+def bilinear(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``values`` (h, w) resampled to ``shape`` (H, W) by bilinear interpolation with the corners aligned
+    (the first and last pixel of each axis keep their values), float64; separable, as ``np.interp`` per axis."""
+    values = np.asarray(values, np.float64)
+    h, w = values.shape
+    height, width = shape
+    ys, xs = np.linspace(0.0, h - 1.0, height), np.linspace(0.0, w - 1.0, width)
+    rows = np.stack([np.interp(xs, np.arange(w), row) for row in values])  # (h, W)
+    return np.stack([np.interp(ys, np.arange(h), col) for col in rows.T], axis=1)  # (H, W)
+
+
+def draw(rng: np.random.Generator, size: int, slope_range: tuple[float, float]) -> np.ndarray:
+    """One training map (``size``, ``size``) of λ in ``slope_range`` (float32; the module docstring)."""
+    lo, hi = np.log(slope_range)
+    if rng.random() < CONSTANT_SHARE:
+        return np.full((size, size), np.exp(rng.uniform(lo, hi)), np.float32)
+    gy, gx = rng.integers(GRID_NODES[0], GRID_NODES[1] + 1, size=2)
+    nodes = rng.uniform(lo, hi, (gy, gx))
+    return np.exp(bilinear(nodes, (size, size))).astype(np.float32)
+
+
+def _grey(path: Path) -> np.ndarray:
+    """A greyscale PNG's pixels as g in [0, 1] (float64); KpcnError naming the file for anything else."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            mode = image.mode
+            pixels = np.asarray(image)
+    except (OSError, UnidentifiedImageError) as exc:
+        raise KpcnError(f"{path}: not a readable PNG ({exc})") from None
+    if mode in ("L", "LA"):
+        return (pixels[..., 0] if mode == "LA" else pixels) / 255.0
+    if mode in ("I;16", "I;16B", "I"):
+        return pixels.astype(np.float64) / 65535.0
+    if mode in ("RGB", "RGBA") and np.array_equal(pixels[..., 0], pixels[..., 1]) \
+            and np.array_equal(pixels[..., 0], pixels[..., 2]):
+        return pixels[..., 0] / 255.0  # grey saved as colour
+    raise KpcnError(f"{path}: a λ map PNG must be greyscale (8 or 16 bit); found mode {mode} with differing "
+                    "colour channels")
+
+
+def _exr(path: Path) -> np.ndarray:
+    """A one-channel OpenEXR file's values (float64); KpcnError naming the file and its channels otherwise."""
+    from prep.exr import read_image
+
+    image = read_image(path)
+    if len(image.channels) != 1:
+        raise KpcnError(f"{path}: a λ map EXR must have one channel, λ itself; found "
+                        f"{len(image.channels)}: {', '.join(sorted(image.channels)) or 'none'}")
+    return np.asarray(next(iter(image.channels.values())), np.float64)
+
+
+def read(path: str | os.PathLike, shape: tuple[int, int], slope_range: tuple[float, float]) -> np.ndarray:
+    """The λ map (``shape`` = the frame's (H, W), float32) painted in ``path`` (the module docstring), for a
+    run trained over ``slope_range``; KpcnError, one line naming the file, for a map it cannot take."""
+    path = Path(path)
+    lo, hi = (float(v) for v in slope_range)
+    if not path.is_file():
+        raise KpcnError(f"{path}: no such λ map file")
+    suffix = path.suffix.lower()
+    if suffix in PNG_SUFFIXES:
+        log_map = np.log(lo) + _grey(path) * (np.log(hi) - np.log(lo))
+    elif suffix in EXR_SUFFIXES:
+        slopes = _exr(path)
+        if not np.all(np.isfinite(slopes)) or slopes.min() < lo or slopes.max() > hi:
+            finite = slopes[np.isfinite(slopes)]
+            found = f"{finite.min():g} to {finite.max():g}" if finite.size else "no finite value"
+            raise KpcnError(f"{path}: λ must lie within the run's trained range [{lo:g}, {hi:g}]; found {found}"
+                            + ("" if finite.size == slopes.size else f" and {slopes.size - finite.size} non-finite"))
+        log_map = np.log(slopes)
+    else:
+        raise KpcnError(f"{path}: a λ map is a one-channel .exr (λ) or a greyscale .png (the λ range); found "
+                        f"{suffix or 'no suffix'}")
+    mh, mw = log_map.shape
+    height, width = shape
+    if (mh, mw) != (height, width):
+        if abs(mh * width / mw - height) > 1.0:
+            raise KpcnError(f"{path}: a λ map of {mw}×{mh} pixels for a frame of {width}×{height}: the aspect "
+                            "ratios differ; paint it at the frame's size or at its aspect ratio")
+        log_map = bilinear(log_map, (height, width))
+    return np.exp(log_map).astype(np.float32)
