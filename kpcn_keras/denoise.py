@@ -151,7 +151,6 @@ class Denoiser:
         """Model output (log domain, float32) of ``tile``'s pixels from the features of ``window`` alone
         (``prep.features.branch_features`` with the frame's depth ``scale``), at ``slope``: the same as
         those pixels of the whole frame's features."""
-        (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
         # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
         # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
         feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,
@@ -164,7 +163,7 @@ class Denoiser:
         # in the old generation over the tiles of a frame (measured: 0.9 against 0.37 MB over 4 tiles of 32,
         # 1.45 against 0.50 MB over 30). A young-generation pass is cheap (a full one tripled the time).
         gc.collect(1)
-        return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+        return _kept(pred, tile, window)
 
     def check_slope(self, slope, shape: tuple[int, int]) -> None:
         """OptionError unless ``slope`` is what this run takes for an (H, W) = ``shape`` frame: a number (or
@@ -239,6 +238,12 @@ class Denoiser:
         return PreparedFrame(self, aovs)
 
 
+def _kept(pred: np.ndarray, tile, window) -> np.ndarray:
+    """The pixels of ``tile`` (y0, y1, x0, x1) of ``pred``, a model's output over ``window`` (ya, yb, xa, xb)."""
+    (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
+    return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+
+
 def _window_of(slope, window):
     """``slope`` for the pixels of ``window`` (ya, yb, xa, xb): a map's window, a number (or None) as it is."""
     if slope is None or np.ndim(slope) == 0:
@@ -279,12 +284,11 @@ class PreparedFrame:
                                                                                               slope))
 
     def _predict(self, branch: str, tile, window, slope) -> np.ndarray:
-        (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
         feats, activations = self.tiles[branch, tile]
         feats = with_slope(feats, _window_of(slope, window))
         pred = keras.ops.convert_to_numpy(self.modules[branch].predict_on_batch([activations, feats[None]]))[0]
         gc.collect(1)  # as in Denoiser.predict_tile
-        return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+        return _kept(pred, tile, window)
 
 
 def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:

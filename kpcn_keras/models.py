@@ -130,10 +130,7 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
     if cfg.branch_channels:
         extra += [np.float32(branch == b) for b in BRANCHES]
     if slope is not None:
-        slope = np.asarray(slope, np.float64)
-        if not np.all(np.isfinite(slope)) or np.any(slope < 1.0):
-            raise OptionError("slope", f"must be finite and >= 1, received {slope if slope.ndim == 0 else slope.min()}")
-        extra.append(np.log(slope).astype(np.float32))
+        extra.append(_log_slope(slope))
     if not extra:
         return features
     spatial = features.shape[:-1]
@@ -144,12 +141,17 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
 def with_slope(net_input: np.ndarray, slope) -> np.ndarray:
     """A copy of ``net_input`` (a :func:`network_input` with a slope channel) with λ = ``slope`` (a number or
     an array broadcastable to its (..., H, W)) in place of its own: the slope channel is the last."""
+    out = np.array(net_input, np.float32)
+    out[..., -1] = _log_slope(slope)
+    return out
+
+
+def _log_slope(slope) -> np.ndarray:
+    """log λ (float32) of the slope channel; OptionError unless every λ is finite and >= 1."""
     slope = np.asarray(slope, np.float64)
     if not np.all(np.isfinite(slope)) or np.any(slope < 1.0):
         raise OptionError("slope", f"must be finite and >= 1, received {slope if slope.ndim == 0 else slope.min()}")
-    out = np.array(net_input, np.float32)
-    out[..., -1] = np.log(slope)
-    return out
+    return np.log(slope).astype(np.float32)
 
 
 def trunk_radius(cfg: ModelConfig) -> int:
