@@ -173,6 +173,22 @@ def cmd_denoise(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from kpcn_keras.run import default_model
+    from kpcn_keras.viewer import ViewSession, listen, serve
+
+    httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
+    try:
+        session = ViewSession.open(args.frame, args.run if "run" in args else default_model().dir, args.reference,
+                              layout=args.layout, **{k: getattr(args, k) for k in ("slope", "tile", "precision")
+                                                     if k in args})
+    except BaseException:
+        httpd.server_close()
+        raise
+    serve(httpd, session)
+    return 0
+
+
 def cmd_evaluate(args) -> int:
     from kpcn_keras.evaluate import evaluate, format_table, pairs_for_inputs
 
@@ -323,6 +339,7 @@ COMMANDS = {
     "train": cmd_train,
     "resample": cmd_resample,
     "denoise": cmd_denoise,
+    "view": cmd_view,
     "evaluate": cmd_evaluate,
     "ship": cmd_ship,
     "figures": cmd_figures,

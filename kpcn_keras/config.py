@@ -61,6 +61,7 @@ LEVELS = Bound(2, 8)  # one level is the denoiser alone; 8 halves a frame 7 time
 UNET_LEVELS = Bound(2, 6)
 # the specialisation module's 1x1 convolutions after λ joins (models.py): 0 puts λ at the input
 SLOPE_MODULE = Bound(0, 8)
+SLOPE_MIXTURE = Bound(0, 8)  # kernels a λ mixture chooses among; 0 is none, 1 is refused (nothing to choose)
 WIDTH_GROWTH = Bound(1.0, 4.0, integer=False)  # filters per level down: constant up to quadrupling
 STEPS = Bound(1, 10_000_000)  # ten days at 12 steps/s
 BATCH_SIZE = Bound(1, 4096)
@@ -81,6 +82,7 @@ UNWEIGHTED_TAU = 0.0  # reference_tau of an unweighted loss: what a run record w
 PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a phase stops
 TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
+PORT = Bound(0, 65535)  # kpcn view --port; 0 takes a free one
 
 
 def check_kernel_size(k) -> int:
@@ -124,7 +126,10 @@ class ModelConfig:
 
     ``slope_module`` > 0 (with ``slope_channel``): λ bypasses the trunk and joins it after, through that many
     1x1 convolutions before the kernel head (the loss-specialisation module, models.py), so a new λ map
-    re-runs only those; left out of :meth:`to_dict` when 0.
+    re-runs only those; left out of :meth:`to_dict` when 0. ``slope_mixture`` J >= 2 (with ``slope_module``):
+    the trunk predicts J kernels instead of one, and the module predicts, from the trunk's activations and λ,
+    each pixel's mixture of them, so a new map re-runs the module and a J-way blend of filtered colours, not
+    the kernels (models.py); left out of :meth:`to_dict` when 0.
     """
 
     arch: str = "kpcn"
@@ -141,6 +146,7 @@ class ModelConfig:
     width_growth: float | None = bounded(None, WIDTH_GROWTH)
     width_cap: int | None = bounded(None, WIDTH)
     slope_module: int = bounded(0, SLOPE_MODULE)
+    slope_mixture: int = bounded(0, SLOPE_MIXTURE)
 
     def __post_init__(self):
         if self.arch not in ARCHS:
@@ -172,6 +178,11 @@ class ModelConfig:
                               "--slope-input (λ as an input, --loss asymmetric)")
         if self.slope_module and self.arch == "dpcn":
             raise OptionError("slope_module", "specialises predicted kernels; arch dpcn predicts colour directly")
+        if self.slope_mixture and not self.slope_module:
+            raise OptionError("slope_mixture", f"mixes {self.slope_mixture} kernels by λ through the specialisation "
+                              "module; it needs --slope-module")
+        if self.slope_mixture == 1:
+            raise OptionError("slope_mixture", "must be at least 2 kernels to mix (or 0 for none), received 1")
 
     @property
     def input_channels(self) -> int:
@@ -184,8 +195,9 @@ class ModelConfig:
         if self.arch != "unet":
             for name in UNET_FIELDS:
                 del d[name]
-        if not self.slope_module:  # the records of networks without the module stay as they were written
-            del d["slope_module"]
+        for name in ("slope_module", "slope_mixture"):  # the records of networks without them stay as written
+            if not d[name]:
+                del d[name]
         return d
 
     def unet_widths(self) -> tuple[int, ...]:

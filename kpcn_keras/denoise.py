@@ -38,7 +38,14 @@ import numpy as np
 
 from kpcn_keras import slope_map
 from kpcn_keras.config import DEFAULT_TILE, TILE
-from kpcn_keras.models import input_alignment, network_input, receptive_radius, slope_module_parts, with_slope
+from kpcn_keras.models import (
+    input_alignment,
+    kept_of,
+    network_input,
+    receptive_radius,
+    slope_module_parts,
+    slope_plane,
+)
 from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, tile_alignment
 from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
@@ -208,20 +215,29 @@ class Denoiser:
         return self.assemble(aovs["albedo"], lambda branch, tile, window: self.predict_tile(
             branch, aovs, tile, window, scale, slope))
 
-    def assemble(self, albedo: np.ndarray, predict) -> dict[str, np.ndarray]:
+    def assemble(self, albedo: np.ndarray, predict, region=None) -> dict[str, np.ndarray]:
         """``diffuse``, ``specular`` and ``default`` (linear, float32) of a frame with noisy ``albedo`` (H, W, 3),
         tile by tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels,
-        each branch mapped back to linear colour and the two summed in float64 (the module docstring)."""
+        each branch mapped back to linear colour and the two summed in float64 (the module docstring).
+        ``region`` (y0, y1, x0, x1): those pixels alone, from the tiles that meet them (the others not run)."""
         h, w = albedo.shape[:2]
-        out = {name: np.empty((h, w, 3), dtype=np.float32) for name in ("diffuse", "specular", "default")}
+        ry0, ry1, rx0, rx1 = (0, h, 0, w) if region is None else region
+        out = {name: np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
+               for name in ("diffuse", "specular", "default")}
         for tile, window in self.tiles(h, w):
             y0, y1, x0, x1 = tile
-            diffuse = features.diffuse_from_log(predict("diffuse", tile, window), albedo[y0:y1, x0:x1])
-            specular = (features.specular_from_log(predict("specular", tile, window))
+            # the tile's pixels in the region, in the tile (cy, cx) and in the output (oy, ox)
+            cy0, cy1, cx0, cx1 = max(y0, ry0), min(y1, ry1), max(x0, rx0), min(x1, rx1)
+            if cy0 >= cy1 or cx0 >= cx1:
+                continue
+            cut = np.s_[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
+            put = np.s_[cy0 - ry0 : cy1 - ry0, cx0 - rx0 : cx1 - rx0]
+            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo[cy0:cy1, cx0:cx1])
+            specular = (features.specular_from_log(predict("specular", tile, window)[cut])
                         if "specular" in self.models else np.zeros_like(diffuse))
-            out["diffuse"][y0:y1, x0:x1] = exr.to_float32(diffuse)
-            out["specular"][y0:y1, x0:x1] = exr.to_float32(specular)
-            out["default"][y0:y1, x0:x1] = exr.to_float32(diffuse + specular)
+            out["diffuse"][put] = exr.to_float32(diffuse)
+            out["specular"][put] = exr.to_float32(specular)
+            out["default"][put] = exr.to_float32(diffuse + specular)
         return out
 
     def prepare(self, aovs: dict[str, np.ndarray]) -> PreparedFrame:
@@ -236,6 +252,20 @@ class Denoiser:
             raise KpcnError(f"{self.run.dir}: a prepared frame runs the networks without a compositor; load the run "
                             "with multiscale=False (Denoiser.from_run) or denoise it whole")
         return PreparedFrame(self, aovs)
+
+
+def check_region(region, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``region`` as (y0, y1, x0, x1) ints, a non-empty rectangle inside a frame of ``shape`` (H, W);
+    OptionError naming what was found otherwise."""
+    try:
+        y0, y1, x0, x1 = (int(v) for v in region)
+    except (TypeError, ValueError):
+        raise OptionError("region", f"must be four integers y0, y1, x0, x1, got {region!r}") from None
+    h, w = shape
+    if not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
+        raise OptionError("region", f"must be a non-empty rectangle inside the {w}x{h} frame (0 <= y0 < y1 <= {h}, "
+                          f"0 <= x0 < x1 <= {w}), got {(y0, y1, x0, x1)}")
+    return y0, y1, x0, x1
 
 
 def _kept(pred: np.ndarray, tile, window) -> np.ndarray:
@@ -256,9 +286,9 @@ class PreparedFrame:
     """One frame with its trunks run once (:meth:`Denoiser.prepare`), for a run with a specialisation module:
     calling it with λ (a number or an (H, W) map, ``kpcn_keras.slope_map``) re-runs only, per tile, the module,
     the kernel head and the kernel application, and gives what ``denoiser(aovs, slope)`` gives (the same tiles,
-    the same layers: equal to float rounding, tested). It holds each tile window's network input and trunk
-    activations for both branches: about (in_channels + width) float32s a pixel and branch, times the tiles'
-    overlap, so a 1920 x 1080 frame of the cpu preset holds about 1.5 GB."""
+    the same layers: equal to float rounding, tested). It holds, per tile window and branch, what
+    ``models.slope_module_parts``' trunk gives: the trunk's activations (``width`` channels in the trunk's
+    precision) and the noisy colour, or a λ mixture's J filtered colours (:attr:`nbytes`)."""
 
     def __init__(self, denoiser: Denoiser, aovs: dict[str, np.ndarray]):
         self.denoiser = denoiser
@@ -273,20 +303,29 @@ class PreparedFrame:
             for tile, window in denoiser.tiles(*self.shape):
                 # λ = 1 holds the place of the map each call writes
                 feats = network_input(features.branch_features(aovs, branch, window, scale=scale), cfg, branch, 1.0)
-                activations = keras.ops.convert_to_numpy(trunk.predict_on_batch(feats[None]))
-                self.tiles[branch, tile] = (feats, activations)
+                # torch tensors: each map hands them to the module as they are, no conversion
+                self.tiles[branch, tile] = [keras.ops.convert_to_tensor(x) for x in kept_of(trunk, feats[None])]
             gc.collect(1)
 
-    def __call__(self, slope) -> dict[str, np.ndarray]:
-        """``diffuse``, ``specular`` and ``default`` (linear, float32) at ``slope``."""
+    def __call__(self, slope, region=None) -> dict[str, np.ndarray]:
+        """``diffuse``, ``specular`` and ``default`` (linear, float32) at ``slope``; with ``region`` (y0, y1, x0,
+        x1), of those pixels alone, re-running only the tiles that meet them: a map changed inside a region
+        changes the output there alone (the module is 1x1), so a brush stroke needs its own rectangle only."""
         self.denoiser.check_slope(slope, self.shape)
+        if region is not None:
+            region = check_region(region, self.shape)
         return self.denoiser.assemble(self.albedo, lambda branch, tile, window: self._predict(branch, tile, window,
-                                                                                              slope))
+                                                                                              slope), region)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of what the prepared frame holds for the maps (the module docstring's tensors)."""
+        return sum(x.element_size() * x.nelement() for kept in self.tiles.values() for x in kept)
 
     def _predict(self, branch: str, tile, window, slope) -> np.ndarray:
-        feats, activations = self.tiles[branch, tile]
-        feats = with_slope(feats, _window_of(slope, window))
-        pred = keras.ops.convert_to_numpy(self.modules[branch].predict_on_batch([activations, feats[None]]))[0]
+        ya, yb, xa, xb = window
+        plane = keras.ops.convert_to_tensor(slope_plane(_window_of(slope, window), (yb - ya, xb - xa)))
+        pred = keras.ops.convert_to_numpy(self.modules[branch].predict_on_batch([*self.tiles[branch, tile], plane]))[0]
         gc.collect(1)  # as in Denoiser.predict_tile
         return _kept(pred, tile, window)
 

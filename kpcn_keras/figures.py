@@ -15,6 +15,9 @@ file                   what (seed report figure: docs/method.md §10)
                        multiscale run only
 ``slopes.png``         the same frame denoised at a sweep of λ (Fig. 17); a run trained with
                        ``--slope-input`` only (a network trained at one λ has nothing to sweep)
+``slope_map.png``      Fig. 17 with a map: λ at the low end of the run's range on the left half, the high end
+                       on the right, beside both uniform results and each half's largest difference from
+                       its uniform frame; a run trained with ``--slope-module`` only
 ``sampling.png``       the run's shard set: a render's sampling PDF and the patches cut from it (Fig. 3)
 ``inputs.png``         the run's shard set: the network inputs of one of those patches (Fig. 4)
 =====================  ===================================================================================
@@ -24,7 +27,7 @@ frame when it is an input of the run's shard set, else on the set's first held-o
 shard set, or that render, is not there (a shipped model) draws the others.
 
 The chosen pixel defaults to the pixel of the highest noisy-colour variance at least a kernel radius from
-the border: where a kernel has the most to do. Each of the six files is checked against every file the
+the border: where a kernel has the most to do. Each of the seven files is checked against every file the
 figures read (the frame, its reference, the run's models, the shard set's manifest, render and shards)
 before the run is loaded. The run's record is read once and its networks loaded once
 (``Denoiser.from_run``): every figure, the λ sweep and the comparison without the compositor use that one
@@ -50,7 +53,8 @@ from prep.figures import DATA_FIGURES, data_plan
 from prep.files import check_outputs, pyplot, save_png
 from prep.inputs import InputSet, restrict
 
-FIGURES = {**{name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes")}, **DATA_FIGURES}
+FIGURES = {**{name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes",
+                                                              "slope_map")}, **DATA_FIGURES}
 
 
 def _to_numpy(x) -> np.ndarray:
@@ -173,6 +177,33 @@ def slope_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, slopes
     return side_by_side_png(path, panels, title="asymmetric loss slope λ at inference (seed report Fig. 17)")
 
 
+def half_and_half(den: Denoiser, aovs: dict, low: float, high: float) -> dict[str, np.ndarray]:
+    """The frame denoised with λ = ``low`` on the left half (columns below W // 2) and ``high`` on the right
+    (``"map"``), and at each λ alone (``"low"``, ``"high"``): the default colour of each."""
+    h, w = aovs["depth"].shape
+    painted = np.where(np.arange(w) < w // 2, low, high)[None].repeat(h, 0)
+    return {"map": den(aovs, slope=painted)["default"], "low": den(aovs, slope=low)["default"],
+            "high": den(aovs, slope=high)["default"]}
+
+
+def slope_map_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path) -> Path:
+    """``slope_map.png``: :func:`half_and_half` at the ends of the run's λ range, the map's halves against
+    the uniform frames in the captions."""
+    from kpcn_keras.denoise import side_by_side_png
+
+    low, high = den.record.train.slope_range
+    got = half_and_half(den, aovs, low, high)
+    half = aovs["depth"].shape[1] // 2
+    left = np.abs(got["map"][:, :half] - got["low"][:, :half]).max()
+    right = np.abs(got["map"][:, half:] - got["high"][:, half:]).max()
+    panels = [(_caption(f"λ = {low:g} everywhere", got["low"], ref), got["low"]),
+              (_caption(f"λ = {low:g} | {high:g}\nleft vs λ = {low:g}: max |Δ| {left:.2g}\nright vs λ = {high:g}: "
+                        f"max |Δ| {right:.2g}", got["map"], None), got["map"]),
+              (_caption(f"λ = {high:g} everywhere", got["high"], ref), got["high"])]
+    return side_by_side_png(path, [("input", aovs["default"]), *panels],
+                            title="a painted λ map: one half at each end of the range (Fig. 17 with a map)")
+
+
 def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=None,
                  slopes=DEFAULT_SLOPES, tile: int = DEFAULT_TILE) -> dict[str, Path]:
     """Every figure the run can show, for ``frame`` = (noisy EXR, reference EXR or None); returns name -> path."""
@@ -205,9 +236,11 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
         written["alpha"] = alpha_figure(den, aovs, out_dir / FIGURES["alpha"], slope)
     if slope is not None:
         written["slopes"] = slope_figure(den, aovs, ref, out_dir / FIGURES["slopes"], slopes)
+    if den.model_config.slope_module:
+        written["slope_map"] = slope_map_figure(den, aovs, ref, out_dir / FIGURES["slope_map"])
     if data:
         written.update(data.draw(out_dir))
     return written
 
 
-__all__ = ["choose_pixel", "make_figures"]
+__all__ = ["choose_pixel", "half_and_half", "make_figures"]

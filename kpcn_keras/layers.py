@@ -36,6 +36,7 @@ __all__ = [
     "FinalColour",
     "FusedConv2D",
     "KernelApply",
+    "MixColours",
     "PadToMultiple",
     "TakeChannels",
     "apply_kernels",
@@ -377,6 +378,51 @@ class KernelApply(keras.layers.Layer):
     def get_config(self):
         config = super().get_config()
         config["kernel_size"] = self.kernel_size
+        return config
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class MixColours(keras.layers.Layer):
+    """Inputs ``[colours (B, H, W, C * J), logits (B, H, W, J)]`` -> (B, H, W, C): per pixel the J colours
+    (channels ``j C .. (j + 1) C - 1`` the j-th) weighted by the softmax of the J logits (max-subtracted). For J colours each filtered by a normalised kernel this is the colour filtered
+    by the mixture of those kernels (the kernel application is linear in the kernel): a kernel-predicting
+    network's λ mixture (``models``, ``ModelConfig.slope_mixture``). No weights."""
+
+    def __init__(self, channels: int = 3, **kwargs):
+        super().__init__(**kwargs)
+        if not is_integer(channels) or int(channels) < 1:
+            raise ValueError(f"channels must be a positive integer, received {channels!r}")
+        self.channels = int(channels)
+
+    def build(self, input_shape):
+        colours_shape, logits_shape = input_shape
+        mixed, parts = colours_shape[-1], logits_shape[-1]
+        if mixed is not None and parts is not None and mixed != parts * self.channels:
+            raise ValueError(f"MixColours(channels={self.channels}) needs {self.channels} colour channels per logit, "
+                             f"received shapes {tuple(colours_shape)} and {tuple(logits_shape)}")
+
+    def call(self, inputs):
+        colours, logits = inputs
+        c, parts = self.channels, logits.shape[-1]
+        # the softmax spelled out over the J slices: the logits arrive as a channels-last view of the head's
+        # channels-first output, along whose last axis torch's softmax is 3x slower (J = 2, a 270 x 270 tile)
+        z = [logits[..., j : j + 1] for j in range(parts)]
+        top = z[0]
+        for zj in z[1:]:
+            top = ops.maximum(top, zj)
+        weights = [ops.exp(zj - top) for zj in z]  # the largest is 1, so their sum is >= 1
+        out, total = weights[0] * colours[..., 0:c], weights[0]
+        for j in range(1, parts):
+            out = out + weights[j] * colours[..., j * c : (j + 1) * c]
+            total = total + weights[j]
+        return out / total
+
+    def compute_output_shape(self, input_shape):
+        return tuple(input_shape[0][:-1]) + (self.channels,)
+
+    def get_config(self):
+        config = super().get_config()
+        config["channels"] = self.channels
         return config
 
 

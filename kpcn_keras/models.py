@@ -78,6 +78,7 @@ from kpcn_keras.layers import (
     FinalColour,
     FusedConv2D,
     KernelApply,
+    MixColours,
     PadToMultiple,
     TakeChannels,
     softmax_kernels,
@@ -93,13 +94,15 @@ __all__ = [
     "build_final_model",
     "build_kernel_model",
     "input_alignment",
+    "kept_of",
     "load_model",
+    "mixture_bias",
     "network_input",
     "receptive_radius",
     "slope_module_parts",
     "trunk_layers",
+    "slope_plane",
     "trunk_radius",
-    "with_slope",
 ]
 
 FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
@@ -138,12 +141,10 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
     return np.concatenate([features] + planes, axis=-1)
 
 
-def with_slope(net_input: np.ndarray, slope) -> np.ndarray:
-    """A copy of ``net_input`` (a :func:`network_input` with a slope channel) with λ = ``slope`` (a number or
-    an array broadcastable to its (..., H, W)) in place of its own: the slope channel is the last."""
-    out = np.array(net_input, np.float32)
-    out[..., -1] = _log_slope(slope)
-    return out
+def slope_plane(slope, shape: tuple[int, int]) -> np.ndarray:
+    """The slope channel (1, H, W, 1) of an (H, W) = ``shape`` window at λ = ``slope`` (a number or an (H, W)
+    map): what :func:`slope_module_parts`' ``module`` takes last, as :func:`network_input` writes it."""
+    return np.ascontiguousarray(np.broadcast_to(_log_slope(slope), shape)[None, ..., None])
 
 
 def _log_slope(slope) -> np.ndarray:
@@ -257,14 +258,13 @@ def _trunk(features, cfg: ModelConfig, prefix: str, data_format: str):
     return x
 
 
-def _slope_module(x, features, cfg: ModelConfig, prefix: str, data_format: str):
-    """The loss-specialisation module on the trunk's activations ``x``: log λ (the features' last channel,
-    laid out as ``x``) joined (``<prefix>slope_join``, what :func:`slope_module_parts` cuts at), then
+def _slope_module(x, slope, cfg: ModelConfig, prefix: str, data_format: str):
+    """The loss-specialisation module on the trunk's activations ``x``: log λ (``slope``, the features' last
+    channel, laid out as ``x``) joined (``<prefix>slope_join``, what :func:`slope_module_parts` cuts at), then
     ``cfg.slope_module`` 1x1 convolutions of ``cfg.width`` filters and ReLUs. 1x1, so that λ at a pixel sets
     that pixel's kernel alone, whose taps read colour, not λ: a map changed in a region changes the output in
     that region alone."""
     first = data_format == "channels_first"
-    slope = TakeChannels(cfg.input_channels - 1, cfg.input_channels, name=f"{prefix}slope")(features)
     align = input_alignment(cfg)
     if align > 1:
         slope = PadToMultiple(align, name=f"{prefix}slope_pad")(slope)
@@ -279,9 +279,11 @@ def _slope_module(x, features, cfg: ModelConfig, prefix: str, data_format: str):
 
 def slope_module_parts(model: keras.Model) -> tuple[keras.Model, keras.Model]:
     """``(trunk, module)`` of a branch model with a specialisation module, with its weights (copied): ``trunk`` maps
-    the network input to the activations λ joins (one input's worth of them: run it once per frame);
-    ``module`` maps ``[activations, network input]`` to the model's output, reading only the colour and λ of
-    the input (run it again for each λ map). ValueError for a model without the module."""
+    the network input to what λ does not change, for one frame (run it once; :func:`kept_of` gives it as a list):
+    the activations λ joins, then the noisy colour the kernels filter, or for a λ mixture its J filtered colours;
+    ``module`` maps ``[*that, log λ]`` (:func:`slope_plane`) to the model's output (run it again for each λ map).
+    The module reads no other feature, so a new map costs the module, the copy of λ into it and what follows.
+    ValueError for a model without the module."""
     join = f"{model.name}_slope_join"
     if join not in {layer.name for layer in model.layers}:
         raise ValueError(f"model {model.name!r} has no slope module (trained without --slope-module)")
@@ -289,9 +291,20 @@ def slope_module_parts(model: keras.Model) -> tuple[keras.Model, keras.Model]:
     # model cut from then no longer saves ("could not find node key")
     copy = keras.models.clone_model(model)
     copy.set_weights(model.get_weights())
-    activations = copy.get_layer(join).input[0]
-    return (keras.Model(copy.input, activations, name=f"{model.name}_trunk"),
-            keras.Model([activations, copy.input], copy.output, name=f"{model.name}_module"))
+    names = {layer.name for layer in copy.layers}
+    kept = [copy.get_layer(join).input[0],
+            copy.get_layer(f"{model.name}_filtered" if f"{model.name}_filtered" in names
+                           else f"{model.name}_noisy_colour").output]
+    slope = copy.get_layer(f"{model.name}_slope").output
+    return (keras.Model(copy.input, kept, name=f"{model.name}_trunk"),
+            keras.Model([*kept, slope], copy.output, name=f"{model.name}_module"))
+
+
+def kept_of(trunk: keras.Model, batch) -> list[np.ndarray]:
+    """What :func:`slope_module_parts`' ``trunk`` gives for ``batch``, as the list its ``module`` takes first
+    (Keras hands back a model's one output bare, not in a list)."""
+    out = trunk.predict_on_batch(batch)
+    return [keras.ops.convert_to_numpy(x) for x in (out if isinstance(out, (list, tuple)) else [out])]
 
 
 def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: str = TRUNK_FORMAT) -> keras.Model:
@@ -320,9 +333,12 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
         trunk_input = TakeChannels(0, cfg.input_channels - 1, name=f"{p}features_without_slope")(features)
     x = PadToMultiple(align, name=f"{p}pad")(trunk_input) if align > 1 else trunk_input
     x = keras.layers.Permute(TO_CHANNELS_FIRST, name=f"{p}to_channels_first")(x) if first else x
-    x = _trunk(x, cfg, p, data_format)
+    x = trunk = _trunk(x, cfg, p, data_format)
+    # what the layers after the join crop to: the slope channel, so that the module reads no other feature
+    like = features
     if cfg.slope_module:
-        x = _slope_module(x, features, cfg, p, data_format)
+        like = TakeChannels(cfg.input_channels - 1, cfg.input_channels, name=f"{p}slope")(features)
+        x = _slope_module(x, like, cfg, p, data_format)
     if cfg.arch == "dpcn":
         correction = _conv_class(data_format)(
             COLOUR_CHANNELS, 1, kernel_initializer="zeros", bias_initializer="zeros", data_format=data_format,
@@ -334,18 +350,58 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
         # a kernel output is a convex combination of the input colour and stays in its range by itself;
         # a direct prediction is clamped to it, else one extreme pixel maps back to inf (exp(c) - 1)
         out = keras.layers.ReLU(max_value=LOG_COLOUR_MAX, name=f"{p}colour_out")(out)
-    else:
-        logits = _conv_class(data_format)(
-            cfg.kernel_size**2, 1, kernel_initializer="zeros", bias_initializer="zeros", data_format=data_format,
-            name=f"{p}kernel_logits",
-        )(x)
-        if first:
-            # a free view: torch already holds the logits in channels-last memory, each pixel's taps contiguous
-            logits = keras.layers.Permute(TO_CHANNELS_LAST, name=f"{p}logits_last")(logits)
-        if align > 1:  # the kernels filter the frame's own colour, edge-replicated at its own border
-            logits = CropLike(name=f"{p}crop")([logits, features])
+    elif not cfg.slope_mixture:
+        logits = _head(x, cfg.kernel_size**2, like, cfg, f"{p}kernel_logits", f"{p}logits_last", f"{p}crop",
+                       data_format)
         out = KernelApply(cfg.kernel_size, name=f"{p}kernel_apply")([colour, logits])
+    else:
+        out = _slope_mixture(trunk, x, colour, features, like, cfg, p, data_format)
     return keras.Model(features, out, name=name)
+
+
+def _head(x, channels: int, like, cfg: ModelConfig, name: str, last_name: str, crop_name: str, data_format: str,
+          bias: np.ndarray | None = None):
+    """A zero-initialised 1x1 convolution of ``x`` to ``channels`` (its bias ``bias`` if given), channels last
+    and cropped to the size of ``like`` (the features, or a channel of them)."""
+    head = _conv_class(data_format)(channels, 1, kernel_initializer="zeros", bias_initializer="zeros",
+                                    data_format=data_format, name=name)
+    out = head(x)
+    if bias is not None:
+        head.bias.assign(bias.astype(np.float32))
+    if data_format == "channels_first":
+        # a free view: torch already holds the logits in channels-last memory, each pixel's taps contiguous
+        out = keras.layers.Permute(TO_CHANNELS_LAST, name=last_name)(out)
+    if input_alignment(cfg) > 1:  # the kernels filter the frame's own colour, edge-replicated at its border
+        out = CropLike(name=crop_name)([out, like])
+    return out
+
+
+def mixture_bias(kernel_size: int, parts: int) -> np.ndarray:
+    """Starting logits of a λ mixture's ``parts`` kernels, tap t = i k + j of kernel m at channel m k² + t:
+    Gaussians -d²/(2σ²) of the tap's distance d from the centre, σ geometric from k / 2 (near a box) down to
+    1/2 (near the pixel itself). Kernels that start alike would get alike gradients and stay alike; these
+    start as a choice between smoothing and keeping, which λ is about."""
+    c = kernel_size // 2
+    i, j = np.mgrid[0:kernel_size, 0:kernel_size]
+    d2 = ((i - c) ** 2 + (j - c) ** 2).ravel().astype(np.float64)
+    sigmas = np.geomspace(kernel_size / 2, 0.5, parts)
+    return np.concatenate([-d2 / (2 * sigma**2) for sigma in sigmas])
+
+
+def _slope_mixture(trunk, module, colour, features, like, cfg: ModelConfig, prefix: str, data_format: str):
+    """The λ mixture (``cfg.slope_mixture`` J): J kernels from the trunk's activations, each applied to the noisy
+    colour (``<prefix>filtered``: J colours, what :func:`slope_module_parts` caches), mixed per pixel by the
+    softmax of J logits the specialisation module predicts from the activations and λ (``MixColours``). The
+    mixture of normalised kernels is a normalised kernel, so the output stays a kernel-filtered colour."""
+    k2, parts = cfg.kernel_size**2, cfg.slope_mixture
+    logits = _head(trunk, parts * k2, features, cfg, f"{prefix}kernel_logits", f"{prefix}logits_last", f"{prefix}crop",
+                   data_format, bias=mixture_bias(cfg.kernel_size, parts))
+    filtered = [KernelApply(cfg.kernel_size, name=f"{prefix}kernel_apply{m}")(
+        [colour, TakeChannels(m * k2, (m + 1) * k2, name=f"{prefix}kernel{m}_logits")(logits)]) for m in range(parts)]
+    filtered = keras.layers.Concatenate(axis=-1, name=f"{prefix}filtered")(filtered)
+    mix = _head(module, parts, like, cfg, f"{prefix}mixture_logits", f"{prefix}mixture_last",
+                f"{prefix}mixture_crop", data_format)
+    return MixColours(COLOUR_CHANNELS, name=f"{prefix}mix")([filtered, mix])
 
 
 def build_final_model(networks: dict, input_channels: int, name: str = "final") -> keras.Model:
@@ -365,12 +421,21 @@ def build_final_model(networks: dict, input_channels: int, name: str = "final") 
 
 
 def build_kernel_model(model: keras.Model) -> keras.Model:
-    """Model sharing ``model``'s weights that returns the softmaxed per-pixel kernels (B, H, W, k*k).
+    """Model sharing ``model``'s weights that returns the softmaxed per-pixel kernels (B, H, W, k*k): for a λ
+    mixture, the mixture of its kernels.
 
     Tap t = i*k + j is row-major with the centre at (k//2, k//2); reshape to (B, H, W, k, k) to view a
     kernel. Raises ValueError for a model without exactly one ``KernelApply`` (e.g. dpcn).
     """
-    appliers = [layer for layer in model.layers if isinstance(layer, KernelApply)]
+    appliers = sorted((layer for layer in model.layers if isinstance(layer, KernelApply)), key=lambda la: la.name)
+    mixers = [layer for layer in model.layers if isinstance(layer, MixColours)]
+    if mixers and len(appliers) > 1:
+        # a λ mixture: the kernel applied is the mixture of its kernels (the application is linear in the kernel)
+        weights = softmax_kernels(mixers[0].input[1])
+        kernels = weights[..., 0:1] * softmax_kernels(appliers[0].input[1])
+        for m, applier in enumerate(appliers[1:], 1):
+            kernels = kernels + weights[..., m : m + 1] * softmax_kernels(applier.input[1])
+        return keras.Model(model.input, kernels, name=f"{model.name}_kernels")
     if len(appliers) != 1:
         raise ValueError(
             f"model {model.name!r} must contain exactly one KernelApply layer to expose kernels, "

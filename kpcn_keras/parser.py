@@ -290,6 +290,9 @@ def _train_options(add) -> None:
     g.add_argument("--slope-module", type=int, help="λ joined after the trunk through this many 1x1 convolutions, "
                    "trained on λ maps (needs --slope-input): a new map re-runs only those (kpcn denoise --slope-map; "
                    "default: 0, λ at the input)")
+    g.add_argument("--slope-mixture", type=int, help="with --slope-module: the trunk predicts this many kernels and "
+                   "the module mixes them per pixel by λ, so a new map re-runs the module and a blend, not the "
+                   "kernels (default: 0, the module feeds the one kernel head)")
     g.add_argument("--shared", action="store_true", help="one network for both branches, told apart by a one-hot "
                    "input (default: one network per branch)")
     g = t.add_argument_group("phases")
@@ -390,6 +393,25 @@ def _denoise_options(add) -> None:
                    "spp: the two are denoised as one frame, its variance from their difference")
     n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
     n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
+
+
+def _view_options(add) -> None:
+    """The options of ``kpcn view``."""
+    from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_TILE, PORT, SLOPE, TILE
+    from kpcn_keras.viewer import DEFAULT_PORT, HOST
+
+    v = add("view", own={"tile": TILE, "slope": SLOPE, "port": PORT}, help="one frame on a local page: input, "
+            "kpcn, reference and OIDN with a swipe, zoom and exposure, and a brush that paints λ (a run trained "
+            "with --slope-module)")
+    v.add_argument("frame", help="an EXR in any layout kpcn denoise reads")
+    _run_option(v, help=f"a finished run folder or shipped model (default: as kpcn denoise, models/{DEFAULT_MODEL})")
+    v.add_argument("--reference", default=None, help="the frame's reference EXR, a view of the page")
+    v.add_argument("--slope", type=float, help="λ to start from (everywhere), for a run trained with λ as an "
+                   "input (default: the run's validation λ)")
+    v.add_argument("--port", type=int, help=f"port on {HOST} (default: {DEFAULT_PORT}; 0 takes a free one)")
+    v.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
+    _precision_option(v)
+    _layout_option(v)
 
 
 def _precision_option(parser) -> None:
@@ -586,6 +608,7 @@ BUILDERS = {
     "train": _train_options,
     "resample": _resample_options,
     "denoise": _denoise_options,
+    "view": _view_options,
     "evaluate": _evaluate_options,
     "ship": _ship_options,
     "figures": _figures_options,

@@ -50,6 +50,31 @@ def draw(rng: np.random.Generator, size: int, slope_range: tuple[float, float]) 
     return np.exp(bilinear(nodes, (size, size))).astype(np.float32)
 
 
+def from_grey(grey: np.ndarray, slope_range: tuple[float, float]) -> np.ndarray:
+    """λ (float64) of grey levels in [0, 1]: low (high / low)^g, log-linear over ``slope_range``."""
+    lo, hi = np.log(np.asarray(slope_range, np.float64))
+    return np.exp(lo + np.asarray(grey, np.float64) * (hi - lo))
+
+
+def to_grey(slopes: np.ndarray, slope_range: tuple[float, float]) -> np.ndarray:
+    """The inverse of :func:`from_grey`: grey levels in [0, 1] (float64) of λ, clipped to ``slope_range``."""
+    lo, hi = np.log(np.asarray(slope_range, np.float64))
+    return np.clip((np.log(np.asarray(slopes, np.float64)) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def png_bytes(slopes: np.ndarray, slope_range: tuple[float, float]) -> bytes:
+    """A λ map as a 16-bit greyscale PNG over ``slope_range`` (what :func:`read` reads back, to 1/65535 of the
+    range in log λ)."""
+    import io
+
+    from PIL import Image
+
+    grey = np.round(to_grey(slopes, slope_range) * 65535.0).astype(np.uint16)
+    buffer = io.BytesIO()
+    Image.fromarray(grey).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
 def _grey(path: Path) -> np.ndarray:
     """A greyscale PNG's pixels as g in [0, 1] (float64); KpcnError naming the file for anything else."""
     from PIL import Image, UnidentifiedImageError
@@ -91,7 +116,7 @@ def read(path: str | os.PathLike, shape: tuple[int, int], slope_range: tuple[flo
         raise KpcnError(f"{path}: no such λ map file")
     suffix = path.suffix.lower()
     if suffix in PNG_SUFFIXES:
-        log_map = np.log(lo) + _grey(path) * (np.log(hi) - np.log(lo))
+        log_map = np.log(from_grey(_grey(path), (lo, hi)))
     elif suffix in EXR_SUFFIXES:
         slopes = _exr(path)
         if not np.all(np.isfinite(slopes)) or slopes.min() < lo or slopes.max() > hi:

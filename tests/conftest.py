@@ -68,6 +68,22 @@ def tiny_slope_module_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_slope_mixture_run(tmp_path_factory):
+    """A run folder of a tiny KPCN whose module mixes two kernels by λ (``--slope-module 1 --slope-mixture 2``),
+    trained for a few steps on random renders."""
+    from kpcn_keras.train import TrainConfig, train
+
+    tmp = tmp_path_factory.mktemp("slope-mixture")
+    shard_cfg = build_tiny_shards(tmp)
+    cfg = TrainConfig.from_preset(
+        "cpu", set_name="s", shards_root=shard_cfg.out_root,
+        model={**TINY_MODEL, "slope_module": 1, "slope_mixture": 2}, loss="asymmetric", slope_input=True, steps=4,
+        steps_per_epoch=4, batch_size=2, val_batches=1,
+    )
+    return train(cfg, tmp / "runs" / "r", verbose=0)
+
+
+@pytest.fixture(scope="session")
 def tiny_run_of_every_input_set(tmp_path_factory):
     """A tiny run with a variant for every other input set in its ``inputs/`` folder: what ``make train`` and
     ``make train-inputs`` make, at toy size, so that a frame of any layout finds its model."""

@@ -665,3 +665,43 @@ def parts_of(channels: dict) -> dict[str, list[str]]:
     for name in channels:
         parts.setdefault(name.rpartition(".")[0], []).append(name)
     return parts
+
+
+# Debian's Chromium and its driver (.ci/run installs them); the flags keep it from reaching for Google's hosts,
+# which a closed network refuses many times a start
+CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--disable-dev-shm-usage", "--hide-scrollbars", "--force-device-scale-factor=1")
+REQUIRE_BROWSER = "KPCN_REQUIRE_BROWSER"  # set (CI sets it): a missing browser fails the browser tests
+
+
+@contextlib.contextmanager
+def headless_chromium(profile: Path, size=(1280, 800)):
+    """A Selenium driver of headless Chromium with an empty profile in ``profile``, the window ``size``; the
+    test is skipped where Chromium or Selenium is missing, unless :data:`REQUIRE_BROWSER` is set."""
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        selenium = None
+    else:
+        selenium = webdriver
+    missing = [what for what, here in (("selenium", selenium is not None), (str(CHROMIUM), CHROMIUM.exists()),
+                                        (str(CHROMEDRIVER), CHROMEDRIVER.exists())) if not here]
+    if missing:
+        message = f"no browser to test the page in: {', '.join(missing)} missing (apt-get install chromium " \
+                  "chromium-driver; pip install '.[test]')"
+        if os.environ.get(REQUIRE_BROWSER):
+            pytest.fail(message)
+        pytest.skip(message)
+    os.environ.setdefault("SE_OFFLINE", "true")  # Selenium Manager must not look for drivers on the network
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in (*CHROMIUM_FLAGS, f"--window-size={size[0]},{size[1]}", f"--user-data-dir={profile}"):
+        options.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+    try:
+        yield driver
+    finally:
+        driver.quit()

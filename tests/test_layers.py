@@ -16,6 +16,7 @@ from kpcn_keras.layers import (
     FinalColour,
     FusedConv2D,
     KernelApply,
+    MixColours,
     PadToMultiple,
     TakeChannels,
     _softmax_kernels_ops,
@@ -158,7 +159,22 @@ LAYER_CASES = {
     "FinalColour": (lambda: FinalColour(), [(8, 6, 3), (8, 6, 3), (8, 6, 3)]),
     "PadToMultiple": (lambda: PadToMultiple(4), [(7, 5, 5)]),
     "CropLike": (lambda: CropLike(2), [(11, 8, 4), (8, 6, 1)]),
+    "MixColours": (lambda: MixColours(3, name="mix"), [(8, 6, 9), (8, 6, 3)]),
 }
+
+
+def test_mix_colours_weighs_each_colour_by_the_softmax_of_its_logit_as_float64_does():
+    rng = np.random.default_rng(7)
+    colours = rng.normal(size=(2, 5, 4, 3 * 4)).astype(np.float32)
+    logits = (rng.normal(size=(2, 5, 4, 4)) * 30).astype(np.float32)  # far apart: the max subtraction matters
+    z = logits.astype(np.float64) - logits.max(axis=-1, keepdims=True)
+    w = np.exp(z) / np.exp(z).sum(axis=-1, keepdims=True)
+    want = np.einsum("bhwj,bhwjc->bhwc", w, colours.astype(np.float64).reshape(2, 5, 4, 4, 3))
+    np.testing.assert_allclose(to_np(MixColours(3)([colours, logits])), want, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="3 colour channels per logit"):
+        MixColours(3)([colours, logits[..., :3]])
+    with pytest.raises(ValueError, match="positive integer.*0"):
+        MixColours(0)
 
 
 @pytest.mark.parametrize("name", sorted(LAYER_CASES))

@@ -10,7 +10,7 @@ from helpers import TINY_MODEL, random_aovs, randomise, write_channels
 from kpcn_keras import slope_map
 from kpcn_keras.config import ModelConfig
 from kpcn_keras.denoise import Denoiser
-from kpcn_keras.models import build_branch_model, network_input, slope_module_parts
+from kpcn_keras.models import build_branch_model, kept_of, network_input, slope_module_parts
 from kpcn_keras.run import Run
 from prep.errors import KpcnError, OptionError
 
@@ -101,7 +101,11 @@ def outputs(model, x):
     return np.asarray(model.predict_on_batch(x[None]))[0]
 
 
-@pytest.mark.parametrize("arch, extra", [("kpcn", {}), ("unet", {"levels": 2}), ("kpal", {})])
+MODULES = [("kpcn", {}), ("unet", {"levels": 2}), ("kpal", {}), ("kpcn", {"slope_mixture": 3}),
+           ("unet", {"levels": 2, "slope_mixture": 2})]
+
+
+@pytest.mark.parametrize("arch, extra", MODULES)
 def test_the_module_keeps_lambda_out_of_the_trunk_and_its_parts_give_the_models_output(arch, extra, tmp_path):
     import keras
 
@@ -111,19 +115,23 @@ def test_the_module_keeps_lambda_out_of_the_trunk_and_its_parts_give_the_models_
     x1 = network_input(feats, cfg, "diffuse", 1.5)
     x2 = network_input(feats, cfg, "diffuse", slope_map.draw(np.random.default_rng(5), 22, RANGE)[:18])
     trunk, module = slope_module_parts(model)
-    a1, a2 = (np.asarray(trunk.predict_on_batch(x[None])) for x in (x1, x2))
-    np.testing.assert_array_equal(a1, a2)  # λ never reaches the trunk
-    for x, a in ((x1, a1), (x2, a2)):
-        np.testing.assert_allclose(np.asarray(module.predict_on_batch([a, x[None]]))[0], outputs(model, x),
-                                   rtol=1e-5, atol=1e-6)
+    k1, k2 = (kept_of(trunk, x[None]) for x in (x1, x2))
+    # the activations, then the noisy colour or a mixture's filtered colours
+    assert [a.shape[-1] for a in k1[1:]] == [3 * (cfg.slope_mixture or 1)]
+    for a1, a2 in zip(k1, k2):
+        np.testing.assert_array_equal(a1, a2)  # λ never reaches the trunk
+    for x, kept in ((x1, k1), (x2, k2)):
+        got = module.predict_on_batch([*kept, x[None, ..., -1:]])  # the module reads λ alone of the features
+        np.testing.assert_allclose(np.asarray(got)[0], outputs(model, x), rtol=1e-5, atol=1e-6)
     assert not np.allclose(outputs(model, x1), outputs(model, x2), atol=1e-4)  # and λ moves the output
     model.save(tmp_path / "m.keras")
     np.testing.assert_array_equal(outputs(keras.models.load_model(tmp_path / "m.keras"), x2), outputs(model, x2))
 
 
-def test_a_map_changed_inside_a_region_changes_the_output_there_alone():
-    # 1x1 layers after the join: λ at a pixel sets that pixel's kernel, whose taps read colour, not λ
-    cfg, model = module_model()
+@pytest.mark.parametrize("extra", [{}, {"slope_mixture": 2}])
+def test_a_map_changed_inside_a_region_changes_the_output_there_alone(extra):
+    # 1x1 layers after the join: λ at a pixel sets that pixel's kernel (or mixture), whose taps read colour, not λ
+    cfg, model = module_model(**extra)
     feats = np.random.default_rng(3).normal(0.5, 0.3, (40, 40, cfg.in_channels)).astype(np.float32)
     base = np.full((40, 40), 2.0)
     painted = base.copy()
@@ -133,26 +141,49 @@ def test_a_map_changed_inside_a_region_changes_the_output_there_alone():
     np.testing.assert_array_equal(changed, painted != base)
 
 
+def test_a_mixtures_output_is_its_colour_filtered_by_the_mixture_of_its_kernels():
+    from helpers import reference_kernel_apply
+
+    from kpcn_keras.models import build_kernel_model, mixture_bias
+
+    cfg, model = module_model(slope_mixture=3)
+    feats = np.random.default_rng(4).normal(0.5, 0.3, (17, 19, cfg.in_channels)).astype(np.float32)
+    x = network_input(feats, cfg, "diffuse", slope_map.draw(np.random.default_rng(6), 19, RANGE)[:17])
+    kernels = np.asarray(build_kernel_model(model).predict_on_batch(x[None]), np.float64)
+    np.testing.assert_allclose(kernels.sum(axis=-1), 1.0, atol=1e-5)  # a mixture of kernels is a kernel
+    want, _ = reference_kernel_apply(x[None, ..., :3], np.log(np.maximum(kernels, 1e-30)), cfg.kernel_size)
+    np.testing.assert_allclose(outputs(model, x), want[0], rtol=1e-4, atol=1e-5)
+    # the starting kernels: Gaussians, the first widest, each peaked at the centre, none alike
+    k, c = cfg.kernel_size, cfg.kernel_size // 2
+    starts = mixture_bias(k, 3).reshape(3, k, k)
+    assert all(starts[m].argmax() == c * k + c for m in range(3))
+    assert starts[0][0, 0] > starts[1][0, 0] > starts[2][0, 0]
+
+
 def test_a_module_needs_lambda_as_an_input_and_kernels_to_specialise():
     with pytest.raises(OptionError, match="slope_module.*--slope-input"):
         ModelConfig(slope_module=1)
     with pytest.raises(OptionError, match="slope_module.*dpcn"):
         ModelConfig(arch="dpcn", slope_channel=True, slope_module=1)
-    assert "slope_module" not in ModelConfig().to_dict()  # older records unchanged
+    with pytest.raises(OptionError, match="slope_mixture.*--slope-module"):
+        ModelConfig(slope_channel=True, slope_mixture=2)
+    with pytest.raises(OptionError, match="slope_mixture.*at least 2"):
+        ModelConfig(slope_channel=True, slope_module=1, slope_mixture=1)
+    assert not {"slope_module", "slope_mixture"} & set(ModelConfig().to_dict())  # older records unchanged
 
 
 # ---------------------------------------------------------------- a run: maps, tiles, a prepared frame
 
 
-@pytest.fixture(scope="module")
-def denoiser(tiny_slope_module_run):
-    den = Denoiser.from_run(Run(tiny_slope_module_run), tile=16, precision="float32")
+@pytest.fixture(scope="module", params=["tiny_slope_module_run", "tiny_slope_mixture_run"])
+def denoiser(request):
+    den = Denoiser.from_run(Run(request.getfixturevalue(request.param)), tile=16, precision="float32")
     for model in den.networks.values():
         randomise(model, seed=4)
     return den
 
 
-def test_a_constant_map_is_the_uniform_lambda_and_tiles_do_not_show(denoiser, tiny_slope_module_run):
+def test_a_constant_map_is_the_uniform_lambda_and_tiles_do_not_show(denoiser):
     aovs = random_aovs(37, 45, seed=6)
     uniform = denoiser(aovs, slope=3.0)["default"]
     np.testing.assert_array_equal(denoiser(aovs, slope=np.full((37, 45), 3.0))["default"], uniform)
@@ -172,6 +203,45 @@ def test_a_prepared_frame_gives_the_full_denoise_for_every_map(denoiser):
             np.testing.assert_allclose(got[name], want[name], rtol=1e-5, atol=1e-6)
     with pytest.raises(OptionError, match="shape"):
         prepared(np.full((36, 45), 2.0))
+
+
+def test_a_prepared_frame_re_applies_a_region_alone_as_the_full_frame_gives_it(denoiser):
+    aovs = random_aovs(37, 45, seed=10)
+    prepared = denoiser.prepare(aovs)
+    slopes = np.full((37, 45), 2.0)
+    slopes[9:30, 14:33] = 7.0  # across tile borders (tiles of 16)
+    whole = prepared(slopes)
+    for region in ((9, 30, 14, 33), (0, 37, 0, 45), (36, 37, 44, 45)):
+        y0, y1, x0, x1 = region
+        got = prepared(slopes, region=region)
+        for name in ("diffuse", "specular", "default"):
+            assert got[name].shape == (y1 - y0, x1 - x0, 3)
+            np.testing.assert_array_equal(got[name], whole[name][y0:y1, x0:x1])
+    for region, needle in (((5, 5, 0, 3), "non-empty"), ((0, 38, 0, 3), "45x37"), ((0, 1, 0), "four integers")):
+        with pytest.raises(OptionError, match=needle):
+            prepared(slopes, region=region)
+
+
+def test_half_and_half_maps_match_each_uniform_frame_on_its_half_up_to_the_seam(denoiser):
+    from kpcn_keras.figures import half_and_half
+
+    aovs = random_aovs(24, 31, seed=12)
+    got = half_and_half(denoiser, aovs, 1.0, 8.0)
+    assert np.abs(got["low"] - got["high"]).max() > 1e-3  # λ matters, so equal halves are not a coincidence
+    np.testing.assert_allclose(got["map"][:, :15], got["low"][:, :15], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got["map"][:, 15:], got["high"][:, 15:], rtol=1e-5, atol=1e-6)
+
+
+def test_kpcn_figures_draws_the_half_and_half_map_for_a_run_with_the_module_alone(tmp_path, tiny_slope_module_run,
+                                                                                  tiny_slope_mixture_run, tiny_run):
+    from kpcn_keras.figures import make_figures
+    from prep import exr
+
+    exr.write_aovs(tmp_path / "f.exr", random_aovs(24, 31, seed=13))
+    for run in (tiny_slope_module_run, tiny_slope_mixture_run):  # a mixture's kernels: the mixture of its kernels
+        written = make_figures(run, (tmp_path / "f.exr", None))
+        assert {"kernels", "slopes", "slope_map"} <= set(written) and written["slope_map"].stat().st_size > 0
+    assert "slope_map" not in make_figures(tiny_run, (tmp_path / "f.exr", None))
 
 
 def test_a_map_is_refused_by_a_run_without_the_module(tiny_run):

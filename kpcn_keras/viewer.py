@@ -1,0 +1,276 @@
+"""``kpcn view``: one frame on a local page, to compare the denoised result and paint λ where the artist wants it
+(docs/denoise.md §7).
+
+A :class:`ViewSession` reads the frame (any layout ``prep.layouts`` reads), the model that serves it
+(``Run.serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the ``reference``
+(``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, albedo and normal, when ``pyoidn``
+is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor it prepares
+the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
+the map's new values in a rectangle, re-applied to that rectangle alone (``PreparedFrame(map, region)``: the
+module is 1x1, so pixels outside a changed region keep their values exactly). Any other run shows its
+denoised frame with the brush off and says why.
+
+:func:`listen` and :func:`serve` answer on 127.0.0.1 only (``http.server``, the standard library; the page is
+three files of ``kpcn_keras/view/``, nothing fetched from elsewhere, so it works offline):
+
+- ``GET /``: the page (``index.html``, ``view.js``, ``view.css``);
+- ``GET /api/info``: JSON: the frame's name and size, the views (with why one is missing), the model, the brush
+  (λ range and starting λ) or why there is none;
+- ``GET /api/view/<name>``: a view's linear RGB, float32, little-endian, row-major (H, W, 3);
+- ``POST /api/stroke?y0=&y1=&x0=&x1=``: the body is the map's new λ in that rectangle, float32 row-major; the
+  answer is the rectangle's denoised RGB (as a view), the seconds it took in ``X-Seconds``;
+- ``GET /api/map.png``: the map as a 16-bit greyscale PNG over the run's λ range (what ``kpcn denoise
+  --slope-map`` reads back: ``slope_map.png_bytes``).
+
+A request the session cannot take (a rectangle outside the frame, λ outside the run's range, a body of
+the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import signal
+import threading
+import time
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
+
+from kpcn_keras import slope_map
+from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.denoise import Denoiser, check_region, read_frame
+from kpcn_keras.run import Run
+from prep import layouts
+from prep.errors import KpcnError, OptionError
+
+HOST = "127.0.0.1"  # the page is for the person at this machine: nothing else may reach it
+DEFAULT_PORT = 8765
+PAGE_DIR = Path(__file__).with_name("view")
+PAGE_FILES = {"/": ("index.html", "text/html"), "/view.js": ("view.js", "text/javascript"),
+              "/view.css": ("view.css", "text/css")}
+VIEWS = ("input", "denoised", "reference", "oidn")  # in the page's order
+VIEW_LABELS = {"input": "noisy input", "denoised": "kpcn", "reference": "reference", "oidn": "OIDN"}
+
+
+class ViewSession:
+    """One frame, the denoiser that serves it and the views of the page; :meth:`stroke` paints λ (the module
+    docstring). :meth:`open` reads them from files; ``slope`` is λ to start from, everywhere (default: the
+    run's validation λ); ``log(message)`` tells the console what is being computed."""
+
+    def __init__(self, frame: layouts.Frame, denoiser: Denoiser, reference: np.ndarray | None = None, *,
+                 slope: float | None = None, log=print):
+        self.path, self.shape, self.model = frame.path, frame.size, str(denoiser.run.dir)
+        self.lock = threading.Lock()
+        begin = time.perf_counter()
+        record, run = denoiser.record, denoiser.run.dir
+        if slope is not None and not record.model.slope_channel:
+            raise OptionError("slope", f"is for a run trained with λ as an input; {run} takes none")
+        slope = record.validation_slope if slope is None else slope
+        record.check_slope(slope)
+        self.slope_range = tuple(float(v) for v in record.train.slope_range) if slope is not None else None
+        if slope is not None and not self.slope_range[0] <= slope <= self.slope_range[1]:
+            raise OptionError("slope", f"must lie within the run's trained range {list(self.slope_range)}, got {slope}")
+        self.slope = slope
+        log(f"{frame.path.name}: {self.shape[1]}x{self.shape[0]}, {frame.layout} layout; model {run}")
+        self.brush_note = None
+        if not record.model.slope_module:
+            self.brush_note = (f"{run} takes one λ for the whole frame (trained with --slope-input, not "
+                               "--slope-module)" if slope is not None else f"{run} takes no λ (trained with "
+                               "neither --slope-input nor --slope-module)")
+        elif denoiser.compositor is not None:
+            # the pyramid re-runs the whole network at every scale, so a new map would not be interactive
+            self.brush_note = f"{run} has a multiscale compositor, which re-runs the whole network for a new map"
+        self.prepared = None
+        if self.brush_note is None:
+            log("running each trunk once (the brush re-runs only the specialisation module and the kernels)")
+            self.prepared = denoiser.prepare(frame.layers)
+            self.map = np.full(self.shape, slope, np.float32)
+            denoised = self.prepared(self.map)["default"]
+        else:
+            log("denoising")
+            denoised = denoiser(frame.layers, slope=slope)["default"]
+        self.views = {"input": frame.layers["default"], "denoised": denoised}
+        self.missing = {}
+        if reference is not None:
+            self.views["reference"] = reference
+        else:
+            self.missing["reference"] = "no --reference given"
+        from prep import baselines
+
+        if baselines.oidn_available():
+            log("Intel Open Image Denoise on the same colour, albedo and normal")
+            self.views["oidn"] = baselines.oidn_denoise(frame.layers)
+        else:
+            self.missing["oidn"] = "pyoidn is not installed (pip install '.[oidn]')"
+        self.views = {name: np.ascontiguousarray(view, "<f4") for name, view in self.views.items()}
+        log(f"ready in {time.perf_counter() - begin:.1f} s")
+
+    @classmethod
+    def open(cls, frame_path, run_dir, reference=None, *, layout: str | None = None, slope: float | None = None,
+             tile: int = DEFAULT_TILE, precision: str | None = None, log=print) -> ViewSession:
+        """The session of the frame in ``frame_path`` (in ``layout``, default: found from its channels), the
+        run of ``run_dir`` that serves it (``Run.serving``) and the ``reference`` EXR if given."""
+        frame = read_frame(frame_path, layout=layout)
+        h, w = frame.size
+        ref = None
+        if reference is not None:
+            ref = layouts.read(reference).layers["default"]
+            if ref.shape[:2] != frame.size:
+                raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {frame_path} is {w}x{h}")
+        run = Run(run_dir).serving(frame.inputs)
+        record = run.record().finished()
+        return cls(frame, Denoiser.from_run(run, tile, record=record, precision=precision), ref, slope=slope, log=log)
+
+    def info(self) -> dict:
+        h, w = self.shape
+        brush = None
+        if self.prepared is not None:
+            brush = {"range": list(self.slope_range), "slope": self.slope}
+        return {"name": self.path.name, "width": w, "height": h, "model": self.model,
+                "views": [{"name": v, "label": VIEW_LABELS[v], "available": v in self.views,
+                           **({"missing": self.missing[v]} if v in self.missing else {})} for v in VIEWS],
+                "brush": brush, "brush_note": self.brush_note}
+
+    def view_bytes(self, name: str) -> bytes:
+        if name not in VIEWS:
+            raise OptionError("view", f"must be one of {', '.join(VIEWS)}, got {name!r}")
+        if name not in self.views:
+            raise OptionError("view", f"{name} is not available: {self.missing[name]}")
+        with self.lock:
+            return self.views[name].tobytes()
+
+    def stroke(self, region, values: np.ndarray) -> tuple[np.ndarray, float]:
+        """Set the λ map to ``values`` (float32, the rectangle's size) in ``region`` (y0, y1, x0, x1) and
+        re-apply it there: the rectangle's denoised RGB and the seconds it took."""
+        if self.prepared is None:
+            raise KpcnError(f"no brush: {self.brush_note}")
+        y0, y1, x0, x1 = check_region(region, self.shape)
+        values = np.asarray(values, np.float32)
+        if values.size != (y1 - y0) * (x1 - x0):
+            raise OptionError("stroke", f"has {values.size} λ values for a {x1 - x0}x{y1 - y0} rectangle")
+        lo, hi = self.slope_range
+        if not np.all(np.isfinite(values)) or values.min() < lo or values.max() > hi:
+            raise OptionError("stroke", f"λ must lie within the run's trained range [{lo:g}, {hi:g}]; found "
+                              f"{np.nanmin(values):g} to {np.nanmax(values):g}")
+        with self.lock:
+            begin = time.perf_counter()
+            self.map[y0:y1, x0:x1] = values.reshape(y1 - y0, x1 - x0)
+            rgb = self.prepared(self.map, region=(y0, y1, x0, x1))["default"]
+            self.views["denoised"][y0:y1, x0:x1] = rgb
+            return np.ascontiguousarray(rgb, "<f4"), time.perf_counter() - begin
+
+    def map_png(self) -> bytes:
+        if self.prepared is None:
+            raise KpcnError(f"no λ map: {self.brush_note}")
+        with self.lock:
+            return slope_map.png_bytes(self.map, self.slope_range)
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: ViewServer
+
+    @property
+    def session(self) -> ViewSession:
+        return self.server.session
+
+    def log_message(self, format, *args):  # noqa: A002 (the base class's name): quiet, the console is the user's
+        pass
+
+    def _send(self, status: int, body: bytes, content_type: str, **headers) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        for key, value in headers.items():
+            self.send_header(key.replace("_", "-"), value)
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _fail(self, status: int, message: str) -> None:
+        self._send(status, message.encode(), "text/plain; charset=utf-8")
+
+    def _answer(self, handle) -> None:
+        try:
+            handle()
+        except OptionError as exc:
+            self._fail(HTTPStatus.BAD_REQUEST, str(exc))
+        except KpcnError as exc:
+            self._fail(HTTPStatus.CONFLICT, str(exc))
+
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        path = urlsplit(self.path).path
+        if path in PAGE_FILES:
+            name, kind = PAGE_FILES[path]
+            return self._send(HTTPStatus.OK, (PAGE_DIR / name).read_bytes(), f"{kind}; charset=utf-8")
+        if path == "/api/info":
+            return self._send(HTTPStatus.OK, json.dumps(self.session.info()).encode(), "application/json")
+        if path.startswith("/api/view/"):
+            return self._answer(lambda: self._send(HTTPStatus.OK, self.session.view_bytes(path[len("/api/view/"):]),
+                                                   "application/octet-stream"))
+        if path == "/api/map.png":
+            name = f"{self.session.path.stem}-lambda.png"
+            return self._answer(lambda: self._send(HTTPStatus.OK, self.session.map_png(), "image/png",
+                                                   Content_Disposition=f'attachment; filename="{name}"'))
+        self._fail(HTTPStatus.NOT_FOUND, f"no such page: {path}")
+
+    def do_POST(self):  # noqa: N802
+        url = urlsplit(self.path)
+        if url.path != "/api/stroke":
+            return self._fail(HTTPStatus.NOT_FOUND, f"no such endpoint: {url.path}")
+        body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+
+        def stroke():
+            query = parse_qs(url.query)
+            try:
+                region = [query[k][0] for k in ("y0", "y1", "x0", "x1")]
+            except KeyError as exc:
+                raise OptionError("stroke", f"needs y0, y1, x0 and x1; {exc.args[0]} is missing") from None
+            if len(body) % 4:
+                raise OptionError("stroke", f"body must be float32 λ values, got {len(body)} bytes")
+            rgb, seconds = self.session.stroke(region, np.frombuffer(body, "<f4"))
+            self._send(HTTPStatus.OK, rgb.tobytes(), "application/octet-stream", X_Seconds=f"{seconds:.6f}")
+
+        self._answer(stroke)
+
+
+class ViewServer(ThreadingHTTPServer):
+    """The page's HTTP server; :attr:`session` is what it serves (set once the frame is read)."""
+
+    daemon_threads = True  # a browser's open connection does not hold up Ctrl-C
+    session: ViewSession | None = None
+
+
+def listen(port: int = DEFAULT_PORT) -> ViewServer:
+    """A server bound to 127.0.0.1:``port`` (0: a free port; ``server_address`` says which), not yet serving,
+    bound before the frame is read so that a taken port fails at once; OptionError naming the port if it is."""
+    try:
+        return ViewServer((HOST, port), _Handler)
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise OptionError("port", f"{port} on {HOST} is in use: choose another (0 takes a free one)") from None
+        raise KpcnError(f"cannot listen on {HOST}:{port}: {exc.strerror}") from None
+
+
+def serve(httpd: ViewServer, session: ViewSession, log=print) -> None:
+    """Serve ``session`` on ``httpd`` until interrupted (Ctrl-C, or SIGTERM in the main thread)."""
+    httpd.session = session
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _interrupt)  # a terminal's Ctrl-C or a process manager's stop alike
+    log(f"serving {session.path.name} at http://{HOST}:{httpd.server_address[1]}/ (Ctrl-C stops)")
+    try:
+        httpd.serve_forever()
+    except KeyboardInterrupt:
+        log("stopped")
+    finally:
+        httpd.server_close()
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+__all__ = ["DEFAULT_PORT", "HOST", "VIEWS", "ViewServer", "ViewSession", "listen", "serve"]
