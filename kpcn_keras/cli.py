@@ -373,8 +373,10 @@ def main(argv=None) -> int:
     args.argv, args.parser = (sys.argv[1:] if argv is None else list(argv)), parser
     args.flags = _flags(parser, args.command)
     try:
+        from prep.processes import keep_freed_memory
         from prep.threads import set_threads
 
+        keep_freed_memory()
         set_threads(getattr(args, "threads", None))
         _check_launcher(args.command)
         _check_own_bounds(args)

@@ -83,6 +83,7 @@ PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a
 TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 PORT = Bound(0, 65535)  # kpcn view --port; 0 takes a free one
+VIEW_HOST, VIEW_PORT = "127.0.0.1", 8765  # kpcn view's page is for the person at this machine: nothing else reaches it
 
 
 def check_kernel_size(k) -> int:

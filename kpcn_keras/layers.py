@@ -384,9 +384,10 @@ class KernelApply(keras.layers.Layer):
 @keras.saving.register_keras_serializable(package="kpcn")
 class MixColours(keras.layers.Layer):
     """Inputs ``[colours (B, H, W, C * J), logits (B, H, W, J)]`` -> (B, H, W, C): per pixel the J colours
-    (channels ``j C .. (j + 1) C - 1`` the j-th) weighted by the softmax of the J logits (max-subtracted). For J colours each filtered by a normalised kernel this is the colour filtered
-    by the mixture of those kernels (the kernel application is linear in the kernel): a kernel-predicting
-    network's λ mixture (``models``, ``ModelConfig.slope_mixture``). No weights."""
+    (channels ``j C .. (j + 1) C - 1`` the j-th) weighted by the softmax of the J logits (max-subtracted). For
+    J colours each filtered by a normalised kernel this is the colour filtered by the mixture of those kernels
+    (the kernel application is linear in the kernel): a kernel-predicting network's λ mixture (``models``,
+    ``ModelConfig.slope_mixture``). No weights."""
 
     def __init__(self, channels: int = 3, **kwargs):
         super().__init__(**kwargs)

@@ -47,7 +47,14 @@ Architectures (``ModelConfig.arch``):
   pixel sits in the 2**(L-1) pooling grid, so tiles of a tiled inference must start on that grid
   (:func:`input_alignment`; ``denoise.Denoiser``), not only overlap by R.
 
-Initialisation: the last 1x1 layer has zero weights and bias. An untrained KPCN/KPAL/U-Net therefore predicts
+λ after the trunk (``ModelConfig.slope_module``; docs/method.md §5): the slope channel bypasses the trunk and joins
+its activations through N 1x1 convolutions (:func:`_slope_module`) before the kernel head; with
+``slope_mixture`` J, the trunk's activations feed a head of J kernels instead, each applied to the colour, and
+the module's 1x1 head gives J logits per pixel that mix the J filtered colours (:func:`_slope_mixture`).
+:func:`slope_module_parts` cuts either into what runs once per frame and what runs for each λ map.
+
+Initialisation: the last 1x1 layer has zero weights and bias (a λ mixture's J kernels start apart:
+:func:`mixture_bias`). An untrained KPCN/KPAL/U-Net therefore predicts
 all-equal logits, i.e. a uniform k x k box filter (a sensible smoother rather than noise), and an untrained
 DPCN returns its input unchanged. Gradients still reach the trunk from the second step on.
 
@@ -100,8 +107,8 @@ __all__ = [
     "network_input",
     "receptive_radius",
     "slope_module_parts",
-    "trunk_layers",
     "slope_plane",
+    "trunk_layers",
     "trunk_radius",
 ]
 

@@ -397,8 +397,7 @@ def _denoise_options(add) -> None:
 
 def _view_options(add) -> None:
     """The options of ``kpcn view``."""
-    from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_TILE, PORT, SLOPE, TILE
-    from kpcn_keras.viewer import DEFAULT_PORT, HOST
+    from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_TILE, PORT, SLOPE, TILE, VIEW_HOST, VIEW_PORT
 
     v = add("view", own={"tile": TILE, "slope": SLOPE, "port": PORT}, help="one frame on a local page: input, "
             "kpcn, reference and OIDN with a swipe, zoom and exposure, and a brush that paints λ (a run trained "
@@ -408,7 +407,7 @@ def _view_options(add) -> None:
     v.add_argument("--reference", default=None, help="the frame's reference EXR, a view of the page")
     v.add_argument("--slope", type=float, help="λ to start from (everywhere), for a run trained with λ as an "
                    "input (default: the run's validation λ)")
-    v.add_argument("--port", type=int, help=f"port on {HOST} (default: {DEFAULT_PORT}; 0 takes a free one)")
+    v.add_argument("--port", type=int, help=f"port on {VIEW_HOST} (default: {VIEW_PORT}; 0 takes a free one)")
     v.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     _precision_option(v)
     _layout_option(v)

@@ -41,14 +41,12 @@ from urllib.parse import parse_qs, urlsplit
 import numpy as np
 
 from kpcn_keras import slope_map
-from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.config import DEFAULT_TILE, VIEW_HOST, VIEW_PORT
 from kpcn_keras.denoise import Denoiser, check_region, read_frame
 from kpcn_keras.run import Run
 from prep import layouts
 from prep.errors import KpcnError, OptionError
 
-HOST = "127.0.0.1"  # the page is for the person at this machine: nothing else may reach it
-DEFAULT_PORT = 8765
 PAGE_DIR = Path(__file__).with_name("view")
 PAGE_FILES = {"/": ("index.html", "text/html"), "/view.js": ("view.js", "text/javascript"),
               "/view.css": ("view.css", "text/css")}
@@ -244,15 +242,15 @@ class ViewServer(ThreadingHTTPServer):
     session: ViewSession | None = None
 
 
-def listen(port: int = DEFAULT_PORT) -> ViewServer:
+def listen(port: int = VIEW_PORT) -> ViewServer:
     """A server bound to 127.0.0.1:``port`` (0: a free port; ``server_address`` says which), not yet serving,
     bound before the frame is read so that a taken port fails at once; OptionError naming the port if it is."""
     try:
-        return ViewServer((HOST, port), _Handler)
+        return ViewServer((VIEW_HOST, port), _Handler)
     except OSError as exc:
         if exc.errno == errno.EADDRINUSE:
-            raise OptionError("port", f"{port} on {HOST} is in use: choose another (0 takes a free one)") from None
-        raise KpcnError(f"cannot listen on {HOST}:{port}: {exc.strerror}") from None
+            raise OptionError("port", f"{port} on {VIEW_HOST} is in use: choose another (0 takes a free one)") from None
+        raise KpcnError(f"cannot listen on {VIEW_HOST}:{port}: {exc.strerror}") from None
 
 
 def serve(httpd: ViewServer, session: ViewSession, log=print) -> None:
@@ -260,7 +258,7 @@ def serve(httpd: ViewServer, session: ViewSession, log=print) -> None:
     httpd.session = session
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _interrupt)  # a terminal's Ctrl-C or a process manager's stop alike
-    log(f"serving {session.path.name} at http://{HOST}:{httpd.server_address[1]}/ (Ctrl-C stops)")
+    log(f"serving {session.path.name} at http://{VIEW_HOST}:{httpd.server_address[1]}/ (Ctrl-C stops)")
     try:
         httpd.serve_forever()
     except KeyboardInterrupt:
@@ -273,4 +271,4 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-__all__ = ["DEFAULT_PORT", "HOST", "VIEWS", "ViewServer", "ViewSession", "listen", "serve"]
+__all__ = ["VIEWS", "ViewServer", "ViewSession", "listen", "serve"]

@@ -14,7 +14,7 @@ Writes ``<out>.json``, ``<out>.md`` and, per run, ``<out>-<run name>.png``: the 
 low end of the range on the left half and the high end on the right, beside both uniform frames
 (``figures.slope_map_figure``: Fig. 17 with a map).
 
-  .venv/bin/python scripts/slope_map_costs.py --runs runs/lambda,runs/lambda-mixture [--repeats 3]
+  .venv/bin/python scripts/slope_map_costs.py --runs runs/lambda,runs/lambda-mixture [--repeats 5]
                                               [--out reports/slope_map]
 """
 
@@ -33,6 +33,7 @@ from denoise_costs import busy  # noqa: E402 (the script beside this one)
 
 SIZES = ((256, 256), (512, 512), (1920, 1080))  # width, height
 STROKE = 64  # pixels a side of the region a brush stroke re-applies
+WARM_UP = 3  # new maps applied before the timing, at each size
 TARGET_RATIO, TARGET_MS, TARGET_SIZE = 0.2, 150.0, (512, 512)
 
 
@@ -65,7 +66,8 @@ def measure(denoisers: dict, layers_of: dict, repeats: int, seed: int) -> dict:
             prepared[name] = den.prepare(layers)
             best[name] = {"prepare_s": time.perf_counter() - start, "full_s": np.inf, "new_map_s": np.inf,
                           "stroke_s": np.inf}
-            prepared[name](random_map(rng, shape, slope_range))
+            for _ in range(WARM_UP):  # torch's first calls at a shape are slower (measured: 24 against 9 ms)
+                prepared[name](random_map(rng, shape, slope_range))
         for _ in range(repeats):
             for name, den in denoisers.items():
                 for key in ("full_s", "new_map_s", "stroke_s"):
@@ -122,11 +124,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", default="runs/lambda,runs/lambda-mixture")
     parser.add_argument("--frame", default="tests/fixtures/fixture-00008spp.exr", help="the render timed")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="reports/slope_map")
     args = parser.parse_args()
 
+    from prep.processes import keep_freed_memory
+
+    keep_freed_memory()  # as every kpcn command does (kpcn_keras.cli.main)
     import torch
 
     from kpcn_keras.card import frame_of_size

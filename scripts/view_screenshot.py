@@ -1,8 +1,8 @@
 """The screenshot of ``kpcn view`` under reports/ (issue 24): the page served for a frame and a run, driven in
 headless Chromium (``tests/helpers.py``'s ``headless_chromium``: Debian's chromium and chromium-driver, Selenium)
 as a user drives it: one brush stroke at the top of the λ range across the middle of the frame (λ at the low
-end elsewhere), then the noisy input left of the swipe and kpcn right of it; the page's own status line says
-what the stroke cost.
+end elsewhere), then kpcn left of the swipe and the λ map right of it, the swipe at the frame's middle; the
+page's own status line says what the stroke cost.
 
   .venv/bin/python scripts/view_screenshot.py --run runs/lambda-mixture --frame F.exr --reference R.exr
                                               [--out reports/view.png]
@@ -38,7 +38,9 @@ def main() -> None:
     from selenium.webdriver.support.ui import WebDriverWait
 
     from kpcn_keras.run import Run
+    from prep.processes import keep_freed_memory
 
+    keep_freed_memory()  # as kpcn view does (kpcn_keras.cli.main)
     low = Run(args.run).record().train.slope_range[0]
     session = ViewSession.open(args.frame, args.run, args.reference, slope=args.slope or low)
     httpd = listen(0)
@@ -68,9 +70,14 @@ def main() -> None:
             builder.perform()
             WebDriverWait(driver, 120).until(lambda d: d.execute_script("return kpcn.state.strokes === 1 && "
                                                                         "!kpcn.busy()"))
-            # the swipe a little left of the stroke's middle, so that the input shows beside it; no brush circle
-            driver.execute_script("const e = document.getElementById('split'); e.value = 0.3;"
-                                  "e.dispatchEvent(new Event('input')); kpcn.state.mouse = null; draw();")
+            # kpcn left of the swipe, the λ map right of it, the swipe at the frame's middle; no brush circle
+            driver.execute_script(
+                "const set = (id, v, kind) => { const e = document.getElementById(id); e.value = v;"
+                "e.dispatchEvent(new Event(kind)); };"
+                "set('left', 'denoised', 'change'); set('right', 'lambda', 'change');"
+                "const s = kpcn.state, c = document.getElementById('canvas');"
+                "set('split', (s.ox + 0.5 * s.info.width * s.zoom) / c.width, 'input');"
+                "s.mouse = null; draw();")
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
             driver.save_screenshot(args.out)
             print(driver.find_element("id", "status").text)

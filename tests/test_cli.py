@@ -326,7 +326,8 @@ _STATED = re.compile(r"(an odd integer|an integer|a number) in ([\[(])([^,]+), (
 _POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame"}
 # what a command needs besides the option for its check to be reached (the option's bound is checked first)
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
-          "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"], "view": ["in.exr", "--run", "no-run"]}
+          "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"],
+          "view": ["in.exr", "--run", "no-run"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
               ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"],
               ("train", "compositor_kernel"): ["--compositor", "kernel"],
