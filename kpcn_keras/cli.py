@@ -179,9 +179,9 @@ def cmd_view(args) -> int:
 
     httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
     try:
-        session = ViewSession.open(args.frame, args.run if "run" in args else default_model().dir, args.reference,
-                              layout=args.layout, **{k: getattr(args, k) for k in ("slope", "tile", "precision")
-                                                     if k in args})
+        run = args.run if "run" in args else default_model().dir
+        session = ViewSession.open(args.frame, run, args.reference, layout=args.layout,
+                                   **{k: getattr(args, k) for k in ("slope", "tile", "precision") if k in args})
     except BaseException:
         httpd.server_close()
         raise

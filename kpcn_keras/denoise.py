@@ -226,7 +226,7 @@ class Denoiser:
                for name in ("diffuse", "specular", "default")}
         for tile, window in self.tiles(h, w):
             y0, y1, x0, x1 = tile
-            # the tile's pixels in the region, in the tile (cy, cx) and in the output (oy, ox)
+            # the tile's pixels in the region (c*), cut from the tile's output and put in the region's
             cy0, cy1, cx0, cx1 = max(y0, ry0), min(y1, ry1), max(x0, rx0), min(x1, rx1)
             if cy0 >= cy1 or cx0 >= cx1:
                 continue

@@ -53,8 +53,8 @@ from prep.figures import DATA_FIGURES, data_plan
 from prep.files import check_outputs, pyplot, save_png
 from prep.inputs import InputSet, restrict
 
-FIGURES = {**{name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes",
-                                                              "slope_map")}, **DATA_FIGURES}
+FIGURES = {**{name: f"{name}.png" for name in ("kernels", "multiscale", "alpha", "slopes", "slope_map")},
+           **DATA_FIGURES}
 
 
 def _to_numpy(x) -> np.ndarray:
