@@ -84,7 +84,7 @@ class ViewSession:
             self.brush_note = f"{run} has a multiscale compositor, which re-runs the whole network for a new map"
         self.prepared = None
         if self.brush_note is None:
-            log("running each trunk once (the brush re-runs only the specialisation module and the kernels)")
+            log("running each trunk once (the brush re-runs only what follows λ: the module and its kernels or blend)")
             self.prepared = denoiser.prepare(frame.layers)
             self.map = np.full(self.shape, slope, np.float32)
             denoised = self.prepared(self.map)["default"]
