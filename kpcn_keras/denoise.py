@@ -142,7 +142,7 @@ class Denoiser:
         black = {name: np.zeros((size, size, 3), np.float32) for name in exr.RGB_LAYERS}
         black.update({name: np.zeros((size, size), np.float32) for name in exr.SCALAR_LAYERS})
         # a map's own first λ: the black frame is not its shape
-        self(black, slope=slope if slope is None or np.ndim(slope) == 0 else float(np.ravel(slope)[0]))
+        self(black, slope=float(np.ravel(slope)[0]) if slope_map.is_map(slope) else slope)
 
     def tiles(self, h: int, w: int):
         """Each tile of an (h, w) frame as ((y0, y1, x0, x1), (ya, yb, xa, xb)): the pixels it gives and the
@@ -177,7 +177,7 @@ class Denoiser:
         None) as ``RunRecord.check_slope`` says, or a map of the frame's shape for a run with a specialisation
         module (``kpcn_keras.slope_map``)."""
         self.record.check_slope(slope)
-        if slope is None or np.ndim(slope) == 0:
+        if not slope_map.is_map(slope):
             return
         if not self.model_config.slope_module:
             raise OptionError("slope_map", f"is for a run trained with --slope-module; {self.run.dir} takes one "
@@ -242,9 +242,8 @@ class Denoiser:
 
     def prepare(self, aovs: dict[str, np.ndarray]) -> PreparedFrame:
         """The frame ``aovs`` with each branch's trunk run once, for λ maps applied to it by
-        :class:`PreparedFrame` (the interactive case: a new map re-runs only the specialisation module and the
-        kernels). KpcnError for a run without the module, or with a compositor (whose pyramid re-runs the
-        whole network at every scale)."""
+        :class:`PreparedFrame` (the interactive case: a new map re-runs only what follows λ). KpcnError for a
+        run without the module, or with a compositor (whose pyramid re-runs the whole network at every scale)."""
         if not self.model_config.slope_module:
             raise KpcnError(f"{self.run.dir}: a prepared frame needs a run trained with --slope-module (λ joined "
                             "after the trunk); this one takes λ at its input or not at all")
@@ -276,7 +275,7 @@ def _kept(pred: np.ndarray, tile, window) -> np.ndarray:
 
 def _window_of(slope, window):
     """``slope`` for the pixels of ``window`` (ya, yb, xa, xb): a map's window, a number (or None) as it is."""
-    if slope is None or np.ndim(slope) == 0:
+    if not slope_map.is_map(slope):
         return slope
     ya, yb, xa, xb = window
     return np.asarray(slope)[ya:yb, xa:xb]
@@ -284,11 +283,12 @@ def _window_of(slope, window):
 
 class PreparedFrame:
     """One frame with its trunks run once (:meth:`Denoiser.prepare`), for a run with a specialisation module:
-    calling it with λ (a number or an (H, W) map, ``kpcn_keras.slope_map``) re-runs only, per tile, the module,
-    the kernel head and the kernel application, and gives what ``denoiser(aovs, slope)`` gives (the same tiles,
-    the same layers: equal to float rounding, tested). It holds, per tile window and branch, what
-    ``models.slope_module_parts``' trunk gives: the trunk's activations (``width`` channels in the trunk's
-    precision) and the noisy colour, or a λ mixture's J filtered colours (:attr:`nbytes`)."""
+    calling it with λ (a number or an (H, W) map, ``kpcn_keras.slope_map``) re-runs only, per tile, what follows
+    λ (the module, then the kernel head and the kernel application, or a λ mixture's blend), and gives what
+    ``denoiser(aovs, slope)`` gives (the same tiles, the same layers: equal to float rounding, tested). It
+    holds, per tile window and branch, what ``models.slope_module_parts``' trunk gives: the trunk's activations
+    (``width`` channels in the trunk's precision) and the noisy colour, or a λ mixture's J filtered colours
+    (:attr:`nbytes`)."""
 
     def __init__(self, denoiser: Denoiser, aovs: dict[str, np.ndarray]):
         self.denoiser = denoiser
@@ -507,6 +507,15 @@ def read_frame(input_path, *, layout: str | None = None, pair=None, albedo=None,
                                notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
 
 
+def read_reference(reference, input_path, size: tuple[int, int]) -> np.ndarray:
+    """The colour of ``reference``, the reference EXR of the frame ``input_path`` of (H, W) ``size``; KpcnError
+    naming both files and their sizes when they differ."""
+    ref = layouts.read(reference).layers["default"]
+    if ref.shape[:2] != tuple(size):
+        raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is {size[1]}x{size[0]}")
+    return ref
+
+
 def output_layers(frame: layouts.Frame, result: dict[str, np.ndarray], split: bool) -> dict[str, np.ndarray]:
     """What an output EXR holds: the denoised colour as layer ``default`` (with the input's alpha as
     ``default.A``), the denoised ``diffuse`` and ``specular`` where the model had a split, and the frame's
@@ -534,12 +543,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
     begin = time.perf_counter()
     frame = read_frame(input_path, layout=layout, pair=pair, albedo=albedo, normal=normal)
     noisy = frame.layers
-    ref = layouts.read(reference).layers["default"] if reference else None
-    if ref is not None and ref.shape != noisy["default"].shape:
-        raise KpcnError(
-            f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is "
-            f"{noisy['default'].shape[1]}x{noisy['default'].shape[0]}"
-        )
+    ref = read_reference(reference, input_path, frame.size) if reference else None
     start = time.perf_counter()
     result = denoiser(noisy, slope=slope)
     done = time.perf_counter()

@@ -50,6 +50,24 @@ def draw(rng: np.random.Generator, size: int, slope_range: tuple[float, float]) 
     return np.exp(bilinear(nodes, (size, size))).astype(np.float32)
 
 
+def is_map(slope) -> bool:
+    """Whether ``slope`` is a map (an array of λ per pixel) rather than one λ (a number, or None)."""
+    return slope is not None and np.ndim(slope) > 0
+
+
+def range_error(slopes, slope_range: tuple[float, float]) -> str | None:
+    """None if every λ of ``slopes`` is finite and within ``slope_range``, else what was found, one line (a
+    value outside the range is refused, not clipped: the network never learned it)."""
+    slopes = np.asarray(slopes, np.float64)
+    lo, hi = slope_range
+    if np.all(np.isfinite(slopes)) and slopes.min() >= lo and slopes.max() <= hi:
+        return None
+    finite = slopes[np.isfinite(slopes)]
+    found = f"{finite.min():g} to {finite.max():g}" if finite.size else "no finite value"
+    return (f"λ must lie within the run's trained range [{lo:g}, {hi:g}]; found {found}"
+            + ("" if finite.size == slopes.size else f" and {slopes.size - finite.size} non-finite"))
+
+
 def from_grey(grey: np.ndarray, slope_range: tuple[float, float]) -> np.ndarray:
     """λ (float64) of grey levels in [0, 1]: low (high / low)^g, log-linear over ``slope_range``."""
     lo, hi = np.log(np.asarray(slope_range, np.float64))
@@ -119,11 +137,9 @@ def read(path: str | os.PathLike, shape: tuple[int, int], slope_range: tuple[flo
         log_map = np.log(from_grey(_grey(path), (lo, hi)))
     elif suffix in EXR_SUFFIXES:
         slopes = _exr(path)
-        if not np.all(np.isfinite(slopes)) or slopes.min() < lo or slopes.max() > hi:
-            finite = slopes[np.isfinite(slopes)]
-            found = f"{finite.min():g} to {finite.max():g}" if finite.size else "no finite value"
-            raise KpcnError(f"{path}: λ must lie within the run's trained range [{lo:g}, {hi:g}]; found {found}"
-                            + ("" if finite.size == slopes.size else f" and {slopes.size - finite.size} non-finite"))
+        outside = range_error(slopes, (lo, hi))
+        if outside:
+            raise KpcnError(f"{path}: {outside}")
         log_map = np.log(slopes)
     else:
         raise KpcnError(f"{path}: a λ map is a one-channel .exr (λ) or a greyscale .png (the λ range); found "

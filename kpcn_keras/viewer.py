@@ -42,7 +42,7 @@ import numpy as np
 
 from kpcn_keras import slope_map
 from kpcn_keras.config import DEFAULT_TILE, VIEW_HOST, VIEW_PORT
-from kpcn_keras.denoise import Denoiser, check_region, read_frame
+from kpcn_keras.denoise import Denoiser, check_region, read_frame, read_reference
 from kpcn_keras.run import Run
 from prep import layouts
 from prep.errors import KpcnError, OptionError
@@ -113,12 +113,7 @@ class ViewSession:
         """The session of the frame in ``frame_path`` (in ``layout``, default: found from its channels), the
         run of ``run_dir`` that serves it (``Run.serving``) and the ``reference`` EXR if given."""
         frame = read_frame(frame_path, layout=layout)
-        h, w = frame.size
-        ref = None
-        if reference is not None:
-            ref = layouts.read(reference).layers["default"]
-            if ref.shape[:2] != frame.size:
-                raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {frame_path} is {w}x{h}")
+        ref = None if reference is None else read_reference(reference, frame_path, frame.size)
         run = Run(run_dir).serving(frame.inputs)
         record = run.record().finished()
         return cls(frame, Denoiser.from_run(run, tile, record=record, precision=precision), ref, slope=slope, log=log)
@@ -150,10 +145,9 @@ class ViewSession:
         values = np.asarray(values, np.float32)
         if values.size != (y1 - y0) * (x1 - x0):
             raise OptionError("stroke", f"has {values.size} λ values for a {x1 - x0}x{y1 - y0} rectangle")
-        lo, hi = self.slope_range
-        if not np.all(np.isfinite(values)) or values.min() < lo or values.max() > hi:
-            raise OptionError("stroke", f"λ must lie within the run's trained range [{lo:g}, {hi:g}]; found "
-                              f"{np.nanmin(values):g} to {np.nanmax(values):g}")
+        outside = slope_map.range_error(values, self.slope_range)
+        if outside:
+            raise OptionError("stroke", outside)
         with self.lock:
             begin = time.perf_counter()
             self.map[y0:y1, x0:x1] = values.reshape(y1 - y0, x1 - x0)

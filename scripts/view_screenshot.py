@@ -20,7 +20,7 @@ from pathlib import Path
 os.environ.setdefault("KERAS_BACKEND", "torch")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from helpers import headless_chromium  # noqa: E402 (the tests' own launcher: one set of flags)
+from helpers import headless_chromium, page_input, page_stroke, page_wait  # noqa: E402 (the tests' own driver)
 
 from kpcn_keras.viewer import ViewSession, listen  # noqa: E402
 
@@ -34,9 +34,6 @@ def main() -> None:
     parser.add_argument("--out", default="reports/view.png")
     args = parser.parse_args()
 
-    from selenium.webdriver.common.actions.action_builder import ActionBuilder
-    from selenium.webdriver.support.ui import WebDriverWait
-
     from kpcn_keras.run import Run
     from prep.processes import keep_freed_memory
 
@@ -49,35 +46,20 @@ def main() -> None:
     try:
         with tempfile.TemporaryDirectory() as profile, headless_chromium(Path(profile)) as driver:
             driver.get(f"http://127.0.0.1:{httpd.server_address[1]}/")
-            WebDriverWait(driver, 120).until(lambda d: d.execute_script("return Boolean(window.kpcn && kpcn.ready)"))
+            page_wait(driver, "window.kpcn && kpcn.ready", 120)
             driver.find_element("css selector", "input[name=mode][value=paint]").click()
-            driver.execute_script("for (const [id, v] of [['brush-radius', 30], ['brush-slope', 1]]) {"
-                                  "const e = document.getElementById(id); e.value = v;"
-                                  "e.dispatchEvent(new Event('input')); }")
+            page_input(driver, "brush-radius", 30)
+            page_input(driver, "brush-slope", 1)
             h, w = session.shape
-
-            def screen(x, y):
-                return [round(v) for v in driver.execute_script(
-                    "const s = kpcn.state, r = document.getElementById('canvas').getBoundingClientRect();"
-                    "return [r.left + s.ox + arguments[0] * s.zoom, r.top + s.oy + arguments[1] * s.zoom];", x, y)]
-
-            builder = ActionBuilder(driver)
-            builder.pointer_action.move_to_location(*screen(0.2 * w, 0.5 * h))
-            builder.pointer_action.pointer_down()
-            for t in range(1, 9):
-                builder.pointer_action.move_to_location(*screen((0.2 + 0.6 * t / 8) * w, (0.5 - 0.15 * (t % 2)) * h))
-            builder.pointer_action.pointer_up()
-            builder.perform()
-            WebDriverWait(driver, 120).until(lambda d: d.execute_script("return kpcn.state.strokes === 1 && "
-                                                                        "!kpcn.busy()"))
+            page_stroke(driver, [((0.2 + 0.6 * t / 8) * w, (0.5 - 0.15 * (t % 2)) * h) for t in range(9)])
+            page_wait(driver, "kpcn.state.strokes === 1 && !kpcn.busy()", 120)
             # kpcn left of the swipe, the λ map right of it, the swipe at the frame's middle; no brush circle
-            driver.execute_script(
-                "const set = (id, v, kind) => { const e = document.getElementById(id); e.value = v;"
-                "e.dispatchEvent(new Event(kind)); };"
-                "set('left', 'denoised', 'change'); set('right', 'lambda', 'change');"
-                "const s = kpcn.state, c = document.getElementById('canvas');"
-                "set('split', (s.ox + 0.5 * s.info.width * s.zoom) / c.width, 'input');"
-                "s.mouse = null; draw();")
+            page_input(driver, "left", "denoised")
+            page_input(driver, "right", "lambda")
+            page_input(driver, "split", driver.execute_script(
+                "const s = kpcn.state; return (s.ox + 0.5 * s.info.width * s.zoom) / "
+                "document.getElementById('canvas').width;"))
+            driver.execute_script("kpcn.state.mouse = null; draw();")
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)
             driver.save_screenshot(args.out)
             print(driver.find_element("id", "status").text)

@@ -705,3 +705,43 @@ def headless_chromium(profile: Path, size=(1280, 800)):
         yield driver
     finally:
         driver.quit()
+
+
+# driving kpcn view's page (kpcn_keras/view/view.js): its test and scripts/view_screenshot.py
+
+
+def page_wait(driver, condition: str, timeout: float = 60) -> None:
+    """Wait until the page's JavaScript ``condition`` holds."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    WebDriverWait(driver, timeout).until(lambda d: d.execute_script(f"return Boolean({condition})"))
+
+
+def page_input(driver, element_id: str, value) -> None:
+    """Set a control of the page (a slider or a menu) as a user does: its value, then its input or change event."""
+    driver.execute_script("const e = document.getElementById(arguments[0]); e.value = arguments[1]; "
+                          "e.dispatchEvent(new Event(e.tagName === 'SELECT' ? 'change' : 'input'));",
+                          element_id, str(value))
+
+
+def page_point(driver, x: float, y: float) -> tuple[int, int]:
+    """The viewport position (CSS pixels, rounded; the device scale is 1) of image point (x, y)."""
+    return tuple(round(v) for v in driver.execute_script(
+        "const s = kpcn.state, r = document.getElementById('canvas').getBoundingClientRect();"
+        "return [r.left + s.ox + arguments[0] * s.zoom, r.top + s.oy + arguments[1] * s.zoom];", x, y))
+
+
+def page_stroke(driver, points) -> None:
+    """One stroke of the mouse through the image points ``points`` (x, y): down at the first, up at the last."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions.action_builder import ActionBuilder
+    from selenium.webdriver.common.actions.mouse_button import MouseButton
+
+    builder = ActionBuilder(driver)
+    builder.pointer_action.move_to_location(*page_point(driver, *points[0]))
+    builder.pointer_action.pointer_down(MouseButton.LEFT)
+    for point in points[1:]:
+        builder.pointer_action.move_to_location(*page_point(driver, *point))
+    builder.pointer_action.pointer_up(MouseButton.LEFT)
+    builder.perform()
+    ActionChains(driver).reset_actions()

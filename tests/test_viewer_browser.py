@@ -8,7 +8,7 @@ import urllib.request
 
 import numpy as np
 import pytest
-from helpers import headless_chromium, random_aovs, randomise
+from helpers import headless_chromium, page_input, page_stroke, page_wait, random_aovs, randomise
 
 from kpcn_keras.denoise import Denoiser, read_frame
 from kpcn_keras.run import Run
@@ -40,35 +40,16 @@ def page(tmp_path, tiny_slope_module_run):
     try:
         with headless_chromium(tmp_path / "profile") as driver:
             driver.get(url)
-            wait(driver, "window.kpcn && window.kpcn.ready")
+            page_wait(driver, "window.kpcn && window.kpcn.ready")
             yield driver, url
     finally:
         httpd.shutdown()
         httpd.server_close()
 
 
-def wait(driver, condition: str, timeout: float = 60):
-    from selenium.webdriver.support.ui import WebDriverWait
-
-    WebDriverWait(driver, timeout).until(lambda d: d.execute_script(f"return Boolean({condition})"))
-
-
 def denoised(url: str) -> np.ndarray:
     with urllib.request.urlopen(f"{url}api/view/denoised", timeout=60) as res:
         return np.frombuffer(res.read(), "<f4").reshape(H, W, 3).copy()
-
-
-def set_input(driver, element_id: str, value) -> None:
-    driver.execute_script("const e = document.getElementById(arguments[0]); e.value = arguments[1]; "
-                          "e.dispatchEvent(new Event(e.tagName === 'SELECT' ? 'change' : 'input'));",
-                          element_id, str(value))
-
-
-def screen(driver, x: float, y: float) -> tuple[float, float]:
-    """The viewport position (CSS pixels; the device scale is 1) of image point (x, y)."""
-    return driver.execute_script(
-        "const s = kpcn.state, r = document.getElementById('canvas').getBoundingClientRect();"
-        "return [r.left + s.ox + arguments[0] * s.zoom, r.top + s.oy + arguments[1] * s.zoom];", x, y)
 
 
 def canvas_pixels(driver, points) -> np.ndarray:
@@ -88,42 +69,31 @@ def test_the_page_loads_with_the_four_views_and_draws_them_through_the_display_t
     assert dict(options)["oidn"] is not baselines.oidn_available()
     assert not any(disabled for name, disabled in options if name != "oidn")
     for side in ("left", "right"):
-        set_input(driver, side, "denoised")
-    set_input(driver, "exposure", 1.5)
+        page_input(driver, side, "denoised")
+    page_input(driver, "exposure", 1.5)
     points = [(5, 7), (33, 20), (60, 44)]
     got = canvas_pixels(driver, points)
     view = denoised(url)
     want = np.round(255 * tonemap(np.stack([view[y, x] for x, y in points]) * 2**1.5))
     np.testing.assert_allclose(got, want, atol=1)
-    set_input(driver, "right", "reference")  # the swipe: the right half shows the reference
-    set_input(driver, "split", 0.0)
+    page_input(driver, "right", "reference")  # the swipe: the right half shows the reference
+    page_input(driver, "split", 0.0)
     assert not np.array_equal(canvas_pixels(driver, points), got)
 
 
 def test_a_scripted_brush_stroke_changes_the_denoised_pixels_under_it_and_none_far_from_it(page, tmp_path):
-    from selenium.webdriver.common.action_chains import ActionChains
-    from selenium.webdriver.common.actions.action_builder import ActionBuilder
-    from selenium.webdriver.common.actions.mouse_button import MouseButton
-
     driver, url = page
     for side in ("left", "right"):
-        set_input(driver, side, "denoised")
+        page_input(driver, side, "denoised")
     before = denoised(url)
     under = [(int(x), int(y)) for x, y in PATH]
     far = [(2, 2), (60, 45), (10, 40), (50, 5)]
     shown = canvas_pixels(driver, under + far)
     driver.find_element("css selector", "input[name=mode][value=paint]").click()
-    set_input(driver, "brush-radius", RADIUS)
-    set_input(driver, "brush-slope", 1)  # the top of the range: λ = 8, from 1 everywhere
-    builder = ActionBuilder(driver)
-    builder.pointer_action.move_to_location(*map(round, screen(driver, *PATH[0])))
-    builder.pointer_action.pointer_down(MouseButton.LEFT)
-    for point in PATH[1:]:
-        builder.pointer_action.move_to_location(*map(round, screen(driver, *point)))
-    builder.pointer_action.pointer_up(MouseButton.LEFT)
-    builder.perform()
-    ActionChains(driver).reset_actions()
-    wait(driver, "kpcn.state.strokes === 1 && !kpcn.busy()")
+    page_input(driver, "brush-radius", RADIUS)
+    page_input(driver, "brush-slope", 1)  # the top of the range: λ = 8, from 1 everywhere
+    page_stroke(driver, PATH)
+    page_wait(driver, "kpcn.state.strokes === 1 && !kpcn.busy()")
 
     after = denoised(url)
     changed = np.abs(after - before).max(axis=2) > 0
