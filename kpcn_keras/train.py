@@ -48,6 +48,9 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   another architecture under an existing run is an error that says which.
 - **Divergence stops at the batch** (:class:`_StopOnNonFinite`): one line names the last good checkpoint,
   which stays.
+- **So does a network that can no longer learn** (:class:`_StopOnSaturation`): a validation loss frozen for
+  ``FROZEN_EPOCHS`` epochs while the training loss moves is a network whose kernels' softmax has saturated
+  (each pixel takes one neighbour, and no gradient passes the softmax); one line says so and what to lower.
 - **One trainer per run**: the run's lock is held while training.
 """
 
@@ -240,6 +243,51 @@ class _StopOnNonFinite(keras.callbacks.Callback):
                 f"training the {self.phase.name} phase diverged (loss {float(loss)} at batch {batch}); the last good "
                 f"checkpoint is {self.checkpoint}. Lower the learning rate (--lr) under a new --run, or resume this "
                 "one as it is."
+            )
+
+
+# A validation loss that stays within FROZEN_TOLERANCE (relative) for FROZEN_EPOCHS epochs while the training
+# loss moves by more than FROZEN_TRAINING_MOVE has stopped learning. Seen (issue 23's quality study): the unet
+# preset at lr 0.001 drove a specular network's kernel logits to a range of ~1500 within its first 50 steps,
+# after which its validation loss moved by float rounding alone (0.0913 to 7 digits) for the whole phase.
+FROZEN_EPOCHS = 3
+FROZEN_TOLERANCE = 1e-6
+FROZEN_TRAINING_MOVE = 1e-3
+
+
+def frozen(history: list[dict]) -> bool:
+    """Whether the last :data:`FROZEN_EPOCHS` epochs of ``history`` (dicts with ``loss`` and ``val_loss``) have
+    one validation loss, to :data:`FROZEN_TOLERANCE`, while their training loss moved (module docstring)."""
+    last = history[-FROZEN_EPOCHS:]
+    if len(last) < FROZEN_EPOCHS:
+        return False
+    val = [h.get("val_loss", math.nan) for h in last]
+    train = [h.get("loss", math.nan) for h in last]
+    if not all(math.isfinite(v) for v in val + train):
+        return False
+    return (max(val) - min(val) <= FROZEN_TOLERANCE * max(map(abs, val))
+            and max(train) - min(train) > FROZEN_TRAINING_MOVE * max(map(abs, train)))
+
+
+class _StopOnSaturation(keras.callbacks.Callback):
+    """A phase whose network no longer learns (:func:`frozen`) stops with one line saying why and what to do;
+    its checkpoints stay. Judged on the checkpoint's history too, so a resumed phase stops as it did."""
+
+    def __init__(self, phase: Phase, history: list[dict], learning_rate: float):
+        super().__init__()
+        self.phase, self.learning_rate = phase, learning_rate
+        self.history = [{k: h.get(k, math.nan) for k in ("loss", "val_loss")} for h in history]
+
+    def on_epoch_end(self, epoch, logs=None):
+        logs = logs or {}
+        self.history.append({k: float(logs.get(k, math.nan)) for k in ("loss", "val_loss")})
+        if frozen(self.history):
+            first, last = self.history[-FROZEN_EPOCHS], self.history[-1]
+            raise KpcnError(
+                f"training the {self.phase.name} phase stalled: its validation loss stayed {last['val_loss']:.6g} "
+                f"for {FROZEN_EPOCHS} epochs while its training loss went {first['loss']:.4g} -> {last['loss']:.4g}, "
+                "the mark of saturated kernels (each pixel's softmax on one neighbour: no gradient gets through). "
+                f"Train under a new --run with a lower learning rate (--lr; this run's is {self.learning_rate:g})."
             )
 
 
@@ -549,6 +597,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _MeanOverProcesses(world),
         _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
+        _StopOnSaturation(phase, history, phase.learning_rate),
         stopper,
         *callbacks,
     ]

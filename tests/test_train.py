@@ -9,7 +9,7 @@ import pytest
 from helpers import WarmProcess, build_tiny_shards, checksums, command_env
 
 from kpcn_keras.run import load_model, read_state
-from kpcn_keras.train import TrainConfig, train
+from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, train
 from prep.errors import KpcnError, OptionError
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
@@ -82,6 +82,43 @@ def test_divergence_stops_with_a_clear_error_and_no_finished_model(tmp_path):
                                         r"checkpoints/diffuse\.keras"):
         train(cfg, tmp_path / "runs" / "r", verbose=0)
     assert not (tmp_path / "runs" / "r" / "diffuse.keras").exists()
+
+
+def test_a_still_validation_loss_beside_a_moving_training_loss_is_frozen():
+    def history(val, loss):
+        return [{"val_loss": v, "loss": t} for v, t in zip(val, loss)]
+
+    moving = [0.044, 0.038, 0.037]
+    # the unet specular phase of the quality study, as logged: float32 rounding apart, one validation loss
+    assert frozen(history([0.09126332402229309, 0.09126333892345428, 0.09126332402229309], moving))
+    assert frozen(history([0.5, 0.0912633, 0.0912633, 0.0912633], [0.1] + moving))  # the last epochs decide
+    assert not frozen(history([0.0913, 0.0912, 0.0911], moving))  # learning, slowly
+    assert not frozen(history([0.0913] * 3, [0.04] * 3))  # nothing moves: no evidence either way
+    assert not frozen(history([0.0913] * (FROZEN_EPOCHS - 1), moving))
+    assert not frozen(history([0.0913, float("nan"), 0.0913], moving))  # no validation
+
+
+class _SaturateKernels(keras.callbacks.Callback):
+    """Puts one tap's logit far above the rest in every pixel: a softmax that has saturated, as the unet preset's
+    specular network's did at lr 0.001 (no gradient passes it, so it stays)."""
+
+    def on_train_begin(self, logs=None):
+        head = next(layer for layer in self.model.layers if layer.name.endswith("kernel_logits"))
+        kernel, bias = head.get_weights()
+        bias[:] = 0.0
+        bias[0] = 1e4
+        head.set_weights([kernel, bias])
+
+
+@pytest.mark.slow
+def test_saturated_kernels_stop_the_phase_with_a_clear_error(tmp_path):
+    cfg = tiny_config(build_tiny_shards(tmp_path), branches=("diffuse",), steps=12)
+    with pytest.raises(KpcnError, match=rf"training the diffuse phase stalled: its validation loss stayed \S+ for "
+                                        rf"{FROZEN_EPOCHS} epochs while its training loss went .* lower learning rate "
+                                        r"\(--lr; this run's is 0.001\)"):
+        train(cfg, tmp_path / "r", verbose=0, callbacks=[_SaturateKernels()])
+    assert not (tmp_path / "r" / "diffuse.keras").exists()
+    assert len((tmp_path / "r" / "log.csv").read_text().splitlines()) == 1 + FROZEN_EPOCHS
 
 
 @pytest.mark.slow
