@@ -295,8 +295,8 @@ PRESETS = {
         **_PAPER_TRAINING,
     },
     # cpu's training with a 4-level U-Net trunk (UNET_DEFAULTS: 32/48/72/96 filters) and cpu's 13x13 kernels, at
-    # a third of its learning rate: at cpu's 0.001 a specular network's kernels saturated within 50 steps and it
-    # never learned (docs/results.md §10d; train.FROZEN_EPOCHS now stops such a phase); at 0.0003 it learned
+    # a third of its learning rate: at cpu's 0.001 a specular network's kernels saturated in its first epoch and
+    # it never learned (docs/results.md §10d; train.frozen now stops such a phase); at 0.0003 it learned
     "unet": {"model": {"arch": "unet", "depth": 1}, "learning_rate": 3e-4},
     "kpal-paper": {
         "model": {"arch": "kpal", "width": 100, "depth": 13, "conv_size": 3, "kernel_size": 21, "dropout": 0.3},

@@ -247,9 +247,9 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 
 
 # A validation loss that stays within FROZEN_TOLERANCE (relative) for FROZEN_EPOCHS epochs while the training
-# loss moves by more than FROZEN_TRAINING_MOVE has stopped learning. Seen (issue 23's quality study): the unet
-# preset at lr 0.001 drove a specular network's kernel logits to a range of ~1500 within its first 50 steps,
-# after which its validation loss moved by float rounding alone (0.0913 to 7 digits) for the whole phase.
+# loss moves by more than FROZEN_TRAINING_MOVE has stopped learning: the training loss moves with its batches
+# alone. Seen in issue 23's quality study (docs/results.md §10d): the unet preset at lr 0.001 saturated a
+# specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
@@ -286,7 +286,8 @@ class _StopOnSaturation(keras.callbacks.Callback):
             raise KpcnError(
                 f"training the {self.phase.name} phase stalled: its validation loss stayed {last['val_loss']:.6g} "
                 f"for {FROZEN_EPOCHS} epochs while its training loss went {first['loss']:.4g} -> {last['loss']:.4g}, "
-                "the mark of saturated kernels (each pixel's softmax on one neighbour: no gradient gets through). "
+                "the mark of a network that no longer learns (of a kernel-predicting one, saturated kernels: each "
+                "pixel's softmax on one neighbour, no gradient through it). "
                 f"Train under a new --run with a lower learning rate (--lr; this run's is {self.learning_rate:g})."
             )
 

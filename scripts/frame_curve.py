@@ -11,8 +11,8 @@ finished. ``measure`` then denoises each frame with every snapshot in place of i
 finished network for the other branch) and with the finished run itself (under ``--patience`` its best epoch),
 and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` (``report`` writes the last two again from the json).
 
-  .venv/bin/python scripts/frame_curve.py watch --run runs/model-long/inputs/no-variance --into DIR &
-  .venv/bin/python scripts/frame_curve.py measure --run runs/model-long/inputs/no-variance --snapshots DIR \\
+  .venv/bin/python scripts/frame_curve.py watch --run runs/model/inputs/no-variance --into DIR &
+  .venv/bin/python scripts/frame_curve.py measure --run runs/model/inputs/no-variance --snapshots DIR \\
       [--frames ../shared/validation/blender] [--spp 4,16,64] [--compare RUN ...] [--out reports/frame_curve]
 
 The frames: the run's own held-out frames at ``--spp`` and every noisy render of each ``--frames`` folder (each
@@ -46,7 +46,7 @@ def watch(run_dir: Path, into: Path, every: float) -> None:
             try:
                 shutil.copyfile(ckpt, tmp)
                 state = read_state(tmp) or {}
-            except (OSError, KpcnError):  # removed as its phase finished: the phase file is the last epoch
+            except (OSError, KpcnError):  # replaced as it was read: the next round copies the new one
                 continue
             if "epochs_done" in state:
                 tmp.replace(into / f"{state['phase']}-{int(state['epochs_done']):04d}.keras")
