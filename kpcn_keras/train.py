@@ -273,9 +273,9 @@ class _StopOnSaturation(keras.callbacks.Callback):
     """A phase whose network no longer learns (:func:`frozen`) stops with one line saying why and what to do;
     its checkpoints stay. Judged on the checkpoint's history too, so a resumed phase stops as it did."""
 
-    def __init__(self, phase: Phase, history: list[dict], learning_rate: float):
+    def __init__(self, phase: Phase, history: list[dict]):
         super().__init__()
-        self.phase, self.learning_rate = phase, learning_rate
+        self.phase = phase
         self.history = [{k: h.get(k, math.nan) for k in ("loss", "val_loss")} for h in history]
 
     def on_epoch_end(self, epoch, logs=None):
@@ -288,7 +288,8 @@ class _StopOnSaturation(keras.callbacks.Callback):
                 f"for {FROZEN_EPOCHS} epochs while its training loss went {first['loss']:.4g} -> {last['loss']:.4g}, "
                 "the mark of a network that no longer learns (of a kernel-predicting one, saturated kernels: each "
                 "pixel's softmax on one neighbour, no gradient through it). "
-                f"Train under a new --run with a lower learning rate (--lr; this run's is {self.learning_rate:g})."
+                "Train under a new --run with a lower learning rate "
+                f"(--lr; this run's is {self.phase.learning_rate:g})."
             )
 
 
@@ -598,7 +599,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _MeanOverProcesses(world),
         _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
-        _StopOnSaturation(phase, history, phase.learning_rate),
+        _StopOnSaturation(phase, history),
         stopper,
         *callbacks,
     ]

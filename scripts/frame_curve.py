@@ -71,6 +71,7 @@ def measure(run_dir: Path, folder: Path, frame_folders: list[str], spp: set[int]
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, load_model
+    from kpcn_keras.studies.compare import against
     from prep import baselines, exr, layouts, metrics
 
     run = Run(run_dir)
@@ -96,9 +97,10 @@ def measure(run_dir: Path, folder: Path, frame_folders: list[str], spp: set[int]
         for source in ("held-out", "validation"):
             mine = [(e, f["oidn"]) for e, f in zip(errors, frames) if f["source"] == source]
             row[source] = {"mean": statistics.fmean(e for e, _ in mine)}
-            if all(o is not None for _, o in mine):
-                row[source].update(below_oidn=sum(e < o for e, o in mine), of=len(mine),
-                                   median_ratio=statistics.median(e / o for e, o in mine))
+            if all(o is not None for _, o in mine):  # judged by frames as the quality study judges them
+                got = against({"frames": [{"relmse": e} for e, _ in mine]},
+                              {"frames": [{"relmse": o} for _, o in mine]})
+                row[source].update(below_oidn=got["lower"], of=got["frames"], median_ratio=got["median_ratio"])
         print(json.dumps({k: row[k] for k in ("phase", "epochs", "held-out", "validation")}), flush=True)
         return row
 
