@@ -109,6 +109,11 @@ def _strict_from_dict(cls, d: dict, option: str):
     return cls(**d)
 
 
+# the fields a run record of an earlier kpcn lacks, with the value it was trained with: left out of
+# ModelConfig.to_record at that value, so those runs keep their identity
+_MODEL_ADDED = {"slope_module": 0, "slope_mixture": 0}
+
+
 @dataclass
 class ModelConfig:
     """Architecture of one branch network. ``batchnorm=None`` means: True for kpal, False otherwise.
@@ -146,8 +151,8 @@ class ModelConfig:
     levels: int | None = bounded(None, UNET_LEVELS)
     width_growth: float | None = bounded(None, WIDTH_GROWTH)
     width_cap: int | None = bounded(None, WIDTH)
-    slope_module: int = bounded(0, SLOPE_MODULE)
-    slope_mixture: int = bounded(0, SLOPE_MIXTURE)
+    slope_module: int = bounded(_MODEL_ADDED["slope_module"], SLOPE_MODULE)
+    slope_mixture: int = bounded(_MODEL_ADDED["slope_mixture"], SLOPE_MIXTURE)
 
     def __post_init__(self):
         if self.arch not in ARCHS:
@@ -192,12 +197,19 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict; ``batchnorm`` is resolved (never None); the unet fields only for a unet."""
-        d = dataclasses.asdict(self)
+        d = self.to_record()
         if self.arch != "unet":
             for name in UNET_FIELDS:
                 del d[name]
-        for name in ("slope_module", "slope_mixture"):  # the records of networks without them stay as written
-            if not d[name]:
+        return d
+
+    def to_record(self) -> dict:
+        """The dict a run record's ``train.model`` holds: every field but those added since the first runs that
+        hold their defaults (:data:`_MODEL_ADDED`), so that the records of networks without them stay as
+        written and those runs keep their identity (the unet fields have been written, as null, since unet)."""
+        d = dataclasses.asdict(self)
+        for name, default in _MODEL_ADDED.items():
+            if d[name] == default:
                 del d[name]
         return d
 
@@ -521,6 +533,7 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         d = without_full_inputs(dataclasses.asdict(self))
+        d["model"] = self.model.to_record()  # asdict would write the fields its to_record leaves out
         if self.compositor is not None:
             d["compositor"] = self.compositor.to_dict()  # asdict would write the fields its to_dict leaves out
         if d["reference_tau"] == UNWEIGHTED_TAU:

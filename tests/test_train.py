@@ -256,6 +256,24 @@ def test_a_run_without_early_stopping_keeps_the_identity_it_had_before_patience_
         TrainConfig(patience=-1)
 
 
+@pytest.mark.slow
+def test_a_run_recorded_without_a_lambda_module_resumes_whether_its_record_names_the_module_or_not(tmp_path):
+    cfg = tiny_config(build_tiny_shards(tmp_path))
+    run_dir = train(cfg, tmp_path / "runs" / "r", verbose=0)
+    path = run_dir / "config.json"
+    record = json.loads(path.read_text())
+    # as written before --slope-module existed: the study plans and runs of then keep their identity
+    assert not {"slope_module", "slope_mixture"} & set(record["train"]["model"])
+    record["train"]["model"].update(slope_module=0, slope_mixture=0)  # as a run record of 2026-12-03 wrote it
+    path.write_text(json.dumps(record))
+    train(cfg, run_dir, verbose=0)  # the same run: finished, nothing to do, no error
+    record["train"]["model"].update(slope_channel=True, slope_module=2)
+    record["train"].update(loss="asymmetric", slope_input=True)
+    path.write_text(json.dumps(record))
+    with pytest.raises(KpcnError, match=r"another configuration \(differs in loss, model, slope_input\)"):
+        train(cfg, run_dir, verbose=0)
+
+
 # --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
 
 @pytest.mark.slow
