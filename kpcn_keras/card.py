@@ -3,9 +3,10 @@
 
 The card is generated, never written by hand, from what the run itself holds, so it cannot disagree with it:
 
-- **Configuration**, per input set: preset, architecture and every model field, each phase's steps and
-  learning rate with the seconds it trained (``timings.json``), the batch size, the command that trained it,
-  and the versions and machine.
+- **Configuration**, per input set: preset, architecture and every model field, each phase's steps (those
+  it trained, where early stopping ended it, and the step whose weights it keeps) and learning rate with the
+  seconds it trained (``timings.json``), the batch size, the command that trained it, and the versions and
+  machine.
 - **Training data**: the shard set, the render set it was cut from, the scene families, the patches (train and
   held-out) and the spp ladder of the inputs, from the shard set's manifest.
 - **Held-out table**: the means per input spp over the held-out scenes of ``kpcn evaluate``'s
@@ -152,9 +153,23 @@ def configuration(variant: Run, record: RunRecord) -> list[str]:
              f"seed {train.seed}",
              f"- command: `{record.command or '?'}`", ""]
     lines += _table(["phase", "steps", "learning rate", "seconds"],
-                    [[name, str(plan.get("steps", "?")), f"{plan.get('learning_rate', float('nan')):g}",
+                    [[name, trained_steps(plan, train.steps_per_epoch), f"{plan.get('learning_rate', float('nan')):g}",
                       f"{timings[name]:.0f}" if name in timings else "?"] for name, plan in phases.items()])
     return lines
+
+
+def trained_steps(plan: dict, steps_per_epoch: int) -> str:
+    """A phase's steps as the card shows them: the steps it was given; where early stopping ended it before
+    them, the steps it trained of those; where it keeps an earlier epoch's weights, that epoch's last step."""
+    if "steps" not in plan:
+        return "?"
+    steps = plan["steps"]
+    trained = min(plan.get("epochs_trained", plan["epochs"]) * steps_per_epoch, steps)
+    text = str(steps) if trained == steps else f"{trained} of {steps}"
+    kept = plan.get("best_epoch")
+    if kept is not None and min((kept + 1) * steps_per_epoch, steps) < trained:
+        text += f", the weights of step {(kept + 1) * steps_per_epoch}"
+    return text
 
 
 def learning_curve(variant: Run, record: RunRecord) -> list[str]:

@@ -244,6 +244,19 @@ def test_the_speed_frame_wraps_a_render_around_to_the_size_asked():
     np.testing.assert_array_equal(small["default"], layers["default"][:2, :3])
 
 
+@pytest.mark.parametrize("plan, shown", [
+    ({"epochs": 49, "steps": 2432}, "2432"),  # trained every step, no early stopping
+    ({"epochs": 240, "steps": 12000, "epochs_trained": 118, "best_epoch": 97},
+     "5900 of 12000, the weights of step 4900"),
+    ({"epochs": 4, "steps": 200, "epochs_trained": 4, "best_epoch": 3}, "200"),  # patience never ran out
+    ({"epochs": 4, "steps": 190, "epochs_trained": 4, "best_epoch": 1}, "190, the weights of step 100"),
+])
+def test_the_card_shows_the_steps_a_phase_trained_and_whose_weights_it_keeps(plan, shown):
+    from kpcn_keras.card import trained_steps
+
+    assert trained_steps(plan, steps_per_epoch=50) == shown
+
+
 def test_the_card_times_the_frame_asked_and_names_oidn(shipped):
     from kpcn_keras.card import card_tables
 
