@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields, is_integer
-from prep.errors import OptionError
+from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.inputs import FULL, InputSet
 from prep.render.frame import FRAME_SIDE
@@ -547,6 +547,17 @@ class TrainConfig:
     def identity(self) -> dict:
         """The fields that make two runs the same run (everything but where the data is read from)."""
         return {k: v for k, v in self.to_dict().items() if k not in LOCATION_FIELDS}
+
+    @classmethod
+    def recorded_identity(cls, train: dict) -> dict:
+        """The identity of a recorded ``train`` (a run record's, a study plan's) as this kpcn writes it, so that a
+        field added since, held at the value that means "as before", is the same run whether the record has it
+        or not; the record as written where this kpcn cannot read it (a newer kpcn's: its extra fields are then
+        the difference reported)."""
+        try:
+            return cls.from_record(train).identity()
+        except (TypeError, KpcnError):
+            return {k: v for k, v in train.items() if k not in LOCATION_FIELDS}
 
 
 @dataclass

@@ -69,7 +69,7 @@ import keras
 import numpy as np
 
 from kpcn_keras import distributed
-from kpcn_keras.config import LOCATION_FIELDS, UNWEIGHTED_TAU, Phase, TrainConfig
+from kpcn_keras.config import UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.layers import FinalColour
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
@@ -423,21 +423,11 @@ def check_run_folder(run: Run, sset: ShardSet, manifest: dict) -> None:
                             f"folder {folder}, whose files a run would write over or mix with; choose another --run")
 
 
-def _recorded_identity(train: dict) -> dict:
-    """A record's training identity as this kpcn writes it, so that a field added since, held at the value that
-    means "as before", is the same run whether the record has it or not; the record as written where this kpcn
-    cannot read it (a newer kpcn's: its extra fields are then the difference reported)."""
-    try:
-        return TrainConfig.from_record(train).identity()
-    except (TypeError, KpcnError):
-        return {k: v for k, v in train.items() if k not in LOCATION_FIELDS}
-
-
 def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> dict:
     """The run's record: read and compared if the run exists, else created (inputs are checked by now)."""
     if run.has_record():
         record = run.read_record()
-        old = _recorded_identity(record["train"])
+        old = TrainConfig.recorded_identity(record["train"])
         diff = sorted(k for k in set(old) | set(cfg.identity()) if old.get(k) != cfg.identity().get(k))
         if diff:
             raise KpcnError(

@@ -299,3 +299,22 @@ def test_planned_runs_make_a_plan_once_keep_it_and_refuse_a_run_trained_for_anot
         with pytest.raises(cmp.KpcnError, match=rf"{tiny_run}: trained for other settings than this test study's"):
             planned.entry(("lever", "full"), {**key, "budget": 6.0}, tiny_run, plan)
     assert len(made) == 1
+
+
+def test_a_plan_made_before_a_model_field_existed_keeps_its_runs(tmp_path):
+    from kpcn_keras.config import TrainConfig
+
+    group = tmp_path / "group"
+    key = {"train": TrainConfig().identity(), "budget": 5.0}
+    written = json.loads(json.dumps(key))
+    written["train"]["model"].update(slope_module=0, slope_mixture=0)  # as a plan of 2026-12-03 wrote it
+    group.mkdir()
+    (group / "plan.json").write_text(json.dumps({"lever": {"full": {**written, "steps": {"steps": 7}}}}))
+    with cmp.PlannedRuns(group, "test study") as planned:
+        entry, reused = planned.entry(("lever", "full"), key, group / "lever", lambda scratch: 1 / 0)
+    assert reused and entry["steps"] == {"steps": 7}
+    other = TrainConfig(learning_rate=3e-4).identity()
+    with cmp.PlannedRuns(group, "test study") as planned:  # another configuration is planned again
+        entry, reused = planned.entry(("lever", "full"), {**key, "train": other}, group / "lever",
+                                      lambda scratch: {"steps": {"steps": 3}})
+    assert not reused and entry["steps"] == {"steps": 3}

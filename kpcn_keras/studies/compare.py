@@ -274,7 +274,7 @@ class PlannedRuns:
         for name in names[:-1]:
             node = node.get(name, {})
         entry = node.get(names[-1])
-        if entry is not None and {k: entry.get(k) for k in key} == key:
+        if entry is not None and all(_as_read(k, entry.get(k)) == _as_read(k, v) for k, v in key.items()):
             return entry, True
         from kpcn_keras.run import Run
 
@@ -288,6 +288,12 @@ class PlannedRuns:
         node[names[-1]] = entry
         atomic_write_json(self.path, self.stored)
         return entry, False
+
+
+def _as_read(field: str, value):
+    """A plan key's stored value as this kpcn writes it: a training identity through
+    :meth:`TrainConfig.recorded_identity`, so that a plan made before a field was added keeps its runs."""
+    return TrainConfig.recorded_identity(value) if field == "train" and isinstance(value, dict) else value
 
 
 def _fmt_phases(values: dict, fmt: str) -> str:
