@@ -1,7 +1,10 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from prep import baselines, metrics
+from prep.metrics import RELMSE_EPS
 
 
 def test_metrics_on_a_hand_computed_case():
@@ -148,3 +151,20 @@ def test_all_metrics_hold_every_metric_in_order():
     values = metrics.all_metrics(x, r)
     assert tuple(values) == metrics.METRICS
     assert values["relse_p999"] == metrics.relse_p999(x, r) and values["relmse"] == metrics.relmse(x, r)
+
+
+def test_the_error_split_puts_the_worst_pixels_error_in_its_tail_and_the_rest_in_its_body():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("error_tail", Path(__file__).parents[1] / "scripts" / "error_tail.py")
+    error_tail = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(error_tail)
+    reference = np.ones((100, 100, 3))
+    x = reference + 0.1  # every pixel a little off ...
+    x[:10, :10] += 2.9  # ... and 1 % of them far off, 3.0 in all
+    got = error_tail.split(x.astype(np.float32), reference.astype(np.float32))
+    far, near = 3.0**2 / (1 + RELMSE_EPS), 0.1**2 / (1 + RELMSE_EPS)  # relSE of one pixel of each kind
+    total = 100 * far + 9900 * near
+    assert got["relmse"] == pytest.approx(total / 10000, rel=1e-5)
+    assert got["shares"] == pytest.approx([10 * far / total, 100 * far / total], rel=1e-5)
+    assert got["body"] == pytest.approx(near, rel=1e-5)
