@@ -7,6 +7,7 @@ import dataclasses
 import datetime
 import json
 import shutil
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,27 @@ def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
 KINDS_ALL = ("held-out", "validation")
 
 
+def test_the_best_lever_is_the_one_below_oidn_on_most_frames_not_the_one_a_single_frame_makes_best_by_mean():
+    record = hand_record()
+    held = [r for r in record["frames"] if r["kind"] == "held-out"]
+    held[0]["levers"]["data"]["relmse"] = 1.0  # one frame with a speckled reference, far off for data alone
+    means = {lever: np.mean([r["levers"][lever]["relmse"] for r in held]) for lever in LEVERS}
+    assert means["cpu"] < means["data"]  # by its mean, cpu would be the best
+    assert (_expected(3)[0], _expected(4)[0]) == (3, 4)  # by frames below OIDN, data is (unchanged: it was above)
+    assert qs.best(record) == "data"
+    headline = next(line for line in qs.format_report(record).splitlines() if line.startswith("**Best"))
+    assert headline.startswith("**Best lever by frames: `data`** (mean held-out relMSE "
+                               f"{means['data']:.4f})")
+    without = hand_record(oidn=False)  # nothing to count: the lowest mean
+    without["frames"][0]["levers"]["data"]["relmse"] = 1.0
+    assert qs.best(without) == "cpu"
+    # a tie in frames is broken by the lower median ratio to OIDN's, before the mean
+    record["frames"][1]["levers"]["cpu"]["relmse"] = 0.019  # now below OIDN's 0.020: 4 of 8, as data
+    ratio = {lever: statistics.median(r["levers"][lever]["relmse"] / r["oidn"]["relmse"] for r in record["frames"])
+             for lever in LEVERS}
+    assert ratio["data"] < ratio["cpu"] and qs.best(record) == "data"
+
+
 def test_without_oidn_the_report_says_so_and_counts_nothing():
     md = qs.format_report(hand_record(oidn=False))
     assert "OIDN, the denoiser to beat, is not installed here" in md
@@ -167,6 +189,7 @@ def test_without_oidn_the_report_says_so_and_counts_nothing():
 
 def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
     record = hand_record()
+    record["config"]["panel_spp"] = 2  # no validation frame at 2 spp: no panel to denoise with a run
     (tmp_path / "quality.json").write_text(json.dumps(record, indent=2) + "\n")
     (tmp_path / "quality.md").write_text("an older report\n")
     before = datetime.date.today()
@@ -268,7 +291,7 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
         reference = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00064spp.exr", variances=False)
         assert r["raw"]["relmse"] == pytest.approx(_relmse64(noisy, reference["default"]), rel=1e-9)
     md = (out / "quality.md").read_text()
-    assert "Best lever by held-out relMSE" in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
+    assert "**Best lever by " in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
     assert [p["title"].split(" (")[0] for p in record["panels"]] == ["cycles5/studio 16 spp", "mitsuba3/cornell 16 spp"]
 
     # the same command again: the plan is reused and the runs are done; the report written again from the record
