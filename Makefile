@@ -23,7 +23,7 @@ BENCH_ARGS  ?=
 # inputs 2-64 spp), the set make quality renders as $(MODEL_SET), held out the scenes make train holds out.
 MODEL      ?= $(shell sed -n 's/^DEFAULT_MODEL = "\(.*\)".*/\1/p' kpcn_keras/config.py)
 # As long as held-out error falls: each network stops 20 epochs (1000 steps) after its best and keeps it; 12000
-# steps is a cap it has not reached (docs/results.md §13: the no-variance network stopped at 3950 and 6800)
+# steps is a cap (where the shipped networks stopped: their card, docs/results.md §13)
 MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000 --patience 20
 MODEL_RUN  ?= runs/model
 MODEL_SET  ?= $(SET)-r14bdd0f2

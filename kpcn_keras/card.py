@@ -161,25 +161,28 @@ def configuration(variant: Run, record: RunRecord) -> list[str]:
 def trained_steps(plan: dict, steps_per_epoch: int) -> str:
     """A phase's steps as the card shows them: the steps it was given; where early stopping ended it before
     them, the steps it trained of those; where it keeps an earlier epoch's weights, that epoch's last step."""
+    from kpcn_keras.train import epochs_trained
+
     if "steps" not in plan:
         return "?"
     steps = plan["steps"]
-    trained = min(plan.get("epochs_trained", plan["epochs"]) * steps_per_epoch, steps)
+    trained = min(epochs_trained(plan) * steps_per_epoch, steps)
     text = str(steps) if trained == steps else f"{trained} of {steps}"
-    kept = plan.get("best_epoch")
-    if kept is not None and min((kept + 1) * steps_per_epoch, steps) < trained:
-        text += f", the weights of step {(kept + 1) * steps_per_epoch}"
+    if plan.get("best_epoch") is not None:
+        kept = min((plan["best_epoch"] + 1) * steps_per_epoch, steps)
+        if kept < trained:
+            text += f", the weights of step {kept}"
     return text
 
 
 def learning_curve(variant: Run, record: RunRecord) -> list[str]:
     """Per phase of one input set's run: its epochs and the validation loss at its first, best and last."""
-    from kpcn_keras.train import read_log
+    from kpcn_keras.train import epochs_trained, read_log
 
     rows = {int(r["epoch"]): r for r in read_log(variant.log_path)}
     lines = []
     for name, plan in record.data.get("phases", {}).items():
-        epochs = range(plan["first_epoch"], plan["first_epoch"] + plan.get("epochs_trained", plan["epochs"]))
+        epochs = range(plan["first_epoch"], plan["first_epoch"] + epochs_trained(plan))
         losses = [(e, float(rows[e]["val_loss"])) for e in epochs if rows.get(e, {}).get("val_loss") not in (None, "")]
         if not losses:
             continue

@@ -471,6 +471,12 @@ def _phase_plan(phase: Phase) -> dict:
     return plan
 
 
+def epochs_trained(plan: dict) -> int:
+    """The epochs a finished phase of the record trained: all it planned, or (``epochs_trained``, written
+    only by early stopping) those before it stopped."""
+    return plan.get("epochs_trained", plan["epochs"])
+
+
 def logged_epochs(record: dict, phase: Phase, done: int) -> list[int]:
     """The epoch numbers the CSV log holds once ``phase`` has trained ``done`` epochs: every earlier phase's
     (all its planned epochs, or those it trained before it stopped early), then ``done`` of its own."""
@@ -478,7 +484,7 @@ def logged_epochs(record: dict, phase: Phase, done: int) -> list[int]:
     for name, plan in record["phases"].items():
         if name == phase.name:
             break
-        epochs += range(plan["first_epoch"], plan["first_epoch"] + plan.get("epochs_trained", plan["epochs"]))
+        epochs += range(plan["first_epoch"], plan["first_epoch"] + epochs_trained(plan))
     return epochs + list(range(phase.first_epoch, phase.first_epoch + done))
 
 
@@ -535,7 +541,7 @@ def loss_curve_png(run: Run, record: dict) -> Path:
             ax.plot(*zip(*points), style, label=key.replace("_", " "))
     for i, (name, plan) in enumerate(record["phases"].items()):
         a = plan["first_epoch"] + 0.5
-        ax.axvspan(a, a + plan.get("epochs_trained", plan["epochs"]), color=f"C{i % 10}", alpha=0.08)
+        ax.axvspan(a, a + epochs_trained(plan), color=f"C{i % 10}", alpha=0.08)
         if "best_epoch" in plan:
             ax.axvline(plan["first_epoch"] + plan["best_epoch"] + 1, color=f"C{i % 10}", lw=0.8, ls=":")
         ax.text(a + 0.1, 0.98, name, transform=ax.get_xaxis_transform(), va="top", rotation=90, fontsize=7)

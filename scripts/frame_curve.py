@@ -72,6 +72,7 @@ def measure(run_dir: Path, folder: Path, frame_folders: list[str], spp: set[int]
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, load_model
     from kpcn_keras.studies.compare import against
+    from kpcn_keras.train import epochs_trained
     from prep import baselines, exr, layouts, metrics
 
     run = Run(run_dir)
@@ -110,13 +111,13 @@ def measure(run_dir: Path, folder: Path, frame_folders: list[str], spp: set[int]
         for epochs, path in shots[::stride] + ([shots[-1]] if shots and (len(shots) - 1) % stride else []):
             rows.append(point({**final, phase: load_model(path, compile=False)}, phase, epochs,
                               offset + epochs * steps_per_epoch))
-        offset += plans[phase].get("epochs_trained", plans[phase]["epochs"]) * steps_per_epoch
+        offset += epochs_trained(plans[phase]) * steps_per_epoch
     rows.append(point(final, "finished", None, offset))
     for other_dir in compare:  # another finished run of the same input set, on the same frames
         other = Run(other_dir)
         other_record = other.record().finished()
         networks = {b: other.load_component(other_record, b) for b in other_record.branches}
-        steps = sum(p.get("epochs_trained", p["epochs"]) for p in other_record.data["phases"].values())
+        steps = sum(epochs_trained(p) for p in other_record.data["phases"].values())
         steps *= other_record.train.steps_per_epoch
         rows.append(point(networks, str(other_dir), None, steps, other, other_record))
 
@@ -135,6 +136,8 @@ def report(out: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from kpcn_keras.train import epochs_trained
 
     found = json.loads(out.with_suffix(".json").read_text())
     run_dir, rows, frames, branches = found["run"], found["points"], found["frames"], found["branches"]
@@ -180,7 +183,7 @@ def report(out: Path) -> None:
     axes[1].axhline(0.5, color="k", lw=0.8, ls=":")
     first = found["phases"][branches[0]]
     for ax in axes:
-        for phase, start in zip(branches, (0, first.get("epochs_trained", first["epochs"]))):
+        for phase, start in zip(branches, (0, epochs_trained(first))):
             ax.axvline(start * found["steps_per_epoch"], color="0.7", lw=0.8)
             ax.text(start * found["steps_per_epoch"], ax.get_ylim()[1], f" {phase}", va="top", fontsize=8,
                     color="0.4")
