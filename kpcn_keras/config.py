@@ -63,6 +63,8 @@ UNET_LEVELS = Bound(2, 6)
 SLOPE_MODULE = Bound(0, 8)
 SLOPE_MIXTURE = Bound(0, 8)  # kernels a λ mixture chooses among; 0 is none, 1 is refused (nothing to choose)
 WIDTH_GROWTH = Bound(1.0, 4.0, integer=False)  # filters per level down: constant up to quadrupling
+# a trunk convolution's dilation: its taps that many pixels apart; 32 spaces a 3x3's outer taps a 65-pixel patch apart
+DILATION = Bound(1, 32)
 STEPS = Bound(1, 10_000_000)  # ten days at 12 steps/s
 BATCH_SIZE = Bound(1, 4096)
 VAL_BATCHES = Bound(1, 10_000)
@@ -111,7 +113,8 @@ def _strict_from_dict(cls, d: dict, option: str):
 
 # the fields a run record of an earlier kpcn lacks, with the value it was trained with: left out of
 # ModelConfig.to_record at that value, so those runs keep their identity
-_MODEL_ADDED = {"slope_module": 0, "slope_mixture": 0}
+_MODEL_ADDED = {"slope_module": 0, "slope_mixture": 0, "dilations": None}
+DILATED_ARCHS = ("kpcn", "dpcn")  # the archs whose trunk is one stack of convolutions, one dilation each
 
 
 @dataclass
@@ -136,6 +139,10 @@ class ModelConfig:
     the trunk predicts J kernels instead of one, and the module predicts, from the trunk's activations and λ,
     each pixel's mixture of them, so a new map re-runs the module and a J-way blend of filtered colours, not
     the kernels (models.py); left out of :meth:`to_dict` when 0.
+
+    ``dilations`` (arch kpcn or dpcn): the dilation of each of the ``depth`` trunk convolutions, whose taps are
+    then that many pixels apart, so the trunk sees further at the same cost (the ``dilated`` preset); None, the
+    default, and all ones are the plain stack, left out of :meth:`to_dict`.
     """
 
     arch: str = "kpcn"
@@ -153,6 +160,7 @@ class ModelConfig:
     width_cap: int | None = bounded(None, WIDTH)
     slope_module: int = bounded(_MODEL_ADDED["slope_module"], SLOPE_MODULE)
     slope_mixture: int = bounded(_MODEL_ADDED["slope_mixture"], SLOPE_MIXTURE)
+    dilations: tuple[int, ...] | None = bounded(_MODEL_ADDED["dilations"], DILATION)
 
     def __post_init__(self):
         if self.arch not in ARCHS:
@@ -189,6 +197,25 @@ class ModelConfig:
                               "module; it needs --slope-module")
         if self.slope_mixture == 1:
             raise OptionError("slope_mixture", "must be at least 2 kernels to mix (or 0 for none), received 1")
+        if self.dilations is not None:
+            if not isinstance(self.dilations, tuple):
+                raise OptionError("dilations", f"must be a list of dilations, one per convolution, received "
+                                  f"{self.dilations!r}")
+            if self.arch not in DILATED_ARCHS:
+                stacks = ", ".join(DILATED_ARCHS)
+                raise OptionError("dilations", f"dilate the convolutions of a plain stack ({stacks}), received "
+                                  f"{list(self.dilations)} with arch {self.arch}")
+            if len(self.dilations) != self.depth:
+                raise OptionError("dilations", f"needs one dilation per trunk convolution, depth {self.depth}; "
+                                  f"received {len(self.dilations)}: {list(self.dilations)}")
+            if set(self.dilations) == {1}:
+                self.dilations = None  # the plain stack: one network, one record
+
+    def trunk_dilations(self) -> tuple[int, ...]:
+        """The dilation of each trunk convolution of a kpcn or dpcn (ValueError for another arch)."""
+        if self.arch not in DILATED_ARCHS:
+            raise ValueError(f"a {self.arch} network's trunk is not one stack of convolutions")
+        return self.dilations or (1,) * self.depth
 
     @property
     def input_channels(self) -> int:
@@ -211,6 +238,8 @@ class ModelConfig:
         for name, default in _MODEL_ADDED.items():
             if d[name] == default:
                 del d[name]
+        if "dilations" in d:
+            d["dilations"] = list(d["dilations"])  # as JSON reads it back
         return d
 
     def unet_widths(self) -> tuple[int, ...]:
@@ -310,6 +339,9 @@ PRESETS = {
     # a third of its learning rate: at cpu's 0.001 a specular network's kernels saturated in its first epoch and
     # it never learned (docs/results.md §10d; train.frozen now stops such a phase); at 0.0003 it learned
     "unet": {"model": {"arch": "unet", "depth": 1}, "learning_rate": 3e-4},
+    # cpu with its 7 convolutions dilated 1, 2, 4, 8, 4, 2, 1: a 45-pixel trunk field (every offset within it
+    # reached, no gridding gaps) at cpu's cost a step, where the unet's steps cost twice as much
+    "dilated": {"model": {"dilations": [1, 2, 4, 8, 4, 2, 1]}},
     "kpal-paper": {
         "model": {"arch": "kpal", "width": 100, "depth": 13, "conv_size": 3, "kernel_size": 21, "dropout": 0.3},
         **_PAPER_TRAINING,

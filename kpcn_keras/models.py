@@ -15,7 +15,10 @@ Architectures (``ModelConfig.arch``):
 - ``"kpcn"``: Bako et al.'s plain stack: ``depth`` convolutions (``conv_size``, ``width`` filters, ReLU), then a
   1x1 convolution to k*k logits (the kernel head) and ``KernelApply`` on the noisy colour. The default is
   8 layers: 7 convolutions of 32 3x3 filters and the kernel head; the paper's vanilla network is 9: 8
-  convolutions of 100 5x5 filters and the kernel head.
+  convolutions of 100 5x5 filters and the kernel head. With ``dilations`` the i-th convolution's taps are
+  ``dilations[i]`` pixels apart: the ``dilated`` preset's 1, 2, 4, 8, 4, 2, 1 reach 22 pixels each way at the
+  cost of the plain stack's 7 (issue 23's blotches are 10-30 pixels across). Every offset within that reach is
+  some sum of ±dilations, so no pixel of the field is skipped (the "gridding" of equal dilations).
 - ``"kpal"``: Vogels et al.'s residual network: a stem convolution to ``width`` filters, then ``depth``
   residual blocks of two convolutions, each followed by batch norm (if enabled) and dropout, the block
   input added back before the final ReLU; then the same kernel-predicting head. The report's 28-layer
@@ -79,7 +82,7 @@ from __future__ import annotations
 import keras
 import numpy as np
 
-from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, ModelConfig
+from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, DILATED_ARCHS, ModelConfig
 from kpcn_keras.layers import (
     CropLike,
     FinalColour,
@@ -170,8 +173,9 @@ def trunk_radius(cfg: ModelConfig) -> int:
     if cfg.arch == "unet":
         reach, coarsest = cfg.depth * per_conv, 2 ** (cfg.levels - 1)
         return (reach + 1) * (coarsest - 1) + reach * (2 * coarsest - 1)
-    n_convs = cfg.depth if cfg.arch in ("kpcn", "dpcn") else 1 + 2 * cfg.depth
-    return n_convs * per_conv  # the 1x1 head adds nothing
+    if cfg.arch in DILATED_ARCHS:
+        return sum(cfg.trunk_dilations()) * per_conv  # the 1x1 head adds nothing
+    return (1 + 2 * cfg.depth) * per_conv
 
 
 def input_alignment(cfg: ModelConfig) -> int:
@@ -208,13 +212,15 @@ def _conv_class(data_format: str):
     return FusedConv2D if data_format == "channels_first" else keras.layers.Conv2D
 
 
-def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str, width: int | None = None):
-    """Conv -> [BN] -> [ReLU] -> [Dropout] of ``width`` filters (default ``cfg.width``). The conv has no bias
-    when batch norm follows (BN's beta is it)."""
+def _conv_unit(x, cfg: ModelConfig, name: str, activate: bool, data_format: str, width: int | None = None,
+               dilation: int = 1):
+    """Conv -> [BN] -> [ReLU] -> [Dropout] of ``width`` filters (default ``cfg.width``), taps ``dilation``
+    pixels apart. The conv has no bias when batch norm follows (BN's beta is it)."""
     x = _conv_class(data_format)(
         cfg.width if width is None else width,
         cfg.conv_size,
         padding="same",
+        dilation_rate=dilation,
         use_bias=not cfg.batchnorm,
         data_format=data_format,
         name=f"{name}_conv",
@@ -251,10 +257,10 @@ def _unet_trunk(x, cfg: ModelConfig, prefix: str, data_format: str):
 def _trunk(features, cfg: ModelConfig, prefix: str, data_format: str):
     if cfg.arch == "unet":
         return _unet_trunk(features, cfg, prefix, data_format)
-    if cfg.arch in ("kpcn", "dpcn"):
+    if cfg.arch in DILATED_ARCHS:
         x = features
-        for i in range(cfg.depth):
-            x = _conv_unit(x, cfg, f"{prefix}trunk{i:02d}", activate=True, data_format=data_format)
+        for i, dilation in enumerate(cfg.trunk_dilations()):
+            x = _conv_unit(x, cfg, f"{prefix}trunk{i:02d}", activate=True, data_format=data_format, dilation=dilation)
         return x
     x = _conv_unit(features, cfg, f"{prefix}stem", activate=True, data_format=data_format)
     for i in range(cfg.depth):

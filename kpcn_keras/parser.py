@@ -284,6 +284,9 @@ def _train_options(add) -> None:
                    f"(default: {UNET_DEFAULTS['width_growth']})")
     g.add_argument("--width-cap", type=int, help=f"unet only: most filters of a level (default: {UNET_CAP_FACTOR} x "
                    "--width)")
+    g.add_argument("--dilations", type=_csv_ints, help="kpcn, dpcn: comma-separated dilation of each convolution, "
+                   "one per --depth, its taps that many pixels apart (the dilated preset: 1,2,4,8,4,2,1; "
+                   "default: 1 each)")
     g.add_argument("--conv-size", type=int, help="convolution size (odd)")
     g.add_argument("--kernel-size", type=int, help="predicted kernel side (odd; the papers use 21)")
     g.add_argument("--dropout", type=float, help="drop rate after every convolution (the report's keep 0.7 is 0.3)")

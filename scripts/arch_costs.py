@@ -1,4 +1,4 @@
-"""The cost of the cpu and unet presets' networks side by side, in one process (issue 23; docs/method.md §4).
+"""The cost of the cpu, unet and dilated presets' networks side by side, in one process (issue 23; docs/method.md §4).
 
 Prints one JSON object: per preset the parameter count, the receptive radius (``models.receptive_radius``) and
 input alignment, the best and median forward time of one 256 x 256 tile (``predict_on_batch``), the median
@@ -25,7 +25,7 @@ from pathlib import Path
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
 
-PRESETS = ("cpu", "unet")
+PRESETS = ("cpu", "unet", "dilated")
 TILE_SIDE = 256
 FRAME = (1080, 1920)
 

@@ -322,8 +322,9 @@ def test_shards_record_their_command_without_the_options_that_change_no_byte():
 
 _NUMERIC = ("int", "float", "_csv_ints", "_csv_floats")
 _STATED = re.compile(r"(an odd integer|an integer|a number) in ([\[(])([^,]+), ([^\])]+)([\])])")
-# the lists whose entries have a place (y,x; width,height; low,high): a repeat means something there
-_POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame"}
+# the lists whose entries have a place (y,x; width,height; low,high; a dilation per convolution): a repeat means
+# something there
+_POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame", "dilations"}
 # what a command needs besides the option for its check to be reached (the option's bound is checked first)
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
           "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"],

@@ -81,6 +81,24 @@ def test_unet_tiles_aligned_to_its_pooling_grid_equal_an_untiled_run(tiny_unet_r
     assert np.abs(denoiser.run_branch("diffuse", aovs) - logs["diffuse"]).max() > 1e-4
 
 
+TINY_DILATED = {**TINY_MODEL, "dilations": [1, 3, 2]}  # trunk radius 6, beyond the 5x5 kernel's 2
+
+
+@pytest.mark.slow
+def test_dilated_trunk_tiles_equal_an_untiled_run_and_need_their_whole_margin(tmp_path):
+    shard_cfg = build_tiny_shards(tmp_path)
+    cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_DILATED, steps=2,
+                                  steps_per_epoch=2, batch_size=2, val_batches=1)
+    denoiser = _randomised(Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), tile=8))
+    assert denoiser.margin == 6  # 1 + 3 + 2 dilated taps of 3x3 convolutions
+    aovs = random_aovs(37, 29, seed=6)
+    logs, want = _untiled(denoiser, aovs)
+    for name, image in denoiser(aovs).items():
+        np.testing.assert_allclose(image, want[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    denoiser.margin = 5  # the undilated stack's reach would be 3: a margin short of the dilated one shows seams
+    assert np.abs(denoiser.run_branch("diffuse", aovs) - logs["diffuse"]).max() > 1e-4
+
+
 @pytest.mark.slow
 def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives(tmp_path):
     shard_cfg = build_tiny_shards(tmp_path)

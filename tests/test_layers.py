@@ -291,9 +291,12 @@ def test_kernel_apply_rejects_mismatched_shapes_and_dilation():
 
 @pytest.mark.parametrize("kw", [dict(kernel_size=3, padding="same"), dict(kernel_size=1, padding="same"),
                                 dict(kernel_size=3, padding="valid", use_bias=False),
+                                dict(kernel_size=3, padding="same", dilation_rate=2),
+                                dict(kernel_size=3, padding="same", dilation_rate=(3, 1)),
                                 dict(kernel_size=2, padding="same"), dict(kernel_size=3, strides=2)])
 def test_fused_conv_equals_keras_conv_values_and_gradients(kw):
-    """FusedConv2D's torch path (odd "same", "valid") and its fallbacks (even "same", strides) match Conv2D."""
+    """FusedConv2D's torch path (odd "same", "valid", dilated) and its fallbacks (even "same", strides) match
+    Conv2D."""
     rng = np.random.default_rng(8)
     ours = FusedConv2D(4, data_format="channels_first", **kw)
     theirs = keras.layers.Conv2D(4, data_format="channels_first", **kw)

@@ -1,5 +1,8 @@
 """Branch models: shapes, config, initial behaviour, receptive field, save/load, kernels, and learning."""
 
+import dataclasses
+import json
+
 import keras
 import numpy as np
 import pytest
@@ -93,6 +96,45 @@ def test_unet_fields_are_refused_with_another_arch_and_left_out_of_its_dict(arch
     assert ModelConfig.from_dict(d) == ModelConfig(arch=arch)
 
 
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        (dict(arch="kpal", depth=2, dilations=[1, 2]), r"^dilations dilate the convolutions of a plain stack .*"
+                                                       r"received \[1, 2\] with arch kpal"),
+        (dict(arch="unet", depth=2, dilations=[1, 2]), "with arch unet"),
+        (dict(depth=3, dilations=[1, 2]), r"one dilation per trunk convolution, depth 3; received 2: \[1, 2\]"),
+        (dict(depth=1, dilations=4), "must be a list of dilations, one per convolution, received 4"),
+        (dict(depth=2, dilations=[1, 0]), "0"),
+        (dict(depth=2, dilations=[1, 33]), "33"),
+    ],
+)
+def test_dilations_are_refused_where_they_do_not_fit_and_echo_what_was_given(kw, message):
+    with pytest.raises(OptionError, match=message):
+        ModelConfig(**kw)
+
+
+def test_dilations_round_trip_and_all_ones_is_the_plain_stack_with_its_old_record():
+    cfg = ModelConfig(depth=3, dilations=[1, 4, 2])
+    assert cfg.trunk_dilations() == (1, 4, 2)
+    d = cfg.to_dict()
+    assert d["dilations"] == [1, 4, 2]  # what JSON reads back, so a stored record equals a fresh one
+    assert ModelConfig.from_dict(json.loads(json.dumps(d))) == cfg
+    plain = ModelConfig(depth=3, dilations=(1, 1, 1))
+    assert plain == ModelConfig(depth=3) and "dilations" not in plain.to_dict()
+    assert ModelConfig(depth=3).trunk_dilations() == (1, 1, 1)
+    with pytest.raises(ValueError, match="a unet network's trunk is not one stack"):
+        ModelConfig(arch="unet").trunk_dilations()
+
+
+def test_dilated_preset_is_cpu_with_a_dilated_trunk():
+    dilated, cpu = TrainConfig.from_preset("dilated"), TrainConfig.from_preset("cpu")
+    assert dilated.model.trunk_dilations() == (1, 2, 4, 8, 4, 2, 1)
+    assert trunk_radius(dilated.model) == 22 == receptive_radius(dilated.model)
+    assert dilated.model == dataclasses.replace(cpu.model, dilations=(1, 2, 4, 8, 4, 2, 1))
+    assert {k: v for k, v in dilated.to_dict().items() if k not in ("model", "preset")} == \
+        {k: v for k, v in cpu.to_dict().items() if k not in ("model", "preset")}
+
+
 def test_unet_fields_resolve_and_round_trip():
     cfg = ModelConfig(arch="unet")
     assert (cfg.levels, cfg.width_growth, cfg.width_cap) == (4, 1.5, 96)
@@ -180,6 +222,7 @@ def test_untrained_dpcn_is_identity_on_log_colours():
         tiny("kpcn", depth=1, kernel_size=7),  # kernel (3) dominates
         tiny("kpal", depth=1, kernel_size=3),  # 3 convs -> 3
         tiny("dpcn", depth=2, conv_size=5),  # 2 * 2 = 4
+        tiny("kpcn", depth=3, kernel_size=3, dilations=[1, 3, 2]),  # 1 + 3 + 2 = 6
     ],
 )
 def test_receptive_radius_is_exact(cfg):
@@ -239,6 +282,24 @@ def test_unet_receptive_radius_is_the_probed_one(kw):
     assert _probed_radius(model, cfg) == trunk_radius(cfg) == receptive_radius(cfg)
 
 
+@pytest.mark.slow
+def test_the_dilated_presets_trunk_reaches_every_pixel_of_its_field_and_no_further():
+    """1, 2, 4, 8, 4, 2, 1 leave no gridding holes: every input pixel within the radius moves the output pixel."""
+    cfg = ModelConfig(width=8, kernel_size=3, dilations=[1, 2, 4, 8, 4, 2, 1])
+    model = build_branch_model(cfg)
+    randomise(model, seed=5, scale=0.1)
+    radius, size = trunk_radius(cfg), 2 * trunk_radius(cfg) + 9
+    c = size // 2
+    reached = np.zeros((size, size), bool)
+    for seed in (11, 12):
+        x = torch.tensor(features((1, size, size, 27), seed=seed), requires_grad=True)
+        (grad,) = torch.autograd.grad(model(x, training=False)[0, c, c].sum(), x)
+        reached |= to_np(grad[0]).any(axis=-1)
+    ys, xs = np.nonzero(reached)
+    assert int(np.abs(ys - c).max()) == int(np.abs(xs - c).max()) == radius == 22
+    assert reached[c - radius : c + radius + 1, c - radius : c + radius + 1].all()
+
+
 def test_radius_formulas():
     assert trunk_radius(ModelConfig()) == 7
     assert receptive_radius(ModelConfig()) == 7
@@ -254,9 +315,10 @@ def test_radius_formulas():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("arch", ARCHS)
-def test_save_load_round_trip(arch, tmp_path):
-    cfg = tiny(arch, dropout=0.2)
+@pytest.mark.parametrize("arch, kw", [(arch, {}) for arch in ARCHS] + [("kpcn", {"dilations": [2, 3]})],
+                         ids=[*ARCHS, "kpcn-dilated"])
+def test_save_load_round_trip(arch, kw, tmp_path):
+    cfg = tiny(arch, dropout=0.2, **kw)
     model = build_branch_model(cfg, name="diffuse")
     randomise(model, seed=3)
     x = features((2, 10, 12, 27), seed=4)

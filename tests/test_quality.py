@@ -36,8 +36,11 @@ def test_every_lever_is_an_entry_and_the_combination_merges_them():
     assert "a, b" in what
     with pytest.raises(ValueError, match="different presets"):
         combine("b", "c", levers=levers)
-    assert QUALITY_LEVERS["combination"][2:] == combine(*[n for n in QUALITY_LEVERS if n not in ("cpu", "combination")
-                                                           ])[2:]
+    # dilated and unet are two trunks: the combination takes the unet's
+    others = [n for n in QUALITY_LEVERS if n not in ("cpu", "dilated", "combination")]
+    assert QUALITY_LEVERS["combination"][2:] == combine(*others)[2:]
+    with pytest.raises(ValueError, match="different presets"):
+        combine("unet", "dilated")
     cfg = QualityConfig()
     assert qs.lever_set(cfg, "cpu") == qs.lever_set(cfg, "multiscale-kernel") == "default"
     # the data lever and the combination render the same larger set once

@@ -32,10 +32,11 @@ def tiny(arch, **kw):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("arch", ARCHS)
+@pytest.mark.parametrize("arch, kw", [(arch, {}) for arch in ARCHS] + [("kpcn", {"dilations": [3, 2]})],
+                         ids=[*ARCHS, "kpcn-dilated"])
 @pytest.mark.parametrize("training", [False, True])
-def test_plain_torch_equals_keras(arch, training):
-    cfg = tiny(arch, batchnorm=True, branch_channels=True)
+def test_plain_torch_equals_keras(arch, kw, training):
+    cfg = tiny(arch, batchnorm=True, branch_channels=True, **kw)
     model = build_branch_model(cfg, name="specular")
     randomise(model, seed=1)
     net = torch_branch_from_keras(model, cfg)

@@ -76,12 +76,14 @@ QUALITY_BASE = {"reference_tau": 0.0}
 QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
     "cpu": ("the cpu preset without reference weighting, the baseline", "cpu", {}, None),
     "unet": ("the kernel-predicting network on a U-Net trunk (unet preset)", "unet", {}, None),
+    "dilated": ("cpu with its trunk dilated 1, 2, 4, 8, 4, 2, 1 (dilated preset)", "dilated", {}, None),
     "multiscale-kernel": (CONFIGURATIONS["multiscale-kernel"][0], *CONFIGURATIONS["multiscale-kernel"][1:], None),
     "reference-weight": ("cpu, each reference pixel's loss weighted by its convergence (τ = 0.1)", "cpu",
                          {"reference_tau": 0.1}, None),
     "data": (f"cpu on {MORE_DATA['per_family']} scenes per family and inputs at "
              f"{', '.join(map(str, MORE_DATA['input_spp']))} spp", "cpu", {}, MORE_DATA),
 }
+# dilated and unet are two trunks of one network: the combination takes one of them, the unet's
 QUALITY_LEVERS["combination"] = combine("unet", "multiscale-kernel", "reference-weight", "data")
 
 # name -> (what it is, the loop's settings besides the study's)

@@ -8,7 +8,8 @@ inference uses this module: it exists so that ``stage_costs`` can time the same 
 
 Layout as in the Keras model: one permute to channels first at the input (the convolutions then run on
 torch's channels-last memory format, no copies), the kernel application channels last. Keras layer
-defaults are reproduced where torch's differ: "same" padding of an odd kernel is k // 2 on each side;
+defaults are reproduced where torch's differ: "same" padding of an odd kernel is d * (k // 2) on each side
+at dilation d;
 a unet's input is edge-padded at the bottom and right to its alignment and its logits cropped back, the
 pooling is 2x2 average pooling, the upsampling 2x2 nearest, the skip concatenated after the upsampled
 level (the Keras ``Concatenate`` order);
@@ -38,10 +39,11 @@ KERAS_BN_MOMENTUM = 0.01  # torch's momentum is 1 - Keras's 0.99
 class _ConvUnit(nn.Module):
     """Conv -> [BN] -> [ReLU] -> [Dropout], as ``models._conv_unit``."""
 
-    def __init__(self, cin: int, cfg: ModelConfig, activate: bool, width: int | None = None):
+    def __init__(self, cin: int, cfg: ModelConfig, activate: bool, width: int | None = None, dilation: int = 1):
         super().__init__()
         width = cfg.width if width is None else width
-        self.conv = nn.Conv2d(cin, width, cfg.conv_size, padding=cfg.conv_size // 2, bias=not cfg.batchnorm)
+        self.conv = nn.Conv2d(cin, width, cfg.conv_size, padding=dilation * (cfg.conv_size // 2), dilation=dilation,
+                              bias=not cfg.batchnorm)
         self.bn = nn.BatchNorm2d(width, eps=KERAS_BN_EPSILON, momentum=KERAS_BN_MOMENTUM) if cfg.batchnorm else None
         self.activate = activate
         self.drop = nn.Dropout(cfg.dropout) if cfg.dropout > 0.0 else None
@@ -86,8 +88,8 @@ class TorchBranch(nn.Module):
             head_in = widths[0]
         elif cfg.arch in ("kpcn", "dpcn"):
             cin = cfg.input_channels
-            for i in range(cfg.depth):
-                units[f"trunk{i:02d}"] = _ConvUnit(cin, cfg, activate=True)
+            for i, dilation in enumerate(cfg.trunk_dilations()):
+                units[f"trunk{i:02d}"] = _ConvUnit(cin, cfg, activate=True, dilation=dilation)
                 cin = cfg.width
         else:
             units["stem"] = _ConvUnit(cfg.input_channels, cfg, activate=True)
