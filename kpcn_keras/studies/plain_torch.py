@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from kpcn_keras.config import COLOUR_CHANNELS, ModelConfig
+from kpcn_keras.config import COLOUR_CHANNELS, DILATED_ARCHS, ModelConfig
 from kpcn_keras.layers import kernel_apply
 from kpcn_keras.models import input_alignment
 from prep.features import LOG_COLOUR_MAX
@@ -86,7 +86,7 @@ class TorchBranch(nn.Module):
                     units[f"dec{level}_{i:02d}"] = _ConvUnit(cin, cfg, True, widths[level])
                     cin = widths[level]
             head_in = widths[0]
-        elif cfg.arch in ("kpcn", "dpcn"):
+        elif cfg.arch in DILATED_ARCHS:
             cin = cfg.input_channels
             for i, dilation in enumerate(cfg.trunk_dilations()):
                 units[f"trunk{i:02d}"] = _ConvUnit(cin, cfg, activate=True, dilation=dilation)
@@ -123,7 +123,7 @@ class TorchBranch(nn.Module):
             align = input_alignment(self.cfg)
             x = nn.functional.pad(x, (0, -w % align, 0, -h % align), mode="replicate")
             x = self._unet(x)
-        elif self.cfg.arch in ("kpcn", "dpcn"):
+        elif self.cfg.arch in DILATED_ARCHS:
             for unit in self.units.values():
                 x = unit(x)
         else:
