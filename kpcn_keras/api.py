@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE
 from prep.errors import KpcnError
 from prep.exr import VARIANCE_LAYERS, to_float32
 from prep.inputs import InputSet
@@ -76,22 +76,23 @@ def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None
 
 
 @functools.lru_cache(maxsize=4)
-def _denoiser(run_dir: str, inputs: InputSet, tile: int, precision: str | None, stamp: float):
+def _denoiser(run_dir: str, inputs: InputSet, tile: int, precision: str | None, ensemble: int, stamp: float):
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
 
     variant = Run(run_dir).serving(inputs)
-    return Denoiser.from_run(variant, tile, precision=precision)
+    return Denoiser.from_run(variant, tile, precision=precision, ensemble=ensemble)
 
 
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
             run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None,
-            precision: str | None = None) -> np.ndarray:
+            precision: str | None = None, ensemble: int = DEFAULT_ENSEMBLE) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
     by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
     at ``slope`` (λ, for a run trained with it as an input), its trunks in ``precision`` (``"auto"``, ``"float32"`` or
-    ``"bfloat16"``: ``kpcn_keras.precision``)."""
+    ``"bfloat16"``: ``kpcn_keras.precision``), by a self-ensemble of ``ensemble`` members where more than 1
+    (``kpcn_keras.denoise``: that many times the time)."""
     if run is None:
         from kpcn_keras.run import default_model
 
@@ -102,5 +103,5 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
         frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
-    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, stamp)(frame.layers,
-                                                                                         slope=slope)["default"]
+    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, int(ensemble),
+                     stamp)(frame.layers, slope=slope)["default"]

@@ -14,6 +14,7 @@ function                                 array, channels last
 :func:`augment_colour` (x, aug)          (..., H, W, 3): any colour (noisy, reference, albedo, final),
                                          moved and RGB-permuted
 :func:`augment_spatial` (x, aug)         (..., H, W, C): anything else, only moved
+:func:`moved_box` (box, shape, aug)      where a rectangle of an (H, W) array lands once it is moved
 =======================================  ==============================================================
 
 Every function is a signed permutation of the array's entries (indexing and negation, no other
@@ -138,6 +139,20 @@ def _check(x, aug: Augmentation, what: str) -> np.ndarray:
 def augment_spatial(x, aug: Augmentation) -> np.ndarray:
     """``x`` (..., H, W, C) moved by ``aug.spatial``; channels untouched (masks, λ maps, indicators)."""
     return _move(_check(x, aug, "x"), aug.spatial, features=False)
+
+
+def moved_box(box, shape: tuple[int, int], aug: Augmentation) -> tuple[int, int, int, int]:
+    """Where the rows y0:y1 and columns x0:x1 (``box``) of an (H, W) = ``shape`` array are once it is moved by
+    ``aug.spatial``: ``augment_spatial(x, aug)`` cut to the result is ``augment_spatial`` of ``x`` cut to ``box``."""
+    y0, y1, x0, x1 = box
+    h, w = shape
+    if aug.spatial & TRANSPOSE:
+        y0, y1, x0, x1, h, w = x0, x1, y0, y1, w, h
+    if aug.spatial & FLIP_X:
+        x0, x1 = w - x1, w - x0
+    if aug.spatial & FLIP_Y:
+        y0, y1 = h - y1, h - y0
+    return y0, y1, x0, x1
 
 
 def augment_colour(x, aug: Augmentation) -> np.ndarray:

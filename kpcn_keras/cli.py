@@ -153,13 +153,15 @@ def cmd_denoise(args) -> int:
     run = args.run if "run" in args else default_model().dir
     batch = denoise_files(args.inputs, run, args.output, args.reference, png=args.png, on_frame=frame,
                           layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
-                          **{k: getattr(args, k) for k in ("tile", "slope", "precision", "slope_map") if k in args})
+                          **{k: getattr(args, k) for k in ("tile", "slope", "precision", "slope_map", "ensemble")
+                             if k in args})
     frames = batch["frames"]
     if batch["skipped"]:
         print(f"skipped {len(batch['skipped'])} earlier outputs or temporaries: {', '.join(batch['skipped'])}")
     startup = "?" if batch["startup_s"] is None else f"{batch['startup_s']:.2f} s"
     print(f"start-up {startup}, model load {batch['load_s']:.2f} s, warm-up {batch['warmup_s']:.2f} s "
-          f"({batch['threads']} thread{'s' if batch['threads'] != 1 else ''}, {batch['precision']})")
+          f"({batch['threads']} thread{'s' if batch['threads'] != 1 else ''}, {batch['precision']}"
+          + (f", an ensemble of {batch['ensemble']}" if batch["ensemble"] > 1 else "") + ")")
     if batch["peak_memory_mb"] is not None:
         print(f"peak memory {batch['peak_memory_mb']:.0f} MB")
     per_frame = sorted(f["seconds"] for f in frames)[len(frames) // 2]
@@ -194,7 +196,7 @@ def cmd_evaluate(args) -> int:
 
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
     rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline, layout=args.layout,
-                    **{k: getattr(args, k) for k in ("tile", "slope", "precision") if k in args})
+                    **{k: getattr(args, k) for k in ("tile", "slope", "precision", "ensemble") if k in args})
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
     return 0

@@ -31,6 +31,10 @@ DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
 # multiplies it natively, float32 elsewhere
 PRECISIONS = ("auto", "float32", "bfloat16")
 DEFAULT_PRECISION = "auto"
+# A self-ensemble (kpcn_keras/denoise.py, --ensemble N) denoises the frame moved by the first N of the square's 8
+# symmetries and keeps each pixel's median: N times the time, for a few per cent of relMSE (docs/results.md §14)
+ENSEMBLE = Bound(1, 8)
+DEFAULT_ENSEMBLE = 1
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
 # serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's

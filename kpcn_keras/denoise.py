@@ -13,6 +13,16 @@ compositor (``multiscale.tile_alignment``), so each tile pools the same 2x2 bloc
 branches are mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64
 and clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
 
+A self-ensemble (``ensemble`` N > 1, ``--ensemble``) trades time for accuracy without training: each tile is
+predicted N times, from the frame moved by each of the first N symmetries of the square (``kpcn_keras.augment``'s
+spatial codes 0..N-1, the identity first), each prediction moved back, and each branch keeps the per-pixel,
+per-channel median of the N (in the log domain: the same pixels as the median of the linear colours, the
+transforms being monotone), so that one member's firefly does not pass, where a mean would carry 1/N of it.
+A member is exactly the network on the moved frame: its window (grown to start on the moved frame's pooling grid)
+is cut with the row and column on each side that the moved window's features read, moved, and its features
+computed there (:meth:`Denoiser.predict_member`), so tiles still equal an untiled run and memory is still bounded
+by the tile (N predictions of one).
+
 Batches: :func:`denoise_files` reads a run's record and loads its networks once (``Denoiser.from_run``), warms
 them up once, then denoises many frames (files, or every render in a folder) and reports start-up, load and
 warm-up apart from each frame's time; a frame's ``seconds`` never includes the model load. A frame of a batch
@@ -37,7 +47,8 @@ import keras
 import numpy as np
 
 from kpcn_keras import slope_map
-from kpcn_keras.config import DEFAULT_TILE, TILE
+from kpcn_keras.augment import TRANSPOSE, Augmentation, augment_spatial, moved_box
+from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
 from kpcn_keras.models import (
     input_alignment,
     kept_of,
@@ -82,13 +93,15 @@ class Denoiser:
     A frame is first restricted to the run's input set (``prep.inputs.restrict``, ``RunRecord.inputs``): the
     networks see what their shards held. A no-split run has the diffuse network alone (:attr:`branches`):
     its input is the total colour, the specular branch is not run and its output is 0, so ``default`` is the
-    diffuse output.
+    diffuse output. ``ensemble``: the members of a self-ensemble (module docstring; 1: the networks once).
     """
 
     def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
-                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE, precision: str | None = None):
+                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE, precision: str | None = None,
+                 ensemble: int = DEFAULT_ENSEMBLE):
         self.run, self.record, self.model_config = run, record, record.model
         self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
+        self.symmetries = tuple(Augmentation(code) for code in range(ENSEMBLE.check("ensemble", ensemble)))
         # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16"
         self.precision = resolve(precision)
         for net in networks.values():
@@ -111,12 +124,13 @@ class Denoiser:
 
     @classmethod
     def from_run(cls, run: Run, tile: int = DEFAULT_TILE, *, record: RunRecord | None = None,
-                 multiscale: bool = True, resampling: bool = False, precision: str | None = None) -> Denoiser:
+                 multiscale: bool = True, resampling: bool = False, precision: str | None = None,
+                 ensemble: int = DEFAULT_ENSEMBLE) -> Denoiser:
         """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
         ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
         own use, between the phases of its current round. Only the networks of the branches the run's input
         set runs are read (``RunRecord.branches``). ``precision``: the trunks' arithmetic (``--precision``;
-        default ``"auto"``: ``kpcn_keras.precision``)."""
+        default ``"auto"``: ``kpcn_keras.precision``); ``ensemble``: a self-ensemble's members (``--ensemble``)."""
         tile = TILE.check("tile", tile)
         record = (run.record() if record is None else record).finished(resampling=resampling)
         names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
@@ -127,13 +141,17 @@ class Denoiser:
         compositor = None
         if multiscale and "compositor" in record.components:
             compositor = run.load_component(record, "compositor")
-        return cls(run, record, networks, compositor, tile, precision)
+        return cls(run, record, networks, compositor, tile, precision, ensemble)
+
+    @property
+    def ensemble(self) -> int:
+        return len(self.symmetries)
 
     def without_compositor(self) -> Denoiser:
         """The same networks without the compositor (itself for a run that has none)."""
         if self.compositor is None:
             return self
-        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision)
+        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision, self.ensemble)
 
     def warm_up(self, slope: float | None = None) -> None:
         """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
@@ -157,7 +175,11 @@ class Denoiser:
                      slope: float | None = None) -> np.ndarray:
         """Model output (log domain, float32) of ``tile``'s pixels from the features of ``window`` alone
         (``prep.features.branch_features`` with the frame's depth ``scale``), at ``slope``: the same as
-        those pixels of the whole frame's features."""
+        those pixels of the whole frame's features. A self-ensemble's tile is its members' median (module
+        docstring)."""
+        if self.ensemble > 1:
+            return np.median([self.predict_member(branch, aovs, tile, window, scale, slope, aug)
+                              for aug in self.symmetries], axis=0)
         # features (and the extra input channels) are contiguous: a strided view reaches torch as a strided
         # tensor, and the trunk's convolutions and the kernel layer then run on (and copy) other layouts
         feats = network_input(features.branch_features(aovs, branch, window, scale=scale), self.model_config,
@@ -171,6 +193,28 @@ class Denoiser:
         # 1.45 against 0.50 MB over 30). A young-generation pass is cheap (a full one tripled the time).
         gc.collect(1)
         return _kept(pred, tile, window)
+
+    def predict_member(self, branch: str, aovs: dict[str, np.ndarray], tile, window, scale: float,
+                       slope: float | None, aug: Augmentation) -> np.ndarray:
+        """:meth:`predict_tile` of the frame moved by ``aug``, moved back: the network's output of ``tile``'s pixels
+        where the frame is given to it moved, equal to those pixels of the whole moved frame's run."""
+        h, w = aovs["depth"].shape
+        # on the moved frame the window starts on the pooling grid (a unet's, a pyramid's) as tiles do
+        y0, y1, x0, x1 = moved_box(window, (h, w), aug)
+        moved_shape = (w, h) if aug.spatial & TRANSPOSE else (h, w)
+        on_grid = (y0 - y0 % self.align, y1, x0 - x0 % self.align, x1)
+        window = moved_box(on_grid, moved_shape, aug.inverse())
+        ya, yb, xa, xb = window
+        # features read the next row and column, which on the moved frame may be the previous one here
+        cut = (max(ya - 1, 0), min(yb + 1, h), max(xa - 1, 0), min(xb + 1, w))
+        layers = {name: _moved(layer[cut[0]:cut[1], cut[2]:cut[3]], aug) for name, layer in aovs.items()}
+        inner = moved_box((ya - cut[0], yb - cut[0], xa - cut[2], xb - cut[2]), (cut[1] - cut[0], cut[3] - cut[2]), aug)
+        lam = _window_of(slope, window)
+        feats = network_input(features.branch_features(layers, branch, inner, scale=scale), self.model_config, branch,
+                              _moved(lam, aug) if slope_map.is_map(slope) else lam)
+        pred = keras.ops.convert_to_numpy(self.models[branch].predict_on_batch(feats[None]))[0]
+        gc.collect(1)  # as in predict_tile
+        return _kept(_moved(pred, aug.inverse()), tile, window)
 
     def check_slope(self, slope, shape: tuple[int, int]) -> None:
         """OptionError unless ``slope`` is what this run takes for an (H, W) = ``shape`` frame: a number (or
@@ -250,6 +294,9 @@ class Denoiser:
         if self.compositor is not None:
             raise KpcnError(f"{self.run.dir}: a prepared frame runs the networks without a compositor; load the run "
                             "with multiscale=False (Denoiser.from_run) or denoise it whole")
+        if self.ensemble > 1:
+            raise KpcnError(f"{self.run.dir}: a prepared frame runs the networks once; load the run with ensemble 1 "
+                            f"(it has {self.ensemble}) or denoise it whole")
         return PreparedFrame(self, aovs)
 
 
@@ -271,6 +318,11 @@ def _kept(pred: np.ndarray, tile, window) -> np.ndarray:
     """The pixels of ``tile`` (y0, y1, x0, x1) of ``pred``, a model's output over ``window`` (ya, yb, xa, xb)."""
     (y0, y1, x0, x1), (ya, _, xa, _) = tile, window
     return pred[y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+
+
+def _moved(x: np.ndarray, aug: Augmentation) -> np.ndarray:
+    """An (H, W) or (H, W, C) layer moved by ``aug.spatial`` (``augment_spatial``)."""
+    return augment_spatial(x[..., None], aug)[..., 0] if x.ndim == 2 else augment_spatial(x, aug)
 
 
 def _window_of(slope, window):
@@ -567,7 +619,8 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
 
 def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE,
                   slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None,
-                  on_frame=None, precision: str | None = None, slope_map=None) -> dict:
+                  on_frame=None, precision: str | None = None, slope_map=None,
+                  ensemble: int = DEFAULT_ENSEMBLE) -> dict:
     """Denoise many EXRs in one process: each model is loaded and warmed up once.
 
     ``inputs``: files and folders (:func:`collect_inputs`), each in any layout ``prep.layouts`` reads
@@ -582,12 +635,13 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
     message. ``on_frame(report)`` is called after each frame (progress). ``precision``: the networks' trunks'
     arithmetic (``kpcn_keras.precision``; default "auto"). ``slope_map``: a painted λ map (``kpcn_keras.slope_map``)
     instead of ``slope``, for a run with a specialisation module, read for each frame's size before any work.
+    ``ensemble``: a self-ensemble's members (module docstring).
 
-    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "precision", "peak_memory_mb", "frames",
+    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "precision", "ensemble", "peak_memory_mb", "frames",
     "skipped"}``: the seconds from process start to this call (None off Linux), of loading the networks and of
-    the warm-ups; torch's thread count; the precision it resolved to; the process's peak resident memory at the
-    end (:func:`peak_memory_mb`); one :func:`denoise_frame` report per input, in order; the folder entries
-    skipped (earlier outputs).
+    the warm-ups; torch's thread count; the precision it resolved to; the self-ensemble's members; the process's
+    peak resident memory at the end (:func:`peak_memory_mb`); one :func:`denoise_frame` report per input, in
+    order; the folder entries skipped (earlier outputs).
     """
     startup = process_age()
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
@@ -626,6 +680,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         if png:
             check_writable(png_path(out), "side-by-side PNG")
     TILE.check("tile", tile)
+    ENSEMBLE.check("ensemble", ensemble)
     precision = resolve(precision)
     slopes = [slope] * len(inputs)
     if slope_map is not None:
@@ -640,7 +695,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
         if variant.dir not in denoisers:
             begin = time.perf_counter()
             denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
-                                                       precision=precision)
+                                                       precision=precision, ensemble=ensemble)
             loaded = time.perf_counter()
             denoisers[variant.dir].warm_up(slopes[0])
             load_s, warmup_s = load_s + loaded - begin, warmup_s + time.perf_counter() - loaded
@@ -660,6 +715,7 @@ def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = T
 
         threads = torch.get_num_threads()
     return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads, "precision": precision,
+            "ensemble": ensemble,
             "peak_memory_mb": peak_memory_mb(),
             "frames": frames, "skipped": [str(p) for p in skipped]}
 

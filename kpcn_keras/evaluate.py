@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_TILE
+from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE
 from kpcn_keras.denoise import Denoiser, side_by_side_png
 from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
 from prep import baselines, exr, layouts, metrics
@@ -125,11 +125,12 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None,
-             layout: str | None = None, precision: str | None = None) -> list[dict]:
+             layout: str | None = None, precision: str | None = None, ensemble: int = DEFAULT_ENSEMBLE) -> list[dict]:
     """Evaluate a run on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
     reads (``layout`` forces one), each denoised by the run's model for what it has (``Run.serving``), its
-    trunks in ``precision`` (``kpcn_keras.precision``; default "auto")."""
+    trunks in ``precision`` (``kpcn_keras.precision``; default "auto"), a self-ensemble of ``ensemble`` members where
+    more than 1 (``kpcn_keras.denoise``; a row then says how many)."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     check_writable(out_dir, "report folder (--out)", directory=True)
@@ -154,7 +155,7 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         variant = serving[noisy_path]
         if variant.dir not in denoisers:
             denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
-                                                       precision=precision)
+                                                       precision=precision, ensemble=ensemble)
             denoisers[variant.dir].warm_up(slope)
         frame = layouts.read(noisy_path, layout)
         noisy = frame.layers
@@ -169,6 +170,7 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
             "inputs": frame.inputs.name,
             "model": str(variant.dir),
             "precision": denoisers[variant.dir].precision,
+            **({"ensemble": ensemble} if ensemble != DEFAULT_ENSEMBLE else {}),
             "raw": metrics.all_metrics(noisy["default"], ref),
             "denoised": metrics.all_metrics(out, ref),
             "seconds": seconds,
@@ -192,7 +194,7 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
         rows.append(row)
     table = format_table(rows)
     atomic_write_text(out_dir / METRICS, json.dumps(rows, indent=2))
-    at = "" if slope is None else f" at λ = {slope:g}"
+    at = ("" if slope is None else f" at λ = {slope:g}") + (f", an ensemble of {ensemble}" if ensemble > 1 else "")
     atomic_write_text(out_dir / REPORT, f"# Evaluation of {run.dir}{at} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 

@@ -368,10 +368,10 @@ def _resample_options(add) -> None:
 
 def _denoise_options(add) -> None:
     """The options of ``kpcn denoise``."""
-    from kpcn_keras.config import DEFAULT_TILE, SLOPE, TILE
+    from kpcn_keras.config import DEFAULT_TILE, ENSEMBLE, SLOPE, TILE
 
-    n = add("denoise", own={"tile": TILE, "slope": SLOPE}, help="denoise EXRs (kpcn, Blender Cycles, Mitsuba 3, "
-               "PBRT-v4 or plain colour): files, or every render in a folder, in one process")
+    n = add("denoise", own={"tile": TILE, "slope": SLOPE, "ensemble": ENSEMBLE}, help="denoise EXRs (kpcn, Blender "
+            "Cycles, Mitsuba 3, PBRT-v4 or plain colour): files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
     from kpcn_keras.config import DEFAULT_MODEL, MODEL_ENV
@@ -389,6 +389,7 @@ def _denoise_options(add) -> None:
                    "of λ, or a greyscale PNG from the low (black) to the high end (white) of the run's λ range, "
                    "resized to the frame if its aspect ratio matches")
     _precision_option(n)
+    _ensemble_option(n)
     n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each "
                    "output: input | denoised (| reference), side by side")
     _layout_option(n)
@@ -424,6 +425,14 @@ def _precision_option(parser) -> None:
                         f"bfloat16 there and float32 elsewhere (default: {DEFAULT_PRECISION})")
 
 
+def _ensemble_option(parser) -> None:
+    from kpcn_keras.config import DEFAULT_ENSEMBLE
+
+    parser.add_argument("--ensemble", type=int, help="denoise the frame moved by this many of the square's 8 "
+                        "symmetries and keep each pixel's median: that many times the time, for a lower error "
+                        f"(default: {DEFAULT_ENSEMBLE}, the networks once)")
+
+
 def _layout_option(parser) -> None:
     from prep.layouts import LAYOUTS
 
@@ -433,10 +442,10 @@ def _layout_option(parser) -> None:
 
 def _evaluate_options(add) -> None:
     """The options of ``kpcn evaluate``."""
-    from kpcn_keras.config import DEFAULT_TILE, SLOPE, TILE
+    from kpcn_keras.config import DEFAULT_TILE, ENSEMBLE, SLOPE, TILE
 
-    e = add("evaluate", own={"tile": TILE, "slope": SLOPE}, help="compare a run with the raw input and NLM on "
-            "held-out scenes")
+    e = add("evaluate", own={"tile": TILE, "slope": SLOPE, "ensemble": ENSEMBLE}, help="compare a run with the raw "
+            "input and NLM on held-out scenes")
     _run_option(e, required=True, help="a run folder that finished training (kpcn train), or a shipped model "
                 "(models/<name>)")
     e.add_argument("inputs", nargs="*", default=[], help="noisy renders, or folders of them (default: the run's "
@@ -447,6 +456,7 @@ def _evaluate_options(add) -> None:
     e.add_argument("--slope", type=float, help="λ, for a run trained with --slope-input (as kpcn denoise --slope)")
     e.add_argument("--no-baseline", action="store_true", default=False)
     _precision_option(e)
+    _ensemble_option(e)
     _layout_option(e)
 
 

@@ -5,11 +5,12 @@ the default size) of a frame wrapped around to 1920 x 1080 (``card.frame_of_size
 (``kpcn_keras.precision``), and OIDN's (``pyoidn``) on the same layers, called alternately ``--repeats`` times
 after a warm-up each, the best of each and its ratio to OIDN's; with ``--profile``, where each precision's time
 goes (torch's profiler: the convolutions, the kernel application, the ReLUs, everything else), and the
-largest relative difference of the two precisions' outputs. ``busy`` lists the busiest other processes when it
-starts, the load average before and after.
+largest relative difference of the two precisions' outputs. ``--ensembles 2,8`` also times self-ensembles of
+that many members (``kpcn denoise --ensemble``, in bfloat16 where the CPU has it: ``auto``). ``busy`` lists the
+busiest other processes when it starts, the load average before and after.
 
   .venv/bin/python scripts/denoise_costs.py [--run models/default] [--frame tests/fixtures/fixture-00008spp.exr]
-                                            [--repeats 2] [--profile]
+                                            [--repeats 2] [--profile] [--ensembles 2,4,8]
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def main() -> None:
     parser.add_argument("--frame", default="tests/fixtures/fixture-00008spp.exr")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--profile", action="store_true")
+    parser.add_argument("--ensembles", type=lambda text: [int(n) for n in text.split(",")], default=[])
     args = parser.parse_args()
 
     from prep.processes import keep_freed_memory
@@ -79,6 +81,7 @@ def main() -> None:
              "size": SIZE, "threads": torch.get_num_threads(), "cpus": os.cpu_count()}
     layers = frame_of_size(layouts.read(args.frame).layers, *SIZE)
     denoisers = {p: Denoiser.from_run(Run(args.run), precision=p) for p in PRECISIONS}
+    denoisers.update({f"ensemble {n}": Denoiser.from_run(Run(args.run), ensemble=n) for n in args.ensembles})
     calls = {p: (lambda d=d: d(layers)["default"]) for p, d in denoisers.items()}
     if baselines.oidn_available():
         calls["oidn"] = lambda: baselines.oidn_denoise(layers)
@@ -91,7 +94,7 @@ def main() -> None:
             best[name] = min(best[name], time.perf_counter() - start)
     found["seconds"] = best
     if "oidn" in best:
-        found["ratio_to_oidn"] = {p: best[p] / best["oidn"] for p in PRECISIONS}
+        found["ratio_to_oidn"] = {p: best[p] / best["oidn"] for p in denoisers}
     a, b = (outputs[p].astype(np.float64) for p in PRECISIONS)
     found["largest_relative_difference"] = float(np.max(np.abs(b - a) / (np.abs(a) + 0.01)))
     if args.profile:

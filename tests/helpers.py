@@ -745,3 +745,13 @@ def page_stroke(driver, points) -> None:
     builder.pointer_action.pointer_up(MouseButton.LEFT)
     builder.perform()
     ActionChains(driver).reset_actions()
+
+
+def moved(image: np.ndarray, spatial: int, inverse: bool = False) -> np.ndarray:
+    """``image`` (H, W, ...) transposed (bit 0 of ``spatial``), mirrored left-right (bit 1) and upside down
+    (bit 2), in that order, or with ``inverse`` those undone: plain numpy, the reference for
+    ``kpcn_keras.augment``'s moves."""
+    steps = [(1, lambda x: np.swapaxes(x, 0, 1)), (2, lambda x: x[:, ::-1]), (4, lambda x: x[::-1])]
+    for bit, step in reversed(steps) if inverse else steps:
+        image = step(image) if spatial & bit else image
+    return np.ascontiguousarray(image)

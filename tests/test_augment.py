@@ -3,7 +3,18 @@ import pytest
 from helpers import random_aovs
 
 from kpcn_keras import augment
-from kpcn_keras.augment import ALL, DX, DY, IDENTITY, Augmentation, augment_colour, augment_features, draw
+from kpcn_keras.augment import (
+    ALL,
+    DX,
+    DY,
+    IDENTITY,
+    Augmentation,
+    augment_colour,
+    augment_features,
+    augment_spatial,
+    draw,
+    moved_box,
+)
 from prep import features
 
 COLOUR_LAYERS = ("diffuse", "specular", "albedo", "default")
@@ -45,6 +56,21 @@ def test_only_the_identity_leaves_a_patch_unchanged():
     f = np.random.default_rng(1).normal(size=(6, 6, 27)).astype(np.float32)
     for aug in ALL:
         assert (aug == IDENTITY) == np.array_equal(augment_features(f, aug), f)
+
+
+@pytest.mark.parametrize("shape", [(9, 9), (7, 12)])
+def test_a_moved_box_holds_the_moved_pixels_of_the_box(shape):
+    x = np.random.default_rng(2).normal(size=(*shape, 2))
+    rng = np.random.default_rng(5)
+    for spatial in range(8):
+        aug = Augmentation(spatial)
+        for _ in range(20):
+            y0, y1 = sorted(rng.choice(shape[0] + 1, 2, replace=False))
+            x0, x1 = sorted(rng.choice(shape[1] + 1, 2, replace=False))
+            b0, b1, c0, c1 = moved_box((y0, y1, x0, x1), shape, aug)
+            np.testing.assert_array_equal(augment_spatial(x, aug)[b0:b1, c0:c1], augment_spatial(x[y0:y1, x0:x1], aug))
+            moved_shape = augment_spatial(x, aug).shape[:2]
+            assert moved_box((b0, b1, c0, c1), moved_shape, aug.inverse()) == (y0, y1, x0, x1)
 
 
 @pytest.mark.parametrize("branch", features.BRANCHES)

@@ -1,7 +1,7 @@
 import keras
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, build_tiny_shards, random_aovs, randomise
+from helpers import TINY_MODEL, build_tiny_shards, moved, random_aovs, randomise
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file
@@ -81,6 +81,48 @@ def test_unet_tiles_aligned_to_its_pooling_grid_equal_an_untiled_run(tiny_unet_r
     assert np.abs(denoiser.run_branch("diffuse", aovs) - logs["diffuse"]).max() > 1e-4
 
 
+def _ensemble_reference(denoiser, aovs, members=8):
+    """What a self-ensemble must equal: each branch's log output of the whole frame moved by each symmetry (numpy's
+    own transposes and flips), moved back, the per-pixel median of the members; then recombined as _untiled does."""
+    logs = {}
+    for branch in features.BRANCHES:
+        outs = [moved(_untiled(denoiser, {k: moved(v, s) for k, v in aovs.items()})[0][branch], s, inverse=True)
+                for s in range(members)]
+        logs[branch] = np.median(outs, axis=0)
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS)
+    specular = np.expm1(logs["specular"].astype(np.float64))
+    return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("arch", ["kpcn", "unet", "unet+compositor"])
+def test_an_ensemble_is_the_median_of_the_networks_on_the_moved_frames_tile_by_tile(tiny_run, tiny_unet_run, arch):
+    # odd sizes: moved tiles end where the frame does not, and a unet's windows must still start on the moved
+    # frame's pooling grid
+    run = tiny_run if arch == "kpcn" else tiny_unet_run
+    plain = _randomised(Denoiser.from_run(Run(run), tile=16, multiscale=arch == "unet+compositor"))
+    ensemble = Denoiser(plain.run, plain.record, plain.networks, plain.compositor, tile=16, ensemble=8)
+    aovs = random_aovs(45, 61, seed=12)
+    aovs["depth"][0, -1] = 40.0  # the depth scale from one corner, which moves
+    logs, want = _ensemble_reference(plain, aovs)
+    for name, image in ensemble(aovs).items():
+        assert image.dtype == np.float32 and image.shape == (45, 61, 3)
+        np.testing.assert_allclose(image, want[name], rtol=2e-5, atol=1e-6, err_msg=name)
+    for branch in features.BRANCHES:
+        np.testing.assert_allclose(ensemble.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
+    # the members differ (the median is of something), and fewer members are the median of fewer
+    assert np.abs(logs["diffuse"] - _untiled(plain, aovs)[0]["diffuse"]).max() > 1e-4
+    two = Denoiser(plain.run, plain.record, plain.networks, plain.compositor, tile=16, ensemble=2)
+    np.testing.assert_allclose(two.run_branch("specular", aovs), _ensemble_reference(plain, aovs, 2)[0]["specular"],
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_an_ensemble_outside_one_to_eight_is_refused_echoing_it(tiny_run):
+    for bad in (0, 9):
+        with pytest.raises(OptionError, match=f"ensemble must be an integer in \\[1, 8\\], got {bad}"):
+            Denoiser.from_run(Run(tiny_run), ensemble=bad)
+
+
 TINY_DILATED = {**TINY_MODEL, "dilations": [1, 3, 2]}  # trunk radius 6, beyond the 5x5 kernel's 2
 
 
@@ -128,18 +170,22 @@ def test_tiles_with_too_little_overlap_would_differ(tiny_run):
 
 
 @pytest.mark.slow
-def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run):
+@pytest.mark.parametrize("ensemble", [1, 8])
+def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run, ensemble):
     # tracemalloc sees every numpy array (the features, their inputs' copies and the kernel's scratch, the
     # float64 recombination), not torch's own buffers (the network's activations, bounded by the tile anyway)
     import tracemalloc
 
-    denoiser = Denoiser.from_run(Run(tiny_run), tile=32)
+    denoiser = Denoiser.from_run(Run(tiny_run), tile=32, ensemble=ensemble)
     denoiser.warm_up()
     side = denoiser.tile + 2 * denoiser.margin + 1  # a tile, its margins and the next pixel the gradients read
     # per window pixel: 27 float32 features, a float32 copy of the 14 input channels the kernel reads and its
     # 10 float64 buffers; twice that for the float64 recombination of the tile; 512 kB for the interpreter's
     # and keras's own objects. d097970 (whole-frame features and recombination): 5.3 MB beyond at 192x160
     bound = 2 * side**2 * (27 * 4 + 14 * 4 + 10 * 8) + 2**19
+    if ensemble > 1:  # a member's window cut and moved (the render's 22 float32 channels, twice, a row and column
+        # more each side), and the members' tile outputs, float32 RGB, held for their median and copied by it
+        bound += 2 * (side + 2) ** 2 * 22 * 4 + 3 * ensemble * denoiser.tile**2 * 3 * 4
     for size in [(64, 48), (192, 160)]:  # 4 and 30 tiles
         aovs = random_aovs(*size, seed=2)
         tracemalloc.start()

@@ -5,7 +5,7 @@ maps (``Denoiser.prepare``), tiles and ``.keras`` files change nothing."""
 
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, random_aovs, randomise, write_channels
+from helpers import TINY_MODEL, moved, random_aovs, randomise, write_channels
 
 from kpcn_keras import slope_map
 from kpcn_keras.config import ModelConfig
@@ -203,6 +203,19 @@ def test_a_prepared_frame_gives_the_full_denoise_for_every_map(denoiser):
             np.testing.assert_allclose(got[name], want[name], rtol=1e-5, atol=1e-6)
     with pytest.raises(OptionError, match="shape"):
         prepared(np.full((36, 45), 2.0))
+
+
+def test_an_ensemble_moves_a_painted_map_with_the_frame_and_prepares_no_frame(denoiser):
+    aovs = random_aovs(21, 30, seed=11)
+    painted = np.where(np.arange(30) < 11, 1.0, 8.0)[None].repeat(21, 0) * np.linspace(1, 0.5, 21)[:, None] + 0.5
+    ensemble = Denoiser(denoiser.run, denoiser.record, denoiser.networks, tile=16, precision="float32", ensemble=8)
+    for branch in ("diffuse", "specular"):
+        members = [moved(denoiser.run_branch(branch, {k: moved(v, s) for k, v in aovs.items()}, moved(painted, s)), s,
+                         inverse=True) for s in range(8)]
+        np.testing.assert_allclose(ensemble.run_branch(branch, aovs, painted), np.median(members, axis=0), rtol=1e-5,
+                                   atol=1e-6)
+    with pytest.raises(KpcnError, match="prepared frame runs the networks once; load the run with ensemble 1"):
+        ensemble.prepare(aovs)
 
 
 def test_a_prepared_frame_re_applies_a_region_alone_as_the_full_frame_gives_it(denoiser):
