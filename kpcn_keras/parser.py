@@ -608,6 +608,8 @@ def _quality_options(add) -> None:
     q.add_argument("--budget", type=float, help=f"seconds of training per lever, shared by its networks {d('budget')}")
     q.add_argument("--panel-spp", type=int, help=f"input spp of the validation frames in the panels {d('panel_spp')}")
     q.add_argument("--seed", type=int, help=d("seed"))
+    q.add_argument("--ensemble", type=int, help="denoise every frame as a self-ensemble of this many members (as "
+                   f"kpcn denoise --ensemble); the trained runs serve every value {d('ensemble')}")
     q.add_argument("--report-only", action="store_true", help="write quality.md and quality.png again from the "
                    "--out folder's quality.json (and the frames and runs it names), training nothing")
 

@@ -301,7 +301,7 @@ def test_planned_runs_make_a_plan_once_keep_it_and_refuse_a_run_trained_for_anot
     assert len(made) == 1
 
 
-def test_a_plan_made_before_a_model_field_existed_keeps_its_runs(tmp_path):
+def test_a_plan_made_before_a_field_existed_or_a_default_step_count_changed_keeps_its_runs(tmp_path):
     from kpcn_keras.config import TrainConfig
 
     group = tmp_path / "group"
@@ -313,8 +313,18 @@ def test_a_plan_made_before_a_model_field_existed_keeps_its_runs(tmp_path):
     with cmp.PlannedRuns(group, "test study") as planned:
         entry, reused = planned.entry(("lever", "full"), key, group / "lever", lambda scratch: 1 / 0)
     assert reused and entry["steps"] == {"steps": 7}
+    # the step counts the budget sets are the plan's: a default step count changed since keeps the plan too
+    later = TrainConfig(steps=4321, decay_steps=99, compositor_steps=5).identity()
+    with cmp.PlannedRuns(group, "test study") as planned:
+        entry, reused = planned.entry(("lever", "full"), {**key, "train": later}, group / "lever", lambda s: 1 / 0)
+    assert reused and entry["steps"] == {"steps": 7}
     other = TrainConfig(learning_rate=3e-4).identity()
     with cmp.PlannedRuns(group, "test study") as planned:  # another configuration is planned again
         entry, reused = planned.entry(("lever", "full"), {**key, "train": other}, group / "lever",
                                       lambda scratch: {"steps": {"steps": 3}})
     assert not reused and entry["steps"] == {"steps": 3}
+    joint = TrainConfig(learning_rate=3e-4, joint_steps=1).identity()  # a joint phase where there was none
+    with cmp.PlannedRuns(group, "test study") as planned:
+        entry, reused = planned.entry(("lever", "full"), {**key, "train": joint}, group / "lever",
+                                      lambda scratch: {"steps": {"steps": 2}})
+    assert not reused and entry["steps"] == {"steps": 2}

@@ -292,8 +292,16 @@ class PlannedRuns:
 
 def _as_read(field: str, value):
     """A plan key's stored value as this kpcn writes it: a training identity through
-    :meth:`TrainConfig.recorded_identity`, so that a plan made before a field was added keeps its runs."""
-    return TrainConfig.recorded_identity(value) if field == "train" and isinstance(value, dict) else value
+    :meth:`TrainConfig.recorded_identity`, so that a plan made before a field was added keeps its runs, without
+    the step counts the budget sets (:func:`budget_steps`: a joint phase's only as whether it has one), so that a
+    changed default step count keeps them too: the plan's own steps are what its runs trained."""
+    if field != "train" or not isinstance(value, dict):
+        return value
+    identity = {k: v for k, v in TrainConfig.recorded_identity(value).items()
+                if k not in ("steps", "decay_steps", "compositor_steps")}
+    if "joint_steps" in identity:
+        identity["joint_steps"] = min(identity["joint_steps"], 1)
+    return identity
 
 
 def _fmt_phases(values: dict, fmt: str) -> str:
@@ -319,7 +327,8 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
             run_dir = group / name
             key = {"train": base.identity(), "budget": cfg.budget, "content_key": manifest["content_key"]}
             known = (probes or {}).get(name)
-            times = known["probes"] if known is not None and known["train"] == key["train"] else None
+            same = known is not None and _as_read("train", known["train"]) == _as_read("train", key["train"])
+            times = known["probes"] if same else None
             entry, reused = planned.entry((name,), key, run_dir,
                                           functools.partial(plan_steps, base, cfg.budget, times=times))
             if reused:

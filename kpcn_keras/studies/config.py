@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from kpcn_keras.config import FRACTION, ROUNDS, STEPS, ResampleConfig
+from kpcn_keras.config import DEFAULT_ENSEMBLE, ENSEMBLE, FRACTION, ROUNDS, STEPS, ResampleConfig
 from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
@@ -180,8 +180,10 @@ class QualityConfig:
     """Configuration of ``kpcn quality`` (kpcn_keras/studies/quality.py): each of ``levers``
     (:data:`QUALITY_LEVERS`) trained for ``budget`` seconds (all its networks together; ``seed``) on the render
     set ``<render_root>/<set_name>`` cut into ``shards_root`` (or on the larger set a lever renders from it), in
-    ``runs_root``; measured on the set's held-out frames and on the frames under ``frames``, with panels of the
-    frames at ``panel_spp``; reports in ``out_dir``."""
+    ``runs_root``; measured on the set's held-out frames and on the frames under ``frames``, each denoised as a
+    self-ensemble of ``ensemble`` members (``kpcn denoise --ensemble``; 1: the networks once), with panels of the
+    frames at ``panel_spp``; reports in ``out_dir``. ``ensemble`` is not part of what is trained: the same runs
+    serve every value."""
 
     set_name: str = "default"
     render_root: str = "data/renders"
@@ -193,6 +195,7 @@ class QualityConfig:
     budget: float = bounded(600, BUDGET)
     panel_spp: int = bounded(16, SPP)
     seed: int = bounded(0, SEED)
+    ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
 
     def __post_init__(self):
         known = _all_levers()

@@ -23,8 +23,9 @@ The contract:
   one per other input set: ``budget / networks`` each); within a network, seconds become steps as ``kpcn
   compare`` turns them (:func:`kpcn_keras.studies.compare.plan_steps`: probed steps, the branch phases' share,
   the compositor's). The probes and steps are kept in ``plan.json`` beside the runs, keyed by the training's
-  identity, its seconds and its shard set's content key, so the same command resumes; a run that was trained
-  for other settings is refused.
+  identity (less the step counts the budget sets), its seconds and its shard set's content key, so the same
+  command resumes; a run that was trained for other settings is refused. How the frames are denoised
+  (``ensemble``) is not part of the key: the same runs serve every value.
 - **Measured on the same frames for every lever:** the study set's held-out frames (every validation scene at
   every input spp; the full network) and the validation frames under ``frames`` (``<scene>-<spp>spp.exr`` that
   are not their scene's reference, read in their own layout, each served by the lever's network for what it
@@ -55,7 +56,7 @@ import statistics
 from datetime import date
 from pathlib import Path
 
-from kpcn_keras.config import TrainConfig
+from kpcn_keras.config import DEFAULT_ENSEMBLE, TrainConfig
 from kpcn_keras.studies.compare import (
     PlannedRuns,
     _training_seconds,
@@ -262,7 +263,7 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
 
     def denoiser(variant):
         if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant)
+            denoisers[variant.dir] = Denoiser.from_run(variant, ensemble=cfg.ensemble)
         return denoisers[variant.dir]
 
     for lever, plan in plans.items():
@@ -332,7 +333,9 @@ def panel_entries(record: dict) -> list[dict]:
     """The panels' frames: each validation frame at the panel spp, with the run of the headline's lever that
     served it (what ``--report-only`` reads again)."""
     top = best(record)
-    return [{"title": f"{r['frame']} ({top})", "path": r["path"], "reference_path": r["reference_path"],
+    members = ensemble_of(record)
+    shown = top + (f", an ensemble of {members}" if members > 1 else "")
+    return [{"title": f"{r['frame']} ({shown})", "path": r["path"], "reference_path": r["reference_path"],
              "run": r["levers"][top]["run"]}
             for r in record["frames"] if r["kind"] == "validation" and r["spp"] == record["config"]["panel_spp"]]
 
@@ -346,7 +349,7 @@ def redraw_panels(record: dict):
     shown = []
     for entry in panel_entries(record):
         frame = layouts.read(entry["path"])
-        out = Denoiser.from_run(Run(entry["run"]))(frame.layers)["default"]
+        out = Denoiser.from_run(Run(entry["run"]), ensemble=ensemble_of(record))(frame.layers)["default"]
         shown.append((entry["title"], {"input": frame.layers["default"], "kpcn": out,
                                        **beside(Path(entry["path"]), frame.layers),
                                        "reference": layouts.read(entry["reference_path"]).layers["default"]}))
@@ -464,6 +467,11 @@ def _kind_table(record: dict, kind: str) -> list[str]:
     return lines
 
 
+def ensemble_of(record: dict) -> int:
+    """The members each frame was denoised by; a record from before ``--ensemble`` has none: 1."""
+    return record["config"].get("ensemble", DEFAULT_ENSEMBLE)
+
+
 def format_report(record: dict) -> str:
     """quality.md: the levers, the tables of both kinds per input spp, each validation frame, the rules."""
     cfg, machine = record["config"], record["machine"]
@@ -475,6 +483,9 @@ def format_report(record: dict) -> str:
         f"{len(record['input_sets'])} networks ({', '.join(record['input_sets'])}: "
         f"{record['rules']['seconds_per_network']:g} s each), then measured on the same {len(held)} held-out frames "
         f"of the `{cfg['set_name']}` set and {len(val)} validation frames ({', '.join(cfg['frames'])})."
+        + (f" Every frame was denoised as a self-ensemble of {ensemble_of(record)} members (`--ensemble`: the "
+           "per-pixel median of the frame denoised in that many orientations, docs/denoise.md §5b), at that many "
+           "times the time of one pass." if ensemble_of(record) > 1 else "")
         + (f" This report was written again from `quality.json` by {record['rewritten']}; every number is the "
            "record's." if record.get("rewritten") else ""),
         "", verdict(record), "",
