@@ -145,10 +145,14 @@ def kpcn(*args, cwd, timeout=300, file_size_limit=None) -> subprocess.CompletedP
 
     # the suite's settings (conftest.py) rather than the machine's defaults: none changes a byte of output
     kept = {k: os.environ[k] for k in SUITE_SETTINGS if k in os.environ}
+    # no bytecode cache written: under a file size limit, importlib writes a module's .pyc cut at the limit
+    # (it does not check for a short write) and renames it into place, and every later import of that module,
+    # in any process, fails with "marshal data too short"
     return subprocess.run([sys.executable, "-m", "kpcn_keras.cli", "-q", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout,
                           preexec_fn=limit if file_size_limit is not None else None,
-                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch", **kept})
+                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin", "KERAS_BACKEND": "torch",
+                               "PYTHONDONTWRITEBYTECODE": "1", **kept})
 
 
 # the commands that never import the deep-learning stack (cli.py), which the others take ~5 s to import here
