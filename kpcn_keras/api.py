@@ -103,5 +103,5 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
         frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
-    return _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, int(ensemble),
-                     stamp)(frame.layers, slope=slope)["default"]
+    denoiser = _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, ensemble, stamp)
+    return denoiser(frame.layers, slope=slope)["default"]

@@ -47,7 +47,7 @@ import keras
 import numpy as np
 
 from kpcn_keras import slope_map
-from kpcn_keras.augment import TRANSPOSE, Augmentation, augment_spatial, moved_box
+from kpcn_keras.augment import Augmentation, augment_spatial, moved_box
 from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
 from kpcn_keras.models import (
     input_alignment,
@@ -201,7 +201,7 @@ class Denoiser:
         h, w = aovs["depth"].shape
         # on the moved frame the window starts on the pooling grid (a unet's, a pyramid's) as tiles do
         y0, y1, x0, x1 = moved_box(window, (h, w), aug)
-        moved_shape = (w, h) if aug.spatial & TRANSPOSE else (h, w)
+        moved_shape = moved_box((0, h, 0, w), (h, w), aug)[1::2]
         on_grid = (y0 - y0 % self.align, y1, x0 - x0 % self.align, x1)
         window = moved_box(on_grid, moved_shape, aug.inverse())
         ya, yb, xa, xb = window

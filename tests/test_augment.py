@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from helpers import random_aovs
+from helpers import moved, random_aovs
 
 from kpcn_keras import augment
 from kpcn_keras.augment import (
@@ -22,17 +22,8 @@ COLOUR_LAYERS = ("diffuse", "specular", "albedo", "default")
 
 def transformed_aovs(aovs: dict, aug: Augmentation) -> dict:
     """The render of the augmented scene: every layer's pixels moved, the RGB of colour layers permuted."""
-    out = {}
-    for name, image in aovs.items():
-        image = image[..., list(aug.colour)] if name in COLOUR_LAYERS else image
-        if aug.spatial & augment.TRANSPOSE:
-            image = np.swapaxes(image, 0, 1)
-        if aug.spatial & augment.FLIP_X:
-            image = image[:, ::-1]
-        if aug.spatial & augment.FLIP_Y:
-            image = image[::-1]
-        out[name] = np.ascontiguousarray(image)
-    return out
+    return {name: moved(image[..., list(aug.colour)] if name in COLOUR_LAYERS else image, aug.spatial)
+            for name, image in aovs.items()}
 
 
 def some_colours():

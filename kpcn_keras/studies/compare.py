@@ -94,6 +94,10 @@ def budget_shares(phases) -> dict[str, float]:
     return shares
 
 
+# the TrainConfig fields budget_steps sets: a plan's steps, not part of what the plan is for (PlannedRuns' key)
+BUDGET_FIELDS = ("steps", "decay_steps", *(f"{phase}_steps" for phase in FINAL_PHASES))
+
+
 def budget_steps(budget: float, per_step: dict[str, float]) -> dict[str, int]:
     """TrainConfig step fields that fill ``budget`` seconds, given each phase's seconds per step.
 
@@ -293,15 +297,15 @@ class PlannedRuns:
 def _as_read(field: str, value):
     """A plan key's stored value as this kpcn writes it: a training identity through
     :meth:`TrainConfig.recorded_identity`, so that a plan made before a field was added keeps its runs, without
-    the step counts the budget sets (:func:`budget_steps`: a joint phase's only as whether it has one), so that a
+    the step counts the budget sets (:data:`BUDGET_FIELDS`; a joint phase's only as whether it has one), so that a
     changed default step count keeps them too: the plan's own steps are what its runs trained."""
     if field != "train" or not isinstance(value, dict):
         return value
-    identity = {k: v for k, v in TrainConfig.recorded_identity(value).items()
-                if k not in ("steps", "decay_steps", "compositor_steps")}
-    if "joint_steps" in identity:
-        identity["joint_steps"] = min(identity["joint_steps"], 1)
-    return identity
+    identity = TrainConfig.recorded_identity(value)
+    kept = {k: v for k, v in identity.items() if k not in BUDGET_FIELDS}
+    if "joint_steps" in identity:  # whether there is a joint phase is the configuration's, not the budget's
+        kept["joint_steps"] = min(identity["joint_steps"], 1)
+    return kept
 
 
 def _fmt_phases(values: dict, fmt: str) -> str:
