@@ -41,6 +41,19 @@ def variance_importance(aovs: dict[str, np.ndarray], colour_weight: float = 1.0,
     return colour_weight * colour + normal_weight * normal
 
 
+def reference_error_variances(aovs: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """What :func:`variance_importance` reads, for a render that has no variance layers (another renderer's:
+    Cycles writes none): ``colorVariance`` and ``normalVariance`` as the input's squared error to its
+    reference, averaged over the channels. For an unbiased render against a converged reference its
+    expectation is the variance of the pixel's mean, so the PDF still favours the noisy pixels; one frame
+    gives one sample of it, a noisier map than a renderer's own variance. It is used for where patches are
+    cut, never as a network input (a set of an input set with variance refuses such renders)."""
+    def squared_error(layer):
+        return np.mean((aovs[layer].astype(np.float64) - reference[layer]) ** 2, axis=-1)
+
+    return {"colorVariance": squared_error("default"), "normalVariance": squared_error("normal")}
+
+
 @numba.njit(cache=True)
 def _window_sums(image, size):
     """Sum of ``image`` (finite, >= 0) over every size x size window; output (H - size + 1, W - size + 1).

@@ -17,6 +17,8 @@ from helpers import (
     kpcn,
     make_renders,
     random_aovs,
+    reference_importance,
+    reference_pdf,
     reference_relse,
 )
 
@@ -311,3 +313,40 @@ def test_shards_carry_the_reference_relse_of_each_branch(tmp_path, reference_var
                         np.testing.assert_allclose(got[..., 0], want, rtol=2.0**-11, atol=2.0**-25)
                     seen += 1
     assert seen == 2 * 3
+
+
+def test_renders_without_variance_are_cut_for_a_set_without_variance_where_their_error_to_the_reference_is(tmp_path):
+    """Another renderer's frames (Cycles writes no variance): a no-variance set cuts them, each patch's PDF the
+    variance PDF of a float64 estimate written out here, the input's squared error to its reference averaged
+    over the channels; the full set refuses them in one line naming the layer."""
+    root = tmp_path / "renders" / "s"
+    root.mkdir(parents=True)
+    for i, scene in enumerate(("a-000", "a-001")):
+        exr.write_aovs(root / exr.render_filename(scene, 4), random_aovs(40, 44, seed=10 + i, variances=False))
+        exr.write_aovs(root / exr.render_filename(scene, 64), random_aovs(40, 44, seed=100 + i, variances=False))
+    cfg = config(tmp_path, inputs="no-variance")
+    manifest = shards.build_shards(cfg, progress=False)
+    sset = shards.ShardSet(cfg.set_dir)
+    seen = 0
+    for split in ("train", "val"):
+        for path in shards.shard_paths(cfg.set_dir, split):
+            with shards.open_shard(path) as f:
+                for k in range(len(f["source"])):
+                    src = manifest["sources"][int(f["source"][k])]
+                    noisy = exr.read_aovs(sset.resolve(src["path"]), variances=None)
+                    ref = exr.read_aovs(root / exr.render_filename(src["scene"], 64), variances=None)
+                    estimate = {
+                        "default": noisy["default"],
+                        "colorVariance": ((noisy["default"].astype(np.float64) - ref["default"]) ** 2).mean(axis=-1),
+                        "normalVariance": ((noisy["normal"].astype(np.float64) - ref["normal"]) ** 2).mean(axis=-1),
+                    }
+                    want = reference_pdf(reference_importance(estimate), 16, cfg.uniform_mix)
+                    y, x = f["position"][k]
+                    assert f["pdf"][k] == pytest.approx(want[y, x], rel=1e-12)
+                    seen += 1
+    assert seen == 2 * 7
+
+    res = kpcn("shards", "--set", "s", "--renders", str(tmp_path / "renders"), "--out", str(tmp_path / "full"),
+               "--patch-size", "16", "--patches-per-image", "7", cwd=tmp_path)
+    assert_one_line_error(res, "a-000-00004spp.exr", "diffuseVariance")
+    assert not (tmp_path / "full" / "s").exists()

@@ -9,7 +9,9 @@ A set of an input set other than the full one (``ShardConfig.inputs``) cuts its 
 model of that set reads (:func:`shard_layers`: ``prep.inputs.restrict`` of the render, its reference's colours
 split the same way), at the positions drawn from the render as it is: the renders a set is cut from are
 ``kpcn render``'s, which have every layer, so every input set of a render set holds its patches at the same
-positions, and the variance PDF stays the variance's where the model is given none.
+positions, and the variance PDF stays the variance's where the model is given none. Renders without variance
+layers (another renderer's, ``scripts/import_renders.py``) can be cut for the input sets without variance
+alone; their PDF reads their error to the reference instead (:func:`round_pdf`).
 """
 
 from __future__ import annotations
@@ -101,10 +103,14 @@ class ImagePatches:
 
 
 def round_pdf(noisy: dict, config: ShardConfig, error: np.ndarray | None = None,
-              error_weight: float = 0.0) -> np.ndarray:
+              error_weight: float = 0.0, reference: dict | None = None) -> np.ndarray:
     """A round's PDF over the patch positions of one input: its variance PDF (docs/method.md §3), and in an
     error round (docs/method.md §8) ``error_weight`` times the PDF of the per-pixel ``error`` map (built the same way:
-    window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF."""
+    window sums mixed with ``uniform_mix`` of uniform) plus the rest times the variance PDF. A render without
+    variance layers (cut for an input set without variance) takes its variances from its error to
+    ``reference`` (``sampling.reference_error_variances``)."""
+    if "colorVariance" not in noisy:
+        noisy = {**noisy, **sampling.reference_error_variances(noisy, reference)}
     importance = sampling.variance_importance(noisy, config.colour_weight, config.normal_weight)
     pdf = sampling.patch_pdf(importance, config.patch_size, config.uniform_mix)
     if error is None or error_weight == 0.0:
@@ -133,6 +139,7 @@ def draw(pdf: np.ndarray, count: int, config: ShardConfig, source_id: int, k: in
 def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_id: int) -> ImagePatches:
     """Round 0 of one input: ``patches_per_image`` positions from its variance PDF, the patches cut from the
     layers of the set's input set (:func:`shard_layers`)."""
-    positions, pdf = draw(round_pdf(noisy, config), config.patches_per_image, config, source_id, 0)
+    positions, pdf = draw(round_pdf(noisy, config, reference=reference), config.patches_per_image, config,
+                          source_id, 0)
     return ImagePatches.at(*shard_layers(noisy, reference, config.input_set), positions, pdf, source_id=source_id,
                            round=0, patch_size=config.patch_size)

@@ -110,7 +110,9 @@ def find_sources(config: ShardConfig, sset: ShardSet) -> tuple[dict[str, list[st
             ref_size = exr.read_header(ref.path, variances=False)
             sources.append(_source_record(sset, ref, "reference", split_name, 0))
             for src in renders[scene]["inputs"]:
-                size = exr.read_header(src.path)
+                # a render without variance layers is refused here, naming the layer, unless the set's input
+                # set has no variance (its patches' PDF then reads the render's error to its reference)
+                size = exr.read_header(src.path, variances=True if config.input_set.variance else None)
                 if size != ref_size:
                     raise ShardError(
                         f"{src.path} is {size[1]}x{size[0]} but its reference {ref.path} is {ref_size[1]}x{ref_size[0]}"

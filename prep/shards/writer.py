@@ -171,9 +171,10 @@ class RoundDraw:
     k: int
     plan: dict[int, tuple[np.ndarray, np.ndarray]] | None = None
 
-    def __call__(self, source_id: int, noisy: dict) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, source_id: int, noisy: dict, reference: dict) -> tuple[np.ndarray, np.ndarray]:
         if self.plan is None:
-            return draw(round_pdf(noisy, self.config), self.config.patches_per_image, self.config, source_id, self.k)
+            return draw(round_pdf(noisy, self.config, reference=reference), self.config.patches_per_image,
+                        self.config, source_id, self.k)
         return self.plan[source_id]
 
 
@@ -222,9 +223,10 @@ class _RoundWriter:
             if self._reference is None or self._reference[0] != ref_path:
                 self._reference = None
                 self._reference = (ref_path, exr.read_aovs(sset.resolve(ref_path), variances=None))
-            noisy = exr.read_aovs(sset.resolve(src["path"]))
+            # a set without variance inputs also takes renders that have none (another renderer's)
+            noisy = exr.read_aovs(sset.resolve(src["path"]), variances=True if self.inputs.variance else None)
             self._current = None  # free the previous image before the next is cut
-            positions, pdf = self.draw_of(source_id, noisy)
+            positions, pdf = self.draw_of(source_id, noisy, self._reference[1])
             self._current = ImagePatches.at(*shard_layers(noisy, self._reference[1], self.inputs), positions, pdf,
                                             source_id=source_id, round=self.k, patch_size=self.patch_size)
         return self._current
