@@ -23,7 +23,7 @@ from pathlib import Path
 
 from prep import exr, layouts
 from prep.errors import KpcnError
-from prep.shards import ShardConfig
+from prep.shards import ShardConfig, discover_renders
 
 WRITTEN = ("default", *exr.BASE_LAYERS)  # the colour as the renderer composed it, and what training reads
 
@@ -33,23 +33,20 @@ def import_renders(src: Path, out: Path) -> list[Path]:
     Every file is read and checked before the first is written."""
     if out.exists():
         raise KpcnError(f"{out}: the set folder exists; remove it or choose another --set")
-    paths = sorted(p for p in Path(src).glob("*.exr") if not p.name.startswith("."))
-    if not paths:
-        raise KpcnError(f"{src}: no '<scene>-<spp>spp.exr' renders found")
-    headers = {}
+    # the renders kpcn shards would find there: named by scene and spp, each scene with a reference
+    paths = sorted(Path(s.path) for scene in discover_renders(Path(src)).values()
+                   for s in (*scene["inputs"], scene["reference"]))
     for path in paths:
-        exr.parse_render_filename(path)  # refuses a name without the scene and spp
         header = layouts.read_header(path)
         if not header.inputs.split:
             raise KpcnError(f"{path}: a {header.layout} frame without a diffuse/specular split; training needs it")
-        headers[path] = header
     out.mkdir(parents=True)
     written = []
     for path in paths:
         frame = layouts.read(path)
         keep = WRITTEN + (exr.VARIANCE_LAYERS if frame.inputs.variance else ())
         written.append(exr.write_aovs(out / path.name, {name: frame.layers[name] for name in keep}))
-        print(f"{path.name}: {headers[path].layout}, {frame.inputs}", flush=True)
+        print(f"{path.name}: {frame.layout}, {frame.inputs}", flush=True)
     return written
 
 

@@ -27,6 +27,12 @@ from prep.shards.config import ShardConfig
 from prep.shards.format import DATASETS, RELSE_MAX, empty_patches, to_half
 
 
+def noisy_variances(inputs: InputSet) -> bool | None:
+    """``exr.read_aovs``'s ``variances`` for a set's inputs: every variance layer where its model reads them, else
+    those the render has (another renderer's may have none: :func:`round_pdf` then reads its reference)."""
+    return True if inputs.variance else None
+
+
 def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
     """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
     reads it (``prep.inputs.restrict``), and the reference restricted alike: a no-split set's diffuse

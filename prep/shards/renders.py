@@ -19,6 +19,7 @@ from prep.errors import OptionError
 from prep.files import sha256_file
 from prep.shards.config import PATCH_SIZE, ShardConfig
 from prep.shards.format import ShardError
+from prep.shards.patches import noisy_variances
 from prep.shards.shardset import SPLITS, ShardSet
 
 
@@ -111,8 +112,8 @@ def find_sources(config: ShardConfig, sset: ShardSet) -> tuple[dict[str, list[st
             sources.append(_source_record(sset, ref, "reference", split_name, 0))
             for src in renders[scene]["inputs"]:
                 # a render without variance layers is refused here, naming the layer, unless the set's input
-                # set has no variance (its patches' PDF then reads the render's error to its reference)
-                size = exr.read_header(src.path, variances=True if config.input_set.variance else None)
+                # set has no variance
+                size = exr.read_header(src.path, variances=noisy_variances(config.input_set))
                 if size != ref_size:
                     raise ShardError(
                         f"{src.path} is {size[1]}x{size[0]} but its reference {ref.path} is {ref_size[1]}x{ref_size[0]}"

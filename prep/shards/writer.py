@@ -41,7 +41,7 @@ from prep.shards.format import (
     shard_name,
     write_shard,
 )
-from prep.shards.patches import ImagePatches, draw, round_pdf, shard_layers
+from prep.shards.patches import ImagePatches, draw, noisy_variances, round_pdf, shard_layers
 from prep.shards.renders import reference_of
 from prep.shards.shardset import SPLITS, ShardSet, round_name
 
@@ -223,8 +223,7 @@ class _RoundWriter:
             if self._reference is None or self._reference[0] != ref_path:
                 self._reference = None
                 self._reference = (ref_path, exr.read_aovs(sset.resolve(ref_path), variances=None))
-            # a set without variance inputs also takes renders that have none (another renderer's)
-            noisy = exr.read_aovs(sset.resolve(src["path"]), variances=True if self.inputs.variance else None)
+            noisy = exr.read_aovs(sset.resolve(src["path"]), variances=noisy_variances(self.inputs))
             self._current = None  # free the previous image before the next is cut
             positions, pdf = self.draw_of(source_id, noisy, self._reference[1])
             self._current = ImagePatches.at(*shard_layers(noisy, self._reference[1], self.inputs), positions, pdf,
