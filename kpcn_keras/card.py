@@ -8,7 +8,9 @@ The card is generated, never written by hand, from what the run itself holds, so
   seconds it trained (``timings.json``), the batch size, the command that trained it, and the versions and
   machine.
 - **Training data**: the shard set, the render set it was cut from, the scene families, the patches (train and
-  held-out) and the spp ladder of the inputs, from the shard set's manifest.
+  held-out) and the spp ladder of the inputs, from the shard set's manifest; the same for each input set's
+  network whose shard set was cut from another render set. A network fine-tuned from another (``--init``) says
+  from which, with the checksums its run recorded.
 - **Held-out table**: the means per input spp over the held-out scenes of ``kpcn evaluate``'s
   ``<run>/eval/metrics.json`` (relMSE and DSSIM of the input, NLM, OIDN where it was installed, and the run).
 - **Validation table**, where the run was evaluated on another renderer's frames (``<run>/eval-validation/``,
@@ -141,6 +143,11 @@ def training_data(run: Run, record: RunRecord) -> list[str]:
     ]
 
 
+def _render_set(run: Run, record: RunRecord) -> str | None:
+    """The render set the run's shard set was cut from (its manifest's)."""
+    return run.shard_set(record).complete_manifest().get("config", {}).get("set_name")
+
+
 def configuration(variant: Run, record: RunRecord) -> list[str]:
     """The card's configuration lines of one input set's run."""
     train, model = record.train, record.model.to_dict()
@@ -151,7 +158,12 @@ def configuration(variant: Run, record: RunRecord) -> list[str]:
              + ", ".join(f"{k} {v}" for k, v in model.items()),
              f"- batch {train.batch_size}, loss {train.loss}, augmentation {'on' if train.augment else 'off'}, "
              f"seed {train.seed}",
-             f"- command: `{record.command or '?'}`", ""]
+             f"- command: `{record.command or '?'}`"]
+    started = record.data.get("init", {}).get("networks")
+    if started:
+        lines.append(f"- fine-tuned: its branch phases started from the networks of `{train.init}` as they were then ("
+                     + ", ".join(f"{name} SHA-256 {sha[:12]}…" for name, sha in started.items()) + ")")
+    lines.append("")
     lines += _table(["phase", "steps", "learning rate", "seconds"],
                     [[name, trained_steps(plan, train.steps_per_epoch), f"{plan.get('learning_rate', float('nan')):g}",
                       f"{timings[name]:.0f}" if name in timings else "?"] for name, plan in phases.items()])
@@ -318,8 +330,15 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
     for variant, rec in zip(run.variants(), records):
         lines += configuration(variant, rec) + [""]
     lines += ["## Training data", ""] + training_data(run, record)
-    others = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec in zip(run.variants()[1:], records[1:])]
-    lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(others)}", ""]
+    renders = _render_set(run, record)
+    others = list(zip(run.variants()[1:], records[1:]))
+    same = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec in others if _render_set(variant, rec) == renders]
+    if same:
+        lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(same)}"]
+    for variant, rec in others:
+        if _render_set(variant, rec) != renders:
+            lines += ["", f"The {rec.inputs.name} network's:", ""] + training_data(variant, rec)
+    lines += [""]
     lines += ["## Held-out frames", "",
               f"Means over the held-out scenes per input spp, from `{Path('eval') / METRICS}` "
               "(`kpcn evaluate`; relMSE and DSSIM as in docs/method.md):", ""]

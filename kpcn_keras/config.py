@@ -352,8 +352,9 @@ PRESETS = {
     },
 }
 
-# Fields that say where the data is, not what is trained: a run is the same run wherever it is read from.
-LOCATION_FIELDS = ("set_name", "shards_root")
+# Fields that say where the data is, not what is trained: a run is the same run wherever it is read from. A run
+# started from another's networks (``init``) records their checksums, which are what it was trained from.
+LOCATION_FIELDS = ("set_name", "shards_root", "init")
 # What a network's input carries besides the features: set from the training options, never by hand.
 _CONDITIONING = ("branch_channels", "slope_channel")
 
@@ -419,6 +420,11 @@ class TrainConfig:
     ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes none (:meth:`to_dict`),
     so those runs keep their identity.
 
+    ``init`` names a run or a shipped model (``models/default``) whose finished networks of the same input set
+    the branch phases start from instead of a seeded initialisation: fine-tuning a model on one's own renders
+    (``kpcn_keras.train.init_networks`` checks that they fit; the run's record keeps their checksums). Where
+    they are read from is not what is trained (:data:`LOCATION_FIELDS`); None, the default, is written nowhere.
+
     ``patience`` P > 0 stops a phase once P epochs in a row have not lowered its validation loss (the held-out
     scenes' patches) below its best, and makes the best epoch's weights the phase's model: a run trains as long
     as held-out error keeps falling, ``steps`` (and with it the learning-rate schedule) the most it may take.
@@ -463,6 +469,7 @@ class TrainConfig:
     patience: int = bounded(TRAIN_EVERY_STEP, PATIENCE)
     seed: int = bounded(0, SEED)
     inputs: str = FULL.name
+    init: str | None = None
 
     def __post_init__(self):
         self.branches = tuple(self.branches)
@@ -476,6 +483,8 @@ class TrainConfig:
         for name in ("shared", "slope_input", "augment"):
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"must be true or false, got {getattr(self, name)!r}")
+        if self.init is not None and (not isinstance(self.init, str) or not self.init):
+            raise OptionError("init", f"must be a run or model folder, got {self.init!r}")
         if len(self.slope_range) != 2 or not self.slope_range[0] < self.slope_range[1]:
             raise OptionError("slope_range", f"must be two numbers low < high, got {list(self.slope_range)}")
         if self.slope_input and self.loss != "asymmetric":
@@ -577,6 +586,8 @@ class TrainConfig:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
         if d["patience"] == TRAIN_EVERY_STEP:
             del d["patience"]  # likewise: a run of every step, as written before early stopping existed
+        if d["init"] is None:
+            del d["init"]  # likewise: a run from a seeded initialisation, as written before --init existed
         d["branches"] = list(self.branches)
         d["slope_range"] = list(self.slope_range)
         return d

@@ -133,6 +133,9 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     more than 1 (``kpcn_keras.denoise``; a row then says how many)."""
     run = Run(run_dir)
     out_dir = Path(out_dir) if out_dir else run.eval_dir
+    if run.card_path.is_file() and out_dir.resolve() in (run.eval_dir.resolve(), run.validation_dir.resolve()):
+        raise KpcnError(f"{run.dir}: a shipped model, whose {out_dir.name}/ holds the tables its card shows; "
+                        "evaluate it into another folder with --out DIR")
     check_writable(out_dir, "report folder (--out)", directory=True)
     record = run.record()
     pairs = pairs or held_out_pairs(run, record)

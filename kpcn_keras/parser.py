@@ -338,6 +338,9 @@ def _train_options(add) -> None:
     g.add_argument("--patience", type=int, help="stop a phase after this many epochs without a lower validation "
                    "(held-out) loss and keep its best epoch; --steps is then the most it trains; 0 trains every "
                    f"step {d('patience')}")
+    g.add_argument("--init", help="start the branch networks from the finished ones of the same input set in this run "
+                   "or model folder (e.g. models/default: fine-tune it on your own renders); its network options "
+                   "must be this run's (default: a seeded initialisation)")
     g.add_argument("--seed", type=int, help=d("seed"))
 
 

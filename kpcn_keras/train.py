@@ -46,6 +46,10 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   run (the CSV log is cut back to the checkpoint's epochs; one holding fewer, emptied or cut, is refused).
 - **Same run, same inputs.** Another configuration, another shard set content, or a checkpoint of
   another architecture under an existing run is an error that says which.
+- **Fine-tuning starts from what it names** (``--init``, :func:`init_networks`): the branch phases start from
+  another run's (or a shipped model's) finished networks of the same input set, which must have the run's
+  model configuration and have been trained on its features; their SHA-256 are in the record (``init``), and
+  resuming from other weights, or without them, is refused.
 - **Divergence stops at the batch** (:class:`_StopOnNonFinite`): one line names the last good checkpoint,
   which stays.
 - **So does a network that can no longer learn** (:class:`_StopOnSaturation`): a validation loss frozen for
@@ -84,7 +88,7 @@ from kpcn_keras.multiscale import (
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
-from prep.files import atomic_path, atomic_write_json, check_writable, pyplot, read_json, save_png
+from prep.files import atomic_path, atomic_write_json, check_writable, pyplot, read_json, save_png, sha256_file
 from prep.inputs import FULL
 from prep.shards import ShardSet
 
@@ -112,7 +116,14 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
     model_cfg = cfg.model
     if not phase.trains_on_final_colour:
         keras.utils.set_random_seed(cfg.seed + [p.name for p in cfg.phases()].index(phase.name))
-        return build_branch_model(model_cfg, name=phase.name)
+        model = build_branch_model(model_cfg, name=phase.name)
+        if cfg.init is not None:
+            source = _init_run(cfg)
+            found = source.record()
+            start = source.load_component(found, phase.component)  # checked against its record
+            check_architecture(start, model_cfg, found.component_path(phase.component))
+            model.set_weights(start.get_weights())
+        return model
     names = _network_names(cfg)
     finished = run.parse_record(record)  # the phases done so far
     nets = {name: run.load_component(finished, name) for name in dict.fromkeys(names.values())}
@@ -423,8 +434,10 @@ def check_run_folder(run: Run, sset: ShardSet, manifest: dict) -> None:
                             f"folder {folder}, whose files a run would write over or mix with; choose another --run")
 
 
-def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> dict:
-    """The run's record: read and compared if the run exists, else created (inputs are checked by now)."""
+def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet,
+                 init: dict[str, str] | None = None) -> dict:
+    """The run's record: read and compared if the run exists, else created (inputs are checked by now;
+    ``init``: :func:`init_networks`)."""
     if run.has_record():
         record = run.read_record()
         old = TrainConfig.recorded_identity(record["train"])
@@ -439,6 +452,7 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
                 f"{run.record_path}: the shard set {sset.dir} changed since this run started (its renders or "
                 f"options differ); choose another --run or remove {run.dir}"
             )
+        _check_init(run, record, init)
         return record
     import torch
 
@@ -458,8 +472,66 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet) -> 
         "components": {},
         "results": {},
     }
+    if init is not None:
+        record["init"] = {"run": run.relative(_init_run(cfg).dir), "networks": init}
     run.write_record(record)
     return record
+
+
+# ---------------------------------------------------------------- starting from another run's networks
+
+
+def _init_run(cfg: TrainConfig) -> Run:
+    """The run (or its ``inputs/`` variant) whose networks of ``cfg``'s input set ``cfg.init`` names."""
+    return Run(cfg.init).for_inputs(cfg.input_set)
+
+
+def init_networks(cfg: TrainConfig, manifest: dict) -> dict[str, str] | None:
+    """``{network: SHA-256 of its file}`` for each branch phase of ``cfg`` to start from (``cfg.init``; None
+    without it), checked before the run is written: ``cfg.init`` must be a run or a shipped model with a
+    finished network of the run's input set for every branch phase, of the run's model configuration, trained
+    on the features and constants of the shard set (``manifest``) the run trains on. OptionError naming
+    ``--init``, the folder and what differs otherwise."""
+    if cfg.init is None:
+        return None
+    base = Run(cfg.init)
+    if not base.has_record():
+        raise OptionError("init", f"{cfg.init} is not a run or model folder (no {base.record_path})")
+    source = _init_run(cfg)
+    if not source.has_record():
+        raise OptionError("init", f"{cfg.init} has no network for frames of the input set {cfg.inputs} (no "
+                          f"{source.record_path}): train one with --inputs {cfg.inputs}, or start from scratch")
+    record = source.finished_record()
+    theirs, ours = record.model.to_dict(), cfg.model.to_dict()
+    differ = [f"{k} {theirs.get(k)!r} against {ours.get(k)!r}" for k in sorted(set(theirs) | set(ours))
+              if theirs.get(k) != ours.get(k)]
+    if differ:
+        raise OptionError("init", f"{source.dir} holds networks of another configuration than this run's "
+                          f"({'; '.join(differ)}): pass its --preset and network options")
+    shards = record.data.get("shards", {})
+    for what in ("features", "constants"):
+        if shards.get(what) != manifest.get(what):
+            raise OptionError("init", f"{source.dir} was trained on other {what} than the shard set's "
+                              f"({shards.get(what)} against {manifest.get(what)})")
+    names = [p.component for p in cfg.phases() if not p.trains_on_final_colour]
+    missing = [n for n in names if n not in record.components]
+    if missing:
+        raise OptionError("init", f"{source.dir} has no {', '.join(missing)} network (it has "
+                          f"{', '.join(sorted(record.components)) or 'none'})")
+    return {n: sha256_file(record.component_path(n)) for n in names}
+
+
+def _check_init(run: Run, record: dict, networks: dict[str, str] | None) -> None:
+    """KpcnError unless the run resumes from the networks it started from (``record["init"]``)."""
+    started = record.get("init", {}).get("networks")
+    if started == networks:
+        return
+    said = (f"started from the networks of {record['init']['run']} (relative to the run)" if started else
+            "started from a seeded initialisation")
+    now = "other networks (their SHA-256 differ)" if started and networks else (
+        "networks (--init)" if networks else "none (no --init)")
+    raise KpcnError(f"{run.record_path}: this run {said}, and this command gives it {now}; resume it with the "
+                    f"options it was started with, or choose another --run")
 
 
 def _phase_plan(phase: Phase) -> dict:
@@ -687,6 +759,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
     run = Run(run_dir).for_inputs(cfg.input_set)
     sset = ShardSet(cfg.set_dir)
     manifest, paths = check_inputs(cfg, sset)
+    init = init_networks(cfg, manifest)
     check_run_folder(run, sset, manifest)
     check_writable(run.dir, "run folder (--run)", directory=True)
     distributed.start(world)
@@ -696,7 +769,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, verbose="auto", callbacks=()
     with run.lock() if world.writer else nullcontext():
         if world.writer:
             run.remove_temporaries()
-            record = _open_record(run, cfg, manifest, sset)
+            record = _open_record(run, cfg, manifest, sset, init)
         distributed.barrier(world)
         if not world.writer:
             record = run.read_record()

@@ -71,6 +71,12 @@ def test_denoise_and_evaluate_accept_a_shipped_model(shipped, evaluated_run, fix
     ours = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     theirs = json.loads((evaluated_run.eval_dir / "metrics.json").read_text())
     assert [r["denoised"] for r in ours] == [r["denoised"] for r in theirs]  # the same networks, the same bits
+    # its own report folders hold what its card shows: another evaluation (an ensemble, say) goes elsewhere
+    before = {p: p.read_bytes() for p in shipped.rglob("eval*/*")}
+    for out in ((), ("--out", shipped / "eval-validation")):
+        res = run_main("evaluate", "--run", shipped, "--ensemble", "2", "--no-baseline", *out, cwd=tmp_path)
+        assert_one_line_error(res, str(shipped), "a shipped model", "--out DIR")
+    assert {p: p.read_bytes() for p in shipped.rglob("eval*/*")} == before
 
 
 def test_denoise_without_run_uses_the_default_model(shipped, fixture_noisy, tmp_path, monkeypatch):
@@ -164,6 +170,46 @@ def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
             assert cell == "–" if value is None else float(cell) == pytest.approx(value, abs=5e-5)
     curve = tables["Learning curve"]
     assert {line[0] for line in curve[1:]} == set(INPUT_SETS)
+
+
+def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_on_the_card(evaluated_run, tmp_path):
+    from helpers import TINY_MODEL, make_renders
+
+    from kpcn_keras.evaluate import evaluate
+    from kpcn_keras.run import Run
+    from kpcn_keras.train import TrainConfig, train
+    from prep import shards
+    from prep.files import sha256_file
+
+    make_renders(tmp_path / "renders" / "t", scenes=("c-000", "c-001", "d-000", "d-001"))
+    cut = shards.ShardConfig(set_name="t", render_root=str(tmp_path / "renders"), out_root=str(tmp_path / "shards"),
+                             patch_size=16, patches_per_image=7, patches_per_shard=5, val_fraction=0.5, seed=3,
+                             inputs="no-variance")
+    shards.build_shards(cut, progress=False)
+    run = Run(evaluated_run.dir.with_name(f"tuned-{tmp_path.name}"))  # beside it: its shard paths hold
+    shutil.copytree(evaluated_run.dir, run.dir)
+    shutil.rmtree(run.dir / "inputs" / "no-variance")
+    shutil.rmtree(run.validation_dir)
+    cfg = TrainConfig.from_preset("cpu", set_name="t", shards_root=cut.out_root, model=TINY_MODEL, steps=4,
+                                  steps_per_epoch=4, batch_size=2, val_batches=1, inputs="no-variance",
+                                  init=str(evaluated_run.dir))
+    train(cfg, run.dir, verbose=0)
+    evaluate(run.dir, baseline=False)
+    res = run_main("ship", "--run", run.dir, "--out", tmp_path / "models" / "tuned", "--speed-frame", "64,48",
+                   cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    card = (tmp_path / "models" / "tuned" / "CARD.md").read_text()
+    tuned = card[card.index("### no-variance"):card.index("### no-split\n")]
+    sha = {b: sha256_file(evaluated_run.dir / "inputs" / "no-variance" / f"{b}.keras")[:12]
+           for b in ("diffuse", "specular")}
+    assert (f"- fine-tuned: its branch phases started from the networks of `{evaluated_run.dir}` as they were then "
+            f"(diffuse SHA-256 {sha['diffuse']}…, specular SHA-256 {sha['specular']}…)") in tuned
+    assert "fine-tuned" not in card.replace(tuned, "")  # the others were not
+    data = card[card.index("## Training data"):card.index("## Held-out frames")]
+    assert "the same renders cut for each, `s.no-split`, `s.no-split-no-variance`" in data
+    own = data[data.index("The no-variance network's:"):]
+    assert "- shard set `t.no-variance` (input set no-variance), cut from the render set `t`" in own
+    assert "2 training scenes, 2 held out (c-001, d-001)" in own
 
 
 def test_an_unfinished_or_incomplete_run_is_refused_in_one_line(tiny_run, evaluated_run, tmp_path):
