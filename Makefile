@@ -34,7 +34,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: venv render references shards train train-inputs model resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
+.PHONY: venv render references shards train train-inputs model model-cycles resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -77,10 +77,48 @@ model: $(KPCN)
 		$(KPCN) shards --set $(MODEL_SET) --inputs $$inputs $(MODEL_SHARD_ARGS) && \
 		$(KPCN) train --set $(MODEL_SET) --run $(MODEL_RUN) --inputs $$inputs $(MODEL_ARGS) || exit 1; \
 	done
-	$(KPCN) evaluate --run $(MODEL_RUN)
+	$(call evaluate_and_ship,$(MODEL_RUN))
+
+# a model run $(1) evaluated on the held-out and the VALIDATION frames and shipped to models/$(MODEL)
+define evaluate_and_ship
+	$(KPCN) evaluate --run $(1)
 	frames=$$(for f in $(VALIDATION); do [ -e "$$f" ] && echo "$$f"; done); \
-	if [ -n "$$frames" ]; then $(KPCN) evaluate --run $(MODEL_RUN) --out $(MODEL_RUN)/eval-validation $$frames; fi
-	$(KPCN) ship --run $(MODEL_RUN) --out models/$(MODEL)
+	if [ -n "$$frames" ]; then $(KPCN) evaluate --run $(1) --out $(1)/eval-validation $$frames; fi
+	$(KPCN) ship --run $(1) --out models/$(MODEL)
+endef
+
+# after make model: its no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no
+# variance), trained on from where it is on Cycles' own frames too (docs/training.md §7, docs/results.md §17):
+# random Cycles scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python 3.11 and
+# numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s renders as
+# $(MODEL_SET)-$(CYCLES_SET), cut without variance, and trained with --init $(MODEL_RUN) into
+# $(MODEL_RUN)-$(CYCLES_SET); $(MODEL_RUN)-shipped is $(MODEL_RUN) with that network in its place (hard links),
+# evaluated and shipped. Each step resumes or is skipped when done; more scenes (--scenes) mean a new CYCLES_SET.
+BPY_PYTHON ?= python3.11
+BPY_VENV   := .venv-bpy
+CYCLES_SET ?= cycles
+CYCLES_RENDER_ARGS ?= --scenes 0:48 --res 128 --spp 4,8,16,32,64 --ref-spp 2048
+CYCLES_VAL_SCENES  ?= room-024,studio-025,ground-026
+CYCLES_TRAIN_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000
+MODEL_MIX := $(MODEL_SET)-$(CYCLES_SET)
+
+$(BPY_VENV)/bin/python:
+	$(BPY_PYTHON) -m venv $(BPY_VENV)
+	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check 'numpy<2' 'bpy==5.0.1'
+
+model-cycles: $(KPCN) $(BPY_VENV)/bin/python
+	$(BPY_VENV)/bin/python scripts/render_cycles_set.py data/cycles/$(CYCLES_SET) $(CYCLES_RENDER_ARGS)
+	[ -d data/renders/$(CYCLES_SET) ] || \
+		$(BIN)/python scripts/import_renders.py data/cycles/$(CYCLES_SET) --set $(CYCLES_SET)
+	mkdir -p data/renders/$(MODEL_MIX)
+	ln -f data/renders/$(MODEL_SET)/*.exr data/renders/$(CYCLES_SET)/*.exr data/renders/$(MODEL_MIX)/
+	$(KPCN) shards --set $(MODEL_MIX) --inputs no-variance $(MODEL_SHARD_ARGS),$(CYCLES_VAL_SCENES)
+	$(KPCN) train --set $(MODEL_MIX) --inputs no-variance --run $(MODEL_RUN)-$(CYCLES_SET) --init $(MODEL_RUN) \
+		$(CYCLES_TRAIN_ARGS)
+	rm -rf $(MODEL_RUN)-shipped && cp -al $(MODEL_RUN) $(MODEL_RUN)-shipped
+	rm -rf $(MODEL_RUN)-shipped/inputs/no-variance $(MODEL_RUN)-shipped/eval $(MODEL_RUN)-shipped/eval-validation
+	cp -al $(MODEL_RUN)-$(CYCLES_SET)/inputs/no-variance $(MODEL_RUN)-shipped/inputs/
+	$(call evaluate_and_ship,$(MODEL_RUN)-shipped)
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards

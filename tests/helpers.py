@@ -37,6 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 # passes to its bare environment
 SUITE_SETTINGS = ("KPCN_KERNELS", "KPCN_KERNEL_DIR", "OMP_WAIT_POLICY")
 TINY_MODEL = {"width": 6, "depth": 3, "kernel_size": 5}
+# the smallest network the training tests train: a step takes milliseconds
+TINY_TRAIN_MODEL = {"width": 4, "depth": 2, "kernel_size": 3}
 # the float64 features the numba kernel is held to; it lives in the package, where the benchmark times it
 reference_features = _features.reference_features
 
@@ -88,6 +90,17 @@ def build_tiny_shards(tmp_path: Path, **kw):
     cfg = shards.ShardConfig(**values)
     shards.build_shards(cfg, progress=False)
     return cfg
+
+
+def tiny_train_config(shard_cfg, **kw):
+    """A ``TrainConfig`` of :data:`TINY_TRAIN_MODEL` for the shard set ``shard_cfg`` (:func:`build_tiny_shards`):
+    4 steps a branch in epochs of 2, batch 2; ``kw`` overrides."""
+    from kpcn_keras.config import TrainConfig
+
+    values = dict(set_name=shard_cfg.set_name, shards_root=shard_cfg.out_root, model=TINY_TRAIN_MODEL, steps=4,
+                  steps_per_epoch=2, batch_size=2, val_batches=1)
+    values.update(kw)
+    return TrainConfig.from_preset("cpu", **values)
 
 
 def launcher_free_env(**extra) -> dict:

@@ -135,6 +135,34 @@ def test_make_model_ships_where_denoise_looks_and_evaluates_where_the_card_reads
     assert f"evaluate --run {run.dir}\n" in plan
 
 
+
+def test_make_model_cycles_ships_make_models_run_with_its_no_variance_network_fine_tuned_from_its_own():
+    import subprocess
+
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+
+    def plan(target):
+        return subprocess.run(["make", "-n", "--no-print-directory", target], cwd=MODELS_DIR.parent, text=True,
+                              capture_output=True, check=True).stdout.replace("\\\n\t", "")
+
+    base = plan("model")
+    model_run = next(line for line in base.splitlines() if " ship " in line).split("--run ")[1].split()[0]
+    held_out = base.split("--val-scenes ")[1].split()[0]
+    cycles = plan("model-cycles")
+    lines = cycles.splitlines()
+    train = next(line for line in lines if " train " in line)
+    assert "--inputs no-variance" in train and f"--init {model_run} " in train
+    tuned = train.split("--run ")[1].split()[0]
+    shards = next(line for line in lines if " shards " in line)
+    assert f"--set {train.split('--set ')[1].split()[0]} --inputs no-variance" in shards
+    assert shards.split("--val-scenes ")[1].split()[0].startswith(held_out + ",")  # make model's and Cycles' own
+    ship = next(line for line in lines if " ship " in line)
+    shipped = ship.split("--run ")[1].split()[0]
+    assert ship.endswith(f"--out models/{DEFAULT_MODEL}") and shipped not in (model_run, tuned)
+    assert f"cp -al {model_run} {shipped}" in cycles
+    assert f"cp -al {tuned}/inputs/no-variance {shipped}/inputs/" in cycles
+    assert f"evaluate --run {shipped}\n" in cycles and f"--out {shipped}/eval-validation " in cycles
+
 def _means(rows, spp, method, metric):
     """The float64 mean over the rows of ``spp``; None where a row lacks the method."""
     of = [r for r in rows if r["input spp"] == spp]

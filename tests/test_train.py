@@ -6,20 +6,15 @@ from pathlib import Path
 import keras
 import numpy as np
 import pytest
-from helpers import WarmProcess, build_tiny_shards, checksums, command_env
+from helpers import WarmProcess, build_tiny_shards, checksums, command_env, tiny_train_config
 
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, train
 from prep.errors import KpcnError, OptionError
 
-TINY = {"width": 4, "depth": 2, "kernel_size": 3}
-
 
 def tiny_config(shard_cfg, **kw):
-    values = dict(set_name=shard_cfg.set_name, shards_root=shard_cfg.out_root, model=TINY, steps=6,
-                  steps_per_epoch=2, batch_size=2, val_batches=1)
-    values.update(kw)
-    return TrainConfig.from_preset("cpu", **values)
+    return tiny_train_config(shard_cfg, **{"steps": 6, **kw})
 
 
 def weights(run_dir: Path, branch: str):

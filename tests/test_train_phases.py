@@ -11,6 +11,7 @@ import keras
 import numpy as np
 import pytest
 from helpers import (
+    TINY_TRAIN_MODEL,
     WarmProcess,
     assert_one_line_error,
     build_tiny_shards,
@@ -18,6 +19,7 @@ from helpers import (
     random_aovs,
     randomise,
     run_main,
+    tiny_train_config,
 )
 
 from kpcn_keras import augment
@@ -34,15 +36,7 @@ from prep import exr, features
 from prep.errors import KpcnError, OptionError
 from prep.shards import VIEWS, ShardSet, open_shard, read_patches, shard_paths
 
-TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 TINY_COMPOSITOR = {"width": 4, "depth": 3, "kernel_size": 3}
-
-
-def tiny_config(shard_cfg, **kw):
-    values = dict(set_name=shard_cfg.set_name, shards_root=shard_cfg.out_root, model=TINY, steps=4,
-                  steps_per_epoch=2, batch_size=2, val_batches=1)
-    values.update(kw)
-    return TrainConfig.from_preset("cpu", **values)
 
 
 def predict(model, x):
@@ -148,7 +142,7 @@ def _final_inputs(cfg: ModelConfig, seed=0):
 @pytest.mark.parametrize("kind", [None, "alpha", "kernel"])
 @pytest.mark.parametrize("shared", [False, True])
 def test_final_colour_models_survive_save_and_load_and_train_a_step(kind, shared, tmp_path):
-    cfg = ModelConfig(**TINY, branch_channels=shared)
+    cfg = ModelConfig(**TINY_TRAIN_MODEL, branch_channels=shared)
     names = {b: "shared" if shared else b for b in ("diffuse", "specular")}
     nets = {n: build_branch_model(cfg, name=n) for n in set(names.values())}
     for i, net in enumerate(nets.values()):
@@ -292,7 +286,7 @@ def _weights(model):
 @pytest.fixture(scope="module")
 def full_run(shards, tmp_path_factory):
     """Separate branches, joint fine-tuning and the alpha compositor."""
-    cfg = tiny_config(shards, joint_steps=4, compositor={"kind": "alpha", **TINY_COMPOSITOR}, compositor_steps=4)
+    cfg = tiny_train_config(shards, joint_steps=4, compositor={"kind": "alpha", **TINY_COMPOSITOR}, compositor_steps=4)
     return train(cfg, tmp_path_factory.mktemp("runs") / "full", verbose=0)
 
 
@@ -345,7 +339,7 @@ def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
 def test_a_compositor_of_21x21_kernels_on_a_bicubic_pyramid_with_every_scale_supervised_trains_and_tiles(
         shards, tmp_path):
     comp = {**TINY_COMPOSITOR, "kind": "kernel", "kernel_size": 21, "downsample": "bicubic", "scale_supervision": 0.5}
-    cfg = tiny_config(shards, compositor=comp, compositor_steps=2, loss="asymmetric")
+    cfg = tiny_train_config(shards, compositor=comp, compositor_steps=2, loss="asymmetric")
     run_dir = train(cfg, tmp_path / "r", verbose=0)
     record = json.loads((run_dir / "config.json").read_text())
     assert {k: record["train"]["compositor"][k] for k in comp} == comp
@@ -363,7 +357,7 @@ def test_a_compositor_of_21x21_kernels_on_a_bicubic_pyramid_with_every_scale_sup
 
 @pytest.mark.slow
 def test_a_killed_phase_resumes_at_its_phase_and_step(shards, tmp_path):
-    cfg = tiny_config(shards, joint_steps=40, steps_per_epoch=4)
+    cfg = tiny_train_config(shards, joint_steps=40, steps_per_epoch=4)
     reference = train(cfg, tmp_path / "ref", verbose=0)
     run_dir = tmp_path / "killed"
     proc = WarmProcess(train, (cfg, str(run_dir)), {"verbose": 0}, cwd=tmp_path, env=command_env())
@@ -416,7 +410,7 @@ def test_the_command_line_trains_shared_slope_input_multiscale_and_draws_every_f
 
 @pytest.mark.slow
 def test_a_record_of_an_older_kpcn_is_one_clear_error(shards, tmp_path):
-    run_dir = train(tiny_config(shards, branches=("diffuse",)), tmp_path / "r", verbose=0)
+    run_dir = train(tiny_train_config(shards, branches=("diffuse",)), tmp_path / "r", verbose=0)
     record = json.loads((run_dir / "config.json").read_text())
     del record["phases"]
     (run_dir / "config.json").write_text(json.dumps(record))
@@ -451,7 +445,7 @@ def test_the_branch_phases_compile_the_weighted_loss_and_read_the_relse_the_fina
     from kpcn_keras.train import _compile, _data
 
     shard_cfg = build_tiny_shards(tmp_path, reference_variances=True)
-    cfg = tiny_config(shard_cfg, loss="asymmetric", joint_steps=2, reference_tau=0.2)
+    cfg = tiny_train_config(shard_cfg, loss="asymmetric", joint_steps=2, reference_tau=0.2)
     paths = {split: shard_paths(shard_cfg.set_dir, split) for split in ("train", "val")}
     model = build_branch_model(cfg.model)
     for phase in cfg.phases():
