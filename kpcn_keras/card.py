@@ -331,12 +331,13 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
         lines += configuration(variant, rec) + [""]
     lines += ["## Training data", ""] + training_data(run, record)
     renders = _render_set(run, record)
-    others = list(zip(run.variants()[1:], records[1:]))
-    same = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec in others if _render_set(variant, rec) == renders]
+    others = [(variant, rec, _render_set(variant, rec) == renders)
+              for variant, rec in zip(run.variants()[1:], records[1:])]
+    same = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec, alike in others if alike]
     if same:
         lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(same)}"]
-    for variant, rec in others:
-        if _render_set(variant, rec) != renders:
+    for variant, rec, alike in others:
+        if not alike:
             lines += ["", f"The {rec.inputs.name} network's:", ""] + training_data(variant, rec)
     lines += [""]
     lines += ["## Held-out frames", "",

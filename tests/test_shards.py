@@ -35,6 +35,21 @@ def config(tmp_path, **kw):
     return shards.ShardConfig(**values)
 
 
+def stored_patches(cfg, manifest):
+    """Every patch of the shard set ``cfg`` cut (``manifest``, its manifest), shard by shard, as ``(split, shard,
+    k, source, reference)``: the open shard file, the patch's index in it, its source's manifest record and the
+    resolved path of its scene's reference."""
+    sset = shards.ShardSet(cfg.set_dir)
+    for split in ("train", "val"):
+        for path in shards.shard_paths(cfg.set_dir, split):
+            with shards.open_shard(path) as f:
+                for k in range(len(f["source"])):
+                    src = manifest["sources"][int(f["source"][k])]
+                    ref = next(s["path"] for s in manifest["sources"]
+                               if s["scene"] == src["scene"] and s["role"] == "reference")
+                    yield split, f, k, src, sset.resolve(ref)
+
+
 @pytest.fixture
 def render_set(tmp_path):
     return make_renders(tmp_path / "renders" / "s")
@@ -45,31 +60,23 @@ def test_shard_patches_equal_crops_of_the_source(tmp_path, render_set):
     cfg = config(tmp_path)
     manifest = shards.build_shards(cfg, progress=False)
     sset = shards.ShardSet(cfg.set_dir)
-    by_id = {i: s for i, s in enumerate(manifest["sources"])}
     seen = 0
-    for split in ("train", "val"):
-        for path in shards.shard_paths(cfg.set_dir, split):
-            with shards.open_shard(path) as f:
-                assert f.attrs["split"] == split
-                for k in range(len(f["source"])):
-                    src = by_id[int(f["source"][k])]
-                    assert src["role"] == "input" and src["split"] == split
-                    noisy = exr.read_aovs(sset.resolve(src["path"]))
-                    ref_path = next(s["path"] for s in manifest["sources"]
-                                    if s["scene"] == src["scene"] and s["role"] == "reference")
-                    ref = exr.read_aovs(sset.resolve(ref_path), variances=False)
-                    y, x = f["position"][k]
-                    win = np.s_[y:y + 16, x:x + 16]
-                    got = shards.read_patch(f, list(shards.VIEWS), k)
-                    for branch in features.BRANCHES:
-                        assert_read_features_close(got[f"{branch}/features"],
-                                                   features.branch_features(noisy, branch)[win], branch)
-                        np.testing.assert_array_equal(got[f"{branch}/reference"],
-                                                      features.branch_colour(ref, branch)[win])
-                    np.testing.assert_array_equal(got["reference"], ref["default"][win])
-                    np.testing.assert_allclose(got["albedo"], noisy["albedo"][win], rtol=2.0**-11, atol=2.0**-25)
-                    assert f["guides"].chunks == (1, 17, 17, 7)
-                    seen += 1
+    for split, f, k, src, ref_path in stored_patches(cfg, manifest):
+        assert f.attrs["split"] == split
+        assert src["role"] == "input" and src["split"] == split
+        noisy = exr.read_aovs(sset.resolve(src["path"]))
+        ref = exr.read_aovs(ref_path, variances=False)
+        y, x = f["position"][k]
+        win = np.s_[y:y + 16, x:x + 16]
+        got = shards.read_patch(f, list(shards.VIEWS), k)
+        for branch in features.BRANCHES:
+            assert_read_features_close(got[f"{branch}/features"], features.branch_features(noisy, branch)[win],
+                                       branch)
+            np.testing.assert_array_equal(got[f"{branch}/reference"], features.branch_colour(ref, branch)[win])
+        np.testing.assert_array_equal(got["reference"], ref["default"][win])
+        np.testing.assert_allclose(got["albedo"], noisy["albedo"][win], rtol=2.0**-11, atol=2.0**-25)
+        assert f["guides"].chunks == (1, 17, 17, 7)
+        seen += 1
     assert seen == 4 * 7
     assert json.loads((cfg.set_dir / "manifest.json").read_text())["config_hash"] == cfg.content_hash()
 
@@ -291,27 +298,19 @@ def test_shards_carry_the_reference_relse_of_each_branch(tmp_path, reference_var
                  reference_variances=reference_variances)
     cfg = config(tmp_path, patches_per_image=3)
     manifest = shards.build_shards(cfg, progress=False)
-    sset = shards.ShardSet(cfg.set_dir)
     seen = 0
-    for split in ("train", "val"):
-        for path in shards.shard_paths(cfg.set_dir, split):
-            with shards.open_shard(path) as f:
-                assert f.attrs["format"] == shards.FORMAT
-                for k in range(len(f["source"])):
-                    src = manifest["sources"][int(f["source"][k])]
-                    ref_path = next(s["path"] for s in manifest["sources"]
-                                    if s["scene"] == src["scene"] and s["role"] == "reference")
-                    ref = exr.read_aovs(sset.resolve(ref_path), variances=reference_variances)
-                    y, x = f["position"][k]
-                    win = np.s_[y:y + 16, x:x + 16]
-                    for branch, variance in (("diffuse", "diffuseVariance"), ("specular", "specularVariance")):
-                        got = f[f"{branch}/ref_relse"][k]
-                        assert got.shape == (16, 16, 1) and got.dtype == np.float16
-                        want = (reference_relse(ref[branch], ref[variance])[win] if reference_variances
-                                else np.zeros((16, 16)))
-                        # float16 rounding (2**-11 relative; 2**-25 absolute below its smallest normal)
-                        np.testing.assert_allclose(got[..., 0], want, rtol=2.0**-11, atol=2.0**-25)
-                    seen += 1
+    for _, f, k, _, ref_path in stored_patches(cfg, manifest):
+        assert f.attrs["format"] == shards.FORMAT
+        ref = exr.read_aovs(ref_path, variances=reference_variances)
+        y, x = f["position"][k]
+        win = np.s_[y:y + 16, x:x + 16]
+        for branch, variance in (("diffuse", "diffuseVariance"), ("specular", "specularVariance")):
+            got = f[f"{branch}/ref_relse"][k]
+            assert got.shape == (16, 16, 1) and got.dtype == np.float16
+            want = reference_relse(ref[branch], ref[variance])[win] if reference_variances else np.zeros((16, 16))
+            # float16 rounding (2**-11 relative; 2**-25 absolute below its smallest normal)
+            np.testing.assert_allclose(got[..., 0], want, rtol=2.0**-11, atol=2.0**-25)
+        seen += 1
     assert seen == 2 * 3
 
 
@@ -328,22 +327,19 @@ def test_renders_without_variance_are_cut_for_a_set_without_variance_where_their
     manifest = shards.build_shards(cfg, progress=False)
     sset = shards.ShardSet(cfg.set_dir)
     seen = 0
-    for split in ("train", "val"):
-        for path in shards.shard_paths(cfg.set_dir, split):
-            with shards.open_shard(path) as f:
-                for k in range(len(f["source"])):
-                    src = manifest["sources"][int(f["source"][k])]
-                    noisy = exr.read_aovs(sset.resolve(src["path"]), variances=None)
-                    ref = exr.read_aovs(root / exr.render_filename(src["scene"], 64), variances=None)
-                    estimate = {
-                        "default": noisy["default"],
-                        "colorVariance": ((noisy["default"].astype(np.float64) - ref["default"]) ** 2).mean(axis=-1),
-                        "normalVariance": ((noisy["normal"].astype(np.float64) - ref["normal"]) ** 2).mean(axis=-1),
-                    }
-                    want = reference_pdf(reference_importance(estimate), 16, cfg.uniform_mix)
-                    y, x = f["position"][k]
-                    assert f["pdf"][k] == pytest.approx(want[y, x], rel=1e-12)
-                    seen += 1
+    for _, f, k, src, ref_path in stored_patches(cfg, manifest):
+        assert ref_path == root / exr.render_filename(src["scene"], 64)
+        noisy = exr.read_aovs(sset.resolve(src["path"]), variances=None)
+        ref = exr.read_aovs(ref_path, variances=None)
+        estimate = {
+            "default": noisy["default"],
+            "colorVariance": ((noisy["default"].astype(np.float64) - ref["default"]) ** 2).mean(axis=-1),
+            "normalVariance": ((noisy["normal"].astype(np.float64) - ref["normal"]) ** 2).mean(axis=-1),
+        }
+        want = reference_pdf(reference_importance(estimate), 16, cfg.uniform_mix)
+        y, x = f["position"][k]
+        assert f["pdf"][k] == pytest.approx(want[y, x], rel=1e-12)
+        seen += 1
     assert seen == 2 * 7
 
     res = kpcn("shards", "--set", "s", "--renders", str(tmp_path / "renders"), "--out", str(tmp_path / "full"),
