@@ -34,7 +34,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: venv render references shards train train-inputs model model-cycles resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
+.PHONY: venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -87,26 +87,31 @@ define evaluate_and_ship
 	$(KPCN) ship --run $(1) --out models/$(MODEL)
 endef
 
-# after make model: its no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no
-# variance), trained on from where it is on Cycles' own frames too (docs/training.md §7, docs/results.md §17):
-# random Cycles scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python 3.11 and
-# numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s renders as
-# $(MODEL_SET)-$(CYCLES_SET), cut without variance, and trained with --init $(MODEL_RUN) into
-# $(MODEL_RUN)-$(CYCLES_SET); $(MODEL_RUN)-shipped is $(MODEL_RUN) with that network in its place (hard links),
-# evaluated and shipped. Each step resumes or is skipped when done; more scenes (--scenes) mean a new CYCLES_SET.
+# after make model: the fine-tuning that makes the shipped model (docs/training.md §7), each network trained on
+# from make model's own (--init $(MODEL_RUN)) where a measurement found it gains (docs/results.md §17, §18):
+# - the full network with synthetic fireflies at a low learning rate (TUNE_ARGS) into $(MODEL_RUN)-tuned;
+# - the no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no variance), on Cycles'
+#   own frames too: random scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python
+#   3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s
+#   renders as $(MODEL_SET)-$(CYCLES_SET), cut without variance, trained into $(MODEL_RUN)-$(CYCLES_SET).
+# $(MODEL_RUN)-shipped is the tuned full run with make model's no-split networks and the Cycles-trained
+# no-variance one in its inputs/ (hard links), evaluated and shipped. Each step resumes or is skipped when done;
+# more scenes (--scenes) mean a new CYCLES_SET.
+TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --fireflies 1
 BPY_PYTHON ?= python3.11
 BPY_VENV   := .venv-bpy
 CYCLES_SET ?= cycles
 CYCLES_RENDER_ARGS ?= --scenes 0:48 --res 128 --spp 4,8,16,32,64 --ref-spp 2048
 CYCLES_VAL_SCENES  ?= room-024,studio-025,ground-026
-CYCLES_TRAIN_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000
+CYCLES_TRAIN_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --fireflies 1
 MODEL_MIX := $(MODEL_SET)-$(CYCLES_SET)
 
 $(BPY_VENV)/bin/python:
 	$(BPY_PYTHON) -m venv $(BPY_VENV)
 	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check 'numpy<2' 'bpy==5.0.1'
 
-model-cycles: $(KPCN) $(BPY_VENV)/bin/python
+model-tune: $(KPCN) $(BPY_VENV)/bin/python
+	$(KPCN) train --set $(MODEL_SET) --inputs full --run $(MODEL_RUN)-tuned --init $(MODEL_RUN) $(TUNE_ARGS)
 	$(BPY_VENV)/bin/python scripts/render_cycles_set.py data/cycles/$(CYCLES_SET) $(CYCLES_RENDER_ARGS)
 	[ -d data/renders/$(CYCLES_SET) ] || \
 		$(BIN)/python scripts/import_renders.py data/cycles/$(CYCLES_SET) --set $(CYCLES_SET)
@@ -115,8 +120,9 @@ model-cycles: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) shards --set $(MODEL_MIX) --inputs no-variance $(MODEL_SHARD_ARGS),$(CYCLES_VAL_SCENES)
 	$(KPCN) train --set $(MODEL_MIX) --inputs no-variance --run $(MODEL_RUN)-$(CYCLES_SET) --init $(MODEL_RUN) \
 		$(CYCLES_TRAIN_ARGS)
-	rm -rf $(MODEL_RUN)-shipped && cp -al $(MODEL_RUN) $(MODEL_RUN)-shipped
-	rm -rf $(MODEL_RUN)-shipped/inputs/no-variance $(MODEL_RUN)-shipped/eval $(MODEL_RUN)-shipped/eval-validation
+	rm -rf $(MODEL_RUN)-shipped && cp -al $(MODEL_RUN)-tuned $(MODEL_RUN)-shipped
+	rm -rf $(MODEL_RUN)-shipped/eval $(MODEL_RUN)-shipped/eval-validation && mkdir $(MODEL_RUN)-shipped/inputs
+	cp -al $(MODEL_RUN)/inputs/no-split $(MODEL_RUN)/inputs/no-split-no-variance $(MODEL_RUN)-shipped/inputs/
 	cp -al $(MODEL_RUN)-$(CYCLES_SET)/inputs/no-variance $(MODEL_RUN)-shipped/inputs/
 	$(call evaluate_and_ship,$(MODEL_RUN)-shipped)
 

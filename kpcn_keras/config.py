@@ -85,6 +85,8 @@ ROUNDS = Bound(1, 100)
 # 100 is 2000 times the relSE a converged pixel has (prep.convergence.CONVERGED_RELSE): every weight ~1.
 REFERENCE_TAU = Bound(0.0, 100.0, integer=False)
 UNWEIGHTED_TAU = 0.0  # reference_tau of an unweighted loss: what a run record without the key was trained with
+FIREFLIES = Bound(0.0, 100.0, integer=False)  # synthetic fireflies a training patch, on average
+NO_FIREFLIES = 0.0  # fireflies of a run that adds none: what a run record without the key was trained with
 PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a phase stops
 TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
@@ -425,6 +427,10 @@ class TrainConfig:
     (``kpcn_keras.train.init_networks`` checks that they fit; the run's record keeps their checksums). Where
     they are read from is not what is trained (:data:`LOCATION_FIELDS`); None, the default, is written nowhere.
 
+    ``fireflies`` F > 0 adds to each training patch of the branch phases a Poisson(F) number of synthetic
+    fireflies, isolated spikes the target does not have (``kpcn_keras.fireflies``: why, and what a spike is);
+    0, the default, adds none and, like τ = 0, is written nowhere.
+
     ``patience`` P > 0 stops a phase once P epochs in a row have not lowered its validation loss (the held-out
     scenes' patches) below its best, and makes the best epoch's weights the phase's model: a run trains as long
     as held-out error keeps falling, ``steps`` (and with it the learning-rate schedule) the most it may take.
@@ -460,6 +466,7 @@ class TrainConfig:
     slope_range: tuple[float, float] = bounded((1.0, 8.0), SLOPE)
     augment: bool = True
     reference_tau: float = bounded(UNWEIGHTED_TAU, REFERENCE_TAU)
+    fireflies: float = bounded(NO_FIREFLIES, FIREFLIES)
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
@@ -529,8 +536,9 @@ class TrainConfig:
     @classmethod
     def from_record(cls, train: dict) -> TrainConfig:
         """The configuration a run record's ``train`` holds (one without ``reference_tau`` was unweighted, one
-        without ``patience`` trained every step)."""
-        return cls(**{"reference_tau": UNWEIGHTED_TAU, "patience": TRAIN_EVERY_STEP, **train})
+        without ``patience`` trained every step, one without ``fireflies`` added none)."""
+        return cls(**{"reference_tau": UNWEIGHTED_TAU, "patience": TRAIN_EVERY_STEP, "fireflies": NO_FIREFLIES,
+                      **train})
 
     @property
     def input_set(self) -> InputSet:
@@ -584,6 +592,8 @@ class TrainConfig:
             d["compositor"] = self.compositor.to_dict()  # asdict would write the fields its to_dict leaves out
         if d["reference_tau"] == UNWEIGHTED_TAU:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
+        if d["fireflies"] == NO_FIREFLIES:
+            del d["fireflies"]  # likewise: a run without synthetic fireflies, as written before they existed
         if d["patience"] == TRAIN_EVERY_STEP:
             del d["patience"]  # likewise: a run of every step, as written before early stopping existed
         if d["init"] is None:

@@ -28,8 +28,10 @@ reference's mean over R G B, which a permutation leaves as it is).
 Per patch, a training stream draws (from a generator seeded by (seed, batch number), so resume is exact):
 an augmentation (``kpcn_keras.augment``: one of 8 flips/rotations times one of 6 colour permutations), and,
 for a network with a slope channel, λ log-uniform in ``slope_range`` (with a specialisation module, a λ map
-of the patch's size instead: ``kpcn_keras.slope_map.draw``). A validation stream (``shuffle=False``) augments
-nothing and uses the fixed ``slope``.
+of the patch's size instead: ``kpcn_keras.slope_map.draw``), and with ``firefly_rate`` > 0 (a branch source) a
+Poisson number of synthetic fireflies (``kpcn_keras.fireflies``) added to its stored buffers before its features
+are made, with variance where ``variance`` says the shard set has it. A validation stream (``shuffle=False``)
+augments nothing, adds no fireflies and uses the fixed ``slope``.
 
 Files are opened lazily, once per process, so a dataset object can be pickled into workers. Batch ``i`` is
 a pure function of (seed, offset + i): patches are visited in a fresh seeded permutation every pass over
@@ -56,7 +58,7 @@ import h5py
 import keras
 import numpy as np
 
-from kpcn_keras import augment, slope_map
+from kpcn_keras import augment, fireflies, slope_map
 from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
 from prep.bounds import is_integer
 from prep.features import BRANCHES
@@ -94,7 +96,7 @@ class ShardPatches(keras.utils.PyDataset):
                  loss_target: str = "reference", augment: bool = False, slope: float = 2.0,
                  slope_range: tuple[float, float] = (1.0, 8.0),
                  weights=None, rank: int = 0, world: int = 1, reference_relse: bool = False,
-                 target_input: bool = False, **kwargs):
+                 target_input: bool = False, firefly_rate: float = 0.0, variance: bool = True, **kwargs):
         super().__init__(**kwargs)
         if source not in SOURCES:
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
@@ -102,6 +104,10 @@ class ShardPatches(keras.utils.PyDataset):
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
         if reference_relse and source not in BRANCHES + ("both",):
             raise ValueError(f"reference_relse is a branch reference's: source {source!r} has none")
+        if not (isinstance(firefly_rate, (int, float)) and 0 <= firefly_rate < math.inf):
+            raise ValueError(f"firefly_rate must be a number of spikes a patch >= 0, got {firefly_rate!r}")
+        if firefly_rate and source not in BRANCHES + ("both",):
+            raise ValueError(f"fireflies are added to a branch's colour: source {source!r} has none")
         if target_input and source != "final":
             raise ValueError(f"target_input is the final colour's: source {source!r} gives x one tensor")
         if batch_size < 1:
@@ -120,6 +126,8 @@ class ShardPatches(keras.utils.PyDataset):
         # a validation stream is read whole by every process: each reports the same validation loss
         self.global_batch = batch_size * world if shuffle else batch_size
         self.augment = augment and shuffle
+        self.firefly_rate = float(firefly_rate) if shuffle else 0.0  # validation: the patches as rendered
+        self.variance = variance
         self.slope, self.slope_range = slope, tuple(slope_range)
         counts, sizes = [], set()
         for p in self.paths:
@@ -195,10 +203,10 @@ class ShardPatches(keras.utils.PyDataset):
             return [f"{b}/features" for b in BRANCHES] + ["albedo", "reference"] + (["noisy"] if with_noisy else [])
         return branch_datasets(branch, noisy=with_noisy) + ([f"{branch}/ref_relse"] if self.reference_relse else [])
 
-    def _batch_data(self, ids) -> list[dict[str, np.ndarray]]:
+    def _batch_data(self, ids, spikes) -> list[dict[str, np.ndarray]]:
         """The float32 data of each (branch, shard, patch) of ``ids``: the stored datasets read one patch at a
-        time, then made into what is read (the features recomputed) once per branch for the whole batch
-        (``prep.shards.derive``, vectorised over the batch)."""
+        time, each patch's ``spikes`` added (``kpcn_keras.fireflies``), then made into what is read (the features
+        recomputed) once per branch for the whole batch (``prep.shards.derive``, vectorised over the batch)."""
         out: list = [None] * len(ids)
         groups: dict[int, list[int]] = {}
         for k, (b, _, _) in enumerate(ids):
@@ -207,6 +215,8 @@ class ShardPatches(keras.utils.PyDataset):
             names = self._names(BRANCHES[b] if b >= 0 else None)
             stored = stored_datasets(names)
             reads = [self._read(int(ids[k][1]), int(ids[k][2]), stored) for k in members]
+            if b >= 0:
+                reads = [fireflies.inject(r, BRANCHES[b], spikes[k], self.variance) for r, k in zip(reads, members)]
             data = derive({n: np.stack([r[n] for r in reads]) for n in stored}, names, self.patch_size)
             for j, k in enumerate(members):
                 out[k] = {n: a[j] for n, a in data.items()}
@@ -231,10 +241,11 @@ class ShardPatches(keras.utils.PyDataset):
         rng = np.random.default_rng([self.seed, self.offset + i, 1])
         augs = [augment.draw(rng) if self.augment else augment.IDENTITY for _ in ids]
         slopes = self._slopes(rng, len(ids))
+        spikes = [fireflies.draw(rng, self.firefly_rate, self.patch_size) for _ in ids]
         mine = self._mine()
         samples = [self._sample(int(b), data, aug, slope)
-                   for (b, _, _), data, aug, slope in zip(ids[mine], self._batch_data(ids[mine]), augs[mine],
-                                                           slopes[mine])]
+                   for (b, _, _), data, aug, slope in zip(ids[mine], self._batch_data(ids[mine], spikes[mine]),
+                                                           augs[mine], slopes[mine])]
         x = samples[0][0]
         if isinstance(x, dict):
             x = {k: np.stack([s[0][k] for s in samples]) for k in x}

@@ -335,6 +335,9 @@ def _train_options(add) -> None:
     g.add_argument("--reference-tau", type=float, help="τ of the branch losses' reference weighting: a pixel weighs "
                    "1/(1+(relSE/τ)^2), relSE its reference's relative standard error; 0 weighs none "
                    f"{d('reference_tau')}")
+    g.add_argument("--fireflies", type=float, help="synthetic fireflies a training patch of the branch phases, on "
+                   "average: isolated spikes the reference does not have, so that the networks learn to remove "
+                   f"them; 0 adds none {d('fireflies')}")
     g.add_argument("--patience", type=int, help="stop a phase after this many epochs without a lower validation "
                    "(held-out) loss and keep its best epoch; --steps is then the most it trains; 0 trains every "
                    f"step {d('patience')}")

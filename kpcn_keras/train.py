@@ -211,6 +211,8 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
                          seed=cfg.seed, offset=start * phase.epoch_steps, augment=cfg.augment,
                          weights=paths.get("train_weights"), rank=world.rank, world=world.size,
+                         firefly_rate=0.0 if phase.trains_on_final_colour else cfg.fireflies,
+                         variance=cfg.input_set.variance,
                          **{**common, "batch_size": cfg.batch_size // world.size})
     val = None
     if paths["val"]:

@@ -136,10 +136,11 @@ def test_make_model_ships_where_denoise_looks_and_evaluates_where_the_card_reads
 
 
 
-def test_make_model_cycles_ships_make_models_run_with_its_no_variance_network_fine_tuned_from_its_own():
+def test_make_model_tune_ships_make_models_networks_fine_tuned_from_their_own_with_the_no_split_ones_as_they_are():
     import subprocess
 
     from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+    from prep.inputs import INPUT_SETS
 
     def plan(target):
         return subprocess.run(["make", "-n", "--no-print-directory", target], cwd=MODELS_DIR.parent, text=True,
@@ -147,21 +148,29 @@ def test_make_model_cycles_ships_make_models_run_with_its_no_variance_network_fi
 
     base = plan("model")
     model_run = next(line for line in base.splitlines() if " ship " in line).split("--run ")[1].split()[0]
+    model_set = next(line for line in base.splitlines() if " train " in line).split("--set ")[1].split()[0]
     held_out = base.split("--val-scenes ")[1].split()[0]
-    cycles = plan("model-cycles")
-    lines = cycles.splitlines()
-    train = next(line for line in lines if " train " in line)
-    assert "--inputs no-variance" in train and f"--init {model_run} " in train
-    tuned = train.split("--run ")[1].split()[0]
+    tune = plan("model-tune")
+    lines = tune.splitlines()
+    trains = [line for line in lines if " train " in line]
+    full = next(line for line in trains if "--inputs full" in line)
+    assert f"--set {model_set} " in full and f"--init {model_run} " in full and "--fireflies " in full
+    cycles = next(line for line in trains if "--inputs no-variance" in line)
+    assert f"--init {model_run} " in cycles and "--fireflies " in cycles
+    tuned, cycles_run = (line.split("--run ")[1].split()[0] for line in (full, cycles))
     shards = next(line for line in lines if " shards " in line)
-    assert f"--set {train.split('--set ')[1].split()[0]} --inputs no-variance" in shards
+    assert f"--set {cycles.split('--set ')[1].split()[0]} --inputs no-variance" in shards
     assert shards.split("--val-scenes ")[1].split()[0].startswith(held_out + ",")  # make model's and Cycles' own
     ship = next(line for line in lines if " ship " in line)
     shipped = ship.split("--run ")[1].split()[0]
-    assert ship.endswith(f"--out models/{DEFAULT_MODEL}") and shipped not in (model_run, tuned)
-    assert f"cp -al {model_run} {shipped}" in cycles
-    assert f"cp -al {tuned}/inputs/no-variance {shipped}/inputs/" in cycles
-    assert f"evaluate --run {shipped}\n" in cycles and f"--out {shipped}/eval-validation " in cycles
+    assert ship.endswith(f"--out models/{DEFAULT_MODEL}") and shipped not in (model_run, tuned, cycles_run)
+    assert f"cp -al {tuned} {shipped}" in tune
+    # every input set but the two tuned ones is make model's own
+    untouched = [s for s in INPUT_SETS if s not in ("full", "no-variance")]
+    assert f"cp -al {' '.join(f'{model_run}/inputs/{s}' for s in untouched)} {shipped}/inputs/" in tune
+    assert f"cp -al {cycles_run}/inputs/no-variance {shipped}/inputs/" in tune
+    assert f"evaluate --run {shipped}\n" in tune and f"--out {shipped}/eval-validation " in tune
+
 
 def _means(rows, spp, method, metric):
     """The float64 mean over the rows of ``spp``; None where a row lacks the method."""
