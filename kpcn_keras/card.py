@@ -157,7 +157,8 @@ def configuration(variant: Run, record: RunRecord) -> list[str]:
              f"- preset `{train.preset}`, architecture `{record.model.arch}`; model: "
              + ", ".join(f"{k} {v}" for k, v in model.items()),
              f"- batch {train.batch_size}, loss {train.loss}, augmentation {'on' if train.augment else 'off'}, "
-             f"seed {train.seed}",
+             + (f"synthetic fireflies {train.fireflies:g} a patch, " if train.fireflies else "")
+             + f"seed {train.seed}",
              f"- command: `{record.command or '?'}`"]
     started = record.data.get("init", {}).get("networks")
     if started:

@@ -229,7 +229,7 @@ def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_
     shutil.rmtree(run.validation_dir)
     cfg = TrainConfig.from_preset("cpu", set_name="t", shards_root=cut.out_root, model=TINY_MODEL, steps=4,
                                   steps_per_epoch=4, batch_size=2, val_batches=1, inputs="no-variance",
-                                  init=str(evaluated_run.dir))
+                                  init=str(evaluated_run.dir), fireflies=0.5)
     train(cfg, run.dir, verbose=0)
     evaluate(run.dir, baseline=False)
     res = run_main("ship", "--run", run.dir, "--out", tmp_path / "models" / "tuned", "--speed-frame", "64,48",
@@ -242,6 +242,8 @@ def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_
     assert (f"- fine-tuned: its branch phases started from the networks of `{evaluated_run.dir}` as they were then "
             f"(diffuse SHA-256 {sha['diffuse']}…, specular SHA-256 {sha['specular']}…)") in tuned
     assert "fine-tuned" not in card.replace(tuned, "")  # the others were not
+    assert "augmentation on, synthetic fireflies 0.5 a patch, seed 0" in tuned
+    assert "fireflies" not in card.replace(tuned, "")
     data = card[card.index("## Training data"):card.index("## Held-out frames")]
     assert "the same renders cut for each, `s.no-split`, `s.no-split-no-variance`" in data
     own = data[data.index("The no-variance network's:"):]
