@@ -15,12 +15,13 @@ on each channel, when the shard set has variance layers; without them (a ``no-va
 variance stays 0, as at inference.
 
 What is changed is what a shard stores (``prep.shards.format``), before the features are made of it, so every
-feature of the spike follows from the same function as at render time (``prep.features``): the log colour
+feature of the spike follows from the same functions as at render time (``prep.features``): the log colour
 ``c = log(1 + x)`` of the pixel, and the colour's relative variance ``log(1 + (vlog / 3) / (mean_ch(c ** 2) +
-REL_EPS))``, ``vlog = sum_ch var(x) / (1 + x) ** 2``. The pixel's variance before the spike is read back from its
-stored relative variance as ``var(x_ch) = (vlog / 3) (1 + x_ch) ** 2``, exact for a grey pixel (every channel's
-term alike) and otherwise the same total spread evenly; the spike's ``S ** 2`` dominates either way. Both stored
-values are rounded to float16 as the shards round them (``to_half``).
+REL_EPS))`` (``prep.features.relative_variance``), ``vlog = sum_ch var(x) / (1 + x) ** 2``. The pixel's variance
+before the spike is read back from its stored relative variance (``prep.features.variance_of``, the inverse) as
+``var(x_ch) = (vlog / 3) (1 + x_ch) ** 2``, exact for a grey pixel (every channel's term alike) and otherwise the
+same total spread evenly; the spike's ``S ** 2`` dominates either way. Both stored values are rounded to float16 as
+the shards round them (``to_half``).
 """
 
 from __future__ import annotations
@@ -69,10 +70,10 @@ def inject(stored: dict[str, np.ndarray], branch: str, spikes, variance: bool) -
         c_new = np.log1p(x_new)
         log_colour[s.y, s.x] = to_half(c_new, features.LOG_COLOUR_MAX)
         if variance:
-            old = np.expm1(float(relvar[s.y, s.x, 0])) * (np.mean(c * c) + features.REL_EPS)  # vlog / 3
-            var_x = old * (1.0 + x) ** 2 + s.value ** 2
-            vlog3 = np.mean(var_x / (1.0 + x_new) ** 2)
-            relvar[s.y, s.x, 0] = to_half(np.log1p(vlog3 / (np.mean(c_new * c_new) + features.REL_EPS)),
+            vlog3 = features.variance_of(float(relvar[s.y, s.x, 0]), float(np.mean(c * c)))
+            var_x = vlog3 * (1.0 + x) ** 2 + s.value ** 2
+            vlog3_new = float(np.mean(var_x / (1.0 + x_new) ** 2))
+            relvar[s.y, s.x, 0] = to_half(features.relative_variance(vlog3_new, float(np.mean(c_new * c_new))),
                                           features.RELVAR_MAX)
     out[f"{branch}/log_colour"] = log_colour
     out[f"{branch}/relvar"] = relvar

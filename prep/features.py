@@ -39,7 +39,8 @@ differences of the buffers. :func:`branch_features` is the two at render time, o
 stores the buffers in float16 and its reader makes the features with the same second function
 (``prep.shards.format``).
 
-The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`.
+The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`; a relative
+variance (23-26) is :func:`relative_variance`, its inverse :func:`variance_of`.
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
 kernel but the constants: the tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
@@ -70,6 +71,20 @@ FEATURE_NAMES = (
 )
 BRANCHES = ("diffuse", "specular")
 assert len(FEATURE_NAMES) == NUM_FEATURES
+
+
+@numba.njit(cache=True, nogil=True)
+def relative_variance(variance, mean_square):
+    """A buffer's relative variance feature (channels 23-26): ``log(1 + max(variance, 0) / (mean_square +
+    REL_EPS))``, ``mean_square`` the pixel's mean square of the transformed buffer; :func:`variance_of` is its
+    inverse. Both take float scalars (the kernel's per pixel, ``kpcn_keras.fireflies``'s per spike)."""
+    return np.log1p(max(variance, 0.0) / (mean_square + REL_EPS))
+
+
+@numba.njit(cache=True, nogil=True)
+def variance_of(relvar, mean_square):
+    """The variance whose :func:`relative_variance` against ``mean_square`` is ``relvar``."""
+    return np.expm1(relvar) * (mean_square + REL_EPS)
 
 
 # Serial on purpose: one 256x256 branch is ~3 ms of work, and with parallel=True the thread start and
@@ -123,10 +138,10 @@ def _buffers_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, 
             d = max(float(depth[y, x]), 0.0) * dscale
             buffers[y, x, 9] = d
             if y < h and x < w:
-                relvar[y, x, 0] = np.log1p((vlog / 3.0) / (sq_c / 3.0 + REL_EPS))
-                relvar[y, x, 1] = np.log1p(max(float(normal_var[y, x]), 0.0) / (sq_n / 3.0 + REL_EPS))
-                relvar[y, x, 2] = np.log1p(max(float(albedo_var[y, x]), 0.0) / (sq_a / 3.0 + REL_EPS))
-                relvar[y, x, 3] = np.log1p(max(float(depth_var[y, x]), 0.0) * dscale * dscale / (d * d + REL_EPS))
+                relvar[y, x, 0] = relative_variance(vlog / 3.0, sq_c / 3.0)
+                relvar[y, x, 1] = relative_variance(float(normal_var[y, x]), sq_n / 3.0)
+                relvar[y, x, 2] = relative_variance(float(albedo_var[y, x]), sq_a / 3.0)
+                relvar[y, x, 3] = relative_variance(max(float(depth_var[y, x]), 0.0) * dscale * dscale, d * d)
 
 
 # The per-pixel buffers the features are made of, in two kinds (what a shard stores: ``prep.shards.format``):

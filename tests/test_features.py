@@ -51,6 +51,17 @@ def test_colour_transforms_invert():
     np.testing.assert_allclose(features.specular_from_log(s), aovs["specular"], rtol=1e-5, atol=1e-6)
 
 
+def test_relative_variance_matches_float64_and_inverts():
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        v, m = float(rng.uniform(0, 1e3) ** rng.uniform(0, 2)), float(rng.uniform(0, 100) * rng.integers(2))
+        r = features.relative_variance(v, m)
+        assert r == pytest.approx(np.log1p(np.float64(v) / (np.float64(m) + features.REL_EPS)), rel=1e-14, abs=0)
+        assert features.variance_of(r, m) == pytest.approx(v, rel=1e-12, abs=1e-300)
+    # a renderer's negative variance (rounding) counts as 0
+    assert features.relative_variance(-3.0, 1.0) == 0.0
+
+
 def test_unknown_branch_is_named():
     with pytest.raises(ValueError, match="'glossy'"):
         features.branch_features(random_aovs(4, 4), "glossy")
