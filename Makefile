@@ -23,8 +23,9 @@ BENCH_ARGS  ?=
 # inputs 2-64 spp), the set make quality renders as $(MODEL_SET), held out the scenes make train holds out.
 MODEL      ?= $(shell sed -n 's/^DEFAULT_MODEL = "\(.*\)".*/\1/p' kpcn_keras/config.py)
 # As long as held-out error falls: each network stops 20 epochs (1000 steps) after its best and keeps it; 12000
-# steps is a cap (where the shipped networks stopped: their card, docs/results.md §13)
-MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000 --patience 20
+# steps is a cap (where the shipped networks stopped: their card, docs/results.md §13). Without synthetic fireflies:
+# the shipped networks were trained so (make model-tune adds them), and make model resumes them
+MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000 --patience 20 --fireflies 0
 MODEL_RUN  ?= runs/model
 MODEL_SET  ?= $(SET)-r14bdd0f2
 MODEL_RENDER_ARGS ?= --per-family 8 --input-spp 2,4,8,16,32,64
@@ -89,7 +90,8 @@ endef
 
 # after make model: the fine-tuning that makes the shipped model (docs/training.md §7), each network trained on
 # from make model's own (--init $(MODEL_RUN)) where a measurement found it gains (docs/results.md §17, §18):
-# - the full network with synthetic fireflies at a low learning rate (TUNE_ARGS) into $(MODEL_RUN)-tuned;
+# - the full network with synthetic fireflies (the default) at a low learning rate (TUNE_ARGS) into
+#   $(MODEL_RUN)-tuned;
 # - the no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no variance), on Cycles'
 #   own frames too: random scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python
 #   3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s
@@ -97,13 +99,13 @@ endef
 # $(MODEL_RUN)-shipped is the tuned full run with make model's no-split networks and the Cycles-trained
 # no-variance one in its inputs/ (hard links), evaluated and shipped. Each step resumes or is skipped when done;
 # more scenes (--scenes) mean a new CYCLES_SET.
-TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --fireflies 1
+TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000
 BPY_PYTHON ?= python3.11
 BPY_VENV   := .venv-bpy
 CYCLES_SET ?= cycles
 CYCLES_RENDER_ARGS ?= --scenes 0:48 --res 128 --spp 4,8,16,32,64 --ref-spp 2048
 CYCLES_VAL_SCENES  ?= room-024,studio-025,ground-026
-CYCLES_TRAIN_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --fireflies 1
+CYCLES_TRAIN_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000
 MODEL_MIX := $(MODEL_SET)-$(CYCLES_SET)
 
 $(BPY_VENV)/bin/python:

@@ -129,8 +129,9 @@ def test_fireflies_are_for_the_branch_sources_and_a_rate_is_a_number_at_least_0(
 
 
 def test_a_run_without_fireflies_keeps_the_identity_it_had_before_they_existed(tiny_set):
-    cfg = tiny_train_config(tiny_set)
+    cfg = tiny_train_config(tiny_set, fireflies=0)
     assert "fireflies" not in cfg.to_dict() and TrainConfig.from_record(cfg.to_dict()) == cfg
+    assert tiny_train_config(tiny_set).to_dict()["fireflies"] == 1.0  # the default adds them, and says so
     spiked = tiny_train_config(tiny_set, fireflies=1.5)
     assert spiked.to_dict()["fireflies"] == 1.5 and spiked.identity() != cfg.identity()
     with pytest.raises(OptionError, match="fireflies"):

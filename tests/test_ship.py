@@ -154,9 +154,11 @@ def test_make_model_tune_ships_make_models_networks_fine_tuned_from_their_own_wi
     lines = tune.splitlines()
     trains = [line for line in lines if " train " in line]
     full = next(line for line in trains if "--inputs full" in line)
-    assert f"--set {model_set} " in full and f"--init {model_run} " in full and "--fireflies " in full
+    # make model trains without synthetic fireflies (its networks' identity); the tuning adds them (the default)
+    assert all("--fireflies 0" in line for line in base.splitlines() if " train " in line)
+    assert f"--set {model_set} " in full and f"--init {model_run} " in full and "--fireflies 0" not in full
     cycles = next(line for line in trains if "--inputs no-variance" in line)
-    assert f"--init {model_run} " in cycles and "--fireflies " in cycles
+    assert f"--init {model_run} " in cycles and "--fireflies 0" not in cycles
     tuned, cycles_run = (line.split("--run ")[1].split()[0] for line in (full, cycles))
     shards = next(line for line in lines if " shards " in line)
     assert f"--set {cycles.split('--set ')[1].split()[0]} --inputs no-variance" in shards
@@ -243,7 +245,8 @@ def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_
             f"(diffuse SHA-256 {sha['diffuse']}…, specular SHA-256 {sha['specular']}…)") in tuned
     assert "fine-tuned" not in card.replace(tuned, "")  # the others were not
     assert "augmentation on, synthetic fireflies 0.5 a patch, seed 0" in tuned
-    assert "fireflies" not in card.replace(tuned, "")
+    others = card.replace(tuned, "")  # trained with the default, 1 a patch
+    assert "synthetic fireflies 1 a patch" in others and "fireflies 0.5" not in others
     data = card[card.index("## Training data"):card.index("## Held-out frames")]
     assert "the same renders cut for each, `s.no-split`, `s.no-split-no-variance`" in data
     own = data[data.index("The no-variance network's:"):]

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from kpcn_keras.config import DEFAULT_ENSEMBLE, ENSEMBLE, FRACTION, ROUNDS, STEPS, ResampleConfig
+from kpcn_keras.config import (DEFAULT_ENSEMBLE, ENSEMBLE, FRACTION, NO_FIREFLIES, ROUNDS, STEPS, UNWEIGHTED_TAU,
+                               ResampleConfig)
 from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
@@ -71,8 +72,8 @@ def combine(*names: str, levers: dict | None = None) -> tuple[str, str, dict, di
 # the data lever's render set: 8 scenes per family instead of 3, and the ladder from the lowest spp a render has
 MORE_DATA = {"per_family": 8, "input_spp": (2, 4, 8, 16, 32, 64)}
 # What every lever starts from, under its own overrides: the training before issue 23's levers (no reference
-# weighting), so that each lever is measured alone against the baseline ``cpu``.
-QUALITY_BASE = {"reference_tau": 0.0}
+# weighting, no synthetic fireflies), so that each lever is measured alone against the baseline ``cpu``.
+QUALITY_BASE = {"reference_tau": UNWEIGHTED_TAU, "fireflies": NO_FIREFLIES}
 QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
     "cpu": ("the cpu preset without reference weighting, the baseline", "cpu", {}, None),
     "unet": ("the kernel-predicting network on a U-Net trunk (unet preset)", "unet", {}, None),
@@ -80,11 +81,13 @@ QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
     "multiscale-kernel": (CONFIGURATIONS["multiscale-kernel"][0], *CONFIGURATIONS["multiscale-kernel"][1:], None),
     "reference-weight": ("cpu, each reference pixel's loss weighted by its convergence (τ = 0.1)", "cpu",
                          {"reference_tau": 0.1}, None),
+    "fireflies": ("cpu, each training patch with synthetic fireflies (1 a patch on average)", "cpu",
+                  {"fireflies": 1.0}, None),
     "data": (f"cpu on {MORE_DATA['per_family']} scenes per family and inputs at "
              f"{', '.join(map(str, MORE_DATA['input_spp']))} spp", "cpu", {}, MORE_DATA),
 }
 # dilated and unet are two trunks of one network: the combination takes one of them, the unet's
-QUALITY_LEVERS["combination"] = combine("unet", "multiscale-kernel", "reference-weight", "data")
+QUALITY_LEVERS["combination"] = combine("unet", "multiscale-kernel", "reference-weight", "fireflies", "data")
 
 # name -> (what it is, the loop's settings besides the study's)
 ARMS: dict[str, tuple[str, dict]] = {
