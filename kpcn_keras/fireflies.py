@@ -7,7 +7,7 @@ grow with its input, so a spike larger than any it trained on saturates the soft
 bright pixels the networks did see were mostly emitters, which are signal (docs/results.md §18).
 
 What is added: a patch of a training stream gets a Poisson number of spikes, the run's ``fireflies`` on average
-(``kpcn_keras.config.TrainConfig``; 0 by default), each at a uniform pixel, of a grey value ``S`` log-uniform in
+(``kpcn_keras.config.TrainConfig``; 1 by default), each at a uniform pixel, of a grey value ``S`` log-uniform in
 :data:`SPIKE_RANGE` added to the branch's linear colour there (the irradiance for the diffuse branch, the
 specular colour for the specular one), as one sample of radiance ``n S`` among ``n`` would add to a mean; the
 target, the reference, is left as it is. A spike carries the variance such a sample gives the mean, ``S ** 2``
