@@ -429,8 +429,9 @@ class TrainConfig:
 
     ``fireflies`` F > 0 adds to each training patch of the branch phases a Poisson(F) number of synthetic
     fireflies, isolated spikes the target does not have (``kpcn_keras.fireflies``: why, and what a spike is);
-    the default is 1, measured from scratch at make train's budget (docs/results.md §18). 0 adds none and, like τ = 0, is written nowhere, so the runs from before the spikes
-    existed keep their identity (a record without the key reads as 0: :meth:`from_record`).
+    the default is 1, measured from scratch at make train's budget (docs/results.md §18). 0 adds none and, like
+    τ = 0, is written nowhere, so the runs from before the spikes existed keep their identity (a record without
+    the key reads as 0: :meth:`from_record`).
 
     ``patience`` P > 0 stops a phase once P epochs in a row have not lowered its validation loss (the held-out
     scenes' patches) below its best, and makes the best epoch's weights the phase's model: a run trains as long

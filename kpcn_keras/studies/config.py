@@ -75,7 +75,7 @@ MORE_DATA = {"per_family": 8, "input_spp": (2, 4, 8, 16, 32, 64)}
 # weighting, no synthetic fireflies), so that each lever is measured alone against the baseline ``cpu``.
 QUALITY_BASE = {"reference_tau": UNWEIGHTED_TAU, "fireflies": NO_FIREFLIES}
 QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {
-    "cpu": ("the cpu preset without reference weighting, the baseline", "cpu", {}, None),
+    "cpu": ("the cpu preset without reference weighting or synthetic fireflies, the baseline", "cpu", {}, None),
     "unet": ("the kernel-predicting network on a U-Net trunk (unet preset)", "unet", {}, None),
     "dilated": ("cpu with its trunk dilated 1, 2, 4, 8, 4, 2, 1 (dilated preset)", "dilated", {}, None),
     "multiscale-kernel": (CONFIGURATIONS["multiscale-kernel"][0], *CONFIGURATIONS["multiscale-kernel"][1:], None),
