@@ -10,8 +10,10 @@ whole frame's bit for bit. A tile's margin is the model's receptive radius
 its centre is kept, so the result equals an untiled run up to float rounding. Tiles and margins are multiples
 of the network's alignment (``models.input_alignment``: a unet's pooling grid), times the pyramid's with a
 compositor (``multiscale.tile_alignment``), so each tile pools the same 2x2 blocks as the whole image. The
-branches are mapped back to linear colour (``prep.features`` inverses, with the noisy albedo), summed in float64
-and clamped to the float32 range (``prep.exr.to_float32``), so the output is finite for any finite input.
+branches are mapped back to linear colour (``prep.features`` inverses), summed in float64 and clamped to the float32
+range (``prep.exr.to_float32``), so the output is finite for any finite input. The diffuse network predicts
+irradiance, which is multiplied back by the albedo prefiltered with its variance (``prep.albedo``: the noisy albedo
+where a frame has no variance), each tile's from its own neighbourhood, so tiles still equal an untiled run.
 
 A self-ensemble (``ensemble`` N > 1, ``--ensemble``) trades time for accuracy without training: each tile is
 predicted N times, from the frame moved by each of the first N symmetries of the square (``kpcn_keras.augment``'s
@@ -62,6 +64,7 @@ from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep import exr, features, layouts
+from prep.albedo import prefilter as prefilter_albedo
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
 from prep.inputs import InputSet, pair_layers, restrict
@@ -256,15 +259,16 @@ class Denoiser:
         h, w = aovs["depth"].shape
         self.check_slope(slope, (h, w))
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
-        return self.assemble(aovs["albedo"], lambda branch, tile, window: self.predict_tile(
-            branch, aovs, tile, window, scale, slope))
+        return self.assemble((h, w), lambda box: prefilter_albedo(aovs["albedo"], aovs["albedoVariance"], box),
+                             lambda branch, tile, window: self.predict_tile(branch, aovs, tile, window, scale, slope))
 
-    def assemble(self, albedo: np.ndarray, predict, region=None) -> dict[str, np.ndarray]:
-        """``diffuse``, ``specular`` and ``default`` (linear, float32) of a frame with noisy ``albedo`` (H, W, 3),
-        tile by tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels,
-        each branch mapped back to linear colour and the two summed in float64 (the module docstring).
+    def assemble(self, shape: tuple[int, int], albedo, predict, region=None) -> dict[str, np.ndarray]:
+        """``diffuse``, ``specular`` and ``default`` (linear, float32) of a frame of ``shape`` (H, W), tile by
+        tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels, ``albedo(box)``
+        the prefiltered albedo of the pixels ``box`` (y0, y1, x0, x1), each branch mapped back to linear colour
+        (the diffuse one with that albedo) and the two summed in float64 (the module docstring).
         ``region`` (y0, y1, x0, x1): those pixels alone, from the tiles that meet them (the others not run)."""
-        h, w = albedo.shape[:2]
+        h, w = shape
         ry0, ry1, rx0, rx1 = (0, h, 0, w) if region is None else region
         out = {name: np.empty((ry1 - ry0, rx1 - rx0, 3), dtype=np.float32)
                for name in ("diffuse", "specular", "default")}
@@ -276,7 +280,7 @@ class Denoiser:
                 continue
             cut = np.s_[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
             put = np.s_[cy0 - ry0 : cy1 - ry0, cx0 - rx0 : cx1 - rx0]
-            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo[cy0:cy1, cx0:cx1])
+            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo((cy0, cy1, cx0, cx1)))
             specular = (features.specular_from_log(predict("specular", tile, window)[cut])
                         if "specular" in self.models else np.zeros_like(diffuse))
             out["diffuse"][put] = exr.to_float32(diffuse)
@@ -345,8 +349,9 @@ class PreparedFrame:
     def __init__(self, denoiser: Denoiser, aovs: dict[str, np.ndarray]):
         self.denoiser = denoiser
         aovs = restrict(aovs, denoiser.inputs)
-        self.albedo = aovs["albedo"]
         self.shape = aovs["depth"].shape
+        # filtered once, as the trunks run once: a map re-runs only what follows λ
+        self.albedo = prefilter_albedo(aovs["albedo"], aovs["albedoVariance"])
         scale = features.depth_scale(aovs["depth"])
         cfg = denoiser.model_config
         self.modules, self.tiles = {}, {}
@@ -366,8 +371,8 @@ class PreparedFrame:
         self.denoiser.check_slope(slope, self.shape)
         if region is not None:
             region = check_region(region, self.shape)
-        return self.denoiser.assemble(self.albedo, lambda branch, tile, window: self._predict(branch, tile, window,
-                                                                                              slope), region)
+        return self.denoiser.assemble(self.shape, lambda box: self.albedo[box[0] : box[1], box[2] : box[3]],
+                                      lambda branch, tile, window: self._predict(branch, tile, window, slope), region)
 
     @property
     def nbytes(self) -> int:

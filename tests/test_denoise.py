@@ -9,17 +9,20 @@ from kpcn_keras.models import network_input
 from kpcn_keras.run import Run
 from kpcn_keras.train import train
 from prep import exr, features
+from prep.albedo import prefilter
 from prep.errors import OptionError
 
 
 def _untiled(denoiser, aovs, slope=None):
     """What tiling must equal: the whole frame's features (with ``slope``) through each network in one call,
-    recombined in float64 by the inverses of the features table."""
+    recombined in float64 by the inverses of the features table, the diffuse with the whole frame's prefiltered
+    albedo."""
     logs = {}
     for branch in features.BRANCHES:
         feats = network_input(features.branch_features(aovs, branch), denoiser.model_config, branch, slope)
         logs[branch] = keras.ops.convert_to_numpy(denoiser.models[branch].predict_on_batch(feats[None]))[0]
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS)
+    albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
     specular = np.expm1(logs["specular"].astype(np.float64))
     return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
 
@@ -89,7 +92,8 @@ def _ensemble_reference(denoiser, aovs, members=8):
         outs = [moved(_untiled(denoiser, {k: moved(v, s) for k, v in aovs.items()})[0][branch], s, inverse=True)
                 for s in range(members)]
         logs[branch] = np.median(outs, axis=0)
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS)
+    albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
     specular = np.expm1(logs["specular"].astype(np.float64))
     return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
 
@@ -251,7 +255,7 @@ def test_recombination_inverts_the_branch_transforms(tiny_run):
     out = d(aovs)
     diff_log = d.run_branch("diffuse", aovs)
     np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64))
-                               * (np.clip(aovs["albedo"], 0, 1) + features.ALBEDO_EPS), rtol=1e-5)
+                               * (prefilter(aovs["albedo"], aovs["albedoVariance"]) + features.ALBEDO_EPS), rtol=1e-5)
     np.testing.assert_allclose(out["default"], out["diffuse"] + out["specular"], rtol=1e-6)
 
 

@@ -48,6 +48,7 @@ from kpcn_keras.models import ARCHS
 from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
+from prep.albedo import prefilter
 from prep.errors import KpcnError, OptionError
 from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES
 
@@ -495,8 +496,10 @@ def test_hard_case_tiled_denoise_is_finite_non_negative_and_equals_untiled(hard_
     out = tiled(noisy)
     for name, image in out.items():
         assert image.dtype == np.float32 and np.isfinite(image).all() and image.min() >= 0, name
-    # the branch inverses of the features table, in float64, clamped to the float32 range
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (np.clip(noisy["albedo"], 0, 1) + ALBEDO_EPS)
+    # the branch inverses of the features table, in float64, clamped to the float32 range; the albedo prefiltered
+    albedo = prefilter(noisy["albedo"], noisy["albedoVariance"])
+    assert np.isfinite(albedo).all() and albedo.min() >= 0 and albedo.max() <= 1
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + ALBEDO_EPS)
     specular = np.expm1(logs["specular"].astype(np.float64))
     for name, want in (("diffuse", diffuse), ("specular", specular), ("default", diffuse + specular)):
         # (atol: a float32 output can underflow where the float64 value is below the smallest subnormal)

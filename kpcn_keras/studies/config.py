@@ -12,8 +12,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from kpcn_keras.config import (DEFAULT_ENSEMBLE, ENSEMBLE, FRACTION, NO_FIREFLIES, ROUNDS, STEPS, UNWEIGHTED_TAU,
-                               ResampleConfig)
+from kpcn_keras.config import (
+    DEFAULT_ENSEMBLE,
+    ENSEMBLE,
+    FRACTION,
+    NO_FIREFLIES,
+    ROUNDS,
+    STEPS,
+    UNWEIGHTED_TAU,
+    ResampleConfig,
+)
 from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
