@@ -1,0 +1,88 @@
+"""How much of a frame's error is the albedo its diffuse irradiance is multiplied back by (docs/results.md §19).
+
+The diffuse network predicts irradiance (trained against the reference's), and the frame is that irradiance times
+an albedo. For each frame, against its reference, as a ratio to OIDN's relMSE where ``pyoidn`` is installed:
+
+- ``floor``: no network, the reference's irradiance times each albedo below, plus the reference's specular: the
+  error the albedo alone leaves;
+- ``kpcn``: the run's networks for what the frame has (``Run.serving``; each branch's output once), the irradiance
+  times each albedo, plus the specular output.
+
+The albedos: the input's (``noisy``), ``prep.albedo.prefilter``'s at its own setting and at each ``--setting``
+r,f,k, and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
+floor as a fraction of the input albedo's, the frames where kpcn is below OIDN and the median ratio.
+
+  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0 ...] [FRAMES ...]
+      # default: models/default on its held-out frames; frames of training scenes choose the settings
+
+Writes nothing; prints markdown tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("KERAS_BACKEND", "torch")
+
+
+def main() -> None:
+    import numpy as np
+
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
+    from kpcn_keras.run import Run, default_model
+    from prep import albedo, baselines, features, layouts, metrics
+    from prep.inputs import restrict
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--run", help="a run or model folder (default: the shipped model)")
+    parser.add_argument("--setting", action="append", default=[],
+                        help="a prefilter setting r,f,k beyond the module's own (repeat for more)")
+    parser.add_argument("frames", nargs="*", help="noisy renders (default: the run's held-out frames)")
+    args = parser.parse_args()
+    run = Run(args.run) if args.run else default_model()
+    pairs = pairs_for_inputs(args.frames) if args.frames else held_out_pairs(run, run.record())
+    settings = [(albedo.SEARCH_RADIUS, albedo.PATCH_RADIUS, albedo.STRENGTH)]
+    settings += [(int(r), int(f), float(k)) for r, f, k in (s.split(",") for s in args.setting)]
+    names = ["noisy"] + [f"r{r} f{f} k{k}" for r, f, k in settings] + ["oracle"]
+    oidn = baselines.oidn_available()
+    denoisers = {}
+    rows, floors = [], []
+    columns = [f"floor {n}" for n in names] + [f"kpcn {n}" for n in names]
+    print(f"| frame | OIDN relMSE | {' | '.join(columns)} |")
+    print("|---|---|" + "---|" * 2 * len(names))
+    for noisy_path, ref_path in pairs:
+        frame = layouts.read(noisy_path)
+        noisy, ref = frame.layers, layouts.read(ref_path).layers
+        served = run.serving(frame.inputs)
+        if served.dir not in denoisers:
+            denoisers[served.dir] = Denoiser.from_run(served)
+        den = denoisers[served.dir]
+        log_irradiance = den.run_branch("diffuse", noisy)
+        specular = features.specular_from_log(den.run_branch("specular", noisy))
+        given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
+        albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k)
+                                       for r, f, k in settings] + [ref["albedo"]]
+        ref_irradiance = ref["diffuse"] / (np.clip(ref["albedo"].astype(np.float64), 0, 1) + features.ALBEDO_EPS)
+        scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
+        floor = [metrics.relmse(np.float32(ref_irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS)
+                                           + ref["specular"]), ref["default"]) / scale for a in albedos]
+        kpcn = [metrics.relmse(np.float32(features.diffuse_from_log(log_irradiance, a) + specular), ref["default"])
+                / scale for a in albedos]
+        rows.append(kpcn)
+        floors.append([x / floor[0] for x in floor])
+        name = os.path.basename(noisy_path)
+        print(f"| {name} | {scale:.5f} | " + " | ".join(f"{x:.4f}" for x in floor + kpcn) + " |", flush=True)
+    rows, floors = np.array(rows), np.array(floors)
+    print("\n| albedo | floor / the input's albedo's, median | frames where kpcn is below OIDN | median kpcn / OIDN |")
+    print("|---|---|---|---|")
+    for i, n in enumerate(names):
+        print(f"| {n} | {np.median(floors[:, i]):.3f} | {int((rows[:, i] < 1).sum())} of {len(rows)} | "
+              f"{np.median(rows[:, i]):.3f} |")
+    if not oidn:
+        print("(pyoidn is not installed: the figures are relMSE, not ratios to OIDN's)")
+
+
+if __name__ == "__main__":
+    main()
