@@ -12,7 +12,7 @@ The albedos: the input's (``noisy``), ``prep.albedo.prefilter``'s at its own set
 r,f,k, and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
 floor as a fraction of the input albedo's, the frames where kpcn is below OIDN and the median ratio.
 
-  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0 ...] [FRAMES ...]
+  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0 ...] [--pair-suffix -b] [FRAMES ...]
       # default: models/default on its held-out frames; frames of training scenes choose the settings
 
 Writes nothing; prints markdown tables.
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
 
@@ -29,7 +30,7 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 def main() -> None:
     import numpy as np
 
-    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.denoise import Denoiser, read_frame
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, default_model
     from prep import albedo, baselines, features, layouts, metrics
@@ -39,6 +40,8 @@ def main() -> None:
     parser.add_argument("--run", help="a run or model folder (default: the shipped model)")
     parser.add_argument("--setting", action="append", default=[],
                         help="a prefilter setting r,f,k beyond the module's own (repeat for more)")
+    parser.add_argument("--pair-suffix", help="each frame with its second render, the file named with this after "
+                        "its stem (as kpcn denoise --pair): the variance from the two")
     parser.add_argument("frames", nargs="*", help="noisy renders (default: the run's held-out frames)")
     args = parser.parse_args()
     run = Run(args.run) if args.run else default_model()
@@ -53,8 +56,14 @@ def main() -> None:
     print(f"| frame | OIDN relMSE | {' | '.join(columns)} |")
     print("|---|---|" + "---|" * 2 * len(names))
     for noisy_path, ref_path in pairs:
-        frame = layouts.read(noisy_path)
-        noisy, ref = frame.layers, layouts.read(ref_path).layers
+        pair = None
+        if args.pair_suffix:
+            pair = Path(noisy_path).with_name(Path(noisy_path).stem + args.pair_suffix + Path(noisy_path).suffix)
+        frame = read_frame(noisy_path, pair=pair)
+        reference = layouts.read(ref_path)
+        noisy, ref = frame.layers, reference.layers
+        # a reference without a split or an albedo of its own (an rgb file) has no floor and no oracle
+        whole = reference.inputs.split and not any(note.startswith("no albedo") for note in reference.notes)
         served = run.serving(frame.inputs)
         if served.dir not in denoisers:
             denoisers[served.dir] = Denoiser.from_run(served)
@@ -63,23 +72,31 @@ def main() -> None:
         specular = features.specular_from_log(den.run_branch("specular", noisy))
         given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
         albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k)
-                                       for r, f, k in settings] + [ref["albedo"]]
-        ref_irradiance = ref["diffuse"] / (np.clip(ref["albedo"].astype(np.float64), 0, 1) + features.ALBEDO_EPS)
+                                       for r, f, k in settings] + [ref["albedo"] if whole else None]
         scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
-        floor = [metrics.relmse(np.float32(ref_irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS)
-                                           + ref["specular"]), ref["default"]) / scale for a in albedos]
-        kpcn = [metrics.relmse(np.float32(features.diffuse_from_log(log_irradiance, a) + specular), ref["default"])
-                / scale for a in albedos]
+        floor = [np.nan] * len(albedos)
+        if whole:
+            irradiance = ref["diffuse"] / (np.clip(ref["albedo"].astype(np.float64), 0, 1) + features.ALBEDO_EPS)
+            floor = [metrics.relmse(np.float32(irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS)
+                                               + ref["specular"]), ref["default"]) / scale for a in albedos]
+        kpcn = [np.nan if a is None else metrics.relmse(np.float32(features.diffuse_from_log(log_irradiance, a)
+                                                                   + specular), ref["default"]) / scale
+                for a in albedos]
         rows.append(kpcn)
-        floors.append([x / floor[0] for x in floor])
+        floors.append([x / floor[0] if whole else np.nan for x in floor])
         name = os.path.basename(noisy_path)
         print(f"| {name} | {scale:.5f} | " + " | ".join(f"{x:.4f}" for x in floor + kpcn) + " |", flush=True)
     rows, floors = np.array(rows), np.array(floors)
     print("\n| albedo | floor / the input's albedo's, median | frames where kpcn is below OIDN | median kpcn / OIDN |")
     print("|---|---|---|---|")
     for i, n in enumerate(names):
-        print(f"| {n} | {np.median(floors[:, i]):.3f} | {int((rows[:, i] < 1).sum())} of {len(rows)} | "
-              f"{np.median(rows[:, i]):.3f} |")
+        kept = ~np.isnan(rows[:, i])
+        if not kept.any():
+            print(f"| {n} | – | – | – |")
+            continue
+        floor = f"{np.median(floors[kept, i]):.3f}" if not np.isnan(floors[kept, i]).any() else "–"
+        print(f"| {n} | {floor} | {int((rows[kept, i] < 1).sum())} of {int(kept.sum())} | "
+              f"{np.median(rows[kept, i]):.3f} |")
     if not oidn:
         print("(pyoidn is not installed: the figures are relMSE, not ratios to OIDN's)")
 
