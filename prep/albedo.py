@@ -12,14 +12,15 @@ variance (Rousselle, Knaus and Zwicker 2012, the prefilter of feature buffers in
     out(p) = Σ_q w(p, q) a(q) / Σ_q w(p, q),   w = exp(-max(d², 0)),
 
 q over the (2r + 1)² pixels around p, P the (2f + 1)² offsets of a patch, a the albedo clipped to [0, 1] (what
-remodulation uses), v its variance (of the pixel's mean, one value a pixel, every channel), pixels beyond the
-frame those of its edge. The variance term cancels the expected squared difference of two noisy pixels of one
-albedo, so two such patches weigh about 1 whatever the noise, two different ones fall off by how many of their
-standard deviations apart they are (k). A pixel whose albedo has no variance (every sample saw the same albedo)
-is converged and kept as it is. ``tests/test_albedo.py`` holds the filter to a float64 numpy evaluation of the
-formula.
+remodulation uses), v its variance (of the pixel's mean, one value a pixel, every channel) averaged over the
+(2s + 1)² pixels around each (a variance from a few samples is noisy itself: a pixel whose samples happened to
+agree reads 0), pixels beyond the frame those of its edge. The variance term cancels the expected squared
+difference of two noisy pixels of one albedo, so two such patches weigh about 1 whatever the noise, two different
+ones fall off by how many of their standard deviations apart they are (k). A pixel whose albedo has no variance,
+nor its neighbours' (every sample saw the same albedo), is converged and kept as it is. ``tests/test_albedo.py``
+holds the filter to a float64 numpy evaluation of the formula.
 
-The filter reads a pixel's (r + f)-neighbourhood and nothing else of the frame, so a region of the frame
+The filter reads a pixel's (r + f + s)-neighbourhood and nothing else of the frame, so a region of the frame
 filtered alone (``region``, a tile of tiled inference) equals the same pixels of the frame filtered whole.
 """
 
@@ -29,15 +30,17 @@ import numba
 import numpy as np
 
 # Chosen on training scenes by the error the filtered albedo leaves in their frames (docs/results.md §19): a wider
-# search or patch removed little more and cost up to 2.5x the time
+# search or patch removed little more and cost up to 2.3x the time; the averaged variance removed more
 SEARCH_RADIUS = 3  # r: a pixel draws on the 7 x 7 pixels around it
 PATCH_RADIUS = 1  # f: compared by their 3 x 3 neighbourhoods
-STRENGTH = 0.7  # k: how many standard deviations apart two patches may be before their weight falls
+STRENGTH = 1.0  # k: how many standard deviations apart two patches may be before their weight falls
+VARIANCE_RADIUS = 1  # s: the variance averaged over 3 x 3 pixels
 EPS = 1e-10  # keeps d² finite where both patches have no variance (then any difference rules q out)
 
 
 def prefilter(albedo: np.ndarray, variance: np.ndarray, region: tuple[int, int, int, int] | None = None,
-              *, r: int = SEARCH_RADIUS, f: int = PATCH_RADIUS, k: float = STRENGTH) -> np.ndarray:
+              *, r: int = SEARCH_RADIUS, f: int = PATCH_RADIUS, k: float = STRENGTH,
+              s: int = VARIANCE_RADIUS) -> np.ndarray:
     """The prefiltered albedo (float32, clipped to [0, 1]) of ``region`` (y0, y1, x0, x1; the whole frame by
     default) of a frame's ``albedo`` (H, W, 3) and its per-pixel ``variance`` (H, W)."""
     h, w = albedo.shape[:2]
@@ -47,12 +50,24 @@ def prefilter(albedo: np.ndarray, variance: np.ndarray, region: tuple[int, int, 
     xs = np.clip(np.arange(x0 - m, x1 + m), 0, w - 1)
     # the window first, then float64: a tile's filter never holds a copy of the whole frame
     a = np.clip(np.asarray(albedo)[ys[:, None], xs[None, :]].astype(np.float64), 0.0, 1.0)
-    v = np.maximum(np.asarray(variance)[ys[:, None], xs[None, :]].astype(np.float64), 0.0)
+    v = _box_mean(np.asarray(variance), ys, xs, s, h, w)
     if not (v[m : m + y1 - y0, m : m + x1 - x0] > 0.0).any():  # every pixel converged (or no variance layer)
         return a[m : m + y1 - y0, m : m + x1 - x0].astype(np.float32)
     out = np.empty((y1 - y0, x1 - x0, 3), dtype=np.float64)
     _nlm(a, v, r, f, k * k, out)
     return out.astype(np.float32)
+
+
+def _box_mean(variance: np.ndarray, ys: np.ndarray, xs: np.ndarray, s: int, h: int, w: int) -> np.ndarray:
+    """The variance (negatives as 0) at the pixels ``ys`` x ``xs`` of an (h, w) frame, each the mean over the
+    (2s + 1)² pixels around it, those beyond the frame its edge's; summed in one order for every pixel, so that a
+    region's values equal the whole frame's bit for bit."""
+    total = np.zeros((len(ys), len(xs)))
+    for dy in range(-s, s + 1):
+        for dx in range(-s, s + 1):
+            rows, cols = np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)
+            total += np.maximum(variance[rows[:, None], cols[None, :]].astype(np.float64), 0.0)
+    return total / (2 * s + 1) ** 2
 
 
 @numba.njit(cache=True, parallel=True)

@@ -9,10 +9,10 @@ an albedo. For each frame, against its reference, as a ratio to OIDN's relMSE wh
   times each albedo, plus the specular output.
 
 The albedos: the input's (``noisy``), ``prep.albedo.prefilter``'s at its own setting and at each ``--setting``
-r,f,k, and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
+r,f,k[,s], and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
 floor as a fraction of the input albedo's, the frames where kpcn is below OIDN and the median ratio.
 
-  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0 ...] [--pair-suffix -b] [FRAMES ...]
+  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0,1 ...] [--pair-suffix -b] [FRAMES ...]
       # default: models/default on its held-out frames; frames of training scenes choose the settings
 
 Writes nothing; prints markdown tables.
@@ -39,16 +39,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", help="a run or model folder (default: the shipped model)")
     parser.add_argument("--setting", action="append", default=[],
-                        help="a prefilter setting r,f,k beyond the module's own (repeat for more)")
+                        help="a prefilter setting r,f,k[,s] beyond the module's own (repeat for more)")
     parser.add_argument("--pair-suffix", help="each frame with its second render, the file named with this after "
                         "its stem (as kpcn denoise --pair): the variance from the two")
     parser.add_argument("frames", nargs="*", help="noisy renders (default: the run's held-out frames)")
     args = parser.parse_args()
     run = Run(args.run) if args.run else default_model()
     pairs = pairs_for_inputs(args.frames) if args.frames else held_out_pairs(run, run.record())
-    settings = [(albedo.SEARCH_RADIUS, albedo.PATCH_RADIUS, albedo.STRENGTH)]
-    settings += [(int(r), int(f), float(k)) for r, f, k in (s.split(",") for s in args.setting)]
-    names = ["noisy"] + [f"r{r} f{f} k{k}" for r, f, k in settings] + ["oracle"]
+    settings = [(albedo.SEARCH_RADIUS, albedo.PATCH_RADIUS, albedo.STRENGTH, albedo.VARIANCE_RADIUS)]
+    for setting in args.setting:
+        r, f, k, *s = setting.split(",")
+        settings.append((int(r), int(f), float(k), int(s[0]) if s else albedo.VARIANCE_RADIUS))
+    names = ["noisy"] + [f"r{r} f{f} k{k} s{s}" for r, f, k, s in settings] + ["oracle"]
     oidn = baselines.oidn_available()
     denoisers = {}
     rows, floors = [], []
@@ -71,8 +73,8 @@ def main() -> None:
         log_irradiance = den.run_branch("diffuse", noisy)
         specular = features.specular_from_log(den.run_branch("specular", noisy))
         given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
-        albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k)
-                                       for r, f, k in settings] + [ref["albedo"] if whole else None]
+        albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k, s=s)
+                                       for r, f, k, s in settings] + [ref["albedo"] if whole else None]
         scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
         floor = [np.nan] * len(albedos)
         if whole:

@@ -7,7 +7,7 @@ import pytest
 from prep import albedo
 
 
-def _reference(a, v, r, f, k):
+def _reference(a, v, r, f, k, s):
     """The module docstring's formula pixel by pixel in float64 numpy, pixels beyond the frame its edge's."""
     a = np.clip(np.asarray(a, np.float64), 0.0, 1.0)
     v = np.maximum(np.asarray(v, np.float64), 0.0)
@@ -15,6 +15,9 @@ def _reference(a, v, r, f, k):
 
     def at(arr, y, x):
         return arr[min(max(y, 0), h - 1), min(max(x, 0), w - 1)]
+
+    v = np.array([[np.mean([at(v, y + dy, x + dx) for dy in range(-s, s + 1) for dx in range(-s, s + 1)])
+                   for x in range(w)] for y in range(h)])
 
     out = a.copy()
     for y in range(h):
@@ -45,13 +48,13 @@ def _noisy_frame(h, w, seed):
     return a, v
 
 
-@pytest.mark.parametrize("r, f, k", [(albedo.SEARCH_RADIUS, albedo.PATCH_RADIUS, albedo.STRENGTH), (2, 0, 0.3),
-                                     (1, 2, 1.5)])
-def test_prefilter_matches_a_float64_evaluation_of_the_formula(r, f, k):
+@pytest.mark.parametrize("r, f, k, s", [(albedo.SEARCH_RADIUS, albedo.PATCH_RADIUS, albedo.STRENGTH,
+                                         albedo.VARIANCE_RADIUS), (2, 0, 0.3, 0), (1, 2, 1.5, 2)])
+def test_prefilter_matches_a_float64_evaluation_of_the_formula(r, f, k, s):
     a, v = _noisy_frame(9, 11, seed=1)
-    got = albedo.prefilter(a, v, r=r, f=f, k=k)
+    got = albedo.prefilter(a, v, r=r, f=f, k=k, s=s)
     assert got.dtype == np.float32 and got.shape == a.shape
-    np.testing.assert_allclose(got, _reference(a, v, r, f, k), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(got, _reference(a, v, r, f, k, s), rtol=1e-6, atol=1e-7)
 
 
 def test_a_region_filtered_alone_equals_those_pixels_of_the_whole_frame():
@@ -64,9 +67,12 @@ def test_a_region_filtered_alone_equals_those_pixels_of_the_whole_frame():
 
 def test_a_converged_pixel_keeps_its_albedo_and_a_frame_without_variance_is_its_clipped_albedo():
     a, v = _noisy_frame(12, 10, seed=3)
+    v[2:9, 3:8] = 0.0  # converged: these pixels and, inside the block's edge, their neighbours too
     out = albedo.prefilter(a, v)
-    np.testing.assert_array_equal(out[v == 0], np.clip(a, 0, 1)[v == 0])
-    assert (out[v > 0] != np.clip(a, 0, 1)[v > 0]).any()
+    converged = np.zeros(v.shape, bool)
+    converged[3:8, 4:7] = True
+    np.testing.assert_array_equal(out[converged], np.clip(a, 0, 1)[converged])
+    assert (out[~converged] != np.clip(a, 0, 1)[~converged]).any()
     np.testing.assert_array_equal(albedo.prefilter(a, np.zeros_like(v)), np.clip(a, 0, 1))
 
 
