@@ -350,8 +350,10 @@ class PreparedFrame:
         self.denoiser = denoiser
         aovs = restrict(aovs, denoiser.inputs)
         self.shape = aovs["depth"].shape
-        # filtered once, as the trunks run once: a map re-runs only what follows λ
-        self.albedo = prefilter_albedo(aovs["albedo"], aovs["albedoVariance"])
+        # filtered once, as the trunks run once (a map re-runs only what follows λ), tile by tile as a denoise does
+        self.albedo = np.empty(aovs["albedo"].shape, np.float32)
+        for (y0, y1, x0, x1), _ in denoiser.tiles(*self.shape):
+            self.albedo[y0:y1, x0:x1] = prefilter_albedo(aovs["albedo"], aovs["albedoVariance"], (y0, y1, x0, x1))
         scale = features.depth_scale(aovs["depth"])
         cfg = denoiser.model_config
         self.modules, self.tiles = {}, {}

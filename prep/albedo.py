@@ -61,7 +61,8 @@ def prefilter(albedo: np.ndarray, variance: np.ndarray, region: tuple[int, int, 
 def _box_mean(variance: np.ndarray, ys: np.ndarray, xs: np.ndarray, s: int, h: int, w: int) -> np.ndarray:
     """The variance (negatives as 0) at the pixels ``ys`` x ``xs`` of an (h, w) frame, each the mean over the
     (2s + 1)² pixels around it, those beyond the frame its edge's; summed in one order for every pixel, so that a
-    region's values equal the whole frame's bit for bit."""
+    region's values equal the whole frame's bit for bit (which ``prep.inputs``' summed-area box, cut at the border,
+    does not give)."""
     total = np.zeros((len(ys), len(xs)))
     for dy in range(-s, s + 1):
         for dx in range(-s, s + 1):

@@ -13,18 +13,23 @@ from prep.albedo import prefilter
 from prep.errors import OptionError
 
 
+def _recombined(logs, aovs):
+    """Each branch's log output back to linear colour in float64 by the inverses of the features table, the diffuse
+    with the whole frame's prefiltered albedo, and their sum."""
+    albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
+    specular = np.expm1(logs["specular"].astype(np.float64))
+    return {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
+
+
 def _untiled(denoiser, aovs, slope=None):
     """What tiling must equal: the whole frame's features (with ``slope``) through each network in one call,
-    recombined in float64 by the inverses of the features table, the diffuse with the whole frame's prefiltered
-    albedo."""
+    recombined (:func:`_recombined`)."""
     logs = {}
     for branch in features.BRANCHES:
         feats = network_input(features.branch_features(aovs, branch), denoiser.model_config, branch, slope)
         logs[branch] = keras.ops.convert_to_numpy(denoiser.models[branch].predict_on_batch(feats[None]))[0]
-    albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
-    specular = np.expm1(logs["specular"].astype(np.float64))
-    return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
+    return logs, _recombined(logs, aovs)
 
 
 @pytest.mark.slow
@@ -86,16 +91,13 @@ def test_unet_tiles_aligned_to_its_pooling_grid_equal_an_untiled_run(tiny_unet_r
 
 def _ensemble_reference(denoiser, aovs, members=8):
     """What a self-ensemble must equal: each branch's log output of the whole frame moved by each symmetry (numpy's
-    own transposes and flips), moved back, the per-pixel median of the members; then recombined as _untiled does."""
+    own transposes and flips), moved back, the per-pixel median of the members; then :func:`_recombined`."""
     logs = {}
     for branch in features.BRANCHES:
         outs = [moved(_untiled(denoiser, {k: moved(v, s) for k, v in aovs.items()})[0][branch], s, inverse=True)
                 for s in range(members)]
         logs[branch] = np.median(outs, axis=0)
-    albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
-    specular = np.expm1(logs["specular"].astype(np.float64))
-    return logs, {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
+    return logs, _recombined(logs, aovs)
 
 
 @pytest.mark.slow
