@@ -89,6 +89,7 @@ FIREFLIES = Bound(0.0, 100.0, integer=False)  # synthetic fireflies a training p
 NO_FIREFLIES = 0.0  # fireflies of a run that adds none: what a run record without the key was trained with
 PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a phase stops
 TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
+NO_ALBEDO_NETWORK = 0  # albedo_steps of a run without one: what a run record without the key trained
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 PORT = Bound(0, 65535)  # kpcn view --port; 0 takes a free one
 VIEW_HOST, VIEW_PORT = "127.0.0.1", 8765  # kpcn view's page is for the person at this machine: nothing else reaches it
@@ -396,7 +397,9 @@ class Phase:
 
     @property
     def trains_on_final_colour(self) -> bool:
-        return self.component in ("joint", "compositor")
+        """Whether the phase's loss is on the final colour (joint, compositor, and the albedo network's, whose
+        albedo it is multiplied into), not on one branch's reference."""
+        return self.component in ("joint", "compositor", "albedo")
 
 
 @dataclass
@@ -439,6 +442,14 @@ class TrainConfig:
     0, the default, trains every step; like τ = 0 it is written nowhere, so the runs from before keep their
     identity. It needs held-out scenes (a shard set cut with ``--val-fraction`` 0 has none).
 
+    ``albedo_steps`` N > 0 adds the ``albedo`` phase after the branch phases: a copy of the finished diffuse network
+    trained N steps (at ``learning_rate``, on the same decay) to filter the albedo that the diffuse irradiance is
+    multiplied back by, judged on the final colour of the reference's irradiance times its albedo
+    (docs/method.md §1; ``models.build_albedo_training_model``); the denoiser then uses it instead of
+    ``prep.albedo``'s prefilter. It needs both branches and a diffuse network of its own without λ (not
+    ``shared``, not ``slope_input``, not a no-split input set). 0, the default, adds none and, like τ = 0, is
+    written nowhere.
+
     ``inputs`` is the input set (``prep.inputs``) the run is trained for, from the shard set cut for it
     (:attr:`set_dir`). A no-split run's specular input is 0 (``prep.inputs.restrict``), so it trains the
     diffuse network alone (:attr:`denoised_branches`): no specular phase, and no joint phase (with one
@@ -471,6 +482,7 @@ class TrainConfig:
     fireflies: float = bounded(1.0, FIREFLIES)
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
+    albedo_steps: int = bounded(NO_ALBEDO_NETWORK, Bound(0, STEPS.high))
     compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)
     compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
@@ -502,7 +514,8 @@ class TrainConfig:
         if self.shared and not whole:
             raise OptionError("shared", f"trains one network for both branches; --branches {','.join(self.branches)} "
                               "leaves one out")
-        for name, wanted in (("joint_steps", self.joint_steps > 0), ("compositor", self.compositor is not None)):
+        for name, wanted in (("joint_steps", self.joint_steps > 0), ("compositor", self.compositor is not None),
+                             ("albedo_steps", self.albedo_steps > 0)):
             if wanted and not whole:
                 raise OptionError(name, f"trains on the final colour, which needs both branches; got --branches "
                                   f"{','.join(self.branches)}")
@@ -516,6 +529,12 @@ class TrainConfig:
                 raise OptionError("compositor", f"composes the scales of both branches; {one}")
             if "diffuse" not in self.branches:
                 raise OptionError("branches", f"{','.join(self.branches)} leaves out the diffuse branch; {one}")
+            if self.albedo_steps:
+                raise OptionError("albedo_steps", f"trains the albedo the diffuse irradiance is multiplied by; {one}")
+        if self.albedo_steps and (self.shared or self.slope_input):
+            raise OptionError("albedo_steps", "trains a copy of the diffuse network on the albedo, which needs a "
+                              f"diffuse network of its own without a λ input; got --shared {self.shared}, "
+                              f"--slope-input {self.slope_input}")
         given = self.model.to_dict() if isinstance(self.model, ModelConfig) else self.model
         user = {k: v for k, v in given.items() if k not in _CONDITIONING}
         self.model = ModelConfig.from_dict({**user, "branch_channels": self.shared, "slope_channel": self.slope_input})
@@ -540,6 +559,7 @@ class TrainConfig:
         """The configuration a run record's ``train`` holds (one without ``reference_tau`` was unweighted, one
         without ``patience`` trained every step, one without ``fireflies`` added none)."""
         return cls(**{"reference_tau": UNWEIGHTED_TAU, "patience": TRAIN_EVERY_STEP, "fireflies": NO_FIREFLIES,
+                      "albedo_steps": NO_ALBEDO_NETWORK,
                       **train})
 
     @property
@@ -576,6 +596,8 @@ class TrainConfig:
         """The run's phases in training order, each with its place in the run's epoch numbering."""
         branches = ("shared",) if self.shared else tuple(b for b in self.branches if b in self.denoised_branches)
         plan = [(b, self.steps, self.learning_rate) for b in branches]
+        if self.albedo_steps:
+            plan.append(("albedo", self.albedo_steps, self.learning_rate))
         if self.joint_steps and self.input_set.split:
             plan.append(("joint", self.joint_steps, self.joint_learning_rate))
         if self.compositor is not None:
@@ -596,6 +618,8 @@ class TrainConfig:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
         if d["fireflies"] == NO_FIREFLIES:
             del d["fireflies"]  # likewise: a run without synthetic fireflies, as written before they existed
+        if d["albedo_steps"] == NO_ALBEDO_NETWORK:
+            del d["albedo_steps"]  # likewise: a run without an albedo network, as written before they existed
         if d["patience"] == TRAIN_EVERY_STEP:
             del d["patience"]  # likewise: a run of every step, as written before early stopping existed
         if d["init"] is None:

@@ -9,6 +9,9 @@ source        x (network input, ``models.network_input``)                   y (t
 ``specular``  likewise, specular                                            specular reference, log domain
 ``both``      each patch from one of the two branches (a shared network)    that branch's reference
 ``final``     ``{"diffuse_input", "specular_input", "albedo"}``              reference final colour, linear
+``albedo``    ``{"features", "irradiance", "specular"}``: the albedo        reference final colour, linear
+              network's input (``models.albedo_input``), the reference's
+              irradiance and specular colour (log domain)
 ============  ===========================================================  =================================
 
 The features are not stored: each batch's are recomputed from the stored per-pixel buffers of its patches,
@@ -59,12 +62,12 @@ import keras
 import numpy as np
 
 from kpcn_keras import augment, fireflies, slope_map
-from kpcn_keras.models import FINAL_INPUTS, ModelConfig, network_input
+from kpcn_keras.models import FINAL_INPUTS, ModelConfig, albedo_input, network_input
 from prep.bounds import is_integer
 from prep.features import BRANCHES
 from prep.shards import ShardError, branch_datasets, derive, open_shard, read_stored, stored_datasets
 
-SOURCES = BRANCHES + ("both", "final")
+SOURCES = BRANCHES + ("both", "final", "albedo")
 LOSS_TARGETS = ("reference", "reference+noisy")
 
 
@@ -102,6 +105,8 @@ class ShardPatches(keras.utils.PyDataset):
             raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
         if loss_target not in LOSS_TARGETS:
             raise ValueError(f"loss_target must be one of {LOSS_TARGETS}, got {loss_target!r}")
+        if source == "albedo" and loss_target != "reference":
+            raise ValueError(f"the albedo source's target is the reference alone, got loss_target {loss_target!r}")
         if reference_relse and source not in BRANCHES + ("both",):
             raise ValueError(f"reference_relse is a branch reference's: source {source!r} has none")
         if not (isinstance(firefly_rate, (int, float)) and 0 <= firefly_rate < math.inf):
@@ -199,6 +204,8 @@ class ShardPatches(keras.utils.PyDataset):
     def _names(self, branch: str | None) -> list[str]:
         """What a sample of ``branch`` (None: the final colour) reads (``prep.shards.VIEWS``)."""
         with_noisy = self.loss_target == "reference+noisy"  # else the noisy colour is not read at all
+        if self.source == "albedo":
+            return ["diffuse/features", "albedo"] + [f"{b}/reference" for b in BRANCHES] + ["reference"]
         if branch is None:
             return [f"{b}/features" for b in BRANCHES] + ["albedo", "reference"] + (["noisy"] if with_noisy else [])
         return branch_datasets(branch, noisy=with_noisy) + ([f"{branch}/ref_relse"] if self.reference_relse else [])
@@ -258,7 +265,14 @@ class ShardPatches(keras.utils.PyDataset):
 
     def _sample(self, branch_id: int, data: dict[str, np.ndarray], aug, slope):
         with_noisy = self.loss_target == "reference+noisy"
-        if self.source == "final":
+        if self.source == "albedo":
+            features = albedo_input(augment.augment_features(data["diffuse/features"], aug),
+                                    augment.augment_colour(data["albedo"], aug))
+            x = {"features": network_input(features, self.model, "diffuse"),
+                 "irradiance": augment.augment_colour(data["diffuse/reference"], aug),
+                 "specular": augment.augment_colour(data["specular/reference"], aug)}
+            reference, noisy = data["reference"], None
+        elif self.source == "final":
             x = {FINAL_INPUTS[b]: network_input(augment.augment_features(data[f"{b}/features"], aug),
                                                 self.model, b, slope) for b in BRANCHES}
             x["albedo"] = augment.augment_colour(data["albedo"], aug)

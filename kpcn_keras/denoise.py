@@ -12,14 +12,18 @@ of the network's alignment (``models.input_alignment``: a unet's pooling grid), 
 compositor (``multiscale.tile_alignment``), so each tile pools the same 2x2 blocks as the whole image. The
 branches are mapped back to linear colour (``prep.features`` inverses), summed in float64 and clamped to the float32
 range (``prep.exr.to_float32``), so the output is finite for any finite input. The diffuse network predicts
-irradiance, which is multiplied back by the albedo prefiltered with its variance (``prep.albedo``: the noisy albedo
-where a frame has no variance), each tile's from its own neighbourhood, so tiles still equal an untiled run.
+irradiance, which is multiplied back by an albedo cleaner than the input's: the run's albedo network's where it has
+one (``--albedo-steps``: a copy of the diffuse network trained to filter the albedo, ``models.albedo_input``), run on
+each tile's window as the branches are; else the albedo prefiltered with its variance (``prep.albedo``: the noisy
+albedo where a frame has no variance), each tile's from its own neighbourhood. Either way tiles still equal an
+untiled run.
 
 A self-ensemble (``ensemble`` N > 1, ``--ensemble``) trades time for accuracy without training: each tile is
 predicted N times, from the frame moved by each of the first N symmetries of the square (``kpcn_keras.augment``'s
 spatial codes 0..N-1, the identity first), each prediction moved back, and each branch keeps the per-pixel,
 per-channel median of the N (in the log domain: the same pixels as the median of the linear colours, the
-transforms being monotone), so that one member's firefly does not pass, where a mean would carry 1/N of it.
+transforms being monotone), so that one member's firefly does not pass, where a mean would carry 1/N of it. An
+albedo network runs once, on the frame as it is.
 A member is exactly the network on the moved frame: its window (grown to start on the moved frame's pooling grid)
 is cut with the row and column on each side that the moved window's features read, moved, and its features
 computed there (:meth:`Denoiser.predict_member`), so tiles still equal an untiled run and memory is still bounded
@@ -52,6 +56,8 @@ from kpcn_keras import slope_map
 from kpcn_keras.augment import Augmentation, augment_spatial, moved_box
 from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
 from kpcn_keras.models import (
+    ALBEDO_NETWORK,
+    albedo_input,
     input_alignment,
     kept_of,
     network_input,
@@ -101,13 +107,14 @@ class Denoiser:
 
     def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
                  compositor: keras.Model | None = None, tile: int = DEFAULT_TILE, precision: str | None = None,
-                 ensemble: int = DEFAULT_ENSEMBLE):
+                 ensemble: int = DEFAULT_ENSEMBLE, albedo: keras.Model | None = None):
         self.run, self.record, self.model_config = run, record, record.model
         self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
+        self.albedo_network = albedo
         self.symmetries = tuple(Augmentation(code) for code in range(ENSEMBLE.check("ensemble", ensemble)))
         # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16"
         self.precision = resolve(precision)
-        for net in networks.values():
+        for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
             apply_precision(net, self.precision)
         self.inputs, self.branches = record.inputs, record.branches
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
@@ -144,7 +151,11 @@ class Denoiser:
         compositor = None
         if multiscale and "compositor" in record.components:
             compositor = run.load_component(record, "compositor")
-        return cls(run, record, networks, compositor, tile, precision, ensemble)
+        albedo = None
+        if ALBEDO_NETWORK in record.components:
+            albedo = run.load_component(record, ALBEDO_NETWORK)
+            check_architecture(albedo, record.model, record.component_path(ALBEDO_NETWORK))
+        return cls(run, record, networks, compositor, tile, precision, ensemble, albedo)
 
     @property
     def ensemble(self) -> int:
@@ -154,7 +165,8 @@ class Denoiser:
         """The same networks without the compositor (itself for a run that has none)."""
         if self.compositor is None:
             return self
-        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision, self.ensemble)
+        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision, self.ensemble,
+                        self.albedo_network)
 
     def warm_up(self, slope: float | None = None) -> None:
         """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
@@ -219,6 +231,20 @@ class Denoiser:
         gc.collect(1)  # as in predict_tile
         return _kept(_moved(pred, aug.inverse()), tile, window)
 
+    def albedo_tile(self, aovs: dict[str, np.ndarray], tile, window, scale: float) -> np.ndarray:
+        """The albedo the diffuse irradiance of ``tile``'s pixels is multiplied by (float32, (h, w, 3)): the run's
+        albedo network's, from ``window`` alone as a branch's is (:meth:`predict_tile`); without one,
+        ``prep.albedo.prefilter``'s of the tile's neighbourhood."""
+        if self.albedo_network is None:
+            return prefilter_albedo(aovs["albedo"], aovs["albedoVariance"], tile).astype(np.float32, copy=False)
+        ya, yb, xa, xb = window
+        feats = albedo_input(features.branch_features(aovs, "diffuse", window, scale=scale),
+                             aovs["albedo"][ya:yb, xa:xb])
+        pred = self.albedo_network.predict_on_batch(network_input(feats, self.model_config, "diffuse")[None])
+        pred = keras.ops.convert_to_numpy(pred)[0]
+        gc.collect(1)  # as in predict_tile
+        return _kept(pred, tile, window)
+
     def check_slope(self, slope, shape: tuple[int, int]) -> None:
         """OptionError unless ``slope`` is what this run takes for an (H, W) = ``shape`` frame: a number (or
         None) as ``RunRecord.check_slope`` says, or a map of the frame's shape for a run with a specialisation
@@ -259,13 +285,13 @@ class Denoiser:
         h, w = aovs["depth"].shape
         self.check_slope(slope, (h, w))
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
-        return self.assemble((h, w), lambda box: prefilter_albedo(aovs["albedo"], aovs["albedoVariance"], box),
+        return self.assemble((h, w), lambda tile, window: self.albedo_tile(aovs, tile, window, scale),
                              lambda branch, tile, window: self.predict_tile(branch, aovs, tile, window, scale, slope))
 
     def assemble(self, shape: tuple[int, int], albedo, predict, region=None) -> dict[str, np.ndarray]:
         """``diffuse``, ``specular`` and ``default`` (linear, float32) of a frame of ``shape`` (H, W), tile by
-        tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels, ``albedo(box)``
-        the prefiltered albedo of the pixels ``box`` (y0, y1, x0, x1), each branch mapped back to linear colour
+        tile: ``predict(branch, tile, window)`` is a branch's log-domain output of ``tile``'s pixels, ``albedo(tile,
+        window)`` the albedo of ``tile``'s pixels (:meth:`albedo_tile`), each branch mapped back to linear colour
         (the diffuse one with that albedo) and the two summed in float64 (the module docstring).
         ``region`` (y0, y1, x0, x1): those pixels alone, from the tiles that meet them (the others not run)."""
         h, w = shape
@@ -280,7 +306,7 @@ class Denoiser:
                 continue
             cut = np.s_[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
             put = np.s_[cy0 - ry0 : cy1 - ry0, cx0 - rx0 : cx1 - rx0]
-            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo((cy0, cy1, cx0, cx1)))
+            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo(tile, window)[cut])
             specular = (features.specular_from_log(predict("specular", tile, window)[cut])
                         if "specular" in self.models else np.zeros_like(diffuse))
             out["diffuse"][put] = exr.to_float32(diffuse)
@@ -350,11 +376,12 @@ class PreparedFrame:
         self.denoiser = denoiser
         aovs = restrict(aovs, denoiser.inputs)
         self.shape = aovs["depth"].shape
+        scale = features.depth_scale(aovs["depth"])
         # filtered once, as the trunks run once (a map re-runs only what follows λ), tile by tile as a denoise does
         self.albedo = np.empty(aovs["albedo"].shape, np.float32)
-        for (y0, y1, x0, x1), _ in denoiser.tiles(*self.shape):
-            self.albedo[y0:y1, x0:x1] = prefilter_albedo(aovs["albedo"], aovs["albedoVariance"], (y0, y1, x0, x1))
-        scale = features.depth_scale(aovs["depth"])
+        for tile, window in denoiser.tiles(*self.shape):
+            y0, y1, x0, x1 = tile
+            self.albedo[y0:y1, x0:x1] = denoiser.albedo_tile(aovs, tile, window, scale)
         cfg = denoiser.model_config
         self.modules, self.tiles = {}, {}
         for branch, model in denoiser.models.items():
@@ -373,7 +400,7 @@ class PreparedFrame:
         self.denoiser.check_slope(slope, self.shape)
         if region is not None:
             region = check_region(region, self.shape)
-        return self.denoiser.assemble(self.shape, lambda box: self.albedo[box[0] : box[1], box[2] : box[3]],
+        return self.denoiser.assemble(self.shape, lambda tile, _: self.albedo[tile[0] : tile[1], tile[2] : tile[3]],
                                       lambda branch, tile, window: self._predict(branch, tile, window, slope), region)
 
     @property

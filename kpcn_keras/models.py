@@ -100,6 +100,8 @@ __all__ = [
     "ARCHS",
     "COLOUR_CHANNELS",
     "ModelConfig",
+    "albedo_input",
+    "build_albedo_training_model",
     "build_branch_model",
     "build_final_model",
     "build_kernel_model",
@@ -116,6 +118,7 @@ __all__ = [
 ]
 
 FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
+ALBEDO_NETWORK = "albedo"  # the component, model and phase name of a run's albedo network
 TRUNK_FORMAT = "channels_first"  # the convolutions' layout inside a branch model (see the module docstring)
 DATA_FORMATS = ("channels_first", "channels_last")  # "channels_last": the layout of models saved before
 TO_CHANNELS_FIRST = (3, 1, 2)  # keras.layers.Permute dims: (H, W, C) -> (C, H, W)
@@ -149,6 +152,18 @@ def network_input(features, cfg: ModelConfig, branch: str, slope=None) -> np.nda
     spatial = features.shape[:-1]
     planes = [np.broadcast_to(np.asarray(e, np.float32), spatial)[..., None] for e in extra]
     return np.concatenate([features] + planes, axis=-1)
+
+
+def albedo_input(diffuse_features, albedo) -> np.ndarray:
+    """The albedo network's input: the diffuse features (..., H, W, in_channels), float32, with channels 0-2, the
+    colour a kernel-predicting network filters, replaced by the noisy albedo clipped to [0, 1] (..., H, W, 3),
+    in place. The network's kernels then filter the albedo, seeing what the diffuse network sees (the
+    albedo's own differences and relative variance among the guides): docs/method.md §1."""
+    if diffuse_features.dtype != np.float32 or diffuse_features.shape[:-1] != np.shape(albedo)[:-1]:
+        raise ValueError(f"expected float32 features over the albedo's pixels {np.shape(albedo)[:-1]}, received "
+                         f"{diffuse_features.dtype} {diffuse_features.shape}")
+    np.clip(albedo, 0.0, 1.0, out=diffuse_features[..., :COLOUR_CHANNELS], casting="same_kind")
+    return diffuse_features
 
 
 def slope_plane(slope, shape: tuple[int, int]) -> np.ndarray:
@@ -431,6 +446,21 @@ def build_final_model(networks: dict, input_channels: int, name: str = "final") 
     colours = [networks[branch](inputs[branch]) for branch in BRANCHES]
     out = FinalColour(name="final_colour")(colours + [albedo])
     return keras.Model({**{FINAL_INPUTS[b]: inputs[b] for b in BRANCHES}, "albedo": albedo}, out, name=name)
+
+
+def build_albedo_training_model(albedo: keras.Model, input_channels: int) -> keras.Model:
+    """The albedo network ``albedo`` (a branch network named :data:`ALBEDO_NETWORK`, :func:`albedo_input` in,
+    the filtered albedo out) trained as the denoiser uses it: inputs ``features`` (its input), ``irradiance``
+    and ``specular`` (the reference's diffuse irradiance and specular colour, log domain) -> the final linear
+    colour, the reference's irradiance times the network's albedo plus the reference's specular
+    (``FinalColour``). Its loss is then the error the albedo leaves in the frame, where the irradiance
+    makes it visible; ``model.get_layer("albedo")`` is the network again."""
+    features = keras.Input(shape=(None, None, input_channels), name="features")
+    irradiance = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="irradiance")
+    specular = keras.Input(shape=(None, None, COLOUR_CHANNELS), name="specular")
+    out = FinalColour(name="final_colour")([irradiance, specular, albedo(features)])
+    return keras.Model({"features": features, "irradiance": irradiance, "specular": specular}, out,
+                       name=f"{ALBEDO_NETWORK}_training")
 
 
 def build_kernel_model(model: keras.Model) -> keras.Model:

@@ -33,8 +33,8 @@ Every wall-clock figure is in the timings files (the run's ``timings.json``, per
 folder's, per round), so that a resumed loop ends with the bytes of an uninterrupted one in every other
 file (``tests/test_resample_resume.py``); a step's seconds are those of the sessions that finished it.
 
-Runs with joint fine-tuning or a compositor are refused: their final-colour phases would have to be redone
-after every round, which this loop does not do.
+Runs with joint fine-tuning, an albedo network or a compositor are refused: their final-colour phases would have
+to be redone after every round, which this loop does not do.
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ def base_phases(train_cfg: TrainConfig) -> list[Phase]:
     if final:
         raise KpcnError(
             f"kpcn resample continues the branch networks; this run also has {', '.join(final)} phase(s), "
-            "which would have to be redone after every round. Resample a run without --joint-steps and "
-            "--compositor"
+            "which would have to be redone after every round. Resample a run without --joint-steps, "
+            "--albedo-steps and --compositor"
         )
     return phases
 

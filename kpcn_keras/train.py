@@ -77,7 +77,14 @@ from kpcn_keras.config import UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.layers import FinalColour
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
-from kpcn_keras.models import ModelConfig, build_branch_model, build_final_model, receptive_radius
+from kpcn_keras.models import (
+    ALBEDO_NETWORK,
+    ModelConfig,
+    build_albedo_training_model,
+    build_branch_model,
+    build_final_model,
+    receptive_radius,
+)
 from kpcn_keras.multiscale import (
     InferenceOnly,
     ScaleSupervision,
@@ -129,6 +136,12 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
     nets = {name: run.load_component(finished, name) for name in dict.fromkeys(names.values())}
     for name, net in nets.items():
         check_architecture(net, model_cfg, finished.component_path(name))
+    if phase.name == ALBEDO_NETWORK:
+        # the diffuse network's trunk already tells noise from detail; started from it, the albedo network
+        # learned in a tenth of the steps what a new one had not (docs/results.md §20)
+        albedo = build_branch_model(model_cfg, name=ALBEDO_NETWORK)
+        albedo.set_weights(nets["diffuse"].get_weights())
+        return build_albedo_training_model(albedo, model_cfg.input_channels)
     if phase.name == "joint":
         return build_final_model({b: nets[names[b]] for b in BRANCHES}, model_cfg.input_channels, name="joint")
     keras.utils.set_random_seed(cfg.seed + len(cfg.phases()))
@@ -176,14 +189,14 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     if phase.component == "joint":
         networks = dict.fromkeys(_network_names(cfg).values())  # ordered: the record is compared byte for byte
         return {name: {"file": file, "layers": [name], "phase": phase.name} for name in networks}
-    return {"compositor": {"file": file, "layers": ["compositor"], "phase": phase.name}}
+    return {phase.component: {"file": file, "layers": [phase.component], "phase": phase.name}}
 
 
 def _loss(cfg: TrainConfig, phase: Phase) -> keras.losses.Loss:
     """The training loss of ``phase`` (compiled, and per-scale supervision's at every inner level)."""
     # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §2)
     tau = cfg.reference_tau if cfg.weights_reference(phase) else UNWEIGHTED_TAU
-    if cfg.loss == "asymmetric":
+    if cfg.loss == "asymmetric" and phase.component != ALBEDO_NETWORK:  # an albedo has no noisy side to lean to
         return AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)
     return SMAPE(reference_tau=tau)
 
@@ -203,9 +216,11 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     processes the training stream is this process's slice of each batch (``cfg.batch_size`` is the global
     batch); validation is read whole by each."""
     network = phase.component
-    source = "final" if phase.trains_on_final_colour else "both" if network == "shared" else network
+    source = network if network == ALBEDO_NETWORK else "final" if phase.trains_on_final_colour else \
+        "both" if network == "shared" else network
+    asymmetric = cfg.loss == "asymmetric" and network != ALBEDO_NETWORK
     common = dict(source=source, batch_size=cfg.batch_size, model=cfg.model,
-                  loss_target="reference+noisy" if cfg.loss == "asymmetric" else "reference",
+                  loss_target="reference+noisy" if asymmetric else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range, reference_relse=cfg.weights_reference(phase),
                   target_input=cfg.supervises_scales(phase))
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
