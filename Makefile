@@ -90,8 +90,8 @@ endef
 
 # after make model: the fine-tuning that makes the shipped model (docs/training.md §7), each network trained on
 # from make model's own (--init $(MODEL_RUN)) where a measurement found it gains (docs/results.md §17, §18):
-# - the full network with synthetic fireflies (the default) at a low learning rate (TUNE_ARGS) into
-#   $(MODEL_RUN)-tuned;
+# - the full network with synthetic fireflies (the default) at a low learning rate, then its albedo network
+#   (TUNE_ARGS; docs/results.md §20) into $(MODEL_RUN)-tuned;
 # - the no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no variance), on Cycles'
 #   own frames too: random scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python
 #   3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s
@@ -99,7 +99,7 @@ endef
 # $(MODEL_RUN)-shipped is the tuned full run with make model's no-split networks and the Cycles-trained
 # no-variance one in its inputs/ (hard links), evaluated and shipped. Each step resumes or is skipped when done;
 # more scenes (--scenes) mean a new CYCLES_SET.
-TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000
+TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --albedo-steps 3000
 BPY_PYTHON ?= python3.11
 BPY_VENV   := .venv-bpy
 CYCLES_SET ?= cycles
