@@ -9,7 +9,8 @@ an albedo. For each frame, against its reference, as a ratio to OIDN's relMSE wh
   times each albedo, plus the specular output.
 
 The albedos: the input's (``noisy``), ``prep.albedo.prefilter``'s at its own setting and at each ``--setting``
-r,f,k[,s], and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
+r,f,k[,s], the run's albedo network's (``network``, where the network serving the frame has one: what it denoises
+with then) and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
 floor as a fraction of the input albedo's, the frames where kpcn is below OIDN and the median ratio.
 
   .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0,1 ...] [--pair-suffix -b] [FRAMES ...]
@@ -50,7 +51,7 @@ def main() -> None:
     for setting in args.setting:
         r, f, k, *s = setting.split(",")
         settings.append((int(r), int(f), float(k), int(s[0]) if s else albedo.VARIANCE_RADIUS))
-    names = ["noisy"] + [f"r{r} f{f} k{k} s{s}" for r, f, k, s in settings] + ["oracle"]
+    names = ["noisy"] + [f"r{r} f{f} k{k} s{s}" for r, f, k, s in settings] + ["network", "oracle"]
     oidn = baselines.oidn_available()
     denoisers = {}
     rows, floors = [], []
@@ -73,14 +74,21 @@ def main() -> None:
         log_irradiance = den.run_branch("diffuse", noisy)
         specular = features.specular_from_log(den.run_branch("specular", noisy))
         given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
+        learned = None
+        if den.albedo_network is not None:
+            learned = np.empty_like(given["albedo"])
+            scale_depth = features.depth_scale(given["depth"])
+            for (y0, y1, x0, x1), window in den.tiles(*given["depth"].shape):
+                learned[y0:y1, x0:x1] = den.albedo_tile(given, (y0, y1, x0, x1), window, scale_depth)
         albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k, s=s)
-                                       for r, f, k, s in settings] + [ref["albedo"] if whole else None]
+                                       for r, f, k, s in settings] + [learned, ref["albedo"] if whole else None]
         scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
         floor = [np.nan] * len(albedos)
         if whole:
             irradiance = ref["diffuse"] / (np.clip(ref["albedo"].astype(np.float64), 0, 1) + features.ALBEDO_EPS)
-            floor = [metrics.relmse(np.float32(irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS)
-                                               + ref["specular"]), ref["default"]) / scale for a in albedos]
+            floor = [np.nan if a is None else metrics.relmse(
+                np.float32(irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS) + ref["specular"]), ref["default"])
+                / scale for a in albedos]
         kpcn = [np.nan if a is None else metrics.relmse(np.float32(features.diffuse_from_log(log_irradiance, a)
                                                                    + specular), ref["default"]) / scale
                 for a in albedos]
