@@ -443,17 +443,18 @@ class TrainConfig:
     identity. It needs held-out scenes (a shard set cut with ``--val-fraction`` 0 has none).
 
     ``albedo_steps`` N > 0 adds the ``albedo`` phase after the branch phases: a copy of the finished diffuse network
-    trained N steps (at ``learning_rate``, on the same decay) to filter the albedo that the diffuse irradiance is
+    trained N steps (at ``albedo_learning_rate``, on the same decay) to filter the albedo that the diffuse irradiance is
     multiplied back by, judged on the final colour of the reference's irradiance times its albedo
     (docs/method.md §1; ``models.build_albedo_training_model``); the denoiser then uses it instead of
     ``prep.albedo``'s prefilter. It needs both branches and a diffuse network of its own without λ (not
-    ``shared``, not ``slope_input``, not a no-split input set). 0, the default, adds none and, like τ = 0, is
-    written nowhere.
+    ``shared``, not ``slope_input``); a no-split run, whose one network filters the total colour, passes it over
+    as it does ``joint_steps``. 0, the default, adds none and, like τ = 0, is written nowhere.
 
     ``inputs`` is the input set (``prep.inputs``) the run is trained for, from the shard set cut for it
     (:attr:`set_dir`). A no-split run's specular input is 0 (``prep.inputs.restrict``), so it trains the
     diffuse network alone (:attr:`denoised_branches`): no specular phase, and no joint phase (with one
-    branch there is nothing to tune together; ``joint_steps`` of a preset is passed over); one shared
+    branch there is nothing to tune together; ``joint_steps`` of a preset is passed over, and so is
+    ``albedo_steps``: no irradiance is multiplied by an albedo); one shared
     network (``shared``) or a compositor, both made for two branches, is refused. A full configuration's
     dict is the one from before input sets existed (``prep.shards.config.without_full_inputs``), so the
     runs and checkpoints written before keep their identity.
@@ -483,6 +484,8 @@ class TrainConfig:
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     albedo_steps: int = bounded(NO_ALBEDO_NETWORK, Bound(0, STEPS.high))
+    # make train's 1e-3 saturated its kernels in 3 epochs (docs/results.md §20); the shipped one trained at 3e-4
+    albedo_learning_rate: float = bounded(3e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)
     compositor_learning_rate: float = bounded(1e-3, LEARNING_RATE)
@@ -529,8 +532,6 @@ class TrainConfig:
                 raise OptionError("compositor", f"composes the scales of both branches; {one}")
             if "diffuse" not in self.branches:
                 raise OptionError("branches", f"{','.join(self.branches)} leaves out the diffuse branch; {one}")
-            if self.albedo_steps:
-                raise OptionError("albedo_steps", f"trains the albedo the diffuse irradiance is multiplied by; {one}")
         if self.albedo_steps and (self.shared or self.slope_input):
             raise OptionError("albedo_steps", "trains a copy of the diffuse network on the albedo, which needs a "
                               f"diffuse network of its own without a λ input; got --shared {self.shared}, "
@@ -596,8 +597,8 @@ class TrainConfig:
         """The run's phases in training order, each with its place in the run's epoch numbering."""
         branches = ("shared",) if self.shared else tuple(b for b in self.branches if b in self.denoised_branches)
         plan = [(b, self.steps, self.learning_rate) for b in branches]
-        if self.albedo_steps:
-            plan.append(("albedo", self.albedo_steps, self.learning_rate))
+        if self.albedo_steps and self.input_set.split:
+            plan.append(("albedo", self.albedo_steps, self.albedo_learning_rate))
         if self.joint_steps and self.input_set.split:
             plan.append(("joint", self.joint_steps, self.joint_learning_rate))
         if self.compositor is not None:
@@ -618,8 +619,8 @@ class TrainConfig:
             del d["reference_tau"]  # the record of an unweighted run, as written before weighting existed
         if d["fireflies"] == NO_FIREFLIES:
             del d["fireflies"]  # likewise: a run without synthetic fireflies, as written before they existed
-        if d["albedo_steps"] == NO_ALBEDO_NETWORK:
-            del d["albedo_steps"]  # likewise: a run without an albedo network, as written before they existed
+        if d["albedo_steps"] == NO_ALBEDO_NETWORK:  # likewise: a run without one, as written before they existed
+            del d["albedo_steps"], d["albedo_learning_rate"]
         if d["patience"] == TRAIN_EVERY_STEP:
             del d["patience"]  # likewise: a run of every step, as written before early stopping existed
         if d["init"] is None:

@@ -307,6 +307,7 @@ def _train_options(add) -> None:
     g.add_argument("--albedo-steps", type=int, help="steps of the albedo network, a copy of the diffuse network "
                    "trained to filter the albedo the irradiance is multiplied by (docs/training.md §1); 0 for none, "
                    f"the albedo then prefiltered {d('albedo_steps')}")
+    g.add_argument("--albedo-lr", dest="albedo_learning_rate", type=float, help=d("albedo_learning_rate"))
     g.add_argument("--compositor", help="alpha or kernel: add the multiscale compositor phase (default: none)")
     g.add_argument("--compositor-steps", type=int, help=d("compositor_steps"))
     g.add_argument("--compositor-lr", dest="compositor_learning_rate", type=float, help=d("compositor_learning_rate"))

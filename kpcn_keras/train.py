@@ -279,6 +279,7 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 # alone. Seen in issue 23's quality study (docs/results.md §10d): the unet preset at lr 0.001 saturated a
 # specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
 FROZEN_EPOCHS = 3
+LEARNING_RATE_OPTIONS = {"joint": "--joint-lr", "compositor": "--compositor-lr", ALBEDO_NETWORK: "--albedo-lr"}
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
 
@@ -317,7 +318,8 @@ class _StopOnSaturation(keras.callbacks.Callback):
                 "the mark of a network that no longer learns (of a kernel-predicting one, saturated kernels: each "
                 "pixel's softmax on one neighbour, no gradient through it). "
                 "Train under a new --run with a lower learning rate "
-                f"(--lr; this run's is {self.phase.learning_rate:g})."
+                f"({LEARNING_RATE_OPTIONS.get(self.phase.component, '--lr')}; this run's is "
+                f"{self.phase.learning_rate:g})."
             )
 
 

@@ -38,7 +38,6 @@ def albedo_run(tmp_path_factory):
 
 
 @pytest.mark.parametrize("bad", [
-    dict(inputs="no-split"),  # one network for the total colour: no irradiance to multiply
     dict(shared=True),
     dict(loss="asymmetric", slope_input=True),
     dict(branches=("diffuse",)),  # the loss is on the final colour, which needs the specular branch
@@ -53,14 +52,17 @@ def test_the_albedo_phase_follows_the_branches_and_a_run_without_it_keeps_its_re
     cfg = TrainConfig.from_preset("cpu", albedo_steps=120, joint_steps=50, steps=100)
     assert [(p.name, p.steps, p.learning_rate) for p in cfg.phases()] == [
         ("diffuse", 100, cfg.learning_rate), ("specular", 100, cfg.learning_rate),
-        ("albedo", 120, cfg.learning_rate), ("joint", 50, cfg.joint_learning_rate)]
-    assert cfg.to_dict()["albedo_steps"] == 120
+        ("albedo", 120, cfg.albedo_learning_rate), ("joint", 50, cfg.joint_learning_rate)]
+    assert cfg.albedo_learning_rate != cfg.learning_rate  # its own: make train's rate saturates it (results §20)
+    assert (cfg.to_dict()["albedo_steps"], cfg.to_dict()["albedo_learning_rate"]) == (120, cfg.albedo_learning_rate)
     # a run without one writes no key, and a record without the key is a run without one
     plain = TrainConfig.from_preset("cpu")
-    assert "albedo_steps" not in plain.to_dict()
+    assert not {"albedo_steps", "albedo_learning_rate"} & set(plain.to_dict())
     assert TrainConfig.from_record(plain.to_dict()).albedo_steps == 0
     assert [p.name for p in TrainConfig(inputs="no-variance", albedo_steps=3).phases()] == \
         ["diffuse", "specular", "albedo"]
+    # a no-split run's one network filters the total colour: no irradiance to multiply, passed over as joint is
+    assert [p.name for p in TrainConfig(inputs="no-split", albedo_steps=3, joint_steps=3).phases()] == ["diffuse"]
 
 
 # ---------------------------------------------------------------- batches and the training model
