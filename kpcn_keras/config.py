@@ -90,6 +90,7 @@ NO_FIREFLIES = 0.0  # fireflies of a run that adds none: what a run record witho
 PATIENCE = Bound(0, 100_000)  # epochs without a better validation loss before a phase stops
 TRAIN_EVERY_STEP = 0  # patience of a run that trains every step: what a run record without the key did
 NO_ALBEDO_NETWORK = 0  # albedo_steps of a run without one: what a run record without the key trained
+ALBEDO_NETWORK = "albedo"  # the phase, component and model name of a run's albedo network
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 PORT = Bound(0, 65535)  # kpcn view --port; 0 takes a free one
 VIEW_HOST, VIEW_PORT = "127.0.0.1", 8765  # kpcn view's page is for the person at this machine: nothing else reaches it
@@ -399,7 +400,7 @@ class Phase:
     def trains_on_final_colour(self) -> bool:
         """Whether the phase's loss is on the final colour (joint, compositor, and the albedo network's, whose
         albedo it is multiplied into), not on one branch's reference."""
-        return self.component in ("joint", "compositor", "albedo")
+        return self.component in ("joint", "compositor", ALBEDO_NETWORK)
 
 
 @dataclass
@@ -484,7 +485,7 @@ class TrainConfig:
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     albedo_steps: int = bounded(NO_ALBEDO_NETWORK, Bound(0, STEPS.high))
-    # make train's 1e-3 saturated its kernels in 3 epochs (docs/results.md §20); the shipped one trained at 3e-4
+    # a rate of its own: make train's saturated the albedo network's kernels (docs/results.md §20)
     albedo_learning_rate: float = bounded(3e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)
@@ -598,7 +599,7 @@ class TrainConfig:
         branches = ("shared",) if self.shared else tuple(b for b in self.branches if b in self.denoised_branches)
         plan = [(b, self.steps, self.learning_rate) for b in branches]
         if self.albedo_steps and self.input_set.split:
-            plan.append(("albedo", self.albedo_steps, self.albedo_learning_rate))
+            plan.append((ALBEDO_NETWORK, self.albedo_steps, self.albedo_learning_rate))
         if self.joint_steps and self.input_set.split:
             plan.append(("joint", self.joint_steps, self.joint_learning_rate))
         if self.compositor is not None:

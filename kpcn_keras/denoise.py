@@ -54,9 +54,8 @@ import numpy as np
 
 from kpcn_keras import slope_map
 from kpcn_keras.augment import Augmentation, augment_spatial, moved_box
-from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
+from kpcn_keras.config import ALBEDO_NETWORK, DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
 from kpcn_keras.models import (
-    ALBEDO_NETWORK,
     albedo_input,
     input_alignment,
     kept_of,

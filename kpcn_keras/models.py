@@ -82,7 +82,7 @@ from __future__ import annotations
 import keras
 import numpy as np
 
-from kpcn_keras.config import ARCHS, COLOUR_CHANNELS, DILATED_ARCHS, ModelConfig
+from kpcn_keras.config import ALBEDO_NETWORK, ARCHS, COLOUR_CHANNELS, DILATED_ARCHS, ModelConfig
 from kpcn_keras.layers import (
     CropLike,
     FinalColour,
@@ -118,7 +118,6 @@ __all__ = [
 ]
 
 FINAL_INPUTS = {branch: f"{branch}_input" for branch in BRANCHES}  # input names of a final-colour model
-ALBEDO_NETWORK = "albedo"  # the component, model and phase name of a run's albedo network
 TRUNK_FORMAT = "channels_first"  # the convolutions' layout inside a branch model (see the module docstring)
 DATA_FORMATS = ("channels_first", "channels_last")  # "channels_last": the layout of models saved before
 TO_CHANNELS_FIRST = (3, 1, 2)  # keras.layers.Permute dims: (H, W, C) -> (C, H, W)

@@ -73,12 +73,11 @@ import keras
 import numpy as np
 
 from kpcn_keras import distributed
-from kpcn_keras.config import UNWEIGHTED_TAU, Phase, TrainConfig
+from kpcn_keras.config import ALBEDO_NETWORK, UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.layers import FinalColour
 from kpcn_keras.losses import SMAPE, AsymmetricSMAPE
 from kpcn_keras.models import (
-    ALBEDO_NETWORK,
     ModelConfig,
     build_albedo_training_model,
     build_branch_model,
@@ -137,8 +136,8 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
     for name, net in nets.items():
         check_architecture(net, model_cfg, finished.component_path(name))
     if phase.name == ALBEDO_NETWORK:
-        # the diffuse network's trunk already tells noise from detail; started from it, the albedo network
-        # learned in a tenth of the steps what a new one had not (docs/results.md §20)
+        # the diffuse network's trunk already tells noise from detail: a new network did not learn in as many
+        # steps what one started from it did (docs/results.md §20)
         albedo = build_branch_model(model_cfg, name=ALBEDO_NETWORK)
         albedo.set_weights(nets["diffuse"].get_weights())
         return build_albedo_training_model(albedo, model_cfg.input_channels)

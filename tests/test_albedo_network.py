@@ -8,10 +8,10 @@ import pytest
 from helpers import build_tiny_shards, tiny_train_config
 
 from kpcn_keras import augment
-from kpcn_keras.config import TrainConfig
+from kpcn_keras.config import ALBEDO_NETWORK, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.denoise import Denoiser
-from kpcn_keras.models import ALBEDO_NETWORK, albedo_input, build_albedo_training_model, build_branch_model
+from kpcn_keras.models import albedo_input, build_albedo_training_model, build_branch_model
 from kpcn_keras.run import Run
 from kpcn_keras.train import train
 from prep import exr, features
