@@ -33,26 +33,28 @@ A run's record names its input set (``prep.inputs``; :attr:`RunRecord.inputs`: t
 without one), and its denoiser reads frames restricted to it. :meth:`Run.serving` picks, among a run and its
 ``inputs/`` variants, the finished one for a frame's input set.
 
-A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``), and
-``compositor`` for a multiscale run. The record's ``components`` maps each to the phase file that holds its
-latest weights and the path of nested model names to it inside that file (joint fine-tuning trains both branch
-networks as parts of one model, so its file holds both): :meth:`Run.load_component` is how anything reads one.
+A *component* is a network the denoiser is made of: ``diffuse`` and ``specular`` (or one ``shared``),
+``albedo`` for a run with an albedo network, and ``compositor`` for a multiscale run. The record's ``components``
+maps each to the phase file that holds its latest weights and the path of nested model names to it inside that
+file (joint fine-tuning trains both branch networks as parts of one model, so its file holds both; the albedo
+phase's file holds the albedo network inside the model it trained in): :meth:`Run.load_component` is how
+anything reads one.
 
 The record stores the shard set's folder relative to the run folder, and no field names the run itself,
 so a run folder can be renamed or used from any working directory.
 
 **What a reader gets is what training wrote.** The record's ``models`` maps every finished phase file to its
-SHA-256 and the network it was trained as (:meth:`Run.record_model`); each network inside a file also carries
-its role as its model name (``diffuse``, ``specular``, ``shared``, ``compositor``: ``models.build_branch_model``
-names every layer after it). Every reader of a run's networks (denoise, evaluate, figures, compare, bench,
-resample) reads the record once, as a :class:`RunRecord` (:meth:`Run.record`: the JSON parsed in this one
-place, the model configuration a ``ModelConfig``), refuses it while a phase or a resample round is unfinished
-(:meth:`RunRecord.finished`, naming it and the command that resumes it), and reads each network once with
-:meth:`Run.load_component` (refused when the file's checksum is not the recorded one, or the network in it is
-another branch's), through ``denoise.Denoiser.from_run``, and passes the record and the denoiser down. A run
-written before the record held checksums has no ``models``: it still loads, checked by the model names alone.
-The writers (``train``, ``resample``) update the record's JSON (:meth:`Run.read_record`) and write it whole:
-the file's format is theirs, and :class:`RunRecord` only reads it.
+SHA-256 and the network it was trained as (:meth:`Run.record_model`); each network inside a file also carries its
+role as its model name (``diffuse``, ``specular``, ``shared``, ``albedo``, ``compositor``:
+``models.build_branch_model`` names every layer after it). Every reader of a run's networks (denoise, evaluate,
+figures, compare, bench, resample) reads the record once, as a :class:`RunRecord` (:meth:`Run.record`: the JSON
+parsed in this one place, the model configuration a ``ModelConfig``), refuses it while a phase or a resample
+round is unfinished (:meth:`RunRecord.finished`, naming it and the command that resumes it), and reads each
+network once with :meth:`Run.load_component` (refused when the file's checksum is not the recorded one, or the
+network in it is another branch's), through ``denoise.Denoiser.from_run``, and passes the record and the denoiser
+down. A run written before the record held checksums has no ``models``: it still loads, checked by the model
+names alone. The writers (``train``, ``resample``) update the record's JSON (:meth:`Run.read_record`) and write
+it whole: the file's format is theirs, and :class:`RunRecord` only reads it.
 
 ``.keras`` files are written by :func:`save_model` through ``prep.files.atomic_path`` and made canonical:
 fixed zip timestamps and no save date, so the same weights give the same bytes (checksums of models mean
@@ -370,7 +372,7 @@ class Run:
         record.setdefault("models", {})[file] = {"network": network, "sha256": sha256_file(self.dir / file)}
 
     def load_component(self, record: RunRecord, name: str, *, compile: bool = False) -> keras.Model:
-        """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``compositor``) of the run,
+        """The finished network ``name`` (``diffuse``, ``specular``, ``shared``, ``albedo``, ``compositor``) of the run,
         read from the phase file the record names; KpcnError if the run has not trained it, if the file is
         not the one the record lists (SHA-256), or if the network in it was trained for another branch."""
         entry = record.components.get(name)
