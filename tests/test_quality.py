@@ -129,7 +129,7 @@ def _tables(md: str) -> list[list[list[str]]]:
 def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
     record = hand_record()
     md = qs.format_report(record)
-    levers, held, val, each = _tables(md)
+    levers, held, val, each, target = _tables(md)
     for lever, column in (("cpu", 3), ("data", 4)):
         row = next(r for r in levers if r[0] == f"`{lever}`")
         for cell, kinds in ((row[4], ("held-out",)), (row[5], ("validation",)), (row[6], KINDS_ALL)):
@@ -159,6 +159,25 @@ def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
 
 
 KINDS_ALL = ("held-out", "validation")
+
+
+def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_validation_frames_at_16_spp():
+    record = hand_record()
+    # one validation frame at 16 spp (TABLE): cpu 0.006 against OIDN's 0.004, data 0.003
+    target = _tables(qs.format_report(record))[4]
+    assert target == [["`cpu`", "0 of 1", "1", "1.50×", "out by 50%"], ["`data`", "1 of 1", "1", "0.75×", "met"]]
+    # three: half is two, so the second lowest ratio decides
+    first = next(r for r in record["frames"] if r["kind"] == "validation" and r["spp"] == 16)
+    for cpu, data in ((0.0036, 0.0060), (0.0050, 0.0042)):  # against OIDN's 0.004: cpu 0.90, 1.25; data 1.50, 1.05
+        extra = json.loads(json.dumps(first))
+        extra["levers"]["cpu"]["relmse"], extra["levers"]["data"]["relmse"] = cpu, data
+        record["frames"].append(extra)
+    got = {lever: qs.default_target(record, lever) for lever in LEVERS}
+    assert got["cpu"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.25)}
+    assert got["data"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.05)}
+    rows = _tables(qs.format_report(record))[4]
+    assert [r[-1] for r in rows] == ["out by 25%", "out by 5%"]
+    assert "The default's target" not in qs.format_report(hand_record(oidn=False))
 
 
 def test_the_best_lever_is_the_one_below_oidn_on_most_frames_not_the_one_a_single_frame_makes_best_by_mean():
