@@ -244,6 +244,15 @@ class Denoiser:
         gc.collect(1)  # as in predict_tile
         return _kept(pred, tile, window)
 
+    def frame_albedo(self, aovs: dict[str, np.ndarray], scale: float) -> np.ndarray:
+        """:meth:`albedo_tile` of every tile of the frame ``aovs`` (restricted to the run's input set), put together:
+        the albedo a denoise of the whole frame multiplies by (float32, (H, W, 3))."""
+        out = np.empty(aovs["albedo"].shape, np.float32)
+        for tile, window in self.tiles(*aovs["depth"].shape):
+            y0, y1, x0, x1 = tile
+            out[y0:y1, x0:x1] = self.albedo_tile(aovs, tile, window, scale)
+        return out
+
     def check_slope(self, slope, shape: tuple[int, int]) -> None:
         """OptionError unless ``slope`` is what this run takes for an (H, W) = ``shape`` frame: a number (or
         None) as ``RunRecord.check_slope`` says, or a map of the frame's shape for a run with a specialisation
@@ -377,10 +386,7 @@ class PreparedFrame:
         self.shape = aovs["depth"].shape
         scale = features.depth_scale(aovs["depth"])
         # filtered once, as the trunks run once (a map re-runs only what follows λ), tile by tile as a denoise does
-        self.albedo = np.empty(aovs["albedo"].shape, np.float32)
-        for tile, window in denoiser.tiles(*self.shape):
-            y0, y1, x0, x1 = tile
-            self.albedo[y0:y1, x0:x1] = denoiser.albedo_tile(aovs, tile, window, scale)
+        self.albedo = denoiser.frame_albedo(aovs, scale)
         cfg = denoiser.model_config
         self.modules, self.tiles = {}, {}
         for branch, model in denoiser.models.items():

@@ -132,12 +132,13 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
         return model
     names = _network_names(cfg)
     finished = run.parse_record(record)  # the phases done so far
-    nets = {name: run.load_component(finished, name) for name in dict.fromkeys(names.values())}
+    # the albedo network starts from the diffuse network alone: the trunk already tells noise from detail, and a
+    # new network did not learn in as many steps what one started from it did (docs/results.md §20)
+    wanted = ["diffuse"] if phase.name == ALBEDO_NETWORK else dict.fromkeys(names.values())
+    nets = {name: run.load_component(finished, name) for name in wanted}
     for name, net in nets.items():
         check_architecture(net, model_cfg, finished.component_path(name))
     if phase.name == ALBEDO_NETWORK:
-        # the diffuse network's trunk already tells noise from detail: a new network did not learn in as many
-        # steps what one started from it did (docs/results.md §20)
         albedo = build_branch_model(model_cfg, name=ALBEDO_NETWORK)
         albedo.set_weights(nets["diffuse"].get_weights())
         return build_albedo_training_model(albedo, model_cfg.input_channels)
@@ -191,11 +192,17 @@ def _components(cfg: TrainConfig, phase: Phase) -> dict[str, dict]:
     return {phase.component: {"file": file, "layers": [phase.component], "phase": phase.name}}
 
 
+def _asymmetric(cfg: TrainConfig, phase: Phase) -> bool:
+    """Whether ``phase`` trains with the asymmetric loss (and reads the noisy colour for it): the run's loss, but
+    for the albedo network, whose target has no noisy side to lean to."""
+    return cfg.loss == "asymmetric" and phase.component != ALBEDO_NETWORK
+
+
 def _loss(cfg: TrainConfig, phase: Phase) -> keras.losses.Loss:
     """The training loss of ``phase`` (compiled, and per-scale supervision's at every inner level)."""
     # the final colour has no relSE in the shards: joint and compositor phases are unweighted (docs/training.md §2)
     tau = cfg.reference_tau if cfg.weights_reference(phase) else UNWEIGHTED_TAU
-    if cfg.loss == "asymmetric" and phase.component != ALBEDO_NETWORK:  # an albedo has no noisy side to lean to
+    if _asymmetric(cfg, phase):
         return AsymmetricSMAPE(None if cfg.slope_input else cfg.slope, reference_tau=tau)
     return SMAPE(reference_tau=tau)
 
@@ -217,9 +224,8 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     network = phase.component
     source = network if network == ALBEDO_NETWORK else "final" if phase.trains_on_final_colour else \
         "both" if network == "shared" else network
-    asymmetric = cfg.loss == "asymmetric" and network != ALBEDO_NETWORK
     common = dict(source=source, batch_size=cfg.batch_size, model=cfg.model,
-                  loss_target="reference+noisy" if asymmetric else "reference",
+                  loss_target="reference+noisy" if _asymmetric(cfg, phase) else "reference",
                   slope=cfg.slope, slope_range=cfg.slope_range, reference_relse=cfg.weights_reference(phase),
                   target_input=cfg.supervises_scales(phase))
     train = ShardPatches(paths["train"], steps=sum(phase.epoch_length(i) for i in range(start, end)),
@@ -278,7 +284,6 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 # alone. Seen in issue 23's quality study (docs/results.md §10d): the unet preset at lr 0.001 saturated a
 # specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
 FROZEN_EPOCHS = 3
-LEARNING_RATE_OPTIONS = {"joint": "--joint-lr", "compositor": "--compositor-lr", ALBEDO_NETWORK: "--albedo-lr"}
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
 
@@ -295,6 +300,10 @@ def frozen(history: list[dict]) -> bool:
         return False
     return (max(val) - min(val) <= FROZEN_TOLERANCE * max(map(abs, val))
             and max(train) - min(train) > FROZEN_TRAINING_MOVE * max(map(abs, train)))
+
+
+# the option that sets a phase's learning rate, for the line that asks for a lower one (the branch phases': --lr)
+LEARNING_RATE_OPTIONS = {"joint": "--joint-lr", "compositor": "--compositor-lr", ALBEDO_NETWORK: "--albedo-lr"}
 
 
 class _StopOnSaturation(keras.callbacks.Callback):

@@ -74,12 +74,8 @@ def main() -> None:
         log_irradiance = den.run_branch("diffuse", noisy)
         specular = features.specular_from_log(den.run_branch("specular", noisy))
         given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
-        learned = None
-        if den.albedo_network is not None:
-            learned = np.empty_like(given["albedo"])
-            scale_depth = features.depth_scale(given["depth"])
-            for (y0, y1, x0, x1), window in den.tiles(*given["depth"].shape):
-                learned[y0:y1, x0:x1] = den.albedo_tile(given, (y0, y1, x0, x1), window, scale_depth)
+        learned = (den.frame_albedo(given, features.depth_scale(given["depth"]))
+                   if den.albedo_network is not None else None)
         albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k, s=s)
                                        for r, f, k, s in settings] + [learned, ref["albedo"] if whole else None]
         scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
