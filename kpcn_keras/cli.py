@@ -329,6 +329,12 @@ def cmd_quality(args) -> int:
     from kpcn_keras.studies import quality
     from kpcn_keras.studies.config import QualityConfig
 
+    if getattr(args, "measure_model", False):
+        cfg = QualityConfig(**_given(args, QualityConfig))
+        record = quality.add_model(cfg, command=_command_line(args))
+        print(quality.format_report(record))
+        print(f"report: {cfg.out_dir}/{quality.REPORT}.md")
+        return 0
     return _study(args, QualityConfig, quality.quality, quality.rewrite_reports, quality.format_report,
                   quality.REPORT)
 

@@ -620,8 +620,14 @@ def _quality_options(add) -> None:
     q.add_argument("--seed", type=int, help=d("seed"))
     q.add_argument("--ensemble", type=int, help="denoise every frame as a self-ensemble of this many members (as "
                    f"kpcn denoise --ensemble); the trained runs serve every value {d('ensemble')}")
-    q.add_argument("--report-only", action="store_true", help="write quality.md and quality.png again from the "
-                   "--out folder's quality.json (and the frames and runs it names), training nothing")
+    q.add_argument("--model", help="a finished run or shipped model measured beside the levers on the same frames "
+                   "(default: the one kpcn denoise uses without --run, where there is one)")
+    mode = q.add_mutually_exclusive_group()
+    mode.add_argument("--report-only", action="store_true", help="write quality.md and quality.png again from the "
+                      "--out folder's quality.json (and the frames and runs it names), training nothing")
+    mode.add_argument("--measure-model", action="store_true", help="measure the model (--model, else the shipped "
+                      "one) on the frames of the --out folder's quality.json, add it to the record and write the "
+                      "reports again, training nothing")
 
 
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options

@@ -6,6 +6,7 @@ the EXRs reproduces."""
 import dataclasses
 import datetime
 import json
+import math
 import shutil
 import statistics
 from pathlib import Path
@@ -18,7 +19,7 @@ from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies import quality as qs
 from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig, combine
 from prep import exr, layouts
-from prep.errors import OptionError
+from prep.errors import KpcnError, OptionError
 
 RENDERERS = Path(__file__).parent / "fixtures" / "renderers"
 OVERRIDES = {"model": TINY_MODEL, "batch_size": 2, "val_batches": 1}
@@ -165,7 +166,7 @@ def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_valida
     record = hand_record()
     # one validation frame at 16 spp (TABLE): cpu 0.006 against OIDN's 0.004, data 0.003
     target = _tables(qs.format_report(record))[4]
-    assert target == [["`cpu`", "0 of 1", "1", "1.50×", "out by 50%"], ["`data`", "1 of 1", "1", "0.75×", "met"]]
+    assert target == [["`cpu`", "0 of 1", "1", "1.500×", "out by 50%"], ["`data`", "1 of 1", "1", "0.750×", "met"]]
     # three: half is two, so the second lowest ratio decides
     first = next(r for r in record["frames"] if r["kind"] == "validation" and r["spp"] == 16)
     for cpu, data in ((0.0036, 0.0060), (0.0050, 0.0042)):  # against OIDN's 0.004: cpu 0.90, 1.25; data 1.50, 1.05
@@ -178,6 +179,48 @@ def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_valida
     rows = _tables(qs.format_report(record))[4]
     assert [r[-1] for r in rows] == ["out by 25%", "out by 5%"]
     assert "The default's target" not in qs.format_report(hand_record(oidn=False))
+
+
+# the measured model's relMSE on TABLE's frames, in order: below OIDN on frames 0, 2, 3, 5 and 7; equal on 4
+MODEL_RELMSE = (0.012, 0.024, 0.004, 0.002, 0.001, 0.004, 0.005, 0.002)
+
+
+def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_count():
+    record = hand_record()
+    for row, relmse in zip(record["frames"], MODEL_RELMSE, strict=True):
+        row[qs.MODEL] = {**_scores(relmse), "model": "full"}
+    record[qs.MODEL] = {"run": "models/default", "set": "default-r1", "shipped": True}
+    md = qs.format_report(record)
+    ratios = sorted(m / t[5] for m, t in zip(MODEL_RELMSE, TABLE))
+    lower = sum(m < t[5] for m, t in zip(MODEL_RELMSE, TABLE))
+    assert lower == 5 and math.ceil(8 * 2 / 3) == 6
+    # a model is no lever: the best lever is judged as before, though the model is below OIDN on more frames
+    assert qs.best(record) == "data"
+    tables = _tables(md)
+    targets = tables[5]
+    # the sixth lowest ratio decides: frame 4, level with OIDN, and a tie is not below
+    assert qs.MODEL not in QUALITY_LEVERS
+    assert ratios[5] == 1.0 and targets[0][1:] == ["5 of 8", "6 frames", "1.000× (the deciding frame)", "out by 0.0%"]
+    for row, spp in zip(targets[1:3], (16, 64)):  # DSSIM is relMSE / 2 in TABLE: the ratio is of the relMSE means
+        model = np.mean([m for m, t in zip(MODEL_RELMSE, TABLE) if t[1] == spp])
+        oidn = np.mean([t[5] for t in TABLE if t[1] == spp])
+        assert row[1:4] == [f"{model / 2:.4f}", f"{oidn / 2:.4f}", f"{model / oidn:.2f}×"]
+        assert row[4] == ("met" if model < oidn else f"out by {model / oidn - 1:.0%}")
+    # the default's target, for the model: one validation frame at 16 spp, 0.005 against OIDN's 0.004
+    assert targets[3][1:] == ["0 of 1", "1 frames", "1.250× (the deciding frame)", "out by 25%"]
+    levers, held, val, each = tables[:4]
+    label = "shipped model `default`"
+    assert levers[-1][0] == label and levers[-1][4:] == ["3 of 5", "2 of 3", "5 of 8",
+                                                          f"{statistics.median(ratios):.2f}×"]
+    cells = next(r for r in held if r[0] == "16" and r[1] == label)
+    assert cells[3] == f"{np.mean(MODEL_RELMSE[2:4]):.4f}" and cells[6] == "2 of 2"
+    assert [r[-3] for r in each] == [f"{m:.4f}" for m, t in zip(MODEL_RELMSE, TABLE) if t[0] == "validation"]
+    headline = next(line for line in md.splitlines() if line.startswith(f"**The {label}**"))
+    assert f"on 5 of 8 frames, the median ratio {statistics.median(ratios):.2f}×" in headline
+    # below OIDN on 6 of the 8: met, decided by the sixth lowest ratio
+    record["frames"][1][qs.MODEL]["relmse"] = 0.019
+    met = _tables(qs.format_report(record))[5][0]
+    assert met[1] == "6 of 8" and met[4] == "met"
 
 
 def test_the_best_lever_is_the_one_below_oidn_on_most_frames_not_the_one_a_single_frame_makes_best_by_mean():
@@ -337,6 +380,37 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] == pytest.approx(_relmse64(two, reference), rel=1e-9)
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] != record["frames"][0]["levers"]["cpu"]["relmse"]
     assert "a self-ensemble of 2 members" in (tmp_path / "ens" / "quality.md").read_text()
+
+    # the shipped model was measured beside the levers, each frame served by its network for what it gives
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+
+    shipped = record[qs.MODEL]
+    assert Path(shipped["run"]).resolve() == MODELS_DIR / DEFAULT_MODEL and shipped["shipped"]
+    served = Run(shipped["run"]).serving(layouts.read(frames / "cycles5" / "studio-00016spp.exr").inputs)
+    denoised = Denoiser.from_run(served)(layouts.read(frames / "cycles5" / "studio-00016spp.exr").layers)["default"]
+    assert studio[qs.MODEL]["relmse"] == pytest.approx(_relmse64(denoised, ref), rel=1e-9)
+    assert "## The shipped model `default`" in md
+
+    # --measure-model puts another model in the record, nothing trained: the cpu lever's run scores as the lever
+    qs.add_model(dataclasses.replace(cfg, model=record["plans"]["cpu"]["run"]), log=lines.append)
+    kept = out / "quality.json"
+    measured = json.loads(kept.read_text())
+    assert all(r[qs.MODEL] == r["levers"]["cpu"] for r in measured["frames"])
+    assert measured["plans"] == record["plans"] and measured[qs.MODEL]["set"] == "s"
+    # a model that trained on a scene the study holds out is refused before anything is measured
+    seen = tmp_path / "seen"
+    shutil.copytree(record["plans"]["cpu"]["run"], seen)
+    data = json.loads((seen / "config.json").read_text())
+    data["shards"]["split"]["train"].append("a-001")
+    (seen / "config.json").write_text(json.dumps(data))
+    res = run_main("quality", "--measure-model", "--model", seen, "--out", out, cwd=tmp_path)
+    assert_one_line_error(res, f"--model {seen}", "a-001", "holds out")
+    assert json.loads(kept.read_text()) == measured
+    # frames that are no longer the record's: refused, naming the first that differs
+    measured["frames"][0]["frame"] = "z-009 4 spp"
+    kept.write_text(json.dumps(measured))
+    with pytest.raises(KpcnError, match="found 'a-001 4 spp' where it has 'z-009 4 spp'"):
+        qs.add_model(cfg, log=lines.append)
 
 
 @pytest.mark.slow

@@ -194,7 +194,8 @@ class QualityConfig:
     ``runs_root``; measured on the set's held-out frames and on the frames under ``frames``, each denoised as a
     self-ensemble of ``ensemble`` members (``kpcn denoise --ensemble``; 1: the networks once), with panels of the
     frames at ``panel_spp``; reports in ``out_dir``. ``ensemble`` is not part of what is trained: the same runs
-    serve every value."""
+    serve every value. ``model``: a finished run or shipped model measured beside the levers on the same frames
+    (empty: the one ``kpcn denoise`` uses without ``--run``, where there is one)."""
 
     set_name: str = "default"
     render_root: str = "data/renders"
@@ -207,6 +208,7 @@ class QualityConfig:
     panel_spp: int = bounded(16, SPP)
     seed: int = bounded(0, SEED)
     ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
+    model: str = ""
 
     def __post_init__(self):
         known = _all_levers()
@@ -223,6 +225,8 @@ class QualityConfig:
             raise OptionError("levers", f"{found}; the known ones are {', '.join(known)}")
         if not self.frames:
             raise OptionError("frames", "must name at least one file or folder")
+        if not isinstance(self.model, str):
+            raise OptionError("model", f"must be a run folder or empty (the shipped model), got {self.model!r}")
         check_fields(self)
 
 

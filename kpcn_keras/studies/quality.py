@@ -39,11 +39,20 @@ The contract:
 - **The default's target** (:func:`default_target`): issue 23 asks ``make train``'s default to be below OIDN on at
   least half of the validation frames at 16 spp; per lever, the frame that decides (the needed-th lowest ratio to
   OIDN's relMSE) says whether it is met and, where not, by how much it is out.
+- **The model beside the levers** (:func:`model_run`, :func:`measure_model`): the shipped model (``kpcn denoise``'s
+  without ``--run``), or ``cfg.model``, measured on the same frames, each served by its network for what the frame
+  gives, its scores in every row under :data:`MODEL`. It is not a lever (it trained for as long as it improved,
+  not for the budget), so it never heads the report; its section judges issue 23's targets for the shipped model
+  on these frames (:data:`MODEL_SHARE` of all frames below OIDN's relMSE, decided as the default's is; its mean
+  DSSIM below OIDN's at :data:`MODEL_DSSIM_SPP`). A model that trained on the study's held-out scenes is refused
+  (:func:`check_unseen`). ``kpcn quality --measure-model`` adds it to a record already written, training
+  nothing (:func:`add_model`): a record outlives its runs.
 - **Writes** ``<out_dir>/quality.md`` (the tables, the date, the machine, the rules), ``quality.json`` (every
   number, per frame) and ``quality.png`` (input | kpcn (the headline's lever) | OIDN | Blender | reference of the
-  validation frames at ``panel_spp``, every image tonemapped by the one ``prep.metrics.tonemap``) through
-  ``prep.studies.report``. ``kpcn quality --report-only`` writes the md again from ``quality.json`` alone and
-  the png from the frames and runs it names (:func:`rewrite_reports`), training nothing.
+  validation frames at ``panel_spp``, with the model's column where there is one, every image tonemapped by the
+  one ``prep.metrics.tonemap``) through ``prep.studies.report``. ``kpcn quality --report-only`` writes the md
+  again from ``quality.json`` alone and the png from the frames and runs it names (:func:`rewrite_reports`),
+  training nothing; where a run the panels need is gone, the png is left as it is and a line says so.
 
 The table of levers and :class:`kpcn_keras.studies.config.QualityConfig` are in ``kpcn_keras/studies/config.py``.
 This module imports keras and torch only inside the functions that train or denoise.
@@ -54,10 +63,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import itertools
 import json
 import math
+import os
 import statistics
 from datetime import date
+from fractions import Fraction
 from pathlib import Path
 
 from kpcn_keras.config import DEFAULT_ENSEMBLE, TrainConfig
@@ -70,7 +82,15 @@ from kpcn_keras.studies.compare import (
     with_steps,
 )
 from kpcn_keras.studies.config import QUALITY_BASE, QUALITY_LEVERS, QualityConfig
-from kpcn_keras.studies.frames import SCORES, beside, by_spp, panels_figure, renderer_pairs, scores
+from kpcn_keras.studies.frames import (
+    PANEL_COLUMNS,
+    SCORES,
+    beside,
+    by_spp,
+    panels_figure,
+    renderer_pairs,
+    scores,
+)
 from kpcn_keras.studies.inputs_study import cut_input_shards, shard_options
 from prep import exr, layouts
 from prep.errors import KpcnError
@@ -85,6 +105,12 @@ LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
 # a network for frames without a diffuse/specular split has the diffuse branch alone: what joins both branches
 # (a compositor, one shared network, joint fine-tuning) is left out of a lever's network for them
 WITHOUT_SPLIT = {"compositor": None, "shared": False, "joint_steps": 0}
+# the model measured beside the levers (the shipped one unless --model): its key in the record and in each row,
+# and its column in the panels. Not a lever: it trained for as long as it kept improving, not for the budget
+MODEL = "model"
+# issue 23's targets for the shipped model: below OIDN's relMSE on at least two thirds of all frames, and its mean
+# DSSIM below OIDN's at these spp
+MODEL_SHARE, MODEL_DSSIM_SPP = Fraction(2, 3), (16, 64)
 
 
 # ---------------------------------------------------------------- levers and their data
@@ -239,10 +265,14 @@ def held_out_frames(cfg: QualityConfig) -> list[dict]:
 # ---------------------------------------------------------------- measuring
 
 
+def validation_name(f: dict) -> str:
+    """A validation frame's name in the record: ``<renderer>/<scene> <spp> spp``."""
+    return f"{f['renderer']}/{f['scene']} {f['spp']} spp"
+
+
 def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict], *, log=print) -> tuple:
     """Per-frame rows of both kinds (raw input, OIDN, Blender's own, every lever) and each lever's outputs on
     the validation frames at ``cfg.panel_spp`` (for the panels)."""
-    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
     from prep import baselines
 
@@ -256,7 +286,7 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
             row["oidn"] = scores(baselines.oidn_denoise(f["noisy"]), f["reference"])
         rows.append(row)
     for f in frames:
-        row = {"kind": "validation", "frame": f"{f['renderer']}/{f['scene']} {f['spp']} spp", "scene": f["scene"],
+        row = {"kind": "validation", "frame": validation_name(f), "scene": f["scene"],
                "spp": f["spp"], "path": str(f["path"]), "reference_path": str(f["reference_path"]),
                "renderer": f["renderer"], "layout": f["frame"].layout, "inputs": f["frame"].inputs.name,
                "raw": scores(f["frame"].layers["default"], f["reference"]), "levers": {}}
@@ -264,27 +294,126 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
             row[name.lower()] = scores(image, f["reference"])
         rows.append(row)
     denoisers = {}
+    for lever, plan in plans.items():
+        entries, shown = measure_run(Run(plan["run"]), held, frames, cfg, denoisers)
+        for row, entry in zip(rows, entries):
+            row["levers"][lever] = entry
+        outputs.update({(lever, path): out for path, out in shown.items()})
+        held_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[:len(held)])
+        val_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[len(held):])
+        log(f"quality: [{lever}] mean relMSE held-out {held_mean:.4f}, validation {val_mean:.4f}")
+    return rows, outputs
+
+
+def measure_run(run, held: list[dict], frames: list[dict], cfg: QualityConfig, denoisers: dict) -> tuple:
+    """``run``'s scores on every frame, held-out then validation (the rows' order): the held-out frames by its
+    own networks, each validation frame by the network that serves what it gives (``Run.serving``); and its
+    outputs of the validation frames at ``cfg.panel_spp`` by path. ``denoisers`` caches one per network."""
+    from kpcn_keras.denoise import Denoiser
 
     def denoiser(variant):
         if variant.dir not in denoisers:
             denoisers[variant.dir] = Denoiser.from_run(variant, ensemble=cfg.ensemble)
         return denoisers[variant.dir]
 
-    for lever, plan in plans.items():
-        run = Run(plan["run"])
-        for row, f in zip(rows, held):
-            row["levers"][lever] = {**scores(denoiser(run)(f["noisy"])["default"], f["reference"]), "model": FULL.name}
-        for row, f in zip(rows[len(held):], frames):
-            variant = run.serving(f["frame"].inputs)
-            out = denoiser(variant)(f["frame"].layers)["default"]
-            row["levers"][lever] = {**scores(out, f["reference"]), "model": variant.record().inputs.name,
-                                    "run": str(variant.dir)}
-            if f["spp"] == cfg.panel_spp:
-                outputs[lever, str(f["path"])] = out
-        held_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[:len(held)])
-        val_mean = statistics.fmean(r["levers"][lever]["relmse"] for r in rows[len(held):])
-        log(f"quality: [{lever}] mean relMSE held-out {held_mean:.4f}, validation {val_mean:.4f}")
-    return rows, outputs
+    entries = [{**scores(denoiser(run)(f["noisy"])["default"], f["reference"]), "model": FULL.name} for f in held]
+    shown = {}
+    for f in frames:
+        variant = run.serving(f["frame"].inputs)
+        out = denoiser(variant)(f["frame"].layers)["default"]
+        entries.append({**scores(out, f["reference"]), "model": variant.record().inputs.name, "run": str(variant.dir)})
+        if f["spp"] == cfg.panel_spp:
+            shown[str(f["path"])] = out
+    return entries, shown
+
+
+# ---------------------------------------------------------------- the model beside the levers
+
+
+def model_run(cfg: QualityConfig, *, log=print):
+    """The model measured beside the levers: ``cfg.model``, else the one ``kpcn denoise`` uses without ``--run``
+    (None, said in a line, where there is none). KpcnError where ``cfg.model`` is not a finished run, or where
+    the model trained on the study's held-out scenes (:func:`check_unseen`); the study's shard set must exist."""
+    from kpcn_keras.run import Run, default_model
+
+    if cfg.model:
+        run = Run(cfg.model)
+        run.record().finished()
+    else:
+        try:
+            run = default_model()
+        except KpcnError as exc:
+            log(f"quality: no model measured beside the levers ({exc})")
+            return None
+    check_unseen(cfg, run)
+    return run
+
+
+def check_unseen(cfg: QualityConfig, run) -> None:
+    """KpcnError unless the model's networks for the held-out frames (its own, full ones) were trained without
+    the study's held-out scenes: checked where its set is the study's or one made from it (``<set>-...``, whose
+    renders of a scene are the same), since scenes of other sets share names, not pixels."""
+    record = run.record()
+    own = record.train.set_name
+    if own != cfg.set_name and not own.startswith(f"{cfg.set_name}-"):
+        return
+    seen = sorted(set(record.data["shards"].get("split", {}).get("train", ())) & set(held_out_scenes(cfg)))
+    if seen:
+        raise KpcnError(f"--model {run.dir}: trained on {', '.join(seen)} of the set {own}, which the study holds "
+                        "out: a model is not judged on the scenes it trained on")
+
+
+def measure_model(cfg: QualityConfig, run, rows: list[dict], held: list[dict], frames: list[dict], *,
+                  log=print) -> tuple[dict, dict]:
+    """``run`` measured on the study's frames: its scores put in every row under :data:`MODEL`; returns the
+    record's entry for it (where it is, the set it trained on) and its outputs of the panels' frames by path."""
+    entries, shown = measure_run(run, held, frames, cfg, {})
+    for row, entry in zip(rows, entries):
+        row[MODEL] = entry
+    log(f"quality: [{model_label(run.dir)}] mean relMSE held-out "
+        f"{statistics.fmean(e['relmse'] for e in entries[:len(held)]):.4f}")
+    # relative where it can be: a report in the repository names models/default, not this machine's folders
+    where = os.path.relpath(run.dir.resolve())
+    return {"run": str(run.dir) if where.startswith("..") else where, "set": run.record().train.set_name,
+            "shipped": is_shipped(run.dir)}, shown
+
+
+def is_shipped(folder) -> bool:
+    """Whether ``folder`` is a model shipped in the repository's ``models/``."""
+    from kpcn_keras.config import MODELS_DIR
+
+    return Path(folder).resolve().parent == MODELS_DIR
+
+
+def model_label(folder) -> str:
+    return f"{'shipped ' if is_shipped(folder) else ''}model `{Path(folder).name}`"
+
+
+def add_model(cfg: QualityConfig, *, command: str | None = None, log=print) -> dict:
+    """``kpcn quality --measure-model``: the model (``cfg.model``, else the shipped one) measured on the frames of
+    ``<cfg.out_dir>/quality.json``'s study, put in the record, and the reports written again; nothing trained.
+    KpcnError where the frames found are not the record's."""
+    report = Report(cfg.out_dir, REPORT)
+    record = read_json(report.path(".json"), "quality record", RECORD_KEYS)
+    report.check_writable()
+    fields = {f.name for f in dataclasses.fields(QualityConfig)}
+    study = QualityConfig(**{**{k: v for k, v in record["config"].items() if k in fields},
+                             "out_dir": cfg.out_dir, "model": cfg.model})
+    run = model_run(study, log=log)
+    if run is None:
+        raise KpcnError("--measure-model: no model to measure; name one with --model")
+    held, frames = held_out_frames(study), validation_frames(study)
+    found = [f["name"] for f in held] + [validation_name(f) for f in frames]
+    recorded = [r["frame"] for r in record["frames"]]
+    if found != recorded:
+        now, then = next((a, b) for a, b in itertools.zip_longest(found, recorded) if a != b)
+        raise KpcnError(f"{report.path('.json')}: the frames found now are not the record's (found {now!r} where "
+                        f"it has {then!r}); measure the model by running the study again")
+    entry, shown = measure_model(study, run, record["frames"], held, frames, log=log)
+    record = {**record, MODEL: {**entry, "measured": f"`{command or 'kpcn quality --measure-model'}` on "
+                                                      f"{date.today().isoformat()}"}}
+    report.write(record, format_report(record), panels_or_none(record, log=log))
+    return record
 
 
 # ---------------------------------------------------------------- the command
@@ -306,9 +435,11 @@ def quality(cfg: QualityConfig, *, overrides: dict | None = None, command: str |
     log(f"quality: {len(cfg.levers)} levers, {cfg.budget:g} s of training each over {len(input_sets)} networks "
         f"({', '.join(input_sets)}); {len(frames)} validation frames")
     sets = prepare_data(cfg, input_sets, log=log)
+    run = model_run(cfg, log=log)  # before the training: a model it cannot judge is refused first
     plans = plan_and_train(cfg, sets, input_sets, overrides=overrides, verbose=verbose, log=log)
     held = held_out_frames(cfg)
     rows, outputs = measure(cfg, plans, held, frames, log=log)
+    model, shown = measure_model(cfg, run, rows, held, frames, log=log) if run else (None, {})
     record = {
         **session.envelope(command),
         "config": {**dataclasses.asdict(cfg), "levers": list(cfg.levers), "frames": list(cfg.frames)},
@@ -322,15 +453,18 @@ def quality(cfg: QualityConfig, *, overrides: dict | None = None, command: str |
         "machine": session.machine(**deep_learning_stack()),
         "plans": plans,
         "frames": rows,
+        **({MODEL: model} if model else {}),
     }
     record["panels"] = panel_entries(record)
     top = best(record)
-    shown = []
+    panels = []
     for entry, f in zip(record["panels"], [f for f in frames if f["spp"] == cfg.panel_spp]):
         images = {"input": f["frame"].layers["default"], "kpcn": outputs[top, str(f["path"])], **f["beside"],
                   "reference": f["reference"]}
-        shown.append((entry["title"], images))
-    return report.write(record, format_report(record), lambda _: panels_figure(shown))
+        if model:
+            images[model_column(record)] = shown[str(f["path"])]
+        panels.append((entry["title"], images))
+    return report.write(record, format_report(record), lambda _: panels_figure(panels, panel_columns(record)))
 
 
 def panel_entries(record: dict) -> list[dict]:
@@ -344,26 +478,55 @@ def panel_entries(record: dict) -> list[dict]:
             for r in record["frames"] if r["kind"] == "validation" and r["spp"] == record["config"]["panel_spp"]]
 
 
+def panel_columns(record: dict) -> tuple[str, ...]:
+    """The panels' columns: input, kpcn (the headline's lever), the measured model where there is one, the
+    other denoisers, the reference."""
+    return PANEL_COLUMNS[:2] + ((model_column(record),) if record.get(MODEL) else ()) + PANEL_COLUMNS[2:]
+
+
+def model_column(record: dict) -> str:
+    return "shipped model" if record[MODEL]["shipped"] else "model"
+
+
 def redraw_panels(record: dict):
     """quality.png from the frames of the record's panels, denoised by the runs of the headline's lever as this
-    kpcn judges it (``--report-only``: :func:`panel_entries` again, so that the panels follow the headline)."""
+    kpcn judges it (``--report-only``: :func:`panel_entries` again, so that the panels follow the headline) and
+    by the measured model's network for each."""
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+
+    def denoised(run: Run, frame) -> object:
+        return Denoiser.from_run(run, ensemble=ensemble_of(record))(frame.layers)["default"]
 
     shown = []
     for entry in panel_entries(record):
         frame = layouts.read(entry["path"])
-        out = Denoiser.from_run(Run(entry["run"]), ensemble=ensemble_of(record))(frame.layers)["default"]
-        shown.append((entry["title"], {"input": frame.layers["default"], "kpcn": out,
-                                       **beside(Path(entry["path"]), frame.layers),
-                                       "reference": layouts.read(entry["reference_path"]).layers["default"]}))
-    return panels_figure(shown)
+        images = {"input": frame.layers["default"], "kpcn": denoised(Run(entry["run"]), frame),
+                  **beside(Path(entry["path"]), frame.layers),
+                  "reference": layouts.read(entry["reference_path"]).layers["default"]}
+        if record.get(MODEL):
+            images[model_column(record)] = denoised(Run(record[MODEL]["run"]).serving(frame.inputs), frame)
+        shown.append((entry["title"], images))
+    return panels_figure(shown, panel_columns(record))
+
+
+def panels_or_none(record: dict, *, log=print):
+    """:func:`redraw_panels`, or None (the png left as it is, said in a line) where a run the panels need is
+    gone: a report's numbers are its record's, and a record outlives its runs."""
+    from kpcn_keras.run import Run
+
+    needed = [e["run"] for e in panel_entries(record)] + ([record[MODEL]["run"]] if record.get(MODEL) else [])
+    gone = [r for r in needed if not Run(r).has_record()]
+    if gone:
+        log(f"quality: {REPORT}.png left as it was: the run {gone[0]} its panels need is gone")
+        return None
+    return redraw_panels
 
 
 RECORD_KEYS = ("date", "config", "levers", "input_sets", "rules", "oidn", "machine", "plans", "frames", "panels")
 
 
-def rewrite_reports(out_dir: str | Path) -> dict:
+def rewrite_reports(out_dir: str | Path, *, log=print) -> dict:
     """``quality.md`` written again from ``<out_dir>/quality.json`` and ``quality.png`` from the frames and runs
     it names (``kpcn quality --report-only``), nothing trained; returns the record as the report read it (with
     ``rewritten``; ``quality.json`` is left as it is)."""
@@ -371,7 +534,7 @@ def rewrite_reports(out_dir: str | Path) -> dict:
     record = read_json(report.path(".json"), "quality record", RECORD_KEYS)
     report.check_writable((".md", ".png"))
     record = {**record, "rewritten": f"`kpcn quality --report-only` on {date.today().isoformat()}"}
-    report.write_text(record, format_report(record), redraw_panels)
+    report.write_text(record, format_report(record), panels_or_none(record, log=log))
     return record
 
 
@@ -388,13 +551,18 @@ def mean(rows: list[dict], method: str, metric: str, lever: bool = False) -> flo
     return None if not values or None in values else statistics.fmean(values)
 
 
-def against_oidn(rows: list[dict], lever: str) -> dict | None:
-    """``lever`` against OIDN on the ``rows`` that have OIDN's scores (``compare.against``: ``lower``, of
-    ``frames``, ``median_ratio``); None where none has."""
+def scores_of(row: dict, method: str) -> dict:
+    """The scores in ``row`` of ``method``: a lever, or :data:`MODEL` (no lever has its name)."""
+    return row[MODEL] if method == MODEL else row["levers"][method]
+
+
+def against_oidn(rows: list[dict], method: str) -> dict | None:
+    """``method`` (a lever or :data:`MODEL`) against OIDN on the ``rows`` that have OIDN's scores
+    (``compare.against``: ``lower``, of ``frames``, ``median_ratio``); None where none has."""
     both = [r for r in rows if "oidn" in r]
     if not both:
         return None
-    return against({"frames": [r["levers"][lever] for r in both]}, {"frames": [r["oidn"] for r in both]})
+    return against({"frames": [scores_of(r, method) for r in both]}, {"frames": [r["oidn"] for r in both]})
 
 
 def best(record: dict) -> str:
@@ -418,22 +586,43 @@ def best(record: dict) -> str:
 
 
 # issue 23's target for make train's default: below OIDN's relMSE on at least half of the validation frames at 16 spp
-TARGET_SPP, TARGET_SHARE = 16, 0.5
+TARGET_SPP, TARGET_SHARE = 16, Fraction(1, 2)
 
 
-def default_target(record: dict, lever: str) -> dict | None:
-    """``lever`` against issue 23's target for the default (:data:`TARGET_SPP`, :data:`TARGET_SHARE`) on the
-    validation frames at ``TARGET_SPP`` that have OIDN's scores: ``lower`` (frames below OIDN's relMSE), ``frames``,
-    ``needed`` (the frames the target asks for) and ``deciding``, the ratio to OIDN's relMSE of the frame that
-    decides (the ``needed``-th lowest): below 1 where the target is met, else how far it is out. None without
-    such frames."""
-    rows = [r for r in of_kind(record, "validation") if r["spp"] == TARGET_SPP and "oidn" in r]
-    if not rows:
+def share_target(rows: list[dict], method: str, share: Fraction) -> dict | None:
+    """``method`` against a target of being below OIDN's relMSE on at least ``share`` of the ``rows`` that have
+    OIDN's scores: ``lower`` (frames below OIDN's relMSE), ``frames``, ``needed`` (the frames the target asks for)
+    and ``deciding``, the ratio to OIDN's relMSE of the frame that decides (the ``needed``-th lowest): below 1
+    where the target is met, else how far it is out. None without such rows."""
+    ratios = sorted(scores_of(r, method)["relmse"] / r["oidn"]["relmse"] for r in rows if "oidn" in r)
+    if not ratios:
         return None
-    ratios = sorted(r["levers"][lever]["relmse"] / r["oidn"]["relmse"] for r in rows)
-    needed = math.ceil(TARGET_SHARE * len(ratios))
+    needed = math.ceil(share * len(ratios))
     return {"lower": sum(x < 1 for x in ratios), "frames": len(ratios), "needed": needed,
             "deciding": ratios[needed - 1]}
+
+
+def default_target(record: dict, method: str) -> dict | None:
+    """``method`` against issue 23's target for the default (:data:`TARGET_SPP`, :data:`TARGET_SHARE`) on the
+    validation frames at ``TARGET_SPP`` (:func:`share_target`)."""
+    rows = [r for r in of_kind(record, "validation") if r["spp"] == TARGET_SPP]
+    return share_target(rows, method, TARGET_SHARE)
+
+
+def dssim_target(record: dict, spp: int) -> dict | None:
+    """The model's mean DSSIM against OIDN's over the frames of both kinds at ``spp`` that have OIDN's scores
+    (``model``, ``oidn``, ``frames``); None without such frames."""
+    rows = [r for r in record["frames"] if r["spp"] == spp and "oidn" in r]
+    if not rows:
+        return None
+    return {"model": mean(rows, MODEL, "dssim"), "oidn": mean(rows, "oidn", "dssim"), "frames": len(rows)}
+
+
+def _judged(ratio: float) -> str:
+    """A target by its ratio: met below 1, else how far out (to a tenth of a per cent below one per cent)."""
+    if ratio < 1:
+        return "met"
+    return f"out by {ratio - 1:.0%}" if ratio >= 1.005 else f"out by {ratio - 1:.1%}"
 
 
 def _target_table(record: dict) -> list[str]:
@@ -442,15 +631,50 @@ def _target_table(record: dict) -> list[str]:
     if not rows or None in rows.values():
         return []
     lines = ["", "## The default's target: half the validation frames at 16 spp", "",
-             f"Issue 23 asks `make train`'s default to be below OIDN's relMSE on at least {TARGET_SHARE:.0%} of the "
-             f"validation frames at {TARGET_SPP} spp. Per lever: the frames it is below OIDN on, how many the target "
-             "needs, and the ratio to OIDN's relMSE of the frame that decides (the needed-th lowest): below 1 the "
-             "target is met; above, it is out by that much.", "",
+             f"Issue 23 asks `make train`'s default to be below OIDN's relMSE on at least {TARGET_SHARE} "
+             f"of the validation frames at {TARGET_SPP} spp. Per lever: the frames it is below OIDN on, how many the "
+             "target needs, and the ratio to OIDN's relMSE of the frame that decides (the needed-th lowest): below 1 "
+             "the target is met; above, it is out by that much.", "",
              "| lever | below OIDN | needed | deciding frame / OIDN's relMSE | target |", "|---|---|---|---|---|"]
     for lever, got in rows.items():
-        judged = "met" if got["deciding"] < 1 else f"out by {got['deciding'] - 1:.0%}"
-        lines.append(f"| `{lever}` | {got['lower']} of {got['frames']} | {got['needed']} | {got['deciding']:.2f}× | "
-                     f"{judged} |")
+        lines.append(f"| `{lever}` | {got['lower']} of {got['frames']} | {got['needed']} | {got['deciding']:.3f}× | "
+                     f"{_judged(got['deciding'])} |")
+    return lines
+
+
+def _model_section(record: dict) -> list[str]:
+    """The section on the measured model: what it is, and issue 23's targets for the shipped model judged on the
+    study's frames (nothing without a model; the targets only with OIDN)."""
+    model = record.get(MODEL)
+    if not model:
+        return []
+    label = model_label(model["run"])
+    lines = ["", f"## The {label}", "",
+             f"`{model['run']}` (trained on the `{model['set']}` set; its card: `{model['run']}/CARD.md`) is not a "
+             "lever: it trained for as long as it kept improving, not for the study's budget"
+             + (", and it is what `kpcn denoise` uses without `--run`" if model["shipped"] else "")
+             + ". It was measured on the same frames as the levers, each served by its network for what the frame "
+             "gives" + (f", by {model['measured']}" if model.get("measured") else "") + "."]
+    if not record["oidn"]:
+        return lines
+    total = share_target(record["frames"], MODEL, MODEL_SHARE)
+    half = default_target(record, MODEL)
+    lines += ["", "Issue 23's targets for the shipped model, on these frames: the needed-th lowest ratio to OIDN's "
+              "relMSE decides a target on frames; a mean DSSIM is judged by its ratio to OIDN's.", "",
+              "| target | model | needed, or OIDN's | ratio to OIDN's | target |", "|---|---|---|---|---|",
+              f"| below OIDN's relMSE on at least {MODEL_SHARE} of all frames | {total['lower']} of "
+              f"{total['frames']} | {total['needed']} frames | {total['deciding']:.3f}× (the deciding frame) | "
+              f"{_judged(total['deciding'])} |"]
+    for spp in MODEL_DSSIM_SPP:
+        got = dssim_target(record, spp)
+        if got:
+            ratio = got["model"] / got["oidn"]
+            lines.append(f"| mean DSSIM below OIDN's at {spp} spp ({got['frames']} frames) | {got['model']:.4f} | "
+                         f"{got['oidn']:.4f} | {ratio:.2f}× | {_judged(ratio)} |")
+    if half:
+        lines.append(f"| (the default's) below OIDN's relMSE on at least {TARGET_SHARE} of the validation "
+                     f"frames at {TARGET_SPP} spp | {half['lower']} of {half['frames']} | {half['needed']} frames | "
+                     f"{half['deciding']:.3f}× (the deciding frame) | {_judged(half['deciding'])} |")
     return lines
 
 
@@ -471,6 +695,16 @@ def verdict(record: dict) -> str:
     each = "; ".join(f"{p['lower']} of {p['frames']} {kind} frames" for kind, p in parts.items() if p)
     return (line + f". Against OIDN: lower relMSE on {lower} of {n} frames ({each}), the median ratio of its "
             f"relMSE to OIDN's {total['median_ratio']:.2f}×: {judged}.")
+
+
+def _model_verdict(record: dict) -> list[str]:
+    """The headline's second line: the measured model against OIDN by frames (nothing without a model or OIDN)."""
+    if not record.get(MODEL) or not record["oidn"]:
+        return []
+    total = against_oidn(record["frames"], MODEL)
+    return ["", f"**The {model_label(record[MODEL]['run'])}** (`{record[MODEL]['run']}`, not a lever: below): lower "
+            f"relMSE than OIDN on {total['lower']} of {total['frames']} frames, the median ratio "
+            f"{total['median_ratio']:.2f}×."]
 
 
 # ---------------------------------------------------------------- the report
@@ -497,6 +731,11 @@ def _kind_table(record: dict, kind: str) -> list[str]:
             got = against_oidn(group, lever)
             lines.append(f"| {spp} | `{lever}` | {len(group)} | "
                          + " | ".join(_n(mean(group, lever, m, lever=True)) for m in SCORES)
+                         + f" | {_count(got)} | {_ratio(got)} |")
+        if record.get(MODEL):
+            got = against_oidn(group, MODEL)
+            lines.append(f"| {spp} | {model_label(record[MODEL]['run'])} | {len(group)} | "
+                         + " | ".join(_n(mean(group, MODEL, m)) for m in SCORES)
                          + f" | {_count(got)} | {_ratio(got)} |")
         for method in BASELINES:
             if any(method in r for r in group):
@@ -529,7 +768,7 @@ def format_report(record: dict) -> str:
            "times the time of one pass." if ensemble_of(record) > 1 else "")
         + (f" This report was written again from `quality.json` by {record['rewritten']}; every number is the "
            "record's." if record.get("rewritten") else ""),
-        "", verdict(record), "",
+        "", verdict(record), *_model_verdict(record), "",
         "## The levers", "",
         "| lever | what it is | trains on | steps per network (trained s) | held-out frames below OIDN's relMSE | "
         "validation frames below OIDN's | all frames | median relMSE / OIDN's |",
@@ -543,20 +782,28 @@ def format_report(record: dict) -> str:
         lines.append(f"| `{lever}` | {record['levers'][lever]['what']} | `{plan['set']}` | {steps} | "
                      f"{_count(against_oidn(held, lever))} | {_count(against_oidn(val, lever))} | {_count(total)} | "
                      f"{_ratio(total)} |")
+    if record.get(MODEL):
+        lines.append(f"| {model_label(record[MODEL]['run'])} | not a lever: trained for as long as it kept improving "
+                     f"(below) | `{record[MODEL]['set']}` | its card | {_count(against_oidn(held, MODEL))} | "
+                     f"{_count(against_oidn(val, MODEL))} | {_count(against_oidn(record['frames'], MODEL))} | "
+                     f"{_ratio(against_oidn(record['frames'], MODEL))} |")
     for kind, what in (("held-out", f"The `{cfg['set_name']}` set's held-out frames (every validation scene at "
                                     "every input spp; each lever's full network)"),
                        ("validation", "The validation frames, each denoised by the lever's network for the inputs "
                                       "it gives; Blender's own: the frame Blender's denoiser wrote at render time")):
         lines += ["", f"## {kind.capitalize()} frames", "", f"{what}. Means over the frames of each input spp.", "",
                   *_kind_table(record, kind)]
+    methods = [*cfg["levers"], *([MODEL] if record.get(MODEL) else [])]
     lines += ["", "## Each validation frame (relMSE)", "",
-              "| frame | layout | inputs | raw | " + " | ".join(f"`{lv}`" for lv in cfg["levers"])
-              + " | OIDN | Blender's own |", "|---|---|---|---|" + "---|" * len(cfg["levers"]) + "---|---|"]
+              "| frame | layout | inputs | raw | "
+              + " | ".join(model_label(record[MODEL]["run"]) if m == MODEL else f"`{m}`" for m in methods)
+              + " | OIDN | Blender's own |", "|---|---|---|---|" + "---|" * len(methods) + "---|---|"]
     for r in val:
         lines.append(f"| {r['frame']} | {r['layout']} | {r['inputs']} | {r['raw']['relmse']:.4f} | "
-                     + " | ".join(f"{r['levers'][lv]['relmse']:.4f}" for lv in cfg["levers"])
+                     + " | ".join(f"{scores_of(r, m)['relmse']:.4f}" for m in methods)
                      + f" | {_n(r.get('oidn', {}).get('relmse'))} | {_n(r.get('blender', {}).get('relmse'))} |")
     lines += _target_table(record)
+    lines += _model_section(record)
     load_b, load_a = machine["load_average_before"][0], machine["load_average_after"][0]
     lines += [
         "", "## The rules", "",
@@ -574,8 +821,10 @@ def format_report(record: dict) -> str:
         "be carried by one frame (`caustics`, whose reference is itself speckled); these cannot.",
         "- **Metrics** (`prep/metrics.py`): relMSE = mean((x − r)² / (r² + 0.01)); relSE p99.9, the error of the "
         "worst 0.1 % of pixels; DSSIM = (1 − SSIM) / 2 on tonemapped images. `quality.json` has every frame's "
-        "values; `quality.png` shows input | kpcn (the best lever) | OIDN | Blender's own | reference of the "
-        f"validation frames at {cfg['panel_spp']} spp, every image through one tonemap.",
+        "values; `quality.png` shows input | kpcn (the best lever) | "
+        + ("the model beside the levers | " if record.get(MODEL) else "")
+        + f"OIDN | Blender's own | reference of the validation frames at {cfg['panel_spp']} spp, every image through "
+        "one tonemap.",
         f"- **Machine:** {machine['cpus']} CPUs, load average {load_b:.2f} before and {load_a:.2f} after; "
         f"{machine['platform']}, Python {machine['python']}, torch {machine['torch']}, keras {machine['keras']}, "
         f"{machine['torch_threads']} torch threads. What else ran on the machine is for the caller to note: on a "
