@@ -105,8 +105,8 @@ LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
 # a network for frames without a diffuse/specular split has the diffuse branch alone: what joins both branches
 # (a compositor, one shared network, joint fine-tuning) is left out of a lever's network for them
 WITHOUT_SPLIT = {"compositor": None, "shared": False, "joint_steps": 0}
-# the model measured beside the levers (the shipped one unless --model): its key in the record and in each row,
-# and its column in the panels. Not a lever: it trained for as long as it kept improving, not for the budget
+# the model measured beside the levers (the shipped one unless --model): its key in the record and in each row.
+# Not a lever: it trained for as long as it kept improving, not for the budget
 MODEL = "model"
 # issue 23's targets for the shipped model: below OIDN's relMSE on at least two thirds of all frames, and its mean
 # DSSIM below OIDN's at these spp
