@@ -89,6 +89,8 @@ def hand_record(oidn=True) -> dict:
         if kind == "validation":
             row.update(path=f"v/s{i}-{spp:05d}spp.exr", reference_path="v/ref.exr", renderer="v", layout="cycles",
                        inputs="no-variance")
+            for entry in row["levers"].values():
+                entry["set"] = "default"
             row["blender"] = _scores(blender)
         frames.append(row)
     network = {"phase_steps": {"diffuse": 3, "specular": 3}, "trained_s": 4.0}
@@ -166,7 +168,8 @@ def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_valida
     record = hand_record()
     # one validation frame at 16 spp (TABLE): cpu 0.006 against OIDN's 0.004, data 0.003
     target = _tables(qs.format_report(record))[4]
-    assert target == [["`cpu`", "0 of 1", "1", "1.500×", "out by 50%"], ["`data`", "1 of 1", "1", "0.750×", "met"]]
+    assert target == [["`cpu`", "0 of 1", "1", "1.500×", "out by 50%", "default"],
+                      ["`data`", "1 of 1", "1", "0.750×", "met", "default"]]
     # three: half is two, so the second lowest ratio decides
     first = next(r for r in record["frames"] if r["kind"] == "validation" and r["spp"] == 16)
     for cpu, data in ((0.0036, 0.0060), (0.0050, 0.0042)):  # against OIDN's 0.004: cpu 0.90, 1.25; data 1.50, 1.05
@@ -177,7 +180,7 @@ def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_valida
     assert got["cpu"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.25)}
     assert got["data"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.05)}
     rows = _tables(qs.format_report(record))[4]
-    assert [r[-1] for r in rows] == ["out by 25%", "out by 5%"]
+    assert [r[-2] for r in rows] == ["out by 25%", "out by 5%"]
     assert "The default's target" not in qs.format_report(hand_record(oidn=False))
 
 
@@ -188,7 +191,7 @@ MODEL_RELMSE = (0.012, 0.024, 0.004, 0.002, 0.001, 0.004, 0.005, 0.002)
 def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_count():
     record = hand_record()
     for row, relmse in zip(record["frames"], MODEL_RELMSE, strict=True):
-        row[qs.MODEL] = {**_scores(relmse), "model": "full"}
+        row[qs.MODEL] = {**_scores(relmse), "model": "full", **({"set": "other"} if "path" in row else {})}
     record[qs.MODEL] = {"run": "models/default", "set": "default-r1", "shipped": True}
     md = qs.format_report(record)
     ratios = sorted(m / t[5] for m, t in zip(MODEL_RELMSE, TABLE))
@@ -197,7 +200,7 @@ def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_co
     # a model is no lever: the best lever is judged as before, though the model is below OIDN on more frames
     assert qs.best(record) == "data"
     tables = _tables(md)
-    targets = tables[5]
+    targets, default = tables[5], tables[4]
     # the sixth lowest ratio decides: frame 4, level with OIDN, and a tie is not below
     assert qs.MODEL not in QUALITY_LEVERS
     assert ratios[5] == 1.0 and targets[0][1:] == ["5 of 8", "6 frames", "1.000× (the deciding frame)", "out by 0.0%"]
@@ -206,8 +209,9 @@ def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_co
         oidn = np.mean([t[5] for t in TABLE if t[1] == spp])
         assert row[1:4] == [f"{model / 2:.4f}", f"{oidn / 2:.4f}", f"{model / oidn:.2f}×"]
         assert row[4] == ("met" if model < oidn else f"out by {model / oidn - 1:.0%}")
-    # the default's target, for the model: one validation frame at 16 spp, 0.005 against OIDN's 0.004
-    assert targets[3][1:] == ["0 of 1", "1 frames", "1.250× (the deciding frame)", "out by 25%"]
+    assert len(targets) == 3
+    # the default's target, the model beside the levers: one validation frame at 16 spp, 0.005 against OIDN's 0.004
+    assert default[-1] == ["shipped model `default`", "0 of 1", "1", "1.250×", "out by 25%", "other"]
     levers, held, val, each = tables[:4]
     label = "shipped model `default`"
     assert levers[-1][0] == label and levers[-1][4:] == ["3 of 5", "2 of 3", "5 of 8",
@@ -340,6 +344,7 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     ref = layouts.read(frames / "cycles5" / "studio-00256spp.exr").layers["default"]
     assert studio["raw"]["relmse"] == pytest.approx(_relmse64(x, ref), rel=1e-9)
     assert studio["blender"]["relmse"] == 0.0
+    assert studio["levers"]["cpu"]["set"] == "s"  # the render set its no-variance network trained on
     from prep import baselines
 
     if baselines.oidn_available():
