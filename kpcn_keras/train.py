@@ -54,7 +54,9 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   which stays.
 - **So does a network that can no longer learn** (:class:`_StopOnSaturation`): a validation loss frozen for
   ``FROZEN_EPOCHS`` epochs while the training loss moves is a network whose kernels' softmax has saturated
-  (each pixel takes one neighbour, and no gradient passes the softmax); one line says so and what to lower.
+  (each pixel takes one neighbour, and no gradient passes the softmax); one line says so and what to lower. A
+  phase that starts from finished networks is judged once its validation loss has left its start: it may
+  start on a plateau (:data:`STARTS_TRAINED`).
 - **One trainer per run**: the run's lock is held while training.
 """
 
@@ -286,11 +288,18 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
+# A phase that starts from finished networks (the albedo network from the diffuse one, joint fine-tuning, --init)
+# can start on a plateau: its validation loss as flat as a saturated network's for a score of epochs, then
+# falling (issue 23: make train's albedo phase, seed 1, docs/results.md §21). Such a phase is judged only once its
+# validation loss has left its first epoch's by more than FROZEN_TRAINING_MOVE (relative): until then it has shown
+# no training to have saturated it. A phase from random weights is judged from its first epochs (the unet case).
+STARTS_TRAINED = ("joint", ALBEDO_NETWORK)
 
 
-def frozen(history: list[dict]) -> bool:
+def frozen(history: list[dict], *, started_trained: bool = False) -> bool:
     """Whether the last :data:`FROZEN_EPOCHS` epochs of ``history`` (dicts with ``loss`` and ``val_loss``) have
-    one validation loss, to :data:`FROZEN_TOLERANCE`, while their training loss moved (module docstring)."""
+    one validation loss, to :data:`FROZEN_TOLERANCE`, while their training loss moved (module docstring); for a
+    phase ``started_trained``, only once its validation loss has left its first epoch's (:data:`STARTS_TRAINED`)."""
     last = history[-FROZEN_EPOCHS:]
     if len(last) < FROZEN_EPOCHS:
         return False
@@ -298,6 +307,10 @@ def frozen(history: list[dict]) -> bool:
     train = [h.get("loss", math.nan) for h in last]
     if not all(math.isfinite(v) for v in val + train):
         return False
+    if started_trained:
+        first = history[0].get("val_loss", math.nan)
+        if all(abs(h.get("val_loss", math.nan) - first) <= FROZEN_TRAINING_MOVE * abs(first) for h in history):
+            return False  # still on the plateau it started on
     return (max(val) - min(val) <= FROZEN_TOLERANCE * max(map(abs, val))
             and max(train) - min(train) > FROZEN_TRAINING_MOVE * max(map(abs, train)))
 
@@ -310,15 +323,15 @@ class _StopOnSaturation(keras.callbacks.Callback):
     """A phase whose network no longer learns (:func:`frozen`) stops with one line saying why and what to do;
     its checkpoints stay. Judged on the checkpoint's history too, so a resumed phase stops as it did."""
 
-    def __init__(self, phase: Phase, history: list[dict]):
+    def __init__(self, phase: Phase, history: list[dict], *, started_trained: bool):
         super().__init__()
-        self.phase = phase
+        self.phase, self.started_trained = phase, started_trained
         self.history = [{k: h.get(k, math.nan) for k in ("loss", "val_loss")} for h in history]
 
     def on_epoch_end(self, epoch, logs=None):
         logs = logs or {}
         self.history.append({k: float(logs.get(k, math.nan)) for k in ("loss", "val_loss")})
-        if frozen(self.history):
+        if frozen(self.history, started_trained=self.started_trained):
             first, last = self.history[-FROZEN_EPOCHS], self.history[-1]
             raise KpcnError(
                 f"training the {self.phase.name} phase stalled: its validation loss stayed {last['val_loss']:.6g} "
@@ -704,7 +717,8 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _MeanOverProcesses(world),
         _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
-        _StopOnSaturation(phase, history),
+        _StopOnSaturation(phase, history, started_trained=phase.component in STARTS_TRAINED or cfg.init is not None
+                          or phase.continues is not None),
         stopper,
         *callbacks,
     ]

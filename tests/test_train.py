@@ -91,6 +91,14 @@ def test_a_still_validation_loss_beside_a_moving_training_loss_is_frozen():
     assert not frozen(history([0.0913] * 3, [0.04] * 3))  # nothing moves: no evidence either way
     assert not frozen(history([0.0913] * (FROZEN_EPOCHS - 1), moving))
     assert not frozen(history([0.0913, float("nan"), 0.0913], moving))  # no validation
+    # a phase that starts from finished networks, on the plateau it started on (make train's albedo phase, seed 1,
+    # as logged: it left it a score of epochs later): not judged until its validation loss has left its start
+    plateau = [0.002476734109222889, 0.0024767383001744747, 0.002476738067343831, 0.0024767373688519]
+    assert frozen(history(plateau, [0.0118, 0.0083] + moving[1:]))
+    assert not frozen(history(plateau, [0.0118, 0.0083] + moving[1:]), started_trained=True)
+    left = [0.0025, 0.0024, 0.0021, 0.00210000001, 0.0021]  # then frozen after leaving it: judged as any phase
+    assert frozen(history(left, [0.01, 0.009] + moving), started_trained=True)
+    assert not frozen(history([0.0025 * (1 + 9e-4), 0.0025, 0.0025, 0.0025], [0.01] + moving), started_trained=True)
 
 
 class _SaturateKernels(keras.callbacks.Callback):
