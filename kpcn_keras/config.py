@@ -485,7 +485,8 @@ class TrainConfig:
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     albedo_steps: int = bounded(NO_ALBEDO_NETWORK, Bound(0, STEPS.high))
-    # a rate of its own: make train's saturated the albedo network's kernels (docs/results.md §20)
+    # a rate of its own: at make train's the albedo phase stalled (docs/results.md §20; maybe only its starting
+    # plateau, §21); the shipped albedo network and the scratch ones were trained at this one
     albedo_learning_rate: float = bounded(3e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)
