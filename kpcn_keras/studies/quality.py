@@ -372,12 +372,13 @@ def measure_model(cfg: QualityConfig, run, rows: list[dict], held: list[dict], f
     entries, shown = measure_run(run, held, frames, cfg, {})
     for row, entry in zip(rows, entries):
         row[MODEL] = entry
-    log(f"quality: [{model_label(run.dir)}] mean relMSE held-out "
-        f"{statistics.fmean(e['relmse'] for e in entries[:len(held)]):.4f}")
     # relative where it can be: a report in the repository names models/default, not this machine's folders
     where = os.path.relpath(run.dir.resolve())
-    return {"run": str(run.dir) if where.startswith("..") else where, "set": run.record().train.set_name,
-            "shipped": is_shipped(run.dir)}, shown
+    model = {"run": str(run.dir) if where.startswith("..") else where, "set": run.record().train.set_name,
+             "shipped": is_shipped(run.dir)}
+    log(f"quality: [{model_label(model)}] mean relMSE held-out "
+        f"{statistics.fmean(e['relmse'] for e in entries[:len(held)]):.4f}")
+    return model, shown
 
 
 def is_shipped(folder) -> bool:
@@ -387,8 +388,9 @@ def is_shipped(folder) -> bool:
     return Path(folder).resolve().parent == MODELS_DIR
 
 
-def model_label(folder) -> str:
-    return f"{'shipped ' if is_shipped(folder) else ''}model `{Path(folder).name}`"
+def model_label(model: dict) -> str:
+    """How the report names the record's model entry: ``shipped model `default``` or ``model `<folder>```."""
+    return f"{'shipped ' if model['shipped'] else ''}model `{Path(model['run']).name}`"
 
 
 def add_model(cfg: QualityConfig, *, command: str | None = None, log=print) -> dict:
@@ -644,7 +646,7 @@ def _target_table(record: dict) -> list[str]:
              "|---|---|---|---|---|---|"]
     at = [r for r in of_kind(record, "validation") if r["spp"] == TARGET_SPP]
     for method, got in rows.items():
-        label = model_label(record[MODEL]["run"]) if method == MODEL else f"`{method}`"
+        label = model_label(record[MODEL]) if method == MODEL else f"`{method}`"
         sets = sorted({scores_of(r, method).get("set", "—") for r in at})  # a record before sets were kept: —
         lines.append(f"| {label} | {got['lower']} of {got['frames']} | {got['needed']} | {got['deciding']:.3f}× | "
                      f"{_judged(got['deciding'])} | {', '.join(sets)} |")
@@ -657,7 +659,7 @@ def _model_section(record: dict) -> list[str]:
     model = record.get(MODEL)
     if not model:
         return []
-    label = model_label(model["run"])
+    label = model_label(model)
     lines = ["", f"## The {label}", "",
              f"`{model['run']}` (trained on the `{model['set']}` set; its card: `{model['run']}/CARD.md`) is not a "
              "lever: it trained for as long as it kept improving, not for the study's budget"
@@ -706,7 +708,7 @@ def _model_verdict(record: dict) -> list[str]:
     if not record.get(MODEL) or not record["oidn"]:
         return []
     total = against_oidn(record["frames"], MODEL)
-    return ["", f"**The {model_label(record[MODEL]['run'])}** (`{record[MODEL]['run']}`, not a lever: below): lower "
+    return ["", f"**The {model_label(record[MODEL])}** (`{record[MODEL]['run']}`, not a lever: below): lower "
             f"relMSE than OIDN on {total['lower']} of {total['frames']} frames, the median ratio "
             f"{total['median_ratio']:.2f}×."]
 
@@ -738,7 +740,7 @@ def _kind_table(record: dict, kind: str) -> list[str]:
                          + f" | {_count(got)} | {_ratio(got)} |")
         if record.get(MODEL):
             got = against_oidn(group, MODEL)
-            lines.append(f"| {spp} | {model_label(record[MODEL]['run'])} | {len(group)} | "
+            lines.append(f"| {spp} | {model_label(record[MODEL])} | {len(group)} | "
                          + " | ".join(_n(mean(group, MODEL, m)) for m in SCORES)
                          + f" | {_count(got)} | {_ratio(got)} |")
         for method in BASELINES:
@@ -787,7 +789,7 @@ def format_report(record: dict) -> str:
                      f"{_count(against_oidn(held, lever))} | {_count(against_oidn(val, lever))} | {_count(total)} | "
                      f"{_ratio(total)} |")
     if record.get(MODEL):
-        lines.append(f"| {model_label(record[MODEL]['run'])} | not a lever: trained for as long as it kept improving "
+        lines.append(f"| {model_label(record[MODEL])} | not a lever: trained for as long as it kept improving "
                      f"(below) | `{record[MODEL]['set']}` | its card | {_count(against_oidn(held, MODEL))} | "
                      f"{_count(against_oidn(val, MODEL))} | {_count(against_oidn(record['frames'], MODEL))} | "
                      f"{_ratio(against_oidn(record['frames'], MODEL))} |")
@@ -800,7 +802,7 @@ def format_report(record: dict) -> str:
     methods = [*cfg["levers"], *([MODEL] if record.get(MODEL) else [])]
     lines += ["", "## Each validation frame (relMSE)", "",
               "| frame | layout | inputs | raw | "
-              + " | ".join(model_label(record[MODEL]["run"]) if m == MODEL else f"`{m}`" for m in methods)
+              + " | ".join(model_label(record[MODEL]) if m == MODEL else f"`{m}`" for m in methods)
               + " | OIDN | Blender's own |", "|---|---|---|---|" + "---|" * len(methods) + "---|---|"]
     for r in val:
         lines.append(f"| {r['frame']} | {r['layout']} | {r['inputs']} | {r['raw']['relmse']:.4f} | "
