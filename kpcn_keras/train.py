@@ -56,7 +56,7 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   ``FROZEN_EPOCHS`` epochs while the training loss moves is a network whose kernels' softmax has saturated
   (each pixel takes one neighbour, and no gradient passes the softmax); one line says so and what to lower. A
   phase that starts from finished networks is judged once its validation loss has left its start: it may
-  start on a plateau (:data:`STARTS_TRAINED`).
+  start on a plateau (:func:`starts_trained`).
 - **One trainer per run**: the run's lock is held while training.
 """
 
@@ -288,18 +288,25 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
-# A phase that starts from finished networks (the albedo network from the diffuse one, joint fine-tuning, --init)
-# can start on a plateau: its validation loss as flat as a saturated network's for a score of epochs, then
-# falling (issue 23: make train's albedo phase, seed 1, docs/results.md §21). Such a phase is judged only once its
-# validation loss has left its first epoch's by more than FROZEN_TRAINING_MOVE (relative): until then it has shown
-# no training to have saturated it. A phase from random weights is judged from its first epochs (the unet case).
-STARTS_TRAINED = ("joint", ALBEDO_NETWORK)
+# A phase that starts from finished networks (starts_trained) can start on a plateau: its validation loss as flat
+# as a saturated network's for a score of epochs, then falling (issue 23: make train's albedo phase, seed 1,
+# docs/results.md §21). Such a phase is judged only once its validation loss has left its first epoch's by more
+# than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to have saturated it. A phase from
+# random weights is judged from its first epochs (the unet case).
+
+
+def starts_trained(cfg: TrainConfig, phase: Phase) -> bool:
+    """Whether ``phase`` starts from finished networks: joint fine-tuning (the branch networks), the albedo network
+    (a copy of the diffuse one), a resample round (the phase it continues), and a branch phase of a run with
+    ``--init`` (that run's network; a compositor under ``--init`` is still a new network, :func:`_new_model`)."""
+    return (phase.component in ("joint", ALBEDO_NETWORK) or phase.continues is not None
+            or (cfg.init is not None and not phase.trains_on_final_colour))
 
 
 def frozen(history: list[dict], *, started_trained: bool = False) -> bool:
     """Whether the last :data:`FROZEN_EPOCHS` epochs of ``history`` (dicts with ``loss`` and ``val_loss``) have
     one validation loss, to :data:`FROZEN_TOLERANCE`, while their training loss moved (module docstring); for a
-    phase ``started_trained``, only once its validation loss has left its first epoch's (:data:`STARTS_TRAINED`)."""
+    phase ``started_trained``, only once its validation loss has left its first epoch's (:func:`starts_trained`)."""
     last = history[-FROZEN_EPOCHS:]
     if len(last) < FROZEN_EPOCHS:
         return False
@@ -717,8 +724,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _MeanOverProcesses(world),
         _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
-        _StopOnSaturation(phase, history, started_trained=phase.component in STARTS_TRAINED or cfg.init is not None
-                          or phase.continues is not None),
+        _StopOnSaturation(phase, history, started_trained=starts_trained(cfg, phase)),
         stopper,
         *callbacks,
     ]

@@ -9,7 +9,7 @@ import pytest
 from helpers import WarmProcess, build_tiny_shards, checksums, command_env, tiny_train_config
 
 from kpcn_keras.run import load_model, read_state
-from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, train
+from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, starts_trained, train
 from prep.errors import KpcnError, OptionError
 
 
@@ -99,6 +99,19 @@ def test_a_still_validation_loss_beside_a_moving_training_loss_is_frozen():
     left = [0.0025, 0.0024, 0.0021, 0.00210000001, 0.0021]  # then frozen after leaving it: judged as any phase
     assert frozen(history(left, [0.01, 0.009] + moving), started_trained=True)
     assert not frozen(history([0.0025 * (1 + 9e-4), 0.0025, 0.0025, 0.0025], [0.01] + moving), started_trained=True)
+
+
+def test_the_phases_that_start_from_finished_networks_are_those_built_from_them():
+    def started(**kw):
+        cfg = TrainConfig.from_preset("cpu", **kw)
+        return {phase.name: starts_trained(cfg, phase) for phase in cfg.phases()}
+
+    assert started() == {"diffuse": False, "specular": False}
+    assert started(joint_steps=5, albedo_steps=5) == {"diffuse": False, "specular": False, "joint": True,
+                                                      "albedo": True}
+    # --init starts the branch networks from another run's; a compositor is a new network all the same
+    assert started(init="runs/other", compositor={"kind": "kernel"}) == {"diffuse": True, "specular": True,
+                                                                         "compositor": False}
 
 
 class _SaturateKernels(keras.callbacks.Callback):
