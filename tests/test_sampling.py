@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
-from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf, renders
+from helpers.numerics import PROPERTY, renders
+from helpers.references import assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
