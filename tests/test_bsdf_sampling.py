@@ -63,8 +63,8 @@ def binned(wi):
 
 
 def expected_counts(k, mk, kd, ks, alpha, wo, n):
-    """The counts of :func:`binned` that ``n`` draws from ``bsdf_eval``'s pdf give, the mass it leaves to the
-    hemisphere in the last bin."""
+    """The counts of :func:`binned` that ``n`` draws from ``bsdf_eval``'s pdf give, the mass it leaves outside the
+    hemisphere (drawn below the horizon) in the last bin."""
     cc = (np.arange(NC * SUB) + 0.5) / (NC * SUB)
     pp = (np.arange(NPHI * SUB) + 0.5) / (NPHI * SUB) * 2 * math.pi
     dens = np.empty((NC * SUB, NPHI * SUB))
