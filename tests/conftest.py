@@ -1,4 +1,4 @@
-"""The fixtures shared by the test files; the helpers they use are in ``helpers.py``."""
+"""The fixtures shared by the test files; the helpers they use are in the ``helpers`` package, one module per job."""
 
 import os
 from pathlib import Path
@@ -13,7 +13,10 @@ os.environ.setdefault("KPCN_KERNELS", "all")
 # take the cores from the other workers (it does not change a result)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from helpers import FIXTURES, TINY_MODEL, SmallDisk, build_tiny_shards, process_state_kept  # noqa: E402
+from helpers.commands import process_state_kept  # noqa: E402
+from helpers.files import SmallDisk  # noqa: E402
+from helpers.paths import FIXTURES  # noqa: E402
+from helpers.tiny import TINY_MODEL, build_tiny_shards  # noqa: E402
 
 # the files that take longest from a fresh clone, longest first; the rest follow in collection order. The
 # workers (pytest-xdist, --dist loadfile --no-loadscope-reorder) take whole files in this order, so that none is

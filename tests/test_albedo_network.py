@@ -5,7 +5,7 @@ each against an independent computation."""
 import keras
 import numpy as np
 import pytest
-from helpers import build_tiny_shards, tiny_train_config
+from helpers.tiny import build_tiny_shards, tiny_train_config
 
 from kpcn_keras import augment
 from kpcn_keras.config import ALBEDO_NETWORK, TrainConfig

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
-from helpers import moved, random_aovs
+from helpers.references import moved
+from helpers.tiny import random_aovs
 
 from kpcn_keras import augment
 from kpcn_keras.augment import (

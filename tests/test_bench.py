@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.tiny import TINY_MODEL, build_tiny_shards
 
 from kpcn_keras.studies import bench, bench_stages
 from kpcn_keras.studies.config import BenchConfig

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats
+from helpers.chi_square import assert_follows, assert_rejects
 
 from prep.render import EFFECTS
 from prep.render.kernels import kernel_for
@@ -48,39 +48,49 @@ def draws(k, mk, kd, ks, alpha, wo, n, seed):
 CASES = [(GLOSSY, 0.3, 30.0), (GLOSSY, 0.6, 80.0), (PLASTIC, 0.2, 60.0)]
 
 
+# bins uniform in (cos theta, phi): equal solid angle; each bin's expected mass by midpoint quadrature of the pdf
+NC, NPHI, SUB = 10, 16, 12
+
+
+def binned(wi):
+    """Counts of the directions ``wi`` (NaN rows: none drawn, below the horizon) in the (cos theta, phi) bins, the
+    draws below the horizon in a last bin."""
+    above = ~np.isnan(wi[:, 0])
+    cos_i = np.clip(wi[above, 2], 0, 1 - 1e-12)
+    phi = np.mod(np.arctan2(wi[above, 1], wi[above, 0]), 2 * math.pi)
+    observed = np.histogram2d(cos_i, phi, bins=[NC, NPHI], range=[[0, 1], [0, 2 * math.pi]])[0]
+    return np.append(observed.ravel(), len(wi) - above.sum())
+
+
+def expected_counts(k, mk, kd, ks, alpha, wo, n):
+    """The counts of :func:`binned` that ``n`` draws from ``bsdf_eval``'s pdf give, the mass it leaves outside the
+    hemisphere (drawn below the horizon) in the last bin."""
+    cc = (np.arange(NC * SUB) + 0.5) / (NC * SUB)
+    pp = (np.arange(NPHI * SUB) + 0.5) / (NPHI * SUB) * 2 * math.pi
+    dens = np.empty((NC * SUB, NPHI * SUB))
+    for a, c in enumerate(cc):
+        s = math.sqrt(1 - c * c)
+        for b, p in enumerate(pp):
+            dens[a, b] = k.bsdf_eval(mk, kd, ks, alpha, N, wo, (s * math.cos(p), s * math.sin(p), c))[2]
+    cell = (1.0 / (NC * SUB)) * (2 * math.pi / (NPHI * SUB))
+    expected = dens.reshape(NC, SUB, NPHI, SUB).sum(axis=(1, 3)) * cell * n
+    below_expected = n - expected.sum()
+    assert below_expected > -0.01 * n, "the pdf integrates to more than 1 over the hemisphere"
+    return np.append(expected.ravel(), max(below_expected, 0.0))
+
+
 @pytest.mark.parametrize("mk, alpha, theta", CASES, ids=["glossy-0.3-30", "glossy-0.6-80", "plastic-0.2-60"])
 def test_sampled_directions_follow_the_reported_pdf(mk, alpha, theta):
     k = kernel_for(EFFECTS)
     kd, ks = (0.5, 0.4, 0.3), (0.04, 0.04, 0.04)
     wo = direction(theta)
     n = 40000
-    wi = draws(k, mk, kd, ks, alpha, wo, n, seed=1)
-    above = ~np.isnan(wi[:, 0])
-    # bins uniform in (cos theta, phi): equal solid angle; expected mass by midpoint quadrature of the pdf
-    nc, nphi, sub = 10, 16, 12
-    cos_i = np.clip(wi[above, 2], 0, 1 - 1e-12)
-    phi = np.mod(np.arctan2(wi[above, 1], wi[above, 0]), 2 * math.pi)
-    observed = np.histogram2d(cos_i, phi, bins=[nc, nphi], range=[[0, 1], [0, 2 * math.pi]])[0]
-    cc = (np.arange(nc * sub) + 0.5) / (nc * sub)
-    pp = (np.arange(nphi * sub) + 0.5) / (nphi * sub) * 2 * math.pi
-    dens = np.empty((nc * sub, nphi * sub))
-    for a, c in enumerate(cc):
-        s = math.sqrt(1 - c * c)
-        for b, p in enumerate(pp):
-            dens[a, b] = k.bsdf_eval(mk, kd, ks, alpha, N, wo, (s * math.cos(p), s * math.sin(p), c))[2]
-    cell = (1.0 / (nc * sub)) * (2 * math.pi / (nphi * sub))
-    expected = dens.reshape(nc, sub, nphi, sub).sum(axis=(1, 3)) * cell * n
-    below_expected = n - expected.sum()
-    assert below_expected > -0.01 * n, "the pdf integrates to more than 1 over the hemisphere"
-    obs = np.append(observed.ravel(), n - above.sum())
-    exp = np.append(expected.ravel(), max(below_expected, 0.0))
-    # pool the sparse bins into one, as chi-square needs expected counts of a few or more
-    sparse = exp < 5
-    obs = np.append(obs[~sparse], obs[sparse].sum())
-    exp = np.append(exp[~sparse], exp[sparse].sum())
-    chi2 = float(((obs - exp) ** 2 / np.maximum(exp, 1e-9)).sum())
-    p = stats.chi2.sf(chi2, len(obs) - 1)
-    assert p > 1e-4, f"chi2 {chi2:.1f} over {len(obs)} bins, p = {p:.2e}"
+    observed = binned(draws(k, mk, kd, ks, alpha, wo, n, seed=1))
+    # one test per case: together they reject a right sampler with probability 1e-4
+    family = dict(alpha=1e-4, tests=len(CASES))
+    assert_follows(observed, expected_counts(k, mk, kd, ks, alpha, wo, n), **family)
+    # the same draws reject the pdf of a roughness a quarter higher
+    assert_rejects(observed, expected_counts(k, mk, kd, ks, 1.25 * alpha, wo, n), **family)
 
 
 @pytest.mark.parametrize("alpha, theta", [(0.2, 45.0), (0.8, 85.0)])

@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders, random_aovs, run_main
+from helpers.commands import assert_one_line_error, kpcn, run_main
+from helpers.files import checksums
+from helpers.tiny import build_tiny_shards, make_renders, random_aovs
 
 from kpcn_keras.cli import main
 from prep import exr

@@ -2,7 +2,7 @@
 finished by running the same command again, and then every file it wrote is byte-identical (SHA-256) to
 an uninterrupted run's; nothing that was complete is lost, redone or duplicated, no temporary file is left.
 
-Each stage runs the real command line in a process of its own (``helpers.start_kpcn``: ``python -m
+Each stage runs the real command line in a process of its own (``helpers.commands.start_kpcn``: ``python -m
 kpcn_keras.cli`` for render and shards, forked from an interpreter that has imported the stack for train),
 at toy size, with the working directory set to its own tmp tree and the same relative arguments, so that the
 recorded commands and relative paths of the reference and the killed runs agree. Kill points are drawn from
@@ -30,7 +30,8 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from helpers import checksums_but_timings, start_kpcn
+from helpers.commands import start_kpcn
+from helpers.files import checksums_but_timings
 
 SEED = 5
 # kill points per stage, the last of which kills twice; training's runs start torch and Keras each time

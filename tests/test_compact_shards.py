@@ -7,7 +7,8 @@ import json
 import h5py
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, build_tiny_shards, random_aovs, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.tiny import build_tiny_shards, random_aovs
 
 from prep import exr, features, shards
 from prep.inputs import FULL

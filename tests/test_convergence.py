@@ -7,7 +7,9 @@ import json
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, random_aovs, reference_relse, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.references import reference_relse
+from helpers.tiny import random_aovs
 
 from prep import convergence, exr
 from prep.render import RenderConfig, make_scene, render, render_set

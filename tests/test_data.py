@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import build_tiny_shards
+from helpers.tiny import build_tiny_shards
 
 from kpcn_keras import augment
 from kpcn_keras.data import ShardPatches

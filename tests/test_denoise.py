@@ -1,7 +1,9 @@
 import keras
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, build_tiny_shards, moved, random_aovs, randomise
+from helpers.networks import randomise
+from helpers.references import moved
+from helpers.tiny import TINY_MODEL, build_tiny_shards, random_aovs
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser, denoise_file

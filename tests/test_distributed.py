@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import REPO, WarmProcess, launcher_free_env, torchrun
+from helpers.commands import WarmProcess, launcher_free_env, torchrun
+from helpers.paths import REPO
 
 from kpcn_keras import distributed
 
@@ -150,7 +151,8 @@ def test_torchrun_with_two_processes_trains_the_run_that_one_process_trains(tmp_
     """The documented launch line, on 2 gloo processes, against `kpcn train` alone, through every phase
     (branches, joint fine-tuning, compositor): the same networks (float rounding apart), the same logged
     losses, and one set of files, written by rank 0."""
-    from helpers import build_tiny_shards, run_main
+    from helpers.commands import run_main
+    from helpers.tiny import build_tiny_shards
 
     from kpcn_keras.run import Run, load_model
 
@@ -185,7 +187,8 @@ def test_a_killed_two_process_run_resumes_with_the_same_command_to_the_same_file
     import signal
     import time
 
-    from helpers import build_tiny_shards, checksums
+    from helpers.files import checksums
+    from helpers.tiny import build_tiny_shards
 
     env = launcher_free_env(PYTHONPATH=str(REPO))
     trees = {}

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers.chi_square import assert_follows, assert_rejects
 
 from prep.exr import write_aovs
 from prep.render import EFFECTS, render
@@ -76,6 +77,23 @@ def test_sampled_directions_estimate_the_irradiance_of_the_map(tmp_path):
     sigma = vals.std(axis=0) / math.sqrt(n)
     assert np.all(np.abs(vals.mean(axis=0) - want) < 5 * sigma), (vals.mean(axis=0), want, sigma)
     assert np.all(sigma < 0.02 * want)  # importance sampling: the sun costs little variance
+
+
+def test_sampled_directions_fall_in_each_texel_in_proportion_to_luminance_times_solid_angle(tmp_path):
+    # the sampler's inversion of its CDFs, held to texel weights written here: luminance x sin(theta) at the
+    # texel's centre (its solid angle, to first order)
+    path, texels = stripes_map(tmp_path)
+    sc = pack(plane_under(EnvironmentMap(image=str(path)))[0])
+    height, width = texels.shape[:2]
+    n = 20000
+    observed = np.zeros((height, width))
+    for u1, u2 in np.random.default_rng(4).random((n, 2)):
+        observed[env_texel(sc, env_sample(sc, u1, u2)[0])] += 1
+    sin_t = np.sin((np.arange(height) + 0.5) * math.pi / height)[:, None]
+    luminance = texels @ np.array([0.2126, 0.7152, 0.0722])
+    assert_follows(observed, n * luminance * sin_t / (luminance * sin_t).sum(), alpha=1e-4)
+    # the same draws reject the weights without the solid angle
+    assert_rejects(observed, n * luminance / luminance.sum(), alpha=1e-4)
 
 
 def test_sampling_tables_follow_luminance_times_solid_angle():

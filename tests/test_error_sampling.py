@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
+from helpers.chi_square import assert_follows, assert_rejects
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import stats
 
 from prep import metrics, sampling
 
@@ -129,8 +129,10 @@ def test_error_pdf_draws_follow_the_error_chi_square(metric):
     def expected_counts(reference_pdf):
         return reference_pdf.reshape(4, 5, 4, 5).sum(axis=(1, 3)).ravel() * draws
 
+    # one test per metric: the pair together rejects a right sampler with probability 1e-4
+    family = dict(alpha=1e-4, tests=len(sampling.ERROR_METRICS))
     reference_pdf = numpy_patch_pdf(numpy_error_map(out, ref, metric), size, mix)
-    assert stats.chisquare(observed, expected_counts(reference_pdf)).pvalue > 1e-4
+    assert_follows(observed, expected_counts(reference_pdf), **family)
 
     # the positions whose window overlaps the rectangle: much more than their area share
     overlap = (pos[:, 0] >= 1) & (pos[:, 0] <= 9) & (pos[:, 1] >= 11) & (pos[:, 1] <= 19)
@@ -138,9 +140,9 @@ def test_error_pdf_draws_follow_the_error_chi_square(metric):
     assert overlap.mean() > 3 * area_share
 
     # the same draws reject wrong PDFs: uniform, and the error PDF without the uniform mix
-    assert stats.chisquare(observed, expected_counts(np.full((n, n), 1 / n**2))).pvalue < 1e-4
+    assert_rejects(observed, expected_counts(np.full((n, n), 1 / n**2)), **family)
     unmixed = numpy_patch_pdf(numpy_error_map(out, ref, metric), size, 0.0)
-    assert stats.chisquare(observed, expected_counts(unmixed)).pvalue < 1e-4
+    assert_rejects(observed, expected_counts(unmixed), **family)
 
 
 def test_excluded_positions_get_zero_and_the_rest_keep_their_ratios():

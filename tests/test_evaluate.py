@@ -85,7 +85,8 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
 def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_run, tmp_path, capsys):
     import os
 
-    from helpers import checksums, random_aovs
+    from helpers.files import checksums
+    from helpers.tiny import random_aovs
 
     for folder in ("a", "b"):
         exr.write_aovs(tmp_path / folder / "x-00004spp.exr", random_aovs(16, 16))
@@ -110,7 +111,7 @@ def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_r
 def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(tiny_run, tmp_path, capsys):
     import shutil
 
-    from helpers import make_renders, random_aovs
+    from helpers.tiny import make_renders, random_aovs
 
     folder = make_renders(tmp_path / "renders", scenes=("a-000",), size=(24, 20))
     noisy, ref = folder / exr.render_filename("a-000", 4), folder / exr.render_filename("a-000", 64)
@@ -131,7 +132,8 @@ def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(
 
 @pytest.mark.slow
 def test_a_slope_input_run_is_evaluated_at_the_slope_given_and_refused_without_one(tmp_path):
-    from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+    from helpers.commands import assert_one_line_error, run_main
+    from helpers.tiny import TINY_MODEL, build_tiny_shards
 
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.train import TrainConfig, train

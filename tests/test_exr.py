@@ -10,7 +10,7 @@ import logging
 
 import numpy as np
 import pytest
-from helpers import random_aovs
+from helpers.tiny import random_aovs
 
 from prep import exr, features, metrics
 

@@ -1,6 +1,8 @@
 import numpy as np
 import pytest
-from helpers import F32_EPS, F32_TINY, PROPERTY, assert_features_match_reference, random_aovs, renders
+from helpers.numerics import F32_EPS, F32_TINY, PROPERTY, renders
+from helpers.references import assert_features_match_reference
+from helpers.tiny import random_aovs
 from hypothesis import given, settings
 
 from prep import exr, features

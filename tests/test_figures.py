@@ -9,16 +9,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import (
-    assert_one_line_error,
-    build_tiny_shards,
-    checksums,
-    random_aovs,
-    reference_importance,
-    reference_log_colour,
-    reference_pdf,
-    run_main,
-)
+from helpers.commands import assert_one_line_error, run_main
+from helpers.files import checksums
+from helpers.references import reference_importance, reference_log_colour, reference_pdf
+from helpers.tiny import build_tiny_shards, random_aovs
 
 from kpcn_keras.cli import main
 from kpcn_keras.run import Run

@@ -5,7 +5,8 @@ import json
 import keras
 import numpy as np
 import pytest
-from helpers import TINY_TRAIN_MODEL, assert_one_line_error, build_tiny_shards, run_main, tiny_train_config
+from helpers.commands import assert_one_line_error, run_main
+from helpers.tiny import TINY_TRAIN_MODEL, build_tiny_shards, tiny_train_config
 
 from kpcn_keras.run import Run
 from kpcn_keras.train import TrainConfig, train

@@ -3,7 +3,8 @@ more, seen by the training stream's inputs alone."""
 
 import numpy as np
 import pytest
-from helpers import assert_read_features_close, build_tiny_shards, random_aovs, tiny_train_config
+from helpers.references import assert_read_features_close
+from helpers.tiny import build_tiny_shards, random_aovs, tiny_train_config
 
 from kpcn_keras import fireflies
 from kpcn_keras.config import TrainConfig

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from helpers import assert_one_line_error
+from helpers.commands import assert_one_line_error
 
 from prep import exr, layouts
 

@@ -14,16 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import (
-    TINY_MODEL,
-    assert_one_line_error,
-    assert_read_features_close,
-    build_tiny_shards,
-    random_aovs,
-    reference_features,
-    reference_log_colour,
-    run_main,
-)
+from helpers.commands import assert_one_line_error, run_main
+from helpers.references import assert_read_features_close, reference_features, reference_log_colour
+from helpers.tiny import TINY_MODEL, build_tiny_shards, random_aovs
 
 from prep import exr, features, metrics, shards
 from prep.albedo import prefilter

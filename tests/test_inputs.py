@@ -3,7 +3,7 @@ model of each set reads, ``restrict``, is held in ``test_input_sets.py`` with th
 
 import numpy as np
 import pytest
-from helpers import random_aovs
+from helpers.tiny import random_aovs
 
 from prep import exr
 from prep.errors import OptionError

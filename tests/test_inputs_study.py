@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, build_tiny_shards, cycles_channels, parts_of, write_channels
+from helpers.exr_layouts import cycles_channels, parts_of, write_channels
+from helpers.tiny import TINY_MODEL, build_tiny_shards
 
 from kpcn_keras.studies.config import InputsStudyConfig
 from prep import layouts

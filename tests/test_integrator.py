@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import rect_form_factor
+from helpers.references import rect_form_factor
 
 from prep.render import EFFECTS, render
 from prep.render.packing import pack

@@ -1,12 +1,13 @@
 """KernelApply against an independent float64 numpy reference, plus its numerical edge cases; every layer of
-``kpcn_keras.layers`` against the Keras layer contract (``helpers.check_keras_layer``)."""
+``kpcn_keras.layers`` against the Keras layer contract (``helpers.networks.check_keras_layer``)."""
 
 import keras
 import numpy as np
 import pytest
 import torch
-from helpers import F32_EPS, F32_MAX, F32_TINY, PROPERTY, check_keras_layer, float32_images
-from helpers import reference_kernel_apply as float64_kernel_apply
+from helpers.networks import check_keras_layer
+from helpers.numerics import F32_EPS, F32_MAX, F32_TINY, PROPERTY, float32_images
+from helpers.references import reference_kernel_apply as float64_kernel_apply
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import CYCLES5_RGB, cycles_channels, parts_of, write_channels
+from helpers.exr_layouts import CYCLES5_RGB, cycles_channels, parts_of, write_channels
 
 from prep import exr, layouts
 from prep.exr import AOVError
@@ -150,7 +150,7 @@ def test_an_rgb_file_takes_albedo_and_normal_from_separate_files(tmp_path):
 
 
 def test_the_kpcn_layout_is_found_first_and_without_variance_says_so(tmp_path):
-    from helpers import random_aovs
+    from helpers.tiny import random_aovs
 
     aovs = random_aovs(4, 5)
     frame = layouts.read(exr.write_aovs(tmp_path / "k-00004spp.exr", aovs))

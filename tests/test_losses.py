@@ -4,7 +4,7 @@ import keras
 import numpy as np
 import pytest
 import torch
-from helpers import F32_MAX, F32_TINY
+from helpers.numerics import F32_MAX, F32_TINY
 
 from kpcn_keras.losses import (
     SMAPE,

@@ -7,7 +7,8 @@ import keras
 import numpy as np
 import pytest
 import torch
-from helpers import extreme_features, finite_loss_and_gradients, randomise
+from helpers.networks import finite_loss_and_gradients, randomise
+from helpers.numerics import extreme_features
 
 from kpcn_keras.config import PRESETS, TrainConfig
 from kpcn_keras.layers import apply_kernels

@@ -7,7 +7,7 @@ import keras
 import numpy as np
 import pytest
 import torch
-from helpers import check_keras_layer, randomise
+from helpers.networks import check_keras_layer, randomise
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.layers import apply_kernels

@@ -1,12 +1,12 @@
 """Hard numerical cases end to end (issue 5).
 
-Every hard case is a synthetic render (``helpers.random_aovs`` with the case applied) that goes through
+Every hard case is a synthetic render (``helpers.tiny.random_aovs`` with the case applied) that goes through
 the whole pipeline: written with ``prep.exr.write_aovs`` and read back (the repair rule), the features of
 both branches (finite, inside the ranges of the table in ``prep/features.py``, equal to a float64 numpy
 evaluation of that table), the variance PDF (a distribution equal to explicit window sums), shards, real
 training steps of the three architectures (losses and gradients finite) and tiled denoising (finite,
 non-negative, equal to an untiled run). Figures are checked against independent float64 references
-(``helpers``); the property-based tests (hypothesis) of the feature transforms, the PDF, the kernel
+(``helpers.references``); the property-based tests (hypothesis) of the feature transforms, the PDF, the kernel
 application and the losses are in the files of their modules (test_features, test_sampling, test_layers,
 test_losses, test_models).
 """
@@ -22,26 +22,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import (
-    F32_EPS,
-    F32_MAX,
-    F32_TINY,
-    FEATURE_RANGES,
-    HALF_MAX,
-    RELVAR_BOUND,
+from helpers.networks import finite_loss_and_gradients, randomise
+from helpers.numerics import F32_EPS, F32_MAX, F32_TINY, FEATURE_RANGES, HALF_MAX, RELVAR_BOUND
+from helpers.references import (
     assert_features_in_documented_ranges,
     assert_features_match_reference,
     assert_pdf_is_a_distribution,
     assert_read_features_close,
     assert_variance_pdf_matches,
-    finite_loss_and_gradients,
-    random_aovs,
-    randomise,
     reference_features,
     reference_importance,
     reference_log_colour,
     reference_pdf,
 )
+from helpers.tiny import random_aovs
 
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import ARCHS

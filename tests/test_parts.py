@@ -11,7 +11,8 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import REPO, launcher_free_env, torchrun
+from helpers.commands import launcher_free_env, torchrun
+from helpers.paths import REPO
 
 from kpcn_keras.cli import main
 from prep.errors import OptionError

@@ -3,7 +3,9 @@
 import keras
 import numpy as np
 import pytest
-from helpers import FIXTURES, REPO, TINY_MODEL, randomise
+from helpers.networks import randomise
+from helpers.paths import FIXTURES, REPO
+from helpers.tiny import TINY_MODEL
 
 from kpcn_keras import precision
 from kpcn_keras.config import ModelConfig

@@ -3,7 +3,7 @@ import math
 import sys
 
 import pytest
-from helpers import make_renders
+from helpers.tiny import make_renders
 
 from prep import exr, shards
 from prep.studies import stage_costs

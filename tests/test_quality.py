@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.tiny import TINY_MODEL, build_tiny_shards
 
 from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies import quality as qs

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, rect_form_factor, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.files import checksums
+from helpers.references import rect_form_factor
 
 from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
@@ -700,7 +702,7 @@ def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families
 
 
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
-    from helpers import REPO
+    from helpers.paths import REPO
 
     from prep.studies.render_bench import format_report
 
@@ -750,7 +752,7 @@ def _available_gib() -> float:
 
 
 def test_a_huge_frame_is_refused_in_one_line_before_anything_is_written(tmp_path):
-    from helpers import assert_one_line_error, run_main
+    from helpers.commands import assert_one_line_error, run_main
 
     res = run_main("render", "--width", "100000", "--height", "100000", "--out", "renders", cwd=tmp_path)
     assert_one_line_error(res, "--width must be an integer in [1, 16384], got 100000")

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, cycles_channels, parts_of, run_main, write_channels
+from helpers.commands import assert_one_line_error, run_main
+from helpers.exr_layouts import cycles_channels, parts_of, write_channels
 
 import kpcn
 from prep import exr, layouts

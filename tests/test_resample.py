@@ -13,7 +13,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, assert_one_line_error, build_tiny_shards, checksums, kpcn, make_renders, run_main
+from helpers.commands import assert_one_line_error, kpcn, run_main
+from helpers.files import checksums
+from helpers.tiny import TINY_MODEL, build_tiny_shards, make_renders
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches

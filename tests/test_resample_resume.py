@@ -3,7 +3,7 @@ same command, ends where an uninterrupted loop ends: the same patches (count and
 every round, no position twice), byte-identical networks (weights and optimizer state), and every file of
 the tree byte-identical but the timings files (``timings.json``, one per folder that has seconds).
 
-Each command runs as a user runs it (in a process of its own, ``helpers.start_kpcn``; relative paths, its own
+Each command runs as a user runs it (in a process of its own, ``helpers.commands.start_kpcn``; relative paths, its own
 tree), on random renders at toy size. The kill is a SIGKILL sent when the command has reached the stage under
 test, seen from the files it leaves: the round's plan and some of its shard files, or the first checkpoint of
 a round's training phase.
@@ -21,7 +21,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import checksums_but_timings, make_renders, start_kpcn
+from helpers.commands import start_kpcn
+from helpers.files import checksums_but_timings
+from helpers.tiny import make_renders
 
 SHARDS = ["shards", "--set", "t", "--renders", "renders", "--out", "shards", "--patch-size", "16",
           "--patches-per-image", "6", "--patches-per-shard", "1", "--val-fraction", "0.5"]

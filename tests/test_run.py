@@ -9,7 +9,9 @@ import zipfile
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, build_tiny_shards, checksums, random_aovs, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.files import checksums
+from helpers.tiny import build_tiny_shards, random_aovs
 
 from kpcn_keras.config import ModelConfig
 from kpcn_keras.denoise import Denoiser

@@ -1,6 +1,8 @@
 import numpy as np
 import pytest
-from helpers import PROPERTY, assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf, renders
+from helpers.chi_square import assert_follows, assert_rejects
+from helpers.numerics import PROPERTY, renders
+from helpers.references import assert_pdf_is_a_distribution, assert_variance_pdf_matches, reference_pdf
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -31,12 +33,16 @@ def test_draws_follow_the_pdf_chi_square():
         pos = sampling.draw_positions(pdf, count, rng)
         hits[np.ravel_multi_index((pos[:, 0], pos[:, 1]), pdf.shape)] += 1
     # 16 bins of equal probability so every expected count is large
-    order = np.argsort(pdf.ravel())
-    bins = np.array_split(order, 16)
-    expected = np.array([pdf.ravel()[b].sum() for b in bins]) * trials * count
+    bins = np.array_split(np.argsort(pdf.ravel()), 16)
     observed = np.array([hits[b].sum() for b in bins])
-    chi2 = ((observed - expected) ** 2 / expected).sum()
-    assert chi2 < 37.7  # chi-square 15 dof, p = 0.001
+
+    def expected(p):
+        return np.array([p.ravel()[b].sum() for b in bins]) * trials * count
+
+    assert_follows(observed, expected(pdf), alpha=1e-3)
+    # the same draws reject a bump of 1.5 times the variance of the one drawn from
+    wider = np.exp(-((yy - 12.0) ** 2 + (xx - 25.0) ** 2) / 300.0) + 0.2
+    assert_rejects(observed, expected(wider / wider.sum()), alpha=1e-3)
 
 
 def test_zero_probability_positions_are_never_drawn():

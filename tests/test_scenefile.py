@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, checksums, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.files import checksums
 
 from prep import exr
 from prep.errors import KpcnError, OptionError

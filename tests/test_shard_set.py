@@ -12,7 +12,10 @@ import tracemalloc
 import h5py
 import numpy as np
 import pytest
-from helpers import REPO, assert_one_line_error, checksums, kpcn, make_renders, random_aovs, run_main
+from helpers.commands import assert_one_line_error, kpcn, run_main
+from helpers.files import checksums
+from helpers.paths import REPO
+from helpers.tiny import make_renders, random_aovs
 
 from prep import exr, shards
 from prep.errors import KpcnError, OptionError

@@ -10,17 +10,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from helpers import (
-    assert_one_line_error,
-    assert_read_features_close,
-    checksums,
-    kpcn,
-    make_renders,
-    random_aovs,
-    reference_importance,
-    reference_pdf,
-    reference_relse,
-)
+from helpers.commands import assert_one_line_error, kpcn
+from helpers.files import checksums
+from helpers.references import assert_read_features_close, reference_importance, reference_pdf, reference_relse
+from helpers.tiny import make_renders, random_aovs
 
 from prep import exr, features, shards
 from prep.files import is_temporary

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, run_main
+from helpers.commands import assert_one_line_error, run_main
 
 from prep.inputs import INPUT_SETS, InputSet
 
@@ -212,7 +212,7 @@ def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
 
 
 def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_on_the_card(evaluated_run, tmp_path):
-    from helpers import TINY_MODEL, make_renders
+    from helpers.tiny import TINY_MODEL, make_renders
 
     from kpcn_keras.evaluate import evaluate
     from kpcn_keras.run import Run

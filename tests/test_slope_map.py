@@ -5,7 +5,10 @@ maps (``Denoiser.prepare``), tiles and ``.keras`` files change nothing."""
 
 import numpy as np
 import pytest
-from helpers import TINY_MODEL, moved, random_aovs, randomise, write_channels
+from helpers.exr_layouts import write_channels
+from helpers.networks import randomise
+from helpers.references import moved
+from helpers.tiny import TINY_MODEL, random_aovs
 
 from kpcn_keras import slope_map
 from kpcn_keras.config import ModelConfig
@@ -142,7 +145,7 @@ def test_a_map_changed_inside_a_region_changes_the_output_there_alone(extra):
 
 
 def test_a_mixtures_output_is_its_colour_filtered_by_the_mixture_of_its_kernels():
-    from helpers import reference_kernel_apply
+    from helpers.references import reference_kernel_apply
 
     from kpcn_keras.models import build_kernel_model, mixture_bias
 
@@ -269,7 +272,8 @@ def test_a_map_is_refused_by_a_run_without_the_module(tiny_run):
 
 
 def test_kpcn_denoise_applies_a_painted_map_and_refuses_one_it_cannot_use(tmp_path, tiny_slope_module_run, tiny_run):
-    from helpers import assert_one_line_error, checksums, run_main
+    from helpers.commands import assert_one_line_error, run_main
+    from helpers.files import checksums
     from PIL import Image
 
     from prep import exr

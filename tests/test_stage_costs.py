@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import randomise
+from helpers.networks import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
 from kpcn_keras.studies.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras

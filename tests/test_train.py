@@ -6,7 +6,9 @@ from pathlib import Path
 import keras
 import numpy as np
 import pytest
-from helpers import WarmProcess, build_tiny_shards, checksums, command_env, tiny_train_config
+from helpers.commands import WarmProcess, command_env
+from helpers.files import checksums
+from helpers.tiny import build_tiny_shards, tiny_train_config
 
 from kpcn_keras.run import load_model, read_state
 from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, starts_trained, train
@@ -294,7 +296,7 @@ def test_a_run_recorded_without_a_lambda_module_resumes_whether_its_record_names
 
 @pytest.mark.slow
 def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):
-    from helpers import assert_one_line_error, run_main
+    from helpers.commands import assert_one_line_error, run_main
 
     shard_cfg = build_tiny_shards(tmp_path)
     res = run_main("train", "--set", "s", "--shards", shard_cfg.out_root, "--run", "runs/r", "--seed", str(2**32),
@@ -333,7 +335,7 @@ def test_a_network_larger_than_the_shard_patches_is_refused_naming_both_before_t
 def test_the_unet_preset_trains_and_denoises(tmp_path):
     """The preset as it is (4 levels, 32/48/72/96 filters, batch 8), 2 steps a branch on 65x65 patches (its
     receptive field is 59 pixels), then a frame of odd size denoised by the finished run."""
-    from helpers import make_renders, random_aovs
+    from helpers.tiny import make_renders, random_aovs
 
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
@@ -369,7 +371,7 @@ def test_the_largest_network_that_fits_the_patches_is_accepted():
 
 @pytest.mark.slow
 def test_a_kernel_beyond_its_bound_is_refused_before_any_memory_is_taken(tmp_path):
-    from helpers import assert_one_line_error, run_main
+    from helpers.commands import assert_one_line_error, run_main
 
     res = run_main("train", "--kernel-size", "1001", "--run", "runs/r", cwd=tmp_path)
     assert_one_line_error(res, "--kernel-size must be an odd integer in [3, 41], got 1001")

@@ -10,17 +10,9 @@ from pathlib import Path
 import keras
 import numpy as np
 import pytest
-from helpers import (
-    TINY_TRAIN_MODEL,
-    WarmProcess,
-    assert_one_line_error,
-    build_tiny_shards,
-    command_env,
-    random_aovs,
-    randomise,
-    run_main,
-    tiny_train_config,
-)
+from helpers.commands import WarmProcess, assert_one_line_error, command_env, run_main
+from helpers.networks import randomise
+from helpers.tiny import TINY_TRAIN_MODEL, build_tiny_shards, random_aovs, tiny_train_config
 
 from kpcn_keras import augment
 from kpcn_keras.config import PRESETS, CompositorConfig, ModelConfig, TrainConfig

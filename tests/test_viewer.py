@@ -12,7 +12,9 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, random_aovs, randomise, run_main
+from helpers.commands import assert_one_line_error, run_main
+from helpers.networks import randomise
+from helpers.tiny import random_aovs
 
 from kpcn_keras import slope_map
 from kpcn_keras.denoise import Denoiser, read_frame

@@ -8,7 +8,9 @@ import urllib.request
 
 import numpy as np
 import pytest
-from helpers import headless_chromium, page_input, page_stroke, page_wait, random_aovs, randomise
+from helpers.browser import headless_chromium, page_input, page_stroke, page_wait
+from helpers.networks import randomise
+from helpers.tiny import random_aovs
 
 from kpcn_keras.denoise import Denoiser, read_frame
 from kpcn_keras.run import Run
