@@ -283,9 +283,8 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 
 # A validation loss that stays within FROZEN_TOLERANCE (relative) for FROZEN_EPOCHS epochs while the training
 # loss moves by more than FROZEN_TRAINING_MOVE has stopped learning: the training loss moves with its batches
-# alone. Seen in the quality study (docs/results/10-quality-levers.md §10d): the unet preset at lr 0.001
-# saturated a specular network's kernels in its first epoch, and its validation loss then moved by float
-# rounding alone.
+# alone. Seen in the quality study (docs/results/10-quality-levers.md §10d): the unet preset at lr 0.001 saturated
+# a specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
