@@ -23,7 +23,7 @@ BENCH_ARGS  ?=
 # inputs 2-64 spp), the set make quality renders as $(MODEL_SET), held out the scenes make train holds out.
 MODEL      ?= $(shell sed -n 's/^DEFAULT_MODEL = "\(.*\)".*/\1/p' kpcn_keras/config.py)
 # As long as held-out error falls: each network stops 20 epochs (1000 steps) after its best and keeps it; 12000
-# steps is a cap (where the shipped networks stopped: their card, docs/results.md §13). Without synthetic fireflies:
+# steps is a cap (where the shipped networks stopped: their card, docs/results/13-training-longer.md). Without synthetic fireflies:
 # the shipped networks were trained so (make model-tune adds them), and make model resumes them
 MODEL_ARGS ?= --preset cpu --steps 12000 --decay-steps 12000 --patience 20 --fireflies 0
 MODEL_RUN  ?= runs/model
@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean
+.PHONY: venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -89,9 +89,9 @@ define evaluate_and_ship
 endef
 
 # after make model: the fine-tuning that makes the shipped model (docs/training.md §7), each network trained on
-# from make model's own (--init $(MODEL_RUN)) where a measurement found it gains (docs/results.md §17, §18):
+# from make model's own (--init $(MODEL_RUN)) where a measurement found it gains (docs/results/17-cycles-fine-tuning.md, docs/results/18-synthetic-fireflies.md):
 # - the full network with synthetic fireflies (the default) at a low learning rate, then its albedo network
-#   (TUNE_ARGS; docs/results.md §20) into $(MODEL_RUN)-tuned;
+#   (TUNE_ARGS; docs/results/20-albedo-network.md) into $(MODEL_RUN)-tuned;
 # - the no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no variance), on Cycles'
 #   own frames too: random scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python
 #   3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s
@@ -190,3 +190,12 @@ test-oldest:
 
 clean:
 	rm -rf data runs shards/*/
+
+# every subcommand's --help written into docs/commands.md §4 (tests/test_docs.py checks it is up to date)
+docs: $(KPCN)
+	$(BIN)/python -m kpcn_keras.helpdoc
+
+# make train timed from a fresh clone of the committed HEAD, nothing reused: reports/make_train.{json,md},
+# the figure the README gives for it (it takes as long as make train)
+time-train: $(KPCN)
+	$(BIN)/python -m kpcn_keras.studies.fresh_clone --out reports

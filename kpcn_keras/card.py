@@ -17,7 +17,8 @@ The card is generated, never written by hand, from what the run itself holds, so
   ``make model``'s ``VALIDATION`` frames): one row per frame, beside OIDN when ``pyoidn`` was installed.
 - **Speed**: seconds of the full model on a 1920×1080 frame (:data:`SPEED_FRAME`) beside OIDN's, in one
   process, alternating, with the peak memory of the timing (:func:`speed`; the goal, :data:`SPEED_GOAL`: within
-  3× OIDN's time).
+  3× OIDN's time). The measurement is shipped beside the card as ``speed.json`` (:data:`SPEED`), and the card's
+  figures are that file's (:func:`speed_lines`).
 - **Learning curve**: ``loss.png`` and, per phase, the validation loss (the held-out patches' loss after each
   epoch) at its first, best and last epoch: a best before the last says the phase stopped improving.
 
@@ -28,6 +29,7 @@ Shipping is refused, in one line naming what to run, for a run that is unfinishe
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import re
@@ -54,6 +56,7 @@ VALIDATION_COLUMNS = (
     ("raw relMSE", "raw", "relmse"), ("OIDN relMSE", "oidn", "relmse"), ("kpcn relMSE", "denoised", "relmse"),
     ("raw DSSIM", "raw", "dssim"), ("OIDN DSSIM", "oidn", "dssim"), ("kpcn DSSIM", "denoised", "dssim"),
 )
+SPEED = "speed.json"  # the card's speed measurement, shipped beside it
 MISSING = "–"  # a method the evaluation did not run (OIDN not installed, NLM on a frame without variance)
 
 
@@ -266,16 +269,20 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
         threads = torch.get_num_threads()
     return {"width": width, "height": height, "frame": Path(noisy).name, "kpcn_s": best["kpcn"],
-            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads, "precision": denoiser.precision,
+            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads, "cpus": os.cpu_count(),
+            "precision": denoiser.precision,
             "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
 
 
 def speed_lines(found: dict) -> list[str]:
+    """The card's speed section from :func:`speed`'s record ``found``, as shipped in :data:`SPEED`; sizes in
+    MiB (``peak_mb`` and ``frame_mb`` are bytes / 2**20)."""
     size = f"{found['width']}×{found['height']}"
     lines = [f"A {size} frame (`{found['frame']}`, a held-out frame wrapped around to that size), denoised in one "
              f"process beside OIDN, alternately, the best of {found['repeats']} calls each after a warm-up, "
-             f"{found['threads']} torch threads, {os.cpu_count()} CPUs, the networks' trunks in "
-             f"{found.get('precision', 'float32')} (`--precision`, docs/denoise.md §5):", ""]
+             f"{found['threads']} torch threads, {found['cpus']} CPUs, the networks' trunks in "
+             f"{found.get('precision', 'float32')} (`--precision`, docs/denoise.md §5); from `{SPEED}`, written "
+             "with this card:", ""]
     rows = [["kpcn (this model)", f"{found['kpcn_s']:.2f}"]]
     if found["oidn_s"] is None:
         rows.append(["OIDN", "not installed (pip install -e '.[oidn]')"])
@@ -286,8 +293,8 @@ def speed_lines(found: dict) -> list[str]:
                      f"{SPEED_GOAL:g}×)"])
     lines += _table(["denoiser", f"seconds a {size} frame"], rows) + [""]
     peak = "" if found["peak_mb"] is None else "peak resident memory of the process during the timing (torch and " \
-        f"the networks included) {found['peak_mb']:.0f} MB; "
-    lines.append(f"Memory: {peak}the frame's own layers and outputs {found['frame_mb']:.0f} MB, the rest bounded "
+        f"the networks included) {found['peak_mb']:.0f} MiB; "
+    lines.append(f"Memory: {peak}the frame's own layers and outputs {found['frame_mb']:.0f} MiB, the rest bounded "
                  "by the tile (docs/denoise.md §3).")
     return lines
 
@@ -304,10 +311,11 @@ def check_report(run: Run, record: RunRecord, folder: Path, command: str) -> Non
         raise KpcnError(f"{report}: older than {newer[0]}, which it should evaluate; evaluate again with '{command}'")
 
 
-def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME) -> str:
-    """The card of the shipped model ``dest`` made from ``run`` by ``command``, its speed timed on a
-    ``speed_frame`` (width, height) frame (:func:`speed`); KpcnError (one line) for a run that cannot be
-    shipped (see the module docstring)."""
+def make_card(run: Run, dest: str | os.PathLike, command: str,
+              speed_frame: tuple[int, int] = SPEED_FRAME) -> tuple[str, dict]:
+    """The card of the shipped model ``dest`` made from ``run`` by ``command`` and the speed record its speed
+    section shows, timed on a ``speed_frame`` (width, height) frame (:func:`speed`); KpcnError (one line) for a
+    run that cannot be shipped (see the module docstring)."""
     records = run.shippable_records()
     record = records[0]
     if not (run.eval_dir / METRICS).is_file():
@@ -352,22 +360,24 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
                   f"Another renderer's frames, from `{Path(run.validation_dir.name) / METRICS}`; "
                   "*model* is the input set of the network that served the frame:", ""]
         lines += validation_table(read_rows(run.validation_dir)) + [""]
-    lines += ["## Speed", ""] + speed_lines(speed(run, record, speed_frame)) + [""]
+    found = speed(run, record, speed_frame)
+    lines += ["## Speed", ""] + speed_lines(found) + [""]
     lines += ["## Learning curve", "", "![training and validation loss per epoch](loss.png)", "",
               "Validation loss (the held-out patches, after each epoch) per phase of each input set's run; a best "
               "epoch before the last says the phase had stopped improving:", ""]
     lines += _table(["input set", "phase", "epochs", "first", "best", "last"],
                     [line for variant, rec in zip(run.variants(), records) for line in learning_curve(variant, rec)])
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n", found
 
 
 def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str,
          speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
-    """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``)."""
+    """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``) and the speed
+    record the card shows (:data:`SPEED`)."""
     run = Run(run_dir)
     run.check_ship_destination(Run(dest))
-    card = make_card(run, dest, command, speed_frame)
-    return run.ship(dest, {CARD: card})
+    card, found = make_card(run, dest, command, speed_frame)
+    return run.ship(dest, {CARD: card, SPEED: json.dumps(found, indent=2) + "\n"})
 
 
 def card_tables(text: str) -> dict[str, list[list[str]]]:

@@ -32,7 +32,8 @@ DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
 PRECISIONS = ("auto", "float32", "bfloat16")
 DEFAULT_PRECISION = "auto"
 # A self-ensemble (kpcn_keras/denoise.py, --ensemble N) denoises the frame moved by the first N of the square's 8
-# symmetries and keeps each pixel's median: N times the time, for a few per cent of relMSE (docs/results.md §14)
+# symmetries and keeps each pixel's median: N times the time, for a few per cent of relMSE
+# (docs/results/14-self-ensemble.md)
 ENSEMBLE = Bound(1, 8)
 DEFAULT_ENSEMBLE = 1
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
@@ -43,7 +44,7 @@ MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_MODEL = "default"
 MODEL_ENV = "KPCN_MODEL"
 SHIPPED_MAX_BYTES = 25 * 2**20  # a shipped model lives in git: refused above this
-# issue 23: the shipped model denoises a 1920x1080 frame within 3x OIDN's time on the same CPU; its card times
+# the shipped model's goal: a 1920x1080 frame within 3x OIDN's time on the same CPU; its card times
 # the two side by side (kpcn_keras/card.py), the best of SPEED_REPEATS alternating calls after a warm-up
 SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS = (1920, 1080), 3.0, 2
 COLOUR_CHANNELS = 3  # features[..., :3] is the noisy branch colour (data contract)
@@ -345,7 +346,8 @@ PRESETS = {
     },
     # cpu's training with a 4-level U-Net trunk (UNET_DEFAULTS: 32/48/72/96 filters) and cpu's 13x13 kernels, at
     # a third of its learning rate: at cpu's 0.001 a specular network's kernels saturated in its first epoch and
-    # it never learned (docs/results.md §10d; train.frozen now stops such a phase); at 0.0003 it learned
+    # it never learned (docs/results/10-quality-levers.md §10d; train.frozen now stops such a phase); at 0.0003
+    # it learned
     "unet": {"model": {"arch": "unet", "depth": 1}, "learning_rate": 3e-4},
     # cpu with its 7 convolutions dilated 1, 2, 4, 8, 4, 2, 1: a 45-pixel trunk field (every offset within it
     # reached, no gridding gaps) at cpu's cost a step, where the unet's steps cost twice as much
@@ -421,8 +423,8 @@ class TrainConfig:
 
     ``reference_tau`` τ weighs each pixel of the branch phases' losses by 1 / (1 + (relSE / τ)^2), relSE the
     reference's relative standard error there (the shards' ``ref_relse``; ``kpcn_keras.losses``); 0, the
-    default, does not weigh (it has not won yet: docs/results.md §10a). The joint and compositor phases are
-    never weighted (docs/training.md §2). A record written before the weighting existed has no
+    default, does not weigh (it has not won yet: docs/results/10-quality-levers.md §10a). The joint and
+    compositor phases are never weighted (docs/training.md §2). A record written before the weighting existed has no
     ``reference_tau`` and reads as 0 (:meth:`from_record`), and a run of τ = 0 writes none (:meth:`to_dict`),
     so those runs keep their identity.
 
@@ -433,9 +435,9 @@ class TrainConfig:
 
     ``fireflies`` F > 0 adds to each training patch of the branch phases a Poisson(F) number of synthetic
     fireflies, isolated spikes the target does not have (``kpcn_keras.fireflies``: why, and what a spike is);
-    the default is 1, measured from scratch at make train's budget (docs/results.md §18). 0 adds none and, like
-    τ = 0, is written nowhere, so the runs from before the spikes existed keep their identity (a record without
-    the key reads as 0: :meth:`from_record`).
+    the default is 1, measured from scratch at make train's budget (docs/results/18-synthetic-fireflies.md).
+    0 adds none and, like τ = 0, is written nowhere, so the runs from before the spikes existed keep their
+    identity (a record without the key reads as 0: :meth:`from_record`).
 
     ``patience`` P > 0 stops a phase once P epochs in a row have not lowered its validation loss (the held-out
     scenes' patches) below its best, and makes the best epoch's weights the phase's model: a run trains as long
@@ -467,7 +469,8 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     branches: tuple[str, ...] = bounded(BRANCHES, distinct=True)
     shared: bool = False
-    # as many steps as make train's 30 minutes on a 2-core CPU hold: steps beat every lever (docs/results.md §10f)
+    # as many steps as make train's 30 minutes on a 2-core CPU hold: steps beat every lever
+    # (docs/results/10-quality-levers.md §10f)
     steps: int = bounded(4000, STEPS)
     steps_per_epoch: int = bounded(50, STEPS)
     batch_size: int = bounded(8, BATCH_SIZE)
@@ -485,8 +488,9 @@ class TrainConfig:
     joint_steps: int = bounded(0, Bound(0, STEPS.high))
     joint_learning_rate: float = bounded(1e-4, LEARNING_RATE)
     albedo_steps: int = bounded(NO_ALBEDO_NETWORK, Bound(0, STEPS.high))
-    # a rate of its own: at make train's the albedo phase stalled (docs/results.md §20; maybe only its starting
-    # plateau, §21); the shipped albedo network and the scratch ones were trained at this one
+    # a rate of its own: at make train's the albedo phase stalled (docs/results/20-albedo-network.md; maybe only
+    # its starting plateau, docs/results/21-quality-report-shipped-model.md); the shipped albedo network and the
+    # scratch ones were trained at this one
     albedo_learning_rate: float = bounded(3e-4, LEARNING_RATE)
     compositor: CompositorConfig | None = None
     compositor_steps: int = bounded(600, STEPS)

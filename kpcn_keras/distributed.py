@@ -1,4 +1,4 @@
-"""Data-parallel training over ``torch.distributed`` (issue 10): the one owner of the process group.
+"""Data-parallel training over ``torch.distributed``: the one owner of the process group.
 
 ``torchrun`` starts one process per device (or per core share) and tells each where it stands through the
 environment: ``RANK`` and ``WORLD_SIZE`` (this process among all of them, over every machine),

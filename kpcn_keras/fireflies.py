@@ -4,7 +4,7 @@ Why: a pixel far brighter than anything near it, a rare path a low sample count 
 glass onto a dark floor), is noise the reference does not have. The networks repair the fireflies they have seen
 (the ``fireflies`` family), but let one far outside that range through unchanged: a ReLU network's kernel logits
 grow with its input, so a spike larger than any it trained on saturates the softmax on one tap, the centre, and
-bright pixels the networks did see were mostly emitters, which are signal (docs/results.md §18).
+bright pixels the networks did see were mostly emitters, which are signal (docs/results/18-synthetic-fireflies.md).
 
 What is added: a patch of a training stream gets a Poisson number of spikes, the run's ``fireflies`` on average
 (``kpcn_keras.config.TrainConfig``; 1 by default), each at a uniform pixel, of a grey value ``S`` log-uniform in

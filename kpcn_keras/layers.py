@@ -136,7 +136,7 @@ def kernel_apply(colour, logits, k: int, dilation: int = 1):
     alone without the patch gather (:func:`_inference_kernel_apply`); anything else (other backends, symbolic
     tensors) takes the ``keras.ops`` path. The three agree to float rounding (tested, values and gradients).
 
-    Why this form (issue 9; 2-core CPU shared with other jobs, so best of several alternating repeats;
+    Why this form (2-core CPU shared with other jobs, so best of several alternating repeats;
     1 x 256 x 256 inference, k=13 / k=21):
 
     - the ``keras.ops`` path (four-op softmax + loop over k*k shifted channels-last slices): 51 / 294 ms;
@@ -200,7 +200,7 @@ def _inference_kernel_apply(planes, logits, k: int, d: int):
     """The forward alone, where no gradient is asked (inference): per row block the logits are softmaxed by torch
     (vectorised exponentials, the block still cached) and contracted with the edge-padded colour planes
     (B, C, H + 2r, W + 2r) by :func:`_contract_rows`, which reads each tap's colour where it lies instead of
-    gathering k*k-tap patches first (the gather was most of this layer's time: issue 23). The autograd path
+    gathering k*k-tap patches first (the gather was most of this layer's time). The autograd path
     keeps the gather: its backward needs the patches anyway."""
     import torch
 

@@ -18,7 +18,7 @@ output stays 3 channels. ``AsymmetricSMAPE(slope=None)`` takes λ per element fr
 inputs are in the domain the network is trained in (log(1 + x) branch colour, or the final colour for joint
 fine-tuning).
 
-**Reference weighting** (issue 23; docs/training.md §2). Where a reference is itself noisy (caustics,
+**Reference weighting** (docs/training.md §2). Where a reference is itself noisy (caustics,
 fireflies), a network trained on it learns its speckles as signal. With ``reference_tau`` τ > 0 either loss
 takes one more channel, the **last** of ``y_true``: the reference's relative standard error per pixel
 (``prep.convergence``, the shards' ``<branch>/ref_relse``), and weighs each pixel by

@@ -17,8 +17,8 @@ Architectures (``ModelConfig.arch``):
   8 layers: 7 convolutions of 32 3x3 filters and the kernel head; the paper's vanilla network is 9: 8
   convolutions of 100 5x5 filters and the kernel head. With ``dilations`` the i-th convolution's taps are
   ``dilations[i]`` pixels apart: the ``dilated`` preset's 1, 2, 4, 8, 4, 2, 1 reach 22 pixels each way at the
-  cost of the plain stack's 7 (issue 23's blotches are 10-30 pixels across). Every offset within that reach is
-  some sum of ±dilations, so no pixel of the field is skipped (the "gridding" of equal dilations).
+  cost of the plain stack's 7 (the low-frequency blotches it is for are 10-30 pixels across). Every offset
+  within that reach is some sum of ±dilations, so no pixel of the field is skipped (the "gridding" of equal dilations).
 - ``"kpal"``: Vogels et al.'s residual network: a stem convolution to ``width`` filters, then ``depth``
   residual blocks of two convolutions, each followed by batch norm (if enabled) and dropout, the block
   input added back before the final ReLU; then the same kernel-predicting head. The report's 28-layer
@@ -27,7 +27,7 @@ Architectures (``ModelConfig.arch``):
   colour** (residual direct prediction): the network predicts a correction, not the colour itself. The sum
   is clamped to the colour feature's range [0, ``prep.features.LOG_COLOUR_MAX``], which a kernel output
   never leaves beyond float32 rounding (it is a convex combination of the input colour).
-- ``"unet"``: a kernel-predicting network on a U-Net trunk (issue 23: the ``cpu`` stack sees 15 x 15 pixels,
+- ``"unet"``: a kernel-predicting network on a U-Net trunk (the ``cpu`` stack sees 15 x 15 pixels,
   and low-frequency blotches 10-30 pixels across survive it). ``levels`` resolutions L, level l of
   ``ModelConfig.unet_widths()[l]`` filters (``width`` growing by ``width_growth`` a level, at most
   ``width_cap``). Encoder: at every level ``depth`` conv units, then (above the coarsest) 2x2 average
@@ -343,8 +343,8 @@ def build_branch_model(cfg: ModelConfig, name: str = "diffuse", *, data_format: 
     accumulate from step to step.
 
     ``data_format`` is the convolutions' layout inside (the input and output stay channels last):
-    ``TRUNK_FORMAT`` by default, ``"channels_last"`` for the layout of models saved before issue 9 (same
-    weights, same outputs; it exists to test that they still load and agree).
+    ``TRUNK_FORMAT`` by default, ``"channels_last"`` for the layout of models saved before the trunk ran
+    channels first (same weights, same outputs; it exists to test that they still load and agree).
     """
     if not isinstance(cfg, ModelConfig):
         raise TypeError(f"cfg must be a ModelConfig, received {type(cfg).__name__}")

@@ -15,8 +15,8 @@ gives the same file on the same machine, and a machine without native bfloat16 g
 
 Only inference uses it: ``denoise.Denoiser`` sets it on the networks it loaded. Training, checkpoints and the
 saved models are float32 throughout. What it buys and costs (time of a 1920x1080 frame, relMSE of the held-out
-and validation frames against float32) is measured in docs/results.md; the tests bound the difference of a real
-model's output (``tests/test_precision.py``).
+and validation frames against float32) is measured in docs/results/10-quality-levers.md §10c; the tests bound
+the difference of a real model's output (``tests/test_precision.py``).
 """
 
 from __future__ import annotations

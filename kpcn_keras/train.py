@@ -135,7 +135,7 @@ def _new_model(cfg: TrainConfig, run: Run, record: dict, phase: Phase) -> keras.
     names = _network_names(cfg)
     finished = run.parse_record(record)  # the phases done so far
     # the albedo network starts from the diffuse network alone: the trunk already tells noise from detail, and a
-    # new network did not learn in as many steps what one started from it did (docs/results.md §20)
+    # new network did not learn in as many steps what one started from it did (docs/results/20-albedo-network.md)
     wanted = ["diffuse"] if phase.name == ALBEDO_NETWORK else dict.fromkeys(names.values())
     nets = {name: run.load_component(finished, name) for name in wanted}
     for name, net in nets.items():
@@ -283,16 +283,16 @@ class _StopOnNonFinite(keras.callbacks.Callback):
 
 # A validation loss that stays within FROZEN_TOLERANCE (relative) for FROZEN_EPOCHS epochs while the training
 # loss moves by more than FROZEN_TRAINING_MOVE has stopped learning: the training loss moves with its batches
-# alone. Seen in issue 23's quality study (docs/results.md §10d): the unet preset at lr 0.001 saturated a
-# specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
+# alone. Seen in the quality study (docs/results/10-quality-levers.md §10d): the unet preset at lr 0.001 saturated
+# a specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
 # A phase that starts from finished networks (starts_trained) can start on a plateau: its validation loss as flat
-# as a saturated network's for a score of epochs, then falling (issue 23: make train's albedo phase, seed 1,
-# docs/results.md §21). Such a phase is judged only once its validation loss has left its first epoch's by more
-# than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to have saturated it. A phase from
-# random weights is judged from its first epochs (the unet case).
+# as a saturated network's for a score of epochs, then falling (make train's albedo phase, seed 1,
+# docs/results/21-quality-report-shipped-model.md). Such a phase is judged only once its validation loss has
+# left its first epoch's by more than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to
+# have saturated it. A phase from random weights is judged from its first epochs (the unet case).
 
 
 def starts_trained(cfg: TrainConfig, phase: Phase) -> bool:

@@ -29,8 +29,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# Chosen on training scenes by the error the filtered albedo leaves in their frames (docs/results.md §19): a wider
-# search or patch removed little more and cost up to 2.3x the time; the averaged variance removed more
+# Chosen on training scenes by the error the filtered albedo leaves in their frames
+# (docs/results/19-albedo-prefilter.md): a wider search or patch removed little more and cost up to 2.3x the
+# time; the averaged variance removed more
 SEARCH_RADIUS = 3  # r: a pixel draws on the 7 x 7 pixels around it
 PATCH_RADIUS = 1  # f: compared by their 3 x 3 neighbourhoods
 STRENGTH = 1.0  # k: how many standard deviations apart two patches may be before their weight falls

@@ -1,5 +1,5 @@
-"""How converged a reference render is, from its own variance layers (issue 23: the references of some
-families are themselves speckled, and training on them teaches the network that a speckle is signal).
+"""How converged a reference render is, from its own variance layers (the references of
+some families are themselves speckled, and training on them teaches the network that a speckle is signal).
 
 A kpcn render's ``<x>Variance`` layers are the **variance of the pixel mean** (``prep.render.integrator``:
 the unbiased per-sample variance divided by spp, per channel, then averaged over R G B), so their square root

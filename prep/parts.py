@@ -1,4 +1,5 @@
-"""Splitting an offline stage (``kpcn render``, ``kpcn shards``) over processes or machines (issue 10).
+"""Splitting an offline stage (``kpcn render``, ``kpcn shards``) over processes or machines, each writing the
+files one process would.
 
 A :class:`Part` is "part i of N" of a stage's work. Every part plans the whole work from the same options,
 takes its own share (:meth:`Part.block` for items of even cost, :meth:`Part.balanced` for items of uneven

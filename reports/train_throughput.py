@@ -1,4 +1,4 @@
-"""Where the seconds of `make train`'s diffuse phase go (issue 20): a diagnostic to run by hand, on a quiet
+"""Where the seconds of `make train`'s diffuse phase go: a diagnostic to run by hand, on a quiet
 machine, after `make shards`. It changes nothing of the set and removes its scratch run.
 
     .venv/bin/python reports/train_throughput.py [--set default] [--steps 1200] [--threads N] [--sync | --cold]

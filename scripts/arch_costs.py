@@ -1,4 +1,4 @@
-"""The cost of the cpu, unet and dilated presets' networks side by side, in one process (issue 23; docs/method.md §4).
+"""The cost of the cpu, unet and dilated presets' networks side by side, in one process (docs/method.md §4).
 
 Prints one JSON object: per preset the parameter count, the receptive radius (``models.receptive_radius``) and
 input alignment, the best and median forward time of one 256 x 256 tile (``predict_on_batch``), the median

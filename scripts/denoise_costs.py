@@ -1,4 +1,5 @@
-"""What a 1920 x 1080 denoise costs in each precision, beside OIDN, in one process (issue 23; docs/results.md §10c).
+"""What a 1920 x 1080 denoise costs in each precision, beside OIDN, in one process
+(docs/results/10-quality-levers.md §10c).
 
 Prints one JSON object: the seconds of a model's full denoise (features, both branches, recombination; tiles of
 the default size) of a frame wrapped around to 1920 x 1080 (``card.frame_of_size``), in float32 and in bfloat16

@@ -1,4 +1,4 @@
-"""Where a frame's error is: in its brightest errors or spread over the frame (issue 23: what closes the gap to OIDN).
+"""Where a frame's error is: in its brightest errors or spread over the frame: what closes the gap to OIDN.
 
 relMSE is a mean over pixels, so a gap to OIDN can be a few pixels far off (a highlight or firefly kept or lost)
 or most pixels a little off (low-frequency blotches). For each frame, kpcn (the run's network for what the frame

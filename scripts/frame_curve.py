@@ -1,4 +1,4 @@
-"""Whole-frame error as a network trains, beside OIDN (issue 23: train as long as the held-out error falls; plot it).
+"""Whole-frame error as a network trains, beside OIDN: train as long as the held-out error falls, and plot it.
 
 A run's own learning curve (``log.csv``, ``loss.png``) is its loss on held-out *patches* of its own renders. This
 is what users judge instead: relMSE of whole frames, other renderers' among them, epoch by epoch, against OIDN's on

@@ -11,8 +11,8 @@ variance inputs refuses it, naming the layer.
   .venv/bin/python scripts/import_renders.py SRC --set NAME [--renders data/renders]
   .venv/bin/kpcn shards --set NAME --inputs no-variance [--val-scenes ...]
 
-``scripts/render_cycles_set.py`` renders such frames with Blender (docs/results.md §16). Bad input: one line
-naming the file, exit 2; an existing set folder is refused rather than mixed with.
+``scripts/render_cycles_set.py`` renders such frames with Blender (docs/results/16-cycles-frames.md). Bad
+input: one line naming the file, exit 2; an existing set folder is refused rather than mixed with.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""How much of a frame's error is the albedo its diffuse irradiance is multiplied back by (docs/results.md §19).
+"""How much of a frame's error is the albedo its diffuse irradiance is multiplied back by
+(docs/results/19-albedo-prefilter.md).
 
 The diffuse network predicts irradiance (trained against the reference's), and the frame is that irradiance times
 an albedo. For each frame, against its reference, as a ratio to OIDN's relMSE where ``pyoidn`` is installed:

@@ -2,17 +2,17 @@
 reference, as Blender writes them (one multilayer OpenEXR a frame, every pass a denoiser can use).
 
 Why: kpcn's own path tracer makes its training data, and on Cycles' frames the networks trained on it trail
-OIDN (docs/results.md §13). These scenes are built from Blender's primitives and shader nodes, drawn at random
-from a seed (rooms, studio sweeps and open ground; Principled materials with textures, metal, glass and coats;
-area, point, emissive and sky lights), never the validation scenes of ../shared/validation. Every frame is one
-render at its spp, so its noise is what Cycles' sampler gives a user (not an average of renders).
+OIDN (docs/results/13-training-longer.md). These scenes are built from Blender's primitives and shader nodes,
+drawn at random from a seed (rooms, studio sweeps and open ground; Principled materials with textures, metal,
+glass and coats; area, point, emissive and sky lights), never the validation scenes of ../shared/validation.
+Every frame is one render at its spp, so its noise is what Cycles' sampler gives a user (not an average of renders).
 
 Runs under bpy (the wheel wants numpy < 2: a venv of its own):
   python3.11 -m venv .bpyenv && .bpyenv/bin/pip install "numpy<2" bpy==5.0.1
   .bpyenv/bin/python scripts/render_cycles_set.py OUT [--scenes 0:32] [--res 128] [--spp 4,8,16,32,64] [--ref-spp 1024]
 writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp) and OUT/render_log.json;
 a frame already there is kept, so a killed run resumes. ``scripts/import_renders.py`` then writes them into a
-render set that ``kpcn shards --inputs no-variance`` cuts (docs/training.md §6, docs/results.md §16).
+render set that ``kpcn shards --inputs no-variance`` cuts (docs/training.md §6, docs/results/16-cycles-frames.md).
 """
 import argparse
 import colorsys

@@ -1,4 +1,5 @@
-"""What a new λ map costs against a full denoise, in one process (issue 24; docs/results.md §11).
+"""What a new λ map costs against a full denoise, in one process
+(docs/results/11-painted-slope-map.md).
 
 For each run (trained with ``--slope-module``, with or without ``--slope-mixture``) and each frame size (a real
 render wrapped around to it: ``card.frame_of_size``): the seconds of a full denoise at a λ map

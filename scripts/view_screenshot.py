@@ -1,4 +1,4 @@
-"""The screenshot of ``kpcn view`` under reports/ (issue 24): the page served for a frame and a run, driven in
+"""The screenshot of ``kpcn view`` under reports/: the page served for a frame and a run, driven in
 headless Chromium (``tests/helpers.py``'s ``headless_chromium``: Debian's chromium and chromium-driver, Selenium)
 as a user drives it: one brush stroke at the top of the λ range across the middle of the frame (λ at the low
 end elsewhere), then kpcn left of the swipe and the λ map right of it, the swipe at the frame's middle; the

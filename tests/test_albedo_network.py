@@ -1,4 +1,4 @@
-"""Issue 23: the albedo network (``--albedo-steps``), a copy of the diffuse network trained to filter the albedo the
+"""The albedo network (``--albedo-steps``), a copy of the diffuse network trained to filter the albedo the
 diffuse irradiance is multiplied by: its options, its batches, its training model and the denoiser that uses it,
 each against an independent computation."""
 
@@ -53,7 +53,8 @@ def test_the_albedo_phase_follows_the_branches_and_a_run_without_it_keeps_its_re
     assert [(p.name, p.steps, p.learning_rate) for p in cfg.phases()] == [
         ("diffuse", 100, cfg.learning_rate), ("specular", 100, cfg.learning_rate),
         ("albedo", 120, cfg.albedo_learning_rate), ("joint", 50, cfg.joint_learning_rate)]
-    assert cfg.albedo_learning_rate != cfg.learning_rate  # its own: make train's rate saturates it (results §20)
+    # its own: make train's rate saturates it (docs/results/20-albedo-network.md)
+    assert cfg.albedo_learning_rate != cfg.learning_rate
     assert (cfg.to_dict()["albedo_steps"], cfg.to_dict()["albedo_learning_rate"]) == (120, cfg.albedo_learning_rate)
     # a run without one writes no key, and a record without the key is a run without one
     plain = TrainConfig.from_preset("cpu")

@@ -72,7 +72,7 @@ def test_main_run_in_this_process_leaves_the_process_as_it_found_it(tmp_path):
             numba.get_num_threads(), torch.get_num_threads()) == before
 
 
-# --- kpcn denoise's default output (issue 5, defect 3) ---
+# --- kpcn denoise's default output: beside its input, never the input itself ---
 
 @pytest.mark.parametrize("name", ["noext", "UP.EXR", "frame.exr.d/in.exr", "x.Exr"])
 def test_denoise_without_output_writes_beside_the_input_and_never_over_it(tmp_path, tiny_run, name):
@@ -168,7 +168,7 @@ def test_shards_output_under_a_file_is_refused(tmp_path):
     assert checksums(tmp_path) == before
 
 
-# --- a full disk (issue 20) ---
+# --- a full disk: one line, nothing half-written, and a rerun with space finishes ---
 
 def test_denoise_on_a_full_disk_ends_in_one_line_and_a_rerun_with_space_writes_it(tmp_path, tiny_run, small_disk):
     exr.write_aovs(tmp_path / "in.exr", random_aovs(64, 64))
@@ -225,7 +225,7 @@ def test_corrupt_exr_gives_one_line_and_no_library_output(tmp_path, tiny_run):
     assert checksums(tmp_path) == before
 
 
-# --- kpcn denoise of many frames (issue 9) ---
+# --- kpcn denoise of many frames: one model load for all ---
 
 def test_denoise_many_inputs_into_a_folder_and_refuses_a_file_output(tmp_path, tiny_run):
     for name in ("a.exr", "b.exr"):
@@ -326,7 +326,7 @@ def test_shards_record_their_command_without_the_options_that_change_no_byte():
     assert cli._command_line(args) == "kpcn " + " ".join(argv)  # a report keeps every option
 
 
-# --- the bounds of every numeric option, and no repeats in a list (issue 20, items 4-6, 14) ---
+# --- the bounds of every numeric option, and no repeats in a list ---
 
 _NUMERIC = ("int", "float", "_csv_ints", "_csv_floats")
 _STATED = re.compile(r"(an odd integer|an integer|a number) in ([\[(])([^,]+), ([^\])]+)([\])])")

@@ -1,4 +1,4 @@
-"""Issue 5: a command killed at a random point of ``kpcn render``, ``kpcn shards`` or ``kpcn train`` is
+"""A command killed at a random point of ``kpcn render``, ``kpcn shards`` or ``kpcn train`` is
 finished by running the same command again, and then every file it wrote is byte-identical (SHA-256) to
 an uninterrupted run's; nothing that was complete is lost, redone or duplicated, no temporary file is left.
 

@@ -273,7 +273,7 @@ def test_denoises_the_mitsuba_fixture(tiny_run, tmp_path, fixture_noisy, fixture
     assert all(np.isfinite(v) for v in report["metrics"].values())
 
 
-# --- batches (issue 9): one load, many frames ---
+# --- batches: one load, many frames ---
 
 @pytest.mark.slow
 def test_a_batch_equals_each_frame_alone(tiny_run, tmp_path):

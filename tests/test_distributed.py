@@ -1,4 +1,4 @@
-"""Data-parallel training (issue 10): the launcher's environment read into a World, and gradients averaged
+"""Data-parallel training: the launcher's environment read into a World, and gradients averaged
 over processes so that two processes on halves of a batch train what one process trains on all of it."""
 
 import json

@@ -1,18 +1,25 @@
 """The README and docs/: every relative link resolves (file and heading), every docs page the code cites
-exists with the section cited, and the README stays a user's page."""
+exists with the section cited, the README stays a user's page whose figures are its JSON's, the results
+are one page per entry, and docs/commands.md holds the --help texts the parser prints now."""
 
+import os
 import re
 import unicodedata
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-README_MAX_LINES = 200  # issue 21: the README is for users; everything else lives in docs/
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+RESULTS = ROOT / "docs" / "results"
+# the README is for users, read in five minutes; everything else lives in docs/
+README_MAX_WORDS, README_MAX_WIDTH = 1200, 120
 
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 CODE_SPAN = re.compile(r"`[^`]*`")
-# a citation in the code: "docs/method.md §8", "docs/method.md §6, §7", "docs/training.md"
-CITATION = re.compile(r"docs/([\w-]+\.md)((?:[,;]? ?§\d+)*)")
+# a citation in the code: "docs/method.md §8", "docs/method.md §6, §7", "docs/training.md",
+# "docs/results/10-quality-levers.md §10d"
+CITATION = re.compile(r"docs/([\w/-]+\.md)((?:[,;]? ?§\d+)*)")
 # a citation of a page the repository never held, or of the report's sections without a docs page
 UNFINDABLE = re.compile(r"(?<!docs/)\bdesign\.md|seed report §")
 CODE_DIRS = ("prep", "kpcn_keras", "tests", "reports")
@@ -75,9 +82,12 @@ def test_a_link_to_a_missing_file_or_heading_is_found(tmp_path):
                                   "other.md#nope (no heading #nope in other.md)"]
 
 
-def test_the_readme_is_at_most_200_lines():
-    lines = len((ROOT / "README.md").read_text(encoding="utf-8").splitlines())
-    assert lines <= README_MAX_LINES, f"README.md has {lines} lines; move the rest to docs/"
+def test_the_readme_is_short_and_narrow():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    words = len(text.split())
+    assert words <= README_MAX_WORDS, f"README.md has {words} words; move the rest to docs/"
+    wide = [i for i, line in enumerate(text.splitlines(), 1) if len(line) > README_MAX_WIDTH]
+    assert not wide, f"README.md lines over {README_MAX_WIDTH} characters: {wide}"
 
 
 def code_files():
@@ -130,3 +140,114 @@ def test_every_test_file_and_test_the_docs_name_exists():
         defined |= set(re.findall(r"^\s*def (test_\w+)\(", f.read_text(encoding="utf-8"), re.M))
     missing = sorted(f for f in files if not (ROOT / f).exists()) + sorted(names - defined)
     assert not missing, f"the docs name tests that do not exist (renamed?): {missing}"
+
+
+def test_the_results_index_links_every_entry_once_in_order_and_each_page_is_its_numbered_entry():
+    pages = sorted(p.name for p in RESULTS.glob("[0-9][0-9]-*.md"))
+    assert len(pages) >= 21
+    linked = [t for t in relative_links(RESULTS / "README.md") if re.fullmatch(r"\d\d-[\w-]+\.md", t)]
+    assert linked == pages
+    for name in pages:
+        first = (RESULTS / name).read_text(encoding="utf-8").splitlines()[0]
+        assert re.match(rf"# {int(name[:2])} \S", first), f"{name} starts with {first!r}"
+
+
+def test_nothing_cites_the_single_results_page_the_entries_were_split_from():
+    # "results.md", or "results §17" other than as the text of a link to its page
+    old = re.compile(r"\bresults\.md\b|\bresults §\d+(?![^\s\]]*\]\()")
+    files = [*PAGES, *code_files(), ROOT / "Makefile", *sorted((ROOT / "scripts").rglob("*.py")),
+             *sorted((ROOT / "models").rglob("*.md"))]
+    stale = [f"{f.relative_to(ROOT).as_posix()}:{i}" for f in files if f.is_file()
+             for i, line in enumerate(f.read_text(encoding="utf-8").splitlines(), 1) if old.search(line)]
+    assert not stale, f"cite a page of docs/results/ instead: {stale}"
+
+
+def test_the_commands_page_holds_the_help_texts_the_parser_prints_now():
+    from kpcn_keras import helpdoc
+
+    text = helpdoc.PAGE.read_text(encoding="utf-8")
+    version = helpdoc.region_version(text)
+    assert version, f"{helpdoc.PAGE} names no Python version in its --help region"
+    if version != helpdoc.python_version():
+        pytest.skip(f"the --help texts were written with Python {version}, whose argparse lays them out otherwise")
+    assert text == helpdoc.update(text), "docs/commands.md §4 is not what the parser prints now: run 'make docs'"
+
+
+def test_the_help_texts_are_every_subcommand_s_at_a_width_the_terminal_does_not_change(monkeypatch):
+    from kpcn_keras import helpdoc
+    from kpcn_keras.parser import build_parser
+
+    monkeypatch.setenv("COLUMNS", "40")
+    narrow = helpdoc.render()
+    monkeypatch.setenv("COLUMNS", "250")
+    assert helpdoc.render() == narrow and os.environ["COLUMNS"] == "250"
+    names = ["kpcn", *(f"kpcn {name}" for name in build_parser().get_default("subcommands"))]
+    assert re.findall(r"^### `(.+) --help`$", narrow, re.M) == names
+
+
+def test_a_page_without_the_help_region_is_refused_naming_it(tmp_path, capsys):
+    from kpcn_keras import helpdoc
+
+    page = tmp_path / "commands.md"
+    page.write_text("# Commands\n")
+    assert helpdoc.main(["--page", str(page)]) == 2
+    assert f"{page}: no region" in capsys.readouterr().err and page.read_text() == "# Commands\n"
+    page.write_text(f"# Commands\n\n{helpdoc.BEGIN}\nold\n{helpdoc.END}\n")
+    assert helpdoc.main(["--page", str(page), "--check"]) == 1
+    assert helpdoc.main(["--page", str(page)]) == 0 and helpdoc.main(["--page", str(page), "--check"]) == 0
+    assert page.read_text() == f"# Commands\n\n{helpdoc.render()}\n"
+
+
+# the README's results table and the JSON it names for it (the command that writes it is named beside it)
+RESULTS_JSON = "reports/quality.json"
+RESULTS_GROUPS = {"blender": "Blender Cycles", "mitsuba": "Mitsuba 3"}  # a validation frame's renderer -> row
+
+
+def readme_section(title: str) -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return text.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
+def table_rows(text: str) -> list[list[str]]:
+    """The body rows of the markdown tables in ``text``: each table's header and ``|---|`` line left out."""
+    lines = [line for line in text.splitlines() if line.startswith("|")]
+    rule = [bool(re.fullmatch(r"\|(---\|)+", line)) for line in lines]
+    return [[c.strip() for c in line.strip("|").split("|")] for i, line in enumerate(lines)
+            if not rule[i] and not (i + 1 < len(lines) and rule[i + 1])]
+
+
+def results_rows(record: dict) -> dict[tuple[str, str], list[str]]:
+    """The README's results rows computed from the quality report's frames: per (frames, spp) the means of the
+    shipped model's, OIDN's and Blender's relMSE, the frames below OIDN and the median ratio; and one for all."""
+    from statistics import mean, median
+
+    groups = {}
+    for frame in record["frames"]:
+        label = "held-out" if frame["kind"] == "held-out" else RESULTS_GROUPS[frame["renderer"]]
+        groups.setdefault((label, str(frame["spp"])), []).append(frame)
+    groups[("all", "")] = record["frames"]
+
+    def relmse(frames, method):
+        values = [f[method]["relmse"] for f in frames if method in f]
+        return f"{mean(values):.4f}" if len(values) == len(frames) else "–"
+
+    rows = {}
+    for (label, spp), frames in groups.items():
+        below = sum(f["model"]["relmse"] < f["oidn"]["relmse"] for f in frames)
+        ratio = f"{median(f['model']['relmse'] / f['oidn']['relmse'] for f in frames):.2f}×"
+        means = [relmse(frames, m) for m in ("model", "oidn", "blender")] if label != "all" else ["", "", ""]
+        rows[(label, spp)] = [label, spp, *means, f"{below} of {len(frames)}", ratio]
+    return rows
+
+
+def test_every_figure_of_the_readme_results_table_is_the_json_it_names():
+    import json
+
+    section = readme_section("Results")
+    assert f"`{RESULTS_JSON}`" in section and "kpcn quality --measure-model" in section
+    shown = table_rows(section)
+    assert shown, "no results table in the README"
+    computed = results_rows(json.loads((ROOT / RESULTS_JSON).read_text(encoding="utf-8")))
+    assert {tuple(row[:2]) for row in shown} == set(computed), "the README's rows are not the JSON's groups"
+    for row in shown:
+        assert row == computed[tuple(row[:2])], f"README row {row} is not {RESULTS_JSON}'s {computed[tuple(row[:2])]}"

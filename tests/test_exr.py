@@ -1,5 +1,5 @@
 """``prep.exr``: the AOV layout written and read back, and renders as real renderers write them: extremes,
-non-finite values and broken files (issue 5).
+non-finite values and broken files.
 
 Every layer read by ``prep.exr.read_aovs`` is finite, float32, and follows the documented repair rule
 (NaN -> 0, +inf -> the channel's largest finite value, -inf -> its smallest; finite values beyond float32

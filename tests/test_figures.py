@@ -38,7 +38,7 @@ def test_figures_never_write_over_a_file_they_read(tiny_run, tmp_path, capsys):
         kernels.unlink()
 
 
-# --- the data figures: Fig. 3 (sampling) and Fig. 4 (network inputs) of a shard set (issue 24) ---
+# --- the data figures: Fig. 3 (sampling) and Fig. 4 (network inputs) of a shard set ---
 
 P = 16  # build_tiny_shards' patch size
 

@@ -1,4 +1,4 @@
-"""A network per input set (issue 22): the shard set cut for a set (``prep.inputs.restrict`` of the render and
+"""A network per input set: the shard set cut for a set (``prep.inputs.restrict`` of the render and
 its reference, ``ShardConfig.inputs``), the run trained on it (``<run>/inputs/<set>``, ``TrainConfig.inputs``),
 the denoiser that restricts a frame to its run's set, and ``Run.serving``, which finds the run for a frame.
 

@@ -188,7 +188,7 @@ def test_smape_over_the_colour_range_matches_float64_with_finite_gradient(out_va
     assert torch.isfinite(out.grad).all()
 
 
-# ---------------------------------------------------------------- reference weighting (issue 23)
+# ---------------------------------------------------------------- reference weighting
 
 
 def np_smape_grad(gt, out):

@@ -1,4 +1,4 @@
-"""Hard numerical cases end to end (issue 5).
+"""Hard numerical cases end to end: every stage stays finite and agrees with a float64 computation.
 
 Every hard case is a synthetic render (``helpers.tiny.random_aovs`` with the case applied) that goes through
 the whole pipeline: written with ``prep.exr.write_aovs`` and read back (the repair rule), the features of

@@ -1,4 +1,4 @@
-"""Offline stages split over processes (issue 10): ``kpcn render`` and ``kpcn shards`` in parts, by
+"""Offline stages split over processes: ``kpcn render`` and ``kpcn shards`` in parts, by
 ``--part i/N`` or by torchrun's rank, write the same files as one process, whichever part ends last."""
 
 import fcntl

@@ -713,7 +713,7 @@ def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     assert md == (REPO / "reports" / "render.md").read_text()  # the committed report is its record's
 
 
-# --- the frame size: both bounds, and the memory the machine has (issue 20, item 5) ---
+# --- the frame size: both bounds, and the memory the machine has ---
 
 def test_frame_bytes_are_what_the_renderer_allocates_per_pixel():
     import tracemalloc

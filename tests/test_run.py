@@ -1,6 +1,5 @@
 """A run folder: its record is written only after its inputs are checked, it can be moved, a checkpoint
-holds the model and its epoch count in one file, and anything broken in it is one clear line
-(issue 5, defects 4, 9, 10 and 11)."""
+holds the model and its epoch count in one file, and anything broken in it is one clear line."""
 
 import dataclasses
 import json

@@ -1,5 +1,5 @@
-"""A shard set knows its sources, has one writer at a time, and is never taken for whole when it is not
-(issue 5, defects 1, 2, 5 and 7)."""
+"""A shard set knows its sources, has one writer at a time, and is never taken for whole when it is
+not."""
 
 import json
 import pickle

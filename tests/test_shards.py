@@ -235,7 +235,7 @@ def test_cut_into_a_shard_buffer_equals_cut(tmp_path):
     assert (want["source"] == 4).all() and want["diffuse/log_colour"].dtype == np.float16
 
 
-# --- a full disk (issue 20) ---
+# --- a full disk: one line, nothing half-written, and a rerun with space finishes ---
 
 SHARDS_ARGS = ("shards", "--set", "s", "--renders", "renders", "--patch-size", "16", "--patches-per-image", "7",
                "--patches-per-shard", "5")

@@ -355,6 +355,25 @@ def test_the_card_times_the_frame_asked_and_names_oidn(shipped):
     assert speed[2][0] == "OIDN"
 
 
+def test_the_card_s_speed_figures_are_those_of_the_speed_record_shipped_beside_it(shipped):
+    from kpcn_keras.card import SPEED, card_tables, speed_lines
+
+    found = json.loads((shipped / SPEED).read_text())
+    assert found["width"] == 96 and found["height"] == 80 and found["kpcn_s"] > 0
+    assert card_tables((shipped / "CARD.md").read_text())["Speed"][1][1] == f"{found['kpcn_s']:.2f}"
+    assert "\n".join(speed_lines(found)) in (shipped / "CARD.md").read_text()
+
+
+def test_the_committed_model_s_card_shows_its_speed_record():
+    from kpcn_keras.card import SPEED, speed_lines
+
+    model = Path(__file__).resolve().parent.parent / "models" / "default"
+    found = json.loads((model / SPEED).read_text())
+    card = (model / "CARD.md").read_text()
+    assert "\n".join(speed_lines(found)) in card
+    assert f"| kpcn (this model) | {found['kpcn_s']:.2f} |" in card and f"| OIDN | {found['oidn_s']:.2f} |" in card
+
+
 def test_shipping_on_a_full_disk_ends_in_one_line_and_leaves_nothing(evaluated_run, small_disk, tmp_path):
     from kpcn_keras.run import Run
 
@@ -368,7 +387,7 @@ def test_shipping_on_a_full_disk_ends_in_one_line_and_leaves_nothing(evaluated_r
     assert Run(dest).finished_record() and [p.name for p in small_disk.path.iterdir()] == ["m"]
 
 
-# --- the model in the repository (issue 23): what `kpcn denoise FILE` uses without --run ---
+# --- the model in the repository: what `kpcn denoise FILE` uses without --run ---
 
 FIXTURES = Path(__file__).parent / "fixtures" / "renderers"
 

@@ -1,4 +1,4 @@
-"""λ maps and the loss-specialisation module (issue 24): the map reader against float64 arithmetic, the
+"""λ maps and the loss-specialisation module: the map reader against float64 arithmetic, the
 training maps' range and smoothness, and the module's contract: a constant map is the uniform λ, a map
 changed in a region changes the output only within the kernel's radius of it, the trunk runs once for many
 maps (``Denoiser.prepare``), tiles and ``.keras`` files change nothing."""

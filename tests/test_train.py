@@ -199,7 +199,7 @@ def test_a_damaged_log_is_refused_on_resume_rather_than_losing_its_epochs(tmp_pa
     assert checksums(run_dir) == before
 
 
-# --- as long as held-out error falls: early stopping (issue 23) ---
+# --- as long as held-out error falls: early stopping ---
 
 def _val_losses(run_dir: Path, plan: dict) -> list[float]:
     rows = (run_dir / "log.csv").read_text().splitlines()
@@ -292,7 +292,7 @@ def test_a_run_recorded_without_a_lambda_module_resumes_whether_its_record_names
         train(cfg, run_dir, verbose=0)
 
 
-# --- what training takes must fit what the shards hold, and its seed range is the project's (issue 20) ---
+# --- what training takes must fit what the shards hold, and its seed range is the project's ---
 
 @pytest.mark.slow
 def test_a_seed_beyond_the_projects_range_is_refused_in_one_line_and_leaves_no_run(tmp_path):

@@ -1,4 +1,4 @@
-"""Issue 7: the phases of a run (branches or one shared network, joint fine-tuning, the multiscale compositor
+"""The phases of a run (branches or one shared network, joint fine-tuning, the multiscale compositor
 with frozen denoisers), the presets, the conditioning channels (branch one-hot, λ) and the batches of
 every phase, each checked against an independent computation."""
 
@@ -410,11 +410,12 @@ def test_a_record_of_an_older_kpcn_is_one_clear_error(shards, tmp_path):
         Run(run_dir).read_record()
 
 
-# ---------------------------------------------------------------- reference weighting (issue 23)
+# ---------------------------------------------------------------- reference weighting
 
 
 def test_reference_tau_weighs_the_branch_phases_only_and_an_older_record_reads_as_unweighted():
-    assert TrainConfig().reference_tau == 0.0  # off by default: it has not yet won (docs/results.md §10a)
+    # off by default: it has not yet won (docs/results/10-quality-levers.md §10a)
+    assert TrainConfig().reference_tau == 0.0
     cfg = TrainConfig.from_preset("cpu", joint_steps=2, compositor={"kind": "alpha"}, reference_tau=0.1)
     assert cfg.reference_tau == 0.1 and cfg.to_dict()["reference_tau"] == 0.1
     weighted = {p.name: cfg.weights_reference(p) for p in cfg.phases()}

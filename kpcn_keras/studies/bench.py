@@ -14,7 +14,7 @@ The contract:
   installed. A point is (input spp, seconds = render + denoise, relMSE, DSSIM, relSE p99.9); a denoiser's seconds
   per frame is its own call on that frame after a warm-up (model loading is a stage cost, reported apart).
 - **Summaries over scenes**: the geometric mean of relMSE and relSE p99.9 (the arithmetic mean is kept in the
-  JSON, but one scene whose reference still has fireflies carries it: docs/results.md §6) and the mean DSSIM.
+  JSON, but one scene whose reference still has fireflies carries it: docs/results/06-make-bench.md) and the mean DSSIM.
 - **Equal-error spp** (:func:`equal_error_spp`): per scene, the spp at which raw Monte Carlo reaches the
   denoised relMSE, interpolated in log-log between the ladder's points, or outside them extrapolated from
   the least-squares fit e(n) = a / n + b of the raw curve (b: the reference's own noise, which every

@@ -79,7 +79,7 @@ def combine(*names: str, levers: dict | None = None) -> tuple[str, str, dict, di
 # Adding a lever is one entry; "combination" names the levers it combines.
 # the data lever's render set: 8 scenes per family instead of 3, and the ladder from the lowest spp a render has
 MORE_DATA = {"per_family": 8, "input_spp": (2, 4, 8, 16, 32, 64)}
-# What every lever starts from, under its own overrides: the training before issue 23's levers (no reference
+# What every lever starts from, under its own overrides: the training before the quality levers (no reference
 # weighting, no synthetic fireflies), so that each lever is measured alone against the baseline ``cpu``.
 QUALITY_BASE = {"reference_tau": UNWEIGHTED_TAU, "fireflies": NO_FIREFLIES}
 QUALITY_LEVERS: dict[str, tuple[str, str, dict, dict | None]] = {

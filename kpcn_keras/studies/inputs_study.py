@@ -1,5 +1,5 @@
 """``kpcn inputs-study``: kpcn on other renderers' frames beside OIDN and Blender's own denoiser, and what each
-input a renderer may not write costs, at equal training time (issue 22).
+input a renderer may not write costs, at equal training time.
 
 The contract:
 

@@ -1,5 +1,5 @@
 """``kpcn quality``: each lever that may make kpcn beat Open Image Denoise, alone and combined, at equal training
-time, on the project's held-out frames and on other renderers' validation frames, beside OIDN (issue 23).
+time, on the project's held-out frames and on other renderers' validation frames, beside OIDN.
 
 The contract:
 
@@ -36,13 +36,13 @@ The contract:
 - **The headline judges by frames** (:func:`verdict`): the lever whose relMSE is below OIDN's on the most frames
   (:func:`best`; without OIDN, the lowest mean held-out relMSE), then on how many of all the frames it is;
   "beats OIDN" means on most frames.
-- **The default's target** (:func:`default_target`): issue 23 asks ``make train``'s default to be below OIDN on at
+- **The default's target** (:func:`default_target`): ``make train``'s default is to be below OIDN on at
   least half of the validation frames at 16 spp; per lever, the frame that decides (the needed-th lowest ratio to
   OIDN's relMSE) says whether it is met and, where not, by how much it is out.
 - **The model beside the levers** (:func:`model_run`, :func:`measure_model`): the shipped model (``kpcn denoise``'s
   without ``--run``), or ``cfg.model``, measured on the same frames, each served by its network for what the frame
   gives, its scores in every row under :data:`MODEL`. It is not a lever (it trained for as long as it improved,
-  not for the budget), so it never heads the report; its section judges issue 23's targets for the shipped model
+  not for the budget), so it never heads the report; its section judges the targets for the shipped model
   on these frames (:data:`MODEL_SHARE` of all frames below OIDN's relMSE, decided as the default's is; its mean
   DSSIM below OIDN's at :data:`MODEL_DSSIM_SPP`). A model that trained on the study's held-out scenes is refused
   (:func:`check_unseen`). ``kpcn quality --measure-model`` adds it to a record already written, training
@@ -108,7 +108,7 @@ WITHOUT_SPLIT = {"compositor": None, "shared": False, "joint_steps": 0}
 # the model measured beside the levers (the shipped one unless --model): its key in the record and in each row.
 # Not a lever: it trained for as long as it kept improving, not for the budget
 MODEL = "model"
-# issue 23's targets for the shipped model: below OIDN's relMSE on at least two thirds of all frames, and its mean
+# the targets for the shipped model: below OIDN's relMSE on at least two thirds of all frames, and its mean
 # DSSIM below OIDN's at these spp
 MODEL_SHARE, MODEL_DSSIM_SPP = Fraction(2, 3), (16, 64)
 
@@ -589,7 +589,7 @@ def best(record: dict) -> str:
     return min(record["config"]["levers"], key=by_frames)
 
 
-# issue 23's target for make train's default: below OIDN's relMSE on at least half of the validation frames at 16 spp
+# the target for make train's default: below OIDN's relMSE on at least half of the validation frames at 16 spp
 TARGET_SPP, TARGET_SHARE = 16, Fraction(1, 2)
 
 
@@ -607,7 +607,7 @@ def share_target(rows: list[dict], method: str, share: Fraction) -> dict | None:
 
 
 def default_target(record: dict, method: str) -> dict | None:
-    """``method`` against issue 23's target for the default (:data:`TARGET_SPP`, :data:`TARGET_SHARE`) on the
+    """``method`` against the target for the default (:data:`TARGET_SPP`, :data:`TARGET_SHARE`) on the
     validation frames at ``TARGET_SPP`` (:func:`share_target`)."""
     rows = [r for r in of_kind(record, "validation") if r["spp"] == TARGET_SPP]
     return share_target(rows, method, TARGET_SHARE)
@@ -630,7 +630,7 @@ def _judged(ratio: float) -> str:
 
 
 def _target_table(record: dict) -> list[str]:
-    """The section on issue 23's target for the default, a row per lever and one for the measured model, each with
+    """The section on the target for the default, a row per lever and one for the measured model, each with
     the render sets its networks for those frames trained on (nothing without OIDN or such frames)."""
     methods = [*record["config"]["levers"], *([MODEL] if record.get(MODEL) else [])]
     rows = {m: default_target(record, m) for m in methods} if record["oidn"] else {}
@@ -654,7 +654,7 @@ def _target_table(record: dict) -> list[str]:
 
 
 def _model_section(record: dict) -> list[str]:
-    """The section on the measured model: what it is, and issue 23's targets for the shipped model judged on the
+    """The section on the measured model: what it is, and the targets for the shipped model judged on the
     study's frames (nothing without a model; the targets only with OIDN)."""
     model = record.get(MODEL)
     if not model:

@@ -1,4 +1,4 @@
-"""What each stage of a branch network costs in time, against what it could cost (issue 9), for ``kpcn bench``.
+"""What each stage of a branch network costs in time, against what it could cost, for ``kpcn bench``.
 
 Every function returns a plain JSON-able dict (floats, ints, strings, nested dicts) and runs on the current
 torch thread count; times are seconds, best (or median, where said) of several repeats, variants measured
@@ -80,7 +80,8 @@ def _timed(fn) -> float:
 
 
 def _shifted_slices(colour, logits, k):
-    """The layer before issue 9: four-op keras.ops softmax, then a loop over k*k shifted channels-last views."""
+    """The layer before its fused torch path: four-op keras.ops softmax, then a loop over k*k shifted
+    channels-last views."""
     return layers.apply_kernels(colour, layers._softmax_kernels_ops(logits), k)
 
 

@@ -187,11 +187,11 @@ class Layout:
     dtype: str | None = None
 
 
-# The layouts `prep.studies.stage_costs.shard_layout_costs` measures side by side (docs/results.md §8 has the
-# numbers of kpcn-shard/2, all float32). gzip (what shards were written with before) and lzf compress slower
-# than the uncompressed bytes are written and hashed (for the manifest), and a training batch reads 4-8x
-# slower from them. Several patches per chunk make a random patch read its whole chunk. float16 for every
-# dataset (the table keeps the targets and linear colours float32) overflows linear colours above 65504.
+# The layouts `prep.studies.stage_costs.shard_layout_costs` measures side by side (docs/results/08-shard-layouts.md has
+# the numbers of kpcn-shard/2, all float32). gzip (what shards were written with before) and lzf compress slower than
+# the uncompressed bytes are written and hashed (for the manifest), and a training batch reads 4-8x slower from them.
+# Several patches per chunk make a random patch read its whole chunk. float16 for every dataset (the table keeps the
+# targets and linear colours float32) overflows linear colours above 65504.
 # Contiguous datasets (no chunks, so no Fletcher-32) read a batch ~4x faster but write slower: HDF5 spends
 # ~3x the system time on them. The chunked ones keep a Fletcher-32 checksum per chunk, so a chunk damaged
 # after the manifest's check is an error when read, not silent garbage: ~40 % of the HDF5 time of a write

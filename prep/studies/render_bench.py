@@ -22,8 +22,8 @@ from prep.render.scene import EFFECTS, Scene, lambert
 from prep.studies.report import Report
 
 # A production CPU path tracer on a machine like this one: a 256x256 Cornell box with paths of up to
-# 12 vertices and Russian roulette after 5, at about 1.4 million samples per second. Quoted from issue 6,
-# never measured here: the report says so beside the figures it measures.
+# 12 vertices and Russian roulette after 5, at about 1.4 million samples per second. A figure quoted to the
+# project, never measured here: the report says so beside the figures it measures.
 ANCHOR_SAMPLES_PER_S = 1.4e6
 ANCHOR_DEPTH = (12, 5)  # (max_depth, rr_depth)
 REPORT = "render"  # render.json and render.md in the report folder

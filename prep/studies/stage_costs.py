@@ -1,4 +1,4 @@
-"""What the offline stage's choices cost in time (issue 9), as numbers for ``kpcn bench``.
+"""What the offline stage's choices cost in time, as numbers for ``kpcn bench``.
 
 No torch, no keras: only ``prep``. Every function returns a plain JSON-able dict (floats, ints, strings,
 bools, lists and dicts of them). Times are seconds of wall clock in this process; each variant is measured
