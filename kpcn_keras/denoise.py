@@ -10,7 +10,7 @@ whole frame's bit for bit. A tile's margin is the model's receptive radius
 its centre is kept, so the result equals an untiled run up to float rounding. Tiles and margins are multiples
 of the network's alignment (``models.input_alignment``: a unet's pooling grid), times the pyramid's with a
 compositor (``multiscale.tile_alignment``), so each tile pools the same 2x2 blocks as the whole image. The
-branches are mapped back to linear colour (``prep.features`` inverses), summed in float64 and clamped to the float32
+branches are mapped back to linear colour (``prep.colour`` inverses), summed in float64 and clamped to the float32
 range (``prep.exr.to_float32``), so the output is finite for any finite input. The diffuse network predicts
 irradiance, which is multiplied back by an albedo cleaner than the input's: the run's albedo network's where it has
 one (``--albedo-steps``: a copy of the diffuse network trained to filter the albedo, ``models.albedo_input``), run on
@@ -68,7 +68,7 @@ from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, til
 from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord, check_architecture
-from prep import exr, features, layouts
+from prep import colour, exr, features, layouts
 from prep.albedo import prefilter as prefilter_albedo
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
@@ -314,8 +314,8 @@ class Denoiser:
                 continue
             cut = np.s_[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
             put = np.s_[cy0 - ry0 : cy1 - ry0, cx0 - rx0 : cx1 - rx0]
-            diffuse = features.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo(tile, window)[cut])
-            specular = (features.specular_from_log(predict("specular", tile, window)[cut])
+            diffuse = colour.diffuse_from_log(predict("diffuse", tile, window)[cut], albedo(tile, window)[cut])
+            specular = (colour.specular_from_log(predict("specular", tile, window)[cut])
                         if "specular" in self.models else np.zeros_like(diffuse))
             out["diffuse"][put] = exr.to_float32(diffuse)
             out["specular"][put] = exr.to_float32(specular)
@@ -422,11 +422,11 @@ class PreparedFrame:
 
 
 def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
-    """Tonemapped panels in a row with their captions (``prep.metrics.tonemap``), drawn by matplotlib (the
+    """Tonemapped panels in a row with their captions (``prep.colour.tonemap``), drawn by matplotlib (the
     report figures)."""
     plt = pyplot()
 
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
 
     h, w = panels[0][1].shape[:2]
     scale = 4.0 / max(h, w)
@@ -447,7 +447,7 @@ def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: st
     cost about 120 ms a frame at 256x256 for the same picture."""
     from PIL import Image, ImageDraw
 
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
 
     h, w = panels[0][1].shape[:2]
     gap, line = 4, 14

@@ -47,6 +47,7 @@ from kpcn_keras.models import build_kernel_model, network_input
 from kpcn_keras.multiscale import alpha_maps
 from kpcn_keras.run import Run
 from prep import exr, features, metrics
+from prep.colour import tonemap
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.figures import DATA_FIGURES, data_plan
@@ -151,7 +152,7 @@ def alpha_figure(den: Denoiser, aovs: dict, path: Path, slope=None) -> Path:
     cols = 1 + len(rows[0][1])
     fig, axes = plt.subplots(len(rows), cols, figsize=(3 * cols, 3 * len(rows)), squeeze=False)
     for ax_row, (branch, alphas) in zip(axes, rows):
-        ax_row[0].imshow(metrics.tonemap(aovs[branch]), interpolation="nearest")
+        ax_row[0].imshow(tonemap(aovs[branch]), interpolation="nearest")
         ax_row[0].set_title(f"{branch} input", fontsize=9)
         for i, (ax, alpha) in enumerate(zip(ax_row[1:], alphas)):
             im = ax.imshow(alpha, vmin=0, vmax=1, cmap="gray", interpolation="nearest")

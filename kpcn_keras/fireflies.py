@@ -15,10 +15,10 @@ on each channel, when the shard set has variance layers; without them (a ``no-va
 variance stays 0, as at inference.
 
 What is changed is what a shard stores (``prep.shards.format``), before the features are made of it, so every
-feature of the spike follows from the same functions as at render time (``prep.features``): the log colour
+feature of the spike follows from the same transforms as at render time (``prep.colour``): the log colour
 ``c = log(1 + x)`` of the pixel, and the colour's relative variance ``log(1 + (vlog / 3) / (mean_ch(c ** 2) +
-REL_EPS))`` (``prep.features.relative_variance``), ``vlog = sum_ch var(x) / (1 + x) ** 2``. The pixel's variance
-before the spike is read back from its stored relative variance (``prep.features.variance_of``, the inverse) as
+REL_EPS))`` (``relative_variance``), ``vlog = sum_ch var(x) / (1 + x) ** 2`` (``log_variance``). The pixel's variance
+before the spike is read back from its stored relative variance (``variance_of``, the inverse) as
 ``var(x_ch) = (vlog / 3) (1 + x_ch) ** 2``, exact for a grey pixel (every channel's term alike) and otherwise the
 same total spread evenly; the spike's ``S ** 2`` dominates either way. Both stored values are rounded to float16 as
 the shards round them (``to_half``).
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prep import features
+from prep import colour
 from prep.shards.format import to_half
 
 SPIKE_RANGE = (1.0, 1.0e4)  # the added linear colour S, log-uniform: from a bright highlight to a caustic's spike
@@ -65,16 +65,16 @@ def inject(stored: dict[str, np.ndarray], branch: str, spikes, variance: bool) -
     relvar = np.array(stored[f"{branch}/relvar"])
     for s in spikes:
         c = log_colour[s.y, s.x].astype(np.float64)
-        x = np.expm1(c)
+        x = colour.linear_colour(c)
         x_new = x + s.value
-        c_new = np.log1p(x_new)
-        log_colour[s.y, s.x] = to_half(c_new, features.LOG_COLOUR_MAX)
+        c_new = colour.log_colour(x_new)
+        log_colour[s.y, s.x] = to_half(c_new, colour.LOG_COLOUR_MAX)
         if variance:
-            vlog3 = features.variance_of(float(relvar[s.y, s.x, 0]), float(np.mean(c * c)))
-            var_x = vlog3 * (1.0 + x) ** 2 + s.value ** 2
-            vlog3_new = float(np.mean(var_x / (1.0 + x_new) ** 2))
-            relvar[s.y, s.x, 0] = to_half(features.relative_variance(vlog3_new, float(np.mean(c_new * c_new))),
-                                          features.RELVAR_MAX)
+            vlog3 = colour.variance_of(float(relvar[s.y, s.x, 0]), float(np.mean(c * c)))
+            var_x = colour.linear_variance(vlog3, x) + s.value ** 2
+            vlog3_new = float(np.mean(colour.log_variance(var_x, x_new)))
+            relvar[s.y, s.x, 0] = to_half(colour.relative_variance(vlog3_new, float(np.mean(c_new * c_new))),
+                                          colour.RELVAR_MAX)
     out[f"{branch}/log_colour"] = log_colour
     out[f"{branch}/relvar"] = relvar
     return out

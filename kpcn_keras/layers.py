@@ -29,7 +29,7 @@ from keras import ops
 
 from kpcn_keras.config import check_kernel_size
 from prep.bounds import is_integer
-from prep.features import ALBEDO_EPS
+from prep.colour import ALBEDO_EPS, LOG_LINEAR_MAX
 
 __all__ = [
     "CropLike",
@@ -496,19 +496,15 @@ class TakeChannels(keras.layers.Layer):
         return config
 
 
-# exp() of a log colour above this would overflow float32 once remodulated and summed; a kernel output
-# never gets there on real data, but a clamp keeps a wild early training step finite
-LOG_LINEAR_MAX = float(np.log(np.finfo(np.float32).max / 4))
-
-
 @keras.saving.register_keras_serializable(package="kpcn")
 class FinalColour(keras.layers.Layer):
     """Inputs ``[diffuse (B, H, W, 3), specular (B, H, W, 3), albedo (B, H, W, 3)]``, the branch colours in
     the log domain and the noisy albedo -> the final linear colour (B, H, W, 3).
 
-    The inverse of the branch transforms of ``prep.features`` (``diffuse_from_log``, ``specular_from_log``)
-    written in ``keras.ops``, so a model can be supervised on the colour users see (joint fine-tuning):
-    ``expm1(d) * (clip(albedo, 0, 1) + ALBEDO_EPS) + expm1(s)``, each log colour clamped to LOG_LINEAR_MAX.
+    The inverse of the branch transforms of ``prep.colour`` (``diffuse_from_log`` + ``specular_from_log``, on its
+    constants) written in ``keras.ops``, so a model can be supervised on the colour users see (joint fine-tuning):
+    ``expm1(d) * (clip(albedo, 0, 1) + ALBEDO_EPS) + expm1(s)``, each log colour clamped to
+    ``prep.colour.LOG_LINEAR_MAX``; ``tests/test_layers.py`` holds it to the numpy inverse.
     """
 
     def call(self, inputs):

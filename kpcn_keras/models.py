@@ -25,7 +25,7 @@ Architectures (``ModelConfig.arch``):
   network is ``depth=13`` (1 + 2 * 13 + 1 layers).
 - ``"dpcn"``: the ``"kpcn"`` trunk with a 1x1 convolution to 3 channels that is **added to the noisy
   colour** (residual direct prediction): the network predicts a correction, not the colour itself. The sum
-  is clamped to the colour feature's range [0, ``prep.features.LOG_COLOUR_MAX``], which a kernel output
+  is clamped to the colour feature's range [0, ``prep.colour.LOG_COLOUR_MAX``], which a kernel output
   never leaves beyond float32 rounding (it is a convex combination of the input colour).
 - ``"unet"``: a kernel-predicting network on a U-Net trunk (the ``cpu`` stack sees 15 x 15 pixels,
   and low-frequency blotches 10-30 pixels across survive it). ``levels`` resolutions L, level l of
@@ -93,8 +93,9 @@ from kpcn_keras.layers import (
     TakeChannels,
     softmax_kernels,
 )
+from prep.colour import LOG_COLOUR_MAX
 from prep.errors import OptionError
-from prep.features import BRANCHES, LOG_COLOUR_MAX
+from prep.features import BRANCHES
 
 __all__ = [
     "ARCHS",

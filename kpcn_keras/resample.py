@@ -286,7 +286,7 @@ def round_png(run, sset: ShardSet, result, k: int, cfg: ResampleConfig) -> Path:
     from matplotlib.patches import Rectangle
 
     from prep import exr
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
     from prep.shards import used_positions
 
     plt = pyplot()

@@ -1,7 +1,8 @@
 """The albedo a denoised diffuse branch is multiplied back by (docs/method.md §2).
 
 The diffuse network predicts irradiance: it is trained against the reference's irradiance, the reference diffuse
-divided by the reference's own albedo (``prep.shards.format``). Multiplied back by the *noisy* albedo, the frame
+divided by the reference's own albedo (``prep.shards.format``; the division and its inverse, the remodulation, are
+``prep.colour.irradiance`` and ``remodulate``). Multiplied back by the *noisy* albedo, the frame
 gets the albedo's own Monte Carlo noise back: where a pixel's samples see different albedos (texture detail finer
 than a pixel, an edge, a surface out of focus) the input's albedo is a mean of a few of them, the reference's a
 mean of thousands. So the denoiser multiplies by the albedo prefiltered by non-local means with its per-pixel

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from prep.colour import linear_colour, log_colour, log_variance
+
 
 def nlm_denoise(colour: np.ndarray, variance: np.ndarray) -> np.ndarray:
     """scikit-image non-local means on the colour alone, in the log(1 + x) domain, back to linear.
@@ -18,13 +20,13 @@ def nlm_denoise(colour: np.ndarray, variance: np.ndarray) -> np.ndarray:
     from skimage.restoration import denoise_nl_means
 
     x = np.maximum(np.asarray(colour, dtype=np.float64), 0.0)
-    log_c = np.log1p(x)
-    var_log = np.maximum(np.asarray(variance, dtype=np.float64), 0.0)[..., None] / (1.0 + x) ** 2
+    log_c = log_colour(x)
+    var_log = log_variance(np.maximum(np.asarray(variance, dtype=np.float64), 0.0)[..., None], x)
     sigma = float(np.sqrt(np.mean(var_log)))
     out = denoise_nl_means(
         log_c, h=0.8 * sigma, sigma=sigma, patch_size=5, patch_distance=6, fast_mode=True, channel_axis=-1
     )
-    return np.expm1(out).astype(np.float32)
+    return linear_colour(out).astype(np.float32)
 
 
 def oidn_available() -> bool:

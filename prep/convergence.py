@@ -33,18 +33,14 @@ import math
 
 import numpy as np
 
-from prep.exr import AOVError
+from prep.exr import VARIANCE_OF, AOVError
 
 CONVERGENCE_EPS = 0.01  # added to the mean colour in relSE's denominator (the relMSE constant of prep.metrics)
 CONVERGED_RELSE = 0.05  # a pixel whose reference relSE is at most this is converged
 SUMMARY_PERCENTILE = 99.0  # the tail a frame is judged by
 
 # branch (or "default", the final colour) -> its colour layer and that layer's variance
-BRANCH_LAYERS = {
-    "diffuse": ("diffuse", "diffuseVariance"),
-    "specular": ("specular", "specularVariance"),
-    "default": ("default", "colorVariance"),
-}
+BRANCH_LAYERS = {layer: (layer, VARIANCE_OF[layer]) for layer in ("diffuse", "specular", "default")}
 
 
 def relative_standard_error(colour: np.ndarray, variance: np.ndarray) -> np.ndarray:

@@ -12,7 +12,8 @@ albedo             R G B      first-hit diffuse reflectance
 normal             R G B      first-hit shading normal, world space, in [-1, 1]
 depth              Z          distance to the first hit, 0 where the ray leaves the scene
 <x>Variance        Z          variance of the pixel mean, x in diffuse, specular, color,
-                              albedo, normal, depth (R G B accepted and averaged)
+                              albedo, normal, depth (R G B accepted and averaged); the
+                              layer of each is :data:`VARIANCE_OF`'s
 =================  =========  ===========================================================
 
 In memory a render is a dict ``layer -> float32 array`` of shape (H, W, 3) for colour layers and
@@ -48,14 +49,18 @@ from prep.files import atomic_path
 log = logging.getLogger("kpcn")
 
 RGB_LAYERS = ("default", "diffuse", "specular", "albedo", "normal")
-VARIANCE_LAYERS = (
-    "diffuseVariance",
-    "specularVariance",
-    "colorVariance",
-    "albedoVariance",
-    "normalVariance",
-    "depthVariance",
-)
+# Each layer with a variance -> the layer of its variance (of the pixel's mean, one value a pixel); the one
+# place a variance layer is named from its layer, or a layer from its variance (LAYER_OF_VARIANCE).
+VARIANCE_OF = {
+    "diffuse": "diffuseVariance",
+    "specular": "specularVariance",
+    "default": "colorVariance",
+    "albedo": "albedoVariance",
+    "normal": "normalVariance",
+    "depth": "depthVariance",
+}
+LAYER_OF_VARIANCE = {variance: layer for layer, variance in VARIANCE_OF.items()}
+VARIANCE_LAYERS = tuple(VARIANCE_OF.values())
 SCALAR_LAYERS = ("depth",) + VARIANCE_LAYERS
 BASE_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth")
 

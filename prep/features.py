@@ -39,11 +39,15 @@ differences of the buffers. :func:`branch_features` is the two at render time, o
 stores the buffers in float16 and its reader makes the features with the same second function
 (``prep.shards.format``).
 
-The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specular_from_log`; a relative
-variance (23-26) is :func:`relative_variance`, its inverse :func:`variance_of`.
+The transforms (the irradiance, the log colour, the delta method, the relative variance) and their inverses
+are ``prep.colour``'s, with their constants. The numba kernel writes their per-pixel arithmetic itself, the same
+float operations on scalars, and is handed the constants as arguments: numba's on-disk cache checks only the file
+a function is in, so a kernel that called into ``prep.colour`` or read its constants as globals would be served
+stale after an edit there. ``tests/test_colour.py`` holds the kernel's buffers to ``prep.colour``'s functions.
 
-:func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
-kernel but the constants: the tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
+:func:`reference_features` evaluates the same table in plain float64 numpy, from ``prep.colour``'s array
+functions and a relative variance of its own, sharing nothing with the numba kernel but the constants: the
+tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
 """
 
 from __future__ import annotations
@@ -51,15 +55,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-ALBEDO_EPS = 0.00316
-REL_EPS = 0.01
-# Largest log colour any float32 input can give: log1p(float32 max / ALBEDO_EPS), about 94.48. The
-# colour features (and every network output in the log domain) lie in [0, LOG_COLOUR_MAX].
-LOG_COLOUR_MAX = float(np.log1p(np.float64(np.finfo(np.float32).max) / ALBEDO_EPS))
-# Largest relative variance any float32 input can give: a depth variance of float32 max at a miss (d = 0) in
-# an image whose largest depth is the smallest subnormal (depth scale 1 / that), about 299.89.
-RELVAR_MAX = float(np.log1p(np.float64(np.finfo(np.float32).max)
-                            / np.float64(np.finfo(np.float32).smallest_subnormal) ** 2 / REL_EPS))
+# tests/helpers.py still imports the three constants from this module (LOG_COLOUR_MAX is not used here)
+from prep.colour import ALBEDO_EPS, LOG_COLOUR_MAX, REL_EPS  # noqa: F401
+from prep.colour import diffuse_to_log, irradiance, irradiance_variance, log_colour, log_variance, specular_to_log
+from prep.exr import VARIANCE_OF
+
 NUM_FEATURES = 27
 FEATURE_NAMES = (
     ["colour.R", "colour.G", "colour.B"]
@@ -71,20 +71,6 @@ FEATURE_NAMES = (
 )
 BRANCHES = ("diffuse", "specular")
 assert len(FEATURE_NAMES) == NUM_FEATURES
-
-
-@numba.njit(cache=True, nogil=True)
-def relative_variance(variance, mean_square):
-    """A buffer's relative variance feature (channels 23-26): ``log(1 + max(variance, 0) / (mean_square +
-    REL_EPS))``, ``mean_square`` the pixel's mean square of the transformed buffer; :func:`variance_of` is its
-    inverse. Both take float scalars (the kernel's per pixel, ``kpcn_keras.fireflies``'s per spike)."""
-    return np.log1p(max(variance, 0.0) / (mean_square + REL_EPS))
-
-
-@numba.njit(cache=True, nogil=True)
-def variance_of(relvar, mean_square):
-    """The variance whose :func:`relative_variance` against ``mean_square`` is ``relvar``."""
-    return np.expm1(relvar) * (mean_square + REL_EPS)
 
 
 # Serial on purpose: one 256x256 branch is ~3 ms of work, and with parallel=True the thread start and
@@ -104,8 +90,14 @@ def _depth_max(depth):
 
 
 @numba.njit(cache=True, nogil=True)
+def _relative_variance(variance, mean_square, rel_eps):
+    """``prep.colour.relative_variance`` as the kernel computes it (module docstring)."""
+    return np.log1p(max(variance, 0.0) / (mean_square + rel_eps))
+
+
+@numba.njit(cache=True, nogil=True)
 def _buffers_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, depth, depth_var, divide_albedo,
-                    dscale, buffers, relvar):
+                    dscale, albedo_eps, rel_eps, buffers, relvar):
     """Fill the pixel buffers of one branch (:func:`branch_buffers`): ``buffers`` (input rows, input columns,
     BUFFER_CHANNELS) with the transformed buffers the differences read, ``relvar`` (h, w, 4) with the relative
     variances of out's own pixels; colour is linear, albedo divided when divide_albedo."""
@@ -126,8 +118,8 @@ def _buffers_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, 
                 v = float(colour[y, x, c])
                 var_c = vc
                 if divide_albedo:
-                    v = v / (a + ALBEDO_EPS)
-                    var_c = vc / ((a + ALBEDO_EPS) * (a + ALBEDO_EPS))
+                    v = v / (a + albedo_eps)
+                    var_c = vc / ((a + albedo_eps) * (a + albedo_eps))
                 v = max(v, 0.0)
                 lc = np.log1p(v)
                 buffers[y, x, c] = lc
@@ -138,10 +130,10 @@ def _buffers_kernel(colour, colour_var, albedo, albedo_var, normal, normal_var, 
             d = max(float(depth[y, x]), 0.0) * dscale
             buffers[y, x, 9] = d
             if y < h and x < w:
-                relvar[y, x, 0] = relative_variance(vlog / 3.0, sq_c / 3.0)
-                relvar[y, x, 1] = relative_variance(float(normal_var[y, x]), sq_n / 3.0)
-                relvar[y, x, 2] = relative_variance(float(albedo_var[y, x]), sq_a / 3.0)
-                relvar[y, x, 3] = relative_variance(max(float(depth_var[y, x]), 0.0) * dscale * dscale, d * d)
+                relvar[y, x, 0] = _relative_variance(vlog / 3.0, sq_c / 3.0, rel_eps)
+                relvar[y, x, 1] = _relative_variance(float(normal_var[y, x]), sq_n / 3.0, rel_eps)
+                relvar[y, x, 2] = _relative_variance(float(albedo_var[y, x]), sq_a / 3.0, rel_eps)
+                relvar[y, x, 3] = _relative_variance(max(float(depth_var[y, x]), 0.0) * dscale * dscale, d * d, rel_eps)
 
 
 # The per-pixel buffers the features are made of, in two kinds (what a shard stores: ``prep.shards.format``):
@@ -154,8 +146,7 @@ RELVARS = ("colour", "normal", "albedo", "depth")
 COLOUR, DX, DY, RELVAR = slice(0, 3), slice(3, 13), slice(13, 23), slice(23, 27)
 assert DX.stop - DX.start == BUFFER_CHANNELS and RELVAR.stop - RELVAR.start == len(RELVARS)
 
-_KERNEL_LAYERS = ("{b}", "{b}Variance", "albedo", "albedoVariance", "normal", "normalVariance", "depth",
-                  "depthVariance")
+_GUIDE_LAYERS = ("albedo", "normal", "depth")  # after the branch's colour, each followed by its variance: the kernel's
 
 
 def depth_scale(depth: np.ndarray) -> float:
@@ -186,7 +177,7 @@ def branch_buffers(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, 
     if scale is None:
         scale = depth_scale(aovs["depth"])
     rows, cols = slice(y0, min(y1 + 1, h)), slice(x0, min(x1 + 1, w))
-    names = [n.format(b=branch) for n in _KERNEL_LAYERS]
+    names = [n for layer in (branch,) + _GUIDE_LAYERS for n in (layer, VARIANCE_OF[layer])]
     # The kernel widens each value to float64 itself: float32 renders (what prep.exr reads) go in without a
     # float64 copy of every layer; anything else is widened here, so at most two specialisations compile.
     dtype = np.float32 if all(aovs[n].dtype == np.float32 for n in names) else np.float64
@@ -195,7 +186,7 @@ def branch_buffers(aovs: dict[str, np.ndarray], branch: str, window: tuple[int, 
     buffers = np.empty((y1 - y0 + 1, x1 - x0 + 1, BUFFER_CHANNELS))
     if relvar is None:
         relvar = np.empty((y1 - y0, x1 - x0, len(RELVARS)))
-    _buffers_kernel(*layers, branch == "diffuse", float(scale), buffers[:hi, :wi], relvar)
+    _buffers_kernel(*layers, branch == "diffuse", float(scale), ALBEDO_EPS, REL_EPS, buffers[:hi, :wi], relvar)
     if hi == y1 - y0:  # the image's last row: its neighbour is itself
         buffers[hi] = buffers[hi - 1]
     if wi == x1 - x0:
@@ -263,13 +254,13 @@ def reference_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
     scale = 1.0 / dmax if dmax > 0 else 0.0
     d = depth * scale
     x = f64[branch]
-    var = np.maximum(f64[f"{branch}Variance"], 0.0)[..., None]
+    var = np.maximum(f64[VARIANCE_OF[branch]], 0.0)[..., None]
     if branch == "diffuse":
-        x = x / (a + ALBEDO_EPS)
-        var = var / (a + ALBEDO_EPS) ** 2
+        x = irradiance(x, a)
+        var = irradiance_variance(var, a)
     x = np.maximum(x, 0.0)
-    c = np.log1p(x)
-    v_c = np.mean(var / (1.0 + x) ** 2, axis=-1)
+    c = log_colour(x)
+    v_c = np.mean(log_variance(var, x), axis=-1)
 
     def dx(img):
         out = np.zeros_like(img)
@@ -295,24 +286,14 @@ def reference_features(aovs: dict[str, np.ndarray], branch: str) -> np.ndarray:
 
 
 def branch_colour(aovs: dict[str, np.ndarray], branch: str, albedo: np.ndarray | None = None) -> np.ndarray:
-    """The branch colour in the network's log domain, (H, W, 3) float32 (channels 0-2 of the features).
+    """The branch colour in the network's log domain, (H, W, 3) float32 (channels 0-2 of the features):
+    ``prep.colour.diffuse_to_log`` or ``specular_to_log``, whose inverses are ``diffuse_from_log`` and
+    ``specular_from_log``.
 
     ``albedo`` overrides the render's own albedo for the irradiance divide (used for references).
     """
     if branch not in BRANCHES:
         raise ValueError(f"branch must be one of {BRANCHES}, got {branch!r}")
-    x = aovs[branch].astype(np.float64)
     if branch == "diffuse":
-        a = np.clip(aovs["albedo"] if albedo is None else albedo, 0.0, 1.0).astype(np.float64)
-        x = x / (a + ALBEDO_EPS)
-    return np.log1p(np.maximum(x, 0.0)).astype(np.float32)
-
-
-def diffuse_from_log(log_irradiance, albedo):
-    """Inverse of the diffuse transform: (exp(c) - 1) * (clip(albedo, 0, 1) + ALBEDO_EPS)."""
-    return np.expm1(np.asarray(log_irradiance, dtype=np.float64)) * (np.clip(albedo, 0.0, 1.0) + ALBEDO_EPS)
-
-
-def specular_from_log(log_specular):
-    """Inverse of the specular transform: exp(c) - 1."""
-    return np.expm1(np.asarray(log_specular, dtype=np.float64))
+        return diffuse_to_log(aovs[branch], aovs["albedo"] if albedo is None else albedo).astype(np.float32)
+    return specular_to_log(aovs[branch]).astype(np.float32)

@@ -50,7 +50,7 @@ import numpy as np
 from prep import exr, features
 from prep.errors import OptionError
 from prep.files import check_outputs, pyplot, save_png
-from prep.metrics import tonemap
+from prep.colour import tonemap
 from prep.shards import MANIFEST, ShardConfig, ShardError, ShardSet, open_shard, read_patch, round_pdf
 
 log = logging.getLogger("kpcn")

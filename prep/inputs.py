@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep.errors import OptionError
-from prep.exr import VARIANCE_LAYERS, to_float32
+from prep.exr import VARIANCE_LAYERS, VARIANCE_OF, to_float32
 
 # the order of INPUT_SETS is the order of preference of a model for a frame: the most the frame has first
 INPUT_SETS = ("full", "no-variance", "no-split", "no-split-no-variance")
@@ -111,10 +111,9 @@ def pair_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str,
     """One frame from two renders of it with different seeds: each layer the mean of the two, and the
     variance layers from their difference (:func:`pair_variance`)."""
     out = {k: to_float32((np.asarray(a[k], np.float64) + b[k]) / 2.0) for k in a if k in b}
-    sources = {"colorVariance": "default", "albedoVariance": "albedo", "normalVariance": "normal",
-               "depthVariance": "depth"}
+    sources = ["default", "albedo", "normal", "depth"]
     if "diffuse" in a and "diffuse" in b:
-        sources.update(diffuseVariance="diffuse", specularVariance="specular")
-    for name, layer in sources.items():
-        out[name] = pair_variance(a[layer], b[layer])
+        sources += ["diffuse", "specular"]
+    for layer in sources:
+        out[VARIANCE_OF[layer]] = pair_variance(a[layer], b[layer])
     return out

@@ -381,8 +381,6 @@ class MitsubaLayout(Layout):
             notes.append("read without variance: " + (f"no m2_ moments of {', '.join(lacking)}" if lacking else
                                                       "no spp known (name the file <scene>-<spp>spp.exr)"))
             return out, ch.component(names["default"], "A"), notes
-        target = {"default": "colorVariance", "albedo": "albedoVariance", "normal": "normalVariance",
-                  "depth": "depthVariance"}
         for key, layer in moments.items():
             m2 = ch.vector(layer) if key != "depth" else ch.scalar(layer)
             mean = {"albedo": raw_albedo, "default": ch.vector(names["default"])}.get(key, out[key])
@@ -392,7 +390,7 @@ class MitsubaLayout(Layout):
                 # the moment integrator writes no cross moments: each sRGB channel's variance as if the XYZ
                 # channels were fully correlated (a sample's colour varies in brightness more than in hue)
                 var = (np.sqrt(var) @ MITSUBA_XYZ_TO_RGB.T) ** 2
-            out[target[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
+            out[exr.VARIANCE_OF[key]] = exr.to_float32(var.mean(axis=-1) if var.ndim == 3 else var)
         out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
         notes.append("variance = (m2 - mean^2) / spp, clamped at 0")
         return out, ch.component(names["default"], "A"), notes

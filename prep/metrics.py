@@ -10,7 +10,7 @@
   denoiser), which the mean hides. It does not see a single pixel: on a 256x256 frame it lies between the
   67th and the 66th worst pixel's error, and the worst pixel enters it only on images of at most 1000 pixels.
 - SMAPE: mean(|x - r| / (|x| + |r| + SMAPE_EPS)).
-- DSSIM: (1 - SSIM) / 2 on tonemapped images (``tonemap``), SSIM over the three channels, with 7x7 windows
+- DSSIM: (1 - SSIM) / 2 on tonemapped images (``prep.colour.tonemap``), SSIM over the three channels, with 7x7 windows
   (the largest odd window that fits on images smaller than that; one window, the whole image, below 3x3).
 - PSNR: 10 log10(1 / MSE) on tonemapped images (peak 1).
 All are computed in float64.
@@ -20,18 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from prep.colour import tonemap
+
 RELMSE_EPS = 1e-2
 SMAPE_EPS = 1e-2
 SSIM_WINDOW = 7
 SSIM_K = (0.01, 0.03)  # skimage's constants, for the one-window case
 RELSE_PERCENTILE = 99.9
 METRICS = ("mse", "relmse", "relse_p999", "smape", "dssim", "psnr")
-
-
-def tonemap(x: np.ndarray) -> np.ndarray:
-    """Display transform: Reinhard x / (1 + x) of max(x, 0), then gamma 1/2.2; values in [0, 1]."""
-    x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
-    return (x / (1.0 + x)) ** (1.0 / 2.2)
 
 
 def _pair(x, r):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from prep.exr import VARIANCE_OF
 from prep.metrics import RELMSE_EPS, SMAPE_EPS
 
 # Keeps the variance ratio finite on black pixels; the same constant as the relative-variance features.
@@ -51,7 +52,7 @@ def reference_error_variances(aovs: dict[str, np.ndarray], reference: dict[str, 
     def squared_error(layer):
         return np.mean((aovs[layer].astype(np.float64) - reference[layer]) ** 2, axis=-1)
 
-    return {"colorVariance": squared_error("default"), "normalVariance": squared_error("normal")}
+    return {VARIANCE_OF[layer]: squared_error(layer) for layer in ("default", "normal")}
 
 
 @numba.njit(cache=True)

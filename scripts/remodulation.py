@@ -35,7 +35,7 @@ def main() -> None:
     from kpcn_keras.denoise import Denoiser, read_frame
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, default_model
-    from prep import albedo, baselines, features, layouts, metrics
+    from prep import albedo, baselines, colour, features, layouts, metrics
     from prep.inputs import restrict
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -73,7 +73,7 @@ def main() -> None:
             denoisers[served.dir] = Denoiser.from_run(served)
         den = denoisers[served.dir]
         log_irradiance = den.run_branch("diffuse", noisy)
-        specular = features.specular_from_log(den.run_branch("specular", noisy))
+        specular = colour.specular_from_log(den.run_branch("specular", noisy))
         given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
         learned = (den.frame_albedo(given, features.depth_scale(given["depth"]))
                    if den.albedo_network is not None else None)
@@ -82,11 +82,11 @@ def main() -> None:
         scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
         floor = [np.nan] * len(albedos)
         if whole:
-            irradiance = ref["diffuse"] / (np.clip(ref["albedo"].astype(np.float64), 0, 1) + features.ALBEDO_EPS)
+            irradiance = colour.irradiance(ref["diffuse"], ref["albedo"])
             floor = [np.nan if a is None else metrics.relmse(
-                np.float32(irradiance * (np.clip(a, 0, 1) + features.ALBEDO_EPS) + ref["specular"]), ref["default"])
+                np.float32(colour.remodulate(irradiance, a) + ref["specular"]), ref["default"])
                 / scale for a in albedos]
-        kpcn = [np.nan if a is None else metrics.relmse(np.float32(features.diffuse_from_log(log_irradiance, a)
+        kpcn = [np.nan if a is None else metrics.relmse(np.float32(colour.diffuse_from_log(log_irradiance, a)
                                                                    + specular), ref["default"]) / scale
                 for a in albedos]
         rows.append(kpcn)

@@ -14,7 +14,7 @@ from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import albedo_input, build_albedo_training_model, build_branch_model
 from kpcn_keras.run import Run
 from kpcn_keras.train import train
-from prep import exr, features
+from prep import colour, exr, features
 from prep.albedo import prefilter
 from prep.errors import OptionError
 from prep.inputs import restrict
@@ -103,7 +103,7 @@ def test_the_training_model_is_the_reference_irradiance_times_the_networks_albed
     irr, spec = rng.uniform(0, 4, (2, 2, 9, 11, 3)).astype(np.float32)
     got = predict(model, {"features": feats, "irradiance": irr, "specular": spec})
     albedo = predict(net, feats).astype(np.float64)
-    want = np.expm1(irr.astype(np.float64)) * (np.clip(albedo, 0, 1) + features.ALBEDO_EPS) + np.expm1(spec)
+    want = np.expm1(irr.astype(np.float64)) * (np.clip(albedo, 0, 1) + colour.ALBEDO_EPS) + np.expm1(spec)
     np.testing.assert_allclose(got, want, rtol=2e-5)
     assert model.get_layer(ALBEDO_NETWORK) is net
 
@@ -135,7 +135,7 @@ def test_the_denoiser_multiplies_the_irradiance_by_the_networks_albedo_and_tiles
     given = restrict(aovs, whole.inputs)
     feats = albedo_input(features.branch_features(given, "diffuse"), given["albedo"])
     albedo = predict(whole.albedo_network, feats[None])[0]
-    want = features.diffuse_from_log(whole.run_branch("diffuse", aovs), albedo)
+    want = colour.diffuse_from_log(whole.run_branch("diffuse", aovs), albedo)
     np.testing.assert_allclose(out["diffuse"], want, rtol=1e-6, atol=1e-7)
     # and not the prefilter's albedo: the network is what serves
     assert not np.allclose(albedo, prefilter(given["albedo"], given["albedoVariance"]), atol=1e-4)

@@ -10,7 +10,7 @@ import pytest
 from helpers.commands import assert_one_line_error, run_main
 from helpers.tiny import build_tiny_shards, random_aovs
 
-from prep import exr, features, shards
+from prep import colour, exr, features, shards
 from prep.inputs import FULL
 from prep.shards.patches import shard_layers
 
@@ -25,7 +25,7 @@ def _buffers64(aovs: dict, branch: str) -> np.ndarray:
     a = np.clip(aovs["albedo"].astype(np.float64), 0.0, 1.0)
     x = aovs[branch].astype(np.float64)
     if branch == "diffuse":
-        x = x / (a + features.ALBEDO_EPS)
+        x = x / (a + colour.ALBEDO_EPS)
     depth = np.maximum(aovs["depth"].astype(np.float64), 0.0)
     return np.concatenate([np.log1p(np.maximum(x, 0.0)), np.clip(aovs["normal"].astype(np.float64), -1.0, 1.0), a,
                            (depth / depth.max())[..., None]], axis=-1)

@@ -10,7 +10,7 @@ from kpcn_keras.denoise import Denoiser, denoise_file
 from kpcn_keras.models import network_input
 from kpcn_keras.run import Run
 from kpcn_keras.train import train
-from prep import exr, features
+from prep import colour, exr, features
 from prep.albedo import prefilter
 from prep.errors import OptionError
 
@@ -19,7 +19,7 @@ def _recombined(logs, aovs):
     """Each branch's log output back to linear colour in float64 by the inverses of the features table, the diffuse
     with the whole frame's prefiltered albedo, and their sum."""
     albedo = prefilter(aovs["albedo"], aovs["albedoVariance"])
-    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + features.ALBEDO_EPS)
+    diffuse = np.expm1(logs["diffuse"].astype(np.float64)) * (albedo + colour.ALBEDO_EPS)
     specular = np.expm1(logs["specular"].astype(np.float64))
     return {"diffuse": diffuse, "specular": specular, "default": diffuse + specular}
 
@@ -259,7 +259,7 @@ def test_recombination_inverts_the_branch_transforms(tiny_run):
     out = d(aovs)
     diff_log = d.run_branch("diffuse", aovs)
     np.testing.assert_allclose(out["diffuse"], np.expm1(diff_log.astype(np.float64))
-                               * (prefilter(aovs["albedo"], aovs["albedoVariance"]) + features.ALBEDO_EPS), rtol=1e-5)
+                               * (prefilter(aovs["albedo"], aovs["albedoVariance"]) + colour.ALBEDO_EPS), rtol=1e-5)
     np.testing.assert_allclose(out["default"], out["diffuse"] + out["specular"], rtol=1e-6)
 
 
@@ -305,7 +305,7 @@ def test_panels_png_is_a_row_of_tonemapped_panels(tmp_path):
     from PIL import Image
 
     from kpcn_keras.denoise import panels_png
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
 
     image = random_aovs(10, 12)["default"]
     path = panels_png(tmp_path / "p.png", [("input", image), ("denoised", image * 0.5)], title="t")

@@ -252,3 +252,10 @@ def test_header_check_finds_a_missing_layer_without_decoding(tmp_path):
     with pytest.raises(exr.AOVError, match="normalVariance"):
         exr.read_header(path)
     assert exr.read_header(path, variances=False) == (9, 8)
+
+
+def test_each_variance_layer_belongs_to_one_layer_of_the_layout():
+    assert set(exr.VARIANCE_OF) == set(exr.RGB_LAYERS) | {"depth"}  # every layer has one, and only layers do
+    assert exr.VARIANCE_LAYERS == tuple(exr.VARIANCE_OF.values()) and len(set(exr.VARIANCE_LAYERS)) == 6
+    assert {exr.LAYER_OF_VARIANCE[exr.VARIANCE_OF[layer]] for layer in exr.VARIANCE_OF} == set(exr.VARIANCE_OF)
+    assert set(exr.VARIANCE_LAYERS) <= set(exr.SCALAR_LAYERS)  # one value a pixel, whatever its layer's channels

@@ -9,8 +9,9 @@ from helpers.tiny import build_tiny_shards, random_aovs, tiny_train_config
 from kpcn_keras import fireflies
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.data import ShardPatches
+from prep.colour import ALBEDO_EPS
 from prep.errors import OptionError
-from prep.features import ALBEDO_EPS, BRANCHES, branch_features
+from prep.features import BRANCHES, branch_features
 from prep.shards import shard_paths
 from prep.shards.format import derive
 from prep.shards.patches import image_datasets

@@ -18,7 +18,7 @@ from helpers.commands import assert_one_line_error, run_main
 from helpers.references import assert_read_features_close, reference_features, reference_log_colour
 from helpers.tiny import TINY_MODEL, build_tiny_shards, random_aovs
 
-from prep import exr, features, metrics, shards
+from prep import colour, exr, features, metrics, shards
 from prep.albedo import prefilter
 from prep.errors import KpcnError, OptionError
 from prep.exr import VARIANCE_LAYERS
@@ -264,7 +264,7 @@ def test_a_no_split_denoiser_runs_the_diffuse_network_on_the_total_colour_and_gi
     # the network on float64 features of the total colour, recombined here with the prefiltered albedo
     feats = reference_features(total_colour_frame(aovs), "diffuse").astype(np.float32)
     log = keras.ops.convert_to_numpy(den.networks["diffuse"].predict_on_batch(feats[None]))[0]
-    want = features.diffuse_from_log(log, prefilter(aovs["albedo"], aovs["albedoVariance"]))
+    want = colour.diffuse_from_log(log, prefilter(aovs["albedo"], aovs["albedoVariance"]))
     np.testing.assert_allclose(out["diffuse"], want, rtol=1e-4, atol=1e-5)
     # what the frame holds beyond its total colour is never read: a frame without a split gives the same
     other = {**aovs, "diffuse": random_aovs(20, 24, seed=8)["diffuse"], "specularVariance": aovs["depth"]}

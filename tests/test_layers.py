@@ -27,7 +27,8 @@ from kpcn_keras.layers import (
     softmax_kernels,
 )
 from kpcn_keras.losses import smape
-from prep.features import LOG_COLOUR_MAX
+from prep import colour
+from prep.colour import LOG_COLOUR_MAX
 
 
 def to_np(x):
@@ -162,6 +163,26 @@ LAYER_CASES = {
     "CropLike": (lambda: CropLike(2), [(11, 8, 4), (8, 6, 1)]),
     "MixColours": (lambda: MixColours(3, name="mix"), [(8, 6, 9), (8, 6, 3)]),
 }
+
+
+def test_final_colour_is_the_numpy_inverse_to_float32_rounding():
+    """FinalColour (keras.ops) against prep.colour's inverses in float64 on the same float32 inputs: log colours
+    from 0 to past its clamp at LOG_LINEAR_MAX, albedos on both sides of [0, 1]."""
+    rng = np.random.default_rng(11)
+    shape = (2, 9, 7, 3)
+    d, s = (np.concatenate([rng.uniform(0, 5, shape), rng.uniform(0, colour.LOG_LINEAR_MAX, shape)]).astype(np.float32)
+            for _ in range(2))
+    ends = [0.0, 1e-30, 1e-7, colour.LOG_LINEAR_MAX, colour.LOG_LINEAR_MAX + 1.0, LOG_COLOUR_MAX]
+    d.flat[: len(ends)], s.flat[: len(ends)] = ends, ends[::-1]
+    albedo = rng.uniform(-0.5, 1.5, d.shape).astype(np.float32)
+    albedo.flat[:4] = [0.0, 1.0, -0.5, 1.5]
+    top = np.float32(colour.LOG_LINEAR_MAX)
+    want = (colour.diffuse_from_log(np.minimum(d, top), albedo)  # the albedo term in float32, as the layer's
+            + colour.specular_from_log(np.minimum(s, top)))
+    got = to_np(FinalColour()([d, s, albedo]))
+    assert np.isfinite(got).all()
+    # expm1, the product and the sum each round once in float32 (both terms >= 0: no cancellation)
+    np.testing.assert_allclose(got, want, rtol=4 * F32_EPS, atol=0)
 
 
 def test_mix_colours_weighs_each_colour_by_the_softmax_of_its_logit_as_float64_does():

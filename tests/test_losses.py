@@ -16,7 +16,7 @@ from kpcn_keras.losses import (
     smape_elementwise,
 )
 from kpcn_keras.models import ModelConfig, build_branch_model
-from prep.features import LOG_COLOUR_MAX
+from prep.colour import LOG_COLOUR_MAX
 
 
 def np_smape(gt, out):

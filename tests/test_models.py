@@ -22,10 +22,10 @@ from kpcn_keras.models import (
     receptive_radius,
     trunk_radius,
 )
-from prep import exr
-from prep import features as prep_features
+from prep import colour, exr
+from prep.colour import LOG_COLOUR_MAX
 from prep.errors import OptionError
-from prep.features import LOG_COLOUR_MAX, NUM_FEATURES
+from prep.features import NUM_FEATURES
 
 
 def to_np(x):
@@ -450,9 +450,9 @@ def test_dpcn_output_is_clamped_to_the_log_colour_range_at_extreme_inputs():
     # untrained: the identity on the colour, which maps back to float32 max, not to inf
     out = to_np(model(x, training=False))
     np.testing.assert_array_equal(out, x[..., :3])
-    assert np.isfinite(exr.to_float32(prep_features.diffuse_from_log(out, np.zeros_like(out)))).all()
+    assert np.isfinite(exr.to_float32(colour.diffuse_from_log(out, np.zeros_like(out)))).all()
     randomise(model, seed=4, scale=1.0)  # corrections far beyond the colour range, both ways
     out = to_np(finite_loss_and_gradients(model, x, np.zeros_like(x[..., :3]), x[..., :3]))
     assert out.min() == 0.0 and out.max() == np.float32(LOG_COLOUR_MAX)
-    linear = prep_features.diffuse_from_log(out, np.ones_like(out))  # the largest albedo multiplier
+    linear = colour.diffuse_from_log(out, np.ones_like(out))  # the largest albedo multiplier
     assert np.isfinite(linear).all() and np.isfinite(exr.to_float32(linear)).all()

@@ -43,8 +43,9 @@ from kpcn_keras.run import Run, load_model
 from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
 from prep.albedo import prefilter
+from prep.colour import ALBEDO_EPS, LOG_COLOUR_MAX
 from prep.errors import KpcnError, OptionError
-from prep.features import ALBEDO_EPS, LOG_COLOUR_MAX, NUM_FEATURES
+from prep.features import NUM_FEATURES
 
 TINY = {"width": 4, "depth": 2, "kernel_size": 3}
 PATCH = 8

@@ -17,7 +17,7 @@ from helpers.commands import assert_one_line_error, run_main
 from helpers.files import checksums
 from helpers.references import rect_form_factor
 
-from prep.exr import RGB_LAYERS, SCALAR_LAYERS, read_aovs
+from prep.exr import LAYER_OF_VARIANCE, RGB_LAYERS, SCALAR_LAYERS, VARIANCE_OF, read_aovs
 from prep.render import FAMILIES, RenderConfig, make_scene, render, render_seed, render_set
 from prep.render.families import REFERENCE_SPP_FACTOR
 from prep.render.packing import pack
@@ -34,14 +34,7 @@ from prep.render.scene import (
 )
 
 ALL_LAYERS = RGB_LAYERS + SCALAR_LAYERS
-VAR_OF = {  # variance layer -> the layer whose pixel mean it describes
-    "diffuseVariance": "diffuse",
-    "specularVariance": "specular",
-    "colorVariance": "default",
-    "albedoVariance": "albedo",
-    "normalVariance": "normal",
-    "depthVariance": "depth",
-}
+VAR_OF = LAYER_OF_VARIANCE  # variance layer -> the layer whose pixel mean it describes
 
 
 def _lum(c):
@@ -443,7 +436,7 @@ def _mean_vs_reference(scene, layer, k, spp, ref_spp, size, seed0, ref_scale=1.0
     """
     runs = [render(scene, spp=spp, seed=seed0 + i, width=size, height=size) for i in range(k)]
     ref = render(scene, spp=ref_spp, seed=seed0 + 10_000, width=size, height=size)
-    var_name = {v: k_ for k_, v in VAR_OF.items()}[layer]
+    var_name = VARIANCE_OF[layer]
     mean = np.mean([r_[layer] for r_ in runs], axis=0, dtype=np.float64)
     diff = mean - ref_scale * ref[layer].astype(np.float64)
     ref_var = ref[var_name].astype(np.float64) * ref_scale ** 2

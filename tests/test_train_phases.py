@@ -24,7 +24,7 @@ from kpcn_keras.models import build_branch_model, build_final_model, network_inp
 from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_output
 from kpcn_keras.run import Run, read_state
 from kpcn_keras.train import train
-from prep import exr, features
+from prep import colour, exr, features
 from prep.errors import KpcnError, OptionError
 from prep.shards import VIEWS, ShardSet, open_shard, read_patches, shard_paths
 
@@ -112,7 +112,7 @@ def test_final_colour_inverts_the_branch_transforms():
     rng = np.random.default_rng(1)
     d, s = rng.uniform(0, 5, (2, 6, 7, 3)), rng.uniform(0, 3, (2, 6, 7, 3))
     albedo = rng.uniform(-0.2, 1.2, (2, 6, 7, 3))  # clipped to [0, 1], as the inverse transform does
-    want = features.diffuse_from_log(d, albedo) + features.specular_from_log(s)  # float64 numpy
+    want = colour.diffuse_from_log(d, albedo) + colour.specular_from_log(s)  # float64 numpy
     ins = [keras.Input((None, None, 3)) for _ in range(3)]
     layer = FinalColour(name="final_colour")
     model = keras.Model(ins, layer(ins))

@@ -1,6 +1,6 @@
 """``kpcn view``'s page in a real browser (headless Chromium, driven by Selenium): it loads, the four views are
 there (OIDN's enabled exactly where ``pyoidn`` is installed), a pixel on the canvas is the view through the
-display transform of ``prep.metrics.tonemap`` after the exposure, and a brush stroke scripted with the mouse
+display transform of ``prep.colour.tonemap`` after the exposure, and a brush stroke scripted with the mouse
 changes the denoised pixels under it and none far from it, on the server and on the screen."""
 
 import threading
@@ -16,7 +16,7 @@ from kpcn_keras.denoise import Denoiser, read_frame
 from kpcn_keras.run import Run
 from kpcn_keras.viewer import VIEWS, ViewSession, listen
 from prep import baselines, exr
-from prep.metrics import tonemap
+from prep.colour import tonemap
 
 pytestmark = pytest.mark.slow  # a browser start
 

@@ -338,8 +338,7 @@ def _scratch_set(folder: Path, patch_size: int) -> list[Path]:
                     "depth": rng.uniform(0, 10, size)}
             aovs["default"] = aovs["diffuse"] + aovs["specular"]
             if variances:
-                aovs.update({f"{n}Variance": rng.gamma(0.5, 0.1, size)
-                             for n in ("diffuse", "specular", "color", "albedo", "normal", "depth")})
+                aovs.update({n: rng.gamma(0.5, 0.1, size) for n in exr.VARIANCE_LAYERS})
             exr.write_aovs(renders / exr.render_filename(f"s{i}-000", spp),
                            {k: v.astype(np.float32) for k, v in aovs.items()})
     cfg = ShardConfig(set_name="bench", render_root=str(folder / "renders"), out_root=str(folder / "shards"),

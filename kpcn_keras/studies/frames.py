@@ -12,7 +12,7 @@ frames one method wins, the grouping by input spp, and the panels.
 - **Wins** (:func:`wins`): on how many frames one method's relMSE is strictly below another's, of the frames that
   have both.
 - **Panels** (:func:`panels_figure`): one row per frame, one column per method, every image tonemapped by
-  ``prep.metrics.tonemap``, the same transform for every column.
+  ``prep.colour.tonemap``, the same transform for every column.
 
 Only numpy, prep and matplotlib (through ``prep.files``): no keras, no torch.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prep import baselines, exr, layouts, metrics
+from prep import baselines, colour, exr, layouts, metrics
 from prep.files import pyplot
 
 RENDERER_DENOISED = "-blender-oidn.exr"  # the validation set's name for Blender's own denoised frame
@@ -92,7 +92,7 @@ def by_spp(rows: list[dict]) -> dict[int, list[dict]]:
 
 def panels_figure(panels: list, columns=PANEL_COLUMNS):
     """One row per ``(title, {column: image})`` of ``panels``, the ``columns`` in order (a column the row lacks
-    is left blank), every image tonemapped (``prep.metrics.tonemap``)."""
+    is left blank), every image tonemapped (``prep.colour.tonemap``)."""
     plt = pyplot()
     rows = max(len(panels), 1)
     fig, axes = plt.subplots(rows, len(columns), figsize=(2.2 * len(columns), 2.3 * rows), squeeze=False)
@@ -102,7 +102,7 @@ def panels_figure(panels: list, columns=PANEL_COLUMNS):
     for row, (title, images) in zip(axes, panels):
         for ax, name in zip(row, columns):
             if name in images:
-                ax.imshow(metrics.tonemap(images[name]), interpolation="nearest")
+                ax.imshow(colour.tonemap(images[name]), interpolation="nearest")
                 ax.set_title(f"{title}\n{name}" if name == columns[0] else name, fontsize=7)
     fig.tight_layout()
     return fig

@@ -28,7 +28,7 @@ from torch import nn
 from kpcn_keras.config import COLOUR_CHANNELS, DILATED_ARCHS, ModelConfig
 from kpcn_keras.layers import kernel_apply
 from kpcn_keras.models import input_alignment
-from prep.features import LOG_COLOUR_MAX
+from prep.colour import LOG_COLOUR_MAX
 
 __all__ = ["TorchBranch", "copy_keras_weights", "torch_branch_from_keras"]
 

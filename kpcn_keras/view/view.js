@@ -1,6 +1,6 @@
 "use strict";
 // kpcn view: the page of kpcn_keras/viewer.py (its docstring lists the endpoints). Views arrive as linear
-// float32 RGB and are drawn through the display transform of prep.metrics.tonemap after the exposure:
+// float32 RGB and are drawn through the display transform of prep.colour.tonemap after the exposure:
 // v = max(x * 2^EV, 0), (v / (1 + v))^(1 / 2.2), rounded to 8 bits (tests/test_viewer_browser.py checks a pixel
 // against it). A brush stroke paints log λ into the page's copy of the map; when the stroke ends, the map's
 // rectangle under it goes to the server, which answers that rectangle denoised again.

@@ -284,7 +284,7 @@ def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
     plt = pyplot()
 
     from prep.exr import read_aovs
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
 
     rows: dict[str, list[tuple[str, Path]]] = {}
     for family, name, path in entries:

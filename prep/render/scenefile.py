@@ -511,7 +511,7 @@ def _write_png(path: Path, colour: np.ndarray) -> None:
     import matplotlib.image
 
     from prep.files import atomic_path
-    from prep.metrics import tonemap
+    from prep.colour import tonemap
 
     pixels = np.round(tonemap(colour) * 255.0).astype(np.uint8)
     with atomic_path(path) as tmp:

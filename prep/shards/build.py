@@ -19,7 +19,7 @@ import logging
 import shutil
 from dataclasses import dataclass
 
-from prep import features
+from prep import colour, features
 from prep.errors import KpcnError
 from prep.files import atomic_write_json, check_writable, read_json, remove_temporaries
 from prep.parts import Part
@@ -153,7 +153,7 @@ def _open_manifest(sset: ShardSet, config: ShardConfig, plan: _Plan) -> dict:
         "config_hash": plan.config_hash,
         "content_key": plan.content_key,
         "features": list(features.FEATURE_NAMES),
-        "constants": {"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS},
+        "constants": dict(colour.CONSTANTS),
         "patch_size": config.patch_size,
         "split": plan.split,
         "sources": plan.sources,

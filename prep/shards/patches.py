@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prep import convergence, features, sampling
+from prep import colour, convergence, features, sampling
 from prep.exr import VARIANCE_LAYERS
 from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
@@ -53,12 +53,12 @@ def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
     out = {}
     for b in features.BRANCHES:
         buffers, relvar = features.branch_buffers(noisy, b, scale=scale)
-        out[f"{b}/log_colour"] = to_half(buffers[..., features.COLOUR], features.LOG_COLOUR_MAX)
-        out[f"{b}/relvar"] = to_half(relvar[..., :1], features.RELVAR_MAX)
+        out[f"{b}/log_colour"] = to_half(buffers[..., features.COLOUR], colour.LOG_COLOUR_MAX)
+        out[f"{b}/relvar"] = to_half(relvar[..., :1], colour.RELVAR_MAX)
         # the guides are the same for both branches (the kernel computes them alike): the specular's are kept.
         # Normal, albedo and depth lie in [-1, 1], where float16 rounding stays
         out["guides"] = buffers[..., features.COLOUR.stop:].astype(np.float16)
-        out["guide_relvar"] = to_half(relvar[..., 1:], features.RELVAR_MAX)
+        out["guide_relvar"] = to_half(relvar[..., 1:], colour.RELVAR_MAX)
         out[f"{b}/reference"] = features.branch_colour(reference, b)
         out[f"{b}/ref_relse"] = to_half(convergence.branch_relse(reference, b)[..., None], RELSE_MAX)
     out["noisy"] = noisy["default"]

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prep import exr, features, threads
+from prep import colour, exr, features, threads
 from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
@@ -264,8 +264,8 @@ def _shard_attrs(config: ShardConfig, manifest: dict, command: str) -> dict:
         "format": FORMAT,
         "patch_size": config.patch_size,
         "features": json.dumps(list(features.FEATURE_NAMES)),
-        "transforms": "diffuse: log1p(diffuse / (albedo + ALBEDO_EPS)); specular: log1p(max(specular, 0))",
-        "constants": json.dumps({"ALBEDO_EPS": features.ALBEDO_EPS, "REL_EPS": features.REL_EPS}),
+        "transforms": colour.DESCRIPTION,
+        "constants": json.dumps(colour.CONSTANTS),
         "sources": json.dumps([{k: s[k] for k in ("scene", "spp", "path")} for s in manifest["sources"]]),
         "config": json.dumps(config.to_dict()),
         "config_hash": manifest["config_hash"],
