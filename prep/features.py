@@ -55,8 +55,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# tests/helpers.py still imports the three constants from this module (LOG_COLOUR_MAX is not used here)
-from prep.colour import ALBEDO_EPS, LOG_COLOUR_MAX, REL_EPS  # noqa: F401
+from prep.colour import ALBEDO_EPS, REL_EPS
 from prep.colour import diffuse_to_log, irradiance, irradiance_variance, log_colour, log_variance, specular_to_log
 from prep.exr import VARIANCE_OF
 

@@ -6,7 +6,8 @@ from hypothesis import HealthCheck
 from hypothesis import strategies as st
 
 from prep import exr as _exr
-from prep.features import LOG_COLOUR_MAX, NUM_FEATURES, REL_EPS
+from prep.colour import LOG_COLOUR_MAX, REL_EPS
+from prep.features import NUM_FEATURES
 
 F32_MAX = float(np.finfo(np.float32).max)
 F32_TINY = float(np.finfo(np.float32).smallest_subnormal)

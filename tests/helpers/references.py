@@ -9,7 +9,8 @@ import numpy as np
 from helpers.numerics import FEATURE_RANGES
 from prep import features as _features
 from prep import sampling as _sampling
-from prep.features import ALBEDO_EPS, NUM_FEATURES
+from prep.colour import ALBEDO_EPS
+from prep.features import NUM_FEATURES
 from prep.sampling import IMPORTANCE_EPS
 
 # the float64 features the numba kernel is held to; it lives in the package, where the benchmark times it
