@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from helpers import WarmProcess, build_tiny_shards, checksums, command_env, tiny_train_config
 
+from kpcn_keras.callbacks import FROZEN_EPOCHS, frozen
 from kpcn_keras.run import load_model, read_state
-from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, starts_trained, train
+from kpcn_keras.train import TrainConfig, starts_trained, train
 from prep.errors import KpcnError, OptionError
 
 
