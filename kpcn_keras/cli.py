@@ -326,17 +326,17 @@ def cmd_inputs_study(args) -> int:
 
 
 def cmd_quality(args) -> int:
-    from kpcn_keras.studies import quality
+    from kpcn_keras.studies import quality, quality_report
     from kpcn_keras.studies.config import QualityConfig
 
     if getattr(args, "measure_model", False):
         cfg = QualityConfig(**_given(args, QualityConfig))
         record = quality.add_model(cfg, command=_command_line(args))
-        print(quality.format_report(record))
-        print(f"report: {cfg.out_dir}/{quality.REPORT}.md")
+        print(quality_report.format_report(record))
+        print(f"report: {cfg.out_dir}/{quality_report.REPORT}.md")
         return 0
-    return _study(args, QualityConfig, quality.quality, quality.rewrite_reports, quality.format_report,
-                  quality.REPORT)
+    return _study(args, QualityConfig, quality.quality, quality_report.rewrite_reports, quality_report.format_report,
+                  quality_report.REPORT)
 
 
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)

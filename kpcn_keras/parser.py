@@ -251,16 +251,7 @@ def _shards_options(add) -> None:
 
 def _train_options(add) -> None:
     """The options of ``kpcn train``: the network, the phases, the optimisation."""
-    from kpcn_keras.config import (
-        COMPOSITOR_KERNEL_SIZE,
-        DOWNSAMPLES,
-        PRESETS,
-        UNET_CAP_FACTOR,
-        UNET_DEFAULTS,
-        CompositorConfig,
-        ModelConfig,
-        TrainConfig,
-    )
+    from kpcn_keras.config import COMPOSITOR_KERNEL_SIZE, PRESETS, CompositorConfig, ModelConfig, TrainConfig
 
     # --compositor-kernel is CompositorConfig.kernel_size, whose name --kernel-size (the branch network's) holds
     t = add("train", (TrainConfig, ModelConfig, CompositorConfig), {"compositor_kernel": COMPOSITOR_KERNEL_SIZE},
@@ -272,7 +263,15 @@ def _train_options(add) -> None:
     t.add_argument("--inputs", help=f"input set of the network: {_input_sets()} {d('inputs')}; another than full "
                    "trains on the shard set <set>.<inputs> into <run>/inputs/<inputs>")
     t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
-    g = t.add_argument_group("network (each branch, or the shared one)")
+    _network_options(t.add_argument_group("network (each branch, or the shared one)"))
+    _phase_options(t.add_argument_group("phases"), d)
+    _optimisation_options(t.add_argument_group("optimisation"), d)
+
+
+def _network_options(g) -> None:
+    """``kpcn train``'s options of the network: each branch's, or the shared one's."""
+    from kpcn_keras.config import UNET_CAP_FACTOR, UNET_DEFAULTS
+
     g.add_argument("--arch", help="kpcn (Bako's plain stack), kpal (residual, batch norm), dpcn (direct prediction) "
                    "or unet (kernel prediction on a U-Net trunk)")
     g.add_argument("--width", type=int, help="filters per convolution (unet: of the finest level)")
@@ -298,7 +297,13 @@ def _train_options(add) -> None:
                    "kernels (default: 0, the module feeds the one kernel head)")
     g.add_argument("--shared", action="store_true", help="one network for both branches, told apart by a one-hot "
                    "input (default: one network per branch)")
-    g = t.add_argument_group("phases")
+
+
+def _phase_options(g, d) -> None:
+    """``kpcn train``'s options of the phases: which ones train, for how many steps, at what rate; the
+    compositor's. ``d``: the sentence giving a TrainConfig field's default."""
+    from kpcn_keras.config import DOWNSAMPLES, CompositorConfig
+
     g.add_argument("--branches", type=_csv, help=f"comma-separated subset of diffuse,specular {d('branches')}")
     g.add_argument("--steps", type=int, help=f"training steps per branch {d('steps')}")
     g.add_argument("--joint-steps", type=int, help="joint fine-tuning steps on the final colour, 0 for none "
@@ -322,7 +327,11 @@ def _train_options(add) -> None:
     g.add_argument("--scale-supervision", type=float, help="weight of each inner pyramid level's loss term, its "
                    "composite output against the reference downsampled the same way; 0 is off "
                    f"(default: {_default(CompositorConfig, 'scale_supervision')})")
-    g = t.add_argument_group("optimisation")
+
+
+def _optimisation_options(g, d) -> None:
+    """``kpcn train``'s options of the optimisation: batches, learning rate, loss, augmentation, stopping, the
+    start. ``d``: the sentence giving a TrainConfig field's default."""
     g.add_argument("--batch-size", type=int, help=d("batch_size"))
     g.add_argument("--lr", dest="learning_rate", type=float, help=f"initial learning rate {d('learning_rate')}")
     g.add_argument("--decay-steps", type=int, help="steps per decay of the learning rate by --decay-rate "

@@ -35,10 +35,11 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
 - **Exactly the steps asked.** A phase's epochs are ``steps_per_epoch`` steps (``Phase.epoch_steps``), the
   last one shorter where the phase's steps are not a multiple of it, so its optimizer, and with it the
   learning-rate schedule, takes exactly the steps the record gives.
-- **Or as long as held-out error falls** (``patience`` > 0: :class:`_StopOnPlateau`): a phase stops after
-  ``patience`` epochs in a row without a validation loss below its best, and its model is the best epoch's
-  (``checkpoints/<phase>-best.keras``, written at each new best); the record gives the epochs it trained and
-  its best (``epochs_trained``, ``best_epoch``), and the next phase keeps its place in the epoch numbering.
+- **Or as long as held-out error falls** (``patience`` > 0: :class:`~kpcn_keras.callbacks.StopOnPlateau`): a
+  phase stops after ``patience`` epochs in a row without a validation loss below its best, and its model is the
+  best epoch's (``checkpoints/<phase>-best.keras``, written at each new best); the record gives the epochs it
+  trained and its best (``epochs_trained``, ``best_epoch``), and the next phase keeps its place in the epoch
+  numbering.
 - **Exact resume, at any point.** After every epoch the phase's model, its optimizer and the training state
   (phase, epochs done, the loss history) are written as one ``.keras`` file (``run.save_model``), so the
   model and its epoch count cannot disagree. A finished phase is one file, written once. Running the same
@@ -50,22 +51,21 @@ layout belongs to :class:`kpcn_keras.run.Run`. What training guarantees:
   another run's (or a shipped model's) finished networks of the same input set, which must have the run's
   model configuration and have been trained on its features; their SHA-256 are in the record (``init``), and
   resuming from other weights, or without them, is refused.
-- **Divergence stops at the batch** (:class:`_StopOnNonFinite`): one line names the last good checkpoint,
-  which stays.
-- **So does a network that can no longer learn** (:class:`_StopOnSaturation`): a validation loss frozen for
-  ``FROZEN_EPOCHS`` epochs while the training loss moves is a network whose kernels' softmax has saturated
-  (each pixel takes one neighbour, and no gradient passes the softmax); one line says so and what to lower. A
-  phase that starts from finished networks is judged once its validation loss has left its start: it may
-  start on a plateau (:func:`starts_trained`).
+- **Divergence stops at the batch** (:class:`~kpcn_keras.callbacks.StopOnNonFinite`): one line names the last
+  good checkpoint, which stays.
+- **So does a network that can no longer learn** (:class:`~kpcn_keras.callbacks.StopOnSaturation`): a
+  validation loss frozen for ``FROZEN_EPOCHS`` epochs while the training loss moves is a network whose kernels'
+  softmax has saturated (each pixel takes one neighbour, and no gradient passes the softmax); one line says so
+  and what to lower. A phase that starts from finished networks is judged once its validation loss has left its
+  start: it may start on a plateau (:func:`starts_trained`).
+- **The callbacks of a phase's fit** (:mod:`kpcn_keras.callbacks`) hold these at every batch and epoch, and
+  write the checkpoint's training state.
 - **One trainer per run**: the run's lock is held while training.
 """
 
 from __future__ import annotations
 
 import csv
-import hashlib
-import json
-import math
 import sys
 import time
 from contextlib import nullcontext
@@ -75,6 +75,15 @@ import keras
 import numpy as np
 
 from kpcn_keras import distributed
+from kpcn_keras.callbacks import (
+    Checkpoint,
+    MeanOverProcesses,
+    StopOnNonFinite,
+    StopOnPlateau,
+    StopOnSaturation,
+    best_epoch,
+    checkpoint_differences,
+)
 from kpcn_keras.config import ALBEDO_NETWORK, UNWEIGHTED_TAU, Phase, TrainConfig
 from kpcn_keras.data import ShardPatches
 from kpcn_keras.layers import FinalColour
@@ -243,58 +252,6 @@ def _data(cfg: TrainConfig, phase: Phase, paths: dict, start: int, end: int, wor
     return train, val
 
 
-# ---------------------------------------------------------------- checkpoints, log, record
-
-
-class _MeanOverProcesses(keras.callbacks.Callback):
-    """First of all the callbacks: an epoch's training logs become their mean over the processes, what one
-    process on the global batches would have logged (validation, read whole by each, is the same in all)."""
-
-    def __init__(self, world: distributed.World):
-        super().__init__()
-        self.world = world
-
-    def on_epoch_end(self, epoch, logs=None):
-        if logs is None:
-            return
-        train = {k: float(v) for k, v in logs.items() if not k.startswith("val_")}
-        logs.update(distributed.mean_over_processes(train, self.world))
-
-
-class _StopOnNonFinite(keras.callbacks.Callback):
-    """Divergence stops at the batch: a training loss that is not finite raises, at once, the one-line
-    error naming the last good checkpoint, before any writer sees the epoch. Ours, not Keras's
-    ``TerminateOnNaN(raise_error=True)``: that argument came long after the oldest Keras pyproject.toml
-    allows."""
-
-    def __init__(self, phase: Phase, checkpoint: Path):
-        super().__init__()
-        self.phase, self.checkpoint = phase, checkpoint
-
-    def on_train_batch_end(self, batch, logs=None):
-        loss = (logs or {}).get("loss")
-        if loss is not None and not math.isfinite(float(loss)):
-            raise KpcnError(
-                f"training the {self.phase.name} phase diverged (loss {float(loss)} at batch {batch}); the last good "
-                f"checkpoint is {self.checkpoint}. Lower the learning rate (--lr) under a new --run, or resume this "
-                "one as it is."
-            )
-
-
-# A validation loss that stays within FROZEN_TOLERANCE (relative) for FROZEN_EPOCHS epochs while the training
-# loss moves by more than FROZEN_TRAINING_MOVE has stopped learning: the training loss moves with its batches
-# alone. Seen in the quality study (docs/results/10-quality-levers.md §10d): the unet preset at lr 0.001 saturated
-# a specular network's kernels in its first epoch, and its validation loss then moved by float rounding alone.
-FROZEN_EPOCHS = 3
-FROZEN_TOLERANCE = 1e-6
-FROZEN_TRAINING_MOVE = 1e-3
-# A phase that starts from finished networks (starts_trained) can start on a plateau: its validation loss as flat
-# as a saturated network's for a score of epochs, then falling (make train's albedo phase, seed 1,
-# docs/results/21-quality-report-shipped-model.md). Such a phase is judged only once its validation loss has
-# left its first epoch's by more than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to
-# have saturated it. A phase from random weights is judged from its first epochs (the unet case).
-
-
 def starts_trained(cfg: TrainConfig, phase: Phase) -> bool:
     """Whether ``phase`` starts from finished networks: joint fine-tuning (the branch networks), the albedo network
     (a copy of the diffuse one), a resample round (the phase it continues), and a branch phase of a run with
@@ -303,125 +260,7 @@ def starts_trained(cfg: TrainConfig, phase: Phase) -> bool:
             or (cfg.init is not None and not phase.trains_on_final_colour))
 
 
-def frozen(history: list[dict], *, started_trained: bool = False) -> bool:
-    """Whether the last :data:`FROZEN_EPOCHS` epochs of ``history`` (dicts with ``loss`` and ``val_loss``) have
-    one validation loss, to :data:`FROZEN_TOLERANCE`, while their training loss moved (module docstring); for a
-    phase ``started_trained``, only once its validation loss has left its first epoch's (:func:`starts_trained`)."""
-    last = history[-FROZEN_EPOCHS:]
-    if len(last) < FROZEN_EPOCHS:
-        return False
-    val = [h.get("val_loss", math.nan) for h in last]
-    train = [h.get("loss", math.nan) for h in last]
-    if not all(math.isfinite(v) for v in val + train):
-        return False
-    if started_trained:
-        first = history[0].get("val_loss", math.nan)
-        if all(abs(h.get("val_loss", math.nan) - first) <= FROZEN_TRAINING_MOVE * abs(first) for h in history):
-            return False  # still on the plateau it started on
-    return (max(val) - min(val) <= FROZEN_TOLERANCE * max(map(abs, val))
-            and max(train) - min(train) > FROZEN_TRAINING_MOVE * max(map(abs, train)))
-
-
-# the option that sets a phase's learning rate, for the line that asks for a lower one (the branch phases': --lr)
-LEARNING_RATE_OPTIONS = {"joint": "--joint-lr", "compositor": "--compositor-lr", ALBEDO_NETWORK: "--albedo-lr"}
-
-
-class _StopOnSaturation(keras.callbacks.Callback):
-    """A phase whose network no longer learns (:func:`frozen`) stops with one line saying why and what to do;
-    its checkpoints stay. Judged on the checkpoint's history too, so a resumed phase stops as it did."""
-
-    def __init__(self, phase: Phase, history: list[dict], *, started_trained: bool):
-        super().__init__()
-        self.phase, self.started_trained = phase, started_trained
-        self.history = [{k: h.get(k, math.nan) for k in ("loss", "val_loss")} for h in history]
-
-    def on_epoch_end(self, epoch, logs=None):
-        logs = logs or {}
-        self.history.append({k: float(logs.get(k, math.nan)) for k in ("loss", "val_loss")})
-        if frozen(self.history, started_trained=self.started_trained):
-            first, last = self.history[-FROZEN_EPOCHS], self.history[-1]
-            raise KpcnError(
-                f"training the {self.phase.name} phase stalled: its validation loss stayed {last['val_loss']:.6g} "
-                f"for {FROZEN_EPOCHS} epochs while its training loss went {first['loss']:.4g} -> {last['loss']:.4g}, "
-                "the mark of a network that no longer learns (of a kernel-predicting one, saturated kernels: each "
-                "pixel's softmax on one neighbour, no gradient through it). "
-                "Train under a new --run with a lower learning rate "
-                f"({LEARNING_RATE_OPTIONS.get(self.phase.component, '--lr')}; this run's is "
-                f"{self.phase.learning_rate:g})."
-            )
-
-
-class _Checkpoint(keras.callbacks.Callback):
-    """After every epoch: the model, its optimizer and the training state, as one atomic .keras file; with
-    ``best`` (early stopping), before it, the model alone whenever the epoch is the phase's best so far (a kill
-    between the two repeats the epoch, which writes the same best again)."""
-
-    def __init__(self, path: Path, cfg: TrainConfig, phase: Phase, history: list[dict], best: Path | None = None):
-        super().__init__()
-        self.path, self.cfg, self.phase, self.history, self.best = path, cfg, phase, history, best
-
-    def on_epoch_end(self, epoch, logs=None):
-        self.history.append({"epoch": epoch, **{k: float(v) for k, v in (logs or {}).items()}})
-        if self.best is not None and best_epoch(self.history) == len(self.history) - 1:
-            save_model(self.model, self.best)
-        done = epoch + 1 - self.phase.first_epoch
-        save_model(self.model, self.path, _state(self.cfg, self.phase, done, self.history))
-
-
-def best_epoch(history: list[dict]) -> int | None:
-    """Index (within the phase) of the first epoch with the lowest validation loss; None without one."""
-    losses = [(h["val_loss"], i) for i, h in enumerate(history) if math.isfinite(h.get("val_loss", math.nan))]
-    return min(losses)[1] if losses else None
-
-
-def plateaued(history: list[dict], patience: int) -> bool:
-    """Whether the last ``patience`` epochs of ``history`` all came after its best (0: never)."""
-    best = best_epoch(history)
-    return patience > 0 and best is not None and len(history) - 1 - best >= patience
-
-
-class _StopOnPlateau(keras.callbacks.Callback):
-    """Early stopping on the phase's validation losses, from the checkpoint's history on (so a resumed phase
-    stops where an uninterrupted one would). Every process keeps its own copy and stops at the same epoch:
-    validation, read whole by each, gives them the same loss."""
-
-    def __init__(self, history: list[dict], patience: int):
-        super().__init__()
-        self.history, self.patience = [{"val_loss": h.get("val_loss", math.nan)} for h in history], patience
-
-    @property
-    def stopped(self) -> bool:
-        return plateaued(self.history, self.patience)
-
-    def on_epoch_end(self, epoch, logs=None):
-        self.history.append({"val_loss": float((logs or {}).get("val_loss", math.nan))})
-        self.model.stop_training = self.stopped
-
-
-def _state(cfg: TrainConfig, phase: Phase, epochs_done: int, history: list[dict]) -> dict:
-    return {"phase": phase.name, "epochs_done": epochs_done, "model": cfg.model.to_dict(), "train": _identity_key(cfg),
-            "history": history}
-
-
-def _checkpoint_differences(state: dict, cfg: TrainConfig, phase: Phase) -> list[str]:
-    """What a checkpoint's training state says that ``phase`` of the run ``cfg`` does not, one item per
-    difference, each with both values: the phase, each model setting, and else the training options (a
-    checkpoint stores their hash, which covers the model)."""
-    differ = []
-    if state.get("phase", phase.name) != phase.name:
-        differ.append(f"it is the {state['phase']} phase's, this is the {phase.name} phase's")
-    model = state.get("model") if isinstance(state.get("model"), dict) else {}
-    own = cfg.model.to_dict()
-    differ += [f"model {k} {model.get(k)!r}, the run's {own.get(k)!r}"
-               for k in sorted(set(model) | set(own)) if model.get(k) != own.get(k)]
-    if not differ and state.get("train") != _identity_key(cfg):  # the hash covers the model too
-        differ.append(f"training options of hash {state.get('train')}, the run's {_identity_key(cfg)} (a "
-                      "checkpoint of another run)")
-    return differ
-
-
-def _identity_key(cfg: TrainConfig) -> str:
-    return hashlib.sha256(json.dumps(cfg.identity(), sort_keys=True).encode()).hexdigest()[:16]
+# ---------------------------------------------------------------- checkpoints, log, record
 
 
 def check_fits_patches(model: ModelConfig, patch: int, where) -> None:
@@ -693,7 +532,7 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         if state is None or "epochs_done" not in state:
             raise KpcnError(f"{ckpt}: a .keras file without kpcn's training state; remove it to restart the "
                             f"{phase.name} phase")
-        differ = _checkpoint_differences(state, cfg, phase)
+        differ = checkpoint_differences(state, cfg, phase)
         if differ:
             raise KpcnError(
                 f"{ckpt}: checkpoint of another configuration ({'; '.join(differ)}). Remove the checkpoint to "
@@ -717,14 +556,14 @@ def train_phase(cfg: TrainConfig, run: Run, record: dict, phase: Phase, paths: d
         _cut_log(run.log_path, len(logged))
 
     best = run.best_checkpoint_path(phase.name) if cfg.patience else None
-    stopper = _StopOnPlateau(history, cfg.patience)
+    stopper = StopOnPlateau(history, cfg.patience)
     writes = [keras.callbacks.CSVLogger(str(run.log_path), append=True),
-              _Checkpoint(ckpt, cfg, phase, history, best if world.writer else None)]
+              Checkpoint(ckpt, cfg, phase, history, best if world.writer else None)]
     callbacks = [
-        _MeanOverProcesses(world),
-        _StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
+        MeanOverProcesses(world),
+        StopOnNonFinite(phase, ckpt),  # before the writers: they never see a non-finite epoch
         *(writes if world.writer else []),
-        _StopOnSaturation(phase, history, started_trained=starts_trained(cfg, phase)),
+        StopOnSaturation(phase, history, started_trained=starts_trained(cfg, phase)),
         stopper,
         *callbacks,
     ]

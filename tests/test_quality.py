@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.commands import assert_one_line_error, run_main
+from helpers.commands import assert_one_line_error, process_state_kept, run_main
 from helpers.tiny import TINY_MODEL, build_tiny_shards
 
 from kpcn_keras.studies import compare as cmp
 from kpcn_keras.studies import quality as qs
+from kpcn_keras.studies import quality_report as qr
 from kpcn_keras.studies.config import QUALITY_LEVERS, QualityConfig, combine
 from prep import exr, layouts
 from prep.errors import KpcnError, OptionError
@@ -132,7 +133,7 @@ def _tables(md: str) -> list[list[list[str]]]:
 
 def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
     record = hand_record()
-    md = qs.format_report(record)
+    md = qr.format_report(record)
     levers, held, val, each, target = _tables(md)
     for lever, column in (("cpu", 3), ("data", 4)):
         row = next(r for r in levers if r[0] == f"`{lever}`")
@@ -154,7 +155,7 @@ def test_frames_below_oidn_are_counted_as_a_hand_count_of_the_table():
     assert blender64[3] == "0.0010"
     assert [r[0] for r in each] == [f"s{i} {t[1]} spp" for i, t in enumerate(TABLE) if t[0] == "validation"]
     # the headline: data has the lower mean held-out relMSE, and is below OIDN on 4 of 8 frames: level
-    assert qs.best(record) == "data"
+    assert qr.best(record) == "data"
     lower, n, median = _expected(4)
     assert (lower, n) == (4, 8)
     headline = next(line for line in md.splitlines() if line.startswith("**Best"))
@@ -168,7 +169,7 @@ KINDS_ALL = ("held-out", "validation")
 def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_validation_frames_at_16_spp():
     record = hand_record()
     # one validation frame at 16 spp (TABLE): cpu 0.006 against OIDN's 0.004, data 0.003
-    target = _tables(qs.format_report(record))[4]
+    target = _tables(qr.format_report(record))[4]
     assert target == [["`cpu`", "0 of 1", "1", "1.500×", "out by 50%", "default"],
                       ["`data`", "1 of 1", "1", "0.750×", "met", "default"]]
     # three: half is two, so the second lowest ratio decides
@@ -177,12 +178,12 @@ def test_the_defaults_target_is_judged_by_the_frame_that_decides_half_the_valida
         extra = json.loads(json.dumps(first))
         extra["levers"]["cpu"]["relmse"], extra["levers"]["data"]["relmse"] = cpu, data
         record["frames"].append(extra)
-    got = {lever: qs.default_target(record, lever) for lever in LEVERS}
+    got = {lever: qr.default_target(record, lever) for lever in LEVERS}
     assert got["cpu"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.25)}
     assert got["data"] == {"lower": 1, "frames": 3, "needed": 2, "deciding": pytest.approx(1.05)}
-    rows = _tables(qs.format_report(record))[4]
+    rows = _tables(qr.format_report(record))[4]
     assert [r[-2] for r in rows] == ["out by 25%", "out by 5%"]
-    assert "The default's target" not in qs.format_report(hand_record(oidn=False))
+    assert "The default's target" not in qr.format_report(hand_record(oidn=False))
 
 
 # the measured model's relMSE on TABLE's frames, in order: below OIDN on frames 0, 2, 3, 5 and 7; equal on 4
@@ -192,18 +193,18 @@ MODEL_RELMSE = (0.012, 0.024, 0.004, 0.002, 0.001, 0.004, 0.005, 0.002)
 def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_count():
     record = hand_record()
     for row, relmse in zip(record["frames"], MODEL_RELMSE, strict=True):
-        row[qs.MODEL] = {**_scores(relmse), "model": "full", **({"set": "other"} if "path" in row else {})}
-    record[qs.MODEL] = {"run": "models/default", "set": "default-r1", "shipped": True}
-    md = qs.format_report(record)
+        row[qr.MODEL] = {**_scores(relmse), "model": "full", **({"set": "other"} if "path" in row else {})}
+    record[qr.MODEL] = {"run": "models/default", "set": "default-r1", "shipped": True}
+    md = qr.format_report(record)
     ratios = sorted(m / t[5] for m, t in zip(MODEL_RELMSE, TABLE))
     lower = sum(m < t[5] for m, t in zip(MODEL_RELMSE, TABLE))
     assert lower == 5 and math.ceil(8 * 2 / 3) == 6
     # a model is no lever: the best lever is judged as before, though the model is below OIDN on more frames
-    assert qs.best(record) == "data"
+    assert qr.best(record) == "data"
     tables = _tables(md)
     targets, default = tables[5], tables[4]
     # the sixth lowest ratio decides: frame 4, level with OIDN, and a tie is not below
-    assert qs.MODEL not in QUALITY_LEVERS
+    assert qr.MODEL not in QUALITY_LEVERS
     assert ratios[5] == 1.0 and targets[0][1:] == ["5 of 8", "6 frames", "1.000× (the deciding frame)", "out by 0.0%"]
     for row, spp in zip(targets[1:3], (16, 64)):  # DSSIM is relMSE / 2 in TABLE: the ratio is of the relMSE means
         model = np.mean([m for m, t in zip(MODEL_RELMSE, TABLE) if t[1] == spp])
@@ -223,8 +224,8 @@ def test_the_shipped_models_targets_are_judged_on_the_studys_frames_as_a_hand_co
     headline = next(line for line in md.splitlines() if line.startswith(f"**The {label}**"))
     assert f"on 5 of 8 frames, the median ratio {statistics.median(ratios):.2f}×" in headline
     # below OIDN on 6 of the 8: met, decided by the sixth lowest ratio
-    record["frames"][1][qs.MODEL]["relmse"] = 0.019
-    met = _tables(qs.format_report(record))[5][0]
+    record["frames"][1][qr.MODEL]["relmse"] = 0.019
+    met = _tables(qr.format_report(record))[5][0]
     assert met[1] == "6 of 8" and met[4] == "met"
 
 
@@ -235,22 +236,22 @@ def test_the_best_lever_is_the_one_below_oidn_on_most_frames_not_the_one_a_singl
     means = {lever: np.mean([r["levers"][lever]["relmse"] for r in held]) for lever in LEVERS}
     assert means["cpu"] < means["data"]  # by its mean, cpu would be the best
     assert (_expected(3)[0], _expected(4)[0]) == (3, 4)  # by frames below OIDN, data is (unchanged: it was above)
-    assert qs.best(record) == "data"
-    headline = next(line for line in qs.format_report(record).splitlines() if line.startswith("**Best"))
+    assert qr.best(record) == "data"
+    headline = next(line for line in qr.format_report(record).splitlines() if line.startswith("**Best"))
     assert headline.startswith("**Best lever by frames: `data`** (mean held-out relMSE "
                                f"{means['data']:.4f})")
     without = hand_record(oidn=False)  # nothing to count: the lowest mean
     without["frames"][0]["levers"]["data"]["relmse"] = 1.0
-    assert qs.best(without) == "cpu"
+    assert qr.best(without) == "cpu"
     # a tie in frames is broken by the lower median ratio to OIDN's, before the mean
     record["frames"][1]["levers"]["cpu"]["relmse"] = 0.019  # now below OIDN's 0.020: 4 of 8, as data
     ratio = {lever: statistics.median(r["levers"][lever]["relmse"] / r["oidn"]["relmse"] for r in record["frames"])
              for lever in LEVERS}
-    assert ratio["data"] < ratio["cpu"] and qs.best(record) == "data"
+    assert ratio["data"] < ratio["cpu"] and qr.best(record) == "data"
 
 
 def test_without_oidn_the_report_says_so_and_counts_nothing():
-    md = qs.format_report(hand_record(oidn=False))
+    md = qr.format_report(hand_record(oidn=False))
     assert "OIDN, the denoiser to beat, is not installed here" in md
     levers = _tables(md)[0]
     assert all(set(r[4:]) == {"—"} for r in levers)
@@ -267,7 +268,7 @@ def test_report_only_rewrites_the_reports_from_the_record_alone(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     md = (tmp_path / "quality.md").read_text()
     days = [f"`kpcn quality --report-only` on {d.isoformat()}" for d in {before, datetime.date.today()}]
-    assert any(md == qs.format_report({**record, "rewritten": day}) for day in days)
+    assert any(md == qr.format_report({**record, "rewritten": day}) for day in days)
     assert (tmp_path / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((tmp_path / "quality.json").read_text()) == record
     res = run_main("quality", "--report-only", "--out", str(tmp_path / "empty"), cwd=tmp_path)
@@ -311,20 +312,34 @@ def _relmse64(x, r) -> float:
     return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
 
 
-@pytest.mark.slow
-def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(tmp_path, monkeypatch):
-    full = build_tiny_shards(tmp_path)
-    frames = tmp_path / "frames"
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory) -> tuple[QualityConfig, dict, object]:
+    """A tiny study of two levers on the tiny shard set and the Cycles and Mitsuba validation frames, with a
+    stand-in for Blender's own denoised frame (the reference itself, so its relMSE is 0), steps planned from a
+    fixed probe: (its configuration, its record, the shard configuration)."""
+    tmp = tmp_path_factory.mktemp("quality")
+    full = build_tiny_shards(tmp)
+    frames = tmp / "frames"
     shutil.copytree(RENDERERS / "cycles5", frames / "cycles5")
     shutil.copytree(RENDERERS / "mitsuba3", frames / "mitsuba3")
-    # a stand-in for Blender's own denoised frame: the reference itself, so its relMSE is 0
     shutil.copy(frames / "cycles5" / "studio-00256spp.exr", frames / "cycles5" / "studio-00016spp-blender-oidn.exr")
     cfg = QualityConfig(set_name="s", render_root=full.render_root, shards_root=full.out_root,
-                        runs_root=str(tmp_path / "runs"), out_dir=str(tmp_path / "reports"), budget=3.0,
+                        runs_root=str(tmp / "runs"), out_dir=str(tmp / "reports"), budget=3.0,
                         levers=("cpu", "multiscale-kernel"), frames=(str(frames),))
-    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
-    record = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
-    out = tmp_path / "reports"
+    with process_state_kept(), pytest.MonkeyPatch.context() as patch:
+        patch.setattr(cmp, "probe_configuration", _fake_probe)
+        record = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
+    return cfg, record, full
+
+
+def _studio(cfg: QualityConfig, spp: int) -> Path:
+    return Path(cfg.frames[0]) / "cycles5" / f"studio-{spp:05d}spp.exr"
+
+
+@pytest.mark.slow
+def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(tiny_study):
+    cfg, record, _ = tiny_study
+    out = Path(cfg.out_dir)
     assert json.loads((out / "quality.json").read_text()) == json.loads(json.dumps(record))
     assert (out / "quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert record["input_sets"] == ["full", "no-variance", "no-split"]
@@ -340,19 +355,28 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
             assert networks[inputs]["phase_steps"] == steps
     served = {r["frame"]: r["levers"]["cpu"]["model"] for r in record["frames"] if r["kind"] == "validation"}
     assert served == {"cycles5/studio 16 spp": "no-variance", "mitsuba3/cornell 16 spp": "no-split"}
-    studio = next(r for r in record["frames"] if r["frame"] == "cycles5/studio 16 spp")
-    x = layouts.read(frames / "cycles5" / "studio-00016spp.exr").layers["default"]
-    ref = layouts.read(frames / "cycles5" / "studio-00256spp.exr").layers["default"]
-    assert studio["raw"]["relmse"] == pytest.approx(_relmse64(x, ref), rel=1e-9)
-    assert studio["blender"]["relmse"] == 0.0
-    assert studio["levers"]["cpu"]["set"] == "s"  # the render set its no-variance network trained on
+    md = (out / "quality.md").read_text()
+    assert "**Best lever by " in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
+    assert [p["title"].split(" (")[0] for p in record["panels"]] == ["cycles5/studio 16 spp", "mitsuba3/cornell 16 spp"]
+
+
+@pytest.mark.slow
+def test_a_tiny_studys_scores_are_a_float64_computation_from_the_exrs(tiny_study):
     from prep import baselines
 
+    cfg, record, full = tiny_study
+    studio = next(r for r in record["frames"] if r["frame"] == "cycles5/studio 16 spp")
+    ref = layouts.read(_studio(cfg, 256)).layers["default"]
+    assert studio["raw"]["relmse"] == pytest.approx(_relmse64(layouts.read(_studio(cfg, 16)).layers["default"], ref),
+                                                    rel=1e-9)
+    assert studio["blender"]["relmse"] == 0.0
+    assert studio["levers"]["cpu"]["set"] == "s"  # the render set its no-variance network trained on
     if baselines.oidn_available():
-        frame = layouts.read(frames / "cycles5" / "studio-00016spp.exr")
+        frame = layouts.read(_studio(cfg, 16))
         assert studio["oidn"]["relmse"] == pytest.approx(_relmse64(baselines.oidn_denoise(frame.layers), ref), rel=1e-9)
         wins = sum(r["levers"]["cpu"]["relmse"] < r["oidn"]["relmse"] for r in record["frames"])
-        row = next(line for line in (out / "quality.md").read_text().splitlines() if line.startswith("| `cpu` |"))
+        md = (Path(cfg.out_dir) / "quality.md").read_text()
+        row = next(line for line in md.splitlines() if line.startswith("| `cpu` |"))
         assert f"| {wins} of {len(record['frames'])} |" in row
     held = [r for r in record["frames"] if r["kind"] == "held-out"]
     assert [r["frame"] for r in held] == ["a-001 4 spp", "b-001 4 spp"]  # the tiny set's validation scenes
@@ -361,22 +385,29 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
         noisy = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00004spp.exr")["default"]
         reference = exr.read_aovs(Path(full.render_root) / "s" / f"{r['scene']}-00064spp.exr", variances=False)
         assert r["raw"]["relmse"] == pytest.approx(_relmse64(noisy, reference["default"]), rel=1e-9)
-    md = (out / "quality.md").read_text()
-    assert "**Best lever by " in md and "| 16 | Blender's own | 1 | 0.0000 |" in md
-    assert [p["title"].split(" (")[0] for p in record["panels"]] == ["cycles5/studio 16 spp", "mitsuba3/cornell 16 spp"]
 
-    # the same command again: the plan is reused and the runs are done; the report written again from the record
-    lines = []
-    again = qs.quality(cfg, overrides=OVERRIDES, verbose=0, log=lines.append)
+
+@pytest.mark.slow
+def test_the_same_study_again_reuses_its_runs_and_its_report_is_written_again_from_the_record(tiny_study,
+                                                                                               monkeypatch):
+    cfg, record, _ = tiny_study
+    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
+    again_cfg = dataclasses.replace(cfg, out_dir=str(Path(cfg.out_dir).parent / "again"))
+    again = qs.quality(again_cfg, overrides=OVERRIDES, verbose=0, log=lambda *_: None)
     assert [r["levers"] for r in again["frames"]] == [r["levers"] for r in record["frames"]]
-    rewritten = qs.rewrite_reports(out)
-    assert (out / "quality.md").read_text() == qs.format_report(rewritten)
+    rewritten = qr.rewrite_reports(again_cfg.out_dir)
+    assert (Path(again_cfg.out_dir) / "quality.md").read_text() == qr.format_report(rewritten)
 
-    # every frame as a self-ensemble of 2: the same runs serve it, and each frame is that ensemble's denoise
+
+@pytest.mark.slow
+def test_a_self_ensemble_of_2_is_served_by_the_same_runs_and_scores_that_ensembles_denoise(tiny_study, monkeypatch):
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
 
-    ens = qs.quality(dataclasses.replace(cfg, ensemble=2, out_dir=str(tmp_path / "ens")), overrides=OVERRIDES,
+    cfg, record, full = tiny_study
+    monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
+    ens_dir = Path(cfg.out_dir).parent / "ens"
+    ens = qs.quality(dataclasses.replace(cfg, ensemble=2, out_dir=str(ens_dir)), overrides=OVERRIDES,
                      verbose=0, log=lambda *_: None)
     assert [ens["plans"][lv]["run"] for lv in cfg.levers] == [record["plans"][lv]["run"] for lv in cfg.levers]
     noisy = exr.read_aovs(Path(full.render_root) / "s" / "a-001-00004spp.exr")
@@ -385,24 +416,38 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     assert ens["frames"][0]["frame"] == "a-001 4 spp"
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] == pytest.approx(_relmse64(two, reference), rel=1e-9)
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] != record["frames"][0]["levers"]["cpu"]["relmse"]
-    assert "a self-ensemble of 2 members" in (tmp_path / "ens" / "quality.md").read_text()
+    assert "a self-ensemble of 2 members" in (ens_dir / "quality.md").read_text()
 
-    # the shipped model was measured beside the levers, each frame served by its network for what it gives
+
+@pytest.mark.slow
+def test_the_shipped_model_is_measured_beside_the_levers_each_frame_served_by_its_network(tiny_study):
     from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
 
-    shipped = record[qs.MODEL]
+    cfg, record, _ = tiny_study
+    shipped = record[qr.MODEL]
     assert Path(shipped["run"]).resolve() == MODELS_DIR / DEFAULT_MODEL and shipped["shipped"]
-    served = Run(shipped["run"]).serving(layouts.read(frames / "cycles5" / "studio-00016spp.exr").inputs)
-    denoised = Denoiser.from_run(served)(layouts.read(frames / "cycles5" / "studio-00016spp.exr").layers)["default"]
-    assert studio[qs.MODEL]["relmse"] == pytest.approx(_relmse64(denoised, ref), rel=1e-9)
-    assert "## The shipped model `default`" in md
+    frame = layouts.read(_studio(cfg, 16))
+    denoised = Denoiser.from_run(Run(shipped["run"]).serving(frame.inputs))(frame.layers)["default"]
+    studio = next(r for r in record["frames"] if r["frame"] == "cycles5/studio 16 spp")
+    ref = layouts.read(_studio(cfg, 256)).layers["default"]
+    assert studio[qr.MODEL]["relmse"] == pytest.approx(_relmse64(denoised, ref), rel=1e-9)
+    assert "## The shipped model `default`" in (Path(cfg.out_dir) / "quality.md").read_text()
 
-    # --measure-model puts another model in the record, nothing trained: the cpu lever's run scores as the lever
+
+@pytest.mark.slow
+def test_measure_model_puts_another_model_in_the_record_and_refuses_one_that_cannot_be_judged(tiny_study, tmp_path):
+    study, record, _ = tiny_study
+    out = tmp_path / "reports"  # a copy: the record the other tests read stays as the study wrote it
+    shutil.copytree(study.out_dir, out)
+    cfg, lines = dataclasses.replace(study, out_dir=str(out)), []
+    # nothing trained: the cpu lever's run scores as the lever
     qs.add_model(dataclasses.replace(cfg, model=record["plans"]["cpu"]["run"]), log=lines.append)
     kept = out / "quality.json"
     measured = json.loads(kept.read_text())
-    assert all(r[qs.MODEL] == r["levers"]["cpu"] for r in measured["frames"])
-    assert measured["plans"] == record["plans"] and measured[qs.MODEL]["set"] == "s"
+    assert all(r[qr.MODEL] == r["levers"]["cpu"] for r in measured["frames"])
+    assert measured["plans"] == record["plans"] and measured[qr.MODEL]["set"] == "s"
     # a model that trained on a scene the study holds out is refused before anything is measured
     seen = tmp_path / "seen"
     shutil.copytree(record["plans"]["cpu"]["run"], seen)

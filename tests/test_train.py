@@ -10,8 +10,9 @@ from helpers.commands import WarmProcess, command_env
 from helpers.files import checksums
 from helpers.tiny import build_tiny_shards, tiny_train_config
 
+from kpcn_keras.callbacks import FROZEN_EPOCHS, frozen
 from kpcn_keras.run import load_model, read_state
-from kpcn_keras.train import FROZEN_EPOCHS, TrainConfig, frozen, starts_trained, train
+from kpcn_keras.train import TrainConfig, starts_trained, train
 from prep.errors import KpcnError, OptionError
 
 

@@ -11,6 +11,7 @@
 - ``numerics``: the float32 edges, the feature table's ranges and the hypothesis strategies of float32 renders;
 - ``references``: float64 computations written independently of the library (features, PDFs, kernels,
   relSE, form factors, augmentation moves), which the code is held to;
+- ``multiscale``: the multiscale tests' tiny compositor and float64 references of the pyramid's operations;
 - ``exr_layouts``: EXR files in the layouts other renderers write (Cycles' passes, one part per pass);
 - ``browser``: headless Chromium driving ``kpcn view``'s page;
 - ``chi_square``: Pearson's chi-square test of drawn counts against expected ones, low cells pooled, with a
