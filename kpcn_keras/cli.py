@@ -252,13 +252,13 @@ def cmd_shard_set_figures(args) -> int:
 
 def cmd_bench(args) -> int:
     from kpcn_keras.studies.config import BenchConfig
-    from prep.studies.render_bench import RenderBenchConfig
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
 
     # an option of one bench that the other does not have (both have --out and --repeats)
     render_only, accuracy_only = ({f.name for f in dataclasses.fields(a)} - {f.name for f in dataclasses.fields(b)}
                                   for a, b in ((RenderBenchConfig, BenchConfig), (BenchConfig, RenderBenchConfig)))
     if args.what == "render":
-        from prep.studies.render_bench import bench_render, format_report
+        from kpcn_keras.studies.render_bench import bench_render, format_report
 
         for dest in sorted(d for d in accuracy_only if d in args):
             raise OptionError(dest, "is an option of 'kpcn bench' (accuracy against time), not of 'kpcn bench render'")

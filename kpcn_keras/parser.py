@@ -511,7 +511,7 @@ def _figures_options(add) -> None:
 def _bench_options(add) -> None:
     """The options of ``kpcn bench`` and of ``kpcn bench render``."""
     from kpcn_keras.studies.config import BENCH_PRESETS, BenchConfig
-    from prep.studies.render_bench import RenderBenchConfig
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
 
     b = add("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: "
                "reports/accuracy_time.{md,json,png} (or, with 'render', the path tracer's samples per second: "
@@ -595,8 +595,8 @@ def _inputs_study_options(add) -> None:
     s.add_argument("--frames", nargs="+", help="other renderers' frames: files or folders, each noisy frame with its "
                    f"reference beside it {d('frames')}")
     s.add_argument("--pairs", nargs="+", help="folders of two renders of a frame, <scene>-<spp>spp.exr and "
-                   "<scene>-<spp>spp-b.exr, with the scene's reference (scripts/render_blender_pairs.py; "
-                   "default: none)")
+                   "<scene>-<spp>spp-b.exr, with the scene's reference (python -m "
+                   "kpcn_keras.studies.render_blender_pairs; default: none)")
     s.add_argument("--budget", type=float, help=f"seconds of training per input set {d('budget')}")
     s.add_argument("--preset", help=f"training preset of every run {d('preset')}")
     s.add_argument("--seed", type=int, help=d("seed"))

@@ -43,7 +43,7 @@ The inverse of the colour transform is :func:`diffuse_from_log` / :func:`specula
 variance (23-26) is :func:`relative_variance`, its inverse :func:`variance_of`.
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, sharing nothing with the numba
-kernel but the constants: the tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
+kernel but the constants: the tests hold the kernel to it, and ``kpcn_keras.studies.data_costs`` times the two.
 """
 
 from __future__ import annotations

@@ -669,7 +669,7 @@ def test_prep_render_does_not_import_frameworks():
 
 @pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_render_bench_writes_its_report_for_every_family_it_is_given(tmp_path):
-    from prep.studies.render_bench import RenderBenchConfig, bench_render
+    from kpcn_keras.studies.render_bench import RenderBenchConfig, bench_render
 
     # two families of one effect set: one specialised kernel to compile, the one test_kernels checks bit for bit
     families = ("spheres", "boxes")
@@ -691,8 +691,8 @@ def test_render_bench_writes_its_report_for_every_family_it_is_given(tmp_path):
 @pytest.mark.parametrize("families, needle", [(("nope",), "unknown scene family 'nope'"),
                                              ((), "at least one scene family"), ("cornell", "the string 'cornell'")])
 def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families, needle):
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
     from prep.errors import OptionError
-    from prep.studies.render_bench import RenderBenchConfig
 
     with pytest.raises(OptionError, match=needle) as caught:
         RenderBenchConfig(families=families)
@@ -702,7 +702,7 @@ def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     from helpers import REPO
 
-    from prep.studies.render_bench import format_report
+    from kpcn_keras.studies.render_bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())
     md = format_report(record)

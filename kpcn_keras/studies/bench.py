@@ -32,8 +32,8 @@ The contract:
   command with its own peak memory.
 - **Writes** ``accuracy_time.json`` (every number, the command, the date, the machine and what else was
   running), ``accuracy_time.md`` and ``accuracy_time.png`` in ``out_dir``, each atomically
-  (``prep.studies.report``; the md and the png are drawn by :mod:`kpcn_keras.studies.bench_report`). :data:`SCHEMA`
-  lists the figures a record must have; :func:`missing_figures` checks one.
+  (``kpcn_keras.studies.report``; the md and the png are drawn by :mod:`kpcn_keras.studies.bench_report`).
+  :data:`SCHEMA` lists the figures a record must have; :func:`missing_figures` checks one.
 """
 
 from __future__ import annotations
@@ -51,9 +51,10 @@ import numpy as np
 from kpcn_keras.studies.bench_report import format_report, plot_figure
 from kpcn_keras.studies.bench_stages import OURS, planned_train_config, shards_command_cost, stage_costs
 from kpcn_keras.studies.config import BenchConfig, CompareConfig
+from kpcn_keras.studies.report import Report
 from prep.errors import KpcnError
 from prep.files import read_json
-from prep.studies.report import Report
+from prep.render.renderset import RECORD
 
 REPORT = "accuracy_time"
 GEOMEAN_FLOOR = 1e-300  # an error of exactly 0 (a perfect frame) counts as this in a geometric mean
@@ -194,7 +195,7 @@ def held_out_scenes(cfg: BenchConfig) -> list[dict]:
     if not refs:
         raise KpcnError(f"{sset.dir}: no held-out scenes to measure on")
     render_dir = next(iter(refs.values())).parent
-    meta_path = render_dir / "config.json"
+    meta_path = render_dir / RECORD
     if not meta_path.is_file():
         raise KpcnError(f"{meta_path}: not found; the bench renders the held-out scenes again at every spp of "
                         "its ladder, so it needs a render set made by 'kpcn render'")

@@ -52,9 +52,9 @@ from pathlib import Path
 
 from kpcn_keras.config import PRESETS, TrainConfig
 from kpcn_keras.studies.config import CONFIGURATIONS, CompareConfig
+from kpcn_keras.studies.report import Report
 from prep.errors import KpcnError
 from prep.files import atomic_write_json, check_writable, exclusive_lock, pyplot, read_json
-from prep.studies.report import Report
 
 PROBE_STEPS = 10
 PROBE_SKIP = 2  # the first steps of a phase build the optimizer and warm torch up
@@ -478,7 +478,7 @@ def rewrite_reports(out_dir: str | Path) -> dict:
 
 
 def deep_learning_stack() -> dict:
-    """What a kpcn_keras study's ``machine`` record adds (``prep.studies.report.machine_record``): the torch
+    """What a kpcn_keras study's ``machine`` record adds (``kpcn_keras.studies.report.machine_record``): the torch
     and keras versions and torch's thread count."""
     import keras
     import torch
