@@ -227,6 +227,36 @@ def _references_options(add) -> None:
     r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}")
 
 
+def _render_cycles_options(add) -> None:
+    """The options of ``kpcn render-cycles``: Blender Cycles' frames of random scenes, in Blender's Python."""
+    from prep.render.cycles import CyclesConfig
+
+    c = add("render-cycles", (CyclesConfig,), help="render random scenes with Blender Cycles (inputs and a "
+            "reference each, every pass, Blender's multilayer EXR) in a Python with bpy; kpcn import-renders "
+            "makes them a render set")
+    d = _defaults(CyclesConfig)
+    c.add_argument("out", help="folder of the frames; a frame already there is kept, so a killed run resumes")
+    c.add_argument("--scenes", help=f"first:end scene indices, end excluded {d('scenes')}")
+    c.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
+    c.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
+    c.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
+    c.add_argument("--blender-python", help="a Python that has bpy, Blender's module (make .venv-bpy/bin/python "
+                   f"makes one) {d('blender_python')}")
+
+
+def _import_renders_options(add) -> None:
+    """The options of ``kpcn import-renders``: another renderer's frames into a render set."""
+    from prep.render.renderset import RENDER_ROOT
+
+    i = add("import-renders", help="write another renderer's <scene>-<spp>spp.exr frames (Cycles, Mitsuba 3, "
+            "PBRT-v4) into a new render set in kpcn's layout, for kpcn shards")
+    i.add_argument("src", help="folder of another renderer's <scene>-<spp>spp.exr frames, each scene with a "
+                   "reference (its frame with the most samples)")
+    i.add_argument("--set", dest="set_name", required=True, help="the render set to write, a new folder under "
+                   "--renders")
+    i.add_argument("--renders", dest="render_root", help=f"folder holding render sets (default: {RENDER_ROOT})")
+
+
 def _shards_options(add) -> None:
     """The options of ``kpcn shards``."""
     from prep.shards import ShardConfig
@@ -634,6 +664,8 @@ def _quality_options(add) -> None:
 BUILDERS = {
     "render": _render_options,
     "references": _references_options,
+    "render-cycles": _render_cycles_options,
+    "import-renders": _import_renders_options,
     "shards": _shards_options,
     "train": _train_options,
     "resample": _resample_options,

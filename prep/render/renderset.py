@@ -100,6 +100,9 @@ class RenderSet:
     name: str
     root: str | os.PathLike = RENDER_ROOT
 
+    def __post_init__(self):
+        check_set_name(self.name)
+
     @property
     def dir(self) -> Path:
         return Path(self.root) / self.name
