@@ -187,7 +187,7 @@ def held_out_scenes(cfg: BenchConfig) -> list[dict]:
     from prep.render.scene import Scene
     from prep.shards import ShardSet
 
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     refs = {}
     for _, ref in sset.pairs(manifest, "val"):
@@ -417,6 +417,8 @@ def bench(cfg: BenchConfig, *, overrides: dict | None = None, command: str | Non
           progress: bool = True, log=print) -> dict:
     """Run the benchmark (module docstring); writes the three reports and returns the record.
     ``overrides``: TrainConfig fields applied to every configuration (a tiny network for a test)."""
+    from prep.shards import ShardSet
+
     report = Report(cfg.out_dir, REPORT)
     report.check_writable()
     session, busy_before = report.begin(), busy_processes()
@@ -425,7 +427,8 @@ def bench(cfg: BenchConfig, *, overrides: dict | None = None, command: str | Non
     # First, before this process holds anything: measured after the other stages, the same command took
     # twice the CPU (6.5 against 3.3 s; alone again right after the bench, 3.6 s), for a cause not found.
     log("stage costs: kpcn shards end to end")
-    shard_write = shards_command_cost(Path(cfg.shards_root) / cfg.set_name, Path(cfg.runs_root) / "shards-command")
+    shard_write = shards_command_cost(ShardSet.named(cfg.shards_root, cfg.set_name).dir,
+                                      Path(cfg.runs_root) / "shards-command")
     seconds, inputs = render_ladder(cfg, scenes, log, progress)
     plans = train_runs(cfg, overrides=overrides, verbose=verbose, log=log)
     methods = [raw_method(cfg, scenes, seconds)]

@@ -50,7 +50,7 @@ def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
         "samples_per_s": sum(pixels[name] * n for name, n in seconds) / sum(seconds.values()),
         "per_scene": {name: sum(pixels[name] * n for n in cfg.raw_spp) / sum(seconds[(name, n)] for n in cfg.raw_spp)
                       for name in pixels}}}
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     val_pairs = sset.pairs(manifest, "val")
     log("stage costs: features")

@@ -203,7 +203,7 @@ def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progre
 
     report = Report(cfg.out_dir, REPORT)
     report.check_writable()
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     session = report.begin()
     seeds = {}
