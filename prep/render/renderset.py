@@ -98,14 +98,15 @@ class RenderSet:
     after it: the one place a render set's folder and files are named, so that no command or study retypes them."""
 
     name: str
-    root: str | os.PathLike = RENDER_ROOT
+    root: Path = Path(RENDER_ROOT)  # any path-like given becomes a Path: two sets are equal when their folders are
 
     def __post_init__(self):
         check_set_name(self.name)
+        object.__setattr__(self, "root", Path(self.root))
 
     @property
     def dir(self) -> Path:
-        return Path(self.root) / self.name
+        return self.root / self.name
 
     @property
     def record_path(self) -> Path:
@@ -361,12 +362,12 @@ def convergence_report(config: RenderConfig, progress: bool = True) -> dict:
     from prep.files import atomic_write_text
 
     check_set_name(config.set_name)
-    out_dir = config.render_set.dir
-    if not (out_dir / RECORD).is_file():
+    out_dir, record = config.render_set.dir, config.render_set.record_path
+    if not record.is_file():
         raise KpcnError(f"{out_dir}: no render set there (no config.json); render it with "
                         f"'kpcn render --set {config.set_name}'")
     with exclusive_lock(out_dir, "render set"):
-        scenes = read_json(out_dir / RECORD, "render set record", keys=("config", "scenes"))["scenes"]
+        scenes = read_json(record, "render set record", keys=("config", "scenes"))["scenes"]
         if not scenes:
             raise KpcnError(f"{out_dir}: the render set is unfinished (no scenes in config.json); "
                             f"'kpcn render --set {config.set_name}' finishes it")
