@@ -93,8 +93,9 @@ endef
 # - the full network with synthetic fireflies (the default) at a low learning rate, then its albedo network
 #   (TUNE_ARGS; docs/results/20-albedo-network.md) into $(MODEL_RUN)-tuned;
 # - the no-variance network, the one that denoises Blender Cycles' frames (Cycles writes no variance), on Cycles'
-#   own frames too: random scenes rendered by bpy in a venv of its own ($(BPY_VENV): bpy 5.0.1 wants Python
-#   3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), imported as a render set, joined with $(MODEL_SET)'s
+#   own frames too: random scenes rendered by kpcn render-cycles with bpy in a venv of its own ($(BPY_VENV): bpy
+#   5.0.1 wants Python 3.11 and numpy < 2) into data/cycles/$(CYCLES_SET), made a render set by kpcn
+#   import-renders, joined with $(MODEL_SET)'s
 #   renders as $(MODEL_SET)-$(CYCLES_SET), cut without variance, trained into $(MODEL_RUN)-$(CYCLES_SET).
 # $(MODEL_RUN)-shipped is the tuned full run with make model's no-split networks and the Cycles-trained
 # no-variance one in its inputs/ (hard links), evaluated and shipped. Each step resumes or is skipped when done;
@@ -114,9 +115,8 @@ $(BPY_VENV)/bin/python:
 
 model-tune: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) train --set $(MODEL_SET) --inputs full --run $(MODEL_RUN)-tuned --init $(MODEL_RUN) $(TUNE_ARGS)
-	$(BPY_VENV)/bin/python scripts/render_cycles_set.py data/cycles/$(CYCLES_SET) $(CYCLES_RENDER_ARGS)
-	[ -d data/renders/$(CYCLES_SET) ] || \
-		$(BIN)/python scripts/import_renders.py data/cycles/$(CYCLES_SET) --set $(CYCLES_SET)
+	$(KPCN) render-cycles data/cycles/$(CYCLES_SET) --blender-python $(BPY_VENV)/bin/python $(CYCLES_RENDER_ARGS)
+	[ -d data/renders/$(CYCLES_SET) ] || $(KPCN) import-renders data/cycles/$(CYCLES_SET) --set $(CYCLES_SET)
 	mkdir -p data/renders/$(MODEL_MIX)
 	ln -f data/renders/$(MODEL_SET)/*.exr data/renders/$(CYCLES_SET)/*.exr data/renders/$(MODEL_MIX)/
 	$(KPCN) shards --set $(MODEL_MIX) --inputs no-variance $(MODEL_SHARD_ARGS),$(CYCLES_VAL_SCENES)

@@ -1,11 +1,12 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, references, shards, train, resample, denoise, evaluate, ship, figures, bench, compare,
-resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each fills its stage's
-config dataclass from the options the user gave; an option left out takes the dataclass's default. The parser,
-which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass holds
-(``--tile``, ``--slope``, ...) are checked against their bounds before the command starts.
-``render``, ``references``, ``shards`` and ``figures --set`` never import keras or torch.
+Subcommands: render, references, render-cycles, import-renders, shards, train, resample, denoise, evaluate, ship,
+figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each
+fills its stage's config dataclass from the options the user gave; an option left out takes the dataclass's default.
+The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass
+holds (``--tile``, ``--slope``, ...) are checked against their bounds before the command starts.
+``render``, ``references``, ``render-cycles``, ``import-renders``, ``shards``, ``bench render`` and ``figures --set``
+never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
 one line naming the file, layer or option, and exit status 2; an option is named by its flag. Anything
@@ -83,6 +84,25 @@ def cmd_references(args) -> int:
     report = convergence_report(cfg, progress=not args.quiet)
     print(convergence_markdown(report), end="")
     print("wrote " + ", ".join(f"{cfg.out_root}/{cfg.set_name}/{name}" for name in CONVERGENCE_REPORT))
+    return 0
+
+
+def cmd_render_cycles(args) -> int:
+    from prep.render.cycles import CyclesConfig, render_cycles
+
+    cfg = CyclesConfig(out=args.out, **_given(args, CyclesConfig))
+    out = render_cycles(cfg)
+    print(f"frames in {out}; kpcn import-renders {out} --set NAME makes them a render set")
+    return 0
+
+
+def cmd_import_renders(args) -> int:
+    from prep.imported import import_renders
+    from prep.render.renderset import RENDER_ROOT, RenderSet
+
+    render_set = RenderSet(args.set_name, getattr(args, "render_root", RENDER_ROOT))
+    files = import_renders(args.src, render_set)
+    print(f"{len(files)} renders in {render_set.dir}")
     return 0
 
 
@@ -252,13 +272,13 @@ def cmd_shard_set_figures(args) -> int:
 
 def cmd_bench(args) -> int:
     from kpcn_keras.studies.config import BenchConfig
-    from prep.studies.render_bench import RenderBenchConfig
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
 
     # an option of one bench that the other does not have (both have --out and --repeats)
     render_only, accuracy_only = ({f.name for f in dataclasses.fields(a)} - {f.name for f in dataclasses.fields(b)}
                                   for a, b in ((RenderBenchConfig, BenchConfig), (BenchConfig, RenderBenchConfig)))
     if args.what == "render":
-        from prep.studies.render_bench import bench_render, format_report
+        from kpcn_keras.studies.render_bench import bench_render, format_report
 
         for dest in sorted(d for d in accuracy_only if d in args):
             raise OptionError(dest, "is an option of 'kpcn bench' (accuracy against time), not of 'kpcn bench render'")
@@ -343,6 +363,8 @@ def cmd_quality(args) -> int:
 COMMANDS = {
     "render": cmd_render,
     "references": cmd_references,
+    "render-cycles": cmd_render_cycles,
+    "import-renders": cmd_import_renders,
     "shards": cmd_shards,
     "train": cmd_train,
     "resample": cmd_resample,

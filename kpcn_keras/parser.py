@@ -227,6 +227,36 @@ def _references_options(add) -> None:
     r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}")
 
 
+def _render_cycles_options(add) -> None:
+    """The options of ``kpcn render-cycles``: Blender Cycles' frames of random scenes, in Blender's Python."""
+    from prep.render.cycles import CyclesConfig
+
+    c = add("render-cycles", (CyclesConfig,), help="render random scenes with Blender Cycles (inputs and a "
+            "reference each, every pass, Blender's multilayer EXR) in a Python with bpy; kpcn import-renders "
+            "makes them a render set")
+    d = _defaults(CyclesConfig)
+    c.add_argument("out", help="folder of the frames; a frame already there is kept, so a killed run resumes")
+    c.add_argument("--scenes", help=f"first:end scene indices, end excluded {d('scenes')}")
+    c.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
+    c.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
+    c.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
+    c.add_argument("--blender-python", help="a Python that has bpy, Blender's module (make .venv-bpy/bin/python "
+                   f"makes one) {d('blender_python')}")
+
+
+def _import_renders_options(add) -> None:
+    """The options of ``kpcn import-renders``: another renderer's frames into a render set."""
+    from prep.render.renderset import RENDER_ROOT
+
+    i = add("import-renders", help="write another renderer's <scene>-<spp>spp.exr frames (Cycles, Mitsuba 3, "
+            "PBRT-v4) into a new render set in kpcn's layout, for kpcn shards")
+    i.add_argument("src", help="folder of another renderer's <scene>-<spp>spp.exr frames, each scene with a "
+                   "reference (its frame with the most samples)")
+    i.add_argument("--set", dest="set_name", required=True, help="the render set to write, a new folder under "
+                   "--renders")
+    i.add_argument("--renders", dest="render_root", help=f"folder holding render sets (default: {RENDER_ROOT})")
+
+
 def _shards_options(add) -> None:
     """The options of ``kpcn shards``."""
     from prep.shards import ShardConfig
@@ -520,7 +550,7 @@ def _figures_options(add) -> None:
 def _bench_options(add) -> None:
     """The options of ``kpcn bench`` and of ``kpcn bench render``."""
     from kpcn_keras.studies.config import BENCH_PRESETS, BenchConfig
-    from prep.studies.render_bench import RenderBenchConfig
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
 
     b = add("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: "
                "reports/accuracy_time.{md,json,png} (or, with 'render', the path tracer's samples per second: "
@@ -604,8 +634,8 @@ def _inputs_study_options(add) -> None:
     s.add_argument("--frames", nargs="+", help="other renderers' frames: files or folders, each noisy frame with its "
                    f"reference beside it {d('frames')}")
     s.add_argument("--pairs", nargs="+", help="folders of two renders of a frame, <scene>-<spp>spp.exr and "
-                   "<scene>-<spp>spp-b.exr, with the scene's reference (scripts/render_blender_pairs.py; "
-                   "default: none)")
+                   "<scene>-<spp>spp-b.exr, with the scene's reference (python -m "
+                   "kpcn_keras.studies.render_blender_pairs; default: none)")
     s.add_argument("--budget", type=float, help=f"seconds of training per input set {d('budget')}")
     s.add_argument("--preset", help=f"training preset of every run {d('preset')}")
     s.add_argument("--seed", type=int, help=d("seed"))
@@ -643,6 +673,8 @@ def _quality_options(add) -> None:
 BUILDERS = {
     "render": _render_options,
     "references": _references_options,
+    "render-cycles": _render_cycles_options,
+    "import-renders": _import_renders_options,
     "shards": _shards_options,
     "train": _train_options,
     "resample": _resample_options,

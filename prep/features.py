@@ -47,7 +47,7 @@ stale after an edit there. ``tests/test_colour.py`` holds the kernel's buffers t
 
 :func:`reference_features` evaluates the same table in plain float64 numpy, from ``prep.colour``'s array
 functions and a relative variance of its own, sharing nothing with the numba kernel but the constants: the
-tests hold the kernel to it, and ``prep.studies.stage_costs`` times the two.
+tests hold the kernel to it, and ``kpcn_keras.studies.data_costs`` times the two.
 """
 
 from __future__ import annotations

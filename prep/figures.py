@@ -325,7 +325,7 @@ def shard_set_figures(shards_root: str | os.PathLike, set_name: str, frame=None)
     """``kpcn figures --set``: both data figures of the shard set ``<shards_root>/<set_name>`` into its
     ``figures/`` folder (``ShardSet.figures_dir``), for the render ``frame`` (default: :func:`data_plan`'s);
     name -> path."""
-    sset = ShardSet(Path(shards_root) / set_name)
+    sset = ShardSet.named(shards_root, set_name)
     if not sset.manifest_path.is_file():
         root = Path(shards_root)
         sets = sorted(p.name for p in root.iterdir() if (p / MANIFEST).is_file()) if root.is_dir() else None

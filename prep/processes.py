@@ -9,7 +9,7 @@ refuse a frame whose whole-frame arrays the machine cannot hold before any work 
 it, ``kpcn_keras.cli.main``): torch allocates and frees a tile's activations, megabytes each, at every layer,
 and glibc unmaps a freed block above its mmap threshold (at most 32 MB, adjusted as it goes) or trims its
 heap's top, so the next allocation of that size faults its pages in again, zeroed by the kernel. Measured on
-this 2-core machine (2026-12-03, ``scripts/slope_map_costs.py``' 512 x 512 frame of a λ mixture run): a new λ
+this 2-core machine (2026-12-03, ``kpcn_keras.studies.slope_map_costs``' 512 x 512 frame of a λ mixture run): a new λ
 map 160-300 ms before, 90-120 ms after; the resident peak is the same, what is freed is reused.
 """
 

@@ -1,33 +1,33 @@
-"""scripts/import_renders.py: another renderer's frames become a render set in kpcn's layout."""
-import importlib.util
+"""kpcn import-renders (prep/imported.py): another renderer's frames become a render set in kpcn's layout."""
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
-from helpers.commands import assert_one_line_error
+from helpers.commands import assert_one_line_error, run_main
 
 from prep import exr, layouts
+from prep.imported import import_renders
+from prep.render.renderset import RenderSet
 
-SCRIPT = Path(__file__).parents[1] / "scripts" / "import_renders.py"
 CYCLES = Path(__file__).parent / "fixtures" / "renderers" / "cycles5" / "studio-00016spp.exr"
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("import_renders", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_a_cycles_frame_is_written_in_kpcns_layout_with_its_layers_and_no_variance(tmp_path):
+def _source(tmp_path, reference: Path = CYCLES) -> Path:
+    """A folder of a Cycles frame at 16 spp and ``reference`` as the scene's 64-spp frame."""
     src = tmp_path / "src"
     src.mkdir()
     shutil.copy(CYCLES, src / "studio-00016spp.exr")
-    shutil.copy(CYCLES, src / "studio-00064spp.exr")  # the scene's reference: its most samples
-    written = _script().import_renders(src, tmp_path / "renders" / "cyc")
+    shutil.copy(reference, src / "studio-00064spp.exr")  # the scene's reference: its most samples
+    return src
+
+
+def test_a_cycles_frame_is_written_in_kpcns_layout_with_its_layers_and_no_variance(tmp_path):
+    res = run_main("import-renders", _source(tmp_path), "--set", "cyc", "--renders", tmp_path / "renders",
+                   cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    written = RenderSet("cyc", tmp_path / "renders").renders()
     assert [p.name for p in written] == ["studio-00016spp.exr", "studio-00064spp.exr"]
+    assert res.stdout.splitlines()[-1] == f"2 renders in {tmp_path / 'renders' / 'cyc'}"
     got = exr.read_aovs(written[0], variances=None)
     want = layouts.read(CYCLES).layers
     assert set(got) == {"default", *exr.BASE_LAYERS}
@@ -35,12 +35,26 @@ def test_a_cycles_frame_is_written_in_kpcns_layout_with_its_layers_and_no_varian
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
 
 
+def test_the_library_call_writes_what_the_command_writes_and_says_what_it_read(tmp_path):
+    told = []
+    written = import_renders(_source(tmp_path), RenderSet("cyc", tmp_path / "renders"), on_frame=told.append)
+    assert [p.parent for p in written] == [tmp_path / "renders" / "cyc"] * 2
+    assert [line.split(":")[0] for line in told] == ["studio-00016spp.exr", "studio-00064spp.exr"]
+    assert all(layouts.read(CYCLES).layout in line for line in told)
+
+
 def test_a_frame_without_a_split_is_refused_in_one_line_and_nothing_is_written(tmp_path):
-    src = tmp_path / "src"
-    src.mkdir()
-    shutil.copy(CYCLES, src / "studio-00016spp.exr")
-    shutil.copy(CYCLES.with_name("studio-00256spp.exr"), src / "studio-00256spp.exr")  # Combined alone
-    res = subprocess.run([sys.executable, str(SCRIPT), str(src), "--set", "cyc", "--renders", str(tmp_path / "r")],
-                         capture_output=True, text=True, cwd=Path(__file__).parents[1])
-    assert_one_line_error(res, "studio-00256spp.exr", "split")
+    src = _source(tmp_path, reference=CYCLES.with_name("studio-00256spp.exr"))  # Combined alone
+    res = run_main("import-renders", src, "--set", "cyc", "--renders", tmp_path / "r", cwd=tmp_path)
+    assert_one_line_error(res, "kpcn import-renders: error:", "studio-00064spp.exr", "split")
     assert not (tmp_path / "r" / "cyc").exists()
+
+
+def test_an_existing_set_folder_and_a_set_name_that_is_no_folder_name_are_refused_in_one_line(tmp_path):
+    src = _source(tmp_path)
+    (tmp_path / "r" / "cyc").mkdir(parents=True)
+    res = run_main("import-renders", src, "--set", "cyc", "--renders", tmp_path / "r", cwd=tmp_path)
+    assert_one_line_error(res, str(tmp_path / "r" / "cyc"), "exists", "--set")
+    assert list((tmp_path / "r" / "cyc").iterdir()) == []
+    res = run_main("import-renders", src, "--set", "../cyc", "--renders", tmp_path / "r", cwd=tmp_path)
+    assert_one_line_error(res, "--set", "plain folder name")

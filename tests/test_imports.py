@@ -2,8 +2,8 @@
 
 Every import of a module counts, at any depth (one inside a function too: it closes a circle as soon as
 that function runs). No circle anywhere; ``prep`` never imports the deep-learning stack nor ``kpcn_keras``;
-the library never imports a study (only the command line does, inside a study's command); nothing in prep
-imports prep's studies; ``kpcn_keras.config`` imports nothing else of its package.
+the library never imports a study (only the command line does, inside a study's command), and every study
+lives in ``kpcn_keras.studies``; ``kpcn_keras.config`` imports nothing else of its package.
 """
 
 import ast
@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("prep", "kpcn_keras")
 DEEP_LEARNING = ("keras", "torch")
 COMMAND_LINE = ("kpcn_keras.cli", "kpcn_keras.parser")  # the studies' commands: the one way in to them
-STUDIES = ("prep.studies", "kpcn_keras.studies")
+STUDIES = ("kpcn_keras.studies",)  # the lab: every study and cost probe, and nothing else
 
 
 def _modules() -> dict[str, Path]:
@@ -125,3 +125,13 @@ def test_the_library_never_imports_a_study():
 def test_the_training_config_imports_nothing_else_of_its_package():
     graph, _ = _graph()
     assert sorted(d for d in graph["kpcn_keras.config"] if _inside(d, "kpcn_keras")) == []
+
+
+def test_every_python_file_outside_the_tests_is_in_a_package():
+    # the lab has one home: a study or a probe is a module of kpcn_keras.studies, never a loose script
+    # (scripts/, reports/*.py) beside the packages; kpcn is the console entry's package
+    homes = (*PACKAGES, "kpcn")
+    loose = sorted(p.relative_to(ROOT).as_posix() for top in ROOT.iterdir()
+                   if top.is_dir() and not top.name.startswith(".") and top.name not in (*homes, "tests")
+                   for p in top.rglob("*.py"))
+    assert loose == []

@@ -1,5 +1,3 @@
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -154,11 +152,8 @@ def test_all_metrics_hold_every_metric_in_order():
 
 
 def test_the_error_split_puts_the_worst_pixels_error_in_its_tail_and_the_rest_in_its_body():
-    import importlib.util
+    from kpcn_keras.studies import error_tail
 
-    spec = importlib.util.spec_from_file_location("error_tail", Path(__file__).parents[1] / "scripts" / "error_tail.py")
-    error_tail = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(error_tail)
     reference = np.ones((100, 100, 3))
     x = reference + 0.1  # every pixel a little off ...
     x[:10, :10] += 2.9  # ... and 1 % of them far off, 3.0 in all

@@ -594,6 +594,26 @@ def test_slow_families_get_references_with_more_samples(tmp_path):
     assert reference_spp(cfg, "caustics") == 4 * REFERENCE_SPP_FACTOR["caustics"]
 
 
+def test_a_render_set_names_its_folder_record_renders_and_the_sets_made_from_it(tmp_path):
+    from prep.errors import OptionError
+    from prep.render.renderset import RenderSet
+
+    tiny = RenderSet("tiny", tmp_path)
+    assert tiny.dir == tmp_path / "tiny" and tiny.record_path == tmp_path / "tiny" / "config.json"
+    assert tiny.render_path("boxes-000", 16) == tmp_path / "tiny" / "boxes-000-00016spp.exr"
+    assert tiny.derived("r1a2b3c4") == RenderSet("tiny-r1a2b3c4", tmp_path)
+    assert RenderConfig(set_name="tiny", out_root=str(tmp_path)).render_set == tiny
+    assert RenderSet("tiny").dir == Path("data") / "renders" / "tiny"  # kpcn render's --out default
+    (tmp_path / "tiny").mkdir()
+    for name in ("b-000-00004spp.exr", "a-000-00004spp.exr", "notes.txt"):
+        (tmp_path / "tiny" / name).write_bytes(b"")
+    assert tiny.renders() == [tmp_path / "tiny" / "a-000-00004spp.exr", tmp_path / "tiny" / "b-000-00004spp.exr"]
+    for bad in ("", "a/b", "..", "."):
+        with pytest.raises(OptionError) as caught:
+            RenderSet(bad, tmp_path)
+        assert caught.value.option == "set_name"
+
+
 def test_render_set_writes_resumes_and_records(tmp_path):
     cfg = RenderConfig(set_name="tiny", families=("cornell", "boxes"), per_family=1, width=12, height=10,
                        input_spp=(3, 2), reference_spp=4, seed=3, out_root=str(tmp_path))
@@ -664,7 +684,7 @@ def test_prep_render_does_not_import_frameworks():
 
 @pytest.mark.slow  # compiles specialised kernels: seconds each from a cold cache
 def test_render_bench_writes_its_report_for_every_family_it_is_given(tmp_path):
-    from prep.studies.render_bench import RenderBenchConfig, bench_render
+    from kpcn_keras.studies.render_bench import RenderBenchConfig, bench_render
 
     # two families of one effect set: one specialised kernel to compile, the one test_kernels checks bit for bit
     families = ("spheres", "boxes")
@@ -686,8 +706,8 @@ def test_render_bench_writes_its_report_for_every_family_it_is_given(tmp_path):
 @pytest.mark.parametrize("families, needle", [(("nope",), "unknown scene family 'nope'"),
                                              ((), "at least one scene family"), ("cornell", "the string 'cornell'")])
 def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families, needle):
+    from kpcn_keras.studies.render_bench import RenderBenchConfig
     from prep.errors import OptionError
-    from prep.studies.render_bench import RenderBenchConfig
 
     with pytest.raises(OptionError, match=needle) as caught:
         RenderBenchConfig(families=families)
@@ -697,7 +717,7 @@ def test_render_bench_refuses_families_it_cannot_time_naming_the_option(families
 def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     from helpers.paths import REPO
 
-    from prep.studies.render_bench import format_report
+    from kpcn_keras.studies.render_bench import format_report
 
     record = json.loads((REPO / "reports" / "render.json").read_text())
     md = format_report(record)

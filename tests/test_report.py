@@ -1,4 +1,4 @@
-"""prep/studies/report.py: the one writer of the studies' reports and the envelope each report carries."""
+"""kpcn_keras/studies/report.py: the one writer of the studies' reports and the envelope each report carries."""
 
 import json
 import os
@@ -6,9 +6,9 @@ import platform
 
 import pytest
 
+from kpcn_keras.studies.report import Report, machine_record
 from prep.errors import KpcnError
 from prep.files import pyplot
-from prep.studies.report import Report, machine_record
 
 
 def _figure(record):

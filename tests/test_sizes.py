@@ -1,9 +1,9 @@
 """The size of the rooms, read from the source: every Python file of the repository under 800 lines, every
 function (a method, a nested one) at most 80, with no list of exceptions.
 
-Every ``.py`` file counts: the packages, their studies, ``scripts/``, ``reports/``, ``tests/`` and any folder
-added later; only hidden folders (``.venv``, ``.git``) and what a build or a run writes (the folders that
-``.gitignore`` names) are left out. A file grows past the line by taking a second job: split it by concept (the
+Every ``.py`` file counts: the packages, their studies, ``tests/`` and any folder added later; only hidden
+folders (``.venv``, ``.git``) and what a build or a run writes (the folders that ``.gitignore`` names) are left
+out. A file grows past the line by taking a second job: split it by concept (the
 owners are in docs/design.md), not by cutting it in two.
 """
 

@@ -32,8 +32,8 @@ The contract:
   command with its own peak memory.
 - **Writes** ``accuracy_time.json`` (every number, the command, the date, the machine and what else was
   running), ``accuracy_time.md`` and ``accuracy_time.png`` in ``out_dir``, each atomically
-  (``prep.studies.report``; the md and the png are drawn by :mod:`kpcn_keras.studies.bench_report`). :data:`SCHEMA`
-  lists the figures a record must have; :func:`missing_figures` checks one.
+  (``kpcn_keras.studies.report``; the md and the png are drawn by :mod:`kpcn_keras.studies.bench_report`).
+  :data:`SCHEMA` lists the figures a record must have; :func:`missing_figures` checks one.
 """
 
 from __future__ import annotations
@@ -51,9 +51,10 @@ import numpy as np
 from kpcn_keras.studies.bench_report import format_report, plot_figure
 from kpcn_keras.studies.bench_stages import OURS, planned_train_config, shards_command_cost, stage_costs
 from kpcn_keras.studies.config import BenchConfig, CompareConfig
+from kpcn_keras.studies.report import Report
 from prep.errors import KpcnError
 from prep.files import read_json
-from prep.studies.report import Report
+from prep.render.renderset import RECORD
 
 REPORT = "accuracy_time"
 GEOMEAN_FLOOR = 1e-300  # an error of exactly 0 (a perfect frame) counts as this in a geometric mean
@@ -186,7 +187,7 @@ def held_out_scenes(cfg: BenchConfig) -> list[dict]:
     from prep.render.scene import Scene
     from prep.shards import ShardSet
 
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     refs = {}
     for _, ref in sset.pairs(manifest, "val"):
@@ -194,7 +195,7 @@ def held_out_scenes(cfg: BenchConfig) -> list[dict]:
     if not refs:
         raise KpcnError(f"{sset.dir}: no held-out scenes to measure on")
     render_dir = next(iter(refs.values())).parent
-    meta_path = render_dir / "config.json"
+    meta_path = render_dir / RECORD
     if not meta_path.is_file():
         raise KpcnError(f"{meta_path}: not found; the bench renders the held-out scenes again at every spp of "
                         "its ladder, so it needs a render set made by 'kpcn render'")
@@ -416,6 +417,8 @@ def bench(cfg: BenchConfig, *, overrides: dict | None = None, command: str | Non
           progress: bool = True, log=print) -> dict:
     """Run the benchmark (module docstring); writes the three reports and returns the record.
     ``overrides``: TrainConfig fields applied to every configuration (a tiny network for a test)."""
+    from prep.shards import ShardSet
+
     report = Report(cfg.out_dir, REPORT)
     report.check_writable()
     session, busy_before = report.begin(), busy_processes()
@@ -424,7 +427,8 @@ def bench(cfg: BenchConfig, *, overrides: dict | None = None, command: str | Non
     # First, before this process holds anything: measured after the other stages, the same command took
     # twice the CPU (6.5 against 3.3 s; alone again right after the bench, 3.6 s), for a cause not found.
     log("stage costs: kpcn shards end to end")
-    shard_write = shards_command_cost(Path(cfg.shards_root) / cfg.set_name, Path(cfg.runs_root) / "shards-command")
+    shard_write = shards_command_cost(ShardSet.named(cfg.shards_root, cfg.set_name).dir,
+                                      Path(cfg.runs_root) / "shards-command")
     seconds, inputs = render_ladder(cfg, scenes, log, progress)
     plans = train_runs(cfg, overrides=overrides, verbose=verbose, log=log)
     methods = [raw_method(cfg, scenes, seconds)]

@@ -1,9 +1,9 @@
 """``kpcn bench``'s stage costs: what each stage of the pipeline costs, measured side by side.
 
 :func:`stage_costs` (the ``stages`` of ``accuracy_time.json``): render samples per second; features (numba
-against the float64 numpy reference and the EXR decode, ``prep.studies.stage_costs``); shard layouts side by
+against the float64 numpy reference and the EXR decode, ``kpcn_keras.studies.data_costs``); shard layouts side by
 side; reading a training batch against a training step; a Keras training step against the same network in
-plain torch (``kpcn_keras.studies.stage_costs``); kernel application against the memory-bandwidth floor (the
+plain torch (``kpcn_keras.studies.network_costs``); kernel application against the memory-bandwidth floor (the
 kernel sizes of :data:`KERNEL_SIZES`); inference start-up, then a frame of the held-out size and a
 ``large_frame`` frame against OIDN for the configurations of :data:`INFERENCE`, and ``kpcn denoise`` of the
 large frame as a command with its own peak memory. ``kpcn shards`` end to end is timed as a command too
@@ -42,38 +42,37 @@ INFERENCE = (OURS, "kernel-5")  # whose frames are timed against OIDN: the defau
 
 def stage_costs(cfg: BenchConfig, scenes, seconds, inputs, plans, log) -> dict:
     """The costs of each stage (module docstring); every function it calls measures side by side."""
-    from kpcn_keras.studies import stage_costs as net_costs
+    from kpcn_keras.studies import data_costs, network_costs
     from prep.shards import ShardSet
-    from prep.studies import stage_costs as prep_costs
 
     pixels = {s["name"]: s["width"] * s["height"] for s in scenes}
     stages = {"render": {
         "samples_per_s": sum(pixels[name] * n for name, n in seconds) / sum(seconds.values()),
         "per_scene": {name: sum(pixels[name] * n for n in cfg.raw_spp) / sum(seconds[(name, n)] for n in cfg.raw_spp)
                       for name in pixels}}}
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     val_pairs = sset.pairs(manifest, "val")
     log("stage costs: features")
-    stages["features"] = prep_costs.feature_costs(val_pairs[0][0], repeats=cfg.repeats)
+    stages["features"] = data_costs.feature_costs(val_pairs[0][0], repeats=cfg.repeats)
     log("stage costs: shard layouts")
     scratch = Path(cfg.runs_root) / "shard-layouts"
     train_pairs = [(str(a), str(b)) for a, b in sset.pairs(manifest, "train")]
-    stages["shard_layouts"] = prep_costs.shard_layout_costs(train_pairs[:SHARD_LAYOUT_IMAGES], scratch,
+    stages["shard_layouts"] = data_costs.shard_layout_costs(train_pairs[:SHARD_LAYOUT_IMAGES], scratch,
                                                             repeats=cfg.repeats, seed=cfg.seed,
                                                             patch_size=manifest["patch_size"])
     log("stage costs: a training step, Keras and plain torch")
     ours = planned_train_config(plans.get(cfg.budget, {}).get(OURS))
     model_config, batch = ours.model, ours.batch_size
-    stages["train_step"] = net_costs.train_step_cost(model_config, batch_size=batch)
+    stages["train_step"] = network_costs.train_step_cost(model_config, batch_size=batch)
     paths = [e.path for e in sset.verified_shards("train", manifest, rounds=(0,))]
     stages["shard_read"] = shard_read_cost(paths, model_config, batch, cfg.seed)
     stages["shard_read"]["step_s"] = stages["train_step"]["keras_s"]
     stages["shard_read"]["ratio"] = stages["shard_read"]["batch_s"] / stages["train_step"]["keras_s"]
     stages["shard_read"]["bytes_per_patch"] = shard_bytes(paths, manifest["patch_size"])
     log("stage costs: kernel application")
-    bandwidth = net_costs.memory_bandwidth()  # one floor for every kernel size of the report
-    stages["kernel_application"] = [net_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
+    bandwidth = network_costs.memory_bandwidth()  # one floor for every kernel size of the report
+    stages["kernel_application"] = [network_costs.kernel_application_cost(k, scenes[0]["height"], scenes[0]["width"],
                                                                       repeats=cfg.repeats, bandwidth=bandwidth)
                                     for k in KERNEL_SIZES]
     log("stage costs: inference")
@@ -110,15 +109,15 @@ def shard_bytes(paths, patch_size: int) -> dict:
 def shard_format_costs(paths, model_config: ModelConfig, batch_size: int, seed: int = 0) -> dict:
     """Side by side in one process: the bytes a patch (:func:`shard_bytes`), reading a training batch from
     ``paths`` (:func:`shard_read_cost`: the features recomputed) and a Keras training step of ``model_config``
-    at that batch size on patches of the shards' size (``kpcn_keras.studies.stage_costs.train_step_cost``),
+    at that batch size on patches of the shards' size (``kpcn_keras.studies.network_costs.train_step_cost``),
     and the patches a second that the reader feeds against those that the step takes."""
-    from kpcn_keras.studies import stage_costs as net_costs
+    from kpcn_keras.studies import network_costs
     from prep.shards import open_shard
 
     with open_shard(paths[0]) as f:
         patch_size = int(f.attrs["patch_size"])
     read = shard_read_cost(paths, model_config, batch_size, seed)
-    step = net_costs.train_step_cost(model_config, batch_size=batch_size, patch=patch_size)
+    step = network_costs.train_step_cost(model_config, batch_size=batch_size, patch=patch_size)
     return {"bytes_per_patch": shard_bytes(paths, patch_size), "read": read,
             "read_only": read_only_costs(paths[0], batch_size, seed), "step_s": step["keras_s"],
             "step_patches_per_s": batch_size / step["keras_s"], "read_over_step": read["batch_s"] / step["keras_s"]}
@@ -326,10 +325,11 @@ def _scratch_set(folder: Path, patch_size: int) -> list[Path]:
     """The training shards of a set cut, with the default options but ``patch_size``, from random renders
     (4 scenes, 128 x 128, a noisy and a reference render each) written into ``folder``."""
     from prep import exr
+    from prep.render.renderset import RenderSet
     from prep.shards import ShardConfig, build_shards, shard_paths
 
     rng = np.random.default_rng(0)
-    renders = folder / "renders" / "bench"
+    renders = RenderSet("bench", folder / "renders")
     for i in range(4):
         for spp, variances in ((4, True), (256, False)):
             size = (128, 128)
@@ -339,9 +339,9 @@ def _scratch_set(folder: Path, patch_size: int) -> list[Path]:
             aovs["default"] = aovs["diffuse"] + aovs["specular"]
             if variances:
                 aovs.update({n: rng.gamma(0.5, 0.1, size) for n in exr.VARIANCE_LAYERS})
-            exr.write_aovs(renders / exr.render_filename(f"s{i}-000", spp),
+            exr.write_aovs(renders.render_path(f"s{i}-000", spp),
                            {k: v.astype(np.float32) for k, v in aovs.items()})
-    cfg = ShardConfig(set_name="bench", render_root=str(folder / "renders"), out_root=str(folder / "shards"),
+    cfg = ShardConfig(set_name=renders.name, render_root=str(renders.root), out_root=str(folder / "shards"),
                       patch_size=patch_size, val_fraction=0.0)
     build_shards(cfg, progress=False)
     return shard_paths(cfg.set_dir, "train")

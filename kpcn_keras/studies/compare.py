@@ -52,9 +52,9 @@ from pathlib import Path
 
 from kpcn_keras.config import PRESETS, TrainConfig
 from kpcn_keras.studies.config import CONFIGURATIONS, CompareConfig
+from kpcn_keras.studies.report import Report
 from prep.errors import KpcnError
 from prep.files import atomic_write_json, check_writable, exclusive_lock, pyplot, read_json
-from prep.studies.report import Report
 
 PROBE_STEPS = 10
 PROBE_SKIP = 2  # the first steps of a phase build the optimizer and warm torch up
@@ -322,7 +322,7 @@ def plan_and_train(cfg: CompareConfig, *, overrides: dict | None = None, verbose
     from kpcn_keras.train import train
     from prep.shards import ShardSet
 
-    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    manifest = ShardSet.named(cfg.shards_root, cfg.set_name).complete_manifest()
     group = _group_dir(cfg)
     plans = {}
     with PlannedRuns(group, "comparison") as planned:
@@ -438,18 +438,19 @@ def compare(cfg: CompareConfig, *, overrides: dict | None = None, command: str |
     report = Report(cfg.out_dir, REPORT)
     report.check_writable()
     session = report.begin()
-    log(f"compare: {len(cfg.configurations)} configurations, {cfg.budget:g} s of training each, "
-        f"shard set {Path(cfg.shards_root) / cfg.set_name}")
-    plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
-    rows, timed = measure(cfg, plans, log=log)
     from prep.shards import ShardSet
 
-    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
+    log(f"compare: {len(cfg.configurations)} configurations, {cfg.budget:g} s of training each, "
+        f"shard set {sset.dir}")
+    plans = plan_and_train(cfg, overrides=overrides, verbose=verbose, log=log)
+    rows, timed = measure(cfg, plans, log=log)
+    manifest = sset.complete_manifest()
     record = {
         **session.envelope(command),
         "config": {**dataclasses.asdict(cfg), "configurations": list(cfg.configurations)},
         "overrides": overrides or {},
-        "shards": {"set_dir": str(Path(cfg.shards_root) / cfg.set_name), "content_key": manifest["content_key"],
+        "shards": {"set_dir": str(sset.dir), "content_key": manifest["content_key"],
                    "held_out_frames": len(rows[0]["frames"])},
         "rules": {"probe_steps": PROBE_STEPS, "probe_skip": PROBE_SKIP, "branch_share": BRANCH_SHARE},
         "machine": session.machine(**deep_learning_stack()),
@@ -478,7 +479,7 @@ def rewrite_reports(out_dir: str | Path) -> dict:
 
 
 def deep_learning_stack() -> dict:
-    """What a kpcn_keras study's ``machine`` record adds (``prep.studies.report.machine_record``): the torch
+    """What a kpcn_keras study's ``machine`` record adds (``kpcn_keras.studies.report.machine_record``): the torch
     and keras versions and torch's thread count."""
     import keras
     import torch

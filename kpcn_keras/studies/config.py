@@ -26,6 +26,7 @@ from prep.bounds import PATCH_COUNT, REPEATS, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
 from prep.render.frame import FRAME_SIDE, SPP
+from prep.render.renderset import RENDER_ROOT
 
 # name -> (what it is, preset, TrainConfig overrides). A joint_steps or compositor entry only says that the
 # phase exists: every step count is set by the budget.
@@ -153,7 +154,7 @@ class InputsStudyConfig:
     under ``frames`` and on the pairs of renders under ``pairs``; reports in ``out_dir``."""
 
     set_name: str = "default"
-    render_root: str = "data/renders"
+    render_root: str = RENDER_ROOT
     shards_root: str = "shards"
     runs_root: str = "runs/inputs-study"
     out_dir: str = "reports"
@@ -198,7 +199,7 @@ class QualityConfig:
     (empty: the one ``kpcn denoise`` uses without ``--run``, where there is one)."""
 
     set_name: str = "default"
-    render_root: str = "data/renders"
+    render_root: str = RENDER_ROOT
     shards_root: str = "shards"
     runs_root: str = "runs/quality"
     out_dir: str = "reports"

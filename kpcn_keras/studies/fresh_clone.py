@@ -4,7 +4,7 @@ The repository's committed HEAD is cloned (``git clone`` of the checkout: what i
 into a temporary folder, and ``make train`` runs there with nothing reused: its own ``.venv``, renders, shards,
 run and numba cache (numba caches beside the sources), only pip's download cache being the user's, as on any
 fresh clone. Its output streams to the terminal as it comes, and the report is ``reports/make_train.json``
-(through :mod:`prep.studies.report`: the date, the command, when it started and finished, the machine, then the
+(through :mod:`kpcn_keras.studies.report`: the date, the command, when it started and finished, the machine, then the
 commit timed, the wall seconds ``make train`` took in the clone, and every table
 ``make train`` printed, as rows of cells, header first) and ``make_train.md`` (the time and the last table,
 the held-out table of ``kpcn evaluate``). The clone is removed afterwards. A ``make train`` that fails is a
@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from prep.errors import KpcnError
-from prep.studies.report import Report
+from kpcn_keras.studies.report import Report
 
 STEM = "make_train"
 ROOT = Path(__file__).resolve().parents[2]

@@ -20,12 +20,12 @@ The contract:
   colour + albedo + normal, and, where the folder has it, the renderer's own denoised frame
   (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render time).
 - **Two renders of half the samples** (``pairs``: folders of ``<scene>-<spp>spp.exr`` with its second render
-  ``<scene>-<spp>spp-b.exr``, another seed, and the scene's reference; ``scripts/render_blender_pairs.py``): their
-  mean denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), the
+  ``<scene>-<spp>spp-b.exr``, another seed, and the scene's reference; ``kpcn_keras.studies.render_blender_pairs``):
+  their mean denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), the
   same pixels either way.
 - **Writes** ``<out_dir>/inputs.md`` (the tables, with the date and the machine), ``inputs.json`` (every number)
   and ``inputs.png`` (input | kpcn | OIDN | Blender | reference of every other renderer's frame at the middle
-  spp), through ``prep.studies.report``.
+  spp), through ``kpcn_keras.studies.report``.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ from kpcn_keras.studies.compare import PlannedRuns, _training_seconds, deep_lear
 from kpcn_keras.studies.config import InputsStudyConfig
 from kpcn_keras.studies.frames import SCORES, beside, panels_figure, renderer_pairs, wins
 from kpcn_keras.studies.frames import scores as _scores
+from kpcn_keras.studies.report import Report
 from prep import exr, layouts
 from prep.errors import KpcnError
 from prep.inputs import INPUT_SETS, InputSet
-from prep.studies.report import Report
 
 REPORT = "inputs"
 
@@ -171,7 +171,7 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
     return rows, panels
 
 
-PAIR_SUFFIX = "-b.exr"  # <scene>-<spp>spp.exr's second render, another seed (scripts/render_blender_pairs.py)
+PAIR_SUFFIX = "-b.exr"  # <scene>-<spp>spp.exr's second render, another seed (kpcn_keras.studies.render_blender_pairs)
 
 
 def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:

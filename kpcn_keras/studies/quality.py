@@ -50,7 +50,7 @@ The contract:
 - **Writes** ``<out_dir>/quality.md`` (the tables, the date, the machine, the rules), ``quality.json`` (every
   number, per frame) and ``quality.png`` (input | kpcn (the headline's lever) | OIDN | Blender | reference of the
   validation frames at ``panel_spp``, with the model's column where there is one, every image tonemapped by the
-  one ``prep.colour.tonemap``) through ``prep.studies.report``. ``kpcn quality --report-only`` writes the md
+  one ``prep.colour.tonemap``) through ``kpcn_keras.studies.report``. ``kpcn quality --report-only`` writes the md
   again from ``quality.json`` alone and the png from the frames and runs it names (:func:`rewrite_reports`),
   training nothing; where a run the panels need is gone, the png is left as it is and a line says so.
 
@@ -100,11 +100,11 @@ from kpcn_keras.studies.quality_report import (
     panel_entries,
     panels_or_none,
 )
+from kpcn_keras.studies.report import Report
 from prep import exr, layouts
 from prep.errors import KpcnError
 from prep.files import read_json
 from prep.inputs import FULL, INPUT_SETS, InputSet
-from prep.studies.report import Report
 
 # a network for frames without a diffuse/specular split has the diffuse branch alone: what joins both branches
 # (a compositor, one shared network, joint fine-tuning) is left out of a lever's network for them

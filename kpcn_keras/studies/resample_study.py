@@ -35,8 +35,8 @@ import numpy as np
 
 from kpcn_keras.config import TrainConfig
 from kpcn_keras.studies.config import ARMS, ResampleStudyConfig
+from kpcn_keras.studies.report import Report
 from prep.files import exclusive_lock, pyplot
-from prep.studies.report import Report
 
 MAX_ROUNDS_FACTOR = 3
 REPORT = "resample"  # resample.json, resample.md, resample.png in the report folder
@@ -203,7 +203,7 @@ def study(cfg: ResampleStudyConfig, *, command: str = "", verbose="auto", progre
 
     report = Report(cfg.out_dir, REPORT)
     report.check_writable()
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     manifest = sset.complete_manifest()
     session = report.begin()
     seeds = {}

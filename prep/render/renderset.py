@@ -1,7 +1,8 @@
 """Render sets: :func:`render_set` renders families x per_family built-in scenes at a ladder of input
 sample counts (each with its own seed) and one reference count into ``<out_root>/<set_name>/``, and
 records what it did in ``config.json`` (reproducible: the same command writes the same bytes) and how
-long it took in ``timings.json`` (the one file that differs between runs). This module owns that folder::
+long it took in ``timings.json`` (the one file that differs between runs). This module owns that folder, and
+:class:`RenderSet` names it and its files (for the commands, ``kpcn import-renders`` and the studies alike)::
 
     <set>/<scene>-<spp>spp.exr             every input and reference render
     <set>/config.json                      the config, and once every render is there, every scene and its seeds
@@ -44,6 +45,8 @@ log = logging.getLogger("kpcn")
 
 
 PER_FAMILY = Bound(1, 1000)  # scenes per family: a set of 1000 x 8 scenes is far past any use of one
+RENDER_ROOT = "data/renders"  # the folder of render sets unless an option names another (--out, --renders)
+RECORD = "config.json"  # a set's record: its config, and once finished every scene and its seeds
 
 
 @dataclass
@@ -58,7 +61,7 @@ class RenderConfig:
     input_spp: tuple[int, ...] = bounded((4, 16, 64), SPP, distinct=True)  # a ladder: every noise level
     reference_spp: int = bounded(512, SPP)  # times families.REFERENCE_SPP_FACTOR for the families slow to converge
     seed: int = bounded(0, SEED)
-    out_root: str = "data/renders"
+    out_root: str = RENDER_ROOT
 
     def __post_init__(self):
         if is_integer(self.input_spp):
@@ -83,6 +86,45 @@ class RenderConfig:
                                   f"{SPP.high} of any render; at most {SPP.high // REFERENCE_SPP_FACTOR[fam]} "
                                   f"with {fam}")
         check_frame(self.width, self.height)
+
+    @property
+    def render_set(self) -> RenderSet:
+        return RenderSet(self.set_name, self.out_root)
+
+
+@dataclass(frozen=True)
+class RenderSet:
+    """The folder of one render set, ``<root>/<name>`` (its layout: the module docstring), and the sets named
+    after it: the one place a render set's folder and files are named, so that no command or study retypes them."""
+
+    name: str
+    root: Path = Path(RENDER_ROOT)  # any path-like given becomes a Path: two sets are equal when their folders are
+
+    def __post_init__(self):
+        check_set_name(self.name)
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def dir(self) -> Path:
+        return self.root / self.name
+
+    @property
+    def record_path(self) -> Path:
+        """``config.json``: written by ``kpcn render``; a folder without it is no finished set of ours."""
+        return self.dir / RECORD
+
+    def render_path(self, scene: str, spp: int) -> Path:
+        """The EXR of ``scene`` at ``spp`` samples."""
+        return self.dir / render_filename(scene, spp)
+
+    def renders(self) -> list[Path]:
+        """Every EXR in the folder, sorted by name."""
+        return sorted(self.dir.glob("*.exr"))
+
+    def derived(self, tag: str) -> RenderSet:
+        """The set ``<name>-<tag>`` beside this one: a set made from it (a study's larger set, renders of two
+        sets joined), named so that its origin shows."""
+        return RenderSet(f"{self.name}-{tag}", self.root)
 
 
 def reference_spp(config: RenderConfig, family: str) -> int:
@@ -145,7 +187,7 @@ def render_set(config: RenderConfig, progress: bool = True, part: Part = Part())
     files as one process (``timings.json`` apart, the one file that differs between runs anyway).
     """
     config.validate()
-    out_dir = Path(config.out_root) / config.set_name
+    out_dir = config.render_set.dir
     check_writable(out_dir, "render set folder (--out)", directory=True)
     renders = _renders(config)
     with exclusive_lock(out_dir, "render set"):
@@ -169,8 +211,8 @@ def reuse_renders(config: RenderConfig, source: str | os.PathLike) -> list[str]:
     (:func:`render_set` writes the same bytes for the same command). Renders already there are left as they are;
     a source that is not a finished set gives nothing. Returns the names it linked."""
     config.validate()
-    source, out_dir = Path(source), Path(config.out_root) / config.set_name
-    meta_path = source / "config.json"
+    source, out_dir = Path(source), config.render_set.dir
+    meta_path = source / RECORD
     if source.resolve() == out_dir.resolve() or not meta_path.exists():
         return []
     meta = read_json(meta_path, "render set record", keys=("config", "scenes"))
@@ -197,8 +239,8 @@ def reuse_renders(config: RenderConfig, source: str | os.PathLike) -> list[str]:
 
 def _open_record(config: RenderConfig, out_dir: Path) -> None:
     """Refuse a folder holding a set of other pixels; give a new set its ``config.json`` (no scenes yet)."""
-    remove_temporaries(out_dir, targets={"config.json", _TIMINGS, CONTACT_SHEET})
-    meta_path = out_dir / "config.json"
+    remove_temporaries(out_dir, targets={RECORD, _TIMINGS, CONTACT_SHEET})
+    meta_path = out_dir / RECORD
     if meta_path.exists():
         old_cfg = read_json(meta_path, "render set record", keys=("config",))["config"]
         changed = [k for k in _PIXEL_FIELDS if k in old_cfg and old_cfg[k] != getattr(config, k)]
@@ -260,7 +302,7 @@ def _finish(config: RenderConfig, out_dir: Path, renders: list[_Render], part: P
                                    "files": {}, "scene": scene.to_dict()})
         meta["scenes"][-1]["seeds"][str(r.spp)] = r.seed
         meta["scenes"][-1]["files"][str(r.spp)] = r.name
-    atomic_write_json(out_dir / "config.json", meta)
+    atomic_write_json(out_dir / RECORD, meta)
     part_times = sorted(out_dir.glob(_part_timings("part-*-of-*")))
     if part_times:
         times = read_json(out_dir / _TIMINGS, "render timings") if (out_dir / _TIMINGS).exists() else {}
@@ -320,12 +362,12 @@ def convergence_report(config: RenderConfig, progress: bool = True) -> dict:
     from prep.files import atomic_write_text
 
     check_set_name(config.set_name)
-    out_dir = Path(config.out_root) / config.set_name
-    if not (out_dir / "config.json").is_file():
+    out_dir, record = config.render_set.dir, config.render_set.record_path
+    if not record.is_file():
         raise KpcnError(f"{out_dir}: no render set there (no config.json); render it with "
                         f"'kpcn render --set {config.set_name}'")
     with exclusive_lock(out_dir, "render set"):
-        scenes = read_json(out_dir / "config.json", "render set record", keys=("config", "scenes"))["scenes"]
+        scenes = read_json(record, "render set record", keys=("config", "scenes"))["scenes"]
         if not scenes:
             raise KpcnError(f"{out_dir}: the render set is unfinished (no scenes in config.json); "
                             f"'kpcn render --set {config.set_name}' finishes it")

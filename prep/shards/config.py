@@ -22,6 +22,7 @@ from prep.errors import OptionError
 from prep.files import check_set_name
 from prep.inputs import FULL, InputSet
 from prep.render.frame import SPP
+from prep.render.renderset import RENDER_ROOT, RenderSet
 from prep.shards.format import patch_bytes
 
 # A shard is assembled in memory before it is written; this bounds that memory.
@@ -54,7 +55,7 @@ class ShardConfig:
     """Configuration of ``kpcn shards``; saved in the manifest and in every shard."""
 
     set_name: str = "default"
-    render_root: str = "data/renders"
+    render_root: str = RENDER_ROOT
     out_root: str = "shards"
     patch_size: int = bounded(65, PATCH_SIZE)
     patches_per_image: int = bounded(32, PATCH_COUNT)  # per input render: a ladder of three inputs gives 96 per scene
@@ -90,7 +91,7 @@ class ShardConfig:
 
     @property
     def render_dir(self) -> Path:
-        return Path(self.render_root) / self.set_name
+        return RenderSet(self.set_name, self.render_root).dir
 
     @property
     def input_set(self) -> InputSet:

@@ -187,11 +187,12 @@ class Layout:
     dtype: str | None = None
 
 
-# The layouts `prep.studies.stage_costs.shard_layout_costs` measures side by side (docs/results/08-shard-layouts.md has
-# the numbers of kpcn-shard/2, all float32). gzip (what shards were written with before) and lzf compress slower than
-# the uncompressed bytes are written and hashed (for the manifest), and a training batch reads 4-8x slower from them.
-# Several patches per chunk make a random patch read its whole chunk. float16 for every dataset (the table keeps the
-# targets and linear colours float32) overflows linear colours above 65504.
+# The layouts `kpcn_keras.studies.data_costs.shard_layout_costs` measures side by side
+# (docs/results/08-shard-layouts.md has the numbers of kpcn-shard/2, all float32). gzip (what shards were written
+# with before) and lzf compress slower than the uncompressed bytes are written and hashed (for the manifest), and
+# a training batch reads 4-8x slower from them. Several patches per chunk make a random patch read its whole
+# chunk. float16 for every dataset (the table keeps the targets and linear colours float32) overflows linear
+# colours above 65504.
 # Contiguous datasets (no chunks, so no Fletcher-32) read a batch ~4x faster but write slower: HDF5 spends
 # ~3x the system time on them. The chunked ones keep a Fletcher-32 checksum per chunk, so a chunk damaged
 # after the manifest's check is an error when read, not silent garbage: ~40 % of the HDF5 time of a write
@@ -247,7 +248,7 @@ def empty_patches(count: int, patch_size: int) -> dict[str, np.ndarray]:
 
 def write_shard(path: Path, patches: dict[str, np.ndarray], attrs: dict, layout: Layout = SHARD_LAYOUT) -> None:
     """Write one shard atomically: a per-process temporary name, ``complete`` attribute last, then rename.
-    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``prep.studies.stage_costs``).
+    ``layout`` other than :data:`SHARD_LAYOUT` is for measuring (``kpcn_keras.studies.data_costs``).
 
     Not fsync'ed (``atomic_path(durable=False)``): waiting for the disk was most of ``kpcn shards`` (a set
     was ~1.2 MB a patch in kpcn-shard/2; this disk takes ~430 MB/s), and a shard needs no fsync to be safe, since its
@@ -307,7 +308,7 @@ def _abandon(f: h5py.File, datasets: list) -> None:
 
 def branch_datasets(branch: str, noisy: bool = False) -> list[str]:
     """The names a training batch of one branch reads per patch (``kpcn_keras.data``; timed by
-    ``prep.studies.stage_costs``): the features and the reference, and the noisy colour for a loss that uses it
+    ``kpcn_keras.studies.data_costs``): the features and the reference, and the noisy colour for a loss that uses it
     (``noisy``: the asymmetric loss)."""
     return [f"{branch}/features", f"{branch}/reference"] + ([f"{branch}/noisy"] if noisy else [])
 

@@ -10,7 +10,7 @@ model of that set reads (:func:`shard_layers`: ``prep.inputs.restrict`` of the r
 split the same way), at the positions drawn from the render as it is: the renders a set is cut from are
 ``kpcn render``'s, which have every layer, so every input set of a render set holds its patches at the same
 positions, and the variance PDF stays the variance's where the model is given none. Renders without variance
-layers (another renderer's, ``scripts/import_renders.py``) can be cut for the input sets without variance
+layers (another renderer's, ``kpcn import-renders``) can be cut for the input sets without variance
 alone; their PDF reads their error to the reference instead (:func:`round_pdf`).
 """
 

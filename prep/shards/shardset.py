@@ -44,7 +44,9 @@ from prep.files import (
     remove_temporaries,
     sha256_file,
 )
+from prep.inputs import FULL
 from prep.parts import Part
+from prep.shards.config import shard_set_dir
 from prep.shards.format import (
     FORMAT,
     ShardError,
@@ -107,6 +109,12 @@ class ShardSet:
 
     def __init__(self, set_dir: str | os.PathLike):
         self.dir = Path(set_dir)
+
+    @classmethod
+    def named(cls, out_root: str | os.PathLike, set_name: str, inputs: str = FULL.name) -> ShardSet:
+        """The set ``set_name`` cut for ``inputs`` under ``out_root`` (:func:`~prep.shards.config.shard_set_dir`),
+        so that no reader retypes where a set lives."""
+        return cls(shard_set_dir(out_root, set_name, inputs))
 
     @property
     def manifest_path(self) -> Path:

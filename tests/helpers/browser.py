@@ -47,7 +47,7 @@ def headless_chromium(profile: Path, size=(1280, 800)):
         driver.quit()
 
 
-# driving kpcn view's page (kpcn_keras/view/view.js): its test and scripts/view_screenshot.py
+# driving kpcn view's page (kpcn_keras/view/view.js): its test (the lab has its own copy: kpcn_keras/studies/browser.py)
 
 
 def page_wait(driver, condition: str, timeout: float = 60) -> None:

@@ -11,8 +11,8 @@ finished. ``measure`` then denoises each frame with every snapshot in place of i
 finished network for the other branch) and with the finished run itself (under ``--patience`` its best epoch),
 and writes ``<out>.json``, ``<out>.md`` and ``<out>.png`` (``report`` writes the last two again from the json).
 
-  .venv/bin/python scripts/frame_curve.py watch --run runs/model/inputs/no-variance --into DIR &
-  .venv/bin/python scripts/frame_curve.py measure --run runs/model/inputs/no-variance --snapshots DIR \\
+  .venv/bin/python -m kpcn_keras.studies.frame_curve watch --run runs/model/inputs/no-variance --into DIR &
+  .venv/bin/python -m kpcn_keras.studies.frame_curve measure --run runs/model/inputs/no-variance --snapshots DIR \\
       [--frames ../shared/validation/blender] [--spp 4,16,64] [--compare RUN ...] [--out reports/frame_curve]
 
 The frames: the run's own held-out frames at ``--spp`` and every noisy render of each ``--frames`` folder (each
@@ -142,10 +142,10 @@ def report(out: Path) -> None:
     found = json.loads(out.with_suffix(".json").read_text())
     run_dir, rows, frames, branches = found["run"], found["points"], found["frames"], found["branches"]
     lines = [f"# Whole-frame error as `{run_dir}` trains", "",
-             f"`scripts/frame_curve.py measure --run {run_dir}`: relMSE of each frame with each phase's network "
-             "at the epoch of a snapshot (the other branch: the run's finished network), of the finished run (its "
-             "best epochs, under --patience) and of each --compare run. Steps count both phases, the diffuse phase "
-             "first; OIDN: `pyoidn` on the same frames.", "",
+             f"`python -m kpcn_keras.studies.frame_curve measure --run {run_dir}`: relMSE of each frame with each "
+             "phase's network at the epoch of a snapshot (the other branch: the run's finished network), of the "
+             "finished run (its best epochs, under --patience) and of each --compare run. Steps count both phases, "
+             "the diffuse phase first; OIDN: `pyoidn` on the same frames.", "",
              "| phase | epochs | steps | held-out mean relMSE | held-out below OIDN | held-out median / OIDN | "
              "validation mean relMSE | validation below OIDN | validation median / OIDN |",
              "|---|---|---|---|---|---|---|---|---|"]

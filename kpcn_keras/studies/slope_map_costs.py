@@ -15,7 +15,7 @@ Writes ``<out>.json``, ``<out>.md`` and, per run, ``<out>-<run name>.png``: the 
 low end of the range on the left half and the high end on the right, beside both uniform frames
 (``figures.slope_map_figure``: Fig. 17 with a map).
 
-  .venv/bin/python scripts/slope_map_costs.py --runs runs/lambda,runs/lambda-mixture [--repeats 5]
+  .venv/bin/python -m kpcn_keras.studies.slope_map_costs --runs runs/lambda,runs/lambda-mixture [--repeats 5]
                                               [--out reports/slope_map]
 """
 
@@ -92,9 +92,9 @@ def report_md(found: dict) -> str:
     lines = [
         "# A new λ map against a full denoise",
         "",
-        f"Written by `scripts/slope_map_costs.py` on {found['date']} (this machine: {found['cpus']} CPUs, "
-        f"{found['threads']} torch threads, precision {found['precision']}; busiest processes at the start: "
-        f"{'; '.join(found['busy'])}; load average {found['load_before'][0]:.2f} before, "
+        f"Written by `python -m kpcn_keras.studies.slope_map_costs` on {found['date']} (this machine: "
+        f"{found['cpus']} CPUs, {found['threads']} torch threads, precision {found['precision']}; busiest processes "
+        f"at the start: {'; '.join(found['busy'])}; load average {found['load_before'][0]:.2f} before, "
         f"{found['load_after'][0]:.2f} after). Each figure is the best of {found['repeats']}, the runs' calls "
         "alternating. *full*: a whole denoise at a λ map; *prepare*: the trunks once "
         "(`Denoiser.prepare`); *new map*: another whole map on the prepared frame; *stroke*: a "

@@ -8,7 +8,7 @@ the same step in plain torch (``studies.plain_torch``), and the best time to den
 presets are measured alternately, so that load from other processes hits them alike; ``busy`` lists the
 busiest other processes when it starts. Untrained weights: the time of a convolution does not depend on them.
 
-  .venv/bin/python scripts/arch_costs.py [--repeats 7] [--frames 2]
+  .venv/bin/python -m kpcn_keras.studies.arch_costs [--repeats 7] [--frames 2]
 """
 
 from __future__ import annotations
@@ -54,13 +54,14 @@ def trained_runs(root: Path) -> dict:
     """One run of each preset, one step a branch, on four random 72 x 70 renders cut into 65 x 65 patches."""
     from kpcn_keras.train import TrainConfig, train
     from prep import exr, shards
+    from prep.render.renderset import RenderSet
 
-    renders = root / "renders" / "s"
+    renders = RenderSet("s", root / "renders")
     for i, scene in enumerate(("a-000", "a-001", "b-000", "b-001")):
-        exr.write_aovs(renders / exr.render_filename(scene, 4), random_aovs(72, 70, 10 + i))
+        exr.write_aovs(renders.render_path(scene, 4), random_aovs(72, 70, 10 + i))
         reference = {k: v for k, v in random_aovs(72, 70, 100 + i).items() if not k.endswith("Variance")}
-        exr.write_aovs(renders / exr.render_filename(scene, 64), reference)
-    cfg = shards.ShardConfig(set_name="s", render_root=str(root / "renders"), out_root=str(root / "shards"),
+        exr.write_aovs(renders.render_path(scene, 64), reference)
+    cfg = shards.ShardConfig(set_name=renders.name, render_root=str(renders.root), out_root=str(root / "shards"),
                              patches_per_image=8, patches_per_shard=8, val_fraction=0.5, seed=3)
     shards.build_shards(cfg, progress=False)
     with contextlib.redirect_stdout(sys.stderr):  # training's one line a phase: stdout is the JSON alone
@@ -84,7 +85,7 @@ def main() -> int:
     from kpcn_keras.models import build_branch_model, input_alignment, receptive_radius
     from kpcn_keras.run import Run
     from kpcn_keras.studies.bench import busy_processes
-    from kpcn_keras.studies.stage_costs import train_step_cost
+    from kpcn_keras.studies.network_costs import train_step_cost
 
     out = {"threads": torch.get_num_threads(), "busy": busy_processes(), "presets": {}}
     configs = {p: TrainConfig.from_preset(p) for p in PRESETS}

@@ -15,11 +15,11 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
+from kpcn_keras.studies.report import Report
 from prep.bounds import REPEATS, bounded, check_fields
 from prep.render.families import FAMILIES, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 from prep.render.scene import EFFECTS, Scene, lambert
-from prep.studies.report import Report
 
 # A production CPU path tracer on a machine like this one: a 256x256 Cornell box with paths of up to
 # 12 vertices and Russian roulette after 5, at about 1.4 million samples per second. A figure quoted to the

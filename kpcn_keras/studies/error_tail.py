@@ -6,7 +6,8 @@ has, ``Run.serving``), OIDN and, where the folder has it, the renderer's own den
 it in the 0.1 % and the 1 % of pixels with the largest error, and the relMSE of the other 99 % (the body).
 Pixels are ranked by their relSE averaged over R, G, B (``prep.metrics.relse_pixels``, as relSE p99.9 ranks them).
 
-  .venv/bin/python scripts/error_tail.py [--run RUN] [--spp 16] [FRAMES ...]   # default: models/default, Blender's
+  .venv/bin/python -m kpcn_keras.studies.error_tail [--run RUN] [--spp 16] [FRAMES ...]
+      # default: models/default, Blender's
 
 Writes nothing; prints one markdown table.
 """

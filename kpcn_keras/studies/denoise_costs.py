@@ -10,8 +10,8 @@ largest relative difference of the two precisions' outputs. ``--ensembles 2,8`` 
 that many members (``kpcn denoise --ensemble``, in bfloat16 where the CPU has it: ``auto``). ``busy`` lists the
 busiest other processes when it starts, the load average before and after.
 
-  .venv/bin/python scripts/denoise_costs.py [--run models/default] [--frame tests/fixtures/fixture-00008spp.exr]
-                                            [--repeats 2] [--profile] [--ensembles 2,4,8]
+  .venv/bin/python -m kpcn_keras.studies.denoise_costs [--run models/default]
+      [--frame tests/fixtures/fixture-00008spp.exr] [--repeats 2] [--profile] [--ensembles 2,4,8]
 """
 
 from __future__ import annotations

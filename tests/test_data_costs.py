@@ -5,8 +5,8 @@ import sys
 import pytest
 from helpers.tiny import make_renders
 
+from kpcn_keras.studies import data_costs
 from prep import exr, shards
-from prep.studies import stage_costs
 
 
 @pytest.fixture
@@ -25,7 +25,7 @@ def finite_positive(d, keys):
 
 
 def test_feature_costs_time_decode_numba_and_the_numpy_reference(renders):
-    got = stage_costs.feature_costs(renders / exr.render_filename("a-000", 4), repeats=2)
+    got = data_costs.feature_costs(renders / exr.render_filename("a-000", 4), repeats=2)
     json.dumps(got)
     assert got["pixels"] == 40 * 44
     finite_positive(got, ["exr_decode_s", "numba_s", "numpy_s", "numba_pixels_per_s", "numpy_over_numba",
@@ -37,7 +37,7 @@ def test_feature_costs_time_decode_numba_and_the_numpy_reference(renders):
 
 def test_every_layout_is_measured_and_reads_back_what_was_written(tmp_path, renders):
     out = tmp_path / "costs"
-    got = stage_costs.shard_layout_costs(pairs(renders), out, patches_per_image=5, batch_size=3, repeats=2,
+    got = data_costs.shard_layout_costs(pairs(renders), out, patches_per_image=5, batch_size=3, repeats=2,
                                          patch_size=16)
     json.dumps(got)
     assert got["default"] == shards.SHARD_LAYOUT.name and got["default"] in got["layouts"]
@@ -60,13 +60,13 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
     out = tmp_path / "scratch"
     out.mkdir()
     (out / "keep").write_text("x")
-    stage_costs.shard_layout_costs(pairs(renders)[:1], out, patches_per_image=2, batch_size=2, repeats=1,
+    data_costs.shard_layout_costs(pairs(renders)[:1], out, patches_per_image=2, batch_size=2, repeats=1,
                                    patch_size=16, layouts=["none"])
     assert [p.name for p in out.iterdir()] == ["keep"]
     with pytest.raises(ValueError, match="'zstd'"):
-        stage_costs.shard_layout_costs(pairs(renders), out, layouts=["zstd"], patch_size=16)
+        data_costs.shard_layout_costs(pairs(renders), out, layouts=["zstd"], patch_size=16)
     with pytest.raises(ValueError, match="repeats"):
-        stage_costs.shard_layout_costs(pairs(renders), out, repeats=0, patch_size=16)
+        data_costs.shard_layout_costs(pairs(renders), out, repeats=0, patch_size=16)
     assert [p.name for p in out.iterdir()] == ["keep"]
 
 
@@ -74,7 +74,7 @@ def test_layout_costs_leave_an_existing_folder_as_it_was_and_refuse_unknown_layo
 def test_no_deep_learning_import():
     import subprocess
 
-    code = ("import sys; import prep.studies.stage_costs; "
+    code = ("import sys; import kpcn_keras.studies.data_costs; "
             "print(sorted(m for m in ('torch', 'keras') if m in sys.modules))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))

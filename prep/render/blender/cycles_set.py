@@ -7,11 +7,13 @@ drawn at random from a seed (rooms, studio sweeps and open ground; Principled ma
 glass and coats; area, point, emissive and sky lights), never the validation scenes of ../shared/validation.
 Every frame is one render at its spp, so its noise is what Cycles' sampler gives a user (not an average of renders).
 
-Runs under bpy (the wheel wants numpy < 2: a venv of its own):
-  python3.11 -m venv .bpyenv && .bpyenv/bin/pip install "numpy<2" bpy==5.0.1
-  .bpyenv/bin/python scripts/render_cycles_set.py OUT [--scenes 0:32] [--res 128] [--spp 4,8,16,32,64] [--ref-spp 1024]
+Runs under bpy (the wheel wants numpy < 2: a venv of its own), started by ``kpcn render-cycles``
+(``prep.render.cycles``, which checks the options and the Python), so it imports nothing of kpcn, only the
+standard library and bpy:
+  kpcn render-cycles OUT [--scenes 0:32] [--res 128] [--spp 4,8,16,32,64] [--ref-spp 1024]
+      [--blender-python .venv-bpy/bin/python]
 writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp) and OUT/render_log.json;
-a frame already there is kept, so a killed run resumes. ``scripts/import_renders.py`` then writes them into a
+a frame already there is kept, so a killed run resumes. ``kpcn import-renders`` then writes them into a
 render set that ``kpcn shards --inputs no-variance`` cuts (docs/training.md §6, docs/results/16-cycles-frames.md).
 """
 import argparse
@@ -23,7 +25,10 @@ import random
 import sys
 import time
 
-import bpy
+try:
+    import bpy
+except ImportError:  # read without bpy for its arguments alone (arguments(): how kpcn's tests check what it passes)
+    bpy = None
 
 PASSES = ("combined", "z", "normal", "emit", "environment",
           "diffuse_direct", "diffuse_indirect", "diffuse_color",
@@ -294,14 +299,18 @@ def setup(index, res, spp, seed, factor):
     return scene, kind
 
 
-def main():
+def arguments(argv):
     ap = argparse.ArgumentParser()
     ap.add_argument("out")
     ap.add_argument("--scenes", default="0:32", help="first:end scene indices")
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--spp", default="4,8,16,32,64")
     ap.add_argument("--ref-spp", type=int, default=1024)
-    a = ap.parse_args(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:])
+    return ap.parse_args(argv)
+
+
+def main():
+    a = arguments(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:])
     first, end = (int(x) for x in a.scenes.split(":"))
     os.makedirs(a.out, exist_ok=True)
     log_path = os.path.join(a.out, "render_log.json")

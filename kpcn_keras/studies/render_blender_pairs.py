@@ -7,9 +7,13 @@ mean has N spp, as the validation set's own N-spp frame), and the validation set
 (OUT/<scene>-<ref>spp.exr), so `kpcn inputs-study --pairs OUT` compares, at the same samples, the mean without
 variance against the mean with the variance of their difference.
 
-Runs in Blender's Python (the `bpy` wheel; 5.0.1 wants numpy < 2, so its own venv):
+A study's input, not a user's step (the pairs serve only ``kpcn inputs-study --pairs``), so it lives with the
+studies. It runs in Blender's Python (the `bpy` wheel; 5.0.1 wants numpy < 2, so its own venv, the one
+``kpcn render-cycles`` uses), from the repository's root, where that Python finds ``kpcn_keras`` without kpcn
+installed (importing ``kpcn_keras`` and its studies' package imports nothing but the standard library):
 
-  V/bin/python scripts/render_blender_pairs.py OUT --validation ../shared/validation [--scenes a,b] [--res 256]
+  .venv-bpy/bin/python -m kpcn_keras.studies.render_blender_pairs OUT --validation ../shared/validation \
+      [--scenes a,b] [--res 256]
 """
 import argparse
 import os

@@ -1,4 +1,4 @@
-"""stage_costs: the benchmark's stage timings (contract keys, consistency) and plain_torch's equality with Keras."""
+"""network_costs: the bench's network stage timings (contract keys, consistency), plain_torch equal to Keras."""
 
 import math
 
@@ -8,14 +8,14 @@ import torch
 from helpers.networks import randomise
 
 from kpcn_keras.models import ARCHS, ModelConfig, build_branch_model
-from kpcn_keras.studies.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras
-from kpcn_keras.studies.stage_costs import (
+from kpcn_keras.studies.network_costs import (
     TRAINING_SKIPS,
     VARIANTS,
     kernel_application_cost,
     memory_bandwidth,
     train_step_cost,
 )
+from kpcn_keras.studies.plain_torch import TorchBranch, copy_keras_weights, torch_branch_from_keras
 from prep.bounds import is_number
 
 TINY_BANDWIDTH = {"read_bytes_per_s": 1e10}  # a stand-in, so that kernel tests need not stream 512 MiB

@@ -1,7 +1,8 @@
 """Where the seconds of `make train`'s diffuse phase go: a diagnostic to run by hand, on a quiet
 machine, after `make shards`. It changes nothing of the set and removes its scratch run.
 
-    .venv/bin/python reports/train_throughput.py [--set default] [--steps 1200] [--threads N] [--sync | --cold]
+    .venv/bin/python -m kpcn_keras.studies.train_throughput [--set default] [--steps 1200] [--threads N]
+        [--sync | --cold]
 
 It trains the diffuse branch of the default (`cpu`) preset for ``--steps`` (default: the preset's, what
 `make train` runs) into a scratch run folder under ``runs/`` through the library call `kpcn train` makes, and

@@ -14,7 +14,8 @@ r,f,k[,s], the run's albedo network's (``network``, where the network serving th
 with then) and the reference's (``oracle``, an upper bound no renderer's frame gives). Then, per albedo, the median
 floor as a fraction of the input albedo's, the frames where kpcn is below OIDN and the median ratio.
 
-  .venv/bin/python scripts/remodulation.py [--run RUN] [--setting 5,1,1.0,1 ...] [--pair-suffix -b] [FRAMES ...]
+  .venv/bin/python -m kpcn_keras.studies.remodulation [--run RUN] [--setting 5,1,1.0,1 ...] [--pair-suffix -b]
+      [FRAMES ...]
       # default: models/default on its held-out frames; frames of training scenes choose the settings
 
 Writes nothing; prints markdown tables.

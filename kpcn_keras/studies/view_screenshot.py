@@ -1,28 +1,22 @@
 """The screenshot of ``kpcn view`` under reports/: the page served for a frame and a run, driven in
-headless Chromium (``tests/helpers.py``'s ``headless_chromium``: Debian's chromium and chromium-driver, Selenium)
+headless Chromium (:mod:`kpcn_keras.studies.browser`: Debian's chromium and chromium-driver, Selenium)
 as a user drives it: one brush stroke at the top of the λ range across the middle of the frame (λ at the low
 end elsewhere), then kpcn left of the swipe and the λ map right of it, the swipe at the frame's middle; the
 page's own status line says what the stroke cost.
 
-  .venv/bin/python scripts/view_screenshot.py --run runs/lambda-mixture --frame F.exr --reference R.exr
+  .venv/bin/python -m kpcn_keras.studies.view_screenshot --run runs/lambda-mixture --frame F.exr --reference R.exr
                                               [--out reports/view.png]
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import tempfile
 import threading
 from pathlib import Path
 
-os.environ.setdefault("KERAS_BACKEND", "torch")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from helpers import headless_chromium, page_input, page_stroke, page_wait  # noqa: E402 (the tests' own driver)
-
-from kpcn_keras.viewer import ViewSession, listen  # noqa: E402
+from kpcn_keras.studies.browser import browser_missing, headless_chromium, page_input, page_stroke, page_wait
+from kpcn_keras.viewer import ViewSession, listen
 
 
 def main() -> None:
@@ -33,6 +27,8 @@ def main() -> None:
     parser.add_argument("--slope", type=float, help="λ everywhere before the stroke (default: the range's low end)")
     parser.add_argument("--out", default="reports/view.png")
     args = parser.parse_args()
+    if browser_missing():
+        raise SystemExit(f"error: {browser_missing()}")
 
     from kpcn_keras.run import Run
     from prep.processes import keep_freed_memory

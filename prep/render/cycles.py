@@ -1,0 +1,93 @@
+"""``kpcn render-cycles``: training renders from Blender Cycles, random procedural scenes, each a noisy frame per
+input spp and a reference, as Blender writes them (one multilayer OpenEXR a frame, every pass a denoiser can use);
+``kpcn import-renders`` then writes them into a render set that ``kpcn shards --inputs no-variance`` cuts
+(docs/training.md §6, docs/results/16-cycles-frames.md).
+
+The scenes are built and rendered by ``prep/render/blender/cycles_set.py`` (:data:`BLENDER_SIDE`, shipped with
+the package), which runs in a Python that has ``bpy``, Blender's Python module: bpy 5.0.1 wants Python 3.11 and
+numpy < 2, so it lives in a venv of its own (``make .venv-bpy/bin/python``), where kpcn is not installed. That
+file imports nothing of kpcn; this module checks the options and that Python, and hands the file its arguments
+(:func:`blender_command`). The file keeps every frame already there, so a killed run resumes.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+from prep.bounds import Bound, bounded, check_fields
+from prep.errors import KpcnError, OptionError
+from prep.render.frame import FRAME_SIDE, SPP
+
+BLENDER_SIDE = Path(__file__).with_name("blender") / "cycles_set.py"
+BLENDER_PYTHON = ".venv-bpy/bin/python"  # where make .venv-bpy/bin/python installs bpy
+SCENE_INDEX = Bound(0, 99_999)  # a scene's index seeds it; its name has at least three digits
+# asks the Python whether it can import bpy, without importing it (bpy takes seconds to load)
+HAS_BPY = "import importlib.util, sys; sys.exit(importlib.util.find_spec('bpy') is None)"
+
+
+@dataclass
+class CyclesConfig:
+    """What ``kpcn render-cycles`` renders, where, and with which Python."""
+
+    out: str  # the folder of the frames (OUT)
+    scenes: str = "0:32"  # first:end scene indices, end excluded
+    res: int = bounded(128, FRAME_SIDE)  # the frames are res x res
+    spp: tuple[int, ...] = bounded((4, 8, 16, 32, 64), SPP, distinct=True)  # the inputs' samples
+    ref_spp: int = bounded(1024, SPP)  # the reference's samples
+    blender_python: str = BLENDER_PYTHON
+
+    def __post_init__(self):
+        self.spp = tuple(self.spp)
+        check_fields(self)
+        if not self.out:
+            raise OptionError("out", "names no folder for the frames")
+        if self.ref_spp <= max(self.spp):
+            raise OptionError("ref_spp", f"must exceed every --spp (the reference is a scene's frame with the most "
+                              f"samples), got {self.ref_spp} and {list(self.spp)}")
+        self.scene_range()
+
+    def scene_range(self) -> range:
+        """The scene indices ``scenes`` names; OptionError unless it is first:end with first < end."""
+        first, colon, end = self.scenes.partition(":")
+        try:
+            first, end = int(first), int(end)
+        except ValueError:
+            raise OptionError("scenes", f"must be first:end (scene indices, end excluded), got {self.scenes!r}") \
+                from None
+        if not colon or first >= end:
+            raise OptionError("scenes", f"must be first:end with first < end, got {self.scenes!r}")
+        for index in (first, end - 1):
+            SCENE_INDEX.check("scenes", index)
+        return range(first, end)
+
+
+def blender_command(cfg: CyclesConfig) -> list[str]:
+    """The command that renders ``cfg`` in its Python: :data:`BLENDER_SIDE` and its arguments."""
+    scenes = cfg.scene_range()
+    return [cfg.blender_python, str(BLENDER_SIDE), cfg.out, "--scenes", f"{scenes.start}:{scenes.stop}",
+            "--res", str(cfg.res), "--spp", ",".join(map(str, cfg.spp)), "--ref-spp", str(cfg.ref_spp)]
+
+
+def check_blender_python(python: str) -> None:
+    """OptionError ``blender_python`` unless ``python`` runs and can import bpy."""
+    found = shutil.which(python) if os.sep not in python else (python if os.access(python, os.X_OK) else None)
+    make = "make .venv-bpy/bin/python makes one (Python 3.11, numpy < 2, bpy 5.0.1)"
+    if found is None:
+        raise OptionError("blender_python", f"{python}: no such Python; {make}")
+    if subprocess.run([python, "-c", HAS_BPY], capture_output=True).returncode != 0:
+        raise OptionError("blender_python", f"{python}: a Python without bpy, Blender's module; {make}")
+
+
+def render_cycles(cfg: CyclesConfig) -> Path:
+    """Render ``cfg`` (its frames and ``render_log.json`` into ``cfg.out``) in its Python; KpcnError if that
+    Python stops with an error (the frames written are kept: the same command resumes)."""
+    check_blender_python(cfg.blender_python)
+    done = subprocess.run(blender_command(cfg)).returncode
+    if done != 0:
+        raise KpcnError(f"{cfg.out}: Blender's Python ({cfg.blender_python}) stopped with exit status {done}; the "
+                        "frames it wrote are kept, and the same command resumes")
+    return Path(cfg.out)
