@@ -8,12 +8,13 @@ import urllib.request
 
 import numpy as np
 import pytest
-from helpers.browser import headless_chromium, page_input, page_stroke, page_wait
+from helpers.browser import headless_chromium
 from helpers.networks import randomise
 from helpers.tiny import random_aovs
 
 from kpcn_keras.denoise import Denoiser, read_frame
 from kpcn_keras.run import Run
+from kpcn_keras.studies.browser import page_input, page_stroke, page_wait
 from kpcn_keras.viewer import VIEWS, ViewSession, listen
 from prep import baselines, exr
 from prep.colour import tonemap
