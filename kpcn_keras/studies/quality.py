@@ -124,15 +124,17 @@ def lever_set(cfg: QualityConfig, lever: str) -> str:
     options = QUALITY_LEVERS[lever][3]
     if not options:
         return cfg.set_name
+    from prep.render.renderset import RenderSet
+
     digest = hashlib.sha256(json.dumps(options, sort_keys=True, default=list).encode()).hexdigest()[:8]
-    return f"{cfg.set_name}-r{digest}"
+    return RenderSet(cfg.set_name, cfg.render_root).derived(f"r{digest}").name
 
 
 def render_config(cfg: QualityConfig, lever: str):
     """The RenderConfig of ``lever``'s own render set: the study set's record with the lever's options."""
-    from prep.render.renderset import RenderConfig
+    from prep.render.renderset import RenderConfig, RenderSet
 
-    base = Path(cfg.render_root) / cfg.set_name / "config.json"
+    base = RenderSet(cfg.set_name, cfg.render_root).record_path
     if not base.exists():
         raise KpcnError(f"{base.parent}: not a render set (run 'kpcn render --set {cfg.set_name}' first); lever "
                         f"{lever!r} renders a larger set from it")
@@ -147,13 +149,13 @@ def held_out_scenes(cfg: QualityConfig) -> list[str]:
     """The validation scenes of the study's full shard set: every lever's held-out scenes."""
     from prep.shards import ShardSet
 
-    manifest = ShardSet(Path(cfg.shards_root) / cfg.set_name).complete_manifest()
+    manifest = ShardSet.named(cfg.shards_root, cfg.set_name).complete_manifest()
     return sorted({s["scene"] for s in manifest["sources"] if s["split"] == "val"})
 
 
 def prepare_data(cfg: QualityConfig, input_sets: tuple[str, ...], *, log=print) -> dict[str, str]:
     """Render and cut what every lever of ``cfg`` trains on, for each of ``input_sets``; returns lever -> set."""
-    from prep.render.renderset import render_set, reuse_renders
+    from prep.render.renderset import RenderSet, render_set, reuse_renders
 
     options = shard_options(cfg.set_name, cfg.render_root, cfg.shards_root)
     cut_input_shards(cfg.set_name, cfg.render_root, cfg.shards_root, input_sets, options=options,
@@ -164,8 +166,8 @@ def prepare_data(cfg: QualityConfig, input_sets: tuple[str, ...], *, log=print) 
         if name in done:
             continue
         rc = render_config(cfg, lever)
-        linked = reuse_renders(rc, Path(cfg.render_root) / cfg.set_name)
-        log(f"quality: {lever}: render set {Path(rc.out_root) / rc.set_name} ({len(linked)} renders linked from "
+        linked = reuse_renders(rc, RenderSet(cfg.set_name, cfg.render_root).dir)
+        log(f"quality: {lever}: render set {rc.render_set.dir} ({len(linked)} renders linked from "
             f"{cfg.set_name}, the rest rendered)")
         render_set(rc, progress=False)
         cut_input_shards(name, cfg.render_root, cfg.shards_root, input_sets,
@@ -195,7 +197,6 @@ def plan_and_train(cfg: QualityConfig, sets: dict[str, str], input_sets: tuple[s
     from kpcn_keras.run import Run
     from kpcn_keras.train import train
     from prep.shards import ShardSet
-    from prep.shards.config import shard_set_dir
 
     group = group_dir(cfg)
     seconds = cfg.budget / len(input_sets)
@@ -206,7 +207,7 @@ def plan_and_train(cfg: QualityConfig, sets: dict[str, str], input_sets: tuple[s
             networks = {}
             for inputs in input_sets:
                 base = train_config(cfg, lever, sets[lever], inputs, overrides)
-                manifest = ShardSet(shard_set_dir(cfg.shards_root, sets[lever], inputs)).complete_manifest()
+                manifest = ShardSet.named(cfg.shards_root, sets[lever], inputs).complete_manifest()
                 key = {"train": base.identity(), "seconds": seconds, "content_key": manifest["content_key"]}
                 variant = run.for_inputs(InputSet.named(inputs))
                 entry, _ = planned.entry((lever, inputs), key, variant.dir,
@@ -253,7 +254,7 @@ def held_out_frames(cfg: QualityConfig) -> list[dict]:
     from kpcn_keras.evaluate import read_frames
     from prep.shards import ShardSet
 
-    sset = ShardSet(Path(cfg.shards_root) / cfg.set_name)
+    sset = ShardSet.named(cfg.shards_root, cfg.set_name)
     frames = read_frames(sset.pairs(sset.complete_manifest(), "val"))
     if not frames:
         raise KpcnError(f"{sset.dir}: no held-out scenes to measure on")
