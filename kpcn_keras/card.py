@@ -234,12 +234,13 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     ``kpcn denoise`` runs it) and by OIDN when ``pyoidn`` is installed: side by side in this process, each
     warmed up, then called alternately ``repeats`` times, the best of each; with torch's threads, the precision,
     the peak resident memory during the timed calls and what the frame holds whole
-    (``denoise.frame_bytes``: beyond it, memory is bounded by the tile)."""
+    (``batch.frame_bytes``: beyond it, memory is bounded by the tile)."""
     import time
 
     import keras
 
-    from kpcn_keras.denoise import Denoiser, frame_bytes, peak_memory_mb
+    from kpcn_keras.batch import frame_bytes, peak_memory_mb
+    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs
     from prep import baselines, layouts
 

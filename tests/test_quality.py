@@ -373,6 +373,7 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
 
     # every frame as a self-ensemble of 2: the same runs serve it, and each frame is that ensemble's denoise
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.settings import InferenceSettings
     from kpcn_keras.run import Run
 
     ens = qs.quality(dataclasses.replace(cfg, ensemble=2, out_dir=str(tmp_path / "ens")), overrides=OVERRIDES,
@@ -380,7 +381,7 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
     assert [ens["plans"][lv]["run"] for lv in cfg.levers] == [record["plans"][lv]["run"] for lv in cfg.levers]
     noisy = exr.read_aovs(Path(full.render_root) / "s" / "a-001-00004spp.exr")
     reference = exr.read_aovs(Path(full.render_root) / "s" / "a-001-00064spp.exr", variances=False)["default"]
-    two = Denoiser.from_run(Run(record["plans"]["cpu"]["run"]), ensemble=2)(noisy)["default"]
+    two = Denoiser.from_run(Run(record["plans"]["cpu"]["run"]), InferenceSettings(ensemble=2))(noisy)["default"]
     assert ens["frames"][0]["frame"] == "a-001 4 spp"
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] == pytest.approx(_relmse64(two, reference), rel=1e-9)
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] != record["frames"][0]["levers"]["cpu"]["relmse"]
