@@ -196,14 +196,6 @@ class FrameReport:
     input_metrics: dict[str, float] | None = None
     metrics: dict[str, float] | None = None
 
-    def to_json(self) -> dict:
-        """The report as a JSON object, its keys in the order above with the metrics before ``png``; ``png`` and
-        the metrics only where there are some."""
-        data = dataclasses.asdict(self)
-        order = ["input", "layout", "inputs", "model", "output", "seconds", "read_s", "write_s", "input_metrics",
-                 "metrics", "png", "png_s", "frame_s"]
-        return {key: data[key] for key in order if data[key] is not None}
-
 
 @dataclass(frozen=True)
 class BatchReport:
@@ -222,11 +214,6 @@ class BatchReport:
     peak_memory_mb: float | None
     frames: tuple[FrameReport, ...]
     skipped: tuple[str, ...]
-
-    def to_json(self) -> dict:
-        """The report as a JSON object, each frame's by :meth:`FrameReport.to_json`."""
-        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return {**data, "frames": [frame.to_json() for frame in self.frames], "skipped": list(self.skipped)}
 
 
 def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Frame:

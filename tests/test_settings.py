@@ -2,8 +2,8 @@
 made once from the command line, checked once, by the settings themselves, and what each denoiser is loaded with."""
 
 import pytest
-from helpers import assert_one_line_error, run_main
 
+from kpcn_keras.cli import main
 from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_PRECISION, DEFAULT_TILE, ENSEMBLE, TILE
 from kpcn_keras.parser import _flags, build_parser, inference_settings
 from kpcn_keras.settings import InferenceSettings
@@ -52,12 +52,13 @@ def test_a_bad_setting_is_refused_by_the_settings_naming_the_option(field, value
 
 @pytest.mark.parametrize("command, args", [
     ("denoise", ["in.exr"]), ("evaluate", ["--run", "nowhere"]), ("view", ["in.exr"]), ("figures", [])])
-def test_every_command_refuses_a_bad_tile_once_by_its_flag(tmp_path, command, args):
+def test_every_command_refuses_a_bad_tile_once_by_its_flag(tmp_path, monkeypatch, capsys, command, args):
     # the one check is the settings': the parser's own bounds hold none of their options
     _, own, _ = build_parser().get_default("bounded")[command]
     assert not set(own) & set(SETTINGS)
-    res = run_main(command, *args, "--tile", "0", cwd=tmp_path)
-    assert_one_line_error(res, f"kpcn {command}: error: --tile must be {TILE.text()}, got 0")
-    if command in ("denoise", "evaluate"):
-        res = run_main(command, *args, "--ensemble", "9", cwd=tmp_path)
-        assert_one_line_error(res, f"kpcn {command}: error: --ensemble must be {ENSEMBLE.text()}, got 9")
+    monkeypatch.chdir(tmp_path)
+    bad = [("--tile", "0", TILE)] + ([("--ensemble", "9", ENSEMBLE)] if command in ("denoise", "evaluate") else [])
+    for flag, value, bound in bad:
+        assert main(["-q", command, *args, flag, value]) == 2
+        out, err = capsys.readouterr()
+        assert (out, err) == ("", f"kpcn {command}: error: {flag} must be {bound.text()}, got {value}\n")
