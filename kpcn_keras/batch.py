@@ -36,7 +36,6 @@ from prep.files import check_outputs, check_writable
 from prep.inputs import InputSet, pair_layers
 from prep.processes import memory_shortfall
 
-
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
 # Bytes a pixel of what denoising a frame holds whole, the tiles bounding the rest: the render as read (its
 # float32 layers) with the three float32 outputs; the side-by-side PNG (canvas, image and encoder); a

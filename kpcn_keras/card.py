@@ -362,10 +362,8 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
     return "\n".join(lines) + "\n"
 
 
-def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str,
-         speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
-    """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``)."""
-    run = Run(run_dir)
+def ship(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
+    """Ship ``run`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``)."""
     run.check_ship_destination(Run(dest))
     card = make_card(run, dest, command, speed_frame)
     return run.ship(dest, {CARD: card})

@@ -143,9 +143,10 @@ def cmd_train(args) -> int:
 def cmd_resample(args) -> int:
     from kpcn_keras.config import ResampleConfig
     from kpcn_keras.resample import resample
+    from kpcn_keras.run import Run
 
     cfg = ResampleConfig(**_given(args, ResampleConfig))
-    loop = resample(cfg, args.run, verbose=0 if args.quiet else "auto", progress=not args.quiet,
+    loop = resample(cfg, Run(args.run), verbose=0 if args.quiet else "auto", progress=not args.quiet,
                     command=_command_line(args, DATA_INVARIANT))
     print(f"{len(loop['rounds'])} rounds; records: {os.path.join(args.run, 'resample', 'rounds.json')}")
     return 0
@@ -221,10 +222,11 @@ def cmd_evaluate(args) -> int:
 
 def cmd_ship(args) -> int:
     from kpcn_keras.card import ship
+    from kpcn_keras.run import Run
 
     if "speed_frame" in args and len(args.speed_frame) != 2:
         raise OptionError("speed_frame", f"must be WIDTH,HEIGHT, got {list(args.speed_frame)}")
-    shipped = ship(args.run, args.out, _command_line(args, DATA_INVARIANT),
+    shipped = ship(Run(args.run), args.out, _command_line(args, DATA_INVARIANT),
                    **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
     size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
     print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MB); its card: {shipped.card_path}")

@@ -4,8 +4,8 @@
 A :class:`ViewSession` reads the frame (any layout ``prep.layouts`` reads), the model that serves it
 (``kpcn_keras.serving.Serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the
 ``reference`` (``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, albedo and normal,
-when ``pyoidn`` is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor it prepares
-the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
+when ``pyoidn`` is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor
+it prepares the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
 the map's new values in a rectangle, re-applied to that rectangle alone (``PreparedFrame(map, region)``: the
 module is 1x1, so pixels outside a changed region keep their values exactly). Any other run shows its
 denoised frame with the brush off and says why.

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from helpers import TINY_MODEL, build_tiny_shards, moved, random_aovs, randomise
 
-from kpcn_keras.config import TrainConfig
 from kpcn_keras.batch import denoise_files
+from kpcn_keras.config import TrainConfig
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import network_input
 from kpcn_keras.run import Run

@@ -259,8 +259,8 @@ def test_a_no_split_denoiser_runs_the_diffuse_network_on_the_total_colour_and_gi
     import keras
 
     from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.settings import InferenceSettings
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     _, _, variant = runs
     den = Denoiser.from_run(Run(variant), InferenceSettings(tile=4096))

@@ -77,8 +77,8 @@ def test_a_bfloat16_trunk_still_gives_each_pixel_a_convex_combination_of_its_win
 
 def test_the_shipped_model_in_bfloat16_denoises_as_well_as_in_float32():
     from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.settings import InferenceSettings
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     frame = layouts.read(FIXTURES / "fixture-00008spp.exr").layers
     reference = layouts.read(FIXTURES / "fixture-01024spp.exr").layers["default"]

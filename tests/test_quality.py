@@ -373,8 +373,8 @@ def test_a_tiny_study_trains_each_lever_for_every_layout_and_writes_the_reports(
 
     # every frame as a self-ensemble of 2: the same runs serve it, and each frame is that ensemble's denoise
     from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.settings import InferenceSettings
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     ens = qs.quality(dataclasses.replace(cfg, ensemble=2, out_dir=str(tmp_path / "ens")), overrides=OVERRIDES,
                      verbose=0, log=lambda *_: None)

@@ -62,3 +62,23 @@ def test_every_command_refuses_a_bad_tile_once_by_its_flag(tmp_path, monkeypatch
         assert main(["-q", command, *args, flag, value]) == 2
         out, err = capsys.readouterr()
         assert (out, err) == ("", f"kpcn {command}: error: {flag} must be {bound.text()}, got {value}\n")
+
+
+def test_kpcn_denoise_applies_its_settings(tiny_run, tmp_path, fixture_noisy):
+    # end to end: what the command wrote is, bit for bit, what a denoiser loaded with those settings gives, and
+    # not what the defaults give (a 2-member ensemble changes the output)
+    import numpy as np
+
+    from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.run import Run
+    from prep import exr, layouts
+
+    out = tmp_path / "out.exr"
+    assert main(["-q", "denoise", str(fixture_noisy), "--run", str(tiny_run), "-o", str(out), "--tile", "16",
+                 "--ensemble", "2", "--precision", "float32"]) == 0
+    written = exr.read_aovs(out, variances=False)["default"]
+    frame = layouts.read(fixture_noisy).layers
+    want = Denoiser.from_run(Run(tiny_run), InferenceSettings(16, "float32", 2))(frame)["default"]
+    np.testing.assert_array_equal(written, want)
+    assert not np.array_equal(written, Denoiser.from_run(Run(tiny_run), InferenceSettings(precision="float32"))(
+        frame)["default"])
