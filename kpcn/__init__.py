@@ -6,13 +6,14 @@
     out = kpcn.denoise(frame, run="runs/default")  # (H, W, 3) float32, from every layer the frame has
     out = kpcn.denoise(colour, albedo=albedo, normal=normal, run="runs/default")  # numpy arrays, as pyoidn
 
-:func:`read` is ``prep.layouts.read``; :func:`denoise` is ``kpcn_keras.api.denoise``. Importing this package
+:func:`read` is ``prep.layouts.read``; :func:`denoise` is ``kpcn_keras.api.denoise``, applied with
+:class:`InferenceSettings` (``kpcn_keras.settings``: tile, precision, ensemble). Importing this package
 imports neither keras nor torch; the first :func:`denoise` does.
 """
 
 from prep.layouts import Frame, read
 
-__all__ = ["Frame", "denoise", "read"]
+__all__ = ["Frame", "InferenceSettings", "denoise", "read"]
 
 
 def denoise(*args, **kwargs):
@@ -22,3 +23,11 @@ def denoise(*args, **kwargs):
 
 
 denoise.__doc__ = "Denoise numpy arrays: see kpcn_keras.api.denoise."
+
+
+def __getattr__(name: str):
+    if name == "InferenceSettings":  # when asked for: importing kpcn imports nothing of kpcn_keras
+        from kpcn_keras.settings import InferenceSettings
+
+        return InferenceSettings
+    raise AttributeError(f"module 'kpcn' has no attribute {name!r}")

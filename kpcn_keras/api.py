@@ -2,12 +2,13 @@
 
 :func:`denoise` makes a frame from the arrays given, in kpcn's names (``prep.layouts.Frame``), and denoises it
 exactly as ``kpcn denoise`` does a file that holds the same layers: the same model (``Run.serving`` picks the
-run's variant for what the arrays give), the same ``denoise.Denoiser``, so the result equals the command's
-output bit for bit (``tests/test_renderers.py``). What is not given is filled as the rgb layout fills it (albedo 1,
-normal 0, depth 0; ``prep.layouts.FILL``). ``variance`` is the variance of the pixel mean of ``color`` ((H, W)
-or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must be a dict of the six
-``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A loaded model is kept for the
-next call with the same run, tile, precision and input set.
+run's variant for what the arrays give), the same ``denoise.Denoiser`` held by a ``serving.Serving``, so the
+result equals the command's output bit for bit (``tests/test_renderers.py``). What is not given is filled as the
+rgb layout fills it (albedo 1, normal 0, depth 0; ``prep.layouts.FILL``). ``variance`` is the variance of the
+pixel mean of ``color`` ((H, W) or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must
+be a dict of the six ``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A model's
+serving object, and the denoisers it loaded, are kept for the next call with the same run and settings (until
+the run's record changes: a run trained again is loaded again).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE
+from kpcn_keras.settings import InferenceSettings
 from prep.errors import KpcnError
 from prep.exr import VARIANCE_LAYERS, to_float32
 from prep.inputs import InputSet
@@ -76,23 +77,22 @@ def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None
 
 
 @functools.lru_cache(maxsize=4)
-def _denoiser(run_dir: str, inputs: InputSet, tile: int, precision: str | None, ensemble: int, stamp: float):
-    from kpcn_keras.denoise import Denoiser
+def _serving(run_dir: str, settings: InferenceSettings, stamp: float):
     from kpcn_keras.run import Run
+    from kpcn_keras.serving import Serving
 
-    variant = Run(run_dir).serving(inputs)
-    return Denoiser.from_run(variant, tile, precision=precision, ensemble=ensemble)
+    return Serving(Run(run_dir), settings)
 
 
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
-            run: str | os.PathLike | None = None, tile: int = DEFAULT_TILE, slope: float | None = None,
-            precision: str | None = None, ensemble: int = DEFAULT_ENSEMBLE) -> np.ndarray:
+            run: str | os.PathLike | None = None, settings: InferenceSettings = InferenceSettings(),
+            slope: float | None = None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
     by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
-    at ``slope`` (λ, for a run trained with it as an input), its trunks in ``precision`` (``"auto"``, ``"float32"`` or
-    ``"bfloat16"``: ``kpcn_keras.precision``), by a self-ensemble of ``ensemble`` members where more than 1
-    (``kpcn_keras.denoise``: that many times the time)."""
+    at ``slope`` (λ, for a run trained with it as an input), applied with ``settings``
+    (``kpcn.InferenceSettings``: the tile, the trunks' precision, ``"auto"``, ``"float32"`` or ``"bfloat16"``, and
+    a self-ensemble's members where more than 1, that many times the time; ``kpcn_keras.settings``)."""
     if run is None:
         from kpcn_keras.run import default_model
 
@@ -103,5 +103,5 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
         frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
-    denoiser = _denoiser(str(Path(run).resolve()), frame.inputs, int(tile), precision, ensemble, stamp)
+    denoiser = _serving(str(Path(run).resolve()), settings, stamp).denoiser(frame.inputs)
     return denoiser(frame.layers, slope=slope)["default"]

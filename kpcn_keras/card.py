@@ -237,12 +237,13 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     ``kpcn denoise`` runs it) and by OIDN when ``pyoidn`` is installed: side by side in this process, each
     warmed up, then called alternately ``repeats`` times, the best of each; with torch's threads, the precision,
     the peak resident memory during the timed calls and what the frame holds whole
-    (``denoise.frame_bytes``: beyond it, memory is bounded by the tile)."""
+    (``batch.frame_bytes``: beyond it, memory is bounded by the tile)."""
     import time
 
     import keras
 
-    from kpcn_keras.denoise import Denoiser, frame_bytes, peak_memory_mb
+    from kpcn_keras.batch import frame_bytes, peak_memory_mb
+    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs
     from prep import baselines, layouts
 
@@ -370,11 +371,9 @@ def make_card(run: Run, dest: str | os.PathLike, command: str,
     return "\n".join(lines) + "\n", found
 
 
-def ship(run_dir: str | os.PathLike, dest: str | os.PathLike, command: str,
-         speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
-    """Ship the run ``run_dir`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``) and the speed
-    record the card shows (:data:`SPEED`)."""
-    run = Run(run_dir)
+def ship(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME) -> Run:
+    """Ship ``run`` to ``dest`` with its card (:func:`make_card`, ``Run.ship``) and the speed record the card
+    shows (:data:`SPEED`)."""
     run.check_ship_destination(Run(dest))
     card, found = make_card(run, dest, command, speed_frame)
     return run.ship(dest, {CARD: card, SPEED: json.dumps(found, indent=2) + "\n"})

@@ -4,7 +4,9 @@ Subcommands: render, references, render-cycles, import-renders, shards, train, r
 figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each
 fills its stage's config dataclass from the options the user gave; an option left out takes the dataclass's default.
 The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass
-holds (``--tile``, ``--slope``, ...) are checked against their bounds before the command starts.
+holds (``--slope``, ``--port``, ...) are checked against their bounds before the command starts. The inference
+settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``, the model as one
+``Run``, each made once here.
 ``render``, ``references``, ``render-cycles``, ``import-renders``, ``shards``, ``bench render`` and ``figures --set``
 never import keras or torch.
 
@@ -20,7 +22,15 @@ import logging
 import os
 import sys
 
-from kpcn_keras.parser import DATA_INVARIANT, _check_own_bounds, _command_line, _flags, _given, build_parser
+from kpcn_keras.parser import (
+    DATA_INVARIANT,
+    _check_own_bounds,
+    _command_line,
+    _flags,
+    _given,
+    build_parser,
+    inference_settings,
+)
 from prep.errors import KpcnError, OptionError
 
 # The exit status of a KpcnError; argparse uses the same for a malformed command line.
@@ -153,57 +163,63 @@ def cmd_train(args) -> int:
 def cmd_resample(args) -> int:
     from kpcn_keras.config import ResampleConfig
     from kpcn_keras.resample import resample
+    from kpcn_keras.run import Run
 
     cfg = ResampleConfig(**_given(args, ResampleConfig))
-    loop = resample(cfg, args.run, verbose=0 if args.quiet else "auto", progress=not args.quiet,
+    loop = resample(cfg, Run(args.run), verbose=0 if args.quiet else "auto", progress=not args.quiet,
                     command=_command_line(args, DATA_INVARIANT))
     print(f"{len(loop['rounds'])} rounds; records: {os.path.join(args.run, 'resample', 'rounds.json')}")
     return 0
 
 
+def _model(args):
+    """The ``Run`` of ``--run``, else the model ``kpcn denoise`` uses by default (``run.default_model``)."""
+    from kpcn_keras.run import Run, default_model
+
+    return Run(args.run) if "run" in args else default_model()
+
+
 def cmd_denoise(args) -> int:
-    from kpcn_keras.denoise import denoise_files
-    from kpcn_keras.run import default_model
+    from kpcn_keras.batch import ReadOptions, denoise_files
 
     def frame(report):
-        print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else "")
-              + f" ({report['layout']} layout, {report['inputs']}, model {report['model']}; "
-              f"{report['seconds'] * 1000:.0f} ms denoising, {report['frame_s'] * 1000:.0f} ms with files)")
+        print(f"wrote {report.output}" + (f" and {report.png}" if report.png is not None else "")
+              + f" ({report.layout} layout, {report.inputs}, model {report.model}; "
+              f"{report.seconds * 1000:.0f} ms denoising, {report.frame_s * 1000:.0f} ms with files)")
 
-    run = args.run if "run" in args else default_model().dir
-    batch = denoise_files(args.inputs, run, args.output, args.reference, png=args.png, on_frame=frame,
-                          layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
-                          **{k: getattr(args, k) for k in ("tile", "slope", "precision", "slope_map", "ensemble")
-                             if k in args})
-    frames = batch["frames"]
-    if batch["skipped"]:
-        print(f"skipped {len(batch['skipped'])} earlier outputs or temporaries: {', '.join(batch['skipped'])}")
-    startup = "?" if batch["startup_s"] is None else f"{batch['startup_s']:.2f} s"
-    print(f"start-up {startup}, model load {batch['load_s']:.2f} s, warm-up {batch['warmup_s']:.2f} s "
-          f"({batch['threads']} thread{'s' if batch['threads'] != 1 else ''}, {batch['precision']}"
-          + (f", an ensemble of {batch['ensemble']}" if batch["ensemble"] > 1 else "") + ")")
-    if batch["peak_memory_mb"] is not None:
-        print(f"peak memory {batch['peak_memory_mb']:.0f} MB")
-    per_frame = sorted(f["seconds"] for f in frames)[len(frames) // 2]
-    print(f"denoised {len(frames)} frame{'s' if len(frames) > 1 else ''} in {sum(f['seconds'] for f in frames):.2f} s"
+    settings = inference_settings(args)
+    reading = ReadOptions(layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal)
+    batch = denoise_files(args.inputs, _model(args), args.output, args.reference, settings=settings, reading=reading,
+                          png=args.png, slope=getattr(args, "slope", None), slope_map=getattr(args, "slope_map", None),
+                          on_frame=frame)
+    frames = batch.frames
+    if batch.skipped:
+        print(f"skipped {len(batch.skipped)} earlier outputs or temporaries: {', '.join(batch.skipped)}")
+    startup = "?" if batch.startup_s is None else f"{batch.startup_s:.2f} s"
+    print(f"start-up {startup}, model load {batch.load_s:.2f} s, warm-up {batch.warmup_s:.2f} s "
+          f"({batch.threads} thread{'s' if batch.threads != 1 else ''}, {batch.precision}"
+          + (f", an ensemble of {batch.ensemble}" if batch.ensemble > 1 else "") + ")")
+    if batch.peak_memory_mb is not None:
+        print(f"peak memory {batch.peak_memory_mb:.0f} MB")
+    per_frame = sorted(f.seconds for f in frames)[len(frames) // 2]
+    print(f"denoised {len(frames)} frame{'s' if len(frames) > 1 else ''} in {sum(f.seconds for f in frames):.2f} s"
           + (f" (median {per_frame * 1000:.0f} ms a frame)" if len(frames) > 1 else ""))
-    if "metrics" in frames[0]:
-        report = frames[0]
-        print(f"{'':10s} " + " ".join(f"{m:>10s}" for m in report["metrics"]))
-        for label, key in (("input", "input_metrics"), ("denoised", "metrics")):
-            print(f"{label:10s} " + " ".join(f"{v:10.5f}" for v in report[key].values()))
+    report = frames[0]
+    if report.metrics is not None:
+        print(f"{'':10s} " + " ".join(f"{m:>10s}" for m in report.metrics))
+        for label, measured in (("input", report.input_metrics), ("denoised", report.metrics)):
+            print(f"{label:10s} " + " ".join(f"{v:10.5f}" for v in measured.values()))
     return 0
 
 
 def cmd_view(args) -> int:
-    from kpcn_keras.run import default_model
     from kpcn_keras.viewer import ViewSession, listen, serve
 
+    settings = inference_settings(args)
     httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
     try:
-        run = args.run if "run" in args else default_model().dir
-        session = ViewSession.open(args.frame, run, args.reference, layout=args.layout,
-                                   **{k: getattr(args, k) for k in ("slope", "tile", "precision") if k in args})
+        session = ViewSession.open(args.frame, _model(args), args.reference, layout=args.layout,
+                                   slope=getattr(args, "slope", None), settings=settings)
     except BaseException:
         httpd.server_close()
         raise
@@ -213,10 +229,12 @@ def cmd_view(args) -> int:
 
 def cmd_evaluate(args) -> int:
     from kpcn_keras.evaluate import evaluate, format_table, pairs_for_inputs
+    from kpcn_keras.run import Run
 
+    settings = inference_settings(args)
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
-    rows = evaluate(args.run, pairs, out_dir=args.out, baseline=not args.no_baseline, layout=args.layout,
-                    **{k: getattr(args, k) for k in ("tile", "slope", "precision", "ensemble") if k in args})
+    rows = evaluate(Run(args.run), pairs, out_dir=args.out, settings=settings, baseline=not args.no_baseline,
+                    layout=args.layout, slope=getattr(args, "slope", None))
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
     return 0
@@ -224,10 +242,11 @@ def cmd_evaluate(args) -> int:
 
 def cmd_ship(args) -> int:
     from kpcn_keras.card import ship
+    from kpcn_keras.run import Run
 
     if "speed_frame" in args and len(args.speed_frame) != 2:
         raise OptionError("speed_frame", f"must be WIDTH,HEIGHT, got {list(args.speed_frame)}")
-    shipped = ship(args.run, args.out, _command_line(args, DATA_INVARIANT),
+    shipped = ship(Run(args.run), args.out, _command_line(args, DATA_INVARIANT),
                    **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
     size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
     print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MB); its card: {shipped.card_path}")
@@ -235,6 +254,7 @@ def cmd_ship(args) -> int:
 
 
 def cmd_figures(args) -> int:
+    settings = inference_settings(args)
     if "run" not in args:
         return cmd_shard_set_figures(args)
     shard_set = [dest for dest in ("set_name", "shards_root") if dest in args]
@@ -243,11 +263,13 @@ def cmd_figures(args) -> int:
                           "its own shard set; leave out --run or this option")
     from kpcn_keras.evaluate import pairs_for_inputs
     from kpcn_keras.figures import make_figures
+    from kpcn_keras.run import Run
 
     frame = pairs_for_inputs([args.input])[0] if args.input else None
     if "pixel" in args and len(args.pixel) != 2:
         raise OptionError("pixel", f"must be two integers y,x, got {','.join(map(str, args.pixel))}")
-    written = make_figures(args.run, frame, **{k: getattr(args, k) for k in ("pixel", "slopes", "tile") if k in args})
+    written = make_figures(Run(args.run), frame, settings=settings,
+                           **{k: getattr(args, k) for k in ("pixel", "slopes") if k in args})
     for name, path in written.items():
         print(f"{name}: {path}")
     return 0

@@ -43,6 +43,11 @@ DEFAULT_ENSEMBLE = 1
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DEFAULT_MODEL = "default"
 MODEL_ENV = "KPCN_MODEL"
+# The flags of the options a message spells in a command it suggests (a run's hint, ``Run._training_commands``),
+# by command and option: the parser declares them under these (tests/test_cli.py holds the two equal), and a
+# library module spells them from here rather than reaching up to the parser
+HINT_FLAGS = {"shards": {"set_name": "--set", "out_root": "--out", "inputs": "--inputs"},
+              "train": {"set_name": "--set", "shards_root": "--shards", "run": "--run-dir", "inputs": "--inputs"}}
 SHIPPED_MAX_BYTES = 25 * 2**20  # a shipped model lives in git: refused above this
 # the shipped model's goal: a 1920x1080 frame within 3x OIDN's time on the same CPU; its card times
 # the two side by side (kpcn_keras/card.py), the best of SPEED_REPEATS alternating calls after a warm-up

@@ -29,32 +29,21 @@ is cut with the row and column on each side that the moved window's features rea
 computed there (:meth:`Denoiser.predict_member`), so tiles still equal an untiled run and memory is still bounded
 by the tile (N predictions of one).
 
-Batches: :func:`denoise_files` reads a run's record and loads its networks once (``Denoiser.from_run``), warms
-them up once, then denoises many frames (files, or every render in a folder) and reports start-up, load and
-warm-up apart from each frame's time; a frame's ``seconds`` never includes the model load. A frame of a batch
-is denoised exactly as alone (the same networks on the same tiles: bit-identical). ``denoise_file`` is the
-batch of one. Inputs and outputs are checked before anything is loaded: a file it would write (an output EXR,
-its PNG) that is a file it reads (an input, the reference, the run's record or models) or another output, or
-that could not be written, an input whose header lacks a layer, a frame whose whole-frame arrays
-(:func:`frame_bytes`) the machine cannot hold. Each output is written atomically, so a batch stopped by a bad
-frame leaves every earlier output whole. The default output is ``<input stem>-denoised.exr`` beside the input
-(:func:`default_output`); with several inputs ``-o`` is a folder.
+Files in, files out (a batch of frames, their reports, the outputs' names) are ``kpcn_keras.batch``'s; a model's
+variants and the denoisers loaded from them, ``kpcn_keras.serving``'s; the side-by-side PNGs,
+``kpcn_keras.panels``'.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import gc
-import os
-import time
-from pathlib import Path
 
 import keras
 import numpy as np
 
 from kpcn_keras import slope_map
 from kpcn_keras.augment import Augmentation, augment_spatial, moved_box
-from kpcn_keras.config import ALBEDO_NETWORK, DEFAULT_ENSEMBLE, DEFAULT_TILE, ENSEMBLE, TILE
+from kpcn_keras.config import ALBEDO_NETWORK
 from kpcn_keras.models import (
     albedo_input,
     input_alignment,
@@ -68,25 +57,11 @@ from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, til
 from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord, check_architecture
-from prep import colour, exr, features, layouts
+from kpcn_keras.settings import InferenceSettings
+from prep import colour, exr, features
 from prep.albedo import prefilter as prefilter_albedo
 from prep.errors import KpcnError, OptionError
-from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
-from prep.inputs import InputSet, pair_layers, restrict
-from prep.processes import memory_shortfall
-
-DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
-PNG_ROWS = 256  # rows of a panel tonemapped at a time
-# Bytes a pixel of what denoising a frame holds whole, the tiles bounding the rest: the render as read (its
-# float32 layers) with the three float32 outputs; the side-by-side PNG (canvas, image and encoder); a
-# reference as read with the metrics' float64 arithmetic. Upper bounds of what numpy allocates
-# (tests/test_denoise.py::test_frame_bytes_bound_what_a_frame_holds_whole), used to refuse a frame the
-# machine cannot hold before any work (frame_bytes).
-FRAME_BYTES, PNG_BYTES, REFERENCE_BYTES = 128, 32, 384
-# A file of another layout is decoded whole before its layers are made (4 bytes a channel, half or float), and a
-# pair is two frames and their float64 mean and difference.
-FILE_CHANNEL_BYTES, PAIR_BYTES = 4, 512
-
+from prep.inputs import restrict
 
 
 class Denoiser:
@@ -101,18 +76,19 @@ class Denoiser:
     A frame is first restricted to the run's input set (``prep.inputs.restrict``, ``RunRecord.inputs``): the
     networks see what their shards held. A no-split run has the diffuse network alone (:attr:`branches`):
     its input is the total colour, the specular branch is not run and its output is 0, so ``default`` is the
-    diffuse output. ``ensemble``: the members of a self-ensemble (module docstring; 1: the networks once).
+    diffuse output. ``settings`` (``kpcn_keras.settings``): the tile, the trunks' precision and the members of a
+    self-ensemble (module docstring; 1: the networks once).
     """
 
     def __init__(self, run: Run, record: RunRecord, networks: dict[str, keras.Model],
-                 compositor: keras.Model | None = None, tile: int = DEFAULT_TILE, precision: str | None = None,
-                 ensemble: int = DEFAULT_ENSEMBLE, albedo: keras.Model | None = None):
-        self.run, self.record, self.model_config = run, record, record.model
-        self.networks, self.compositor, self.asked_tile = networks, compositor, TILE.check("tile", tile)
+                 compositor: keras.Model | None = None, settings: InferenceSettings = InferenceSettings(),
+                 albedo: keras.Model | None = None):
+        self.run, self.record, self.model_config, self.settings = run, record, record.model, settings
+        self.networks, self.compositor, self.asked_tile = networks, compositor, settings.tile
         self.albedo_network = albedo
-        self.symmetries = tuple(Augmentation(code) for code in range(ENSEMBLE.check("ensemble", ensemble)))
+        self.symmetries = tuple(Augmentation(code) for code in range(settings.ensemble))
         # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16"
-        self.precision = resolve(precision)
+        self.precision = resolve(settings.precision)
         for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
             apply_precision(net, self.precision)
         self.inputs, self.branches = record.inputs, record.branches
@@ -132,15 +108,13 @@ class Denoiser:
         self.tile = -(-self.asked_tile // self.align) * self.align
 
     @classmethod
-    def from_run(cls, run: Run, tile: int = DEFAULT_TILE, *, record: RunRecord | None = None,
-                 multiscale: bool = True, resampling: bool = False, precision: str | None = None,
-                 ensemble: int = DEFAULT_ENSEMBLE) -> Denoiser:
-        """The denoiser of ``run``: its ``record`` (read here if not given) and each network loaded once.
-        ``multiscale=False`` leaves a multiscale run's compositor out; ``resampling``: the resample loop's
-        own use, between the phases of its current round. Only the networks of the branches the run's input
-        set runs are read (``RunRecord.branches``). ``precision``: the trunks' arithmetic (``--precision``;
-        default ``"auto"``: ``kpcn_keras.precision``); ``ensemble``: a self-ensemble's members (``--ensemble``)."""
-        tile = TILE.check("tile", tile)
+    def from_run(cls, run: Run, settings: InferenceSettings = InferenceSettings(), *,
+                 record: RunRecord | None = None, multiscale: bool = True, resampling: bool = False) -> Denoiser:
+        """The denoiser of ``run`` applied with ``settings`` (tile, precision, ensemble: ``kpcn_keras.settings``):
+        its ``record`` (read here if not given) and each network loaded once. ``multiscale=False`` leaves a
+        multiscale run's compositor out; ``resampling``: the resample loop's own use, between the phases of its
+        current round. Only the networks of the branches the run's input set runs are read
+        (``RunRecord.branches``)."""
         record = (run.record() if record is None else record).finished(resampling=resampling)
         names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
         networks = {}
@@ -154,7 +128,7 @@ class Denoiser:
         if ALBEDO_NETWORK in record.components:
             albedo = run.load_component(record, ALBEDO_NETWORK)
             check_architecture(albedo, record.model, record.component_path(ALBEDO_NETWORK))
-        return cls(run, record, networks, compositor, tile, precision, ensemble, albedo)
+        return cls(run, record, networks, compositor, settings, albedo)
 
     @property
     def ensemble(self) -> int:
@@ -164,8 +138,7 @@ class Denoiser:
         """The same networks without the compositor (itself for a run that has none)."""
         if self.compositor is None:
             return self
-        return Denoiser(self.run, self.record, self.networks, None, self.asked_tile, self.precision, self.ensemble,
-                        self.albedo_network)
+        return Denoiser(self.run, self.record, self.networks, None, self.settings, self.albedo_network)
 
     def warm_up(self, slope: float | None = None) -> None:
         """Denoise a small black frame once (at ``slope``), so that timings exclude one-time setup (numba,
@@ -419,368 +392,3 @@ class PreparedFrame:
         pred = keras.ops.convert_to_numpy(self.modules[branch].predict_on_batch([*self.tiles[branch, tile], plane]))[0]
         gc.collect(1)  # as in Denoiser.predict_tile
         return _kept(pred, tile, window)
-
-
-def side_by_side_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
-    """Tonemapped panels in a row with their captions (``prep.colour.tonemap``), drawn by matplotlib (the
-    report figures)."""
-    plt = pyplot()
-
-    from prep.colour import tonemap
-
-    h, w = panels[0][1].shape[:2]
-    scale = 4.0 / max(h, w)
-    fig, axes = plt.subplots(1, len(panels), figsize=(len(panels) * w * scale, h * scale + 0.8), squeeze=False)
-    for ax, (caption, image) in zip(axes[0], panels):
-        ax.imshow(tonemap(image), interpolation="nearest")
-        ax.set_title(caption, fontsize=9)
-        ax.axis("off")
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    return save_png(fig, path)
-
-
-def panels_png(path: str | Path, panels: list[tuple[str, np.ndarray]], title: str = "") -> Path:
-    """The side-by-side PNG of ``kpcn denoise``: tonemapped panels at full resolution in a row, each captioned
-    above, the title on top; written atomically. Pillow only: matplotlib's figure, layout and resampling
-    cost about 120 ms a frame at 256x256 for the same picture."""
-    from PIL import Image, ImageDraw
-
-    from prep.colour import tonemap
-
-    h, w = panels[0][1].shape[:2]
-    gap, line = 4, 14
-    top = line * (2 if title else 1)
-    canvas = np.full((top + h, len(panels) * (w + gap) - gap, 3), 255, np.uint8)
-    for i, (_, image) in enumerate(panels):
-        x = i * (w + gap)
-        for y in range(0, h, PNG_ROWS):  # the float64 tonemap of a whole frame is 24 bytes a pixel at a time
-            rows = slice(y, y + PNG_ROWS)
-            canvas[top + y : top + y + PNG_ROWS, x : x + w] = np.round(tonemap(image[rows]) * 255.0).astype(np.uint8)
-    picture = Image.fromarray(canvas)
-    draw = ImageDraw.Draw(picture)
-    if title:
-        draw.text((2, 1), title, fill=(0, 0, 0))
-    for i, (caption, _) in enumerate(panels):
-        draw.text((i * (w + gap) + 2, top - line + 1), caption, fill=(0, 0, 0))
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        picture.save(tmp, format="PNG", compress_level=1)  # speed over a few percent of size
-    return path
-
-
-def frame_bytes(height: int, width: int, *, png: bool = True, reference: bool = False, file_channels: int = 0,
-                pair: bool = False) -> int:
-    """What :func:`denoise_frame` holds whole for a ``height`` x ``width`` frame (see :data:`FRAME_BYTES`): with
-    ``file_channels``, a file of another layout decoded whole (``prep.layouts.read``) beside the layers made
-    from it; with ``pair``, a second render read and the pair's float64 arithmetic."""
-    per_pixel = FRAME_BYTES + PNG_BYTES * png + REFERENCE_BYTES * reference + FILE_CHANNEL_BYTES * file_channels
-    return height * width * (per_pixel + PAIR_BYTES * pair)
-
-
-def check_frame_memory(path, size: tuple[int, int], *, png: bool = True, reference: bool = False,
-                       available_mb: float | None = None, file_channels: int = 0, pair: bool = False) -> None:
-    """KpcnError naming the render ``path`` of ``size`` (height, width) if denoising it would hold more
-    than this machine has available (:func:`frame_bytes`; ``prep.processes.memory_shortfall``)."""
-    needed = frame_bytes(*size, png=png, reference=reference, file_channels=file_channels, pair=pair)
-    short = memory_shortfall(needed, available_mb=available_mb)
-    if short:
-        with_ref = ", with the reference" if reference else ""
-        raise KpcnError(f"{path}: denoising its {size[1]}x{size[0]} frame ({needed // (size[0] * size[1])} bytes a "
-                        f"pixel held whole{with_ref}) {short}" + ("; without --png it holds less" if png else ""))
-
-
-def default_output(input_path: str | os.PathLike, folder: str | os.PathLike | None = None) -> Path:
-    """``<input stem>-denoised.exr`` beside the input (or in ``folder``), whatever the input's suffix (or none)."""
-    path = Path(input_path)
-    stem = path.name[: -len(".exr")] if path.name.lower().endswith(".exr") else path.name
-    return (Path(folder) if folder is not None else path.parent) / f"{stem}{DENOISED_SUFFIX}"
-
-
-def png_path(output: str | os.PathLike) -> Path:
-    """The side-by-side PNG written beside an output EXR."""
-    return Path(output).with_suffix(".png")
-
-
-def is_output(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is named like an output of :func:`default_output` (never taken from a folder)."""
-    return Path(path).name.lower().endswith(DENOISED_SUFFIX)
-
-
-def collect_inputs(paths) -> tuple[list[Path], list[Path]]:
-    """The renders to denoise for ``paths`` (files and folders), in order, and the files skipped.
-
-    A file is taken as given. A folder gives every ``*.exr`` directly in it (any case, sorted), except the
-    outputs of an earlier run (``*-denoised.exr``) and hidden files (temporaries of an interrupted write),
-    which are returned as skipped. KpcnError naming the path for one that does not exist or a folder with
-    nothing to denoise.
-    """
-    inputs, skipped = [], []
-    for given in map(Path, paths):
-        if given.is_dir():
-            found = sorted(p for p in given.iterdir() if p.name.lower().endswith(".exr") and p.is_file())
-            take = [p for p in found if not is_output(p) and not p.name.startswith(".")]
-            skipped += [p for p in found if p not in take]
-            if not take:
-                raise KpcnError(f"{given}: no renders to denoise in this folder (found {len(found)} .exr files, "
-                                f"{len(found) - len(take)} of them earlier outputs or temporaries)")
-            inputs += take
-        elif given.exists():
-            inputs.append(given)
-        else:
-            raise KpcnError(f"{given}: no such file or folder")
-    return inputs, skipped
-
-
-def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
-    """The output EXR of each input: beside it by default; ``output`` a file for one input, or a folder
-    (existing, ending in ``/``, or, with several inputs, to be created) that takes every
-    ``<stem>-denoised.exr``. Refuses, before any work, an ``output`` that must be a folder but names a file,
-    and two inputs that would write the same output (:func:`denoise_files` checks every file it writes
-    against every file it reads)."""
-    if output is not None:
-        # Path() drops a trailing slash, which is how a user says "a folder" for one input
-        as_folder = os.fspath(output).endswith(("/", os.sep)) or Path(output).is_dir()
-        output = Path(output)
-        if len(inputs) > 1 and not as_folder:
-            if output.exists() or output.name.lower().endswith(".exr"):
-                raise OptionError("output", f"must be a folder with several inputs ({len(inputs)} given), got {output}"
-                                  + (" (a file)" if output.exists() else ""))
-            as_folder = True
-        outputs = [default_output(p, output) if as_folder else output for p in inputs]
-    else:
-        outputs = [default_output(p) for p in inputs]
-    seen: dict[Path, Path] = {}
-    for src, out in zip(inputs, outputs):
-        key = Path(os.path.abspath(out))
-        if key in seen:
-            raise KpcnError(f"{seen[key]} and {src} would both be written to {out}; denoise them "
-                            "in separate commands or rename one" if seen[key] != src else f"{src} is given twice")
-        seen[key] = src
-    return outputs
-
-
-def peak_memory_mb() -> float | None:
-    """This process's peak resident memory in MB (Linux ``VmHWM``), or None where it cannot be read.
-    Not ``getrusage``: its maxrss carries over the parent's resident size through fork and exec."""
-    from prep.processes import proc_megabytes
-
-    return proc_megabytes("/proc/self/status", ("VmHWM",)).get("VmHWM")
-
-
-def process_age() -> float | None:
-    """Seconds since this process started (Linux ``/proc``), or None where that cannot be read: the
-    start-up (interpreter and imports) that precedes a call."""
-    try:
-        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
-        uptime = float(Path("/proc/uptime").read_text().split()[0])
-        return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-def read_frame(input_path, *, layout: str | None = None, pair=None, albedo=None, normal=None) -> layouts.Frame:
-    """The frame to denoise: ``input_path`` in its layout (``prep.layouts.read``), or with ``pair`` (a second
-    render of the same frame, another seed) the two as one frame whose variance comes from their difference
-    (``prep.inputs.pair_layers``)."""
-    frame = layouts.read(input_path, layout, albedo=albedo, normal=normal)
-    if pair is None:
-        return frame
-    other = layouts.read(pair, layout, albedo=albedo, normal=normal)
-    if other.size != frame.size or other.layout != frame.layout or other.inputs.split != frame.inputs.split:
-        raise KpcnError(f"{pair} ({other.layout}, {other.size[1]}x{other.size[0]}) is not a second render of "
-                        f"{input_path} ({frame.layout}, {frame.size[1]}x{frame.size[0]})")
-    spp = frame.spp + other.spp if frame.spp and other.spp else None
-    alpha = None if frame.alpha is None else (frame.alpha + other.alpha) / 2
-    return dataclasses.replace(frame, layers=pair_layers(frame.layers, other.layers),
-                               inputs=InputSet(split=frame.inputs.split, variance=True), alpha=alpha, spp=spp,
-                               notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
-
-
-def read_reference(reference, input_path, size: tuple[int, int]) -> np.ndarray:
-    """The colour of ``reference``, the reference EXR of the frame ``input_path`` of (H, W) ``size``; KpcnError
-    naming both files and their sizes when they differ."""
-    ref = layouts.read(reference).layers["default"]
-    if ref.shape[:2] != tuple(size):
-        raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is {size[1]}x{size[0]}")
-    return ref
-
-
-def output_layers(frame: layouts.Frame, result: dict[str, np.ndarray], split: bool) -> dict[str, np.ndarray]:
-    """What an output EXR holds: the denoised colour as layer ``default`` (with the input's alpha as
-    ``default.A``), the denoised ``diffuse`` and ``specular`` where the model had a split, and the frame's
-    albedo, normal and depth as read."""
-    layers = {"default": result["default"]}
-    if frame.alpha is not None:
-        layers["default.A"] = frame.alpha
-    if split:
-        layers.update(diffuse=result["diffuse"], specular=result["specular"])
-    layers.update({k: frame.layers[k] for k in ("albedo", "normal", "depth")})
-    return layers
-
-
-def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png: bool = True,
-                  slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None) -> dict:
-    """Denoise one EXR with a loaded (warmed-up) ``denoiser`` at ``slope``: writes ``output`` and, with ``png``, the
-    side-by-side PNG beside it, each atomically. ``layout``, ``pair``, ``albedo``, ``normal``: as
-    :func:`read_frame`. The output carries the input's header attributes, data and display windows and alpha.
-    Returns the frame's report: ``input``, ``layout``, ``inputs`` (what the frame gave), ``model`` (the run
-    folder that denoised it), ``output``, ``png`` (if written), ``seconds`` (features, network and
-    recombination: no file I/O), ``read_s``, ``write_s``, ``png_s``, ``frame_s`` (all of it) and, with a
-    reference, ``metrics`` and ``input_metrics``."""
-    from prep import metrics
-
-    begin = time.perf_counter()
-    frame = read_frame(input_path, layout=layout, pair=pair, albedo=albedo, normal=normal)
-    noisy = frame.layers
-    ref = read_reference(reference, input_path, frame.size) if reference else None
-    start = time.perf_counter()
-    result = denoiser(noisy, slope=slope)
-    done = time.perf_counter()
-    exr.write_aovs(output, output_layers(frame, result, denoiser.record.inputs.split), attributes=frame.attributes,
-                   windows=(frame.data_window, frame.display_window))
-    written = time.perf_counter()
-    report = {"input": str(input_path), "layout": frame.layout, "inputs": frame.inputs.name,
-              "model": str(denoiser.run.dir), "output": str(output), "seconds": done - start,
-              "read_s": start - begin, "write_s": written - done}
-    panels = [("input", noisy["default"]), ("denoised", result["default"])]
-    if ref is not None:
-        report["input_metrics"] = metrics.all_metrics(noisy["default"], ref)
-        report["metrics"] = metrics.all_metrics(result["default"], ref)
-        panels.append(("reference", ref))
-    if png:
-        report["png"] = str(panels_png(png_path(output), panels, title=Path(input_path).name))
-    report["png_s"] = time.perf_counter() - written
-    report["frame_s"] = time.perf_counter() - begin
-    return report
-
-
-def denoise_files(inputs, run_dir, output=None, reference=None, *, png: bool = True, tile: int = DEFAULT_TILE,
-                  slope: float | None = None, layout: str | None = None, pair=None, albedo=None, normal=None,
-                  on_frame=None, precision: str | None = None, slope_map=None,
-                  ensemble: int = DEFAULT_ENSEMBLE) -> dict:
-    """Denoise many EXRs in one process: each model is loaded and warmed up once.
-
-    ``inputs``: files and folders (:func:`collect_inputs`), each in any layout ``prep.layouts`` reads
-    (``layout`` forces one); ``output``: see :func:`plan_outputs`; ``reference``: one reference EXR, and
-    ``pair``: a second render of the input, ``albedo``, ``normal``: files of an rgb frame's auxiliaries
-    (:func:`read_frame`), for a single input only. Each frame is
-    denoised by the model of ``run_dir`` trained for what the frame has (``Run.serving``: the run itself, or
-    one of its ``inputs/`` variants). Every input's header, the model each needs and every output are
-    checked before a model is loaded, so a missing layer, a missing model, a wrong size or an unwritable
-    output fails before any work. A frame that still fails (a truncated file) stops the batch with a KpcnError
-    naming it; the outputs written before it are complete (each is written atomically) and are named in the
-    message. ``on_frame(report)`` is called after each frame (progress). ``precision``: the networks' trunks'
-    arithmetic (``kpcn_keras.precision``; default "auto"). ``slope_map``: a painted λ map (``kpcn_keras.slope_map``)
-    instead of ``slope``, for a run with a specialisation module, read for each frame's size before any work.
-    ``ensemble``: a self-ensemble's members (module docstring).
-
-    Returns ``{"startup_s", "load_s", "warmup_s", "threads", "precision", "ensemble", "peak_memory_mb", "frames",
-    "skipped"}``: the seconds from process start to this call (None off Linux), of loading the networks and of
-    the warm-ups; torch's thread count; the precision it resolved to; the self-ensemble's members; the process's
-    peak resident memory at the end (:func:`peak_memory_mb`); one :func:`denoise_frame` report per input, in
-    order; the folder entries skipped (earlier outputs).
-    """
-    startup = process_age()
-    inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
-    singles = (("reference", reference), ("pair", pair), ("albedo", albedo), ("normal", normal))
-    for option, value in singles:
-        if value is not None and len(inputs) != 1:
-            raise OptionError(option, f"is for one input, got {len(inputs)}"
-                              + ("; 'kpcn evaluate' compares many" if option == "reference" else ""))
-        if value is not None and Path(value).is_dir():
-            what = {"reference": "the input's reference", "pair": "a second render's"}.get(option, f"the {option}")
-            raise OptionError(option, f"must be {what} EXR file, got {value}, a folder")
-    layouts.check_layout(layout)
-    outputs = plan_outputs(inputs, output)
-    run = Run(run_dir)
-    headers = [layouts.read_header(src, layout) for src in inputs]
-    pair_header = layouts.read_header(pair, layout) if pair is not None else None
-    # what each frame gives: a pair brings the variance its renders lack
-    given = [InputSet(h.inputs.split, True) if pair is not None else h.inputs for h in headers]
-    serving = {inputs: run.serving(inputs) for inputs in dict.fromkeys(given)}  # the run of each input set
-    records = {variant.dir: variant.record() for variant in serving.values()}
-    written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
-    read = [("input", src) for src in inputs] + [(option, value) for option, value in singles if value is not None]
-    if slope_map is not None:
-        read.append(("--slope-map", slope_map))
-    models = [item for variant in serving.values() for item in variant.read_files(records[variant.dir])]
-    check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
-    ref_size = layouts.read_header(reference).size if reference is not None else None
-    for src, header in zip(inputs, headers):
-        for other, size in (("reference", ref_size), ("pair", pair_header and pair_header.size)):
-            if size is not None and size != header.size:
-                raise KpcnError(f"the {other} is {size[1]}x{size[0]} but {src} is {header.size[1]}x{header.size[0]}")
-        check_frame_memory(src, header.size, png=png, reference=reference is not None,
-                           file_channels=header.channels, pair=pair is not None)
-    for out in outputs:
-        check_writable(out, "--output")
-        if png:
-            check_writable(png_path(out), "side-by-side PNG")
-    TILE.check("tile", tile)
-    ENSEMBLE.check("ensemble", ensemble)
-    precision = resolve(precision)
-    slopes = [slope] * len(inputs)
-    if slope_map is not None:
-        slopes = _read_slope_maps(slope_map, slope, [records[serving[g].dir] for g in given], headers)
-    for record in records.values():
-        record.finished().check_slope(slopes[0])  # before the networks are loaded
-    load_s = warmup_s = 0.0
-    denoisers = {}
-    frames = []
-    for src, out, frame_inputs in zip(inputs, outputs, given):
-        variant = serving[frame_inputs]
-        if variant.dir not in denoisers:
-            begin = time.perf_counter()
-            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
-                                                       precision=precision, ensemble=ensemble)
-            loaded = time.perf_counter()
-            denoisers[variant.dir].warm_up(slopes[0])
-            load_s, warmup_s = load_s + loaded - begin, warmup_s + time.perf_counter() - loaded
-        try:
-            frames.append(denoise_frame(denoisers[variant.dir], src, out, reference, png=png, slope=slopes[len(frames)],
-                                        layout=layout, pair=pair, albedo=albedo, normal=normal))
-        except KpcnError as exc:
-            if frames:
-                raise KpcnError(f"{exc} (stopped after {len(frames)} of {len(inputs)} frames; written: "
-                                f"{', '.join(f['output'] for f in frames)})") from exc
-            raise
-        if on_frame is not None:
-            on_frame(frames[-1])
-    threads = None
-    if keras.backend.backend() == "torch":
-        import torch
-
-        threads = torch.get_num_threads()
-    return {"startup_s": startup, "load_s": load_s, "warmup_s": warmup_s, "threads": threads, "precision": precision,
-            "ensemble": ensemble,
-            "peak_memory_mb": peak_memory_mb(),
-            "frames": frames, "skipped": [str(p) for p in skipped]}
-
-
-def _read_slope_maps(path, slope, records: list[RunRecord], headers) -> list[np.ndarray]:
-    """The λ map ``path`` for each frame (its record's λ range, its header's size); OptionError for a run that
-    cannot take one or with ``--slope`` beside it."""
-    if slope is not None:
-        raise OptionError("slope_map", "and --slope both give λ: give one")
-    maps = {}
-    for record, header in zip(records, headers):
-        if not record.model.slope_module:
-            raise OptionError("slope_map", f"is for a run trained with --slope-module (λ joined after the trunk); "
-                              f"{record.dir} takes " + ("one λ for the whole frame (--slope)" if
-                                                        record.model.slope_channel else "no λ"))
-        key = (tuple(record.train.slope_range), tuple(header.size))
-        if key not in maps:
-            maps[key] = slope_map.read(path, header.size, record.train.slope_range)
-    return [maps[tuple(r.train.slope_range), tuple(h.size)] for r, h in zip(records, headers)]
-
-
-def denoise_file(input_path, run_dir, output=None, reference=None, *, png: bool = True,
-                 tile: int = DEFAULT_TILE, slope: float | None = None, precision: str | None = None,
-                 **frame_options) -> dict:
-    """Denoise one EXR (:func:`denoise_files` with one input); returns its frame report (:func:`denoise_frame`)
-    with the batch's ``load_s`` and ``warmup_s``."""
-    batch = denoise_files([input_path], run_dir, output, reference, png=png, tile=tile, slope=slope,
-                          precision=precision, **frame_options)
-    return {**batch["frames"][0], "load_s": batch["load_s"], "warmup_s": batch["warmup_s"]}

@@ -19,9 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_TILE
-from kpcn_keras.denoise import Denoiser, side_by_side_png
+from kpcn_keras.config import DEFAULT_ENSEMBLE
+from kpcn_keras.panels import side_by_side_png
 from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
+from kpcn_keras.serving import Serving
+from kpcn_keras.settings import InferenceSettings
 from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable
@@ -123,15 +125,13 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
     return out_dir / Path(exr.render_filename(scene, spp)).with_suffix(".png")
 
 
-def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
-             tile: int = DEFAULT_TILE, baseline: bool = True, slope: float | None = None,
-             layout: str | None = None, precision: str | None = None, ensemble: int = DEFAULT_ENSEMBLE) -> list[dict]:
-    """Evaluate a run on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
+def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
+             settings: InferenceSettings = InferenceSettings(), baseline: bool = True, slope: float | None = None,
+             layout: str | None = None) -> list[dict]:
+    """Evaluate ``run`` on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
-    reads (``layout`` forces one), each denoised by the run's model for what it has (``Run.serving``), its
-    trunks in ``precision`` (``kpcn_keras.precision``; default "auto"), a self-ensemble of ``ensemble`` members where
-    more than 1 (``kpcn_keras.denoise``; a row then says how many)."""
-    run = Run(run_dir)
+    reads (``layout`` forces one), each denoised by the run's model for what it has (``Serving.variant``) with
+    ``settings`` (tile, the trunks' precision, a self-ensemble's members: a row then says how many)."""
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     if run.card_path.is_file() and out_dir.resolve() in (run.eval_dir.resolve(), run.validation_dir.resolve()):
         raise KpcnError(f"{run.dir}: a shipped model, whose {out_dir.name}/ holds the tables its card shows; "
@@ -141,38 +141,31 @@ def evaluate(run_dir: str | Path, pairs: list[tuple[str, str]] | None = None, *,
     pairs = pairs or held_out_pairs(run, record)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
-    serving = {}
-    for noisy, _ in pairs:
-        serving[noisy] = run.serving(layouts.read_header(noisy, layout).inputs)
-    records = {variant.dir: variant.record() for variant in serving.values()}
+    serving = Serving(run, settings)
+    given = {noisy: layouts.read_header(noisy, layout).inputs for noisy, _ in pairs}
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
-    variants = {variant.dir: variant for variant in serving.values()}.values()
-    models = [item for variant in variants for item in variant.read_files(records[variant.dir])]
+    models = serving.read_files(given.values())
     check_outputs(written, read + models, "choose another --out (a report folder takes one render of each name)")
-    denoisers = {}
+    ensemble = settings.ensemble
     rows = []
     for noisy_path, ref_path in pairs:
         scene, spp = exr.parse_render_filename(noisy_path)
-        variant = serving[noisy_path]
-        if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant, tile, record=records[variant.dir],
-                                                       precision=precision, ensemble=ensemble)
-            denoisers[variant.dir].warm_up(slope)
+        denoiser = serving.denoiser(given[noisy_path], warm_up=True, slope=slope)
         frame = layouts.read(noisy_path, layout)
         noisy = frame.layers
         ref = layouts.read(ref_path).layers["default"]
         start = time.perf_counter()
-        out = denoisers[variant.dir](noisy, slope=slope)["default"]
+        out = denoiser(noisy, slope=slope)["default"]
         seconds = time.perf_counter() - start
         row = {
             "scene": scene,
             "input spp": spp,
             "layout": frame.layout,
             "inputs": frame.inputs.name,
-            "model": str(variant.dir),
-            "precision": denoisers[variant.dir].precision,
+            "model": str(denoiser.run.dir),
+            "precision": denoiser.precision,
             **({"ensemble": ensemble} if ensemble != DEFAULT_ENSEMBLE else {}),
             "raw": metrics.all_metrics(noisy["default"], ref),
             "denoised": metrics.all_metrics(out, ref),

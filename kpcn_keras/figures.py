@@ -41,11 +41,13 @@ from pathlib import Path
 import keras
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE
+from kpcn_keras.config import DEFAULT_SLOPES
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import build_kernel_model, network_input
 from kpcn_keras.multiscale import alpha_maps
+from kpcn_keras.panels import side_by_side_png
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from prep import exr, features, metrics
 from prep.colour import tonemap
 from prep.errors import KpcnError, OptionError
@@ -130,8 +132,6 @@ def _caption(name: str, image: np.ndarray, ref: dict | None) -> str:
 
 def multiscale_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, slope=None) -> Path:
     """``multiscale.png`` (Fig. 15): the run with and without its compositor, side by side, at ``slope``."""
-    from kpcn_keras.denoise import side_by_side_png
-
     without = den.without_compositor()(aovs, slope=slope)["default"]
     with_ = den(aovs, slope=slope)["default"]
     panels = [("input", aovs["default"]), (_caption("without multiscale", without, ref), without),
@@ -167,8 +167,6 @@ def alpha_figure(den: Denoiser, aovs: dict, path: Path, slope=None) -> Path:
 
 def slope_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, slopes) -> Path:
     """``slopes.png`` (Fig. 17): one frame denoised at every λ of ``slopes``."""
-    from kpcn_keras.denoise import side_by_side_png
-
     panels = [("input", aovs["default"])]
     for slope in slopes:
         out = den(aovs, slope=slope)["default"]
@@ -190,8 +188,6 @@ def half_and_half(den: Denoiser, aovs: dict, low: float, high: float) -> dict[st
 def slope_map_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path) -> Path:
     """``slope_map.png``: :func:`half_and_half` at the ends of the run's λ range, the map's halves against
     the uniform frames in the captions."""
-    from kpcn_keras.denoise import side_by_side_png
-
     low, high = den.record.train.slope_range
     got = half_and_half(den, aovs, low, high)
     half = aovs["depth"].shape[1] // 2
@@ -204,17 +200,17 @@ def slope_map_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path) ->
                             title="a painted λ map: one half at each end of the range (Fig. 17 with a map)")
 
 
-def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=None,
-                 slopes=DEFAULT_SLOPES, tile: int = DEFAULT_TILE) -> dict[str, Path]:
-    """Every figure the run can show, for ``frame`` = (noisy EXR, reference EXR or None); returns name -> path."""
+def make_figures(run: Run, frame: tuple[str, str | None] | None = None, *, pixel=None,
+                 slopes=DEFAULT_SLOPES, settings: InferenceSettings = InferenceSettings()) -> dict[str, Path]:
+    """Every figure ``run`` can show, for ``frame`` = (noisy EXR, reference EXR or None), its denoiser applied
+    with ``settings``; returns name -> path."""
     from kpcn_keras.evaluate import held_out_pairs
 
-    run = Run(run_dir)
     record = run.record()
     if frame is None:
         pairs = held_out_pairs(run, record)
         if not pairs:
-            raise KpcnError(f"{run_dir}: no held-out scenes; give a noisy render")
+            raise KpcnError(f"{run.dir}: no held-out scenes; give a noisy render")
         frame = min(pairs, key=lambda pair: exr.parse_render_filename(pair[0]))  # (scene, spp)
     noisy_path, ref_path = frame
     data = data_plan(run.shard_set(record).dir, noisy_path, for_run=True)
@@ -224,7 +220,7 @@ def make_figures(run_dir, frame: tuple[str, str | None] | None = None, *, pixel=
                   f"give a render from outside {run.figures_dir}")
     aovs = exr.read_aovs(noisy_path)
     ref = exr.read_aovs(ref_path, variances=False) if ref_path else None
-    den = Denoiser.from_run(run, tile, record=record)
+    den = Denoiser.from_run(run, settings, record=record)
     slope = record.validation_slope
     out_dir = run.figures_dir
     written = {}

@@ -4,7 +4,7 @@ Each subcommand's options are the fields of its stage's config dataclass (``kpcn
 ``kpcn_keras.studies.config``, ``prep``); an option left out takes the dataclass's default, and a help
 text states that default from the dataclass (:func:`_default`) and the bound it is checked against from the
 same ``prep.bounds.Bound`` (:func:`_state_bounds`): the parser never retypes either. The few options no
-dataclass holds (``--tile``, ``--slope``, ...) are checked against theirs (:func:`_check_own_bounds`) before
+dataclass holds (``--slope``, ``--port``, ...) are checked against theirs (:func:`_check_own_bounds`) before
 the command starts. :func:`command_line` turns values back into the arguments of a command, under the flags
 this parser gives them. The command functions are in :mod:`kpcn_keras.cli`.
 
@@ -104,6 +104,14 @@ def _check_own_bounds(args) -> None:
                 bound.check(dest, v)
             if dest in own_distinct:
                 check_distinct(dest, value)
+
+
+def inference_settings(args):
+    """The ``kpcn_keras.settings.InferenceSettings`` of the options given (tile, precision, ensemble: those the
+    subcommand has), the others at their defaults; checked once, there (an OptionError naming the option)."""
+    from kpcn_keras.settings import InferenceSettings
+
+    return InferenceSettings(**_given(args, InferenceSettings))
 
 
 def _default(cls, name: str) -> str:
@@ -417,9 +425,10 @@ def _resample_options(add) -> None:
 
 def _denoise_options(add) -> None:
     """The options of ``kpcn denoise``."""
-    from kpcn_keras.config import DEFAULT_TILE, ENSEMBLE, SLOPE, TILE
+    from kpcn_keras.config import DEFAULT_TILE, SLOPE
+    from kpcn_keras.settings import InferenceSettings
 
-    n = add("denoise", own={"tile": TILE, "slope": SLOPE, "ensemble": ENSEMBLE}, help="denoise EXRs (kpcn, Blender "
+    n = add("denoise", (InferenceSettings,), {"slope": SLOPE}, help="denoise EXRs (kpcn, Blender "
             "Cycles, Mitsuba 3, PBRT-v4 or plain colour): files, or every render in a folder, in one process")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
@@ -450,9 +459,10 @@ def _denoise_options(add) -> None:
 
 def _view_options(add) -> None:
     """The options of ``kpcn view``."""
-    from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_TILE, PORT, SLOPE, TILE, VIEW_HOST, VIEW_PORT
+    from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_TILE, PORT, SLOPE, VIEW_HOST, VIEW_PORT
+    from kpcn_keras.settings import InferenceSettings
 
-    v = add("view", own={"tile": TILE, "slope": SLOPE, "port": PORT}, help="one frame on a local page: input, "
+    v = add("view", (InferenceSettings,), {"slope": SLOPE, "port": PORT}, help="one frame on a local page: input, "
             "kpcn, reference and OIDN with a swipe, zoom and exposure, and a brush that paints λ (a run trained "
             "with --slope-module)")
     v.add_argument("frame", help="an EXR in any layout kpcn denoise reads")
@@ -491,9 +501,10 @@ def _layout_option(parser) -> None:
 
 def _evaluate_options(add) -> None:
     """The options of ``kpcn evaluate``."""
-    from kpcn_keras.config import DEFAULT_TILE, ENSEMBLE, SLOPE, TILE
+    from kpcn_keras.config import DEFAULT_TILE, SLOPE
+    from kpcn_keras.settings import InferenceSettings
 
-    e = add("evaluate", own={"tile": TILE, "slope": SLOPE, "ensemble": ENSEMBLE}, help="compare a run with the raw "
+    e = add("evaluate", (InferenceSettings,), {"slope": SLOPE}, help="compare a run with the raw "
             "input and NLM on held-out scenes")
     _run_option(e, required=True, help="a run folder that finished training (kpcn train), or a shipped model "
                 "(models/<name>)")
@@ -526,10 +537,11 @@ def _ship_options(add) -> None:
 
 def _figures_options(add) -> None:
     """The options of ``kpcn figures``."""
-    from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PIXEL, SLOPE, TILE
+    from kpcn_keras.config import DEFAULT_SLOPES, DEFAULT_TILE, PIXEL, SLOPE
+    from kpcn_keras.settings import InferenceSettings
     from prep.shards import ShardConfig
 
-    f = add("figures", own={"tile": TILE, "slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",),
+    f = add("figures", (InferenceSettings,), {"slopes": SLOPE, "pixel": PIXEL}, own_distinct=("slopes",),
             help="draw the report's figures from a run: kernels, α maps, with and without multiscale, a λ sweep, "
             "and its shard set's sampling PDF and network inputs (into <run>/figures); or, with --set, the last "
             "two of a shard set alone (into <set>/figures)")

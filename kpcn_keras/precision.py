@@ -25,8 +25,8 @@ import functools
 
 import keras
 
-from kpcn_keras.config import DEFAULT_PRECISION, PRECISIONS
-from prep.errors import OptionError
+from kpcn_keras.config import DEFAULT_PRECISION
+from kpcn_keras.settings import check_precision
 
 TRUNK_POLICY = {"float32": "float32", "bfloat16": "mixed_bfloat16"}  # a precision -> the trunk's dtype policy
 
@@ -50,9 +50,7 @@ def native_bfloat16() -> bool:
 def resolve(precision: str | None = None) -> str:
     """``"float32"`` or ``"bfloat16"``: ``precision`` (default :data:`DEFAULT_PRECISION`) with ``"auto"`` decided
     for this machine; OptionError echoing anything else."""
-    precision = DEFAULT_PRECISION if precision is None else precision
-    if precision not in PRECISIONS:
-        raise OptionError("precision", f"must be one of {', '.join(PRECISIONS)}, received {precision!r}")
+    precision = check_precision(DEFAULT_PRECISION if precision is None else precision)
     if precision == "auto":
         return "bfloat16" if native_bfloat16() else "float32"
     return precision

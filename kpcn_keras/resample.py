@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,6 +49,9 @@ from kpcn_keras.config import Phase, ResampleConfig, TrainConfig
 from prep.errors import KpcnError
 from prep.files import atomic_write_json, check_writable, pyplot, read_json, save_png, sha256_file
 from prep.shards import ErrorRound, ShardSet, build_error_round, round_name
+
+if TYPE_CHECKING:  # run.py imports keras, which this module imports only when the loop runs
+    from kpcn_keras.run import Run
 
 
 def base_phases(train_cfg: TrainConfig) -> list[Phase]:
@@ -109,19 +113,17 @@ def _check_loop(record: dict, cfg: ResampleConfig, run) -> dict:
     return loop
 
 
-def resample(cfg: ResampleConfig, run_dir: str | Path, *, verbose="auto", progress: bool = True, command: str = "",
+def resample(cfg: ResampleConfig, run: Run, *, verbose="auto", progress: bool = True, command: str = "",
              log=print) -> dict:
-    """Run (or resume) the loop on the finished run ``run_dir``; returns the record's ``resample`` entry with
+    """Run (or resume) the loop on the finished ``run``; returns the record's ``resample`` entry with
     the seconds of the run before the rounds and of each round joined in (:func:`with_seconds`)."""
     import keras
 
     from kpcn_keras.evaluate import held_out_frames
-    from kpcn_keras.run import Run
     from kpcn_keras.train import check_inputs
 
     if keras.backend.backend() != "torch":
         raise KpcnError(f"kpcn trains on the torch backend; KERAS_BACKEND selects {keras.backend.backend()!r}")
-    run = Run(run_dir)
     finished = run.finished_record(resampling=True)
     train_cfg = finished.train
     base = base_phases(train_cfg)

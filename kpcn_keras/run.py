@@ -76,7 +76,7 @@ from types import MappingProxyType
 
 import keras
 
-from kpcn_keras.config import SHIPPED_MAX_BYTES, CompositorConfig, ModelConfig, TrainConfig
+from kpcn_keras.config import HINT_FLAGS, SHIPPED_MAX_BYTES, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.models import build_branch_model
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
@@ -201,14 +201,11 @@ class Run:
     def _training_commands(self, inputs: InputSet) -> str:
         """'kpcn shards ...' then 'kpcn train ...': what trains this run's model for ``inputs``, on the base
         run's shard set cut for that input set (the model that serves it best)."""
-        from kpcn_keras.parser import command_line
-
         base = self.record().train if self.has_record() else TrainConfig()
         root = None if base.shards_root == TrainConfig.shards_root else base.shards_root
-        shards = " ".join(["kpcn shards", *command_line("shards", {"set_name": base.set_name, "out_root": root,
-                                                                   "inputs": inputs.name})])
-        train = " ".join(["kpcn train", *command_line("train", {"set_name": base.set_name, "shards_root": root,
-                                                                 "run": str(self.dir), "inputs": inputs.name})])
+        shards = _hint_command("shards", {"set_name": base.set_name, "out_root": root, "inputs": inputs.name})
+        train = _hint_command("train", {"set_name": base.set_name, "shards_root": root, "run": str(self.dir),
+                                        "inputs": inputs.name})
         return f"'{shards}' then '{train}'"
 
     def variants(self) -> list[Run]:
@@ -442,6 +439,13 @@ class Run:
     def shard_set(self, record: RunRecord) -> ShardSet:
         """The shard set the run was trained on (stored relative to the run folder)."""
         return ShardSet(os.path.normpath(self.dir / record.set_dir))
+
+
+def _hint_command(command: str, values: dict) -> str:
+    """``kpcn <command>`` with ``values`` (option -> value; None left out) under the flags ``config.HINT_FLAGS``
+    gives them."""
+    flags = HINT_FLAGS[command]
+    return " ".join(["kpcn", command] + [f"{flags[k]} {v}" for k, v in values.items() if v is not None])
 
 
 def default_model() -> Run:

@@ -2,10 +2,10 @@
 (docs/denoise.md §7).
 
 A :class:`ViewSession` reads the frame (any layout ``prep.layouts`` reads), the model that serves it
-(``Run.serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the ``reference``
-(``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, albedo and normal, when ``pyoidn``
-is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor it prepares
-the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
+(``kpcn_keras.serving.Serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the
+``reference`` (``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, albedo and normal,
+when ``pyoidn`` is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor
+it prepares the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
 the map's new values in a rectangle, re-applied to that rectangle alone (``PreparedFrame(map, region)``: the
 module is 1x1, so pixels outside a changed region keep their values exactly). Any other run shows its
 denoised frame with the brush off and says why.
@@ -41,9 +41,12 @@ from urllib.parse import parse_qs, urlsplit
 import numpy as np
 
 from kpcn_keras import slope_map
-from kpcn_keras.config import DEFAULT_TILE, VIEW_HOST, VIEW_PORT
-from kpcn_keras.denoise import Denoiser, check_region, read_frame, read_reference
+from kpcn_keras.batch import ReadOptions, read_frame, read_reference
+from kpcn_keras.config import VIEW_HOST, VIEW_PORT
+from kpcn_keras.denoise import Denoiser, check_region
 from kpcn_keras.run import Run
+from kpcn_keras.serving import Serving
+from kpcn_keras.settings import InferenceSettings
 from prep import layouts
 from prep.errors import KpcnError, OptionError
 
@@ -108,15 +111,14 @@ class ViewSession:
         log(f"ready in {time.perf_counter() - begin:.1f} s")
 
     @classmethod
-    def open(cls, frame_path, run_dir, reference=None, *, layout: str | None = None, slope: float | None = None,
-             tile: int = DEFAULT_TILE, precision: str | None = None, log=print) -> ViewSession:
+    def open(cls, frame_path, run: Run, reference=None, *, layout: str | None = None, slope: float | None = None,
+             settings: InferenceSettings = InferenceSettings(), log=print) -> ViewSession:
         """The session of the frame in ``frame_path`` (in ``layout``, default: found from its channels), the
-        run of ``run_dir`` that serves it (``Run.serving``) and the ``reference`` EXR if given."""
-        frame = read_frame(frame_path, layout=layout)
+        model ``run``'s variant that serves it (``Serving.variant``), applied with ``settings``, and the
+        ``reference`` EXR if given."""
+        frame = read_frame(frame_path, ReadOptions(layout=layout))
         ref = None if reference is None else read_reference(reference, frame_path, frame.size)
-        run = Run(run_dir).serving(frame.inputs)
-        record = run.record().finished()
-        return cls(frame, Denoiser.from_run(run, tile, record=record, precision=precision), ref, slope=slope, log=log)
+        return cls(frame, Serving(run, settings).denoiser(frame.inputs), ref, slope=slope, log=log)
 
     def info(self) -> dict:
         h, w = self.shape

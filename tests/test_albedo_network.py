@@ -13,6 +13,7 @@ from kpcn_keras.data import ShardPatches
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import albedo_input, build_albedo_training_model, build_branch_model
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import train
 from prep import colour, exr, features
 from prep.albedo import prefilter
@@ -128,7 +129,7 @@ def test_the_denoiser_multiplies_the_irradiance_by_the_networks_albedo_and_tiles
     noisy = sorted((shard_cfg.set_dir.parent.parent / "renders" / "s").glob("*.exr"))
     aovs = exr.read_aovs(noisy[0])
     h, w = aovs["depth"].shape
-    whole = Denoiser.from_run(run, tile=max(h, w))
+    whole = Denoiser.from_run(run, InferenceSettings(tile=max(h, w)))
     assert whole.albedo_network is not None
     out = whole(aovs)
     # independently: the network on the whole frame's albedo input, the diffuse branch's output times it
@@ -139,6 +140,6 @@ def test_the_denoiser_multiplies_the_irradiance_by_the_networks_albedo_and_tiles
     np.testing.assert_allclose(out["diffuse"], want, rtol=1e-6, atol=1e-7)
     # and not the prefilter's albedo: the network is what serves
     assert not np.allclose(albedo, prefilter(given["albedo"], given["albedoVariance"]), atol=1e-4)
-    tiled = Denoiser.from_run(run, tile=8)(aovs)
+    tiled = Denoiser.from_run(run, InferenceSettings(tile=8))(aovs)
     for name in ("diffuse", "specular", "default"):
         np.testing.assert_allclose(tiled[name], out[name], rtol=1e-5, atol=1e-6)

@@ -105,7 +105,8 @@ def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_pat
     import json
     import os
 
-    from kpcn_keras.denoise import denoise_files
+    from kpcn_keras.batch import denoise_files
+    from kpcn_keras.run import Run
     from prep.errors import KpcnError
 
     pp = tmp_path / "pp"
@@ -127,7 +128,7 @@ def test_denoise_checks_every_file_it_writes_against_every_file_it_reads(tmp_pat
         ("in.exr", "out.png", None, "side-by-side PNG out.png and --output out.png are the same file"),
     ]:
         with pytest.raises(KpcnError, match="^" + re.escape(message)):
-            denoise_files([inputs], tiny_run, output, reference)
+            denoise_files([inputs], Run(tiny_run), output, reference)
     assert checksums(tmp_path) == before and checksums(tiny_run) == models
 
 
@@ -516,3 +517,14 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
     report = (tmp_path / "runs/toy/eval/report.md").read_text()
     assert "| scene | input spp | raw relMSE | denoised relMSE | raw relSE p99.9 | denoised relSE p99.9 |" in report
     assert "| NLM relMSE | NLM relSE p99.9 |" in report
+
+
+def test_the_flags_a_library_hint_spells_are_the_parsers():
+    # a run's hint ("train it with 'kpcn shards ...' then 'kpcn train ...'") spells its flags from config, the
+    # library not reaching up to the parser: the two must agree
+    from kpcn_keras.config import HINT_FLAGS
+    from kpcn_keras.parser import _flags, build_parser
+
+    parser = build_parser()
+    for command, flags in HINT_FLAGS.items():
+        assert {dest: _flags(parser, command).get(dest) for dest in flags} == flags, command

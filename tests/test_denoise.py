@@ -5,10 +5,12 @@ from helpers.networks import randomise
 from helpers.references import moved
 from helpers.tiny import TINY_MODEL, build_tiny_shards, random_aovs
 
+from kpcn_keras.batch import denoise_files
 from kpcn_keras.config import TrainConfig
-from kpcn_keras.denoise import Denoiser, denoise_file
+from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import network_input
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import train
 from prep import colour, exr, features
 from prep.albedo import prefilter
@@ -41,7 +43,7 @@ def test_tiles_equal_an_untiled_run(tiny_run, size, tile):
     aovs = random_aovs(*size, seed=9)
     aovs["depth"][-1, -1] = 50.0  # the depth scale comes from one corner, outside most tiles
     logs, want = _untiled(Denoiser.from_run(Run(tiny_run)), aovs)
-    tiled = Denoiser.from_run(Run(tiny_run), tile=tile)
+    tiled = Denoiser.from_run(Run(tiny_run), InferenceSettings(tile=tile))
     assert tiled.margin == 3  # 3 convs of 3x3 reach 3 pixels, the 5x5 kernel 2: the max of the two
     out = tiled(aovs)
     for name, image in out.items():
@@ -78,7 +80,7 @@ def _randomised(denoiser):
 @pytest.mark.parametrize("multiscale", [False, True], ids=["unet", "unet+compositor"])
 def test_unet_tiles_aligned_to_its_pooling_grid_equal_an_untiled_run(tiny_unet_run, multiscale):
     aovs = random_aovs(45, 61, seed=9)  # odd: partial tiles, and the unet pads each window itself
-    denoiser = _randomised(Denoiser.from_run(Run(tiny_unet_run), tile=16, multiscale=multiscale))
+    denoiser = _randomised(Denoiser.from_run(Run(tiny_unet_run), InferenceSettings(tile=16), multiscale=multiscale))
     assert (denoiser.align, denoiser.margin) == ((8, 32) if multiscale else (4, 16))
     logs, want = _untiled(denoiser, aovs)
     out = denoiser(aovs)
@@ -108,8 +110,9 @@ def test_an_ensemble_is_the_median_of_the_networks_on_the_moved_frames_tile_by_t
     # odd sizes: moved tiles end where the frame does not, and a unet's windows must still start on the moved
     # frame's pooling grid
     run = tiny_run if arch == "kpcn" else tiny_unet_run
-    plain = _randomised(Denoiser.from_run(Run(run), tile=16, multiscale=arch == "unet+compositor"))
-    ensemble = Denoiser(plain.run, plain.record, plain.networks, plain.compositor, tile=16, ensemble=8)
+    plain = _randomised(Denoiser.from_run(Run(run), InferenceSettings(tile=16), multiscale=arch == "unet+compositor"))
+    ensemble = Denoiser(plain.run, plain.record, plain.networks, plain.compositor,
+                        settings=InferenceSettings(tile=16, ensemble=8))
     aovs = random_aovs(45, 61, seed=12)
     aovs["depth"][0, -1] = 40.0  # the depth scale from one corner, which moves
     logs, want = _ensemble_reference(plain, aovs)
@@ -120,7 +123,8 @@ def test_an_ensemble_is_the_median_of_the_networks_on_the_moved_frames_tile_by_t
         np.testing.assert_allclose(ensemble.run_branch(branch, aovs), logs[branch], rtol=1e-5, atol=1e-6)
     # the members differ (the median is of something), and fewer members are the median of fewer
     assert np.abs(logs["diffuse"] - _untiled(plain, aovs)[0]["diffuse"]).max() > 1e-4
-    two = Denoiser(plain.run, plain.record, plain.networks, plain.compositor, tile=16, ensemble=2)
+    two = Denoiser(plain.run, plain.record, plain.networks, plain.compositor,
+                   settings=InferenceSettings(tile=16, ensemble=2))
     np.testing.assert_allclose(two.run_branch("specular", aovs), _ensemble_reference(plain, aovs, 2)[0]["specular"],
                                rtol=1e-5, atol=1e-6)
 
@@ -128,7 +132,7 @@ def test_an_ensemble_is_the_median_of_the_networks_on_the_moved_frames_tile_by_t
 def test_an_ensemble_outside_one_to_eight_is_refused_echoing_it(tiny_run):
     for bad in (0, 9):
         with pytest.raises(OptionError, match=f"ensemble must be an integer in \\[1, 8\\], got {bad}"):
-            Denoiser.from_run(Run(tiny_run), ensemble=bad)
+            Denoiser.from_run(Run(tiny_run), InferenceSettings(ensemble=bad))
 
 
 TINY_DILATED = {**TINY_MODEL, "dilations": [1, 3, 2]}  # trunk radius 6, beyond the 5x5 kernel's 2
@@ -139,7 +143,7 @@ def test_dilated_trunk_tiles_equal_an_untiled_run_and_need_their_whole_margin(tm
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_DILATED, steps=2,
                                   steps_per_epoch=2, batch_size=2, val_batches=1)
-    denoiser = _randomised(Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), tile=8))
+    denoiser = _randomised(Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), InferenceSettings(tile=8)))
     assert denoiser.margin == 6  # 1 + 3 + 2 dilated taps of 3x3 convolutions
     aovs = random_aovs(37, 29, seed=6)
     logs, want = _untiled(denoiser, aovs)
@@ -154,7 +158,7 @@ def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives
     shard_cfg = build_tiny_shards(tmp_path)
     cfg = TrainConfig.from_preset("cpu", set_name="s", shards_root=shard_cfg.out_root, model=TINY_MODEL, steps=2,
                                   steps_per_epoch=2, batch_size=2, val_batches=1, loss="asymmetric", slope_input=True)
-    denoiser = Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), tile=8)
+    denoiser = Denoiser.from_run(Run(train(cfg, tmp_path / "r", verbose=0)), InferenceSettings(tile=8))
     aovs = random_aovs(19, 22, seed=4)
     out = {}
     for slope in (1.0, 8.0, 2.5):
@@ -171,8 +175,8 @@ def test_one_denoiser_of_a_slope_input_run_denoises_at_the_slope_each_call_gives
 def test_tiles_with_too_little_overlap_would_differ(tiny_run):
     # guards the test above: without the margin the tile seams are visible
     aovs = random_aovs(40, 40, seed=3)
-    whole = Denoiser.from_run(Run(tiny_run), tile=4096).run_branch("diffuse", aovs)
-    seamy = Denoiser.from_run(Run(tiny_run), tile=8)
+    whole = Denoiser.from_run(Run(tiny_run), InferenceSettings(tile=4096)).run_branch("diffuse", aovs)
+    seamy = Denoiser.from_run(Run(tiny_run), InferenceSettings(tile=8))
     seamy.margin = 0
     assert np.abs(seamy.run_branch("diffuse", aovs) - whole).max() > 1e-4
 
@@ -184,7 +188,7 @@ def test_memory_beyond_the_frame_and_the_output_is_bounded_by_the_tile(tiny_run,
     # float64 recombination), not torch's own buffers (the network's activations, bounded by the tile anyway)
     import tracemalloc
 
-    denoiser = Denoiser.from_run(Run(tiny_run), tile=32, ensemble=ensemble)
+    denoiser = Denoiser.from_run(Run(tiny_run), InferenceSettings(tile=32, ensemble=ensemble))
     denoiser.warm_up()
     side = denoiser.tile + 2 * denoiser.margin + 1  # a tile, its margins and the next pixel the gradients read
     # per window pixel: 27 float32 features, a float32 copy of the 14 input channels the kernel reads and its
@@ -216,9 +220,9 @@ def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, ref
     import gc
     import tracemalloc
 
-    from kpcn_keras.denoise import denoise_frame, frame_bytes
+    from kpcn_keras.batch import denoise_frame, frame_bytes
 
-    denoiser = Denoiser.from_run(Run(tiny_run), tile=64)
+    denoiser = Denoiser.from_run(Run(tiny_run), InferenceSettings(tile=64))
     denoiser.warm_up()
     peaks = {}
     width = 96
@@ -239,7 +243,7 @@ def test_frame_bytes_bound_what_a_frame_holds_whole(tiny_run, tmp_path, png, ref
 
 
 def test_a_frame_the_machine_cannot_hold_is_refused_before_any_work(tiny_run, tmp_path):
-    from kpcn_keras.denoise import check_frame_memory, frame_bytes
+    from kpcn_keras.batch import check_frame_memory, frame_bytes
     from prep.errors import KpcnError
 
     need_mb = frame_bytes(3000, 4000, png=False) / 2**20
@@ -264,13 +268,13 @@ def test_recombination_inverts_the_branch_transforms(tiny_run):
 
 
 def test_denoises_the_mitsuba_fixture(tiny_run, tmp_path, fixture_noisy, fixture_reference):
-    report = denoise_file(fixture_noisy, tiny_run, tmp_path / "fx.exr", fixture_reference)
+    report = denoise_files([fixture_noisy], Run(tiny_run), tmp_path / "fx.exr", fixture_reference).frames[0]
     out = exr.read_aovs(tmp_path / "fx.exr", variances=False)
     assert out["default"].shape == (64, 64, 3) and np.isfinite(out["default"]).all()
     assert (tmp_path / "fx.png").is_file()
-    assert set(report["metrics"]) == set(report["input_metrics"]) == {
+    assert set(report.metrics) == set(report.input_metrics) == {
         "mse", "relmse", "relse_p999", "smape", "dssim", "psnr"}
-    assert all(np.isfinite(v) for v in report["metrics"].values())
+    assert all(np.isfinite(v) for v in report.metrics.values())
 
 
 # --- batches: one load, many frames ---
@@ -279,22 +283,20 @@ def test_denoises_the_mitsuba_fixture(tiny_run, tmp_path, fixture_noisy, fixture
 def test_a_batch_equals_each_frame_alone(tiny_run, tmp_path):
     # bit-exact: the same networks run the same tiles of the same features; nothing carries over between
     # frames (no state in the models at inference, every tile's result depends on its own input only)
-    from kpcn_keras.denoise import denoise_files
-
     names = ["a.exr", "b.exr", "c.exr"]
     for i, (name, size) in enumerate(zip(names, [(20, 24), (33, 17), (20, 24)])):
         exr.write_aovs(tmp_path / "in" / name, random_aovs(*size, seed=30 + i))
     exr.write_aovs(tmp_path / "in" / "old-denoised.exr", random_aovs(8, 8))
-    batch = denoise_files([tmp_path / "in"], tiny_run, tmp_path / "out", png=False)
-    assert [f["input"] for f in batch["frames"]] == [str(tmp_path / "in" / n) for n in names]
-    assert batch["skipped"] == [str(tmp_path / "in" / "old-denoised.exr")]
-    assert batch["load_s"] > 0 and batch["warmup_s"] > 0 and all(f["seconds"] > 0 for f in batch["frames"])
+    batch = denoise_files([tmp_path / "in"], Run(tiny_run), tmp_path / "out", png=False)
+    assert [f.input for f in batch.frames] == [str(tmp_path / "in" / n) for n in names]
+    assert batch.skipped == (str(tmp_path / "in" / "old-denoised.exr"),)
+    assert batch.load_s > 0 and batch.warmup_s > 0 and all(f.seconds > 0 for f in batch.frames)
     # the peak resident memory is this process's own high-water mark: at least what it holds now
     status = dict(line.split(":", 1) for line in open("/proc/self/status"))
-    assert batch["peak_memory_mb"] >= int(status["VmRSS"].split()[0]) / 1024 * 0.9
+    assert batch.peak_memory_mb >= int(status["VmRSS"].split()[0]) / 1024 * 0.9
     for name in names:
-        alone = denoise_file(tmp_path / "in" / name, tiny_run, tmp_path / "alone" / name, png=False)
-        assert alone["output"] == str(tmp_path / "alone" / name)
+        alone = denoise_files([tmp_path / "in" / name], Run(tiny_run), tmp_path / "alone" / name, png=False)
+        assert alone.frames[0].output == str(tmp_path / "alone" / name)
         together = exr.read_aovs(tmp_path / "out" / name.replace(".exr", "-denoised.exr"), variances=False)
         single = exr.read_aovs(tmp_path / "alone" / name, variances=False)
         for layer in ("default", "diffuse", "specular"):
@@ -304,7 +306,7 @@ def test_a_batch_equals_each_frame_alone(tiny_run, tmp_path):
 def test_panels_png_is_a_row_of_tonemapped_panels(tmp_path):
     from PIL import Image
 
-    from kpcn_keras.denoise import panels_png
+    from kpcn_keras.panels import panels_png
     from prep.colour import tonemap
 
     image = random_aovs(10, 12)["default"]
@@ -317,7 +319,7 @@ def test_panels_png_is_a_row_of_tonemapped_panels(tmp_path):
 def test_panels_png_tonemaps_a_block_of_rows_at_a_time(tmp_path):
     import tracemalloc
 
-    from kpcn_keras.denoise import PNG_ROWS, panels_png
+    from kpcn_keras.panels import PNG_ROWS, panels_png
 
     image = random_aovs(3 * PNG_ROWS + 132, 400, seed=1)["default"]
     panels_png(tmp_path / "warm.png", [("input", image[:4])])  # imports what drawing needs
@@ -333,7 +335,7 @@ def test_panels_png_tonemaps_a_block_of_rows_at_a_time(tmp_path):
 
 
 def test_plan_outputs(tmp_path):
-    from kpcn_keras.denoise import plan_outputs
+    from kpcn_keras.batch import plan_outputs
     from prep.errors import KpcnError, OptionError
 
     a, b = tmp_path / "x" / "a.exr", tmp_path / "y" / "a.exr"

@@ -253,9 +253,10 @@ def test_a_no_split_denoiser_runs_the_diffuse_network_on_the_total_colour_and_gi
 
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     _, _, variant = runs
-    den = Denoiser.from_run(Run(variant), tile=4096)
+    den = Denoiser.from_run(Run(variant), InferenceSettings(tile=4096))
     assert set(den.networks) == {"diffuse"} and set(den.models) == {"diffuse"}
     aovs = random_aovs(20, 24, seed=7)
     out = den(aovs)

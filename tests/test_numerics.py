@@ -40,6 +40,7 @@ from helpers.tiny import random_aovs
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import ARCHS
 from kpcn_keras.run import Run, load_model
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import TrainConfig, train
 from prep import exr, features, sampling, shards
 from prep.albedo import prefilter
@@ -416,7 +417,8 @@ def hard_set(tmp_path_factory):
                                      model={"arch": arch, **ARCH_MODEL[arch]},
                                      steps=steps, steps_per_epoch=steps, batch_size=batch, val_batches=1)
         runs[arch] = train(tc, root / "runs" / arch, verbose=0)
-        denoisers[arch] = (Denoiser.from_run(Run(runs[arch]), tile=8), Denoiser.from_run(Run(runs[arch]), tile=4096))
+        denoisers[arch] = (Denoiser.from_run(Run(runs[arch]), InferenceSettings(tile=8)),
+                           Denoiser.from_run(Run(runs[arch]), InferenceSettings(tile=4096)))
     return HardSet(renders, cfg, runs, denoisers)
 
 
@@ -503,7 +505,7 @@ def test_hard_case_tiled_denoise_is_finite_non_negative_and_equals_untiled(hard_
 
 @pytest.mark.parametrize("arch", ARCHS)
 def test_randomised_networks_keep_denoised_extreme_renders_finite_and_in_range(hard_set, arch):
-    denoiser = Denoiser.from_run(Run(hard_set.runs[arch]), tile=8)
+    denoiser = Denoiser.from_run(Run(hard_set.runs[arch]), InferenceSettings(tile=8))
     for i, model in enumerate(denoiser.models.values()):
         randomise(model, seed=10 + i, scale=1.0)  # logits and corrections of 1e3 and more
     clamped = False
@@ -571,7 +573,8 @@ def test_odd_and_tiny_renders_go_through_features_shards_training_and_tiled_deno
     assert len(rows) == len(features.BRANCHES) and all(np.isfinite(float(r.split(",")[1])) for r in rows)
 
     # tiles smaller than the margin
-    tiled, whole = Denoiser.from_run(Run(run), tile=2), Denoiser.from_run(Run(run), tile=4096)
+    tiled = Denoiser.from_run(Run(run), InferenceSettings(tile=2))
+    whole = Denoiser.from_run(Run(run), InferenceSettings(tile=4096))
     for branch in features.BRANCHES:
         np.testing.assert_allclose(tiled.run_branch(branch, back), whole.run_branch(branch, back), rtol=1e-5, atol=1e-6)
     out = tiled(back)

@@ -80,10 +80,12 @@ def test_a_bfloat16_trunk_still_gives_each_pixel_a_convex_combination_of_its_win
 def test_the_shipped_model_in_bfloat16_denoises_as_well_as_in_float32():
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     frame = layouts.read(FIXTURES / "fixture-00008spp.exr").layers
     reference = layouts.read(FIXTURES / "fixture-01024spp.exr").layers["default"]
-    out = {p: Denoiser.from_run(Run(REPO / "models" / "default"), precision=p)(frame)["default"].astype(np.float64)
+    shipped = Run(REPO / "models" / "default")
+    out = {p: Denoiser.from_run(shipped, InferenceSettings(precision=p))(frame)["default"].astype(np.float64)
            for p in ("float32", "bfloat16")}
     # bfloat16 keeps 8 bits of each activation: a pixel moves by well under 2 % of its value
     relative = np.abs(out["bfloat16"] - out["float32"]) / (np.abs(out["float32"]) + metrics.RELMSE_EPS)

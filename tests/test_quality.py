@@ -403,6 +403,7 @@ def test_the_same_study_again_reuses_its_runs_and_its_report_is_written_again_fr
 def test_a_self_ensemble_of_2_is_served_by_the_same_runs_and_scores_that_ensembles_denoise(tiny_study, monkeypatch):
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     cfg, record, full = tiny_study
     monkeypatch.setattr(cmp, "probe_configuration", _fake_probe)
@@ -412,7 +413,7 @@ def test_a_self_ensemble_of_2_is_served_by_the_same_runs_and_scores_that_ensembl
     assert [ens["plans"][lv]["run"] for lv in cfg.levers] == [record["plans"][lv]["run"] for lv in cfg.levers]
     noisy = exr.read_aovs(Path(full.render_root) / "s" / "a-001-00004spp.exr")
     reference = exr.read_aovs(Path(full.render_root) / "s" / "a-001-00064spp.exr", variances=False)["default"]
-    two = Denoiser.from_run(Run(record["plans"]["cpu"]["run"]), ensemble=2)(noisy)["default"]
+    two = Denoiser.from_run(Run(record["plans"]["cpu"]["run"]), InferenceSettings(ensemble=2))(noisy)["default"]
     assert ens["frames"][0]["frame"] == "a-001 4 spp"
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] == pytest.approx(_relmse64(two, reference), rel=1e-9)
     assert ens["frames"][0]["levers"]["cpu"]["relmse"] != record["frames"][0]["levers"]["cpu"]["relmse"]

@@ -246,7 +246,7 @@ def test_a_run_with_an_unfinished_phase_is_refused_by_its_readers_naming_the_pha
     assert_one_line_error(res, "runs/r/config.json", f"specular phase is unfinished (status '{status}')",
                           "'kpcn train --run runs/r'")
     with pytest.raises(KpcnError, match="specular phase is unfinished"):
-        evaluate(run_dir)
+        evaluate(Run(run_dir))
     assert checksums(tmp_path) == before
 
 

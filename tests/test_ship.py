@@ -26,7 +26,7 @@ def evaluated_run(tiny_run_of_every_input_set, tmp_path_factory):
     run = Run(src.with_name("evaluated"))
     if not run.dir.exists():
         shutil.copytree(src, run.dir)
-    evaluate(run.dir, baseline=True)
+    evaluate(run, baseline=True)
     frames = tmp / "frames"
     frames.mkdir()
     for noisy, ref in held_out_pairs(run, run.record())[:1]:
@@ -34,7 +34,7 @@ def evaluated_run(tiny_run_of_every_input_set, tmp_path_factory):
             aovs = exr.read_aovs(path, variances=False)
             exr.write_aovs(frames / Path(path).name, {"default": aovs["default"], "albedo": aovs["albedo"],
                                                      "normal": aovs["normal"], "depth": aovs["depth"]})
-    evaluate(run.dir, pairs_for_inputs([str(frames)]), out_dir=run.validation_dir)
+    evaluate(run, pairs_for_inputs([str(frames)]), out_dir=run.validation_dir)
     return run
 
 
@@ -233,7 +233,7 @@ def test_a_network_fine_tuned_on_other_renders_shows_its_own_data_and_its_start_
                                   steps_per_epoch=4, batch_size=2, val_batches=1, inputs="no-variance",
                                   init=str(evaluated_run.dir), fireflies=0.5)
     train(cfg, run.dir, verbose=0)
-    evaluate(run.dir, baseline=False)
+    evaluate(run, baseline=False)
     res = run_main("ship", "--run", run.dir, "--out", tmp_path / "models" / "tuned", "--speed-frame", "64,48",
                    cwd=tmp_path)
     assert res.returncode == 0, res.stderr

@@ -15,6 +15,7 @@ from kpcn_keras.config import ModelConfig
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.models import build_branch_model, kept_of, network_input, slope_module_parts
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from prep.errors import KpcnError, OptionError
 
 RANGE = (1.0, 8.0)
@@ -180,7 +181,8 @@ def test_a_module_needs_lambda_as_an_input_and_kernels_to_specialise():
 
 @pytest.fixture(scope="module", params=["tiny_slope_module_run", "tiny_slope_mixture_run"])
 def denoiser(request):
-    den = Denoiser.from_run(Run(request.getfixturevalue(request.param)), tile=16, precision="float32")
+    den = Denoiser.from_run(Run(request.getfixturevalue(request.param)),
+                            InferenceSettings(tile=16, precision="float32"))
     for model in den.networks.values():
         randomise(model, seed=4)
     return den
@@ -191,7 +193,8 @@ def test_a_constant_map_is_the_uniform_lambda_and_tiles_do_not_show(denoiser):
     uniform = denoiser(aovs, slope=3.0)["default"]
     np.testing.assert_array_equal(denoiser(aovs, slope=np.full((37, 45), 3.0))["default"], uniform)
     painted = np.where(np.arange(45) < 20, 1.0, 8.0)[None].repeat(37, 0)
-    whole = Denoiser(denoiser.run, denoiser.record, denoiser.networks, tile=64, precision="float32")
+    whole = Denoiser(denoiser.run, denoiser.record, denoiser.networks,
+                     settings=InferenceSettings(tile=64, precision="float32"))
     np.testing.assert_allclose(denoiser(aovs, slope=painted)["default"], whole(aovs, slope=painted)["default"],
                                rtol=1e-5, atol=1e-6)
 
@@ -211,7 +214,8 @@ def test_a_prepared_frame_gives_the_full_denoise_for_every_map(denoiser):
 def test_an_ensemble_moves_a_painted_map_with_the_frame_and_prepares_no_frame(denoiser):
     aovs = random_aovs(21, 30, seed=11)
     painted = np.where(np.arange(30) < 11, 1.0, 8.0)[None].repeat(21, 0) * np.linspace(1, 0.5, 21)[:, None] + 0.5
-    ensemble = Denoiser(denoiser.run, denoiser.record, denoiser.networks, tile=16, precision="float32", ensemble=8)
+    ensemble = Denoiser(denoiser.run, denoiser.record, denoiser.networks,
+                        settings=InferenceSettings(tile=16, precision="float32", ensemble=8))
     for branch in ("diffuse", "specular"):
         members = [moved(denoiser.run_branch(branch, {k: moved(v, s) for k, v in aovs.items()}, moved(painted, s)), s,
                          inverse=True) for s in range(8)]
@@ -255,9 +259,9 @@ def test_kpcn_figures_draws_the_half_and_half_map_for_a_run_with_the_module_alon
 
     exr.write_aovs(tmp_path / "f.exr", random_aovs(24, 31, seed=13))
     for run in (tiny_slope_module_run, tiny_slope_mixture_run):  # a mixture's kernels: the mixture of its kernels
-        written = make_figures(run, (tmp_path / "f.exr", None))
+        written = make_figures(Run(run), (tmp_path / "f.exr", None))
         assert {"kernels", "slopes", "slope_map"} <= set(written) and written["slope_map"].stat().st_size > 0
-    assert "slope_map" not in make_figures(tiny_run, (tmp_path / "f.exr", None))
+    assert "slope_map" not in make_figures(Run(tiny_run), (tmp_path / "f.exr", None))
 
 
 def test_a_map_is_refused_by_a_run_without_the_module(tiny_run):

@@ -12,6 +12,7 @@ from helpers.tiny import build_tiny_shards, tiny_train_config
 
 from kpcn_keras.callbacks import FROZEN_EPOCHS, frozen
 from kpcn_keras.run import load_model, read_state
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import TrainConfig, starts_trained, train
 from prep.errors import KpcnError, OptionError
 
@@ -352,7 +353,7 @@ def test_the_unet_preset_trains_and_denoises(tmp_path):
     run_dir = train(cfg, tmp_path / "runs" / "u", verbose=0)
     moved = [w for w in weights(run_dir, "diffuse") if w.ndim == 4 and w.shape[-1] == 13 * 13]
     assert len(moved) == 1 and np.abs(moved[0]).max() > 0  # the zero-initialised kernel head trained
-    out = Denoiser.from_run(Run(run_dir), tile=32)(random_aovs(37, 29, seed=1))["default"]
+    out = Denoiser.from_run(Run(run_dir), InferenceSettings(tile=32))(random_aovs(37, 29, seed=1))["default"]
     assert out.shape == (37, 29, 3) and np.isfinite(out).all()
 
 

@@ -23,6 +23,7 @@ from kpcn_keras.losses import AsymmetricSMAPE
 from kpcn_keras.models import build_branch_model, build_final_model, network_input
 from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_output
 from kpcn_keras.run import Run, read_state
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import train
 from prep import colour, exr, features
 from prep.errors import KpcnError, OptionError
@@ -317,14 +318,15 @@ def test_joint_fine_tuning_moves_the_branch_networks_and_the_compositor_phase_do
 @pytest.mark.slow
 def test_a_multiscale_run_denoises_in_tiles_as_it_does_whole(full_run):
     aovs = random_aovs(37, 53, seed=5)
-    whole = Denoiser.from_run(Run(full_run), tile=512)(aovs)["default"]
-    tiled = Denoiser.from_run(Run(full_run), tile=8)(aovs)["default"]
+    whole = Denoiser.from_run(Run(full_run), InferenceSettings(tile=512))(aovs)["default"]
+    tiled = Denoiser.from_run(Run(full_run), InferenceSettings(tile=8))(aovs)["default"]
     np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-6)
     plain = Denoiser.from_run(Run(full_run), multiscale=False)(aovs)["default"]
     assert not np.allclose(plain, whole)  # the compositor does something
     # the same networks without their compositor, nothing loaded again
-    np.testing.assert_array_equal(Denoiser.from_run(Run(full_run), tile=8).without_compositor()(aovs)["default"],
-                                  Denoiser.from_run(Run(full_run), tile=8, multiscale=False)(aovs)["default"])
+    tile8 = InferenceSettings(tile=8)
+    np.testing.assert_array_equal(Denoiser.from_run(Run(full_run), tile8).without_compositor()(aovs)["default"],
+                                  Denoiser.from_run(Run(full_run), tile8, multiscale=False)(aovs)["default"])
 
 
 @pytest.mark.slow
@@ -343,8 +345,9 @@ def test_a_compositor_of_21x21_kernels_on_a_bicubic_pyramid_with_every_scale_sup
     phase({**x, "target": np.concatenate([x["albedo"], x["albedo"]], axis=-1)})
     assert len(phase.losses) == 2 * 2 + 1  # an α term per pair and branch, and the per-scale terms
     aovs = random_aovs(37, 53, seed=5)
-    whole = Denoiser.from_run(Run(run_dir), tile=512)(aovs)["default"]
-    np.testing.assert_allclose(Denoiser.from_run(Run(run_dir), tile=8)(aovs)["default"], whole, rtol=1e-5, atol=1e-6)
+    whole = Denoiser.from_run(Run(run_dir), InferenceSettings(tile=512))(aovs)["default"]
+    tiled = Denoiser.from_run(Run(run_dir), InferenceSettings(tile=8))(aovs)["default"]
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.slow

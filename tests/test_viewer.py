@@ -17,8 +17,10 @@ from helpers.networks import randomise
 from helpers.tiny import random_aovs
 
 from kpcn_keras import slope_map
-from kpcn_keras.denoise import Denoiser, read_frame
+from kpcn_keras.batch import read_frame
+from kpcn_keras.denoise import Denoiser
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.viewer import PAGE_DIR, VIEWS, ViewSession, listen
 from prep import baselines, exr
 
@@ -73,7 +75,8 @@ def quiet(message):
 
 @pytest.fixture(scope="module")
 def module_session(frame, tiny_slope_module_run):
-    return ViewSession.open(frame[0], tiny_slope_module_run, frame[1], slope=2.0, precision="float32", log=quiet)
+    return ViewSession.open(frame[0], Run(tiny_slope_module_run), frame[1], slope=2.0,
+                            settings=InferenceSettings(precision="float32"), log=quiet)
 
 
 def test_the_page_shows_the_frame_the_reference_and_the_runs_own_denoise(frame, module_session,
@@ -87,7 +90,8 @@ def test_the_page_shows_the_frame_the_reference_and_the_runs_own_denoise(frame, 
         aovs, ref = exr.read_aovs(frame[0]), exr.read_aovs(frame[1], variances=False)
         np.testing.assert_array_equal(rgb(get(f"{url}/api/view/input"), H, W), aovs["default"])
         np.testing.assert_array_equal(rgb(get(f"{url}/api/view/reference"), H, W), ref["default"])
-        want = Denoiser.from_run(Run(tiny_slope_module_run), precision="float32")(aovs, slope=2.0)["default"]
+        den = Denoiser.from_run(Run(tiny_slope_module_run), InferenceSettings(precision="float32"))
+        want = den(aovs, slope=2.0)["default"]
         np.testing.assert_allclose(rgb(get(f"{url}/api/view/denoised"), H, W), want, rtol=1e-5, atol=1e-6)
         page = get(f"{url}/").decode()
         assert "view.js" in page and "view.css" in page
@@ -98,7 +102,7 @@ def test_the_page_shows_the_frame_the_reference_and_the_runs_own_denoise(frame, 
 @pytest.mark.parametrize("run", ["tiny_slope_module_run", "tiny_slope_mixture_run"])
 def test_a_stroke_re_applies_its_rectangle_alone_as_a_full_denoise_at_the_new_map(frame, run, request):
     # weights far from the trained few steps' (whose zero-initialised head has barely moved), so that λ matters
-    den = Denoiser.from_run(Run(request.getfixturevalue(run)), precision="float32")
+    den = Denoiser.from_run(Run(request.getfixturevalue(run)), InferenceSettings(precision="float32"))
     for i, model in enumerate(den.networks.values()):
         randomise(model, seed=30 + i)
     session = ViewSession(read_frame(frame[0]), den, slope=2.0, log=quiet)
@@ -143,7 +147,7 @@ def test_requests_the_session_cannot_take_are_refused_in_one_line(module_session
         code, message = refused(lambda: get(f"{url}/api/view/albedo"))
         assert code == 400 and "input, denoised, reference, oidn" in message
         assert get(f"{url}/api/view/denoised") == before  # nothing applied
-    plain = ViewSession.open(frame[0], tiny_run, log=quiet)
+    plain = ViewSession.open(frame[0], Run(tiny_run), log=quiet)
     assert plain.info()["brush"] is None and "takes no λ" in plain.info()["brush_note"]
     with serving(plain) as url:
         code, message = refused(lambda: post(f"{url}/api/stroke?y0=0&y1=1&x0=0&x1=1", b"\0\0\0@"))

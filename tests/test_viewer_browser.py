@@ -12,8 +12,10 @@ from helpers.browser import headless_chromium
 from helpers.networks import randomise
 from helpers.tiny import random_aovs
 
-from kpcn_keras.denoise import Denoiser, read_frame
+from kpcn_keras.batch import read_frame
+from kpcn_keras.denoise import Denoiser
 from kpcn_keras.run import Run
+from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.studies.browser import page_input, page_stroke, page_wait
 from kpcn_keras.viewer import VIEWS, ViewSession, listen
 from prep import baselines, exr
@@ -31,7 +33,7 @@ def page(tmp_path, tiny_slope_module_run):
     exr.write_aovs(tmp_path / "frame.exr", random_aovs(H, W, seed=21))
     exr.write_aovs(tmp_path / "reference.exr", random_aovs(H, W, seed=22, variances=False))
     # weights far from the trained few steps' (whose zero-initialised head has barely moved), so that λ shows
-    den = Denoiser.from_run(Run(tiny_slope_module_run), precision="float32")
+    den = Denoiser.from_run(Run(tiny_slope_module_run), InferenceSettings(precision="float32"))
     for i, model in enumerate(den.networks.values()):
         randomise(model, seed=40 + i)
     reference = exr.read_aovs(tmp_path / "reference.exr", variances=False)["default"]

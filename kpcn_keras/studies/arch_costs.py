@@ -84,6 +84,7 @@ def main() -> int:
     from kpcn_keras.losses import SMAPE
     from kpcn_keras.models import build_branch_model, input_alignment, receptive_radius
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
     from kpcn_keras.studies.bench import busy_processes
     from kpcn_keras.studies.network_costs import train_step_cost
 
@@ -121,7 +122,7 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         runs = trained_runs(Path(tmp))
-        denoisers = {p: Denoiser.from_run(Run(runs[p]), tile=TILE_SIDE) for p in PRESETS}
+        denoisers = {p: Denoiser.from_run(Run(runs[p]), InferenceSettings(tile=TILE_SIDE)) for p in PRESETS}
         for d in denoisers.values():
             d.warm_up()
         frame = random_aovs(*FRAME, seed=1)

@@ -76,13 +76,15 @@ def main() -> None:
     from kpcn_keras.card import frame_of_size
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
     from prep import baselines, layouts
 
     found = {"busy": busy(), "load_before": os.getloadavg(), "run": args.run, "frame": args.frame,
              "size": SIZE, "threads": torch.get_num_threads(), "cpus": os.cpu_count()}
     layers = frame_of_size(layouts.read(args.frame).layers, *SIZE)
-    denoisers = {p: Denoiser.from_run(Run(args.run), precision=p) for p in PRECISIONS}
-    denoisers.update({f"ensemble {n}": Denoiser.from_run(Run(args.run), ensemble=n) for n in args.ensembles})
+    denoisers = {p: Denoiser.from_run(Run(args.run), InferenceSettings(precision=p)) for p in PRECISIONS}
+    denoisers.update({f"ensemble {n}": Denoiser.from_run(Run(args.run), InferenceSettings(ensemble=n))
+                      for n in args.ensembles})
     calls = {p: (lambda d=d: d(layers)["default"]) for p, d in denoisers.items()}
     if baselines.oidn_available():
         calls["oidn"] = lambda: baselines.oidn_denoise(layers)

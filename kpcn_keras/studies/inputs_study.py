@@ -178,7 +178,8 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
     """Per pair of renders under ``cfg.pairs`` (``<stem>.exr`` and ``<stem>-b.exr``): the scores of their mean
     denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), each by the
     run's model for it, beside the mean's raw scores and OIDN's on it."""
-    from kpcn_keras.denoise import Denoiser, read_frame
+    from kpcn_keras.batch import ReadOptions, read_frame
+    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
     from prep import baselines
     from prep.exr import VARIANCE_LAYERS
@@ -189,7 +190,7 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
         second = first.with_name(first.name[: -len(".exr")] + PAIR_SUFFIX)
         if not second.exists():
             continue
-        with_variance = read_frame(first, pair=second)
+        with_variance = read_frame(first, ReadOptions(pair=second))
         layers = {k: v for k, v in with_variance.layers.items() if k not in VARIANCE_LAYERS}
         without = InputSet(split=with_variance.inputs.split, variance=False)
         ref = layouts.read(ref_path).layers["default"]

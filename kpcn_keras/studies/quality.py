@@ -309,10 +309,11 @@ def measure_run(run, held: list[dict], frames: list[dict], cfg: QualityConfig, d
     own networks, each validation frame by the network that serves what it gives (``Run.serving``); and its
     outputs of the validation frames at ``cfg.panel_spp`` by path. ``denoisers`` caches one per network."""
     from kpcn_keras.denoise import Denoiser
+    from kpcn_keras.settings import InferenceSettings
 
     def denoiser(variant):
         if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant, ensemble=cfg.ensemble)
+            denoisers[variant.dir] = Denoiser.from_run(variant, InferenceSettings(ensemble=cfg.ensemble))
         return denoisers[variant.dir]
 
     entries = [{**scores(denoiser(run)(f["noisy"])["default"], f["reference"]), "model": FULL.name} for f in held]

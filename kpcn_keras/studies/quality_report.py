@@ -397,9 +397,10 @@ def redraw_panels(record: dict):
     by the measured model's network for each."""
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.settings import InferenceSettings
 
     def denoised(run: Run, frame) -> object:
-        return Denoiser.from_run(run, ensemble=ensemble_of(record))(frame.layers)["default"]
+        return Denoiser.from_run(run, InferenceSettings(ensemble=ensemble_of(record)))(frame.layers)["default"]
 
     shown = []
     for entry in panel_entries(record):

@@ -33,7 +33,8 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 def main() -> None:
     import numpy as np
 
-    from kpcn_keras.denoise import Denoiser, read_frame
+    from kpcn_keras.batch import ReadOptions, read_frame
+    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, default_model
     from prep import albedo, baselines, colour, features, layouts, metrics
@@ -64,7 +65,7 @@ def main() -> None:
         pair = None
         if args.pair_suffix:
             pair = Path(noisy_path).with_name(Path(noisy_path).stem + args.pair_suffix + Path(noisy_path).suffix)
-        frame = read_frame(noisy_path, pair=pair)
+        frame = read_frame(noisy_path, ReadOptions(pair=pair))
         reference = layouts.read(ref_path)
         noisy, ref = frame.layers, reference.layers
         # a reference without a split or an albedo of its own (an rgb file) has no floor and no oracle

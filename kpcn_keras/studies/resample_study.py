@@ -113,14 +113,14 @@ def _run_arms(cfg: ResampleStudyConfig, seed: int, sset, *, verbose, progress: b
         if configs[arm].patches_per_image:
             arm_set = sset.fork(Path(cfg.runs_root) / "shards" / f"{cfg.set_name}-seed{seed}-{arm}")
         run = base.fork(seed_dir / arm, arm_set)
-        loops[arm] = resample(configs[arm], run.dir, verbose=verbose, progress=progress, command=command,
+        loops[arm] = resample(configs[arm], run, verbose=verbose, progress=progress, command=command,
                               log=_prefixed(log, f"[seed {seed}, {arm}]"))
     budget = max(cumulative_cost(loop)[cfg.rounds] for loop in loops.values())
     for arm, loop in loops.items():
         rounds = len(_rounds(loop))
         while cumulative_cost(loop)[-1] < budget and rounds < MAX_ROUNDS_FACTOR * cfg.rounds:
             rounds += 1
-            loop = resample(dataclasses.replace(configs[arm], rounds=rounds), seed_dir / arm, verbose=verbose,
+            loop = resample(dataclasses.replace(configs[arm], rounds=rounds), Run(seed_dir / arm), verbose=verbose,
                             progress=progress, command=command, log=_prefixed(log, f"[seed {seed}, {arm}, equal time]"))
         loops[arm] = loop
     return {"budget_seconds": budget, "loops": loops}

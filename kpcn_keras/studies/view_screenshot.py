@@ -34,8 +34,9 @@ def main() -> None:
     from prep.processes import keep_freed_memory
 
     keep_freed_memory()  # as kpcn view does (kpcn_keras.cli.main)
-    low = Run(args.run).record().train.slope_range[0]
-    session = ViewSession.open(args.frame, args.run, args.reference, slope=args.slope or low)
+    run = Run(args.run)
+    low = run.record().train.slope_range[0]
+    session = ViewSession.open(args.frame, run, args.reference, slope=args.slope or low)
     httpd = listen(0)
     httpd.session = session
     threading.Thread(target=httpd.serve_forever, daemon=True).start()

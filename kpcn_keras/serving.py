@@ -1,0 +1,75 @@
+"""A model as it serves frames: its variants, their records and files, and the denoisers loaded from them.
+
+A :class:`Serving` is one model (a run folder of ``kpcn train`` or a shipped model, a ``Run``) applied with one
+:class:`~kpcn_keras.settings.InferenceSettings`. A frame is denoised by the model's variant trained for what the
+frame has (``Run.serving``: the run itself or one of its ``inputs/`` variants); each variant is found, its
+record read and its networks loaded (``Denoiser.from_run``) once, at its first frame, and kept for the next.
+``kpcn denoise`` (``batch.denoise_files``), ``kpcn evaluate``, ``kpcn view`` and ``kpcn.denoise`` each hold one,
+so a frame is denoised by the same networks, tiles and arithmetic whichever way it came in.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from kpcn_keras.denoise import Denoiser
+from kpcn_keras.run import Run, RunRecord
+from kpcn_keras.settings import InferenceSettings
+from prep.inputs import InputSet
+
+
+class Serving:
+    """``run`` with ``settings``; :attr:`load_s` and :attr:`warmup_s` are the seconds its denoisers took to load
+    and to warm up so far (a batch reports them apart from its frames' time)."""
+
+    def __init__(self, run: Run, settings: InferenceSettings = InferenceSettings()):
+        self.run, self.settings = run, settings
+        self._variants: dict[InputSet, Run] = {}
+        self._records: dict[Path, RunRecord] = {}
+        self._denoisers: dict[Path, Denoiser] = {}
+        self.load_s = self.warmup_s = 0.0
+
+    def variant(self, inputs: InputSet) -> Run:
+        """The run whose networks denoise a frame that has ``inputs`` (``Run.serving``, found once); KpcnError
+        naming what the frame lacks and how to train for it where the model has none."""
+        if inputs not in self._variants:
+            self._variants[inputs] = self.run.serving(inputs)
+        return self._variants[inputs]
+
+    def record(self, inputs: InputSet) -> RunRecord:
+        """The record of :meth:`variant` (``inputs``), read once."""
+        variant = self.variant(inputs)
+        if variant.dir not in self._records:
+            self._records[variant.dir] = variant.record()
+        return self._records[variant.dir]
+
+    def records(self, given: Iterable[InputSet]) -> list[RunRecord]:
+        """The record of each variant that serves one of ``given``, once each, in the order first met."""
+        return list({record.dir: record for record in map(self.record, given)}.values())
+
+    def read_files(self, given: Iterable[InputSet]) -> list[tuple[str, Path]]:
+        """What denoising frames that have each of ``given`` reads of the model, ``(what, path)``: each serving
+        variant's record and model files (``Run.read_files``; for ``prep.files.check_outputs``)."""
+        variants = {self.variant(inputs).dir: inputs for inputs in given}
+        return [item for inputs in variants.values() for item in self.variant(inputs).read_files(self.record(inputs))]
+
+    def denoiser(self, inputs: InputSet, *, warm_up: bool = False, slope=None) -> Denoiser:
+        """The denoiser of :meth:`variant` (``inputs``) with this serving's settings, loaded at its first call
+        and, with ``warm_up``, warmed up then at ``slope`` (``Denoiser.warm_up``), so that the frames' timings
+        exclude both."""
+        variant = self.variant(inputs)
+        if variant.dir not in self._denoisers:
+            begin = time.perf_counter()
+            denoiser = Denoiser.from_run(variant, self.settings, record=self.record(inputs))
+            loaded = time.perf_counter()
+            if warm_up:
+                denoiser.warm_up(slope)
+            self.load_s += loaded - begin
+            self.warmup_s += time.perf_counter() - loaded
+            self._denoisers[variant.dir] = denoiser
+        return self._denoisers[variant.dir]
+
+
+__all__ = ["Serving"]

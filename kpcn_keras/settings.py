@@ -1,0 +1,46 @@
+"""How a trained model is applied: the settings of inference, one object from the command line to the networks.
+
+:class:`InferenceSettings` holds what changes how a frame is denoised but not which model denoises it nor what
+the frame is: the tile (memory), the trunks' precision (``kpcn_keras.precision``) and the self-ensemble's
+members (``kpcn_keras.denoise``). Its defaults and bounds are ``kpcn_keras.config``'s, checked once, when it is
+made (an OptionError naming the option: the command line's flag), so a reader never checks them again. The
+parser fills it from the options given (``parser.inference_settings``); ``kpcn_keras.serving.Serving``,
+``denoise.Denoiser``, ``evaluate``, ``figures``, the viewer and ``kpcn.denoise`` take it as it is. λ (``slope``,
+a λ map) is not a setting but an input of each call: one loaded model serves every λ.
+
+Imports nothing of keras or torch (``kpcn --help`` builds the parser from it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_PRECISION, DEFAULT_TILE, ENSEMBLE, PRECISIONS, TILE
+from prep.bounds import bounded, check_fields
+from prep.errors import OptionError
+
+
+@dataclass(frozen=True)
+class InferenceSettings:
+    """``tile``: pixels per side of an inference tile (bounds memory at any resolution; ``--tile``);
+    ``precision``: the trunks' arithmetic, one of ``config.PRECISIONS`` (``--precision``; "auto" is resolved for
+    the machine by the denoiser, ``kpcn_keras.precision.resolve``); ``ensemble``: a self-ensemble's members, 1
+    for the networks once (``--ensemble``)."""
+
+    tile: int = bounded(DEFAULT_TILE, TILE)
+    precision: str = DEFAULT_PRECISION
+    ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
+
+    def __post_init__(self):
+        check_fields(self)
+        check_precision(self.precision)
+
+
+def check_precision(precision: str) -> str:
+    """``precision`` if it is one of ``config.PRECISIONS``; OptionError echoing it otherwise."""
+    if precision not in PRECISIONS:
+        raise OptionError("precision", f"must be one of {', '.join(PRECISIONS)}, received {precision!r}")
+    return precision
+
+
+__all__ = ["InferenceSettings", "check_precision"]
