@@ -73,7 +73,7 @@ from prep.albedo import prefilter as prefilter_albedo
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, check_outputs, check_writable, pyplot, save_png
 from prep.inputs import InputSet, pair_layers, restrict
-from prep.processes import memory_shortfall
+from prep.processes import memory_shortfall, peak_memory_mb, process_age
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
 PNG_ROWS = 256  # rows of a panel tonemapped at a time
@@ -559,25 +559,6 @@ def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
                             "in separate commands or rename one" if seen[key] != src else f"{src} is given twice")
         seen[key] = src
     return outputs
-
-
-def peak_memory_mb() -> float | None:
-    """This process's peak resident memory in MB (Linux ``VmHWM``), or None where it cannot be read.
-    Not ``getrusage``: its maxrss carries over the parent's resident size through fork and exec."""
-    from prep.processes import proc_megabytes
-
-    return proc_megabytes("/proc/self/status", ("VmHWM",)).get("VmHWM")
-
-
-def process_age() -> float | None:
-    """Seconds since this process started (Linux ``/proc``), or None where that cannot be read: the
-    start-up (interpreter and imports) that precedes a call."""
-    try:
-        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
-        uptime = float(Path("/proc/uptime").read_text().split()[0])
-        return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def read_frame(input_path, *, layout: str | None = None, pair=None, albedo=None, normal=None) -> layouts.Frame:
