@@ -34,7 +34,7 @@ from prep import exr, layouts
 from prep.errors import KpcnError, OptionError
 from prep.files import check_outputs, check_writable
 from prep.inputs import InputSet, pair_layers
-from prep.processes import memory_shortfall
+from prep.processes import memory_shortfall, peak_memory_mb, process_age
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
 # Bytes a pixel of what denoising a frame holds whole, the tiles bounding the rest: the render as read (its
@@ -139,25 +139,6 @@ def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
     return outputs
 
 
-def peak_memory_mb() -> float | None:
-    """This process's peak resident memory in MB (Linux ``VmHWM``), or None where it cannot be read.
-    Not ``getrusage``: its maxrss carries over the parent's resident size through fork and exec."""
-    from prep.processes import proc_megabytes
-
-    return proc_megabytes("/proc/self/status", ("VmHWM",)).get("VmHWM")
-
-
-def process_age() -> float | None:
-    """Seconds since this process started (Linux ``/proc``), or None where that cannot be read: the
-    start-up (interpreter and imports) that precedes a call."""
-    try:
-        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
-        uptime = float(Path("/proc/uptime").read_text().split()[0])
-        return max(uptime - start_ticks / os.sysconf("SC_CLK_TCK"), 0.0)
-    except (OSError, ValueError, IndexError):
-        return None
-
-
 @dataclass(frozen=True)
 class ReadOptions:
     """How a frame is read (:func:`read_frame`): ``layout`` forces a renderer's layout (default: found from its
@@ -201,7 +182,7 @@ class BatchReport:
     """What :func:`denoise_files` did: ``startup_s``, the seconds from process start to the call (None off Linux);
     ``load_s`` and ``warmup_s``, of loading the networks and of their warm-ups; torch's ``threads``; the
     ``precision`` it resolved to; the self-ensemble's members (``ensemble``); the process's ``peak_memory_mb`` at
-    the end (:func:`peak_memory_mb`); one :class:`FrameReport` per input, in order (``frames``); the folder
+    the end (``prep.processes.peak_memory_mb``); one :class:`FrameReport` per input, in order (``frames``); the folder
     entries ``skipped`` (earlier outputs)."""
 
     startup_s: float | None

@@ -219,17 +219,6 @@ def frame_of_size(layers: dict[str, np.ndarray], width: int, height: int) -> dic
     return out
 
 
-def _reset_peak_memory() -> bool:
-    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``), so that the peak read after
-    is the timing's; False where it cannot be."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
 def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
           repeats: int = SPEED_REPEATS) -> dict:
     """Seconds to denoise a ``frame_size`` (width, height) frame, made of the run's first held-out frame
@@ -242,8 +231,9 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
     import keras
 
-    from kpcn_keras.batch import frame_bytes, peak_memory_mb
+    from kpcn_keras.batch import frame_bytes
     from kpcn_keras.denoise import Denoiser
+    from prep.processes import peak_memory_mb, reset_peak_memory
     from kpcn_keras.evaluate import held_out_pairs
     from prep import baselines, layouts
 
@@ -257,7 +247,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
         calls["oidn"] = lambda: baselines.oidn_denoise(layers)
     for call in calls.values():
         call()  # the warm-up: first-call allocations, OIDN's device
-    reset = _reset_peak_memory()
+    reset = reset_peak_memory()
     best = dict.fromkeys(calls, float("inf"))
     for _ in range(repeats):
         for name, call in calls.items():

@@ -45,6 +45,7 @@ import numpy as np
 
 from prep.errors import KpcnError
 from prep.files import atomic_path
+from prep.processes import flush_c_stdio
 
 log = logging.getLogger("kpcn")
 
@@ -145,7 +146,7 @@ def _captured_native_output():
             # the binding prints through Python's and C's stdio, both buffered when fd 1 is not a tty
             sys.stdout.flush()
             sys.stderr.flush()
-            _flush_c_stdio()
+            flush_c_stdio()
             os.dup2(saved[0], 1)
             os.dup2(saved[1], 2)
             for fd in saved:
@@ -153,12 +154,6 @@ def _captured_native_output():
             sink.seek(0)
             captured.append(sink.read().decode(errors="replace"))
             captured.append(text.getvalue())
-
-
-def _flush_c_stdio() -> None:
-    import ctypes
-
-    ctypes.CDLL(None).fflush(None)
 
 
 def _native_detail(path: Path, captured: list[str], exc: Exception) -> str:

@@ -21,7 +21,6 @@ Dot-files in a folder (``.lock``, temporaries) are this module's; no reader take
 from __future__ import annotations
 
 import errno
-import fcntl
 import hashlib
 import json
 import logging
@@ -33,19 +32,12 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from prep.errors import KpcnError, OptionError
+from prep.processes import in_forked_children, lock_file, sync_file, sync_folder, unlock_file
 
 log = logging.getLogger("kpcn")
 
 LOCK_NAME = ".lock"
 _TEMP_MARK = ".tmp-"
-
-
-def _fsync(path: Path, *, directory: bool = False) -> None:
-    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def is_temporary(path: str | os.PathLike) -> bool:
@@ -74,10 +66,10 @@ def atomic_path(path: str | os.PathLike, *, durable: bool = True):
         path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         if durable:
-            _fsync(tmp)
+            sync_file(tmp)
         os.replace(tmp, path)
         if durable:
-            _fsync(path.parent, directory=True)
+            sync_folder(path.parent)
     except (OSError, RuntimeError) as exc:
         failure = write_failure(path, exc)
         if failure is None:
@@ -287,34 +279,35 @@ def exclusive_lock(folder: str | os.PathLike, what: str, name: str = LOCK_NAME):
     ``name``: another lock of the same folder (``.lock-part-1-of-2``: a part of a split stage, which writes
     its own files while the other parts write theirs); it must start with ``.lock``.
 
-    A second holder waits, saying for whom. The lock is an advisory ``flock`` on ``folder/.lock``: the
-    kernel releases it when its process dies, so a killed command never leaves a stale lock. A flock
-    belongs to the open file, which a forked child shares: a child (a shard worker) left behind by a killed
-    parent would hold the lock on, so every forked child closes its copy first thing (``_held_locks``).
+    A second holder waits, saying for whom. The lock is the system's lock of ``folder/.lock``
+    (``prep.processes.lock_file``: an advisory ``flock`` on POSIX): the system releases it when its process dies,
+    so a killed command never leaves a stale lock. A flock belongs to the open file, which a forked child shares:
+    a child (a shard worker) left behind by a killed parent would hold the lock on, so every forked child closes
+    its copy first thing (``_held_locks``).
     """
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         if not name.startswith(LOCK_NAME):
             raise ValueError(f"a lock's name starts with {LOCK_NAME!r}, got {name!r}")
-        fd = os.open(folder / name, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(folder / name, os.O_RDWR | os.O_CREAT | getattr(os, "O_BINARY", 0), 0o644)
     except OSError as exc:
         raise KpcnError(f"{what} {folder}: cannot lock ({exc.strerror or exc})") from None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EACCES):
-                raise
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        if not lock_file(fd, wait=False):
+            os.lseek(fd, 0, os.SEEK_SET)
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
             log.info("%s %s is being written by another process (pid %s); waiting for it", what, folder, holder)
-            fcntl.flock(fd, fcntl.LOCK_EX)
+            lock_file(fd, wait=True)
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.write(fd, f"{os.getpid()}\n".encode())
         _held_locks.add(fd)
         yield folder
     finally:
-        _held_locks.discard(fd)
+        if fd in _held_locks:
+            _held_locks.discard(fd)
+            unlock_file(fd)
         os.close(fd)
 
 
@@ -327,7 +320,7 @@ def _close_held_locks_in_child() -> None:
     _held_locks.clear()
 
 
-os.register_at_fork(after_in_child=_close_held_locks_in_child)
+in_forked_children(_close_held_locks_in_child)
 
 
 def pyplot():

@@ -29,7 +29,7 @@ from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
 from prep.inputs import InputSet
-from prep.processes import die_with_parent
+from prep.processes import LINUX, die_with_parent
 from prep.shards.config import ShardConfig
 from prep.shards.format import (
     FORMAT,
@@ -239,8 +239,9 @@ def _worker_context():
     round cut by ``kpcn resample``). A forked worker starts in milliseconds with everything imported; a
     spawned one imports and loads the features kernel again (~0.6 s of CPU each, a sixth of a default set
     here), but a fork copies torch's thread pools half-made. The workers run no parallel region of numba's
-    or anyone's, so the idle OpenMP threads of ``prep.threads`` that a fork leaves behind are never waited on."""
-    return multiprocessing.get_context("spawn" if "torch" in sys.modules else "fork")
+    or anyone's, so the idle OpenMP threads of ``prep.threads`` that a fork leaves behind are never waited on.
+    spawn on every system but Linux: Windows cannot fork, and macOS's system libraries are not safe across one."""
+    return multiprocessing.get_context("fork" if LINUX and "torch" not in sys.modules else "spawn")
 
 
 def _start_worker(writer: _RoundWriter, parent: int) -> None:
