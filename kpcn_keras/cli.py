@@ -200,7 +200,7 @@ def cmd_denoise(args) -> int:
           f"({batch.threads} thread{'s' if batch.threads != 1 else ''}, {batch.precision}"
           + (f", an ensemble of {batch.ensemble}" if batch.ensemble > 1 else "") + ")")
     if batch.peak_memory_mb is not None:
-        print(f"peak memory {batch.peak_memory_mb:.0f} MB")
+        print(f"peak memory {batch.peak_memory_mb:.0f} MiB")
     per_frame = sorted(f.seconds for f in frames)[len(frames) // 2]
     print(f"denoised {len(frames)} frame{'s' if len(frames) > 1 else ''} in {sum(f.seconds for f in frames):.2f} s"
           + (f" (median {per_frame * 1000:.0f} ms a frame)" if len(frames) > 1 else ""))
@@ -249,7 +249,7 @@ def cmd_ship(args) -> int:
     shipped = ship(Run(args.run), args.out, _command_line(args, DATA_INVARIANT),
                    **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
     size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
-    print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MB); its card: {shipped.card_path}")
+    print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MiB); its card: {shipped.card_path}")
     return 0
 
 

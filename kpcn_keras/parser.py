@@ -527,7 +527,7 @@ def _ship_options(add) -> None:
 
     s = add("ship", own={"speed_frame": FRAME_SIDE}, help="copy a finished, evaluated run with a model for every "
             f"input set into a model folder with its card (CARD.md), for git: no checkpoints, at most "
-            f"{SHIPPED_MAX_BYTES / 2**20:.0f} MB")
+            f"{SHIPPED_MAX_BYTES / 2**20:.0f} MiB")
     _run_option(s, required=True, help="the run folder: finished, for every input set (kpcn train --inputs), "
                 "evaluated (kpcn evaluate)")
     s.add_argument("--out", required=True, help="the model folder, e.g. models/<name>; an earlier one is replaced")

@@ -278,8 +278,8 @@ class Run:
             size = sum((variant.dir / f).stat().st_size for variant, _, files in copies for f in files)
             size += sum(len(text.encode()) for text in (extra or {}).values())
             if size > max_bytes:
-                raise KpcnError(f"{self.dir}: a shipped model of {size / 2**20:.1f} MB is over the "
-                                f"{max_bytes / 2**20:.0f} MB a model kept in git may have; train a smaller one")
+                raise KpcnError(f"{self.dir}: a shipped model of {size / 2**20:.1f} MiB is over the "
+                                f"{max_bytes / 2**20:.0f} MiB a model kept in git may have; train a smaller one")
             new.dir.parent.mkdir(parents=True, exist_ok=True)
             for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed ship's
                 shutil.rmtree(stale)

@@ -144,7 +144,7 @@ def sync_folder(path: str | os.PathLike) -> None:
 
 def proc_megabytes(path: str | os.PathLike, keys) -> dict[str, float]:
     """The ``keys`` of a Linux ``/proc`` table of ``Key: N kB`` lines (``/proc/meminfo``,
-    ``/proc/self/status``) in MB; the keys not found, or every key off Linux, are left out."""
+    ``/proc/self/status``) in MiB; the keys not found, or every key off Linux, are left out."""
     found = {}
     try:
         for line in Path(path).read_text().splitlines():
@@ -157,7 +157,7 @@ def proc_megabytes(path: str | os.PathLike, keys) -> dict[str, float]:
 
 
 def available_memory_mb() -> float | None:
-    """The memory this machine has available for a new allocation without swapping, in MB (Linux
+    """The memory this machine has available for a new allocation without swapping, in MiB (Linux
     ``MemAvailable``; elsewhere ``psutil``'s figure), or None where it cannot be read."""
     if LINUX:
         return proc_megabytes(PROC / "meminfo", ("MemAvailable",)).get("MemAvailable")
@@ -178,7 +178,7 @@ def memory_shortfall(needed_bytes: int, *, available_mb: float | None = None) ->
 
 
 def peak_memory_mb() -> float | None:
-    """This process's peak resident memory in MB, or None where it cannot be read. Linux: ``VmHWM``, not
+    """This process's peak resident memory in MiB, or None where it cannot be read. Linux: ``VmHWM``, not
     ``getrusage``, whose maxrss carries over the parent's resident size through fork and exec; elsewhere the peak
     working set where ``psutil`` reports one (Windows), else ``getrusage``'s maxrss (bytes on macOS, kB on the
     other POSIX systems)."""

@@ -296,7 +296,7 @@ def test_a_model_over_the_size_limit_is_refused(evaluated_run, tmp_path):
     from kpcn_keras.run import Run
 
     size = sum(f.stat().st_size for f in Run(evaluated_run.dir).dir.rglob("*.keras") if "checkpoints" not in f.parts)
-    with pytest.raises(Exception, match="MB a model kept in git may have"):
+    with pytest.raises(Exception, match="MiB a model kept in git may have"):
         Run(evaluated_run.dir).ship(tmp_path / "m", max_bytes=size // 2)
     assert not (tmp_path / "m").exists() and not list(tmp_path.glob(".m.tmp-*"))
     # within the limit it is written, and shipping again replaces it whole

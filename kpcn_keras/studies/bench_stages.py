@@ -276,7 +276,7 @@ def denoise_command_cost(run: str, frame: dict, scratch: Path) -> dict:
     if res.returncode != 0:
         raise KpcnError(f"kpcn denoise {path} failed: {res.stderr.strip()[-500:]}")
     printed = res.stdout.strip().splitlines()
-    peak = [float(m.group(1)) for m in map(re.compile(r"^peak memory (\d+) MB").match, printed) if m]
+    peak = [float(m.group(1)) for m in map(re.compile(r"^peak memory (\d+) MiB").match, printed) if m]
     return {"frame": [w, h], "wall_s": seconds, "printed": printed[-3:], "peak_rss_mb": peak[0] if peak else None}
 
 
