@@ -1,7 +1,10 @@
 """The floor plan of the packages, read from their source: who may import whom.
 
 Every import of a module counts, at any depth (one inside a function too: it closes a circle as soon as
-that function runs). No circle anywhere; ``prep`` never imports the deep-learning stack nor ``kpcn_keras``;
+that function runs). Three floors (:data:`FLOORS`): ``prep``, the offline stage, on the ground; the library
+(``kpcn_keras`` and ``kpcn``, the public API) above it; the lab and the command line (which runs the lab's
+studies, and whose parser the lab uses to spell a command) on top; no import runs up a floor. No circle
+anywhere; ``prep`` never imports the deep-learning stack nor ``kpcn_keras``;
 the library never imports a study (only the command line does, inside a study's command), and every study
 lives in ``kpcn_keras.studies``; ``kpcn_keras.config`` imports nothing else of its package.
 """
@@ -10,10 +13,11 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("prep", "kpcn_keras")
+PACKAGES = ("prep", "kpcn_keras", "kpcn")
 DEEP_LEARNING = ("keras", "torch")
-COMMAND_LINE = ("kpcn_keras.cli", "kpcn_keras.parser")  # the studies' commands: the one way in to them
+COMMAND_LINE = ("kpcn_keras.cli", "kpcn_keras.parser", "kpcn_keras.helpdoc")  # the one way in to the studies
 STUDIES = ("kpcn_keras.studies",)  # the lab: every study and cost probe, and nothing else
+FLOORS = (("prep",), ("kpcn_keras", "kpcn"), (*STUDIES, *COMMAND_LINE))  # the ground first
 
 
 def _modules() -> dict[str, Path]:
@@ -111,6 +115,31 @@ def test_prep_never_imports_the_deep_learning_stack_or_kpcn_keras():
     assert {m: d for m, d in bad.items() if d} == {}
 
 
+def _floor(name: str, floors=FLOORS) -> int:
+    """The floor of module ``name``: that of the longest package or module of :data:`FLOORS` it is inside."""
+    found = [(len(p), i) for i, names in enumerate(floors) for p in names if _inside(name, p)]
+    return max(found)[1]
+
+
+def _up_arrows(graph: dict[str, set[str]], floors=FLOORS) -> list[str]:
+    return sorted(f"{m} (floor {_floor(m, floors)}) -> {d} (floor {_floor(d, floors)})"
+                  for m, deps in graph.items() for d in deps if _floor(d, floors) > _floor(m, floors))
+
+
+def test_no_import_runs_up_a_floor():
+    graph, _ = _graph()
+    assert {_floor(m) for m in graph} == set(range(len(FLOORS)))  # every floor has rooms
+    assert _up_arrows(graph) == []
+
+
+def test_the_floor_check_finds_an_import_running_up():
+    # the library reaching up to the parser to spell a flag: what the check exists to refuse
+    graph = {"kpcn_keras.run": {"kpcn_keras.parser", "prep.files"}, "kpcn_keras.parser": {"kpcn_keras.config"},
+             "prep.files": {"kpcn_keras.config"}, "kpcn_keras.config": set()}
+    assert _up_arrows(graph) == ["kpcn_keras.run (floor 1) -> kpcn_keras.parser (floor 2)",
+                                 "prep.files (floor 0) -> kpcn_keras.config (floor 1)"]
+
+
 def test_the_library_never_imports_a_study():
     graph, _ = _graph()
 
@@ -129,8 +158,8 @@ def test_the_training_config_imports_nothing_else_of_its_package():
 
 def test_every_python_file_outside_the_tests_is_in_a_package():
     # the lab has one home: a study or a probe is a module of kpcn_keras.studies, never a loose script
-    # (scripts/, reports/*.py) beside the packages; kpcn is the console entry's package
-    homes = (*PACKAGES, "kpcn")
+    # (scripts/, reports/*.py) beside the packages; kpcn is the public API's package
+    homes = PACKAGES
     loose = sorted(p.relative_to(ROOT).as_posix() for top in ROOT.iterdir()
                    if top.is_dir() and not top.name.startswith(".") and top.name not in (*homes, "tests")
                    for p in top.rglob("*.py"))
