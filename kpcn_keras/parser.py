@@ -217,7 +217,7 @@ def _render_options(add) -> None:
     r.add_argument("--seed", type=int, help=d("seed"))
     r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}; with --scene: "
                    "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file)")
-    r.add_argument("--scene", help="render this scene file (.toml or .json; see README, 'Scene files') instead "
+    r.add_argument("--scene", help="render this scene file (.toml or .json; docs/scenes.md §5) instead "
                    "of a set; --spp, --seed, --width, --height override its [render] table")
     r.add_argument("--spp", type=int, help="with --scene: samples per pixel (default: the file's)")
     r.add_argument("--no-png", action="store_true", help="with --scene: no tonemapped PNG beside the EXR")
