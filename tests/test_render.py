@@ -722,7 +722,7 @@ def test_the_render_report_says_the_production_figure_is_quoted_not_measured():
     record = json.loads((REPO / "reports" / "render.json").read_text())
     md = format_report(record)
     line = next(row for row in md.splitlines() if row.startswith("Reference point"))
-    assert "issue 6 quoted" in line and "not measured here" in line
+    assert "quoted for a production CPU path tracer" in line and "not measured here" in line
     assert md == (REPO / "reports" / "render.md").read_text()  # the committed report is its record's
 
 

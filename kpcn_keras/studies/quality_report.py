@@ -142,7 +142,7 @@ def _target_table(record: dict) -> list[str]:
     if not rows or None in rows.values():
         return []
     lines = ["", "## The default's target: half the validation frames at 16 spp", "",
-             f"Issue 23 asks `make train`'s default to be below OIDN's relMSE on at least {TARGET_SHARE} "
+             f"The target for `make train`'s default: below OIDN's relMSE on at least {TARGET_SHARE} "
              f"of the validation frames at {TARGET_SPP} spp. Per lever (and the model beside them): the frames it is "
              "below OIDN on, how many the target needs, and the ratio to OIDN's relMSE of the frame that decides (the "
              "needed-th lowest): below 1 the target is met; above, it is out by that much. *Trained on*: the render "
@@ -174,7 +174,7 @@ def _model_section(record: dict) -> list[str]:
     if not record["oidn"]:
         return lines
     total = share_target(record["frames"], MODEL, MODEL_SHARE)
-    lines += ["", "Issue 23's targets for the shipped model, on these frames: the needed-th lowest ratio to OIDN's "
+    lines += ["", "The targets for the shipped model, on these frames: the needed-th lowest ratio to OIDN's "
               "relMSE decides a target on frames; a mean DSSIM is judged by its ratio to OIDN's.", "",
               "| target | model | needed, or OIDN's | ratio to OIDN's | target |", "|---|---|---|---|---|",
               f"| below OIDN's relMSE on at least {MODEL_SHARE} of all frames | {total['lower']} of "

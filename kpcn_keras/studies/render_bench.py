@@ -123,8 +123,8 @@ def format_report(record: dict) -> str:
         "",
         f"Reference point: {anchor['scene']} with paths of up to {anchor['max_depth']} vertices and Russian roulette "
         f"after {anchor['rr_depth']}: {anchor['samples_per_s'] / 1e6:.2f} Msamples/s, against about "
-        f"{anchor['reference_samples_per_s'] / 1e6:.1f} Msamples/s that issue 6 quoted for a production CPU path "
-        "tracer on a machine like this one (a figure from the issue, not measured here).",
+        f"{anchor['reference_samples_per_s'] / 1e6:.1f} Msamples/s quoted for a production CPU path tracer on a "
+        "machine like this one (a figure given, not measured here).",
         "",
     ]
     return "\n".join(lines)

@@ -100,7 +100,7 @@ def report_md(found: dict) -> str:
         "(`Denoiser.prepare`); *new map*: another whole map on the prepared frame; *stroke*: a "
         f"{STROKE}×{STROKE} region re-applied (what `kpcn view` sends); *held*: what the prepared frame keeps.",
         "",
-        f"Targets (issue 24): a new map in at most {TARGET_RATIO:g} of a full denoise, and within {TARGET_MS:g} ms "
+        f"Targets: a new map in at most {TARGET_RATIO:g} of a full denoise, and within {TARGET_MS:g} ms "
         f"at {TARGET_SIZE[0]}×{TARGET_SIZE[1]}.",
         "",
         "| run | size | full s | prepare s | new map ms | new map / full | stroke ms | held MB | targets |",
