@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -199,3 +199,10 @@ docs: $(KPCN)
 # the figure the README gives for it (it takes as long as make train)
 time-train: $(KPCN)
 	$(BIN)/python -m kpcn_keras.studies.fresh_clone --out reports
+
+# the speed section of the shipped model's card timed again on this machine (idle: it is a timing), kpcn beside OIDN
+# on a 1920x1080 frame made of SPEED_SOURCE: models/$(MODEL)/speed.json and the card's speed section
+SPEED_SOURCE ?= tests/fixtures/fixture-00008spp.exr
+model-speed: $(KPCN)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(BIN)/python -m kpcn_keras.studies.card_speed --model models/$(MODEL) --frame $(SPEED_SOURCE)

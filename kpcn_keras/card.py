@@ -41,7 +41,7 @@ import numpy as np
 from kpcn_keras.config import DEFAULT_MODEL, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
 from prep.errors import KpcnError
-from prep.files import read_json
+from prep.files import atomic_write_text, read_json
 from prep.shards import round_name
 
 # held-out table: (header, method of the eval row, metric), after the spp and the frame count
@@ -220,9 +220,10 @@ def frame_of_size(layers: dict[str, np.ndarray], width: int, height: int) -> dic
 
 
 def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
-          repeats: int = SPEED_REPEATS) -> dict:
-    """Seconds to denoise a ``frame_size`` (width, height) frame, made of the run's first held-out frame
-    (:func:`frame_of_size`), by the run's full model (in the default precision, ``kpcn_keras.precision``, as
+          repeats: int = SPEED_REPEATS, source: str | os.PathLike | None = None) -> dict:
+    """Seconds to denoise a ``frame_size`` (width, height) frame, made of ``source`` (an EXR in any layout) or else
+    the run's first held-out frame (:func:`frame_of_size`; a shipped model keeps no renders, so re-timing one
+    names a frame), by the run's full model (in the default precision, ``kpcn_keras.precision``, as
     ``kpcn denoise`` runs it) and by OIDN when ``pyoidn`` is installed: side by side in this process, each
     warmed up, then called alternately ``repeats`` times, the best of each; with torch's threads, the precision,
     the peak resident memory during the timed calls and what the frame holds whole
@@ -233,11 +234,11 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
     from kpcn_keras.batch import frame_bytes
     from kpcn_keras.denoise import Denoiser
-    from prep.processes import peak_memory_mb, reset_peak_memory
     from kpcn_keras.evaluate import held_out_pairs
     from prep import baselines, layouts
+    from prep.processes import peak_memory_mb, reset_peak_memory
 
-    noisy, _ = held_out_pairs(run, record)[0]
+    noisy = source if source is not None else held_out_pairs(run, record)[0][0]
     width, height = frame_size
     layers = frame_of_size(layouts.read(noisy).layers, width, height)
     denoiser = Denoiser.from_run(run, record=record)
@@ -259,7 +260,8 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
         import torch
 
         threads = torch.get_num_threads()
-    return {"width": width, "height": height, "frame": Path(noisy).name, "kpcn_s": best["kpcn"],
+    return {"width": width, "height": height, "frame": Path(noisy).name, "held_out": source is None,
+            "kpcn_s": best["kpcn"],
             "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads, "cpus": os.cpu_count(),
             "precision": denoiser.precision,
             "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
@@ -269,11 +271,13 @@ def speed_lines(found: dict) -> list[str]:
     """The card's speed section from :func:`speed`'s record ``found``, as shipped in :data:`SPEED`; sizes in
     MiB (``peak_mb`` and ``frame_mb`` are bytes / 2**20)."""
     size = f"{found['width']}×{found['height']}"
-    lines = [f"A {size} frame (`{found['frame']}`, a held-out frame wrapped around to that size), denoised in one "
+    made_of = "a held-out frame" if found.get("held_out", True) else "a frame"
+    when = (f"measured {found['measured']} by `{found['command']}`" if "measured" in found
+            else "written with this card")
+    lines = [f"A {size} frame (`{found['frame']}`, {made_of} wrapped around to that size), denoised in one "
              f"process beside OIDN, alternately, the best of {found['repeats']} calls each after a warm-up, "
              f"{found['threads']} torch threads, {found['cpus']} CPUs, the networks' trunks in "
-             f"{found.get('precision', 'float32')} (`--precision`, docs/denoise.md §5); from `{SPEED}`, written "
-             "with this card:", ""]
+             f"{found.get('precision', 'float32')} (`--precision`, docs/denoise.md §5); from `{SPEED}`, {when}:", ""]
     rows = [["kpcn (this model)", f"{found['kpcn_s']:.2f}"]]
     if found["oidn_s"] is None:
         rows.append(["OIDN", "not installed (pip install -e '.[oidn]')"])
@@ -367,6 +371,25 @@ def ship(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int
     run.check_ship_destination(Run(dest))
     card, found = make_card(run, dest, command, speed_frame)
     return run.ship(dest, {CARD: card, SPEED: json.dumps(found, indent=2) + "\n"})
+
+
+def retime(model: Run, source: str | os.PathLike, command: str, frame_size: tuple[int, int] = SPEED_FRAME) -> dict:
+    """Time the shipped ``model`` again (:func:`speed`, on a ``frame_size`` frame made of ``source``) and write the record to its
+    :data:`SPEED` and the card's speed section from it, the rest of the card as it was; returns the record. What
+    a card shows of its speed is then always its :data:`SPEED` file, measured by a named command."""
+    card_path = model.card_path
+    if not card_path.is_file():
+        raise KpcnError(f"{model.dir}: no {CARD}, not a shipped model (kpcn ship makes one)")
+    text = card_path.read_text()
+    start, end = text.find("## Speed\n"), text.find("\n## ", text.find("## Speed\n") + 1)
+    if start < 0 or end < 0:
+        raise KpcnError(f"{card_path}: no speed section followed by another to replace")
+    found = speed(model, model.record(), frame_size, source=source)
+    found.update(measured=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), command=command)
+    atomic_write_text(model.dir / SPEED, json.dumps(found, indent=2) + "\n")
+    section = "\n".join(["## Speed", ""] + speed_lines(found) + [""])
+    atomic_write_text(card_path, text[:start] + section + text[end:])
+    return found
 
 
 def card_tables(text: str) -> dict[str, list[list[str]]]:

@@ -364,6 +364,25 @@ def test_the_card_s_speed_figures_are_those_of_the_speed_record_shipped_beside_i
     assert "\n".join(speed_lines(found)) in (shipped / "CARD.md").read_text()
 
 
+def test_a_shipped_model_timed_again_shows_the_new_record_and_keeps_the_rest_of_its_card(shipped, tmp_path):
+    import shutil
+
+    from kpcn_keras.card import SPEED, retime, speed_lines
+    from kpcn_keras.run import Run
+
+    model = tmp_path / "tiny"
+    shutil.copytree(shipped, model)
+    before = (model / "CARD.md").read_text()
+    noisy = Path(__file__).parent / "fixtures" / "fixture-00008spp.exr"  # kpcn's own layout, as a held-out frame
+    found = retime(Run(model), noisy, "python -m kpcn_keras.studies.card_speed --frame X", frame_size=(40, 24))
+    assert json.loads((model / SPEED).read_text()) == found
+    assert found["frame"] == noisy.name and not found["held_out"] and (found["width"], found["height"]) == (40, 24)
+    after = (model / "CARD.md").read_text()
+    assert "\n".join(speed_lines(found)) in after and "measured " in after
+    head, tail = before.split("## Speed\n")[0], before[before.index("## Learning curve"):]
+    assert after.startswith(head) and after.endswith(tail)
+
+
 def test_the_committed_model_s_card_shows_its_speed_record():
     from kpcn_keras.card import SPEED, speed_lines
 
