@@ -67,11 +67,11 @@ class StopOnNonFinite(keras.callbacks.Callback):
 FROZEN_EPOCHS = 3
 FROZEN_TOLERANCE = 1e-6
 FROZEN_TRAINING_MOVE = 1e-3
-# A phase that starts from finished networks (train.starts_trained) can start on a plateau: its validation loss
-# as flat as a saturated network's for a score of epochs, then falling (make train's albedo phase, seed 1,
-# docs/results/21-quality-report-shipped-model.md). Such a phase is judged only once its validation loss has left its first epoch's by more
-# than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to have saturated it. A phase from
-# random weights is judged from its first epochs (the unet case).
+# A phase that starts from finished networks (train.starts_trained) can start on a plateau: its validation loss as flat
+# as a saturated network's for a score of epochs, then falling (make train's albedo phase, seed 1,
+# docs/results/21-quality-report-shipped-model.md). Such a phase is judged only once its validation loss has left its
+# first epoch's by more than FROZEN_TRAINING_MOVE (relative): until then it has shown no training to have saturated it.
+# A phase from random weights is judged from its first epochs (the unet case).
 
 
 def frozen(history: list[dict], *, started_trained: bool = False) -> bool:

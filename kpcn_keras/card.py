@@ -374,9 +374,9 @@ def ship(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int
 
 
 def retime(model: Run, source: str | os.PathLike, command: str, frame_size: tuple[int, int] = SPEED_FRAME) -> dict:
-    """Time the shipped ``model`` again (:func:`speed`, on a ``frame_size`` frame made of ``source``) and write the record to its
-    :data:`SPEED` and the card's speed section from it, the rest of the card as it was; returns the record. What
-    a card shows of its speed is then always its :data:`SPEED` file, measured by a named command."""
+    """Time the shipped ``model`` again (:func:`speed`, on a ``frame_size`` frame made of ``source``) and write the
+    record to its :data:`SPEED` and the card's speed section from it, the rest of the card as it was; returns the
+    record. What a card shows of its speed is then always its :data:`SPEED` file, measured by a named command."""
     card_path = model.card_path
     if not card_path.is_file():
         raise KpcnError(f"{model.dir}: no {CARD}, not a shipped model (kpcn ship makes one)")

@@ -155,8 +155,8 @@ def kernel_apply(colour, logits, k: int, dilation: int = 1):
       k=13: 98 vs 60 ms; k=21: 1.2 s vs 0.21 s), hence the hand-written backward.
 
     Re-measured with ``kpcn_keras.studies.network_costs.kernel_application_cost`` (best of 9): inference
-    71 -> 13.6 ms (k=13) and 220 -> 30 ms (k=21); 8 x 65 x 65 forward + backward 73 -> 18.5 ms and 313 -> 57 ms. The memory
-    floor (every logit read once: 0.6 / 1.6 ms at the 74 GB/s ``torch.sum`` reached) is out of reach on
+    71 -> 13.6 ms (k=13) and 220 -> 30 ms (k=21); 8 x 65 x 65 forward + backward 73 -> 18.5 ms and 313 -> 57 ms. The
+    memory floor (every logit read once: 0.6 / 1.6 ms at the 74 GB/s ``torch.sum`` reached) is out of reach on
     this CPU: the block softmax alone, the k*k exponentials, costs 4.2 / 8.9 ms.
     """
     k = check_kernel_size(k)

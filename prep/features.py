@@ -55,8 +55,16 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from prep.colour import ALBEDO_EPS, REL_EPS
-from prep.colour import diffuse_to_log, irradiance, irradiance_variance, log_colour, log_variance, specular_to_log
+from prep.colour import (
+    ALBEDO_EPS,
+    REL_EPS,
+    diffuse_to_log,
+    irradiance,
+    irradiance_variance,
+    log_colour,
+    log_variance,
+    specular_to_log,
+)
 from prep.exr import VARIANCE_OF
 
 NUM_FEATURES = 27

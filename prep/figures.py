@@ -48,9 +48,9 @@ from pathlib import Path
 import numpy as np
 
 from prep import exr, features
+from prep.colour import tonemap
 from prep.errors import OptionError
 from prep.files import check_outputs, pyplot, save_png
-from prep.colour import tonemap
 from prep.shards import MANIFEST, ShardConfig, ShardError, ShardSet, open_shard, read_patch, round_pdf
 
 log = logging.getLogger("kpcn")

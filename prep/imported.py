@@ -12,9 +12,9 @@ such a set is cut with ``--inputs no-variance``, whose patch PDF then reads each
   kpcn import-renders SRC --set NAME [--renders data/renders]
   kpcn shards --set NAME --inputs no-variance [--val-scenes ...]
 
-``kpcn render-cycles`` renders such frames with Blender (docs/results/16-cycles-frames.md). Bad input: a KpcnError naming the
-file; an existing set folder is refused rather than mixed with, and every file is read and checked before the
-first is written.
+``kpcn render-cycles`` renders such frames with Blender (docs/results/16-cycles-frames.md). Bad input: a KpcnError
+naming the file; an existing set folder is refused rather than mixed with, and every file is read and checked before
+the first is written.
 """
 
 from __future__ import annotations

@@ -296,6 +296,8 @@ def _exit_when_gone(alive) -> None:
     os._exit(1)
 
 
-__all__ = ["available_memory_mb", "die_with_parent", "flush_c_stdio", "in_forked_children", "keep_freed_memory", "lock_file",
-           "memory_shortfall", "peak_memory_mb", "proc_megabytes", "process_age", "reset_peak_memory", "sync_file",
-           "sync_folder", "unlock_file"]
+__all__ = [
+    "available_memory_mb", "die_with_parent", "flush_c_stdio", "in_forked_children", "keep_freed_memory",
+    "lock_file", "memory_shortfall", "peak_memory_mb", "proc_megabytes", "process_age", "reset_peak_memory",
+    "sync_file", "sync_folder", "unlock_file"
+]

@@ -18,7 +18,7 @@ from helpers.commands import assert_one_line_error, run_main
 from helpers.references import assert_read_features_close, reference_features, reference_log_colour
 from helpers.tiny import TINY_MODEL, build_tiny_shards, random_aovs
 
-from prep import colour, exr, features, metrics, shards
+from prep import colour, exr, metrics, shards
 from prep.albedo import prefilter
 from prep.errors import KpcnError, OptionError
 from prep.exr import VARIANCE_LAYERS

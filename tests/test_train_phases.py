@@ -25,7 +25,7 @@ from kpcn_keras.multiscale import InferenceOnly, build_compositor, multiscale_ou
 from kpcn_keras.run import Run, read_state
 from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import train
-from prep import colour, exr, features
+from prep import colour, exr
 from prep.errors import KpcnError, OptionError
 from prep.shards import VIEWS, ShardSet, open_shard, read_patches, shard_paths
 

@@ -22,8 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from prep.errors import KpcnError
 from kpcn_keras.studies.report import Report
+from prep.errors import KpcnError
 
 STEM = "make_train"
 ROOT = Path(__file__).resolve().parents[2]

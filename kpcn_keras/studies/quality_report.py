@@ -25,9 +25,9 @@ from pathlib import Path
 from kpcn_keras.config import DEFAULT_ENSEMBLE
 from kpcn_keras.studies.compare import against
 from kpcn_keras.studies.frames import PANEL_COLUMNS, SCORES, beside, by_spp, panels_figure
+from kpcn_keras.studies.report import Report
 from prep import layouts
 from prep.files import read_json
-from kpcn_keras.studies.report import Report
 
 REPORT = "quality"  # quality.json, quality.md, quality.png in the report folder
 KINDS = ("held-out", "validation")

@@ -325,8 +325,8 @@ def contact_sheet(out_dir: Path, entries: list[tuple[str, str, Path]]) -> Path:
 
     plt = pyplot()
 
-    from prep.exr import read_aovs
     from prep.colour import tonemap
+    from prep.exr import read_aovs
 
     rows: dict[str, list[tuple[str, Path]]] = {}
     for family, name, path in entries:

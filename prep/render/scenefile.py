@@ -510,8 +510,8 @@ def png_path(output) -> Path:
 def _write_png(path: Path, colour: np.ndarray) -> None:
     import matplotlib.image
 
-    from prep.files import atomic_path
     from prep.colour import tonemap
+    from prep.files import atomic_path
 
     pixels = np.round(tonemap(colour) * 255.0).astype(np.uint8)
     with atomic_path(path) as tmp:
