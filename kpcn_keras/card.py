@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_MODEL, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
-from kpcn_keras.evaluate import EvaluatedFrame, held_out_pairs, read_rows
+from kpcn_keras.evaluate import EvaluatedFrame, read_rows
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
 from prep.errors import KpcnError
 from prep.files import read_json
@@ -221,8 +221,9 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
     from kpcn_keras.batch import frame_bytes
     from kpcn_keras.denoise import Denoiser
-    from prep import baselines, layouts
     from prep.processes import peak_memory_mb, reset_peak_memory
+    from kpcn_keras.evaluate import held_out_pairs
+    from prep import baselines, layouts
 
     noisy, _ = held_out_pairs(run, record)[0]
     width, height = frame_size
