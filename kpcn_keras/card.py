@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_MODEL, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
+from kpcn_keras.evaluate import EvaluatedFrame, read_rows
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, read_json
@@ -64,33 +65,20 @@ def _number(value) -> str:
     return MISSING if value is None or not np.isfinite(value) else f"{value:.4f}"
 
 
-def _metric(row: dict, method: str, metric: str) -> float | None:
-    value = row.get(method, {}).get(metric)
-    return None if value is None else float(value)
-
-
 def _mean(values) -> float | None:
     """The mean, or None where any value is missing (a method run on some frames only is not comparable)."""
     values = list(values)
     return None if not values or any(v is None for v in values) else float(np.mean(values))
 
 
-def read_rows(folder: Path) -> list[dict]:
-    """The rows of an evaluation report folder's ``metrics.json``; KpcnError naming it if unreadable."""
-    rows = read_json(folder / METRICS, "evaluation report")
-    if not isinstance(rows, list) or not all(isinstance(r, dict) and "input spp" in r for r in rows):
-        raise KpcnError(f"{folder / METRICS}: not an evaluation report of kpcn evaluate; evaluate again")
-    return rows
-
-
-def held_out_means(rows: list[dict]) -> list[dict]:
+def held_out_means(rows: list[EvaluatedFrame]) -> list[dict]:
     """Per input spp, ascending: ``spp``, ``frames`` and the mean of each column of :data:`HELD_OUT_COLUMNS`
     over the rows of that spp (None for a method some of them lack)."""
     out = []
-    for spp in sorted({int(r["input spp"]) for r in rows}):
-        of = [r for r in rows if int(r["input spp"]) == spp]
+    for spp in sorted({r.spp for r in rows}):
+        of = [r for r in rows if r.spp == spp]
         out.append({"spp": spp, "frames": len(of),
-                    **{header: _mean(_metric(r, m, k) for r in of) for header, m, k in HELD_OUT_COLUMNS}})
+                    **{header: _mean(r.score(m, k) for r in of) for header, m, k in HELD_OUT_COLUMNS}})
     return out
 
 
@@ -99,18 +87,18 @@ def _table(headers: list[str], lines: list[list[str]]) -> list[str]:
                                                                                for c in lines]
 
 
-def held_out_table(rows: list[dict]) -> list[str]:
+def held_out_table(rows: list[EvaluatedFrame]) -> list[str]:
     means = held_out_means(rows)
     return _table(["input spp", "frames", *(h for h, _, _ in HELD_OUT_COLUMNS)],
                   [[str(m["spp"]), str(m["frames"]), *(_number(m[h]) for h, _, _ in HELD_OUT_COLUMNS)]
                    for m in means])
 
 
-def validation_table(rows: list[dict]) -> list[str]:
-    lines = [[str(r["scene"]), str(r["input spp"]), str(r.get("inputs", "full")),
-              *(_number(_metric(r, m, k)) for _, m, k in VALIDATION_COLUMNS)] for r in rows]
+def validation_table(rows: list[EvaluatedFrame]) -> list[str]:
+    lines = [[r.scene, str(r.spp), r.inputs or "full", *(_number(r.score(m, k)) for _, m, k in VALIDATION_COLUMNS)]
+             for r in rows]
     if len(rows) > 1:
-        lines.append(["**mean**", "", "", *(_number(_mean(_metric(r, m, k) for r in rows))
+        lines.append(["**mean**", "", "", *(_number(_mean(r.score(m, k) for r in rows))
                                             for _, m, k in VALIDATION_COLUMNS)])
     return _table(["scene", "input spp", "model", *(h for h, _, _ in VALIDATION_COLUMNS)], lines)
 

@@ -7,6 +7,8 @@ Denoise (``prep.baselines``), plus seconds per frame, and writes ``<run>/eval/``
 ``metrics.json`` (every metric of ``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | KPCN |
 reference). A baseline that is not installed has NaN in its columns. Every file of the report is checked
 against every file the evaluation reads (renders, references, the run's models) before the run is loaded.
+A frame's row is an :class:`EvaluatedFrame`, written into ``metrics.json`` and read back (the card's tables) by
+:func:`read_rows`.
 """
 
 from __future__ import annotations
@@ -14,24 +16,93 @@ from __future__ import annotations
 import glob
 import json
 import time
+from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
 
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_ENSEMBLE
+from kpcn_keras.denoise import Denoiser
 from kpcn_keras.panels import side_by_side_png
 from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
 from kpcn_keras.serving import Serving
 from kpcn_keras.settings import InferenceSettings
 from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
-from prep.files import atomic_write_text, check_outputs, check_writable
+from prep.files import atomic_write_text, check_outputs, check_writable, read_json
 
-# (header, format, where the value is in a row: a top-level key, or (method, metric))
+METHODS = ("raw", "denoised", "nlm", "oidn")  # the outputs a row scores: the input, the network, the baselines
+
+
+@dataclass(frozen=True)
+class EvaluatedFrame:
+    """One evaluated render, a row of ``metrics.json``: its scene and samples, what served it, the scores
+    (``prep.metrics.all_metrics``: metric name -> value) of each of :data:`METHODS` against the reference, the
+    seconds each took, and its side-by-side PNG. A baseline that did not run (NLM on a frame without colour
+    variance or under --no-baseline, OIDN without pyoidn) is None, as are ``ensemble`` at the default (one
+    member), layout, inputs, model and precision in a report from before evaluate recorded them, and ``spp``
+    and ``png`` in :func:`format_table`'s mean row; :meth:`to_json` leaves what is None out."""
+
+    scene: str
+    spp: int | None
+    raw: dict[str, float]
+    denoised: dict[str, float]
+    seconds: float
+    layout: str | None = None
+    inputs: str | None = None
+    model: str | None = None
+    precision: str | None = None
+    ensemble: int | None = None
+    nlm: dict[str, float] | None = None
+    nlm_seconds: float | None = None
+    oidn: dict[str, float] | None = None
+    oidn_seconds: float | None = None
+    png: str | None = None
+
+    # (field, its key in metrics.json), in the order evaluate has always written them
+    JSON_KEYS = (("scene", "scene"), ("spp", "input spp"), ("layout", "layout"), ("inputs", "inputs"),
+                 ("model", "model"), ("precision", "precision"), ("ensemble", "ensemble"), ("raw", "raw"),
+                 ("denoised", "denoised"), ("seconds", "seconds"), ("nlm_seconds", "nlm_seconds"), ("nlm", "nlm"),
+                 ("oidn_seconds", "oidn_seconds"), ("oidn", "oidn"), ("png", "png"))
+    REQUIRED = ("scene", "input spp", "raw", "denoised", "seconds", "png")  # in every row evaluate ever wrote
+
+    def to_json(self) -> dict:
+        """The row as ``metrics.json`` holds it."""
+        return {key: getattr(self, name) for name, key in self.JSON_KEYS if getattr(self, name) is not None}
+
+    @classmethod
+    def from_json(cls, row) -> EvaluatedFrame:
+        """A row of ``metrics.json`` (keys evaluate does not write are passed over); ValueError naming what is
+        missing where ``row`` is not one."""
+        missing = [key for key in cls.REQUIRED if key not in row] if isinstance(row, dict) else ["a JSON object"]
+        if missing:
+            raise ValueError(f"not a row of kpcn evaluate's report: no {', '.join(missing)}")
+        return cls(**{name: int(row[key]) if name == "spp" else row[key] for name, key in cls.JSON_KEYS if key in row})
+
+    def score(self, method: str, metric: str) -> float | None:
+        """``metric`` of ``method`` (one of :data:`METHODS`); None where the method did not run or lacks it."""
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        scores = getattr(self, method)
+        return None if scores is None else scores.get(metric)
+
+
+def read_rows(folder: Path) -> list[EvaluatedFrame]:
+    """The rows of a report folder's ``metrics.json``; KpcnError naming it where it is not one."""
+    rows = read_json(Path(folder) / METRICS, "evaluation report")
+    try:
+        if not isinstance(rows, list):
+            raise ValueError("not a list of rows")
+        return [EvaluatedFrame.from_json(r) for r in rows]
+    except ValueError as e:
+        raise KpcnError(f"{Path(folder) / METRICS}: not an evaluation report of kpcn evaluate; evaluate again") from e
+
+
+# (header, format, where the value is in a row: a field of EvaluatedFrame, or (method, metric))
 COLUMNS = (
     ("scene", "{}", "scene"),
-    ("input spp", "{}", "input spp"),
+    ("input spp", "{}", "spp"),
     ("raw relMSE", "{:.4f}", ("raw", "relmse")),
     ("denoised relMSE", "{:.4f}", ("denoised", "relmse")),
     ("raw relSE p99.9", "{:.4f}", ("raw", "relse_p999")),
@@ -127,7 +198,7 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              settings: InferenceSettings = InferenceSettings(), baseline: bool = True, slope: float | None = None,
-             layout: str | None = None) -> list[dict]:
+             layout: str | None = None) -> list[EvaluatedFrame]:
     """Evaluate ``run`` on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
     reads (``layout`` forces one), each denoised by the run's model for what it has (``Serving.variant``) with
@@ -151,77 +222,74 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     ensemble = settings.ensemble
     rows = []
     for noisy_path, ref_path in pairs:
-        scene, spp = exr.parse_render_filename(noisy_path)
         denoiser = serving.denoiser(given[noisy_path], warm_up=True, slope=slope)
-        frame = layouts.read(noisy_path, layout)
-        noisy = frame.layers
-        ref = layouts.read(ref_path).layers["default"]
-        start = time.perf_counter()
-        out = denoiser(noisy, slope=slope)["default"]
-        seconds = time.perf_counter() - start
-        row = {
-            "scene": scene,
-            "input spp": spp,
-            "layout": frame.layout,
-            "inputs": frame.inputs.name,
-            "model": str(denoiser.run.dir),
-            "precision": denoiser.precision,
-            **({"ensemble": ensemble} if ensemble != DEFAULT_ENSEMBLE else {}),
-            "raw": metrics.all_metrics(noisy["default"], ref),
-            "denoised": metrics.all_metrics(out, ref),
-            "seconds": seconds,
-        }
-        panels = [(f"input {spp} spp", noisy["default"]), (f"KPCN relMSE {row['denoised']['relmse']:.4f}", out)]
-        if baseline:
-            if frame.inputs.variance:  # NLM weighs by the colour's variance: none without it
-                start = time.perf_counter()
-                nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
-                row["nlm_seconds"] = time.perf_counter() - start
-                row["nlm"] = metrics.all_metrics(nlm, ref)
-                panels.insert(1, (f"NLM relMSE {row['nlm']['relmse']:.4f}", nlm))
-            if baselines.oidn_available():
-                start = time.perf_counter()
-                oidn = baselines.oidn_denoise(noisy)
-                row["oidn_seconds"] = time.perf_counter() - start
-                row["oidn"] = metrics.all_metrics(oidn, ref)
-                panels.insert(len(panels) - 1, (f"OIDN relMSE {row['oidn']['relmse']:.4f}", oidn))
-        panels.append(("reference", ref))
-        row["png"] = str(side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene))
-        rows.append(row)
+        rows.append(evaluate_frame(denoiser, noisy_path, ref_path, out_dir, layout=layout, slope=slope,
+                                   baseline=baseline, ensemble=ensemble))
     table = format_table(rows)
-    atomic_write_text(out_dir / METRICS, json.dumps(rows, indent=2))
+    atomic_write_text(out_dir / METRICS, json.dumps([row.to_json() for row in rows], indent=2))
     at = ("" if slope is None else f" at λ = {slope:g}") + (f", an ensemble of {ensemble}" if ensemble > 1 else "")
     atomic_write_text(out_dir / REPORT, f"# Evaluation of {run.dir}{at} ({date.today().isoformat()})\n\n{table}\n")
     return rows
 
 
-def _value(row: dict, where):
+def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: Path, *, layout: str | None,
+                   slope: float | None, baseline: bool, ensemble: int) -> EvaluatedFrame:
+    """One row of :func:`evaluate`: the render ``noisy_path`` denoised by ``denoiser`` (timed), scored against
+    ``ref_path`` with the raw input and, under ``baseline``, NLM and OIDN where they run; writes its PNG."""
+    scene, spp = exr.parse_render_filename(noisy_path)
+    frame = layouts.read(noisy_path, layout)
+    noisy = frame.layers
+    ref = layouts.read(ref_path).layers["default"]
+    start = time.perf_counter()
+    out = denoiser(noisy, slope=slope)["default"]
+    seconds = time.perf_counter() - start
+    denoised = metrics.all_metrics(out, ref)
+    panels = [(f"input {spp} spp", noisy["default"]), (f"KPCN relMSE {denoised['relmse']:.4f}", out)]
+    found = {}
+    if baseline:
+        if frame.inputs.variance:  # NLM weighs by the colour's variance: none without it
+            start = time.perf_counter()
+            nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
+            found.update(nlm_seconds=time.perf_counter() - start, nlm=metrics.all_metrics(nlm, ref))
+            panels.insert(1, (f"NLM relMSE {found['nlm']['relmse']:.4f}", nlm))
+        if baselines.oidn_available():
+            start = time.perf_counter()
+            oidn = baselines.oidn_denoise(noisy)
+            found.update(oidn_seconds=time.perf_counter() - start, oidn=metrics.all_metrics(oidn, ref))
+            panels.insert(len(panels) - 1, (f"OIDN relMSE {found['oidn']['relmse']:.4f}", oidn))
+    panels.append(("reference", ref))
+    png = side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene)
+    return EvaluatedFrame(scene, spp, raw=metrics.all_metrics(noisy["default"], ref), denoised=denoised,
+                          seconds=seconds, layout=frame.layout, inputs=frame.inputs.name, model=str(denoiser.run.dir),
+                          precision=denoiser.precision, ensemble=None if ensemble == DEFAULT_ENSEMBLE else ensemble,
+                          png=str(png), **found)
+
+
+def _value(row: EvaluatedFrame, where):
     """The value of one column in a row; NaN for a method the row lacks (NLM under --no-baseline)."""
     if isinstance(where, str):
-        return row[where]
-    method, metric = where
-    return row.get(method, {}).get(metric, float("nan"))
+        return getattr(row, where)
+    value = row.score(*where)
+    return float("nan") if value is None else value
 
 
-def _cells(row: dict) -> list[str]:
-    return [fmt.format(_value(row, where)) for _, fmt, where in COLUMNS]
+def _cells(row: EvaluatedFrame) -> list[str]:
+    values = [(fmt, _value(row, where)) for _, fmt, where in COLUMNS]
+    return ["" if value is None else fmt.format(value) for fmt, value in values]  # None: the mean row's spp
 
 
-def format_table(rows: list[dict]) -> str:
-    """A Markdown table, one row per scene, with a mean row: each column's mean over the scenes (for relSE
-    p99.9 the mean of the scenes' percentiles, not a percentile of all their pixels)."""
+def mean_row(rows: list[EvaluatedFrame]) -> EvaluatedFrame:
+    """The table's mean row: the mean over ``rows`` of each column (for relSE p99.9 the mean of the scenes'
+    percentiles, not a percentile of all their pixels); a method some row lacks is left out (NaN in the table)."""
+    means = {}
+    for _, _, where in COLUMNS:
+        if isinstance(where, tuple) and all(getattr(r, where[0]) is not None for r in rows):
+            means.setdefault(where[0], {})[where[1]] = float(np.mean([_value(r, where) for r in rows]))
+    return EvaluatedFrame("**mean**", None, seconds=float(np.mean([r.seconds for r in rows])), **means)
+
+
+def format_table(rows: list[EvaluatedFrame]) -> str:
+    """A Markdown table, one row per scene, with a :func:`mean_row` where there are several."""
     lines = ["| " + " | ".join(name for name, _, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(_cells(r)) + " |" for r in rows]
-    if len(rows) > 1:
-        mean = {
-            "scene": "**mean**",
-            "input spp": "",
-            "seconds": float(np.mean([r["seconds"] for r in rows])),
-        }
-        for _, _, where in COLUMNS:
-            if isinstance(where, tuple):
-                method, metric = where
-                if all(method in r for r in rows):
-                    mean.setdefault(method, {})[metric] = float(np.mean([_value(r, where) for r in rows]))
-        lines.append("| " + " | ".join(_cells(mean)) + " |")
+    lines += ["| " + " | ".join(_cells(r)) + " |" for r in rows + ([mean_row(rows)] if len(rows) > 1 else [])]
     return "\n".join(lines)

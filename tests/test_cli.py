@@ -15,6 +15,7 @@ from helpers.files import checksums
 from helpers.tiny import build_tiny_shards, make_renders, random_aovs
 
 from kpcn_keras.cli import main
+from kpcn_keras.evaluate import read_rows
 from prep import exr
 
 REPO = Path(__file__).resolve().parents[1]
@@ -509,11 +510,10 @@ def test_render_shard_train_denoise_evaluate(tmp_path, monkeypatch, fixture_nois
     assert "relmse" in capsys.readouterr().out
 
     assert main(["-q", "evaluate", "--run", "runs/toy"]) == 0
-    rows = json.loads((tmp_path / "runs/toy/eval/metrics.json").read_text())
-    assert sorted((r["scene"], r["input spp"]) for r in rows) == sorted((s, n) for s in manifest["split"]["val"]
-                                                                        for n in (4, 8))
-    assert all(np.isfinite(r["denoised"]["relmse"]) and np.isfinite(r["nlm"]["relmse"]) for r in rows)
-    assert all(np.isfinite(r[k]["relse_p999"]) for r in rows for k in ("raw", "denoised", "nlm"))
+    rows = read_rows(tmp_path / "runs/toy/eval")
+    assert sorted((r.scene, r.spp) for r in rows) == sorted((s, n) for s in manifest["split"]["val"] for n in (4, 8))
+    assert all(np.isfinite(r.denoised["relmse"]) and np.isfinite(r.nlm["relmse"]) for r in rows)
+    assert all(np.isfinite(r.score(k, "relse_p999")) for r in rows for k in ("raw", "denoised", "nlm"))
     report = (tmp_path / "runs/toy/eval/report.md").read_text()
     assert "| scene | input spp | raw relMSE | denoised relMSE | raw relSE p99.9 | denoised relSE p99.9 |" in report
     assert "| NLM relMSE | NLM relSE p99.9 |" in report

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kpcn_keras.cli import main
-from kpcn_keras.evaluate import COLUMNS, format_table, held_out_pairs
+from kpcn_keras.evaluate import COLUMNS, EvaluatedFrame, format_table, held_out_pairs, read_rows
 from kpcn_keras.run import Run
 from prep import exr, metrics
 
@@ -23,13 +23,13 @@ def _parse(table: str) -> tuple[list[str], list[list[str]]]:
     return header, rows
 
 
+def _scores(relmse, relse_p999, dssim):
+    return {"relmse": relmse, "relse_p999": relse_p999, "dssim": dssim}
+
+
 def _row(scene, raw, den, nlm=None, seconds=0.5):
-    row = {"scene": scene, "input spp": 8, "seconds": seconds,
-           "raw": {"relmse": raw[0], "relse_p999": raw[1], "dssim": raw[2]},
-           "denoised": {"relmse": den[0], "relse_p999": den[1], "dssim": den[2]}}
-    if nlm is not None:
-        row["nlm"] = {"relmse": nlm[0], "relse_p999": nlm[1], "dssim": nlm[2]}
-    return row
+    return EvaluatedFrame(scene, 8, raw=_scores(*raw), denoised=_scores(*den), seconds=seconds,
+                          nlm=None if nlm is None else _scores(*nlm), png=f"{scene}.png")
 
 
 def test_table_shows_the_p999_columns_beside_relmse_and_their_mean():
@@ -42,10 +42,10 @@ def test_table_shows_the_p999_columns_beside_relmse_and_their_mean():
     col = {name: header.index(name) for name in header}
     assert [c[0] for c in cells] == ["a-003", "b-003", "**mean**"]
     for row, line in zip(rows, cells):
-        assert line[col["raw relSE p99.9"]] == f"{row['raw']['relse_p999']:.4f}"
-        assert line[col["denoised relSE p99.9"]] == f"{row['denoised']['relse_p999']:.4f}"
-        assert line[col["NLM relSE p99.9"]] == f"{row['nlm']['relse_p999']:.4f}"
-        assert line[col["denoised relMSE"]] == f"{row['denoised']['relmse']:.4f}"
+        assert line[col["raw relSE p99.9"]] == f"{row.raw['relse_p999']:.4f}"
+        assert line[col["denoised relSE p99.9"]] == f"{row.denoised['relse_p999']:.4f}"
+        assert line[col["NLM relSE p99.9"]] == f"{row.nlm['relse_p999']:.4f}"
+        assert line[col["denoised relMSE"]] == f"{row.denoised['relmse']:.4f}"
     mean = cells[-1]
     assert (mean[col["raw relSE p99.9"]], mean[col["denoised relSE p99.9"]], mean[col["NLM relSE p99.9"]]) \
         == ("5.0000", "0.5000", "2.0000")
@@ -60,6 +60,37 @@ def test_table_without_the_baseline_leaves_the_nlm_columns_nan():
     assert cells[-1][header.index("raw relSE p99.9")] == "5.0000"
 
 
+def test_a_row_reads_back_as_it_was_written():
+    row = _row("a-003", (0.01, 2.5, 0.1), (0.002, 0.25, 0.01), (0.004, 1.5, 0.02))
+    assert EvaluatedFrame.from_json(row.to_json()) == row
+    assert list(row.to_json()) == ["scene", "input spp", "raw", "denoised", "seconds", "nlm", "png"]
+    full = EvaluatedFrame("b-000", 4, {"relmse": 1.0}, {"relmse": 0.5}, 0.25, layout="kpcn", inputs="full",
+                          model="runs/m", precision="float32", ensemble=4, nlm={"relmse": 0.75}, nlm_seconds=0.5,
+                          oidn={"relmse": 0.6}, oidn_seconds=0.125, png="b.png")
+    assert EvaluatedFrame.from_json(json.loads(json.dumps(full.to_json()))) == full
+    assert list(full.to_json()) == ["scene", "input spp", "layout", "inputs", "model", "precision", "ensemble",
+                                    "raw", "denoised", "seconds", "nlm_seconds", "nlm", "oidn_seconds", "oidn", "png"]
+
+
+@pytest.mark.parametrize("folder", ["eval", "eval-validation"])
+def test_the_shipped_models_reports_read_and_write_back_to_the_same_bytes(folder):
+    from helpers.paths import REPO
+
+    path = REPO / "models" / "default" / folder / "metrics.json"
+    rows = read_rows(path.parent)
+    assert json.dumps([r.to_json() for r in rows], indent=2) == path.read_text()
+    assert format_table(rows) in (path.parent / "report.md").read_text()  # the printed table, byte for byte
+
+
+@pytest.mark.parametrize("text", ['{"scene": "a"}', '[{"scene": "a", "input spp": 4}]', '[[1, 2]]'])
+def test_a_metrics_file_that_is_not_a_report_is_one_line_naming_it(tmp_path, text):
+    from prep.errors import KpcnError
+
+    (tmp_path / "metrics.json").write_text(text)
+    with pytest.raises(KpcnError, match=f"^{tmp_path}/metrics.json: not an evaluation report of kpcn evaluate"):
+        read_rows(tmp_path)
+
+
 @pytest.mark.slow
 def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path, capsys):
     out = tmp_path / "eval"
@@ -68,18 +99,18 @@ def test_kpcn_evaluate_prints_the_p999_column_for_every_scene(tiny_run, tmp_path
     table = "\n".join(line for line in printed.splitlines() if line.startswith("|"))
     assert table in (out / "report.md").read_text()
     header, cells = _parse(table)
-    rows = json.loads((out / "metrics.json").read_text())
-    assert len(rows) == 2 and [c[0] for c in cells] == [r["scene"] for r in rows] + ["**mean**"]
+    rows = read_rows(out)
+    assert len(rows) == 2 and [c[0] for c in cells] == [r.scene for r in rows] + ["**mean**"]
     for (noisy, ref), row, line in zip(held_out_pairs(Run(tiny_run), Run(tiny_run).record()), rows, cells):
         raw = metrics.relse_p999(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])
-        assert row["raw"]["relse_p999"] == raw
-        assert set(row["raw"]) == set(row["denoised"]) == set(row["nlm"]) == set(metrics.METRICS)
+        assert row.raw["relse_p999"] == raw
+        assert set(row.raw) == set(row.denoised) == set(row.nlm) == set(metrics.METRICS)
         for name, key in zip(P999, ("raw", "denoised", "nlm")):
-            value = row[key]["relse_p999"]
+            value = row.score(key, "relse_p999")
             assert np.isfinite(value) and value >= 0
             assert line[header.index(name)] == f"{value:.4f}"
     for name, key in zip(P999, ("raw", "denoised", "nlm")):
-        assert cells[-1][header.index(name)] == f"{np.mean([r[key]['relse_p999'] for r in rows]):.4f}"
+        assert cells[-1][header.index(name)] == f"{np.mean([r.score(key, 'relse_p999') for r in rows]):.4f}"
 
 
 def test_evaluate_checks_every_file_it_writes_against_every_file_it_reads(tiny_run, tmp_path, capsys):
@@ -121,10 +152,10 @@ def test_evaluate_and_figures_of_one_input_ignore_the_other_files_in_its_folder(
     run = shutil.copytree(tiny_run, tmp_path / "run")  # figures are written into the run
     assert main(["-q", "evaluate", "--run", str(run), "--out", str(tmp_path / "eval"), "--no-baseline",
                  str(noisy)]) == 0
-    [row] = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    assert (row["scene"], row["input spp"]) == ("a-000", 4)
+    [row] = read_rows(tmp_path / "eval")
+    assert (row.scene, row.spp) == ("a-000", 4)
     want = metrics.relmse(exr.read_aovs(noisy)["default"], exr.read_aovs(ref, variances=False)["default"])
-    assert row["raw"]["relmse"] == want
+    assert row.raw["relmse"] == want
     assert main(["-q", "figures", "--run", str(run), str(noisy)]) == 0
     assert (run / "figures" / "kernels.png").is_file()
     capsys.readouterr()
@@ -149,8 +180,8 @@ def test_a_slope_input_run_is_evaluated_at_the_slope_given_and_refused_without_o
                    cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "at λ = 3 " in (tmp_path / "eval" / "report.md").read_text().splitlines()[0]
-    rows = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    rows = read_rows(tmp_path / "eval")
     denoiser = Denoiser.from_run(run)
     for (noisy, ref), row in zip(held_out_pairs(run, run.record()), rows, strict=True):
         want = denoiser(exr.read_aovs(noisy), slope=3.0)["default"]
-        assert row["denoised"] == metrics.all_metrics(want, exr.read_aovs(ref, variances=False)["default"])
+        assert row.denoised == metrics.all_metrics(want, exr.read_aovs(ref, variances=False)["default"])

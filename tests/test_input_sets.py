@@ -336,21 +336,21 @@ def test_train_refuses_a_shard_set_cut_for_another_input_set(runs, tmp_path):
 
 def test_kpcn_evaluate_of_a_no_split_run_denoises_restricted_frames_against_the_full_input(runs):
     from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.evaluate import held_out_pairs
+    from kpcn_keras.evaluate import held_out_pairs, read_rows
     from kpcn_keras.run import Run
 
     tmp, _, variant = runs
     res = run_main("evaluate", "--run", variant, "--no-baseline", cwd=tmp)
     assert res.returncode == 0, res.stderr[-3000:]
-    rows = json.loads((variant / "eval" / "metrics.json").read_text())
+    rows = read_rows(variant / "eval")
     run = Run(variant)
     pairs = held_out_pairs(run, run.record())
     assert len(rows) == len(pairs) == 2
     den = Denoiser.from_run(run)
     for row, (noisy_path, ref_path) in zip(rows, pairs):
         noisy, ref = exr.read_aovs(noisy_path), exr.read_aovs(ref_path, variances=False)["default"]
-        assert row["raw"] == metrics.all_metrics(noisy["default"], ref)
-        assert row["denoised"] == metrics.all_metrics(den(total_colour_frame(noisy))["default"], ref)
+        assert row.raw == metrics.all_metrics(noisy["default"], ref)
+        assert row.denoised == metrics.all_metrics(den(total_colour_frame(noisy))["default"], ref)
 
 
 def test_kpcn_figures_of_a_no_split_run_draws_the_diffuse_kernels(runs):

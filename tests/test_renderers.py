@@ -2,7 +2,6 @@
 the renderers' own files): each file is found without a flag and denoised by the model trained for what it
 has; the output keeps the input's alpha and header attributes; the API's output is the command's."""
 
-import json
 import shutil
 from pathlib import Path
 
@@ -76,6 +75,8 @@ def test_the_apis_output_equals_the_commands_on_the_same_frame(tiny_run_of_every
 
 
 def test_kpcn_evaluate_takes_renderers_files_each_by_its_model(tiny_run_of_every_input_set, tmp_path):
+    from kpcn_keras.evaluate import read_rows
+
     frames = tmp_path / "frames"
     frames.mkdir()
     for name in ("cycles5/studio-00016spp.exr", "cycles5/studio-00256spp.exr", "mitsuba3/cornell-00016spp.exr",
@@ -85,9 +86,9 @@ def test_kpcn_evaluate_takes_renderers_files_each_by_its_model(tiny_run_of_every
     res = run_main("evaluate", "--run", run, frames / "studio-00016spp.exr", frames / "cornell-00016spp.exr",
                    "--out", tmp_path / "eval", "--no-baseline", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    rows = {r["scene"]: r for r in json.loads((tmp_path / "eval" / "metrics.json").read_text())}
-    assert (rows["studio"]["layout"], rows["studio"]["model"]) == ("cycles", str(run / "inputs" / "no-variance"))
-    assert (rows["cornell"]["layout"], rows["cornell"]["model"]) == ("mitsuba", str(run / "inputs" / "no-split"))
+    rows = {r.scene: r for r in read_rows(tmp_path / "eval")}
+    assert (rows["studio"].layout, rows["studio"].model) == ("cycles", str(run / "inputs" / "no-variance"))
+    assert (rows["cornell"].layout, rows["cornell"].model) == ("mitsuba", str(run / "inputs" / "no-split"))
 
 
 def test_a_file_of_a_layout_kpcn_does_not_read_is_one_line_before_any_work(tiny_run_of_every_input_set, tmp_path):

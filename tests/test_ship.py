@@ -63,14 +63,15 @@ def test_a_shipped_model_holds_what_serving_needs_and_no_checkpoints(evaluated_r
 
 
 def test_denoise_and_evaluate_accept_a_shipped_model(shipped, evaluated_run, fixture_noisy, tmp_path):
+    from kpcn_keras.evaluate import read_rows
+
     res = run_main("denoise", fixture_noisy, "--run", shipped, "-o", tmp_path / "out.exr", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "out.exr").is_file()
     res = run_main("evaluate", "--run", shipped, "--out", tmp_path / "eval", "--no-baseline", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
-    ours = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    theirs = json.loads((evaluated_run.eval_dir / "metrics.json").read_text())
-    assert [r["denoised"] for r in ours] == [r["denoised"] for r in theirs]  # the same networks, the same bits
+    ours, theirs = read_rows(tmp_path / "eval"), read_rows(evaluated_run.eval_dir)
+    assert [r.denoised for r in ours] == [r.denoised for r in theirs]  # the same networks, the same bits
     # its own report folders hold what its card shows: another evaluation (an ensemble, say) goes elsewhere
     before = {p: p.read_bytes() for p in shipped.rglob("eval*/*")}
     for out in ((), ("--out", shipped / "eval-validation")):
@@ -176,36 +177,37 @@ def test_make_model_tune_ships_make_models_networks_fine_tuned_from_their_own_wi
 
 def _means(rows, spp, method, metric):
     """The float64 mean over the rows of ``spp``; None where a row lacks the method."""
-    of = [r for r in rows if r["input spp"] == spp]
-    if any(method not in r for r in of):
+    of = [r for r in rows if r.spp == spp]
+    if any(getattr(r, method) is None for r in of):
         return None
-    return float(np.mean(np.asarray([r[method][metric] for r in of], dtype=np.float64)))
+    return float(np.mean(np.asarray([getattr(r, method)[metric] for r in of], dtype=np.float64)))
 
 
 def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
     from kpcn_keras.card import HELD_OUT_COLUMNS, VALIDATION_COLUMNS, card_tables
+    from kpcn_keras.evaluate import read_rows
 
     tables = card_tables((shipped / "CARD.md").read_text())
-    rows = json.loads((evaluated_run.eval_dir / "metrics.json").read_text())
+    rows = read_rows(evaluated_run.eval_dir)
     held = tables["Held-out frames"]
     assert held[0][:2] == ["input spp", "frames"]
-    assert [int(line[0]) for line in held[1:]] == sorted({r["input spp"] for r in rows})
+    assert [int(line[0]) for line in held[1:]] == sorted({r.spp for r in rows})
     for line in held[1:]:
         spp = int(line[0])
-        assert int(line[1]) == sum(r["input spp"] == spp for r in rows)
+        assert int(line[1]) == sum(r.spp == spp for r in rows)
         for cell, (_, method, metric) in zip(line[2:], HELD_OUT_COLUMNS):
             mean = _means(rows, spp, method, metric)
             if mean is None or not np.isfinite(mean):
                 assert cell == "–"
             else:
                 assert float(cell) == pytest.approx(mean, abs=5e-5)
-    validation = json.loads((evaluated_run.validation_dir / "metrics.json").read_text())
+    validation = read_rows(evaluated_run.validation_dir)
     lines = tables["Validation frames"][1:]
     assert len(lines) == len(validation) + (len(validation) > 1)
     for line, row in zip(lines, validation):
-        assert line[:3] == [row["scene"], str(row["input spp"]), "no-split-no-variance"]
+        assert line[:3] == [row.scene, str(row.spp), "no-split-no-variance"]
         for cell, (_, method, metric) in zip(line[3:], VALIDATION_COLUMNS):
-            value = row.get(method, {}).get(metric)
+            value = row.score(method, metric)
             assert cell == "–" if value is None else float(cell) == pytest.approx(value, abs=5e-5)
     curve = tables["Learning curve"]
     assert {line[0] for line in curve[1:]} == set(INPUT_SETS)

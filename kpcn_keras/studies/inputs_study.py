@@ -138,28 +138,24 @@ def held_out(cfg: InputsStudyConfig, plans: dict, *, log=print) -> dict:
 def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[dict], list]:
     """Per frame of another renderer: its layout and input set, the model that served it, and the scores of the
     raw input, kpcn, OIDN and the renderer's own denoiser; and the panels of the figure."""
-    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.serving import Serving
 
-    root = Run(plans["full"]["run"])
-    denoisers, rows, panels = {}, [], []
+    serving = Serving(Run(plans["full"]["run"]))
+    rows, panels = [], []
     for noisy_path, ref_path in renderer_pairs(cfg.frames):
         frame = layouts.read(noisy_path)
         ref = layouts.read(ref_path).layers["default"]
-        variant = root.serving(frame.inputs)
-        if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant)
-            denoisers[variant.dir].warm_up()
+        denoiser = serving.denoiser(frame.inputs, warm_up=True)
         start = time.perf_counter()
-        out = denoisers[variant.dir](frame.layers)["default"]
+        out = denoiser(frame.layers)["default"]
         seconds = time.perf_counter() - start
         scene, spp = exr.parse_render_filename(noisy_path)
         row = {"frame": str(noisy_path), "scene": scene, "spp": spp, "renderer": noisy_path.parent.name,
-               "layout": frame.layout, "inputs": frame.inputs.name, "model": variant.record().inputs.name,
+               "layout": frame.layout, "inputs": frame.inputs.name, "model": serving.record(frame.inputs).inputs.name,
                "seconds": seconds, "raw": _scores(frame.layers["default"], ref), "kpcn": _scores(out, ref)}
         for name, layer in frame.alternatives.items():  # the layer the adapter could have taken instead
-            row[f"kpcn_alternative_{name}"] = _scores(denoisers[variant.dir]({**frame.layers, name: layer})["default"],
-                                                      ref)
+            row[f"kpcn_alternative_{name}"] = _scores(denoiser({**frame.layers, name: layer})["default"], ref)
         images = {"input": frame.layers["default"], "kpcn": out, **beside(noisy_path, frame.layers), "reference": ref}
         for name in ("OIDN", "Blender"):
             if name in images:
@@ -179,13 +175,13 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
     denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), each by the
     run's model for it, beside the mean's raw scores and OIDN's on it."""
     from kpcn_keras.batch import ReadOptions, read_frame
-    from kpcn_keras.denoise import Denoiser
     from kpcn_keras.run import Run
+    from kpcn_keras.serving import Serving
     from prep import baselines
     from prep.exr import VARIANCE_LAYERS
 
-    root = Run(plans["full"]["run"])
-    denoisers, rows = {}, []
+    serving = Serving(Run(plans["full"]["run"]))
+    rows = []
     for first, ref_path in renderer_pairs(cfg.pairs):
         second = first.with_name(first.name[: -len(".exr")] + PAIR_SUFFIX)
         if not second.exists():
@@ -198,11 +194,8 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
         row = {"scene": scene, "spp": 2 * spp, "raw": _scores(layers["default"], ref)}
         for key, frame_layers, inputs in (("without", layers, without), ("pair", with_variance.layers,
                                                                          with_variance.inputs)):
-            variant = root.serving(inputs)
-            if variant.dir not in denoisers:
-                denoisers[variant.dir] = Denoiser.from_run(variant)
-            row[key] = _scores(denoisers[variant.dir](frame_layers)["default"], ref)
-            row[f"{key}_model"] = variant.record().inputs.name
+            row[key] = _scores(serving.denoiser(inputs)(frame_layers)["default"], ref)
+            row[f"{key}_model"] = serving.record(inputs).inputs.name
         if baselines.oidn_available():
             row["oidn"] = _scores(baselines.oidn_denoise(layers), ref)
         rows.append(row)

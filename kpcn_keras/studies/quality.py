@@ -273,6 +273,8 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
     """Per-frame rows of both kinds (raw input, OIDN, Blender's own, every lever) and each lever's outputs on
     the validation frames at ``cfg.panel_spp`` (for the panels)."""
     from kpcn_keras.run import Run
+    from kpcn_keras.serving import Serving
+    from kpcn_keras.settings import InferenceSettings
     from prep import baselines
 
     rows, outputs = [], {}
@@ -292,9 +294,11 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
         for name, image in f["beside"].items():
             row[name.lower()] = scores(image, f["reference"])
         rows.append(row)
-    denoisers = {}
+    servings = {}  # one per run, so two levers of one run load its networks once
     for lever, plan in plans.items():
-        entries, shown = measure_run(Run(plan["run"]), held, frames, cfg, denoisers)
+        if plan["run"] not in servings:
+            servings[plan["run"]] = Serving(Run(plan["run"]), InferenceSettings(ensemble=cfg.ensemble))
+        entries, shown = measure_run(servings[plan["run"]], held, frames, cfg)
         for row, entry in zip(rows, entries):
             row["levers"][lever] = entry
         outputs.update({(lever, path): out for path, out in shown.items()})
@@ -304,24 +308,18 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
     return rows, outputs
 
 
-def measure_run(run, held: list[dict], frames: list[dict], cfg: QualityConfig, denoisers: dict) -> tuple:
-    """``run``'s scores on every frame, held-out then validation (the rows' order): the held-out frames by its
-    own networks, each validation frame by the network that serves what it gives (``Run.serving``); and its
-    outputs of the validation frames at ``cfg.panel_spp`` by path. ``denoisers`` caches one per network."""
-    from kpcn_keras.denoise import Denoiser
-    from kpcn_keras.settings import InferenceSettings
-
-    def denoiser(variant):
-        if variant.dir not in denoisers:
-            denoisers[variant.dir] = Denoiser.from_run(variant, InferenceSettings(ensemble=cfg.ensemble))
-        return denoisers[variant.dir]
-
-    entries = [{**scores(denoiser(run)(f["noisy"])["default"], f["reference"]), "model": FULL.name} for f in held]
+def measure_run(serving, held: list[dict], frames: list[dict], cfg: QualityConfig) -> tuple:
+    """The scores of the run ``serving`` serves (a ``kpcn_keras.serving.Serving``) on every frame, held-out then
+    validation (the rows' order): the held-out frames by its own networks (the run serves a full frame itself),
+    each validation frame by the network that serves what it gives (``Run.serving``); and its outputs of the
+    validation frames at ``cfg.panel_spp`` by path."""
+    entries = [{**scores(serving.denoiser(FULL)(f["noisy"])["default"], f["reference"]), "model": FULL.name}
+               for f in held]
     shown = {}
     for f in frames:
-        variant = run.serving(f["frame"].inputs)
-        out = denoiser(variant)(f["frame"].layers)["default"]
-        trained = variant.record()
+        variant = serving.variant(f["frame"].inputs)
+        out = serving.denoiser(f["frame"].inputs)(f["frame"].layers)["default"]
+        trained = serving.record(f["frame"].inputs)
         entries.append({**scores(out, f["reference"]), "model": trained.inputs.name, "run": str(variant.dir),
                         "set": trained.train.set_name})
         if f["spp"] == cfg.panel_spp:
@@ -369,7 +367,10 @@ def measure_model(cfg: QualityConfig, run, rows: list[dict], held: list[dict], f
                   log=print) -> tuple[dict, dict]:
     """``run`` measured on the study's frames: its scores put in every row under :data:`MODEL`; returns the
     record's entry for it (where it is, the set it trained on) and its outputs of the panels' frames by path."""
-    entries, shown = measure_run(run, held, frames, cfg, {})
+    from kpcn_keras.serving import Serving
+    from kpcn_keras.settings import InferenceSettings
+
+    entries, shown = measure_run(Serving(run, InferenceSettings(ensemble=cfg.ensemble)), held, frames, cfg)
     for row, entry in zip(rows, entries):
         row[MODEL] = entry
     # relative where it can be: a report in the repository names models/default, not this machine's folders
