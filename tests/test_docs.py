@@ -305,7 +305,9 @@ def test_every_measured_figure_of_a_living_page_names_its_json_or_its_dated_page
 
 
 def test_a_planted_figure_without_its_source_is_found():
-    page = ("Denoising a 1080p frame takes 3.2 s on 2 cores. The network is 1.28× slower (2026-12-03).\n\n"
+    # a sentence naming a JSON sources its own figures, not its paragraph's
+    page = ("The card's frame takes 3.39 s (`speed.json`). Denoising a 1080p frame takes 3.2 s on 2 cores. "
+            "The network is 1.28× slower (2026-12-03).\n\n"
             "- It takes 3.39 s (`models/default/speed.json`, `kpcn ship`).\n"
             "- Found in [results](results/11-painted-slope-map.md): 1.5 GB held.\n\n"
             "| 256 × 256 tiles | 91 ms |\n\nA shipped model is refused above 25 MiB, at 300 s a lever.\n\n"
