@@ -251,3 +251,68 @@ def test_every_figure_of_the_readme_results_table_is_the_json_it_names():
     assert {tuple(row[:2]) for row in shown} == set(computed), "the README's rows are not the JSON's groups"
     for row in shown:
         assert row == computed[tuple(row[:2])], f"README row {row} is not {RESULTS_JSON}'s {computed[tuple(row[:2])]}"
+
+
+# The living pages (docs/results/ holds the dated records, the README and the card are checked above): a
+# measured figure there names the committed JSON a command wrote it into, or links the dated page that printed it.
+LIVING_PAGES = [*(ROOT / "docs" / f"{name}.md" for name in
+                  ("denoise", "training", "scenes", "formats", "method", "robustness", "design", "commands")),
+                ROOT / "shards" / "README.md"]
+# a number and a unit of time, memory, throughput, or a ratio ("1.28×", "4x"; "65 × 65" is a size, not a ratio)
+MEASURED = re.compile(r"(?<![\w.,/-])\d[\d,]*(?:\.\d+)?\s?(?:(?:ms|min|minutes?|seconds?|hours?|s|h"
+                      r"|kB|KiB|MB|MiB|GB|GiB|steps/s|samples/s|patches/s)(?![\w/])|[×x](?!\s?\d)(?!\w))")
+SOURCED = re.compile(r"\.json\b|\]\((?:\.\./)*(?:docs/)?results/[^)]*\)")
+# figures that are not measurements: what the code holds or a study is given, each with where it is defined
+NOT_MEASURED = re.compile("|".join((
+    r"25 MiB",  # kpcn_keras.config.SHIPPED_MAX_BYTES, the bound on a shipped model's folder
+    r"64 kB tmpfs",  # the size of the full disk the robustness tests mount
+    # a patch's bytes and 100,000 patches': prep.shards.patch_bytes(65), and v2_patch_bytes(65) of the old format
+    r"375 kB|1\.27 MB|37\.5 GB|127 GB",
+    r"\bat (?:`[^`]+`'s )?\d+ s\b",  # a study's --budget, the seconds it is given
+    r"30 minutes",  # the time `make train` is to fit in, a target
+)))
+
+
+def sentences(text: str) -> list[str]:
+    """The page's sentences, bullets and table rows: fenced code line by line, the --help region left out (the
+    parser writes it), a paragraph split at each full stop that ends a sentence."""
+    from kpcn_keras import helpdoc
+
+    if helpdoc.BEGIN in text:
+        text = text.split(helpdoc.BEGIN, 1)[0] + text.split(helpdoc.END, 1)[1]
+    units, block, fenced = [], [], False
+    for line in [*text.splitlines(), ""]:
+        fence = line.lstrip().startswith("```")
+        row = fenced or fence or line.lstrip().startswith(("|", "#"))
+        if row or not line.strip() or re.match(r"\s*(?:[-*]|\d+\.) ", line):
+            units += re.split(r"(?<=\.)\s+(?=[A-Z(`*\[])", " ".join(block))
+            block = []
+        (units.append if row else block.append)(line)
+        fenced ^= fence
+    return [u for u in units if u.strip()]
+
+
+def unsourced_figures(text: str) -> list[str]:
+    """Each measured figure of ``text`` in a sentence that neither names a JSON file nor links docs/results/."""
+    return [f"{m.group(0)!r} in: {unit.strip()[:160]}" for unit in sentences(text) if not SOURCED.search(unit)
+            for m in MEASURED.finditer(NOT_MEASURED.sub("", unit))]
+
+
+def test_every_measured_figure_of_a_living_page_names_its_json_or_its_dated_page():
+    assert all(p.exists() for p in LIVING_PAGES), [p for p in LIVING_PAGES if not p.exists()]
+    found = {p.relative_to(ROOT).as_posix(): f for p in LIVING_PAGES if (f := unsourced_figures(p.read_text("utf-8")))}
+    assert not found, found
+
+
+def test_a_planted_figure_without_its_source_is_found():
+    # a sentence naming a JSON sources its own figures, not its paragraph's
+    page = ("The card's frame takes 3.39 s (`speed.json`). Denoising a 1080p frame takes 3.2 s on 2 cores. "
+            "The network is 1.28× slower (2026-12-03).\n\n"
+            "- It takes 3.39 s (`models/default/speed.json`, `kpcn ship`).\n"
+            "- Found in [results](results/11-painted-slope-map.md): 1.5 GB held.\n\n"
+            "| 256 × 256 tiles | 91 ms |\n\nA shipped model is refused above 25 MiB, at 300 s a lever.\n\n"
+            "```sh\nkpcn denoise f.exr --ensemble 4   # about 4x the time\n```\n")
+    assert [f.split(" in: ")[0] for f in unsourced_figures(page)] == ["'3.2 s'", "'1.28×'", "'91 ms'", "'4x'"]
+    denoise = (ROOT / "docs" / "denoise.md").read_text(encoding="utf-8")
+    assert not unsourced_figures(denoise)
+    assert unsourced_figures(denoise + "\nA 1080p frame takes 9.9 s here.\n")
