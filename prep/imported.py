@@ -34,6 +34,8 @@ def import_renders(src: str | Path, render_set: RenderSet, on_frame: Callable[[s
     """Write every render of ``src`` into the new folder of ``render_set`` in kpcn's layout; returns the files
     written. ``on_frame`` is told each file's name, layout and inputs as it is written."""
     out = render_set.dir
+    if not Path(src).is_dir():  # before the render folder's own check, whose hint is kpcn render's
+        raise KpcnError(f"{src}: no such folder of renders to import")
     if out.exists():
         raise KpcnError(f"{out}: the set folder exists; remove it or choose another --set")
     # the renders kpcn shards would find there: named by scene and spp, each scene with a reference

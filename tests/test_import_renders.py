@@ -58,3 +58,9 @@ def test_an_existing_set_folder_and_a_set_name_that_is_no_folder_name_are_refuse
     assert list((tmp_path / "r" / "cyc").iterdir()) == []
     res = run_main("import-renders", src, "--set", "../cyc", "--renders", tmp_path / "r", cwd=tmp_path)
     assert_one_line_error(res, "--set", "plain folder name")
+
+
+def test_a_missing_source_folder_is_one_line_naming_it(tmp_path):
+    res = run_main("import-renders", tmp_path / "nowhere", "--set", "mine", "--renders", tmp_path / "r", cwd=tmp_path)
+    assert_one_line_error(res, "import-renders", "nowhere: no such folder of renders to import")
+    assert not (tmp_path / "r").exists()
