@@ -313,7 +313,7 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
             raise
         if on_frame is not None:
             on_frame(frames[-1])
-    return BatchReport(startup_s=startup, load_s=serving.load_s, warmup_s=serving.warmup_s, threads=_threads(),
+    return BatchReport(startup_s=startup, load_s=serving.load_s, warmup_s=serving.warmup_s, threads=torch_threads(),
                        precision=resolve(settings.precision), ensemble=settings.ensemble,
                        peak_memory_mb=peak_memory_mb(), frames=tuple(frames), skipped=tuple(map(str, skipped)))
 
@@ -355,7 +355,7 @@ def _check_files(inputs: list[Path], outputs: list[Path], headers, models: list[
             check_writable(png_path(out), "side-by-side PNG")
 
 
-def _threads() -> int | None:
+def torch_threads() -> int | None:
     """torch's thread count (None on another backend)."""
     if keras.backend.backend() != "torch":
         return None

@@ -218,9 +218,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     (``batch.frame_bytes``: beyond it, memory is bounded by the tile)."""
     import time
 
-    import keras
-
-    from kpcn_keras.batch import frame_bytes
+    from kpcn_keras.batch import frame_bytes, torch_threads
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs
     from prep import baselines, layouts
@@ -243,15 +241,9 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
             start = time.perf_counter()
             call()
             best[name] = min(best[name], time.perf_counter() - start)
-    threads = None
-    if keras.backend.backend() == "torch":
-        import torch
-
-        threads = torch.get_num_threads()
     return {"width": width, "height": height, "frame": Path(noisy).name, "held_out": source is None,
-            "kpcn_s": best["kpcn"],
-            "oidn_s": best.get("oidn"), "repeats": repeats, "threads": threads, "cpus": os.cpu_count(),
-            "precision": denoiser.precision,
+            "kpcn_s": best["kpcn"], "oidn_s": best.get("oidn"), "repeats": repeats, "threads": torch_threads(),
+            "cpus": os.cpu_count(), "precision": denoiser.precision,
             "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
 
 
