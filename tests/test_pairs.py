@@ -172,6 +172,20 @@ def test_the_correlation_of_a_pair_is_pearsons_of_the_smoothed_log_luminance():
     assert pairs.correlation(ramp, ramp[:, ::-1]) < -0.99  # a mirrored frame: not the same picture
 
 
+def test_the_measure_of_the_threshold_takes_every_two_frames_of_one_size(tmp_path):
+    for name, seed, noise in (("s-00004spp", 5, 1), ("s-00016spp", 5, 2), ("t-00004spp", 6, 1)):
+        write_channels(tmp_path / f"{name}.exr", _rgb(seed, noise))
+    write_channels(tmp_path / "u-00004spp.exr", {c: np.ones((3, 3), np.float32) for c in "RGB"})  # another size
+    rows = pairs.measure(sorted(tmp_path.glob("*.exr")))
+    assert [(r["a"], r["b"], r["same_scene"]) for r in rows] == [
+        ("s-00004spp.exr", "s-00016spp.exr", True), ("s-00004spp.exr", "t-00004spp.exr", False),
+        ("s-00016spp.exr", "t-00004spp.exr", False)]
+    colour = {n: _colour(_rgb(seed, noise)) for n, seed, noise in (("s4", 5, 1), ("s16", 5, 2), ("t4", 6, 1))}
+    assert [r["correlation"] for r in rows] == [pairs.correlation(colour["s4"], colour["s16"]),
+                                                pairs.correlation(colour["s4"], colour["t4"]),
+                                                pairs.correlation(colour["s16"], colour["t4"])]
+
+
 # ---------------------------------------------------------------- alpha, repaired as every layer is
 
 def _alpha_with_faults(seed: int, value=np.nan, count: int = 16) -> tuple[np.ndarray, np.ndarray]:
