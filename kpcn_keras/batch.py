@@ -30,7 +30,7 @@ from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord
 from kpcn_keras.serving import Serving
 from kpcn_keras.settings import InferenceSettings
-from prep import exr, layouts
+from prep import exr, layouts, pairs
 from prep.errors import KpcnError, OptionError
 from prep.files import check_outputs, check_writable
 from prep.inputs import InputSet, pair_layers
@@ -199,17 +199,19 @@ class BatchReport:
 def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Frame:
     """The frame to denoise: ``input_path`` in its layout (``prep.layouts.read``), or with ``reading.pair`` (a second
     render of the same frame, another seed) the two as one frame whose variance comes from their difference
-    (``prep.inputs.pair_layers``)."""
+    (``prep.inputs.pair_layers``), after ``prep.pairs``' checks that it is one: OptionError naming both files if
+    not."""
     layout, pair = reading.layout, reading.pair
+    if pair is not None:
+        pairs.check_header(input_path, pair, layout)
     frame = layouts.read(input_path, layout, albedo=reading.albedo, normal=reading.normal)
     if pair is None:
         return frame
     other = layouts.read(pair, layout, albedo=reading.albedo, normal=reading.normal)
-    if other.size != frame.size or other.layout != frame.layout or other.inputs.split != frame.inputs.split:
-        raise KpcnError(f"{pair} ({other.layout}, {other.size[1]}x{other.size[0]}) is not a second render of "
-                        f"{input_path} ({frame.layout}, {frame.size[1]}x{frame.size[0]})")
+    pairs.check_colours(input_path, frame.layers["default"], pair, other.layers["default"])
     spp = frame.spp + other.spp if frame.spp and other.spp else None
-    alpha = None if frame.alpha is None else (frame.alpha + other.alpha) / 2
+    alpha = frame.alpha if frame.alpha is None or other.alpha is None else exr.to_float32(
+        (np.asarray(frame.alpha, np.float64) + other.alpha) / 2)
     return dataclasses.replace(frame, layers=pair_layers(frame.layers, other.layers),
                                inputs=InputSet(split=frame.inputs.split, variance=True), alpha=alpha, spp=spp,
                                notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
@@ -291,7 +293,8 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     outputs = plan_outputs(inputs, output)
     serving = Serving(run, settings)
     headers = [layouts.read_header(src, reading.layout) for src in inputs]
-    pair_size = layouts.read_header(reading.pair, reading.layout).size if reading.pair is not None else None
+    # a pair that is not a second render of the input is refused before a model is loaded
+    pair_size = pairs.check_header(inputs[0], reading.pair, reading.layout).size if reading.pair is not None else None
     # what each frame gives: a pair brings the variance its renders lack
     given = [InputSet(h.inputs.split, True) if reading.pair is not None else h.inputs for h in headers]
     _check_files(inputs, outputs, headers, serving.read_files(given), reference, reading, png=png,

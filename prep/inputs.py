@@ -84,7 +84,7 @@ def restrict(layers: dict[str, np.ndarray], inputs: InputSet) -> dict[str, np.nd
     return out
 
 
-def _box(image: np.ndarray, radius: int) -> np.ndarray:
+def box_mean(image: np.ndarray, radius: int) -> np.ndarray:
     """Mean of a 2-D image over a (2 radius + 1)^2 box cut at the border (a summed-area table, float64)."""
     h, w = image.shape
     table = np.zeros((h + 1, w + 1))
@@ -104,16 +104,17 @@ def pair_variance(a: np.ndarray, b: np.ndarray, radius: int = PAIR_SMOOTHING) ->
     v = d * d / 4.0
     if v.ndim == 3:
         v = v.mean(axis=-1)
-    return to_float32(_box(v, radius) if radius else v)
+    return to_float32(box_mean(v, radius) if radius else v)
 
 
 def pair_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """One frame from two renders of it with different seeds: each layer the mean of the two, and the
-    variance layers from their difference (:func:`pair_variance`)."""
+    variance layers from their difference (:func:`pair_variance`). Without a split (``diffuse`` in neither),
+    ``diffuseVariance`` and ``specularVariance`` are the colour's, as every layout without a split gives them."""
     out = {k: to_float32((np.asarray(a[k], np.float64) + b[k]) / 2.0) for k in a if k in b}
-    sources = ["default", "albedo", "normal", "depth"]
-    if "diffuse" in a and "diffuse" in b:
-        sources += ["diffuse", "specular"]
-    for layer in sources:
+    split = "diffuse" in a and "diffuse" in b
+    for layer in ("default", "albedo", "normal", "depth", *(("diffuse", "specular") if split else ())):
         out[VARIANCE_OF[layer]] = pair_variance(a[layer], b[layer])
+    if not split:
+        out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
     return out

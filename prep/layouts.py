@@ -159,9 +159,10 @@ class Layout:
 
     def read(self, path: Path, header: ExrImage, spp: int | None) -> tuple[dict, np.ndarray | None, list[str]]:
         """:meth:`layers` of the file whose header is ``header``, its pixels read here (the whole file decoded,
-        :attr:`decodes_whole`), each layer repaired by ``prep.exr``'s rule for non-finite values."""
+        :attr:`decodes_whole`), each layer and the alpha repaired by ``prep.exr``'s rule for non-finite values."""
         layers, alpha, notes = self.layers(_Channels(exr.read_image(path)), spp)
-        return _repaired(layers, notes), alpha, notes
+        layers = _repaired(layers if alpha is None else {**layers, "alpha": alpha}, notes)
+        return layers, layers.pop("alpha", None), notes
 
 
 class KpcnLayout(Layout):
@@ -514,7 +515,8 @@ def _spp_of(path: Path) -> int | None:
 def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,
          albedo: str | os.PathLike | None = None, normal: str | os.PathLike | None = None) -> Frame:
     """Read any renderer's frame (module docstring); ``layout`` forces an adapter, ``spp`` is used when the
-    file name does not say it; ``albedo``, ``normal``: separate files for an rgb frame's auxiliaries."""
+    file name does not say it; ``albedo``, ``normal``: separate files for the auxiliaries of a frame that has
+    none of its own (OptionError for one that has: a file never silently replaces a layer the render made)."""
     path = Path(path)
     image = exr.read_image(path, header_only=True)
     adapter = detect(image, layout)
@@ -523,6 +525,9 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
     inputs = adapter.inputs(ch, spp)
     layers, alpha, notes = adapter.read(path, image, spp)
     for name, aux in (("albedo", albedo), ("normal", normal)):
+        if aux is not None and name in layers:
+            raise OptionError(name, f"{aux} is for a frame without its own {name}, and {path} ({adapter.name} layout) "
+                                    f"has one")
         if aux is not None:
             layers[name] = _repaired({name: exr.read_rgb(aux)}, notes)[name]
             if layers[name].shape != layers["default"].shape:

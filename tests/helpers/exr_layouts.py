@@ -29,10 +29,15 @@ CYCLES5_RGB = ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Glossy Di
                "Environment", "Volume Direct", "Volume Indirect", "Denoising Albedo")
 
 
-def cycles_channels(h: int, w: int, seed: int = 0, view: str = "ViewLayer") -> dict:
-    """Random Cycles 5 passes (long names) whose Combined is Cycles' own composition of them, in float64."""
+def cycles_channels(h: int, w: int, seed: int = 0, view: str = "ViewLayer", noise_seed: int | None = None) -> dict:
+    """Random Cycles 5 passes (long names) whose Combined is Cycles' own composition of them, in float64.
+    ``seed`` makes the scene; ``noise_seed``, one render of it: each pass times 1 + a uniform noise of ±10%
+    drawn from it, so two noise seeds are two renders of one frame with different seeds (``--pair``)."""
     rng = np.random.default_rng(seed)
     passes = {name: rng.uniform(0, 1, (h, w, 3)) for name in CYCLES5_RGB}
+    if noise_seed is not None:
+        noise = np.random.default_rng(noise_seed)
+        passes = {name: p * noise.uniform(0.9, 1.1, p.shape) for name, p in passes.items()}
     combined = (passes["Diffuse Direct"] + passes["Diffuse Indirect"]) * passes["Diffuse Color"]
     for lobe in ("Glossy", "Transmission"):
         combined += (passes[f"{lobe} Direct"] + passes[f"{lobe} Indirect"]) * passes[f"{lobe} Color"]
@@ -57,3 +62,18 @@ def parts_of(channels: dict) -> dict[str, list[str]]:
     for name in channels:
         parts.setdefault(name.rpartition(".")[0], []).append(name)
     return parts
+
+
+def modified_copy(source: Path, path: Path, changes: dict[str, np.ndarray]) -> Path:
+    """A copy of the one-part EXR ``source`` at ``path``, header and every channel kept, with ``changes`` (full
+    channel name -> (H, W) array, stored in its dtype) in place of those channels: a renderer's own file with a
+    fault put in."""
+    import OpenEXR
+
+    with OpenEXR.File(str(source), separate_channels=True) as f:
+        header = dict(f.header())
+        channels = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
+    channels.update({k: np.ascontiguousarray(v) for k, v in changes.items()})
+    with OpenEXR.File(header, channels) as f:
+        f.write(str(path))
+    return path
