@@ -19,7 +19,8 @@ cycles     Blender Cycles, ``<view layer>.<pass>.<C>``: Blender 4 short pass nam
            when one of those is missing); colour = Combined; albedo = DiffCol (Denoising Albedo clipped to
            [0, 1] without a split); normal = Normal (world space; else Denoising Normal, camera space);
            depth = Denoising Depth (else Depth, with values >= DEPTH_MISS, the background, as 0); alpha =
-           Combined.A. No variance: Cycles 3.0+ writes none.
+           Combined.A. No variance: Cycles 3.0+ writes none. Of several view layers, the one with the most
+           passes kpcn uses (``view_layer`` names another; a note says which and why).
 mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour = the radiance integrator's
            layer (``path.X Y Z``, CIE XYZ, taken to linear sRGB; ``R G B`` without ``moment``); albedo,
            normal, depth = the AOVs named ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare
@@ -36,9 +37,11 @@ rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour la
 =========  ===================================================================================================
 
 Every layout: half or float channels, ``X Y Z`` or ``R G B`` for a vector, ``Z``, ``T``, ``Y``, ``R`` or
-a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. The samples per pixel come
-from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles ``cycles.<view layer>.samples``, pbrt
-``samplesPerPixel``), else the caller's ``spp``.
+a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. A layer a layout reads that
+is in the file but not whole (a channel missing) is refused naming the layer and the channel, from the header
+(:meth:`Layout.check`, by :func:`read_header` as by :func:`read`), never passed over for another layout. The
+samples per pixel come from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles
+``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``), else the caller's ``spp``.
 """
 
 from __future__ import annotations
