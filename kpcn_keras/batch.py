@@ -141,18 +141,35 @@ def plan_outputs(inputs: list[Path], output=None) -> list[Path]:
 
 @dataclass(frozen=True)
 class ReadOptions:
-    """How a frame is read (:func:`read_frame`): ``layout`` forces a renderer's layout (default: found from its
-    channels, ``prep.layouts``); ``pair`` is a second render of the same frame (another seed), ``albedo`` and
-    ``normal`` files of an rgb frame's auxiliaries: each for a single input."""
+    """How a frame is read, the one holder of a command's reading options (:func:`read_frame`): ``layout`` forces a
+    renderer's layout (default: found from its channels, ``prep.layouts``); ``spp`` is the samples per pixel of a
+    frame whose name and header do not say; ``view_layer`` the Cycles view layer to read (default: the one with the
+    most passes kpcn uses); ``pair`` is a second render of the same frame (another seed), ``albedo`` and ``normal``
+    files of an rgb frame's auxiliaries: each for a single input."""
 
     layout: str | None = None
     pair: str | os.PathLike | None = None
     albedo: str | os.PathLike | None = None
     normal: str | os.PathLike | None = None
+    spp: int | None = None
+    view_layer: str | None = None
 
     def singles(self) -> list[tuple[str, str | os.PathLike]]:
         """(option, file) of each file given that belongs to one input."""
         return [(name, value) for name in ("pair", "albedo", "normal") if (value := getattr(self, name)) is not None]
+
+    def header(self, path) -> layouts.Header:
+        """``prep.layouts.read_header`` of ``path`` read so: every layer it needs checked whole, before any work."""
+        return layouts.read_header(path, self.layout, spp=self.spp, view_layer=self.view_layer)
+
+    def read(self, path) -> layouts.Frame:
+        """``prep.layouts.read`` of ``path`` read so, with the auxiliary files given."""
+        return layouts.read(path, self.layout, spp=self.spp, albedo=self.albedo, normal=self.normal,
+                            view_layer=self.view_layer)
+
+    def for_reference(self) -> ReadOptions:
+        """How a reference of a frame read so is read: its own layout, the same view layer if one is named."""
+        return ReadOptions(view_layer=self.view_layer)
 
 
 @dataclass(frozen=True)
@@ -201,13 +218,13 @@ def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Fram
     render of the same frame, another seed) the two as one frame whose variance comes from their difference
     (``prep.inputs.pair_layers``), after ``prep.pairs``' checks that it is one: OptionError naming both files if
     not."""
-    layout, pair = reading.layout, reading.pair
+    pair = reading.pair
     if pair is not None:
-        pairs.check_header(input_path, pair, layout)
-    frame = layouts.read(input_path, layout, albedo=reading.albedo, normal=reading.normal)
+        pairs.check_header(input_path, pair, reading.header)
+    frame = reading.read(input_path)
     if pair is None:
         return frame
-    other = layouts.read(pair, layout, albedo=reading.albedo, normal=reading.normal)
+    other = reading.read(pair)
     pairs.check_colours(input_path, frame.layers["default"], pair, other.layers["default"])
     spp = frame.spp + other.spp if frame.spp and other.spp else None
     alpha = frame.alpha if frame.alpha is None or other.alpha is None else exr.to_float32(
@@ -217,10 +234,10 @@ def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Fram
                                notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
 
 
-def read_reference(reference, input_path, size: tuple[int, int]) -> np.ndarray:
-    """The colour of ``reference``, the reference EXR of the frame ``input_path`` of (H, W) ``size``; KpcnError
-    naming both files and their sizes when they differ."""
-    ref = layouts.read(reference).layers["default"]
+def read_reference(reference, input_path, size: tuple[int, int], reading: ReadOptions = ReadOptions()) -> np.ndarray:
+    """The colour of ``reference``, the reference EXR of the frame ``input_path`` of (H, W) ``size`` read by
+    ``reading`` (``ReadOptions.for_reference``); KpcnError naming both files and their sizes when they differ."""
+    ref = reading.for_reference().read(reference).layers["default"]
     if ref.shape[:2] != tuple(size):
         raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is {size[1]}x{size[0]}")
     return ref
@@ -249,7 +266,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
     begin = time.perf_counter()
     frame = read_frame(input_path, reading)
     noisy = frame.layers
-    ref = read_reference(reference, input_path, frame.size) if reference else None
+    ref = read_reference(reference, input_path, frame.size, reading) if reference else None
     start = time.perf_counter()
     result = denoiser(noisy, slope=slope)
     done = time.perf_counter()
@@ -292,9 +309,9 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     _check_single_inputs(inputs, reference, reading)
     outputs = plan_outputs(inputs, output)
     serving = Serving(run, settings)
-    headers = [layouts.read_header(src, reading.layout) for src in inputs]
+    headers = [reading.header(src) for src in inputs]
     # a pair that is not a second render of the input is refused before a model is loaded
-    pair_size = pairs.check_header(inputs[0], reading.pair, reading.layout).size if reading.pair is not None else None
+    pair_size = pairs.check_header(inputs[0], reading.pair, reading.header).size if reading.pair is not None else None
     # what each frame gives: a pair brings the variance its renders lack
     given = [InputSet(h.inputs.split, True) if reading.pair is not None else h.inputs for h in headers]
     _check_files(inputs, outputs, headers, serving.read_files(given), reference, reading, png=png,
@@ -345,7 +362,7 @@ def _check_files(inputs: list[Path], outputs: list[Path], headers, models: list[
     if slope_map is not None:
         read.append(("--slope-map", slope_map))
     check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
-    ref_size = layouts.read_header(reference).size if reference is not None else None
+    ref_size = reading.for_reference().header(reference).size if reference is not None else None
     for src, header in zip(inputs, headers):
         for other, size in (("reference", ref_size), ("pair", pair_size)):
             if size is not None and size != header.size:

@@ -188,7 +188,8 @@ def cmd_denoise(args) -> int:
               f"{report.seconds * 1000:.0f} ms denoising, {report.frame_s * 1000:.0f} ms with files)")
 
     settings = inference_settings(args)
-    reading = ReadOptions(layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal)
+    reading = ReadOptions(layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
+                          view_layer=args.view_layer)
     batch = denoise_files(args.inputs, _model(args), args.output, args.reference, settings=settings, reading=reading,
                           png=args.png, slope=getattr(args, "slope", None), slope_map=getattr(args, "slope_map", None),
                           on_frame=frame)
@@ -213,12 +214,14 @@ def cmd_denoise(args) -> int:
 
 
 def cmd_view(args) -> int:
+    from kpcn_keras.batch import ReadOptions
     from kpcn_keras.viewer import ViewSession, listen, serve
 
     settings = inference_settings(args)
     httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
     try:
-        session = ViewSession.open(args.frame, _model(args), args.reference, layout=args.layout,
+        session = ViewSession.open(args.frame, _model(args), args.reference,
+                                   reading=ReadOptions(layout=args.layout, view_layer=args.view_layer),
                                    slope=getattr(args, "slope", None), settings=settings)
     except BaseException:
         httpd.server_close()
@@ -228,13 +231,15 @@ def cmd_view(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    from kpcn_keras.batch import ReadOptions
     from kpcn_keras.evaluate import evaluate, format_table, pairs_for_inputs
     from kpcn_keras.run import Run
 
     settings = inference_settings(args)
     pairs = pairs_for_inputs(args.inputs) if args.inputs else None
     rows = evaluate(Run(args.run), pairs, out_dir=args.out, settings=settings, baseline=not args.no_baseline,
-                    layout=args.layout, slope=getattr(args, "slope", None))
+                    reading=ReadOptions(layout=args.layout, view_layer=args.view_layer),
+                    slope=getattr(args, "slope", None))
     print(format_table(rows))
     print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
     return 0

@@ -22,13 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
+from kpcn_keras.batch import ReadOptions
 from kpcn_keras.config import DEFAULT_ENSEMBLE
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.panels import side_by_side_png
 from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
 from kpcn_keras.serving import Serving
 from kpcn_keras.settings import InferenceSettings
-from prep import baselines, exr, layouts, metrics
+from prep import baselines, exr, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable, read_json
 
@@ -198,11 +199,12 @@ def frame_png(out_dir: Path, scene: str, spp: int) -> Path:
 
 def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=None,
              settings: InferenceSettings = InferenceSettings(), baseline: bool = True, slope: float | None = None,
-             layout: str | None = None) -> list[EvaluatedFrame]:
+             reading: ReadOptions = ReadOptions()) -> list[EvaluatedFrame]:
     """Evaluate ``run`` on ``pairs`` (default: its held-out scenes) at ``slope`` (λ, for a run trained with it as an
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
-    reads (``layout`` forces one), each denoised by the run's model for what it has (``Serving.variant``) with
-    ``settings`` (tile, the trunks' precision, a self-ensemble's members: a row then says how many)."""
+    reads, read by ``reading`` (its layout, view layer: ``batch.ReadOptions``), each denoised by the run's model
+    for what it has (``Serving.variant``) with ``settings`` (tile, the trunks' precision, a self-ensemble's
+    members: a row then says how many)."""
     out_dir = Path(out_dir) if out_dir else run.eval_dir
     if run.card_path.is_file() and out_dir.resolve() in (run.eval_dir.resolve(), run.validation_dir.resolve()):
         raise KpcnError(f"{run.dir}: a shipped model, whose {out_dir.name}/ holds the tables its card shows; "
@@ -213,7 +215,7 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
     serving = Serving(run, settings)
-    given = {noisy: layouts.read_header(noisy, layout).inputs for noisy, _ in pairs}
+    given = {noisy: reading.header(noisy).inputs for noisy, _ in pairs}
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
@@ -223,7 +225,7 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     rows = []
     for noisy_path, ref_path in pairs:
         denoiser = serving.denoiser(given[noisy_path], warm_up=True, slope=slope)
-        rows.append(evaluate_frame(denoiser, noisy_path, ref_path, out_dir, layout=layout, slope=slope,
+        rows.append(evaluate_frame(denoiser, noisy_path, ref_path, out_dir, reading=reading, slope=slope,
                                    baseline=baseline, ensemble=ensemble))
     table = format_table(rows)
     atomic_write_text(out_dir / METRICS, json.dumps([row.to_json() for row in rows], indent=2))
@@ -232,14 +234,14 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     return rows
 
 
-def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: Path, *, layout: str | None,
+def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: Path, *, reading: ReadOptions,
                    slope: float | None, baseline: bool, ensemble: int) -> EvaluatedFrame:
     """One row of :func:`evaluate`: the render ``noisy_path`` denoised by ``denoiser`` (timed), scored against
     ``ref_path`` with the raw input and, under ``baseline``, NLM and OIDN where they run; writes its PNG."""
     scene, spp = exr.parse_render_filename(noisy_path)
-    frame = layouts.read(noisy_path, layout)
+    frame = reading.read(noisy_path)
     noisy = frame.layers
-    ref = layouts.read(ref_path).layers["default"]
+    ref = reading.for_reference().read(ref_path).layers["default"]
     start = time.perf_counter()
     out = denoiser(noisy, slope=slope)["default"]
     seconds = time.perf_counter() - start

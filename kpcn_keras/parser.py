@@ -493,10 +493,13 @@ def _ensemble_option(parser) -> None:
 
 
 def _layout_option(parser) -> None:
+    """The options of how a frame is read (``batch.ReadOptions``) that every command reading frames takes."""
     from prep.layouts import LAYOUTS
 
     parser.add_argument("--layout", choices=tuple(LAYOUTS), default=None, help="the renderer layout of the inputs "
                         "(default: found from each file's channels; docs/formats.md §1b)")
+    parser.add_argument("--view-layer", default=None, metavar="NAME", help="the Cycles view layer to read (default: "
+                        "the one with the most passes kpcn uses)")
 
 
 def _evaluate_options(add) -> None:

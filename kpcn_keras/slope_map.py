@@ -11,12 +11,16 @@
   PNG (8 or 16 bit) maps grey g in [0, 1] to λ = low (high / low)^g, log-linear as the training draws, so
   black is the range's low end, white its high end and mid grey its geometric middle. A map of another size
   than the frame is resized in log λ (:func:`bilinear`) when its aspect ratio matches the frame's to within
-  a pixel, and refused otherwise. Errors are one line naming the file and what was found.
+  a pixel, and refused otherwise. A map's size is read from its header before its pixels: one larger than
+  twice the frame's sides (or 4096 a side, for a small frame) is refused before it is decoded (a PNG of a few
+  bytes may claim 30000×30000). Errors are one line naming the file and what was found.
 """
 
 from __future__ import annotations
 
 import os
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +31,10 @@ CONSTANT_SHARE = 0.5  # training patches with one λ: the uniform case stays as 
 GRID_NODES = (2, 4)  # nodes a side of a training map's coarse grid, inclusive: a ramp up to a few bumps
 PNG_SUFFIXES = (".png",)
 EXR_SUFFIXES = (".exr",)
+# a map's sides: at most twice the frame's (a map painted at a screen's double density), or this many pixels a
+# side for a small frame; a larger map is refused from its header, before its pixels are decoded
+MAP_SIDE_FACTOR, MAP_SIDE_FLOOR = 2, 4096
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def bilinear(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -93,14 +101,48 @@ def png_bytes(slopes: np.ndarray, slope_range: tuple[float, float]) -> bytes:
     return buffer.getvalue()
 
 
+def size_limit(shape: tuple[int, int]) -> tuple[int, int]:
+    """The largest (H, W) of a map for a frame of ``shape`` (H, W): :data:`MAP_SIDE_FACTOR` times its sides, or
+    :data:`MAP_SIDE_FLOOR` a side where that is more."""
+    return tuple(max(MAP_SIDE_FACTOR * int(side), MAP_SIDE_FLOOR) for side in shape)
+
+
+def _check_size(path: Path, size: tuple[int, int] | None, shape: tuple[int, int]) -> None:
+    """KpcnError, one line stating the limit, for a map of ``size`` (H, W, from its header; None: unknown, left to
+    the reader) larger than :func:`size_limit` allows a frame of ``shape``."""
+    limit = size_limit(shape)
+    if size is not None and (size[0] > limit[0] or size[1] > limit[1]):
+        raise KpcnError(f"{path}: a λ map of {size[1]}×{size[0]} pixels for a frame of {shape[1]}×{shape[0]}: a map "
+                        f"may be at most {limit[1]}×{limit[0]} (twice the frame's sides, or {MAP_SIDE_FLOOR} a "
+                        "side); paint it at the frame's size")
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(H, W) as the PNG's header (IHDR, its first chunk) states them; None for a file that does not begin as a
+    PNG (the reader then says what it is)."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    width, height = struct.unpack(">II", head[16:24])
+    return height, width
+
+
 def _grey(path: Path) -> np.ndarray:
     """A greyscale PNG's pixels as g in [0, 1] (float64); KpcnError naming the file for anything else."""
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as image:
-            mode = image.mode
-            pixels = np.asarray(image)
+        # its size was checked against the frame's (_check_size): PIL's own bound is no news to a user, and an
+        # image past it (a frame of over 6000 pixels a side) is refused in one line
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                mode = image.mode
+                pixels = np.asarray(image)
+    except Image.DecompressionBombError:
+        raise KpcnError(f"{path}: a λ map of more pixels than the PNG reader decodes ({2 * Image.MAX_IMAGE_PIXELS}); "
+                        "paint it at the frame's size") from None
     except (OSError, UnidentifiedImageError) as exc:
         raise KpcnError(f"{path}: not a readable PNG ({exc})") from None
     if mode in ("L", "LA"):
@@ -134,8 +176,12 @@ def read(path: str | os.PathLike, shape: tuple[int, int], slope_range: tuple[flo
         raise KpcnError(f"{path}: no such λ map file")
     suffix = path.suffix.lower()
     if suffix in PNG_SUFFIXES:
+        _check_size(path, _png_size(path), shape)
         log_map = np.log(from_grey(_grey(path), (lo, hi)))
     elif suffix in EXR_SUFFIXES:
+        from prep.exr import read_image
+
+        _check_size(path, read_image(path, header_only=True).size, shape)
         slopes = _exr(path)
         outside = range_error(slopes, (lo, hi))
         if outside:

@@ -111,13 +111,13 @@ class ViewSession:
         log(f"ready in {time.perf_counter() - begin:.1f} s")
 
     @classmethod
-    def open(cls, frame_path, run: Run, reference=None, *, layout: str | None = None, slope: float | None = None,
-             settings: InferenceSettings = InferenceSettings(), log=print) -> ViewSession:
-        """The session of the frame in ``frame_path`` (in ``layout``, default: found from its channels), the
-        model ``run``'s variant that serves it (``Serving.variant``), applied with ``settings``, and the
-        ``reference`` EXR if given."""
-        frame = read_frame(frame_path, ReadOptions(layout=layout))
-        ref = None if reference is None else read_reference(reference, frame_path, frame.size)
+    def open(cls, frame_path, run: Run, reference=None, *, reading: ReadOptions = ReadOptions(),
+             slope: float | None = None, settings: InferenceSettings = InferenceSettings(), log=print) -> ViewSession:
+        """The session of the frame in ``frame_path`` (read by ``reading``: its layout, found from its channels
+        by default, and view layer), the model ``run``'s variant that serves it (``Serving.variant``), applied
+        with ``settings``, and the ``reference`` EXR if given."""
+        frame = read_frame(frame_path, reading)
+        ref = None if reference is None else read_reference(reference, frame_path, frame.size, reading)
         return cls(frame, Serving(run, settings).denoiser(frame.inputs), ref, slope=slope, log=log)
 
     def info(self) -> dict:

@@ -19,7 +19,8 @@ cycles     Blender Cycles, ``<view layer>.<pass>.<C>``: Blender 4 short pass nam
            when one of those is missing); colour = Combined; albedo = DiffCol (Denoising Albedo clipped to
            [0, 1] without a split); normal = Normal (world space; else Denoising Normal, camera space);
            depth = Denoising Depth (else Depth, with values >= DEPTH_MISS, the background, as 0); alpha =
-           Combined.A. No variance: Cycles 3.0+ writes none.
+           Combined.A. No variance: Cycles 3.0+ writes none. Of several view layers, the one with the most
+           passes kpcn uses (``view_layer`` names another; a note says which and why).
 mitsuba    Mitsuba 3, ``moment`` over ``aov`` and a radiance integrator: colour = the radiance integrator's
            layer (``path.X Y Z``, CIE XYZ, taken to linear sRGB; ``R G B`` without ``moment``); albedo,
            normal, depth = the AOVs named ``albedo``, ``sh_normal``/``nn``/``normal``, ``depth``/``dd`` (bare
@@ -36,13 +37,16 @@ rgb        a colour alone (``R G B``, or the one RGB layer, or a named colour la
 =========  ===================================================================================================
 
 Every layout: half or float channels, ``X Y Z`` or ``R G B`` for a vector, ``Z``, ``T``, ``Y``, ``R`` or
-a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. The samples per pixel come
-from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles ``cycles.<view layer>.samples``, pbrt
-``samplesPerPixel``), else the caller's ``spp``.
+a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. A layer a layout reads that
+is in the file but not whole (a channel missing) is refused naming the layer and the channel, from the header
+(:meth:`Layout.check`, by :func:`read_header` as by :func:`read`), never passed over for another layout. The
+samples per pixel come from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles
+``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``), else the caller's ``spp``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import dataclass, field
@@ -60,6 +64,7 @@ log = logging.getLogger("kpcn")
 DEPTH_MISS = 1e9  # Cycles' Depth pass is 1e10 where a ray leaves the scene
 VECTOR = ("RGB", "XYZ")
 SCALAR = ("Z", "T", "Y", "R")
+PARTIAL = 2  # channels of R G B or X Y Z that make a layer a vector cut short (Layout.partial), not a scalar
 
 
 @dataclass
@@ -88,14 +93,31 @@ class Frame:
 
 
 class _Channels:
-    """The channels of one file by layer, and the readers of a layer as a vector or a scalar."""
+    """The channels of one file by layer, and the readers of a layer as a vector or a scalar; ``view_layer``: the
+    Cycles view layer the caller named (None: the adapter chooses)."""
 
-    def __init__(self, image: ExrImage):
-        self.image, self.layers = image, image.components()
+    def __init__(self, image: ExrImage, view_layer: str | None = None):
+        self.image, self.layers, self.view_layer = image, image.components(), view_layer
 
     def has(self, layer: str, kind=VECTOR) -> bool:
         comps = self.layers.get(layer, set())
         return any(set(c) <= comps for c in kind) or (kind is SCALAR and len(comps) == 1)
+
+    def lacking(self, layer: str, least: int = 0) -> str | None:
+        """What vector ``layer`` lacks, in words ("layer N lacks channel Z (it has X Y)"), if it is in the file
+        without every channel of R G B or X Y Z (those of the two it has more of) and with at least ``least`` of
+        them (``PARTIAL``: a lone channel is a scalar layer, not a vector cut short); None otherwise."""
+        comps = self.layers.get(layer)
+        if not comps or self.has(layer):
+            return None
+        closest = max(VECTOR, key=lambda names: len(set(names) & comps))
+        if len(set(closest) & comps) < least:
+            return None
+        missing = [c for c in closest if c not in comps]
+        unprefixed = layer == "default" and not any(n.startswith("default.") for n in self.image.names)
+        named = "the colour (unprefixed channels)" if unprefixed else f"layer {layer}"
+        return (f"{named} lacks channel{'s' if len(missing) > 1 else ''} {' '.join(missing)} "
+                f"(it has {' '.join(sorted(comps))})")
 
     def _pixels(self, layer: str, comp: str) -> np.ndarray:
         name = f"{layer}.{comp}"
@@ -105,7 +127,9 @@ class _Channels:
 
     def vector(self, layer: str) -> np.ndarray:
         comps = self.layers[layer]
-        names = next(c for c in VECTOR if set(c) <= comps)
+        names = next((c for c in VECTOR if set(c) <= comps), None)
+        if names is None:
+            raise AOVError(f"{self.image.path}: {self.lacking(layer)}")
         return np.stack([self._pixels(layer, c) for c in names], axis=-1).astype(np.float32)
 
     def scalar(self, layer: str) -> np.ndarray:
@@ -136,14 +160,32 @@ def _sum(*images) -> np.ndarray:
 
 class Layout:
     """One renderer's layout: :meth:`missing` says what a file lacks for it (None: it reads the file),
-    :meth:`layers` reads it. ``looks_for`` is the one line an error shows."""
+    :meth:`check` whether each layer it reads is whole, :meth:`layers` reads it. ``looks_for`` is the one line
+    an error shows."""
 
     name = ""
     looks_for = ""
     decodes_whole = True  # its reader holds every channel of the file beside the layers it makes
+    vectors: tuple[str, ...] = ()  # the vector layers that mark a file as this layout's, whole or not (partial)
 
     def missing(self, ch: _Channels) -> str | None:
         raise NotImplementedError
+
+    def partial(self, ch: _Channels) -> str | None:
+        """What one of :attr:`vectors` lacks (``_Channels.lacking``), if the file has it but not whole: a file of
+        this layout with a layer cut short, refused rather than read as another layout."""
+        return next(filter(None, (ch.lacking(layer, PARTIAL) for layer in self.vectors)), None)
+
+    def check(self, ch: _Channels, spp: int | None) -> None:
+        """AOVError naming the file, the layer and its missing channel for one of :attr:`vectors` not whole, or
+        where :meth:`layers` would find a layer not whole: :meth:`layers` itself run on a 1x1 stand-in of the
+        file's channels (from its header), so that the check before any work and the read cannot disagree."""
+        partial = self.partial(ch)
+        if partial:
+            raise AOVError(f"{ch.image.path}: {partial}")
+        image = dataclasses.replace(ch.image, size=(1, 1), channels={
+            name: np.zeros((1, 1), np.float32) for name in ch.image.names})
+        self.layers(_Channels(image, ch.view_layer), spp)
 
     def spp(self, ch: _Channels) -> int | None:
         """The samples per pixel the file's header states, if it states them."""
@@ -157,10 +199,11 @@ class Layout:
         """(layers, alpha, notes) of a file that :meth:`missing` accepted: the layers :meth:`inputs` says."""
         raise NotImplementedError
 
-    def read(self, path: Path, header: ExrImage, spp: int | None) -> tuple[dict, np.ndarray | None, list[str]]:
+    def read(self, path: Path, header: ExrImage, spp: int | None,
+             view_layer: str | None = None) -> tuple[dict, np.ndarray | None, list[str]]:
         """:meth:`layers` of the file whose header is ``header``, its pixels read here (the whole file decoded,
         :attr:`decodes_whole`), each layer and the alpha repaired by ``prep.exr``'s rule for non-finite values."""
-        layers, alpha, notes = self.layers(_Channels(exr.read_image(path)), spp)
+        layers, alpha, notes = self.layers(_Channels(exr.read_image(path), view_layer), spp)
         layers = _repaired(layers if alpha is None else {**layers, "alpha": alpha}, notes)
         return layers, layers.pop("alpha", None), notes
 
@@ -168,6 +211,7 @@ class Layout:
 class KpcnLayout(Layout):
     name = "kpcn"
     looks_for = "diffuse, specular, albedo, normal, depth"
+    vectors = ("diffuse", "specular", "albedo", "normal")
 
     def missing(self, ch):
         lacking = [n for n in ("diffuse", "specular", "albedo", "normal") if not ch.has(n)]
@@ -179,7 +223,11 @@ class KpcnLayout(Layout):
 
     decodes_whole = False
 
-    def read(self, path, header, spp):
+    def check(self, ch, spp):
+        # the check prep.exr's reader makes of the layers it reads
+        exr._check_layers(ch.image.path, ch.layers, self.inputs(ch, spp).variance)
+
+    def read(self, path, header, spp, view_layer=None):
         # prep.exr's own reader: it lets each channel go once its layer is made (what denoise's memory bound counts)
         # and repairs non-finite values itself
         ch = _Channels(header)
@@ -226,14 +274,40 @@ class CyclesLayout(Layout):
         return sorted(layer.rpartition(".")[0] for layer in ch.layers
                       if layer.endswith(".Combined") and ch.has(layer))
 
+    @classmethod
+    def view(cls, ch) -> str:
+        """The view layer read: the one named (``ch.view_layer``, checked by :func:`detect`), else the one with the
+        most passes kpcn uses (of equals, the first by name)."""
+        if ch.view_layer is not None:
+            return ch.view_layer
+        return max(cls.view_layers(ch), key=lambda view: len(cls._passes(ch, view)))
+
+    @classmethod
+    def view_note(cls, ch) -> list[str]:
+        """The note of which view layer is read and why, where the file has several."""
+        views = cls.view_layers(ch)
+        if len(views) < 2:
+            return []
+        view = cls.view(ch)
+        if ch.view_layer is not None:
+            return [f"view layers {', '.join(views)}: read {view}, as named (--view-layer)"]
+        counts = ", ".join(f"{v} {len(cls._passes(ch, v))}" for v in views)
+        return [f"view layers {', '.join(views)}: read {view}, the one with the most passes kpcn uses ({counts}); "
+                "--view-layer NAME reads another"]
+
     def missing(self, ch):
         views = self.view_layers(ch)
         if not views:
             return "<view layer>.Combined (R G B)"
-        passes = self._passes(ch, views[0])
+        view = self.view(ch)
+        passes = self._passes(ch, view)
         if not any(p in passes for p in CYCLES_DIFFUSE + ("normal", "denoising_normal", "denoising_albedo")):
-            return f"Blender's passes beside {views[0]}.Combined (Combined alone is read as rgb)"
+            return f"Blender's passes beside {view}.Combined (Combined alone is read as rgb)"
         return None
+
+    def partial(self, ch):
+        combined = (layer for layer in sorted(ch.layers) if layer.endswith(".Combined"))
+        return next(filter(None, (ch.lacking(layer, PARTIAL) for layer in combined)), None)
 
     @staticmethod
     def _passes(ch, view) -> dict[str, str]:
@@ -248,19 +322,16 @@ class CyclesLayout(Layout):
         return found
 
     def spp(self, ch):
-        samples = ch.image.attributes.get(f"cycles.{self.view_layers(ch)[0]}.samples")
+        samples = ch.image.attributes.get(f"cycles.{self.view(ch)}.samples")
         return int(samples) if isinstance(samples, str) and samples.isdigit() else None
 
     def inputs(self, ch, spp):
-        passes = self._passes(ch, self.view_layers(ch)[0])
+        passes = self._passes(ch, self.view(ch))
         return InputSet(split=all(r in passes for r in CYCLES_DIFFUSE), variance=False)
 
     def layers(self, ch, spp):
-        views = self.view_layers(ch)
-        view, notes = views[0], []
-        if len(views) > 1:
-            notes.append(f"view layers {', '.join(views)}: read {view}")
-        p = self._passes(ch, view)
+        notes = self.view_note(ch)
+        p = self._passes(ch, self.view(ch))
         rgb = {role: ch.vector(layer) for role, layer in p.items() if role not in ("depth", "denoising_depth")}
         out = {"default": rgb["combined"][..., :3]}
         if self.inputs(ch, spp).split:
@@ -400,6 +471,7 @@ class MitsubaLayout(Layout):
 class PbrtLayout(Layout):
     name = "pbrt"
     looks_for = "R G B, Albedo, Ns, P (GBufferFilm)"
+    vectors = ("default", "Albedo", "Ns", "P", "Variance")
 
     def missing(self, ch):
         lacking = [n for n in ("default", "Albedo", "Ns", "P") if not ch.has(n)]
@@ -444,14 +516,14 @@ class PbrtLayout(Layout):
 class RgbLayout(Layout):
     name = "rgb"
     looks_for = "R G B, or one layer of R G B"
+    vectors = ("default", "albedo", "Albedo", "normal", "Normal")
 
     @staticmethod
     def colour_layer(ch) -> str | None:
         if ch.has("default"):
             return "default"
-        views = CyclesLayout.view_layers(ch)
-        if views:
-            return f"{views[0]}.Combined"
+        if CyclesLayout.view_layers(ch):
+            return f"{CyclesLayout.view(ch)}.Combined"
         rgb = [layer for layer in ch.layers if ch.has(layer, ("RGB",))]
         return rgb[0] if len(rgb) == 1 else None
 
@@ -463,7 +535,7 @@ class RgbLayout(Layout):
 
     def layers(self, ch, spp):
         layer = self.colour_layer(ch)
-        out, notes = {"default": ch.vector(layer)[..., :3]}, []
+        out, notes = {"default": ch.vector(layer)[..., :3]}, CyclesLayout.view_note(ch) if layer != "default" else []
         h, w = out["default"].shape[:2]
         for name, kind in (("albedo", VECTOR), ("normal", VECTOR), ("depth", SCALAR)):
             found = next((n for n in (name, name.capitalize()) if ch.has(n, kind)), None)
@@ -484,25 +556,55 @@ def check_layout(name: str | None, option: str = "layout") -> str | None:
     return name
 
 
-def detect(image: ExrImage, layout: str | None = None) -> Layout:
+def detect(image: ExrImage, layout: str | None = None, *, view_layer: str | None = None) -> Layout:
     """The adapter that reads ``image``: ``layout`` if given (AOVError with what the file lacks for it),
-    else the first of :data:`LAYOUTS` that finds what it needs (AOVError with what each missed)."""
-    ch = _Channels(image)
+    else the first of :data:`LAYOUTS` that finds what it needs (AOVError with what each missed). A layout whose
+    layers are in the file but one not whole (``Layout.partial``) is refused naming the channel, not passed
+    over for another. ``view_layer``: the Cycles view layer to read (AOVError listing those there are)."""
+    ch = _Channels(image, view_layer)
+    _check_view_layer(ch)
     if layout is not None:
         adapter = LAYOUTS[check_layout(layout)]
         lacking = adapter.missing(ch)
         if lacking:
-            raise AOVError(f"{image.path}: not a {layout} file: {layout} looks for {adapter.looks_for} and it lacks "
-                           f"{lacking}")
+            partial = adapter.partial(ch)
+            raise AOVError(f"{image.path}: " + (partial or f"not a {layout} file: {layout} looks for "
+                                                           f"{adapter.looks_for} and it lacks {lacking}"))
         return adapter
     missed = []
     for adapter in LAYOUTS.values():
         lacking = adapter.missing(ch)
         if lacking is None:
             return adapter
+        partial = adapter.partial(ch)
+        if partial:
+            raise AOVError(f"{image.path}: {partial}")
         missed.append(f"{adapter.name} looks for {adapter.looks_for}, missed {lacking}")
     found = ", ".join(sorted(ch.layers)) or "no channels"
     raise AOVError(f"{image.path}: no layout kpcn reads: {'; '.join(missed)}; the file has layers {found}")
+
+
+def _check_view_layer(ch: _Channels) -> None:
+    """AOVError naming the file and its view layers if ``ch.view_layer`` is not one of its Cycles view layers."""
+    name = ch.view_layer
+    views = CyclesLayout.view_layers(ch)
+    if name is None or name in views:
+        return
+    partial = ch.lacking(f"{name}.Combined", PARTIAL)
+    there = f"its view layers: {', '.join(views)}" if views else "it has no Cycles view layers (<name>.Combined)"
+    raise AOVError(f"{ch.image.path}: " + (partial or f"no view layer {name!r} (--view-layer); {there}"))
+
+
+def _opened(path, layout: str | None, spp: int | None, view_layer: str | None):
+    """(header image, adapter, its channels, spp) of the frame ``path``, every layer the adapter reads checked
+    whole (``Layout.check``) from the header alone."""
+    path = Path(path)
+    image = exr.read_image(path, header_only=True)
+    adapter = detect(image, layout, view_layer=view_layer)
+    ch = _Channels(image, view_layer)
+    spp = _spp_of(path) or adapter.spp(ch) or spp
+    adapter.check(ch, spp)
+    return image, adapter, ch, spp
 
 
 def _spp_of(path: Path) -> int | None:
@@ -513,17 +615,16 @@ def _spp_of(path: Path) -> int | None:
 
 
 def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,
-         albedo: str | os.PathLike | None = None, normal: str | os.PathLike | None = None) -> Frame:
+         albedo: str | os.PathLike | None = None, normal: str | os.PathLike | None = None,
+         view_layer: str | None = None) -> Frame:
     """Read any renderer's frame (module docstring); ``layout`` forces an adapter, ``spp`` is used when the
     file name does not say it; ``albedo``, ``normal``: separate files for the auxiliaries of a frame that has
-    none of its own (OptionError for one that has: a file never silently replaces a layer the render made)."""
+    none of its own (OptionError for one that has: a file never silently replaces a layer the render made);
+    ``view_layer``: the Cycles view layer to read (default: the one with the most passes kpcn uses)."""
     path = Path(path)
-    image = exr.read_image(path, header_only=True)
-    adapter = detect(image, layout)
-    ch = _Channels(image)
-    spp = _spp_of(path) or adapter.spp(ch) or spp
+    image, adapter, ch, spp = _opened(path, layout, spp, view_layer)
     inputs = adapter.inputs(ch, spp)
-    layers, alpha, notes = adapter.read(path, image, spp)
+    layers, alpha, notes = adapter.read(path, image, spp, view_layer)
     for name, aux in (("albedo", albedo), ("normal", normal)):
         if aux is not None and name in layers:
             raise OptionError(name, f"{aux} is for a frame without its own {name}, and {path} ({adapter.name} layout) "
@@ -558,12 +659,10 @@ class Header:
     channels: int
 
 
-def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None) -> Header:
-    """The :class:`Header` of a frame, from the file's header alone: a command checks every input before work."""
-    path = Path(path)
-    image = exr.read_image(path, header_only=True)
-    adapter = detect(image, layout)
-    ch = _Channels(image)
-    spp = _spp_of(path) or adapter.spp(ch) or spp
+def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,
+                view_layer: str | None = None) -> Header:
+    """The :class:`Header` of a frame, from the file's header alone: a command checks every input before work.
+    AOVError, as :func:`read` would raise it, for a layer the reader needs that is not whole."""
+    image, adapter, ch, spp = _opened(path, layout, spp, view_layer)
     return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp,
                   len(image.names) if adapter.decodes_whole else 0)

@@ -41,15 +41,16 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def check_header(input_path, pair_path, layout: str | None = None) -> layouts.Header:
+def check_header(input_path, pair_path, read_header=layouts.read_header) -> layouts.Header:
     """The pair's :class:`~prep.layouts.Header`, after refusing (OptionError naming both files) a pair that is the
     input itself or whose header differs from the input's in layout, size, data window, split or spp (an spp
-    unknown for either is not compared). Reads headers only."""
+    unknown for either is not compared). Reads headers only, each by ``read_header`` (the command's reading
+    options: layout, view layer)."""
     input_path, pair_path = Path(input_path), Path(pair_path)
     if _same_file(input_path, pair_path):
         raise OptionError("pair", f"{pair_path} is the input {input_path} itself: give a second render of the "
                                   "frame with another seed")
-    heads = [layouts.read_header(p, layout) for p in (input_path, pair_path)]
+    heads = [read_header(p) for p in (input_path, pair_path)]
     windows = [exr.read_image(p, header_only=True).data_window for p in (input_path, pair_path)]
     compared = [("layout", heads[0].layout, heads[1].layout),
                 ("size", *("x".join(map(str, h.size[::-1])) for h in heads)),

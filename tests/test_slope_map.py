@@ -3,6 +3,10 @@ training maps' range and smoothness, and the module's contract: a constant map i
 changed in a region changes the output only within the kernel's radius of it, the trunk runs once for many
 maps (``Denoiser.prepare``), tiles and ``.keras`` files change nothing."""
 
+import struct
+import warnings
+import zlib
+
 import numpy as np
 import pytest
 from helpers.exr_layouts import write_channels
@@ -70,6 +74,47 @@ def test_a_map_kpcn_cannot_take_is_refused_naming_the_file_and_what_it_found(tmp
         slope_map.read(path, (4, 4), RANGE)
     message = str(err.value)
     assert message.startswith(str(path)) and needle in message and "\n" not in message
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A valid 8-bit greyscale PNG header (IHDR) saying ``width`` x ``height``, with a one-byte IDAT: a few dozen
+    bytes that claim an image of any size."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00")) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("side", [9600, 30000])  # past PIL's warning, past its refusal
+def test_a_png_whose_header_claims_a_huge_map_is_refused_from_its_header_stating_the_limit(tmp_path, side):
+    path = tmp_path / "huge.png"
+    path.write_bytes(png_claiming(side, side))
+    assert path.stat().st_size < 80
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a warning on the way (PIL's DecompressionBombWarning) fails the test
+        with pytest.raises(KpcnError) as err:
+            slope_map.read(path, (16, 24), RANGE)
+    message = str(err.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message, message
+    assert f"{side}×{side}" in message and "4096" in message and "24×16" in message, message
+
+
+def test_the_size_limit_of_a_map_is_twice_the_frames_sides_or_4096(tmp_path):
+    path = tmp_path / "big.png"
+    path.write_bytes(png_claiming(4300, 4300))  # within 2x a frame of 2150 a side: read (and found cut short)
+    with pytest.raises(KpcnError, match="not a readable PNG"):
+        slope_map.read(path, (2150, 2150), RANGE)
+    with pytest.raises(KpcnError, match="4300×4300.*at most 4096×4096"):
+        slope_map.read(path, (2000, 2000), RANGE)
+    path.write_bytes(png_claiming(4096, 4096))  # within 4096 for a small frame
+    with pytest.raises(KpcnError, match="not a readable PNG"):
+        slope_map.read(path, (16, 16), RANGE)
+    path.write_bytes(png_claiming(17000, 17000))  # within 2x a huge frame, past what PIL decodes: one line too
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(KpcnError, match="more pixels than the PNG reader decodes"):
+            slope_map.read(path, (9000, 9000), RANGE)
 
 
 # ---------------------------------------------------------------- training maps
@@ -294,8 +339,10 @@ def test_kpcn_denoise_applies_a_painted_map_and_refuses_one_it_cannot_use(tmp_pa
     np.testing.assert_array_equal(exr.read_aovs(tmp_path / "out.exr", variances=None)["default"], want["default"])
 
     Image.fromarray(np.zeros((10, 10), np.uint8), mode="L").save(tmp_path / "square.png")
+    (tmp_path / "huge.png").write_bytes(png_claiming(9600, 9600))
     before = checksums(tmp_path)
     for args, needles in (
+            (("--run", tiny_slope_module_run, "--slope-map", "huge.png"), ("huge.png", "9600×9600", "4096")),
             (("--run", tiny_slope_module_run, "--slope-map", "square.png"), ("square.png", "10×10", "24×20")),
             (("--run", tiny_slope_module_run, "--slope-map", "map.png", "--slope", "2"), ("--slope-map", "--slope")),
             (("--run", tiny_run, "--slope-map", "map.png"), ("--slope-map", "--slope-module"))):
