@@ -118,15 +118,10 @@ class _Channels:
 
 
 def _repaired(layers: dict[str, np.ndarray], notes: list[str]) -> dict[str, np.ndarray]:
-    """``layers`` with ``prep.exr``'s repair of non-finite values, each repair counted in ``notes``."""
-    repaired = {}
-    for name in list(layers):
-        layers[name], count = exr.repair_nonfinite(layers[name])
-        if count:
-            repaired[name] = count
-    if repaired:
-        notes.append("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
-                     + ", ".join(f"{k}: {v}" for k, v in repaired.items()))
+    """``layers`` with ``prep.exr``'s repair of non-finite values (``exr.repair_layers``), noted in ``notes``."""
+    layers, counts = exr.repair_layers(layers)
+    if counts:
+        notes.append(exr.repair_note(counts))
     return layers
 
 
