@@ -535,6 +535,15 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
                  image.display_window, spp, tuple(notes), alternatives)
 
 
+def check_same_size(path, size: tuple[int, int], other, other_size: tuple[int, int], what: str = "reference") -> None:
+    """AOVError in one line naming both files and their sizes unless ``other`` (the ``what`` of the frame ``path``:
+    its reference, a second render of it) has the frame's (height, width) ``size``: the one check of every command
+    that reads a file beside a frame, made before any work."""
+    if tuple(other_size) != tuple(size):
+        raise AOVError(f"the {what} {other} is {other_size[1]}x{other_size[0]} but {path} is {size[1]}x{size[0]}; "
+                       f"a {what} must be its frame's size")
+
+
 @dataclass(frozen=True)
 class Header:
     """What a frame's header says: its size, the layout that reads it, the inputs it gives, its samples per
