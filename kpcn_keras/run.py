@@ -308,29 +308,36 @@ class Run:
             for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed ship's
                 shutil.rmtree(stale)
             tmp = Run(new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}"))
+            writing = new.dir  # what is being written, named as the model will hold it: what a failure names
             try:
                 for variant, record, files in copies:
                     where = os.path.relpath(variant.dir, self.dir)
                     target = Run(tmp.dir / where)
+                    final = new.dir / where  # where the copy's record will be read from
                     for file in files:
+                        writing = final / file
                         (target.dir / file).parent.mkdir(parents=True, exist_ok=True)
                         if file != RECORD:
                             shutil.copy2(variant.dir / file, target.dir / file)
                     data = copy.deepcopy(dict(record.data))
-                    final = new.dir / where  # where the copy's record will be read from
                     data["shards"] = {**data["shards"], "set_dir": os.path.relpath(
                         os.path.abspath(variant.shard_set(record).dir), os.path.abspath(final))}
+                    writing = final / RECORD
                     target.write_record(data)
                 for name, text in (extra or {}).items():
+                    writing = new.dir / name
                     (tmp.dir / name).write_text(text)
+                writing = new.dir
                 old = new.dir.with_name(f".{new.dir.name}.tmp-old-{os.getpid()}")
                 if new.dir.exists():
                     os.replace(new.dir, old)  # a folder is not replaced whole by one rename
                 os.replace(tmp.dir, new.dir)
             except BaseException as exc:
                 shutil.rmtree(tmp.dir, ignore_errors=True)
-                failure = write_failure(getattr(exc, "filename", None) or new.dir, exc) \
-                    if isinstance(exc, OSError) else None
+                # an OSError names the file it read as often as the one it wrote (shutil's copies name the source):
+                # the line names what was being written; atomic_path's own line names the temporary copy
+                cause = exc.__cause__ if isinstance(exc, KpcnError) else exc
+                failure = write_failure(writing, cause) if isinstance(cause, OSError) else None
                 if failure is not None:  # a full disk: one line naming the file
                     raise failure from exc
                 raise
