@@ -8,7 +8,10 @@ rgb layout fills it (albedo 1, normal 0, depth 0; ``prep.layouts.FILL``). ``vari
 pixel mean of ``color`` ((H, W) or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must
 be a dict of the six ``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A model's
 serving object, and the denoisers it loaded, are kept for the next call with the same run and settings (until
-the run's record changes: a run trained again is loaded again).
+the run's record changes: a run trained again is loaded again). As a file's layers are, the arrays are repaired by
+``prep.exr``'s rule for non-finite values, with its warning; an argument that is not an array of real numbers of
+the right shape is an :class:`~prep.errors.ArrayError` naming it, and a frame this machine cannot hold is refused
+by the command's memory check before any array is copied.
 """
 
 from __future__ import annotations
