@@ -8,12 +8,14 @@
 
 :func:`read` is ``prep.layouts.read``; :func:`denoise` is ``kpcn_keras.api.denoise``, applied with
 :class:`InferenceSettings` (``kpcn_keras.settings``: tile, precision, ensemble). Importing this package
-imports neither keras nor torch; the first :func:`denoise` does.
+imports neither keras nor torch; the first :func:`denoise` does. What a user can get wrong is a :class:`KpcnError`
+with a one-line message (an array :func:`denoise` cannot take: :class:`ArrayError`, also a ``ValueError``).
 """
 
+from prep.errors import ArrayError, KpcnError
 from prep.layouts import Frame, read
 
-__all__ = ["Frame", "InferenceSettings", "denoise", "read"]
+__all__ = ["ArrayError", "Frame", "InferenceSettings", "KpcnError", "denoise", "read"]
 
 
 def denoise(*args, **kwargs):

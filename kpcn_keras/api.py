@@ -8,38 +8,85 @@ rgb layout fills it (albedo 1, normal 0, depth 0; ``prep.layouts.FILL``). ``vari
 pixel mean of ``color`` ((H, W) or (H, W, 3), averaged over channels); with ``diffuse`` and ``specular`` it must
 be a dict of the six ``<x>Variance`` layers of ``prep.exr`` (a split model needs each branch's). A model's
 serving object, and the denoisers it loaded, are kept for the next call with the same run and settings (until
-the run's record changes: a run trained again is loaded again).
+the run's record changes: a run trained again is loaded again). As a file's layers are, the arrays are repaired by
+``prep.exr``'s rule for non-finite values, with its warning; an argument that is not an array of real numbers of
+the right shape is an :class:`~prep.errors.ArrayError` naming it, and a frame this machine cannot hold is refused
+by the command's memory check before any array is copied.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
+import numbers
 import os
 from pathlib import Path
 
 import numpy as np
 
 from kpcn_keras.settings import InferenceSettings
-from prep.errors import KpcnError
-from prep.exr import VARIANCE_LAYERS, to_float32
+from prep.errors import ArrayError, KpcnError
+from prep.exr import VARIANCE_LAYERS, repair_layers, repair_note
 from prep.inputs import InputSet
 from prep.layouts import FILL, Frame
 
+log = logging.getLogger("kpcn")
+
+WHERE = "kpcn.denoise"  # what the repair warning names in place of a file
+REAL = "biuf"  # the numpy kinds an image may be given in: bool, integers, floats
+
+
+def _numbers(name: str, value) -> np.ndarray:
+    """``value`` as a numpy array of real numbers, not yet cast (a broadcast view stays a view, so a frame too big
+    to hold is refused before it is copied); ArrayError naming ``name`` for anything else."""
+    try:
+        a = np.asarray(value)
+        if a.dtype.kind == "O":  # objects: numbers only if each is one (numpy would take None for NaN)
+            a = a.astype(np.float64) if all(isinstance(x, numbers.Real) for x in a.flat) else None
+    except (TypeError, ValueError, OverflowError):
+        a = None
+    if a is None or a.dtype.kind not in REAL:
+        what = type(value).__name__ + (f" of {np.asarray(value, dtype=object).dtype if a is None else a.dtype}"
+                                       if isinstance(value, (np.ndarray, list, tuple)) else "")
+        kind = " (take np.real or np.abs of it first)" if a is not None and a.dtype.kind == "c" else ""
+        raise ArrayError(f"{name} must be an array of real numbers, got {what}{kind}")
+    return a
+
+
+def _float32(a: np.ndarray) -> np.ndarray:
+    """``a`` as float32; a finite value beyond its range becomes inf, which the repair rule then takes in."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return a.astype(np.float32, copy=False)
+
 
 def _array(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float32)
+    a = _numbers(name, value)
     if a.shape != shape:
-        raise KpcnError(f"{name} must have shape {shape} (the colour's), got {a.shape}")
-    return a
+        raise ArrayError(f"{name} must have shape {shape} (the colour's), got {a.shape}")
+    return _float32(a)
+
+
+def _variance(value, h: int, w: int) -> np.ndarray:
+    """One colour variance, (H, W) or (H, W, 3) averaged over channels (in float64), as float32."""
+    v = _numbers("variance", value)
+    if v.shape not in ((h, w), (h, w, 3)):
+        raise ArrayError(f"variance must be (H, W) or (H, W, 3) like the colour, got {v.shape}")
+    return _float32(v.astype(np.float64).mean(axis=-1) if v.ndim == 3 else v)
 
 
 def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None,
                       specular=None) -> Frame:
-    """The frame :func:`denoise` denoises (module docstring); KpcnError naming the array of a wrong shape."""
-    color = np.asarray(color, dtype=np.float32)
-    if color.ndim != 3 or color.shape[2] not in (3, 4):
-        raise KpcnError(f"color must be (H, W, 3) or (H, W, 4), got {color.shape}")
-    h, w = color.shape[:2]
+    """The frame :func:`denoise` denoises (module docstring), its non-finite values repaired by the readers' rule
+    (``prep.exr.repair_layers``) with their warning; ArrayError naming an array it cannot take, KpcnError for a
+    frame this machine cannot hold (the command's check: ``batch.check_frame_memory``)."""
+    from kpcn_keras.batch import check_frame_memory
+
+    given = _numbers("color", color)
+    if given.ndim != 3 or given.shape[2] not in (3, 4) or 0 in given.shape:
+        raise ArrayError(f"color must be (H, W, 3) or (H, W, 4), H and W at least 1, got {given.shape}")
+    h, w = given.shape[:2]
+    check_frame_memory("color", (h, w), png=False)
+    color = _float32(given)
     layers = {"default": np.ascontiguousarray(color[..., :3])}
     for name, value in (("albedo", albedo), ("normal", normal), ("depth", depth)):
         shape = (h, w) if name == "depth" else (h, w, 3)
@@ -52,22 +99,24 @@ def frame_from_arrays(color, albedo=None, normal=None, depth=None, variance=None
         layers["diffuse"] = _array("diffuse", diffuse, (h, w, 3))
         layers["specular"] = _array("specular", specular, (h, w, 3))
     has_variance = variance is not None
+    names = {"default": "color"}  # the argument each layer came from, as the warning names it
     if isinstance(variance, dict):
         missing = [n for n in VARIANCE_LAYERS if n not in variance and (split or n not in
                                                                         ("diffuseVariance", "specularVariance"))]
         if missing:
-            raise KpcnError(f"variance lacks {', '.join(missing)}; it has {', '.join(sorted(variance)) or 'nothing'}")
+            raise ArrayError(f"variance lacks {', '.join(missing)}; it has {', '.join(sorted(variance)) or 'nothing'}")
         layers.update({n: _array(n, v, (h, w)) for n, v in variance.items() if n in VARIANCE_LAYERS})
     elif has_variance:
-        v = np.asarray(variance, dtype=np.float64)
-        if v.shape not in ((h, w), (h, w, 3)):
-            raise KpcnError(f"variance must be (H, W) or (H, W, 3) like the colour, got {v.shape}")
+        colour_variance = _variance(variance, h, w)
         if split:  # a split model needs each branch's variance, which one colour variance does not give
             has_variance = False
         else:
-            layers["colorVariance"] = to_float32(v.mean(axis=-1) if v.ndim == 3 else v)
+            layers["colorVariance"], names["colorVariance"] = colour_variance, "variance"
             for n in ("albedoVariance", "normalVariance", "depthVariance"):
                 layers[n] = np.zeros((h, w), np.float32)
+    layers, repaired = repair_layers(layers)
+    if repaired:
+        log.warning("%s: %s", WHERE, repair_note({names.get(k, k): n for k, n in repaired.items()}))
     if has_variance and not split:
         layers["diffuseVariance"] = layers["specularVariance"] = layers["colorVariance"]
     alpha = color[..., 3] if color.shape[2] == 4 else None

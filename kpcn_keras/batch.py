@@ -238,8 +238,7 @@ def read_reference(reference, input_path, size: tuple[int, int], reading: ReadOp
     """The colour of ``reference``, the reference EXR of the frame ``input_path`` of (H, W) ``size`` read by
     ``reading`` (``ReadOptions.for_reference``); KpcnError naming both files and their sizes when they differ."""
     ref = reading.for_reference().read(reference).layers["default"]
-    if ref.shape[:2] != tuple(size):
-        raise KpcnError(f"{reference} is {ref.shape[1]}x{ref.shape[0]} but {input_path} is {size[1]}x{size[0]}")
+    layouts.check_same_size(input_path, size, reference, ref.shape[:2])
     return ref
 
 
@@ -364,9 +363,9 @@ def _check_files(inputs: list[Path], outputs: list[Path], headers, models: list[
     check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
     ref_size = reading.for_reference().header(reference).size if reference is not None else None
     for src, header in zip(inputs, headers):
-        for other, size in (("reference", ref_size), ("pair", pair_size)):
-            if size is not None and size != header.size:
-                raise KpcnError(f"the {other} is {size[1]}x{size[0]} but {src} is {header.size[1]}x{header.size[0]}")
+        for other, path, size in (("reference", reference, ref_size), ("pair", reading.pair, pair_size)):
+            if size is not None:
+                layouts.check_same_size(src, header.size, path, size, other)
         check_frame_memory(src, header.size, png=png, reference=reference is not None,
                            file_channels=header.channels, pair=reading.pair is not None)
     for out in outputs:

@@ -6,7 +6,8 @@ raw input, of the denoised frame, of non-local means and, when ``pyoidn`` is ins
 Denoise (``prep.baselines``), plus seconds per frame, and writes ``<run>/eval/`` with ``report.md``,
 ``metrics.json`` (every metric of ``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | KPCN |
 reference). A baseline that is not installed has NaN in its columns. Every file of the report is checked
-against every file the evaluation reads (renders, references, the run's models) before the run is loaded.
+against every file the evaluation reads (renders, references, the run's models), and every reference against its
+frame's size (``prep.layouts.check_same_size``), before the run is loaded.
 A frame's row is an :class:`EvaluatedFrame`, written into ``metrics.json`` and read back (the card's tables) by
 :func:`read_rows`.
 """
@@ -22,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.batch import ReadOptions
+from kpcn_keras.batch import ReadOptions, read_reference
 from kpcn_keras.config import DEFAULT_ENSEMBLE
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.panels import side_by_side_png
 from kpcn_keras.run import METRICS, REPORT, Run, RunRecord
 from kpcn_keras.serving import Serving
 from kpcn_keras.settings import InferenceSettings
-from prep import baselines, exr, metrics
+from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable, read_json
 
@@ -214,8 +215,11 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     pairs = pairs or held_out_pairs(run, record)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
+    headers = {noisy: reading.header(noisy) for noisy, _ in pairs}
+    for noisy, ref in pairs:  # before any work: a report is of every frame or of none
+        layouts.check_same_size(noisy, headers[noisy].size, ref, reading.for_reference().header(ref).size)
     serving = Serving(run, settings)
-    given = {noisy: reading.header(noisy).inputs for noisy, _ in pairs}
+    given = {noisy: header.inputs for noisy, header in headers.items()}
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
@@ -241,7 +245,7 @@ def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: 
     scene, spp = exr.parse_render_filename(noisy_path)
     frame = reading.read(noisy_path)
     noisy = frame.layers
-    ref = reading.for_reference().read(ref_path).layers["default"]
+    ref = read_reference(ref_path, noisy_path, frame.size, reading)
     start = time.perf_counter()
     out = denoiser(noisy, slope=slope)["default"]
     seconds = time.perf_counter() - start

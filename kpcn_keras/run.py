@@ -175,10 +175,8 @@ class Run:
         the order of ``prep.inputs.INPUT_SETS`` (the most the frame has first), the first that is finished and
         whose input set serves the frame (``InputSet.serves``). KpcnError naming the run, what the frame lacks
         and the commands that train the model for it, if none does."""
-        runs = [run for run in [self] + [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS[1:]]
-                if run.has_record()]
-        if not runs:
-            self.record()  # the one line that says this is not a run folder
+        self.check_folder()
+        runs = [run for run in self.variants() if run.has_record()]
         found = []
         for run in runs:
             record = run.record()
@@ -190,6 +188,7 @@ class Run:
                 found.append(f"{record.inputs} (unfinished)")
                 continue
             if record.inputs.serves(frame):
+                run.check_weights(record)  # a damaged variant is refused, never passed over for a lesser one
                 return run
             found.append(record.inputs.name)
         lacks = " and ".join(what for what, has in (("a diffuse/specular split", frame.split),
@@ -207,6 +206,31 @@ class Run:
         train = _hint_command("train", {"set_name": base.set_name, "shards_root": root, "run": str(self.dir),
                                         "inputs": inputs.name})
         return f"'{shards}' then '{train}'"
+
+    def check_folder(self) -> Run:
+        """This run, if its folder is a model to denoise with: its record (``config.json``) present and readable;
+        KpcnError in one line naming the folder otherwise (every path that takes a model folder: ``--run``,
+        ``KPCN_MODEL``, ``kpcn.denoise``, view, evaluate). A folder whose ``inputs/`` holds variants but which has
+        no record of its own (``kpcn train --inputs`` into a new folder, or a model whose record was lost) is
+        refused too, naming them: each is a run folder of its own, to pass instead. Taking one in its place would
+        denoise a frame with more inputs by a lesser network without a word."""
+        if not self.has_record():
+            variants = [name for name, run in zip(INPUT_SETS[1:], self.variants()[1:]) if run.has_record()]
+            where = (f"; its {INPUTS}/ holds only the variants {', '.join(variants)}, each a run folder of its own: "
+                     f"pass one (e.g. {self.for_inputs(InputSet.named(variants[0])).dir}) or train the full model "
+                     "into this folder with 'kpcn train'" if variants else "; train one with 'kpcn train'")
+            raise KpcnError(f"{self.dir}: not a run folder (no {RECORD}){where}")
+        self.record()
+        return self
+
+    def check_weights(self, record: RunRecord) -> None:
+        """KpcnError naming the first model file that the record lists for a component and that is missing: found
+        before a command starts its work, not when that network is first loaded."""
+        for name, entry in record.components.items():
+            path = self.dir / entry.file
+            if not path.is_file():
+                raise KpcnError(f"{path}: missing, the {name} network of the run record {self.record_path}; "
+                                "restore it or train the run again")
 
     def variants(self) -> list[Run]:
         """The run of every input set, in the order of ``prep.inputs.INPUT_SETS`` (this run first)."""
@@ -284,29 +308,36 @@ class Run:
             for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed ship's
                 shutil.rmtree(stale)
             tmp = Run(new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}"))
+            writing = new.dir  # what is being written, named as the model will hold it: what a failure names
             try:
                 for variant, record, files in copies:
                     where = os.path.relpath(variant.dir, self.dir)
                     target = Run(tmp.dir / where)
+                    final = new.dir / where  # where the copy's record will be read from
                     for file in files:
+                        writing = final / file
                         (target.dir / file).parent.mkdir(parents=True, exist_ok=True)
                         if file != RECORD:
                             shutil.copy2(variant.dir / file, target.dir / file)
                     data = copy.deepcopy(dict(record.data))
-                    final = new.dir / where  # where the copy's record will be read from
                     data["shards"] = {**data["shards"], "set_dir": os.path.relpath(
                         os.path.abspath(variant.shard_set(record).dir), os.path.abspath(final))}
+                    writing = final / RECORD
                     target.write_record(data)
                 for name, text in (extra or {}).items():
+                    writing = new.dir / name
                     (tmp.dir / name).write_text(text)
+                writing = new.dir
                 old = new.dir.with_name(f".{new.dir.name}.tmp-old-{os.getpid()}")
                 if new.dir.exists():
                     os.replace(new.dir, old)  # a folder is not replaced whole by one rename
                 os.replace(tmp.dir, new.dir)
             except BaseException as exc:
                 shutil.rmtree(tmp.dir, ignore_errors=True)
-                failure = write_failure(getattr(exc, "filename", None) or new.dir, exc) \
-                    if isinstance(exc, OSError) else None
+                # an OSError names the file it read as often as the one it wrote (shutil's copies name the source):
+                # the line names what was being written; atomic_path's own line names the temporary copy
+                cause = exc.__cause__ if isinstance(exc, KpcnError) else exc
+                failure = write_failure(writing, cause) if isinstance(cause, OSError) else None
                 if failure is not None:  # a full disk: one line naming the file
                     raise failure from exc
                 raise
@@ -325,7 +356,7 @@ class Run:
 
     def _read_json(self) -> dict:
         if not self.record_path.is_file():
-            raise KpcnError(f"{self.dir}: not a run folder (no {RECORD}); train one with 'kpcn train'")
+            self.check_folder()  # the one line that says what the folder is instead
         data = read_json(self.record_path, "run record", keys=("train", "shards", "results"))
         if "phases" not in data:
             raise KpcnError(f"{self.record_path}: a run made by an older kpcn (no training phases); train it again")
@@ -456,11 +487,14 @@ def default_model() -> Run:
 
     chosen = os.environ.get(config.MODEL_ENV)
     run = Run(chosen or config.MODELS_DIR / config.DEFAULT_MODEL)
-    if not run.has_record():
-        where = f"{run.dir} (named by {config.MODEL_ENV})" if chosen else f"{run.dir}"
-        raise KpcnError(f"no model is shipped at {where}: train one with 'make model', or with 'make train' "
+    named = f" (named by {config.MODEL_ENV})" if chosen else ""
+    if not run.dir.exists():
+        raise KpcnError(f"no model is shipped at {run.dir}{named}: train one with 'make model', or with 'make train' "
                         "and pass --run runs/default")
-    return run
+    try:
+        return run.check_folder()
+    except KpcnError as exc:  # refused as --run refuses it, saying where the folder came from
+        raise KpcnError(f"{exc}{named}") from None
 
 
 @dataclass(frozen=True)

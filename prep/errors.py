@@ -26,3 +26,8 @@ class OptionError(KpcnError, ValueError):
 class InputFileError(KpcnError, ValueError):
     """A file a scene reads (an image texture, an environment map) that cannot be read or holds no usable
     image; the message starts with the file's path."""
+
+
+class ArrayError(KpcnError, ValueError):
+    """An array handed to ``kpcn.denoise`` that it cannot take (not numbers, complex, of a wrong shape); the
+    message names the argument and what it was."""

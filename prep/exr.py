@@ -310,6 +310,24 @@ def repair_nonfinite(image: np.ndarray) -> tuple[np.ndarray, int]:
     return out, count
 
 
+def repair_layers(layers: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """``layers`` with each layer repaired by :func:`repair_nonfinite` (in place of the dict's values), and the
+    count repaired in each layer that had any: what :func:`repair_note` reports. The one place a set of layers
+    is repaired: the files' readers (:func:`read_aovs`, ``prep.layouts``) and ``kpcn.denoise``'s arrays."""
+    counts = {}
+    for name in list(layers):
+        layers[name], count = repair_nonfinite(layers[name])
+        if count:
+            counts[name] = count
+    return layers, counts
+
+
+def repair_note(counts: dict[str, int]) -> str:
+    """The one line that reports :func:`repair_layers`' counts (``layer -> values repaired``)."""
+    return ("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
+            + ", ".join(f"{k}: {v}" for k, v in counts.items()))
+
+
 def read_aovs(path: str | os.PathLike, *, variances: bool | None = True) -> dict[str, np.ndarray]:
     """Read one render; returns ``layer -> float32 array`` with every layer of the contract.
 
@@ -326,7 +344,6 @@ def read_aovs(path: str | os.PathLike, *, variances: bool | None = True) -> dict
     for name in set(raw) - set(wanted):
         del raw[name]
     out: dict[str, np.ndarray] = {}
-    repaired: dict[str, int] = {}
     for name in wanted:
         # each layer's channels are let go once assembled: the file's pixels and the render are never both held
         image = _assemble(name, raw.pop(name))
@@ -335,10 +352,8 @@ def read_aovs(path: str | os.PathLike, *, variances: bool | None = True) -> dict
                 f"{path}: layer {name!r} is {image.shape[1]}x{image.shape[0]}, "
                 f"the data window is {expected[1]}x{expected[0]}"
             )
-        image, count = repair_nonfinite(image)
-        if count:
-            repaired[name] = count
         out[name] = image
+    out, repaired = repair_layers(out)  # layer by layer, each in place of the one read
     if "default" not in out:
         # in blocks of rows: the float64 sum of a whole frame would be the largest thing the read holds
         default = np.empty_like(out["diffuse"])
@@ -347,8 +362,7 @@ def read_aovs(path: str | os.PathLike, *, variances: bool | None = True) -> dict
             default[rows] = to_float32(out["diffuse"][rows].astype(np.float64) + out["specular"][rows])
         out["default"] = default
     if repaired:
-        detail = ", ".join(f"{k}: {v}" for k, v in repaired.items())
-        log.warning("%s: repaired non-finite values (NaN->0, inf->channel's finite max/min): %s", path, detail)
+        log.warning("%s: %s", path, repair_note(repaired))
     return out
 
 

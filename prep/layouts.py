@@ -142,15 +142,10 @@ class _Channels:
 
 
 def _repaired(layers: dict[str, np.ndarray], notes: list[str]) -> dict[str, np.ndarray]:
-    """``layers`` with ``prep.exr``'s repair of non-finite values, each repair counted in ``notes``."""
-    repaired = {}
-    for name in list(layers):
-        layers[name], count = exr.repair_nonfinite(layers[name])
-        if count:
-            repaired[name] = count
-    if repaired:
-        notes.append("repaired non-finite values (NaN->0, inf->channel's finite max/min): "
-                     + ", ".join(f"{k}: {v}" for k, v in repaired.items()))
+    """``layers`` with ``prep.exr``'s repair of non-finite values (``exr.repair_layers``), noted in ``notes``."""
+    layers, counts = exr.repair_layers(layers)
+    if counts:
+        notes.append(exr.repair_note(counts))
     return layers
 
 
@@ -644,6 +639,15 @@ def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None 
         log.info("%s (%s): %s", path, adapter.name, note)
     return Frame(path, adapter.name, layers, inputs, alpha, image.attributes, image.data_window,
                  image.display_window, spp, tuple(notes), alternatives)
+
+
+def check_same_size(path, size: tuple[int, int], other, other_size: tuple[int, int], what: str = "reference") -> None:
+    """AOVError in one line naming both files and their sizes unless ``other`` (the ``what`` of the frame ``path``:
+    its reference, a second render of it) has the frame's (height, width) ``size``: the one check of every command
+    that reads a file beside a frame, made before any work."""
+    if tuple(other_size) != tuple(size):
+        raise AOVError(f"the {what} {other} is {other_size[1]}x{other_size[0]} but {path} is {size[1]}x{size[0]}; "
+                       f"a {what} must be its frame's size")
 
 
 @dataclass(frozen=True)

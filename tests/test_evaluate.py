@@ -185,3 +185,40 @@ def test_a_slope_input_run_is_evaluated_at_the_slope_given_and_refused_without_o
     for (noisy, ref), row in zip(held_out_pairs(run, run.record()), rows, strict=True):
         want = denoiser(exr.read_aovs(noisy), slope=3.0)["default"]
         assert row.denoised == metrics.all_metrics(want, exr.read_aovs(ref, variances=False)["default"])
+
+
+# --- a reference of another size: refused before any work, in one line naming both files ---
+
+
+def _cut(src, dest, height, width):
+    """The render ``src`` cut to its top-left ``height`` x ``width`` pixels, written to ``dest``."""
+    layers = exr.read_aovs(src, variances=None)
+    exr.write_aovs(dest, {name: image[:height, :width] for name, image in layers.items()})
+    return dest
+
+
+@pytest.mark.parametrize("size", [(32, 48), (1, 1)])
+def test_evaluate_refuses_a_reference_of_another_size_before_any_work(fixture_noisy, fixture_reference, tmp_path,
+                                                                      size):
+    """A reference cut to another size beside the frame (a 1x1 test render of the scene too): the frame and the
+    render it is scored against are named, with their sizes; no report folder is made."""
+    import shutil
+
+    from helpers.commands import assert_one_line_error, run_main
+
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    noisy = shutil.copy(fixture_noisy, frames / fixture_noisy.name)
+    ref = _cut(fixture_reference, frames / fixture_reference.name, *size)
+    out = tmp_path / "eval"
+    for given in (noisy, frames):  # the frame, and the folder that holds it
+        res = run_main("evaluate", "--run", MODELS_DIR / DEFAULT_MODEL, given, "--out", out, "--no-baseline",
+                       cwd=tmp_path)
+        assert_one_line_error(res, str(ref), str(noisy), f"{size[1]}x{size[0]}", "64x64")
+        assert not out.exists()
+    # kpcn denoise --reference refuses the same pair with the same line
+    res = run_main("denoise", noisy, "--reference", ref, "--run", MODELS_DIR / DEFAULT_MODEL, "-o", out, cwd=tmp_path)
+    assert_one_line_error(res, f"the reference {ref} is {size[1]}x{size[0]} but {noisy} is 64x64")
+    assert not out.exists()

@@ -298,15 +298,32 @@ def test_serving_picks_the_first_finished_run_whose_input_set_serves_the_frame(r
 def test_serving_passes_over_an_unfinished_variant(runs, tmp_path):
     from kpcn_keras.run import Run
 
-    _, _, variant = runs
-    copy = tmp_path / "other" / "inputs" / "no-split"
+    _, base, variant = runs
+    other = Run(base).fork(tmp_path / "other").dir  # the full run, without its variants
+    copy = other / "inputs" / "no-split"
     shutil.copytree(variant, copy)
     record = json.loads((copy / "config.json").read_text())
     record["phases"]["diffuse"]["status"] = "running"
     (copy / "config.json").write_text(json.dumps(record))
-    with pytest.raises(KpcnError, match=r"\(the run has: no-split \(unfinished\)\); train it with "
-                       r"'kpcn shards --set default --inputs no-split' then "):
-        Run(tmp_path / "other").serving(NO_SPLIT)
+    with pytest.raises(KpcnError, match=r"\(the run has: full, no-split \(unfinished\)\); train it with "
+                       r"'kpcn shards --set s .*--inputs no-split' then "):
+        Run(other).serving(NO_SPLIT)
+
+
+def test_a_folder_of_variants_alone_is_refused_naming_them_and_each_serves_as_a_run_of_its_own(runs, tmp_path):
+    """What ``kpcn train --inputs no-split --run NEW`` makes (``NEW/inputs/no-split``, no record of its own) is not
+    a model: which network serves would be a guess. The line names the variant, which serves when passed."""
+    from kpcn_keras.run import Run
+
+    _, _, variant = runs
+    folder = tmp_path / "new"
+    shutil.copytree(variant, folder / "inputs" / "no-split")
+    with pytest.raises(KpcnError) as err:
+        Run(folder).serving(NO_SPLIT)
+    assert str(err.value) == (f"{folder}: not a run folder (no config.json); its inputs/ holds only the variants "
+                              f"no-split, each a run folder of its own: pass one (e.g. {folder}/inputs/no-split) or "
+                              "train the full model into this folder with 'kpcn train'")
+    assert Run(folder / "inputs" / "no-split").serving(NO_SPLIT).dir == folder / "inputs" / "no-split"
 
 
 def test_a_record_without_an_input_set_reads_as_full(runs):

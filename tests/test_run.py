@@ -290,3 +290,62 @@ def test_a_run_whose_resample_round_is_unfinished_is_refused_by_denoise_but_resa
                                         r"'kpcn resample --run .*' with the options it was started with resumes it"):
         Denoiser.from_run(Run(run_dir))
     assert Denoiser.from_run(Run(run_dir), resampling=True).record.data == record  # the loop's own use, mid-round
+
+
+# --- a damaged model folder: refused the same way by every path that takes one ---
+
+
+def _damaged_model(tmp_path, damage: str):
+    """A copy of the shipped model (a variant for every input set) with its record removed or made unreadable, or
+    its no-variance variant's diffuse network removed."""
+    from kpcn_keras.config import DEFAULT_MODEL, MODELS_DIR
+
+    model = shutil.copytree(MODELS_DIR / DEFAULT_MODEL, tmp_path / "model")
+    if damage == "no record":
+        (model / "config.json").unlink()
+    elif damage == "unreadable record":
+        (model / "config.json").write_text('{"train": ')
+    else:
+        (model / "inputs" / "no-variance" / "diffuse.keras").unlink()
+    return model
+
+
+@pytest.mark.parametrize("damage, line", [
+    ("no record", "{model}: not a run folder (no config.json); its inputs/ holds only the variants no-variance, "
+                  "no-split, no-split-no-variance"),
+    ("unreadable record", "{model}/config.json: "),
+])
+def test_a_damaged_model_folder_is_refused_the_same_way_by_every_path(tmp_path, fixture_noisy, monkeypatch, damage,
+                                                                      line):
+    """``--run`` of denoise, evaluate and view, ``KPCN_MODEL``, the API: the same one line, nothing written (a
+    variant in ``inputs/`` is never taken in the place of the model the frame needs)."""
+    import kpcn
+
+    model = _damaged_model(tmp_path, damage)
+    line = line.format(model=model)
+    out = tmp_path / "out"
+    for args in (("denoise", fixture_noisy, "--run", model, "-o", out),
+                 ("evaluate", "--run", model, fixture_noisy, "--out", out, "--no-baseline"),
+                 ("view", fixture_noisy, "--run", model, "--port", "0")):
+        assert_one_line_error(run_main(*args, cwd=tmp_path), line)
+        assert not out.exists()
+    monkeypatch.setenv("KPCN_MODEL", str(model))
+    assert_one_line_error(run_main("denoise", fixture_noisy, "-o", out, cwd=tmp_path), line, "KPCN_MODEL")
+    assert not out.exists()
+    for run in (model, None):
+        with pytest.raises(KpcnError) as err:
+            kpcn.denoise(kpcn.read(fixture_noisy), run=run)
+        assert line in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_variant_without_its_weights_is_refused_before_any_frame_is_written(tmp_path, fixture_noisy):
+    """A frame of the full set and a Blender frame (no variance: served by ``inputs/no-variance``) in one command,
+    that variant's diffuse network removed: refused before the first frame is denoised, naming the file."""
+    from helpers.paths import FIXTURES
+
+    model = _damaged_model(tmp_path, "weights")
+    blender = shutil.copy(FIXTURES / "renderers" / "cycles5" / "studio-00016spp.exr", tmp_path / "b.exr")
+    out = tmp_path / "out"
+    res = run_main("denoise", fixture_noisy, blender, "--run", model, "-o", out, cwd=tmp_path)
+    assert_one_line_error(res, str(model / "inputs" / "no-variance" / "diffuse.keras"))
+    assert not out.exists()

@@ -445,3 +445,17 @@ def test_the_shipped_model_denoises_each_renderers_frame_with_the_network_for_wh
         return float(np.mean((x - ref) ** 2 / (ref ** 2 + 0.01)))
 
     assert np.isfinite(out).all() and relmse(out) < relmse(noisy)
+
+
+def test_a_write_that_fails_names_the_file_shipping_could_not_write(evaluated_run, tmp_path):
+    """Every write of the process limited to 4 KiB (RLIMIT_FSIZE: ``write(2)`` itself fails with EFBIG, as on a
+    full disk), so the first network file copied fails: the one line names that file in the model folder, not the
+    run's file it read, and leaves nothing behind."""
+    from helpers.commands import kpcn
+
+    dest = tmp_path / "models" / "m"
+    res = kpcn("ship", "--run", evaluated_run.dir, "--out", dest, "--speed-frame", "32,32", cwd=tmp_path,
+               file_size_limit=4096)
+    assert_one_line_error(res, f"{dest}{'/'}", ".keras: cannot write (File too large)")
+    assert str(evaluated_run.dir) not in res.stderr
+    assert not (tmp_path / "models").exists() or list((tmp_path / "models").iterdir()) == []
