@@ -97,11 +97,14 @@ def _grey(path: Path) -> np.ndarray:
     """A greyscale PNG's pixels as g in [0, 1] (float64); KpcnError naming the file for anything else."""
     from PIL import Image, UnidentifiedImageError
 
+    from prep.png import check
+
+    check(path)  # a damaged structure is refused before PIL trusts its lengths
     try:
         with Image.open(path) as image:
             mode = image.mode
             pixels = np.asarray(image)
-    except (OSError, UnidentifiedImageError) as exc:
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, EOFError) as exc:
         raise KpcnError(f"{path}: not a readable PNG ({exc})") from None
     if mode in ("L", "LA"):
         return (pixels[..., 0] if mode == "LA" else pixels) / 255.0
