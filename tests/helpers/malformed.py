@@ -29,6 +29,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 FIXTURES = REPO / "tests" / "fixtures"
 SCALE = max(1, int(os.environ.get("KPCN_FUZZ_SCALE", "1") or 1))
+# the hypothesis profile of the property tests (registered in conftest.py): ci, or deep for a deeper pass
+PROFILE = os.environ.get("KPCN_HYPOTHESIS_PROFILE") or ("deep" if SCALE > 1 else "ci")
 MEMORY_MARGIN = 768 << 20  # bytes a reader may map beyond what its libraries took before the first case
 CPU_LIMIT_S = 1.0  # CPU seconds a reader may take on one case
 
