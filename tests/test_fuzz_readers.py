@@ -2,9 +2,10 @@
 a result (finite, of the size the file states) or a ``KpcnError`` of one line naming the file; never another
 exception, a warning, a second of CPU, more memory than the limit the child runs under, or output of its own.
 One child process per format, under limits; the families and their counts: ``python -m tests.helpers.malformed --count``
-(docs/robustness.md §"Probe families"). Below them, the reader faults the fuzzing found, one test each."""
+(docs/robustness.md §4). Below them, the reader faults the fuzzing found, one test each."""
 
 import json
+import re
 import struct
 import subprocess
 import sys
@@ -194,7 +195,7 @@ def _bytes(tmp_path, data: bytes):
     return path
 
 
-def test_an_environment_map_png_beyond_the_texel_limit_is_refused_in_one_line(tmp_path):
+def test_an_environment_map_or_texture_png_beyond_the_pixel_limit_is_refused_in_one_line(tmp_path):
     from PIL import Image
 
     from prep.errors import InputFileError
@@ -206,6 +207,13 @@ def test_an_environment_map_png_beyond_the_texel_limit_is_refused_in_one_line(tm
         w, h = (int(v) for v in size.split("x"))
         if w * h <= Image.MAX_IMAGE_PIXELS:
             continue
-        with pytest.raises(InputFileError, match=rf"{w} x {h} texels, more than the {Image.MAX_IMAGE_PIXELS} a PNG "
-                                                 "may have; use an .exr map"):
+        with pytest.raises(InputFileError, match=rf"^{path}: a PNG of {w} x {h} pixels, more than the "
+                                                 rf"{Image.MAX_IMAGE_PIXELS} kpcn decodes from a PNG"):
             load_texels(EnvironmentMap(image=str(path)))
+
+
+@pytest.mark.skipif(malformed.SCALE != 1, reason="the table states the counts CI runs, at KPCN_FUZZ_SCALE=1")
+def test_the_table_of_probe_families_states_the_counts_ci_runs():
+    table = (REPO / "docs" / "robustness.md").read_text().split("## 4 Probe families")[1]
+    stated = {m[0]: int(m[1]) for m in re.findall(r"^\| `([\w-]+)` \|.*?\| (\d+) \|[^|]*\|$", table, re.M)}
+    assert stated == {f: len(malformed.cases(f)) for f in malformed.EXR_FAMILIES + malformed.PNG_FAMILIES}

@@ -57,9 +57,10 @@ SRGB_GAMMA = 2.2
 
 
 def load_image(path: str) -> np.ndarray:
-    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); InputFileError naming the
-    file, for one whose structure is damaged (``prep.png.check``) or whose header claims more texels than
-    PIL decodes without suspecting a decompression bomb (``PIL.Image.MAX_IMAGE_PIXELS``), before decoding."""
+    """(H, W, 3) linear float64 texels of a PNG (an environment map or an image texture; sRGB decoded with gamma
+    2.2); InputFileError naming the file, for one whose structure is damaged (``prep.png.check``) or whose header
+    claims more pixels than PIL decodes without suspecting a decompression bomb (``PIL.Image.MAX_IMAGE_PIXELS``),
+    before decoding."""
     import matplotlib.image
     from PIL import Image
 
@@ -70,8 +71,9 @@ def load_image(path: str) -> np.ndarray:
     except KpcnError as exc:
         raise InputFileError(str(exc)) from None
     if width * height > Image.MAX_IMAGE_PIXELS:
-        raise InputFileError(f"{path}: a PNG environment map of {width} x {height} texels, more than the "
-                             f"{Image.MAX_IMAGE_PIXELS} a PNG may have; use an .exr map for a larger one")
+        raise InputFileError(f"{path}: a PNG of {width} x {height} pixels, more than the {Image.MAX_IMAGE_PIXELS} "
+                             "kpcn decodes from a PNG (PIL's decompression-bomb limit); an environment map may be an "
+                             ".exr of any size")
     try:
         image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
     except (OSError, SyntaxError, ValueError, EOFError) as exc:
