@@ -132,6 +132,9 @@ def _grey(path: Path) -> np.ndarray:
     """A greyscale PNG's pixels as g in [0, 1] (float64); KpcnError naming the file for anything else."""
     from PIL import Image, UnidentifiedImageError
 
+    from prep.png import check
+
+    check(path)  # a damaged structure is refused before PIL trusts its lengths
     try:
         # its size was checked against the frame's (_check_size): PIL's own bound is no news to a user, and an
         # image past it (a frame of over 6000 pixels a side) is refused in one line
@@ -143,7 +146,7 @@ def _grey(path: Path) -> np.ndarray:
     except Image.DecompressionBombError:
         raise KpcnError(f"{path}: a λ map of more pixels than the PNG reader decodes ({2 * Image.MAX_IMAGE_PIXELS}); "
                         "paint it at the frame's size") from None
-    except (OSError, UnidentifiedImageError) as exc:
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, EOFError) as exc:
         raise KpcnError(f"{path}: not a readable PNG ({exc})") from None
     if mode in ("L", "LA"):
         return (pixels[..., 0] if mode == "LA" else pixels) / 255.0

@@ -45,7 +45,7 @@ import numpy as np
 
 from prep.errors import KpcnError
 from prep.files import atomic_path
-from prep.processes import flush_c_stdio
+from prep.processes import flush_c_stdio, memory_shortfall
 
 log = logging.getLogger("kpcn")
 
@@ -201,16 +201,16 @@ def _window(value) -> tuple:
     return (int(lo[0]), int(lo[1])), (int(hi[0]), int(hi[1]))
 
 
-def read_image(path: str | os.PathLike, *, header_only: bool = False) -> ExrImage:
-    """Every part of the OpenEXR file ``path`` (:class:`ExrImage`); AOVError naming the file if it is not one,
-    or if its parts' data windows differ."""
+# More channels than any renderer writes (a Blender 5 file of every pass has about 80): a header claiming more is
+# damaged or not a render, and refusing it bounds the time a header takes to parse and the line that lists layers.
+MAX_CHANNELS = 4096
+BYTES_PER_CHANNEL = 4  # a pixel of each channel as the readers hold it (float32; a half channel is widened)
+
+
+def _read_parts(path: Path, header_only: bool) -> ExrImage:
+    """Every part of ``path`` as the binding reads it; AOVError naming the file if the binding refuses it."""
     import OpenEXR  # imported here so that modules using only the constants stay light
 
-    path = Path(path)
-    if path.is_dir():
-        raise AOVError(f"{path}: is a folder, expected an OpenEXR file")
-    if not path.is_file():
-        raise AOVError(f"{path}: no such file")
     names, parts, channels, half = [], [], {}, set()
     try:
         with _captured_native_output() as captured:
@@ -243,6 +243,41 @@ def read_image(path: str | os.PathLike, *, header_only: bool = False) -> ExrImag
     (x0, y0), (x1, y1) = data_window
     return ExrImage(path, (y1 - y0 + 1, x1 - x0 + 1), tuple(names), tuple(parts), channels, attributes,
                     data_window, display_window, frozenset(half))
+
+
+def _check_claims(image: ExrImage) -> None:
+    """AOVError naming the file if its header claims more channels than :data:`MAX_CHANNELS` or more pixels than
+    this machine has memory for: refused before the binding allocates them."""
+    count = len(image.names)
+    if count > MAX_CHANNELS:
+        raise AOVError(f"{image.path}: the header lists {count} channels, more than the {MAX_CHANNELS} a render can "
+                       "have: the file is damaged or not a render")
+    height, width = image.size
+    short = memory_shortfall(height * width * count * BYTES_PER_CHANNEL)
+    if short:
+        raise AOVError(f"{image.path}: its {width}x{height} data window of {count} channels {short}")
+
+
+def read_image(path: str | os.PathLike, *, header_only: bool = False) -> ExrImage:
+    """Every part of the OpenEXR file ``path`` (:class:`ExrImage`); AOVError naming the file if it is not one, if
+    its parts' data windows differ, if its header claims more than :func:`_check_claims` allows, or if a channel
+    its header lists cannot be read (a multi-part file cut short: the binding drops those parts with a warning)."""
+    path = Path(path)
+    if path.is_dir():
+        raise AOVError(f"{path}: is a folder, expected an OpenEXR file")
+    if not path.is_file():
+        raise AOVError(f"{path}: no such file")
+    header = _read_parts(path, header_only=True)
+    _check_claims(header)
+    if header_only:
+        return header
+    image = _read_parts(path, header_only=False)
+    lost = [name for name in header.names if name not in image.channels]
+    if lost:
+        raise AOVError(f"{path}: {len(lost)} of the {len(header.names)} channels its header lists could not be "
+                       f"read ({', '.join(lost[:3])}{', ...' if len(lost) > 3 else ''}): the file is cut short or "
+                       "damaged")
+    return image
 
 
 def _open(path: Path, *, header_only: bool = False):

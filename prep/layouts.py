@@ -543,6 +543,7 @@ LAYOUTS = {layout.name: layout for layout in (KpcnLayout(), CyclesLayout(), Pbrt
                                               RgbLayout())}
 FILL = {"albedo": 1.0, "normal": 0.0, "depth": 0.0}  # what a layer the file lacks is (the rgb layout)
 ALTERNATIVE = "alternative."  # an adapter's layer named so goes to Frame.alternatives
+LISTED_LAYERS = 40  # layers a refusal names: any renderer's file whole, a damaged header's thousands in one line
 
 
 def check_layout(name: str | None, option: str = "layout") -> str | None:
@@ -575,7 +576,9 @@ def detect(image: ExrImage, layout: str | None = None, *, view_layer: str | None
         if partial:
             raise AOVError(f"{image.path}: {partial}")
         missed.append(f"{adapter.name} looks for {adapter.looks_for}, missed {lacking}")
-    found = ", ".join(sorted(ch.layers)) or "no channels"
+    layers = sorted(ch.layers)
+    found = ", ".join(layers[:LISTED_LAYERS]) or "no channels"
+    found += f" and {len(layers) - LISTED_LAYERS} more" if len(layers) > LISTED_LAYERS else ""
     raise AOVError(f"{image.path}: no layout kpcn reads: {'; '.join(missed)}; the file has layers {found}")
 
 

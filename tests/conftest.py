@@ -4,6 +4,7 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
 # one all-effects kernel compiled for every scene rather than one per effect set, in this process and in the
@@ -15,8 +16,15 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from helpers.commands import process_state_kept  # noqa: E402
 from helpers.files import SmallDisk  # noqa: E402
+from helpers.malformed import SCALE as FUZZ_SCALE  # noqa: E402
 from helpers.paths import FIXTURES  # noqa: E402
 from helpers.tiny import TINY_MODEL, build_tiny_shards  # noqa: E402
+
+# The property tests' budgets (tests/test_fuzz_properties.py; helpers.malformed.PROFILE picks one): ci, a fixed
+# set of examples the same on every run; deep, ten times as many drawn afresh (KPCN_FUZZ_SCALE multiplies them)
+_FUZZ_COMMON = dict(deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("ci", max_examples=30, derandomize=True, **_FUZZ_COMMON)
+settings.register_profile("deep", max_examples=300 * FUZZ_SCALE, **_FUZZ_COMMON)
 
 # the files that take longest from a fresh clone, longest first; the rest follow in collection order. The
 # workers (pytest-xdist, --dist loadfile --no-loadscope-reorder) take whole files in this order, so that none is

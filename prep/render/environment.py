@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prep.errors import InputFileError
+from prep.errors import InputFileError, KpcnError
 from prep.render.scene import EnvironmentMap, Sky, _luminance
 
 # scene._luminance's weights as a vector, for luminance of whole maps as one product
@@ -57,13 +57,26 @@ SRGB_GAMMA = 2.2
 
 
 def load_image(path: str) -> np.ndarray:
-    """(H, W, 3) linear float64 texels of a PNG (sRGB decoded with gamma 2.2); InputFileError naming the
-    file."""
+    """(H, W, 3) linear float64 texels of a PNG (an environment map or an image texture; sRGB decoded with gamma
+    2.2); InputFileError naming the file, for one whose structure is damaged (``prep.png.check``) or whose header
+    claims more pixels than PIL decodes without suspecting a decompression bomb (``PIL.Image.MAX_IMAGE_PIXELS``),
+    before decoding."""
     import matplotlib.image
+    from PIL import Image
+
+    from prep.png import check
 
     try:
+        width, height = check(path)
+    except KpcnError as exc:
+        raise InputFileError(str(exc)) from None
+    if width * height > Image.MAX_IMAGE_PIXELS:
+        raise InputFileError(f"{path}: a PNG of {width} x {height} pixels, more than the {Image.MAX_IMAGE_PIXELS} "
+                             "kpcn decodes from a PNG (PIL's decompression-bomb limit); an environment map may be an "
+                             ".exr of any size")
+    try:
         image = np.asarray(matplotlib.image.imread(path), dtype=np.float64)
-    except (OSError, SyntaxError, ValueError) as exc:
+    except (OSError, SyntaxError, ValueError, EOFError) as exc:
         raise InputFileError(f"{path}: not a readable PNG image ({exc})") from None
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
