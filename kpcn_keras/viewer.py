@@ -23,7 +23,10 @@ three files of ``kpcn_keras/view/``, nothing fetched from elsewhere, so it works
   --slope-map`` reads back: ``slope_map.png_bytes``).
 
 A request the session cannot take (a rectangle outside the frame, λ outside the run's range, a body of
-the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message.
+the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message; a
+client's mistake in HTTP (a bad or missing Content-Length, a body longer than its rectangle takes, a slow body)
+400, 411, 413 or 408, the body read only up to what the rectangle takes; each is one line on the console
+(docs/robustness.md §4). :func:`serve` stops on SIGTERM or Ctrl-C once the stroke being painted has ended.
 """
 
 from __future__ import annotations
@@ -227,8 +230,6 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _fail(self, status: int, message: str) -> None:
         self.server.log(f"{self.address_string()}: {self.command} {self.path}: {status} {message}")
-        if self.unread:
-            self.close_connection = True
         self._send(status, message.encode(), "text/plain; charset=utf-8")
         if self.unread:
             self._drop_rest()
@@ -274,7 +275,7 @@ class _Handler(BaseHTTPRequestHandler):
     def do_POST(self):  # noqa: N802
         url = urlsplit(self.path)
         if url.path != "/api/stroke":
-            self.unread = 1  # whatever its body is, it is not read
+            self.unread = 1  # a body, if any, is not read: dropped after the answer
             return self._fail(HTTPStatus.NOT_FOUND, f"no such endpoint: {url.path}")
         self._answer(lambda: self._stroke(parse_qs(url.query)))
 
