@@ -46,6 +46,7 @@ def _stroke_loop(port: int, stop: threading.Event, answers: list) -> None:
             return
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 0), (signal.SIGINT, 130)])
 def test_a_kill_during_strokes_stops_the_viewer_cleanly(frame, tiny_slope_module_run, tmp_path, sig, status):
     # a fresh interpreter: the abort came from its exit while a stroke's thread was inside torch
