@@ -226,8 +226,7 @@ def cmd_view(args) -> int:
     except BaseException:
         httpd.server_close()
         raise
-    serve(httpd, session)
-    return 0
+    return serve(httpd, session)
 
 
 def cmd_evaluate(args) -> int:

@@ -23,14 +23,21 @@ three files of ``kpcn_keras/view/``, nothing fetched from elsewhere, so it works
   --slope-map`` reads back: ``slope_map.png_bytes``).
 
 A request the session cannot take (a rectangle outside the frame, λ outside the run's range, a body of
-the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message.
+the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message; a
+client's mistake in HTTP (a bad or missing Content-Length, a body longer than its rectangle takes, a slow body)
+400, 411, 413 or 408, the body read only up to what the rectangle takes; each is one line on the console
+(docs/robustness.md §7). :func:`serve` stops on SIGTERM or Ctrl-C once the stroke being painted has ended.
 """
 
 from __future__ import annotations
 
 import errno
 import json
+import os
+import re
 import signal
+import socket
+import sys
 import threading
 import time
 from http import HTTPStatus
@@ -54,6 +61,8 @@ PAGE_DIR = Path(__file__).with_name("view")
 PAGE_FILES = {"/": ("index.html", "text/html"), "/view.js": ("view.js", "text/javascript"),
               "/view.css": ("view.css", "text/css")}
 VIEWS = ("input", "denoised", "reference", "oidn")  # in the page's order
+STOP_SECONDS = 30.0  # how long a stop waits for the stroke being painted
+DROP_SECONDS, DROP_BYTES = 1.0, 1 << 20  # how much of a refused body is read and dropped before closing
 VIEW_LABELS = {"input": "noisy input", "denoised": "kpcn", "reference": "reference", "oidn": "OIDN"}
 
 
@@ -65,7 +74,8 @@ class ViewSession:
     def __init__(self, frame: layouts.Frame, denoiser: Denoiser, reference: np.ndarray | None = None, *,
                  slope: float | None = None, log=print):
         self.path, self.shape, self.model = frame.path, frame.size, str(denoiser.run.dir)
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # held while the map or the views change: a stroke, inside torch, holds it
+        self.closed = False
         begin = time.perf_counter()
         record, run = denoiser.record, denoiser.run.dir
         if slope is not None and not record.model.slope_channel:
@@ -138,12 +148,17 @@ class ViewSession:
         with self.lock:
             return self.views[name].tobytes()
 
-    def stroke(self, region, values: np.ndarray) -> tuple[np.ndarray, float]:
-        """Set the λ map to ``values`` (float32, the rectangle's size) in ``region`` (y0, y1, x0, x1) and
-        re-apply it there: the rectangle's denoised RGB and the seconds it took."""
+    def stroke_region(self, region) -> tuple[int, int, int, int]:
+        """``region`` as the (y0, y1, x0, x1) ints of a rectangle of the frame a stroke may paint: OptionError
+        if it is not one, KpcnError if the run has no brush."""
         if self.prepared is None:
             raise KpcnError(f"no brush: {self.brush_note}")
-        y0, y1, x0, x1 = check_region(region, self.shape)
+        return check_region(region, self.shape)
+
+    def stroke(self, region, values: np.ndarray) -> tuple[np.ndarray, float]:
+        """Set the λ map to ``values`` (float32, the rectangle's size) in ``region`` (y0, y1, x0, x1) and
+        re-apply it there: the rectangle's denoised RGB and the seconds it took. KpcnError once closed."""
+        y0, y1, x0, x1 = self.stroke_region(region)
         values = np.asarray(values, np.float32)
         if values.size != (y1 - y0) * (x1 - x0):
             raise OptionError("stroke", f"has {values.size} λ values for a {x1 - x0}x{y1 - y0} rectangle")
@@ -151,11 +166,23 @@ class ViewSession:
         if outside:
             raise OptionError("stroke", outside)
         with self.lock:
+            if self.closed:
+                raise KpcnError("the viewer is stopping: no more strokes")
             begin = time.perf_counter()
             self.map[y0:y1, x0:x1] = values.reshape(y1 - y0, x1 - x0)
             rgb = self.prepared(self.map, region=(y0, y1, x0, x1))["default"]
             self.views["denoised"][y0:y1, x0:x1] = rgb
             return np.ascontiguousarray(rgb, "<f4"), time.perf_counter() - begin
+
+    def close(self, timeout: float) -> bool:
+        """Take no more strokes, once the one being painted (if any) has ended: whether it ended within
+        ``timeout`` seconds. An interpreter that exits while a stroke's thread is inside torch aborts
+        ("terminate called without an active exception"), so a process exits only after this is True."""
+        if not self.lock.acquire(timeout=timeout):
+            return False
+        self.closed = True
+        self.lock.release()
+        return True
 
     def map_png(self) -> bytes:
         if self.prepared is None:
@@ -164,17 +191,34 @@ class ViewSession:
             return slope_map.png_bytes(self.map, self.slope_range)
 
 
+class _ClientError(Exception):
+    """A request the server answers ``status`` with a one-line message: the client's mistake in HTTP itself."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: ViewServer
+    unread = 0  # bytes of the request's body not read (yet)
 
     @property
     def session(self) -> ViewSession:
         return self.server.session
 
-    def log_message(self, format, *args):  # noqa: A002 (the base class's name): quiet, the console is the user's
-        pass
+    def setup(self):
+        self.timeout = self.server.read_seconds  # a request's line and headers too: a silent client lets go
+        super().setup()
+
+    def log_request(self, code="-", size="-"):
+        pass  # quiet, the console is the user's: only client errors are told
+
+    def log_message(self, format, *args):  # noqa: A002 (the base class's name)
+        self.server.log(f"{self.address_string()}: {format % args}")
 
     def _send(self, status: int, body: bytes, content_type: str, **headers) -> None:
+        self.connection.settimeout(self.timeout)
         self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
@@ -185,11 +229,28 @@ class _Handler(BaseHTTPRequestHandler):
         self.wfile.write(body)
 
     def _fail(self, status: int, message: str) -> None:
+        self.server.log(f"{self.address_string()}: {self.command} {self.path}: {status} {message}")
         self._send(status, message.encode(), "text/plain; charset=utf-8")
+        if self.unread:
+            self._drop_rest()
+
+    def _drop_rest(self) -> None:
+        """Read and drop what the client still sends of a body left unread (bounded), so that closing does not
+        reset the connection before the client has read the answer."""
+        try:
+            self.connection.shutdown(socket.SHUT_WR)
+            self.connection.settimeout(DROP_SECONDS)
+            left = DROP_BYTES
+            while left > 0 and (chunk := self.rfile.read1(min(left, 1 << 16))):
+                left -= len(chunk)
+        except OSError:
+            pass
 
     def _answer(self, handle) -> None:
         try:
             handle()
+        except _ClientError as exc:
+            self._fail(exc.status, str(exc))
         except OptionError as exc:
             self._fail(HTTPStatus.BAD_REQUEST, str(exc))
         except KpcnError as exc:
@@ -214,28 +275,78 @@ class _Handler(BaseHTTPRequestHandler):
     def do_POST(self):  # noqa: N802
         url = urlsplit(self.path)
         if url.path != "/api/stroke":
+            self.unread = 1  # a body, if any, is not read: dropped after the answer
             return self._fail(HTTPStatus.NOT_FOUND, f"no such endpoint: {url.path}")
-        body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+        self._answer(lambda: self._stroke(parse_qs(url.query)))
 
-        def stroke():
-            query = parse_qs(url.query)
+    def _stroke(self, query: dict) -> None:
+        """Answer a stroke, its body read only once the rectangle says how many bytes it takes."""
+        self.unread = self._content_length()
+        try:
+            region = self.session.stroke_region([query[k][0] for k in ("y0", "y1", "x0", "x1")])
+        except KeyError as exc:
+            raise OptionError("stroke", f"needs y0, y1, x0 and x1; {exc.args[0]} is missing") from None
+        y0, y1, x0, x1 = region
+        takes = 4 * (y1 - y0) * (x1 - x0)
+        if self.unread > takes:
+            raise _ClientError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
+                               f"stroke: a body of {self.unread} bytes for a {x1 - x0}x{y1 - y0} rectangle, which "
+                               f"takes {takes} (one float32 λ a pixel)")
+        body = self._read_body()
+        if len(body) % 4:
+            raise OptionError("stroke", f"body must be float32 λ values, got {len(body)} bytes")
+        rgb, seconds = self.session.stroke(region, np.frombuffer(body, "<f4"))
+        self._send(HTTPStatus.OK, rgb.tobytes(), "application/octet-stream", X_Seconds=f"{seconds:.6f}")
+
+    def _content_length(self) -> int:
+        value = self.headers.get("Content-Length")
+        if value is None:
+            raise _ClientError(HTTPStatus.LENGTH_REQUIRED, "stroke: needs a Content-Length (its body's bytes)")
+        if not re.fullmatch(r"-?[0-9]+", value.strip()):
+            raise _ClientError(HTTPStatus.BAD_REQUEST, f"Content-Length must be a whole number of bytes, got {value!r}")
+        if int(value) < 0:
+            raise _ClientError(HTTPStatus.BAD_REQUEST, f"Content-Length must be 0 or more, got {value.strip()}")
+        return int(value)
+
+    def _read_body(self) -> bytes:
+        """The body's :attr:`unread` bytes, within the server's ``read_seconds`` for all of them."""
+        length, limit = self.unread, self.server.read_seconds
+        deadline, chunks = time.monotonic() + limit, []
+        while self.unread:
             try:
-                region = [query[k][0] for k in ("y0", "y1", "x0", "x1")]
-            except KeyError as exc:
-                raise OptionError("stroke", f"needs y0, y1, x0 and x1; {exc.args[0]} is missing") from None
-            if len(body) % 4:
-                raise OptionError("stroke", f"body must be float32 λ values, got {len(body)} bytes")
-            rgb, seconds = self.session.stroke(region, np.frombuffer(body, "<f4"))
-            self._send(HTTPStatus.OK, rgb.tobytes(), "application/octet-stream", X_Seconds=f"{seconds:.6f}")
-
-        self._answer(stroke)
+                self.connection.settimeout(max(deadline - time.monotonic(), 1e-3))
+                chunk = self.rfile.read1(self.unread)
+            except TimeoutError:
+                raise _ClientError(HTTPStatus.REQUEST_TIMEOUT, f"stroke: {length - self.unread} of the body's {length} "
+                                   f"bytes came in {limit:g} s") from None
+            if not chunk:
+                got, self.unread = length - self.unread, 0  # the client closed its side: nothing more comes
+                raise OptionError("stroke", f"body ended after {got} of its {length} bytes")
+            chunks.append(chunk)
+            self.unread -= len(chunk)
+        return b"".join(chunks)
 
 
 class ViewServer(ThreadingHTTPServer):
-    """The page's HTTP server; :attr:`session` is what it serves (set once the frame is read)."""
+    """The page's HTTP server; :attr:`session` is what it serves (set once the frame is read), :attr:`log`
+    tells the console of each client error in one line, :attr:`read_seconds` bounds a request's reading."""
 
     daemon_threads = True  # a browser's open connection does not hold up Ctrl-C
+    request_queue_size = 1024  # many connections at once (a page's fetches, a script's) wait, not reset
+    read_seconds = 5.0
     session: ViewSession | None = None
+
+    def __init__(self, *args, log=print, **kwargs):
+        self.log = log
+        super().__init__(*args, **kwargs)
+
+    def handle_error(self, request, client_address):
+        """One line for a client that hung up or timed out (not the standard library's traceback)."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            self.log(f"{client_address[0]}: the connection ended early ({type(exc).__name__}: {exc})")
+        else:
+            super().handle_error(request, client_address)
 
 
 def listen(port: int = VIEW_PORT) -> ViewServer:
@@ -249,22 +360,47 @@ def listen(port: int = VIEW_PORT) -> ViewServer:
         raise KpcnError(f"cannot listen on {VIEW_HOST}:{port}: {exc.strerror}") from None
 
 
-def serve(httpd: ViewServer, session: ViewSession, log=print) -> None:
-    """Serve ``session`` on ``httpd`` until interrupted (Ctrl-C, or SIGTERM in the main thread)."""
-    httpd.session = session
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _interrupt)  # a terminal's Ctrl-C or a process manager's stop alike
-    log(f"serving {session.path.name} at http://{VIEW_HOST}:{httpd.server_address[1]}/ (Ctrl-C stops)")
+class _Terminated(Exception):
+    """SIGTERM, raised in the main thread as Ctrl-C raises KeyboardInterrupt."""
+
+
+def serve(httpd: ViewServer, session: ViewSession, log=print) -> int:
+    """Serve ``session`` on ``httpd`` until SIGTERM (the exit status is 0) or Ctrl-C (130). A stroke being
+    painted then ends first (at most :data:`STOP_SECONDS`, else the process exits at once, with the same
+    status): an interpreter that exits while a thread is inside torch aborts."""
+    httpd.session, httpd.log = session, log
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        signal.signal(signal.SIGTERM, _terminated)
+    status = 0
     try:
+        log(f"serving {session.path.name} at http://{VIEW_HOST}:{httpd.server_address[1]}/ (Ctrl-C stops)")
         httpd.serve_forever()
     except KeyboardInterrupt:
-        log("stopped")
+        status = 130
+    except _Terminated:
+        status = 0
     finally:
+        if main:  # a second signal while a stroke ends: exit now, as the fallback below does
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda signum, frame: _exit_now(status))
         httpd.server_close()
+        if not session.close(STOP_SECONDS):
+            log(f"a stroke did not end within {STOP_SECONDS:g} s: exiting without it")
+            _exit_now(status)
+        log("stopped")
+    return status
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
+def _terminated(signum, frame):
+    raise _Terminated
+
+
+def _exit_now(status: int) -> None:
+    """Exit without the interpreter's finalisation, which aborts while a thread is inside torch."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 __all__ = ["VIEWS", "ViewServer", "ViewSession", "listen", "serve"]

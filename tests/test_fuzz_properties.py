@@ -3,7 +3,7 @@ layers, any data window, half or float channels, non-finite and huge values. Eac
 the size the input states, or raises a ``KpcnError`` of one line; the header reader agrees with the reader.
 
 The budget is the hypothesis profile of ``conftest.py``: ``ci`` (fixed examples, derandomized) unless
-``KPCN_FUZZ_SCALE`` > 1 or ``KPCN_HYPOTHESIS_PROFILE=deep`` (docs/robustness.md §4)."""
+``KPCN_FUZZ_SCALE`` > 1 or ``KPCN_HYPOTHESIS_PROFILE=deep`` (docs/robustness.md §6)."""
 
 import math
 

@@ -95,6 +95,7 @@ def test_the_page_shows_the_frame_the_reference_and_the_runs_own_denoise(frame, 
         np.testing.assert_allclose(rgb(get(f"{url}/api/view/denoised"), H, W), want, rtol=1e-5, atol=1e-6)
         page = get(f"{url}/").decode()
         assert "view.js" in page and "view.css" in page
+        assert '<link rel="icon" href="data:,">' in page  # no request for /favicon.ico, which has no page
     for name in ("index.html", "view.js", "view.css"):  # offline: nothing is fetched from another host
         assert "://" not in (PAGE_DIR / name).read_text().replace("http://127.0.0.1", "")
 
