@@ -46,13 +46,20 @@ def _stroke_loop(port: int, stop: threading.Event, answers: list) -> None:
             return
 
 
+def _as_a_terminal_starts() -> None:
+    """SIGINT at its default in the viewer's process, as a terminal's Ctrl-C finds it: a test run started in the
+    background by a shell without job control (a CI script's ``cmd &``) passes SIGINT on ignored, and the
+    viewer, like any Python program, then keeps it ignored (what ``nohup`` and background jobs rely on)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 0), (signal.SIGINT, 130)])
 def test_a_kill_during_strokes_stops_the_viewer_cleanly(frame, tiny_slope_module_run, tmp_path, sig, status):
     # a fresh interpreter: the abort came from its exit while a stroke's thread was inside torch
     proc = subprocess.Popen([sys.executable, "-m", "kpcn_keras.cli", "-q", "view", str(frame), "--run",
                              str(tiny_slope_module_run), "--port", "0"], cwd=tmp_path, env=command_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_as_a_terminal_starts)
     try:
         port = None
         for line in proc.stdout:
