@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -299,9 +300,10 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="reports", help="report folder (default: %(default)s)")
     parser.add_argument("--note", default="", help="a paragraph the report shows under its head")
     args = parser.parse_args(argv)
-    command = "python -m kpcn_keras.studies.blender_report " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = shlex.join(["python", "-m", "kpcn_keras.studies.blender_report",
+                          *(sys.argv[1:] if argv is None else argv)])
     try:
-        study(args.frames, parse_models(args.model), args.out, note=args.note, command=command.strip())
+        study(args.frames, parse_models(args.model), args.out, note=args.note, command=command)
     except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):
             raise
