@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: blender-report model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -151,6 +151,13 @@ inputs-study: shards
 quality: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) quality --set $(SET) $(QUALITY_ARGS)
+
+# the shipped model (BLENDER_ARGS="--model before=models/default --model after=RUN" for several) on Blender's frames
+# beside Blender's own denoised frame and OIDN: reports/blender.{md,json,png}
+BLENDER_FRAMES ?= ../shared/validation/blender
+blender-report: $(KPCN)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

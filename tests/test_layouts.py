@@ -235,6 +235,29 @@ def test_blenders_own_files_compose_to_their_combined(folder, names, precision):
     assert frame.layers["depth"].min() == 0 and frame.layers["depth"].max() < 10  # Denoising Depth, not 1e10
 
 
+def test_a_cycles_file_with_a_volume_reads_combined_as_the_sum_of_its_split():
+    # Blender's own file of a fog cube (fixtures/renderers/make_cycles_volume.py): most of its light is Volume
+    # Direct + Volume Indirect, which the reader puts in specular (docs/formats.md §1b says why), none in diffuse
+    path = RENDERERS / "cycles5-volume" / "fog-00016spp.exr"
+    raw = _raw(path)
+    frame = layouts.read(path)
+    assert frame.layout == "cycles" and frame.inputs == InputSet(split=True, variance=False) and not frame.notes
+
+    def rgb(p):
+        return np.stack([raw[f"ViewLayer.{p}.{c}"] for c in "RGB"], axis=-1)
+
+    combined, volume = rgb("Combined"), rgb("Volume Direct") + rgb("Volume Indirect")
+    assert volume.sum() > 0.5 * combined.sum()  # a split without the volume passes would miss most of the frame
+    np.testing.assert_allclose(frame.layers["diffuse"],
+                               (rgb("Diffuse Direct") + rgb("Diffuse Indirect")) * rgb("Diffuse Color"),
+                               rtol=1e-6, atol=1e-7)
+    surfaces = sum((rgb(f"{lobe} Direct") + rgb(f"{lobe} Indirect")) * rgb(f"{lobe} Color")
+                   for lobe in ("Glossy", "Transmission")) + rgb("Emission") + rgb("Environment")
+    np.testing.assert_allclose(frame.layers["specular"], surfaces + volume, rtol=1e-6, atol=1e-6)
+    total = frame.layers["diffuse"].astype(np.float64) + frame.layers["specular"]
+    assert np.abs(total - combined).max() <= 4 * np.finfo(np.float32).eps * np.abs(combined).max()
+
+
 def test_blender_5s_multi_part_and_interleaved_files_read_alike():
     multi = layouts.read(RENDERERS / "cycles5" / "studio-00016spp.exr")
     interleaved = layouts.read(RENDERERS / "cycles5-interleaved" / "studio-00016spp.exr")

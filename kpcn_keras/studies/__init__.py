@@ -10,11 +10,12 @@ variance sampling), ``inputs_study``, ``quality`` (with ``frames``); and ``fresh
 from a fresh clone: ``make time-train``). Their configurations and tables are in
 :mod:`kpcn_keras.studies.config`.
 
-The probes run as ``python -m kpcn_keras.studies.<name>`` (each module's docstring has its usage):
-``arch_costs``, ``denoise_costs``, ``slope_map_costs``, ``train_throughput`` (what a network, a denoise, a λ map
-and a training step cost), ``error_tail``, ``frame_curve``, ``remodulation`` (where a frame's error is),
-``view_screenshot`` (``kpcn view``'s page in headless Chromium, driven by :mod:`kpcn_keras.studies.browser`) and
-``render_blender_pairs`` (the Blender pairs of ``kpcn inputs-study --pairs``, run by Blender's Python).
+The probes run as ``python -m kpcn_keras.studies.<name>`` (each module's docstring has its usage): ``arch_costs``,
+``denoise_costs``, ``slope_map_costs``, ``train_throughput`` (what a network, a denoise, a λ map and a training
+step cost), ``error_tail``, ``frame_curve``, ``remodulation`` (where a frame's error is), ``blender_report``
+(``make blender-report``: kpcn beside Blender's own denoiser), ``view_screenshot`` (``kpcn view``'s page in
+headless Chromium, driven by :mod:`kpcn_keras.studies.browser`) and ``render_blender_pairs`` (the Blender pairs of
+``kpcn inputs-study --pairs``, run by Blender's Python).
 
 Importing this package imports nothing; a study imports keras or torch only where it needs them (``kpcn bench
 render`` never does). The library (``prep`` and every other module of ``kpcn_keras``) never imports a study;
