@@ -167,3 +167,12 @@ def test_a_medium_scene_renders_a_frame_with_cycles_volume_passes(tmp_path):
     assert json.loads((tmp_path / f"{name}.json").read_text())["effects"] == cat.draw(0, index)["effects"]
     m = json.loads((tmp_path / "manifest.json").read_text())
     assert (m["frames_done"], m["frames_planned"], m["effects"]["fog"]) == (2, 2, 1) and m["cpu_hours"] > 0
+
+
+def test_a_folder_of_frames_without_recipes_is_refused_in_one_line(tmp_path):
+    # an earlier generator's frames: kept frames of another scene would be mixed into this one's
+    (tmp_path / "cyc").mkdir()
+    (tmp_path / "cyc" / "studio-001-00004spp.exr").write_bytes(b"")
+    res = run_main("render-cycles", tmp_path / "cyc", "--scenes", "0:2", "--blender-python", tmp_path / "none",
+                   cwd=tmp_path)
+    assert_one_line_error(res, "studio-001-00004spp.exr", "without its recipe")

@@ -98,8 +98,13 @@ def check_recorded(cfg: CyclesConfig) -> None:
     cat, out = catalogue(), Path(cfg.out)
     for index in cfg.scene_range():
         recipe = json.loads(json.dumps(cat.draw(cfg.seed, index, cfg.res)))
-        path = out / f"{recipe['name']}.json"
+        recorded = sorted(out.glob(f"*-{index:03d}.json")) if out.is_dir() else []
+        path = recorded[0] if recorded else out / f"{recipe['name']}.json"  # under another kind's name too
         if not path.is_file():
+            older = sorted(out.glob(f"*-{index:03d}-*spp.exr")) if out.is_dir() else []
+            if older:  # frames of this index with no recipe: an earlier generator's scene, not this one
+                raise KpcnError(f"{older[0]}: a frame of scene {index} without its recipe {path.name} (rendered "
+                                "before scenes recorded their effects); choose another folder")
             continue
         try:
             recorded = json.loads(path.read_text())

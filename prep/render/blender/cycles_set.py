@@ -10,10 +10,12 @@ Every frame is one render at its spp, so its noise is what Cycles' sampler gives
 Runs under bpy (the wheel wants numpy < 2: a venv of its own), started by ``kpcn render-cycles``
 (``prep.render.cycles``, which checks the options and the Python), so it imports nothing of kpcn, only the
 standard library and bpy:
-  kpcn render-cycles OUT [--scenes 0:32] [--res 128] [--spp 4,8,16,32,64] [--ref-spp 1024]
+  kpcn render-cycles OUT [--scenes 0:32] [--res 128[,192...]] [--spp 4,8,16,32,64] [--ref-spp 1024] [--seed 0]
       [--blender-python .venv-bpy/bin/python]
-writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp) and OUT/render_log.json;
-a frame already there is kept, so a killed run resumes. ``kpcn import-renders`` then writes them into a
+builds each scene from its recipe (``catalogue.py`` beside this file: the effects it drew, written as
+OUT/<scene>.json), writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp),
+OUT/render_log.json, and OUT/manifest.json after each scene; a frame already there is kept, so a killed run
+resumes. ``kpcn import-renders`` then writes them into a
 render set that ``kpcn shards --inputs no-variance`` cuts (docs/training.md §6, docs/results/16-cycles-frames.md).
 """
 import argparse
