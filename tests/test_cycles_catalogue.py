@@ -164,6 +164,9 @@ def test_a_medium_scene_renders_a_frame_with_cycles_volume_passes(tmp_path):
     channels = {c for part in frame.parts for c in part.channels}
     for layer in ("Volume Direct", "Volume Indirect", "Combined", "Denoising Albedo"):
         assert f"ViewLayer.{layer}.R" in channels or f"ViewLayer.{layer}.X" in channels, layer
+    pixels = {c: p.channels[c].pixels for p in frame.parts for c in p.channels}
+    assert pixels["ViewLayer.Volume Direct.R"].max() > 0  # the fog scatters light, it is no empty black box
+    assert pixels["ViewLayer.Combined.R"].mean() > 0
     assert json.loads((tmp_path / f"{name}.json").read_text())["effects"] == cat.draw(0, index)["effects"]
     m = json.loads((tmp_path / "manifest.json").read_text())
     assert (m["frames_done"], m["frames_planned"], m["effects"]["fog"]) == (2, 2, 1) and m["cpu_hours"] > 0

@@ -90,10 +90,11 @@ def material(spec, name):
     m.use_nodes = True
     nt = m.node_tree
     if spec["kind"] == "emission":
+        out = only_output(nt)  # before the new nodes: it removes every other node
         e = nt.nodes.new("ShaderNodeEmission")
         e.inputs["Color"].default_value = (*spec["emission"], 1.0)
         e.inputs["Strength"].default_value = spec["strength"]
-        nt.links.new(e.outputs["Emission"], only_output(nt).inputs["Surface"])
+        nt.links.new(e.outputs["Emission"], out.inputs["Surface"])
         return m
     b = nt.nodes["Principled BSDF"]
     for key, socket in PRINCIPLED.items():
@@ -116,6 +117,7 @@ def medium(spec, name):
     m = bpy.data.materials.new(name)
     m.use_nodes = True
     nt = m.node_tree
+    out = only_output(nt)  # no surface: the box is the medium alone
     v = nt.nodes.new("ShaderNodeVolumePrincipled")
     v.inputs["Color"].default_value = (*spec["colour"], 1.0)
     v.inputs["Anisotropy"].default_value = spec["anisotropy"]
@@ -133,7 +135,7 @@ def medium(spec, name):
         nt.links.new(n.outputs["Fac"], r.inputs["Fac"])
         nt.links.new(r.outputs["Color"], mul.inputs[0])
         nt.links.new(mul.outputs["Value"], v.inputs["Density"])
-    nt.links.new(v.outputs["Volume"], only_output(nt).inputs["Volume"])
+    nt.links.new(v.outputs["Volume"], out.inputs["Volume"])
     bpy.ops.mesh.primitive_cube_add(size=1.0, location=spec["location"])
     o = bpy.context.active_object
     o.scale = spec["size"]
@@ -200,10 +202,11 @@ def hair(o, spec, name):
     m = bpy.data.materials.new(name + "-hair")
     m.use_nodes = True
     nt = m.node_tree
+    out = only_output(nt)
     h = nt.nodes.new("ShaderNodeBsdfHairPrincipled")
     h.inputs["Color"].default_value = (*spec["colour"], 1.0)
     h.inputs["Roughness"].default_value = spec["roughness"]
-    nt.links.new(h.outputs[0], only_output(nt).inputs["Surface"])
+    nt.links.new(h.outputs[0], out.inputs["Surface"])
     o.data.materials.append(m)
     ps.material = len(o.data.materials)
 
