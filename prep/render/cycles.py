@@ -21,7 +21,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from prep.bounds import Bound, bounded, check_fields
+from prep.bounds import SEED, Bound, bounded, check_fields
 from prep.errors import KpcnError, OptionError
 from prep.render.frame import FRAME_SIDE, SPP
 
@@ -29,7 +29,6 @@ BLENDER_SIDE = Path(__file__).with_name("blender") / "cycles_set.py"
 CATALOGUE = BLENDER_SIDE.with_name("catalogue.py")  # the effects, a scene's recipe, the manifest: stdlib alone
 BLENDER_PYTHON = ".venv-bpy/bin/python"  # where make .venv-bpy/bin/python installs bpy
 SCENE_INDEX = Bound(0, 99_999)  # a scene's index seeds it; its name has at least three digits
-SCENE_SEED = Bound(0, 2_000)  # with the index, what draws a scene (Cycles' own seed is derived: int32)
 # asks the Python whether it can import bpy, without importing it (bpy takes seconds to load)
 HAS_BPY = "import importlib.util, sys; sys.exit(importlib.util.find_spec('bpy') is None)"
 
@@ -43,7 +42,7 @@ class CyclesConfig:
     res: tuple[int, ...] = bounded((128,), FRAME_SIDE, distinct=True)  # sides; each scene draws one, res x res
     spp: tuple[int, ...] = bounded((4, 8, 16, 32, 64), SPP, distinct=True)  # the inputs' samples
     ref_spp: int = bounded(1024, SPP)  # the reference's samples
-    seed: int = bounded(0, SCENE_SEED)  # another seed draws other scenes under the same indices
+    seed: int = bounded(0, SEED)  # another seed draws other scenes under the same indices
     blender_python: str = BLENDER_PYTHON
 
     def __post_init__(self):
