@@ -98,10 +98,11 @@ def cmd_references(args) -> int:
 
 
 def cmd_render_cycles(args) -> int:
-    from prep.render.cycles import CyclesConfig, render_cycles
+    from prep.render.cycles import CyclesConfig, manifest_summary, render_cycles
 
     cfg = CyclesConfig(out=args.out, **_given(args, CyclesConfig))
     out = render_cycles(cfg)
+    print(manifest_summary(out))
     print(f"frames in {out}; kpcn import-renders {out} --set NAME makes them a render set")
     return 0
 

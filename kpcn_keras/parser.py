@@ -240,14 +240,20 @@ def _render_cycles_options(add) -> None:
     from prep.render.cycles import CyclesConfig
 
     c = add("render-cycles", (CyclesConfig,), help="render random scenes with Blender Cycles (inputs and a "
-            "reference each, every pass, Blender's multilayer EXR) in a Python with bpy; kpcn import-renders "
-            "makes them a render set")
+            "reference each, every pass, Blender's multilayer EXR) in a Python with bpy, each drawing its "
+            "effects from a catalogue (media, subsurface, textures, depth of field, motion blur, hair, skies, "
+            "emission, caustics, coats and sheen) and recording them in OUT/<scene>.json; OUT/manifest.json "
+            "counts scenes per effect, frames done and CPU hours; kpcn import-renders makes them a render set")
     d = _defaults(CyclesConfig)
-    c.add_argument("out", help="folder of the frames; a frame already there is kept, so a killed run resumes")
+    c.add_argument("out", help="folder of the frames; a frame already there is kept, so a killed run resumes and "
+                   "a larger --scenes range grows the set")
     c.add_argument("--scenes", help=f"first:end scene indices, end excluded {d('scenes')}")
-    c.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
+    c.add_argument("--res", type=_csv_ints, help="comma-separated frame sides in pixels, each scene drawing one "
+                   f"(from its seed and index) {d('res')}")
     c.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
     c.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
+    c.add_argument("--seed", type=int, help="draws the scenes with the indices; another seed, other scenes "
+                   f"{d('seed')}")
     c.add_argument("--blender-python", help="a Python that has bpy, Blender's module (make .venv-bpy/bin/python "
                    f"makes one) {d('blender_python')}")
 

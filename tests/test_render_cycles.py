@@ -9,7 +9,7 @@ import pytest
 from helpers.commands import assert_one_line_error, run_main
 from helpers.paths import REPO
 
-from prep.render.cycles import BLENDER_PYTHON, BLENDER_SIDE, CyclesConfig, blender_command
+from prep.render.cycles import BLENDER_PYTHON, BLENDER_SIDE, CATALOGUE, CyclesConfig, blender_command
 
 NO_BPY = importlib.util.find_spec("bpy") is None  # the test environment's own Python, bpy-less as installed
 
@@ -43,7 +43,8 @@ def test_a_python_without_bpy_is_refused_in_one_line_naming_the_option(tmp_path)
 
 @pytest.mark.parametrize("args, needle", [(("--scenes", "5:5"), "--scenes"), (("--scenes", "a:b"), "--scenes"),
                                           (("--scenes", "3"), "--scenes"), (("--spp", "4,4"), "--spp"),
-                                          (("--spp", "8", "--ref-spp", "8"), "--ref-spp"), (("--res", "0"), "--res")])
+                                          (("--spp", "8", "--ref-spp", "8"), "--ref-spp"), (("--res", "0"), "--res"),
+                                          (("--res", "64,64"), "--res"), (("--seed", "-1"), "--seed")])
 def test_bad_options_are_refused_in_one_line_before_any_python_is_looked_for(tmp_path, args, needle):
     res = run_main("render-cycles", tmp_path / "cyc", *args, "--blender-python", tmp_path / "none", cwd=tmp_path)
     assert_one_line_error(res, f"kpcn render-cycles: error: {needle}")
@@ -51,23 +52,27 @@ def test_bad_options_are_refused_in_one_line_before_any_python_is_looked_for(tmp
 
 @pytest.mark.skipif(not NO_BPY, reason="the Blender side is read here without bpy")
 def test_the_blender_side_reads_the_commands_arguments_back_as_its_options(tmp_path):
-    cfg = CyclesConfig(out=str(tmp_path / "cyc"), scenes="3:7", res=64, spp=(2, 8), ref_spp=512,
+    cfg = CyclesConfig(out=str(tmp_path / "cyc"), scenes="3:7", res=(64, 96), spp=(2, 8), ref_spp=512, seed=5,
                        blender_python="/opt/py")
     command = blender_command(cfg)
     assert command[:2] == ["/opt/py", str(BLENDER_SIDE)]
     got = _blender_side().arguments(command[2:])
-    assert (got.out, got.scenes, got.res, got.spp, got.ref_spp) == (cfg.out, "3:7", 64, "2,8", 512)
+    assert (got.out, got.scenes, got.res, got.spp, got.ref_spp, got.seed) == (cfg.out, "3:7", "64,96", "2,8", 512, 5)
     # the defaults on both sides are one ladder
     default = _blender_side().arguments(blender_command(CyclesConfig(out="o"))[2:])
     assert vars(default) == vars(_blender_side().arguments(["o"]))
 
 
-def test_the_blender_side_imports_nothing_but_the_standard_library_and_bpy():
-    # it runs in bpy's own venv, where kpcn is not installed
-    tree = ast.parse(BLENDER_SIDE.read_text())
+def _imports(path):
+    tree = ast.parse(path.read_text())
     names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-    assert names and names - set(sys.stdlib_module_names) == {"bpy"}
+    return names | {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+
+
+def test_the_blender_side_imports_nothing_but_the_standard_library_bpy_and_its_catalogue():
+    # it runs in bpy's own venv, where kpcn is not installed; its catalogue is read by kpcn too, without bpy
+    assert _imports(BLENDER_SIDE) - set(sys.stdlib_module_names) == {"bpy", "catalogue"}
+    assert _imports(CATALOGUE) and _imports(CATALOGUE) <= set(sys.stdlib_module_names)
 
 
 def test_a_blender_run_that_fails_is_one_line_that_says_the_same_command_resumes(tmp_path, monkeypatch):

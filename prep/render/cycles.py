@@ -12,17 +12,21 @@ file imports nothing of kpcn; this module checks the options and that Python, an
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import os
 import shutil
 import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from prep.bounds import Bound, bounded, check_fields
+from prep.bounds import SEED, Bound, bounded, check_fields
 from prep.errors import KpcnError, OptionError
 from prep.render.frame import FRAME_SIDE, SPP
 
 BLENDER_SIDE = Path(__file__).with_name("blender") / "cycles_set.py"
+CATALOGUE = BLENDER_SIDE.with_name("catalogue.py")  # the effects, a scene's recipe, the manifest: stdlib alone
 BLENDER_PYTHON = ".venv-bpy/bin/python"  # where make .venv-bpy/bin/python installs bpy
 SCENE_INDEX = Bound(0, 99_999)  # a scene's index seeds it; its name has at least three digits
 # asks the Python whether it can import bpy, without importing it (bpy takes seconds to load)
@@ -35,13 +39,15 @@ class CyclesConfig:
 
     out: str  # the folder of the frames (OUT)
     scenes: str = "0:32"  # first:end scene indices, end excluded
-    res: int = bounded(128, FRAME_SIDE)  # the frames are res x res
+    res: tuple[int, ...] = bounded((128,), FRAME_SIDE, distinct=True)  # sides; each scene draws one, res x res
     spp: tuple[int, ...] = bounded((4, 8, 16, 32, 64), SPP, distinct=True)  # the inputs' samples
     ref_spp: int = bounded(1024, SPP)  # the reference's samples
+    seed: int = bounded(0, SEED)  # another seed draws other scenes under the same indices
     blender_python: str = BLENDER_PYTHON
 
     def __post_init__(self):
         self.spp = tuple(self.spp)
+        self.res = (self.res,) if isinstance(self.res, int) else tuple(self.res)
         check_fields(self)
         if not self.out:
             raise OptionError("out", "names no folder for the frames")
@@ -69,7 +75,45 @@ def blender_command(cfg: CyclesConfig) -> list[str]:
     """The command that renders ``cfg`` in its Python: :data:`BLENDER_SIDE` and its arguments."""
     scenes = cfg.scene_range()
     return [cfg.blender_python, str(BLENDER_SIDE), cfg.out, "--scenes", f"{scenes.start}:{scenes.stop}",
-            "--res", str(cfg.res), "--spp", ",".join(map(str, cfg.spp)), "--ref-spp", str(cfg.ref_spp)]
+            "--res", ",".join(map(str, cfg.res)), "--spp", ",".join(map(str, cfg.spp)), "--ref-spp", str(cfg.ref_spp),
+            "--seed", str(cfg.seed)]
+
+
+def catalogue():
+    """``prep/render/blender/catalogue.py``, the module Blender's Python imports beside ``cycles_set.py``, loaded
+    by its path (it is no module of kpcn: that Python has no kpcn)."""
+    name = "kpcn_cycles_catalogue"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, CATALOGUE)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        sys.modules[name] = module
+    return sys.modules[name]
+
+
+def check_recorded(cfg: CyclesConfig) -> None:
+    """KpcnError if a scene of the range is recorded in ``cfg.out`` (``<scene>.json``) as another scene
+    than this command draws (another --seed or --res, or an older catalogue): the frames there are of that one."""
+    cat, out = catalogue(), Path(cfg.out)
+    for index in cfg.scene_range():
+        recipe = json.loads(json.dumps(cat.draw(cfg.seed, index, cfg.res)))
+        recorded = sorted(out.glob(f"*-{index:03d}.json")) if out.is_dir() else []
+        path = recorded[0] if recorded else out / f"{recipe['name']}.json"  # under another kind's name too
+        if not path.is_file():
+            older = sorted(out.glob(f"*-{index:03d}-*spp.exr")) if out.is_dir() else []
+            if older:  # frames of this index with no recipe: an earlier generator's scene, not this one
+                raise KpcnError(f"{older[0]}: a frame of scene {index} without its recipe {path.name} (rendered "
+                                "before scenes recorded their effects); choose another folder")
+            continue
+        try:
+            recorded = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise KpcnError(f"{path}: not a readable scene recipe ({e})") from None
+        drop = {"frames"}
+        if {k: v for k, v in recorded.items() if k not in drop} != {k: v for k, v in recipe.items() if k not in drop}:
+            raise KpcnError(f"{path} records another scene than --seed {cfg.seed} --res "
+                              f"{','.join(map(str, cfg.res))} draws (seed {recorded.get('seed')}, res "
+                              f"{recorded.get('res')}, version {recorded.get('version')}); choose another folder")
 
 
 def check_blender_python(python: str) -> None:
@@ -85,9 +129,16 @@ def check_blender_python(python: str) -> None:
 def render_cycles(cfg: CyclesConfig) -> Path:
     """Render ``cfg`` (its frames and ``render_log.json`` into ``cfg.out``) in its Python; KpcnError if that
     Python stops with an error (the frames written are kept: the same command resumes)."""
+    check_recorded(cfg)
     check_blender_python(cfg.blender_python)
     done = subprocess.run(blender_command(cfg)).returncode
     if done != 0:
         raise KpcnError(f"{cfg.out}: Blender's Python ({cfg.blender_python}) stopped with exit status {done}; the "
                         "frames it wrote are kept, and the same command resumes")
     return Path(cfg.out)
+
+
+def manifest_summary(out: str | Path) -> str:
+    """The folder's manifest in a few lines (``OUT/manifest.json``, recounted from the folder)."""
+    cat = catalogue()
+    return cat.summary(cat.write_manifest(str(out)))

@@ -10,18 +10,18 @@ Every frame is one render at its spp, so its noise is what Cycles' sampler gives
 Runs under bpy (the wheel wants numpy < 2: a venv of its own), started by ``kpcn render-cycles``
 (``prep.render.cycles``, which checks the options and the Python), so it imports nothing of kpcn, only the
 standard library and bpy:
-  kpcn render-cycles OUT [--scenes 0:32] [--res 128] [--spp 4,8,16,32,64] [--ref-spp 1024]
+  kpcn render-cycles OUT [--scenes 0:32] [--res 128[,192...]] [--spp 4,8,16,32,64] [--ref-spp 1024] [--seed 0]
       [--blender-python .venv-bpy/bin/python]
-writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp) and OUT/render_log.json;
-a frame already there is kept, so a killed run resumes. ``kpcn import-renders`` then writes them into a
+builds each scene from its recipe (``catalogue.py`` beside this file: the effects it drew, written as
+OUT/<scene>.json), writes OUT/<kind>-<NNN>-<spp>spp.exr (the reference with the same name at --ref-spp),
+OUT/render_log.json, and OUT/manifest.json after each scene; a frame already there is kept, so a killed run
+resumes. ``kpcn import-renders`` then writes them into a
 render set that ``kpcn shards --inputs no-variance`` cuts (docs/training.md §6, docs/results/16-cycles-frames.md).
 """
 import argparse
-import colorsys
 import json
 import math
 import os
-import random
 import sys
 import time
 
@@ -30,11 +30,13 @@ try:
 except ImportError:  # read without bpy for its arguments alone (arguments(): how kpcn's tests check what it passes)
     bpy = None
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # as when run as a script, for a reader's import
+import catalogue  # noqa: E402  beside this file: the effects, a scene's recipe, the manifest (the standard library alone)
+
 PASSES = ("combined", "z", "normal", "emit", "environment",
           "diffuse_direct", "diffuse_indirect", "diffuse_color",
           "glossy_direct", "glossy_indirect", "glossy_color",
           "transmission_direct", "transmission_indirect", "transmission_color")
-KINDS = ("room", "studio", "ground")
 
 
 def reset():
@@ -48,194 +50,270 @@ def look(o, location, target):
     o.rotation_euler = (math.atan2(math.hypot(d[0], d[1]), -d[2]), 0.0, math.atan2(d[1], d[0]) - math.pi / 2)
 
 
-def colour(rng, sat=(0.0, 0.9), val=(0.1, 0.95)):
-    return colorsys.hsv_to_rgb(rng.random(), rng.uniform(*sat), rng.uniform(*val))
-
-
-def texture(rng, nt):
-    kind = rng.choice(("checker", "brick", "noise", "wave", "voronoi"))
-    c1, c2 = colour(rng), colour(rng)
-    if kind == "checker":
-        t = nt.nodes.new("ShaderNodeTexChecker")
-        t.inputs["Color1"].default_value = (*c1, 1.0)
-        t.inputs["Color2"].default_value = (*c2, 1.0)
-        t.inputs["Scale"].default_value = rng.uniform(2.0, 30.0)
-        return t.outputs["Color"]
-    if kind == "brick":
-        t = nt.nodes.new("ShaderNodeTexBrick")
-        t.inputs["Scale"].default_value = rng.uniform(2.0, 12.0)
-        t.inputs["Color1"].default_value = (*c1, 1.0)
-        t.inputs["Color2"].default_value = (*c2, 1.0)
-        t.inputs["Mortar"].default_value = (*colour(rng, val=(0.5, 0.9)), 1.0)
-        return t.outputs["Color"]
-    t = nt.nodes.new({"noise": "ShaderNodeTexNoise", "wave": "ShaderNodeTexWave",
-                      "voronoi": "ShaderNodeTexVoronoi"}[kind])
-    t.inputs["Scale"].default_value = rng.uniform(2.0, 25.0)
+def texture(t, nt):
+    if t["kind"] in ("checker", "brick"):
+        n = nt.nodes.new("ShaderNodeTexChecker" if t["kind"] == "checker" else "ShaderNodeTexBrick")
+        n.inputs["Color1"].default_value = (*t["c1"], 1.0)
+        n.inputs["Color2"].default_value = (*t["c2"], 1.0)
+        n.inputs["Scale"].default_value = t["scale"]
+        if "mortar" in t:
+            n.inputs["Mortar"].default_value = (*t["mortar"], 1.0)
+        return n.outputs["Color"]
+    n = nt.nodes.new({"noise": "ShaderNodeTexNoise", "wave": "ShaderNodeTexWave",
+                      "voronoi": "ShaderNodeTexVoronoi"}[t["kind"]])
+    n.inputs["Scale"].default_value = t["scale"]
     r = nt.nodes.new("ShaderNodeValToRGB")
-    r.color_ramp.elements[0].color = (*c1, 1.0)
-    r.color_ramp.elements[1].color = (*c2, 1.0)
-    nt.links.new(t.outputs["Fac"] if "Fac" in t.outputs else t.outputs["Distance"], r.inputs["Fac"])
+    r.color_ramp.elements[0].color = (*t["c1"], 1.0)
+    r.color_ramp.elements[1].color = (*t["c2"], 1.0)
+    nt.links.new(n.outputs["Fac"] if "Fac" in n.outputs else n.outputs["Distance"], r.inputs["Fac"])
     return r.outputs["Color"]
 
 
-def material(rng, name, floor=False):
-    m = bpy.data.materials.new(name)
-    m.use_nodes = True
-    nt = m.node_tree
-    b = nt.nodes["Principled BSDF"]
-    kind = rng.choices(("diffuse", "plastic", "metal", "glass", "coated"),
-                       weights=(3, 3, 2, 1 if not floor else 0, 2))[0]
-    b.inputs["Base Color"].default_value = (*colour(rng), 1.0)
-    b.inputs["Roughness"].default_value = {"diffuse": rng.uniform(0.6, 1.0), "plastic": rng.uniform(0.05, 0.6),
-                                           "metal": rng.uniform(0.0, 0.5), "glass": rng.uniform(0.0, 0.15),
-                                           "coated": rng.uniform(0.2, 0.8)}[kind]
-    if kind == "metal":
-        b.inputs["Metallic"].default_value = 1.0
-        b.inputs["Base Color"].default_value = (*colour(rng, sat=(0.0, 0.4), val=(0.6, 1.0)), 1.0)
-    if kind == "glass":
-        b.inputs["Transmission Weight"].default_value = 1.0
-        b.inputs["IOR"].default_value = rng.uniform(1.3, 1.6)
-        b.inputs["Base Color"].default_value = (*colour(rng, sat=(0.0, 0.3), val=(0.85, 1.0)), 1.0)
-    if kind == "coated":
-        b.inputs["Coat Weight"].default_value = rng.uniform(0.3, 1.0)
-    if kind != "glass" and rng.random() < (0.6 if floor else 0.35):
-        nt.links.new(texture(rng, nt), b.inputs["Base Color"])
-    return m
-
-
-def emissive(name, rgb, strength):
-    m = bpy.data.materials.new(name)
-    m.use_nodes = True
-    nt = m.node_tree
+def only_output(nt):
     for n in list(nt.nodes):
         if n.type != "OUTPUT_MATERIAL":
             nt.nodes.remove(n)
-    e = nt.nodes.new("ShaderNodeEmission")
-    e.inputs["Color"].default_value = (*rgb, 1.0)
-    e.inputs["Strength"].default_value = strength
-    nt.links.new(e.outputs["Emission"], nt.nodes["Material Output"].inputs["Surface"])
+    return nt.nodes["Material Output"]
+
+
+PRINCIPLED = {"base": "Base Color", "roughness": "Roughness", "metallic": "Metallic", "transmission":
+              "Transmission Weight", "ior": "IOR", "coat": "Coat Weight", "coat_roughness": "Coat Roughness",
+              "coat_tint": "Coat Tint", "sheen": "Sheen Weight", "sheen_roughness": "Sheen Roughness",
+              "sheen_tint": "Sheen Tint", "subsurface": "Subsurface Weight", "sss_radius": "Subsurface Radius",
+              "sss_scale": "Subsurface Scale"}
+
+
+def material(spec, name):
+    """A material from its recipe: an emission shader, or a Principled BSDF with the inputs the spec sets, a
+    texture on its base colour, and a volume inside (a medium in glass)."""
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    nt = m.node_tree
+    if spec["kind"] == "emission":
+        out = only_output(nt)  # before the new nodes: it removes every other node
+        e = nt.nodes.new("ShaderNodeEmission")
+        e.inputs["Color"].default_value = (*spec["emission"], 1.0)
+        e.inputs["Strength"].default_value = spec["strength"]
+        nt.links.new(e.outputs["Emission"], out.inputs["Surface"])
+        return m
+    b = nt.nodes["Principled BSDF"]
+    for key, socket in PRINCIPLED.items():
+        if key in spec:
+            v = spec[key]
+            b.inputs[socket].default_value = (*v, 1.0) if key in ("base", "coat_tint", "sheen_tint") else v
+    if "texture" in spec:
+        nt.links.new(texture(spec["texture"], nt), b.inputs["Base Color"])
+    if "volume" in spec:
+        v = nt.nodes.new("ShaderNodeVolumePrincipled")
+        v.inputs["Density"].default_value = spec["volume"]["density"]
+        v.inputs["Color"].default_value = (*spec["volume"]["colour"], 1.0)
+        v.inputs["Absorption Color"].default_value = (*spec["volume"]["absorption"], 1.0)
+        nt.links.new(v.outputs["Volume"], nt.nodes["Material Output"].inputs["Volume"])
     return m
 
 
-def quad(m, location, rotation, size):
-    bpy.ops.mesh.primitive_plane_add(size=1.0, location=location, rotation=rotation)
+def medium(spec, name):
+    """A box of Principled Volume: homogeneous, or with its density a noise texture through a ramp (smoke)."""
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    nt = m.node_tree
+    out = only_output(nt)  # no surface: the box is the medium alone
+    v = nt.nodes.new("ShaderNodeVolumePrincipled")
+    v.inputs["Color"].default_value = (*spec["colour"], 1.0)
+    v.inputs["Anisotropy"].default_value = spec["anisotropy"]
+    v.inputs["Density"].default_value = spec["density"]
+    if "noise" in spec:
+        n = nt.nodes.new("ShaderNodeTexNoise")
+        n.inputs["Scale"].default_value = spec["noise"]["scale"]
+        n.inputs["Detail"].default_value = spec["noise"]["detail"]
+        r = nt.nodes.new("ShaderNodeValToRGB")
+        r.color_ramp.elements[0].position = spec["noise"]["threshold"]
+        r.color_ramp.elements[1].position = min(1.0, spec["noise"]["threshold"] + 0.25)
+        mul = nt.nodes.new("ShaderNodeMath")
+        mul.operation = "MULTIPLY"
+        mul.inputs[1].default_value = spec["density"]
+        nt.links.new(n.outputs["Fac"], r.inputs["Fac"])
+        nt.links.new(r.outputs["Color"], mul.inputs[0])
+        nt.links.new(mul.outputs["Value"], v.inputs["Density"])
+    nt.links.new(v.outputs["Volume"], out.inputs["Volume"])
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=spec["location"])
     o = bpy.context.active_object
-    o.scale = (size[0], size[1], 1.0)
+    o.scale = spec["size"]
     o.data.materials.append(m)
     return o
 
 
-PRIMITIVES = ("cube", "uv_sphere", "ico_sphere", "cylinder", "torus", "monkey", "cone")
-
-
-def primitive(rng, m, location, size):
-    kind = rng.choice(PRIMITIVES)
-    rot = ((rng.uniform(0, math.pi), rng.uniform(0, math.pi), rng.uniform(0, math.pi)) if kind != "uv_sphere"
-           else (0, 0, 0))
-    if kind == "torus":
-        bpy.ops.mesh.primitive_torus_add(major_radius=size, minor_radius=size * rng.uniform(0.15, 0.4),
-                                         location=location, rotation=rot)
-    elif kind == "ico_sphere":
-        bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=rng.choice((1, 4)), radius=size, location=location)
-    elif kind == "monkey":
-        bpy.ops.mesh.primitive_monkey_add(size=2 * size, location=location, rotation=rot)
-    else:
-        op = getattr(bpy.ops.mesh, f"primitive_{kind}_add")
-        kw = {"cube": {"size": 1.6 * size}, "cone": {"radius1": size}}.get(kind, {"radius": size})
-        if kind in ("cylinder", "cone"):
-            kw["depth"] = size * rng.uniform(1.0, 3.0)
-        op(location=location, rotation=rot, **kw)
+def surface(spec, name):
+    bpy.ops.mesh.primitive_plane_add(size=1.0, location=spec["location"], rotation=spec["rotation"])
     o = bpy.context.active_object
-    o.data.materials.append(m)
-    if kind in ("uv_sphere", "cylinder", "torus", "monkey", "cone") or (kind == "ico_sphere" and rng.random() < 0.5):
+    o.scale = (spec["size"][0], spec["size"][1], 1.0)
+    o.data.materials.append(material(spec["material"], name))
+    if "waves" in spec:  # a water surface: subdivided, displaced by a noise texture
+        sub = o.modifiers.new("sub", "SUBSURF")
+        sub.subdivision_type, sub.levels, sub.render_levels = "SIMPLE", 6, 6
+        tex = bpy.data.textures.new(name, "CLOUDS")
+        tex.noise_scale = 1.0 / spec["waves"]["scale"]
+        disp = o.modifiers.new("waves", "DISPLACE")
+        disp.texture, disp.strength = tex, spec["waves"]["height"] / max(spec["size"])
         for p in o.data.polygons:
             p.use_smooth = True
+    return o
+
+
+def primitive(spec, name):
+    kind, size, loc, rot = spec["shape"], spec["size"], spec["location"], spec["rotation"]
+    if kind == "torus":
+        bpy.ops.mesh.primitive_torus_add(major_radius=size, minor_radius=spec["minor"], location=loc, rotation=rot)
+    elif kind == "ico_sphere":
+        bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=spec["subdivisions"], radius=size, location=loc)
+    elif kind == "monkey":
+        bpy.ops.mesh.primitive_monkey_add(size=2 * size, location=loc, rotation=rot)
+    else:
+        kw = {"cube": {"size": 1.6 * size}, "cone": {"radius1": size}}.get(kind, {"radius": size})
+        if "depth" in spec:
+            kw["depth"] = spec["depth"]
+        getattr(bpy.ops.mesh, f"primitive_{kind}_add")(location=loc, rotation=rot, **kw)
+    o = bpy.context.active_object
+    o.data.materials.append(material(spec["material"], name))
+    for p in o.data.polygons:
+        p.use_smooth = spec["smooth"]
     if kind == "monkey":
         mod = o.modifiers.new("sub", "SUBSURF")
         mod.levels = mod.render_levels = 1
+    if "motion" in spec:  # keyed over frames 1..2, rendered at frame 1 with the shutter open across them
+        o.keyframe_insert("location", frame=1)
+        o.keyframe_insert("rotation_euler", frame=1)
+        o.location = [a + b for a, b in zip(loc, spec["motion"])]
+        o.rotation_euler[2] += spec["spin"]
+        o.keyframe_insert("location", frame=2)
+        o.keyframe_insert("rotation_euler", frame=2)
+    if "hair" in spec:
+        hair(o, spec["hair"], name)
     return o
 
 
-def lights(rng, scene, centre, kind):
-    count = rng.randint(1, 3)
-    for i in range(count):
-        pick = rng.choices(("area", "point", "strip", "spot"), weights=(4, 3, 2, 1))[0]
-        theta, r = rng.uniform(0, 2 * math.pi), rng.uniform(1.5, 3.5)
-        loc = (centre[0] + r * math.cos(theta), centre[1] + r * math.sin(theta), rng.uniform(1.5, 3.2))
-        rgb = colorsys.hsv_to_rgb(rng.uniform(0.0, 0.17), rng.uniform(0.0, 0.5), 1.0)
-        if pick == "strip":
-            o = quad(emissive(f"strip{i}", rgb, rng.uniform(5, 60)), loc, (0, 0, 0),
-                     (rng.uniform(0.05, 0.3), rng.uniform(0.5, 2.0)))
-            look(o, loc, centre)
-            continue
-        bpy.ops.object.light_add(type={"area": "AREA", "point": "POINT", "spot": "SPOT"}[pick], location=loc)
-        li = bpy.context.active_object
-        look(li, loc, centre)
-        li.data.color = rgb
-        if pick == "area":
-            li.data.size = rng.uniform(0.2, 1.5)
-            li.data.energy = rng.uniform(50, 400)
-        elif pick == "point":
-            li.data.shadow_soft_size = rng.choice((rng.uniform(0.01, 0.05), rng.uniform(0.1, 0.5)))
-            li.data.energy = rng.uniform(30, 300)
-        else:
-            li.data.energy = rng.uniform(200, 1000)
-            li.data.spot_size = rng.uniform(0.4, 1.2)
-            li.data.shadow_soft_size = rng.uniform(0.02, 0.3)
+def hair(o, spec, name):
+    mod = o.modifiers.new("hair", "PARTICLE_SYSTEM")
+    ps = mod.particle_system.settings
+    ps.type, ps.count, ps.hair_length = "HAIR", spec["count"], spec["length"]
+    ps.use_advanced_hair = True
+    ps.root_radius, ps.tip_radius = 0.02, 0.0
+    mod.particle_system.seed = spec["seed"]
+    m = bpy.data.materials.new(name + "-hair")
+    m.use_nodes = True
+    nt = m.node_tree
+    out = only_output(nt)
+    h = nt.nodes.new("ShaderNodeBsdfHairPrincipled")
+    h.inputs["Color"].default_value = (*spec["colour"], 1.0)
+    h.inputs["Roughness"].default_value = spec["roughness"]
+    nt.links.new(h.outputs[0], out.inputs["Surface"])
+    o.data.materials.append(m)
+    ps.material = len(o.data.materials)
+
+
+def text(spec, name):
+    bpy.ops.object.text_add(location=spec["location"], rotation=spec["rotation"])
+    o = bpy.context.active_object
+    o.data.body, o.data.size, o.data.extrude = spec["body"], spec["size"], 0.002
+    o.data.materials.append(material(spec["material"], name))
+    return o
+
+
+def lamp(spec, i):
+    if spec["type"] == "strip":
+        m = {"kind": "emission", "emission": spec["rgb"], "strength": spec["energy"]}
+        o = surface({"location": spec["location"], "rotation": (0, 0, 0), "size": spec["size"], "material": m},
+                    f"strip{i}")
+        look(o, spec["location"], spec["target"])
+        return
+    bpy.ops.object.light_add(type=spec["type"].upper(), location=spec.get("location", (0, 0, 5)))
+    li = bpy.context.active_object
+    li.data.color, li.data.energy = spec["rgb"], spec["energy"]
+    if spec["type"] == "sun":
+        d = spec["direction"]
+        look(li, (0, 0, 0), d)
+        li.data.angle = spec["angle"]
+        return
+    look(li, spec["location"], spec["target"])
+    if spec["type"] == "area":
+        li.data.size = spec["size"]
+    else:
+        li.data.shadow_soft_size = spec["size"]
+    if spec["type"] == "spot":
+        li.data.spot_size = spec["spot_size"]
+
+
+def world(spec):
     w = bpy.data.worlds.new("w")
     w.use_nodes = True
-    bg = w.node_tree.nodes["Background"]
-    if kind == "ground":
-        sky = w.node_tree.nodes.new("ShaderNodeTexSky")
-        if hasattr(sky, "sun_elevation"):
-            sky.sun_elevation = math.radians(rng.uniform(5, 70))
-            sky.sun_rotation = rng.uniform(0, 2 * math.pi)
-        w.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
-        bg.inputs["Strength"].default_value = rng.uniform(0.2, 1.0)
-    else:
-        bg.inputs["Color"].default_value = (*colour(rng, sat=(0, 0.3), val=(0.0, 0.1)), 1.0)
-        bg.inputs["Strength"].default_value = rng.uniform(0.0, 1.0)
-    scene.world = w
+    nt = w.node_tree
+    bg = nt.nodes["Background"]
+    bg.inputs["Strength"].default_value = spec["strength"]
+    if spec["type"] == "flat":
+        bg.inputs["Color"].default_value = (*spec["rgb"], 1.0)
+    elif spec["type"] == "sky":
+        sky = nt.nodes.new("ShaderNodeTexSky")
+        sky.sky_type = spec["sky"]
+        sky.sun_elevation, sky.sun_rotation = math.radians(spec["elevation"]), spec["rotation"]
+        nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    else:  # an HDRI-like environment: noise patches between two colours, a hot spot towards one direction
+        n = nt.nodes.new("ShaderNodeTexNoise")
+        n.inputs["Scale"].default_value = spec["scale"]
+        r = nt.nodes.new("ShaderNodeValToRGB")
+        r.color_ramp.elements[0].color = (*spec["low"], 1.0)
+        r.color_ramp.elements[1].color = (*spec["high"], 1.0)
+        nt.links.new(n.outputs["Fac"], r.inputs["Fac"])
+        coords = nt.nodes.new("ShaderNodeTexCoord")
+        dot = nt.nodes.new("ShaderNodeVectorMath")
+        dot.operation = "DOT_PRODUCT"
+        az, el = spec["spot_direction"]
+        dot.inputs[1].default_value = (math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el))
+        nt.links.new(coords.outputs["Generated"], n.inputs["Vector"])
+        nt.links.new(coords.outputs["Generated"], dot.inputs[0])
+        ramp = nt.nodes.new("ShaderNodeMapRange")
+        ramp.inputs["From Min"].default_value = 1.0 - spec["spot_size"]
+        ramp.inputs["To Max"].default_value = spec["spot"]
+        nt.links.new(dot.outputs["Value"], ramp.inputs["Value"])
+        add = nt.nodes.new("ShaderNodeMix")
+        add.data_type, add.blend_type = "RGBA", "ADD"
+        add.inputs["Factor"].default_value = 1.0
+        nt.links.new(r.outputs["Color"], add.inputs["A"])
+        nt.links.new(ramp.outputs["Result"], add.inputs["B"])
+        nt.links.new(add.outputs["Result"], bg.inputs["Color"])
+    return w
 
 
-def build(scene, index: int):
-    rng = random.Random(index)
-    kind = KINDS[index % len(KINDS)]
-    centre = (0.0, 0.0, 0.5)
-    if kind == "room":
-        size = rng.uniform(3.0, 6.0)
-        quad(material(rng, "floor", floor=True), (0, 0, 0), (0, 0, 0), (size, size))
-        walls = material(rng, "walls", floor=True)
-        h = rng.uniform(2.4, 3.2)
-        quad(walls, (0, size / 2, h / 2), (math.pi / 2, 0, 0), (size, h))
-        quad(walls, (-size / 2, 0, h / 2), (0, math.pi / 2, 0), (size, h))
-        if rng.random() < 0.5:
-            quad(walls, (size / 2, 0, h / 2), (0, -math.pi / 2, 0), (size, h))
-        if rng.random() < 0.6:
-            quad(walls, (0, 0, h), (math.pi, 0, 0), (size, size))
-    elif kind == "studio":
-        quad(material(rng, "sweep", floor=True), (0, 0, 0), (0, 0, 0), (12, 12))
-        quad(material(rng, "backdrop", floor=True), (0, 3, 3), (math.pi / 2, 0, 0), (12, 6))
-    else:
-        quad(material(rng, "ground", floor=True), (0, 0, 0), (0, 0, 0), (40, 40))
-    for i in range(rng.randint(3, 7)):
-        s = rng.uniform(0.15, 0.6)
-        loc = (rng.uniform(-1.3, 1.3), rng.uniform(-1.0, 1.5), s * rng.uniform(0.6, 2.5))
-        primitive(rng, material(rng, f"m{i}"), loc, s)
-    lights(rng, scene, centre, kind)
-    theta = rng.uniform(-2.2, -0.9)
-    dist = rng.uniform(3.0, 5.0)
-    loc = (dist * math.cos(theta), dist * math.sin(theta), rng.uniform(0.8, 2.4))
-    bpy.ops.object.camera_add(location=loc)
+def camera(scene, spec):
+    bpy.ops.object.camera_add(location=spec["location"])
     cam = bpy.context.active_object
-    look(cam, loc, (rng.uniform(-0.4, 0.4), rng.uniform(-0.2, 0.6), rng.uniform(0.2, 0.8)))
-    cam.data.lens = rng.uniform(24, 50)
-    if rng.random() < 0.25:
+    look(cam, spec["location"], spec["target"])
+    cam.data.lens = spec["lens"]
+    if "dof" in spec:
         cam.data.dof.use_dof = True
-        cam.data.dof.aperture_fstop = rng.uniform(1.4, 5.6)
-        cam.data.dof.focus_distance = dist
+        cam.data.dof.aperture_fstop = spec["dof"]["fstop"]
+        cam.data.dof.focus_distance = spec["dof"]["distance"]
+    if "shutter" in spec:
+        scene.render.use_motion_blur = True
+        scene.render.motion_blur_shutter = spec["shutter"]
     scene.camera = cam
-    return kind
+
+
+def build(scene, recipe):
+    """Scene ``recipe`` (catalogue.draw) in bpy."""
+    scene.frame_set(1)
+    for i, s in enumerate(recipe["surfaces"]):
+        surface(s, f"s{i}")
+    for i, o in enumerate(recipe["objects"]):
+        primitive(o, f"m{i}")
+    for i, t in enumerate(recipe["texts"]):
+        text(t, f"t{i}")
+    for i, v in enumerate(recipe["media"]):
+        medium(v, f"v{i}")
+    for i, li in enumerate(recipe["lights"]):
+        lamp(li, i)
+    scene.world = world(recipe["world"])
+    camera(scene, recipe["camera"])
+    scene.frame_set(1)
 
 
 def brighten(scene, factor):
@@ -248,32 +326,33 @@ def brighten(scene, factor):
                 n.inputs["Strength"].default_value *= factor
 
 
-def exposure(index, target):
-    """The factor that brings scene ``index``'s mean linear colour to ``target``, from a small probe render
+def exposure(recipe):
+    """The factor that brings the recipe's mean linear colour to its ``exposure``, from a small probe render
     (32 x 32, 16 spp): random scenes otherwise range from black rooms to a blinding sky."""
     scene = reset()
-    build(scene, index)
+    build(scene, recipe)
     scene.render.engine = "CYCLES"
     scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CPU", 16, False
     scene.render.resolution_x = scene.render.resolution_y = 32
     scene.render.resolution_percentage = 100
     im = scene.render.image_settings
     im.file_format, im.color_depth = "OPEN_EXR", "32"
-    path = os.path.join(bpy.app.tempdir, f"probe-{index}.exr")
+    path = os.path.join(bpy.app.tempdir, f"probe-{recipe['index']}.exr")
     scene.render.filepath = path
     bpy.ops.render.render(write_still=True)
     img = bpy.data.images.load(path)
     px = list(img.pixels)
     mean = sum(v for i, v in enumerate(px) if i % 4 != 3) / (3 * len(px) / 4)
     os.remove(path)
-    return target / max(mean, 1e-4)
+    return recipe["exposure"] / max(mean, 1e-4)
 
 
-def setup(index, res, spp, seed, factor):
+def setup(recipe, spp, seed, factor):
     scene = reset()
-    kind = build(scene, index)
+    build(scene, recipe)
     brighten(scene, factor)
     scene.render.engine = "CYCLES"
+    scene.render.motion_blur_position = "START"  # the shutter opens at frame 1, where the motion keys start
     c = scene.cycles
     c.device = "CPU"
     c.samples = spp
@@ -281,12 +360,12 @@ def setup(index, res, spp, seed, factor):
     c.seed = seed
     c.max_bounces = 12
     c.use_denoising = False
-    scene.render.resolution_x = scene.render.resolution_y = res
+    scene.render.resolution_x = scene.render.resolution_y = recipe["res"]
     scene.render.resolution_percentage = 100
     vl = scene.view_layers[0]
     for p in PASSES:
         setattr(vl, "use_pass_" + p, True)
-    vl.cycles.use_pass_volume_direct = True
+    vl.cycles.use_pass_volume_direct = True  # media scenes: what the fog scatters, direct and indirect
     vl.cycles.use_pass_volume_indirect = True
     vl.cycles.denoising_store_passes = True
     im = scene.render.image_settings
@@ -296,43 +375,72 @@ def setup(index, res, spp, seed, factor):
     im.color_depth = "32"
     im.exr_codec = "ZIP"
     scene.view_settings.view_transform = "Standard"
-    return scene, kind
+    return scene
 
 
 def arguments(argv):
     ap = argparse.ArgumentParser()
     ap.add_argument("out")
     ap.add_argument("--scenes", default="0:32", help="first:end scene indices")
-    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--res", default="128", help="comma-separated frame sides, one drawn per scene")
     ap.add_argument("--spp", default="4,8,16,32,64")
     ap.add_argument("--ref-spp", type=int, default=1024)
+    ap.add_argument("--seed", type=int, default=0)
     return ap.parse_args(argv)
+
+
+def without_frames(recipe):
+    return {k: v for k, v in recipe.items() if k != "frames"}
+
+
+def write_json(path, obj):
+    tmp = os.path.join(os.path.dirname(path), "." + os.path.basename(path))
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1)
+    os.replace(tmp, path)
+
+
+def render_scene(a, index, log):
+    """Scene ``index``'s recipe (OUT/<scene>.json) and its frames; a frame already there is kept. SystemExit 2 if
+    the folder records another scene under that name (another seed, --res or catalogue version)."""
+    spps = [int(s) for s in a.spp.split(",")] + [a.ref_spp]
+    recipe = json.loads(json.dumps(catalogue.draw(a.seed, index, [int(r) for r in a.res.split(",")], spps)))
+    path = os.path.join(a.out, recipe["name"] + ".json")
+    if os.path.exists(path):
+        with open(path) as f:
+            if without_frames(json.load(f)) != without_frames(recipe):
+                sys.exit(f"{path}: records another scene than --seed {a.seed} --res {a.res} draws; use another OUT")
+    write_json(path, recipe)
+    factor = None
+    for li, spp in enumerate(spps):
+        name = catalogue.frame_name(recipe["name"], spp)
+        if os.path.exists(os.path.join(a.out, name)):
+            continue
+        t, cpu = time.perf_counter(), time.process_time()
+        if factor is None:
+            factor = exposure(recipe)
+        scene = setup(recipe, spp, seed=(100 * index + li + 1 + 1_000_003 * a.seed) % 2**31, factor=factor)
+        scene.render.filepath = os.path.join(a.out, "." + name)
+        bpy.ops.render.render(write_still=True)
+        os.replace(scene.render.filepath, os.path.join(a.out, name))
+        log["renders"][name] = time.perf_counter() - t
+        log.setdefault("cpu", {})[name] = time.process_time() - cpu
+        log["threads"] = scene.render.threads
+        print(name, f"{log['renders'][name]:.1f} s, {log['cpu'][name]:.1f} CPU s", flush=True)
+        write_json(os.path.join(a.out, catalogue.RENDER_LOG), log)
 
 
 def main():
     a = arguments(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:])
     first, end = (int(x) for x in a.scenes.split(":"))
     os.makedirs(a.out, exist_ok=True)
-    log_path = os.path.join(a.out, "render_log.json")
+    log_path = os.path.join(a.out, catalogue.RENDER_LOG)
     log = json.load(open(log_path)) if os.path.exists(log_path) else {"blender": bpy.app.version_string, "renders": {}}
     for index in range(first, end):
-        factor = None
-        for li, spp in enumerate([int(s) for s in a.spp.split(",")] + [a.ref_spp]):
-            kind = KINDS[index % len(KINDS)]
-            name = f"{kind}-{index:03d}-{spp:05d}spp.exr"
-            path = os.path.join(a.out, name)
-            if os.path.exists(path):
-                continue
-            if factor is None:
-                factor = exposure(index, random.Random(-1 - index).uniform(0.1, 0.5))
-            scene, _ = setup(index, a.res, spp, seed=100 * index + li + 1, factor=factor)
-            scene.render.filepath = os.path.join(a.out, "." + name)
-            t = time.perf_counter()
-            bpy.ops.render.render(write_still=True)
-            os.replace(scene.render.filepath, path)
-            log["renders"][name] = time.perf_counter() - t
-            print(name, f"{log['renders'][name]:.1f} s", flush=True)
-            json.dump(log, open(log_path, "w"), indent=1)
+        render_scene(a, index, log)
+        manifest = catalogue.write_manifest(a.out)
+        print(f"scene {index}: {manifest['scenes']} scenes, frames {manifest['frames_done']} of "
+              f"{manifest['frames_planned']}, {manifest['cpu_hours']:.3f} CPU hours", flush=True)
 
 
 if __name__ == "__main__":
