@@ -42,6 +42,10 @@ BVH_LEFT, BVH_RIGHT, BVH_IS_LEAF = 0, 1, 2
 BVH_FIRST, BVH_COUNT = 0, 1
 BVH_LEAF_SIZE = 4
 BVH_MAX_DEPTH = 60
+# The participating medium (media.py mirrors the columns): absorption RGB, scattering, HG asymmetry, the box's
+# low and high corners; all zeros (an empty box at the origin) without a medium.
+MEDIUM_SIGMA_A, MEDIUM_SIGMA_S, MEDIUM_G, MEDIUM_LO, MEDIUM_HI = 0, 3, 4, 5, 8
+MEDIUM_COLS = 11
 _SAH_BINS = 12
 _SAH_DEPTH = 40  # below this depth splits are at the median, which bounds the depth by ~log2(triangles)
 
@@ -82,6 +86,7 @@ class PackedScene(NamedTuple):
     env_row_cdf: np.ndarray  # (H,)
     env_col_cdf: np.ndarray  # (H, W)
     env_light: int  # index of the map in lights, -1 without one (or for a black one)
+    medium: np.ndarray  # (MEDIUM_COLS,) the participating medium (MEDIUM_*)
 
 
 def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
@@ -254,7 +259,19 @@ def pack(scene: Scene) -> PackedScene:
         image_pixels=image_pixels, image_info=image_info,
         triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
         env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
+        medium=pack_medium(scene),
     )
+
+
+def pack_medium(scene: Scene) -> np.ndarray:
+    """The row of ``sc.medium`` (``MEDIUM_*``): zeros without a medium."""
+    out = np.zeros(MEDIUM_COLS, dtype=np.float64)
+    m = scene.medium
+    if m is not None:
+        out[MEDIUM_SIGMA_A:MEDIUM_SIGMA_A + 3] = m.sigma_a
+        out[MEDIUM_SIGMA_S], out[MEDIUM_G] = m.sigma_s, m.g
+        out[MEDIUM_LO:MEDIUM_LO + 3], out[MEDIUM_HI:MEDIUM_HI + 3] = m.box_min, m.box_max
+    return out
 
 
 class _Lights:
