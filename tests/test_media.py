@@ -202,3 +202,14 @@ def test_a_scene_file_describes_a_medium_and_names_a_bad_field(tmp_path):
     path.write_text(dump_scene(scene).replace("g = 0.4", "g = 2.0"))
     with pytest.raises(SceneFileError, match=r"slab.toml: medium.g = 2.0: Medium.g must be in \[-0.95, 0.95\]"):
         load_scene(path)
+
+
+def test_the_media_family_fills_rooms_with_fog_some_lit_through_an_opening_and_is_not_a_default():
+    from prep.render import RenderConfig, make_scene
+
+    scenes = [make_scene("media", i, 0) for i in range(8)]
+    assert all("medium" in s.effects() for s in scenes)
+    above = [s for s in scenes if any(sp.center[1] > s.medium.box_max[1] for sp in s.spheres)]  # shaft lights
+    assert 0 < len(above) < len(scenes)
+    assert len({s.medium for s in scenes}) == len(scenes)
+    assert "media" not in RenderConfig().families and RenderConfig(families=("media",)).families == ("media",)
