@@ -161,7 +161,7 @@ def test_hg_sampling_draws_the_phase_function():
 
 
 @pytest.mark.slow  # compiles two kernels afresh to read their machine code
-def test_a_kernel_for_a_scene_without_a_medium_has_no_medium_code():
+def test_a_kernel_for_a_scene_without_a_medium_has_no_medium_code_and_one_without_a_grid_no_tracking():
     import numba
 
     from prep.render import EFFECTS, kernels
@@ -170,14 +170,17 @@ def test_a_kernel_for_a_scene_without_a_medium_has_no_medium_code():
     scene = _looking_down(None, {"quads": [light]})[0]
     assert "medium" not in scene.effects()
     packed = pack(scene)
+    homogeneous = scene.effects() | {"medium"}
     calls = {}
-    for effects in (scene.effects(), EFFECTS):
+    for effects in (scene.effects(), homogeneous, EFFECTS):
         trace = numba.njit(kernels.kernel_for(effects).trace_sample.py_func)
         trace((0.0, 0.0, 2.0), (0.0, 0.0, -1.0), np.uint64(1), packed, 5, 3, np.zeros(16))
         ir = "".join(trace.inspect_llvm().values())
-        calls[frozenset(effects)] = {name for name in ("medium_vertex", "log1p") if name in ir}
+        calls[frozenset(effects)] = {name for name in ("medium_vertex", "log1p", "tracked_free_flight",
+                                                       "tracked_transmittance") if name in ir}
     assert calls[scene.effects()] == set()
-    assert calls[frozenset(EFFECTS)] == {"medium_vertex", "log1p"}
+    assert calls[homogeneous] == {"medium_vertex", "log1p"}  # and no tracking: that is the heterogeneous effect's
+    assert calls[frozenset(EFFECTS)] == {"medium_vertex", "log1p", "tracked_free_flight", "tracked_transmittance"}
 
 
 def test_a_medium_is_part_of_the_scene_description_and_its_effects():
@@ -212,4 +215,64 @@ def test_the_media_family_fills_rooms_with_fog_some_lit_through_an_opening_and_i
     above = [s for s in scenes if any(sp.center[1] > s.medium.box_max[1] for sp in s.spheres)]  # shaft lights
     assert 0 < len(above) < len(scenes)
     assert len({s.medium for s in scenes}) == len(scenes)
+    assert {s.medium.density for s in scenes} == {"homogeneous", "noise"}
+    room = [s for s in scenes if s.medium.box_max[2] > 2.0]  # the room's fog reaches the camera's side
+    assert 0 < len(room) < len(scenes)
     assert "media" not in RenderConfig().families and RenderConfig(families=("media",)).families == ("media",)
+
+
+# ---------------------------------------------------------------------------------------------
+# heterogeneous media: delta and ratio tracking against a majorant
+# ---------------------------------------------------------------------------------------------
+
+def _trilinear(grid, lo, hi, p):
+    """float64 trilinear interpolation of the lattice ``grid`` spanning [lo, hi] at the points p (N, 3)."""
+    n = grid.shape[0]
+    x = np.clip((p - lo) / (hi - lo) * (n - 1), 0, n - 1)
+    i = np.minimum(x.astype(int), n - 2)
+    f = x - i
+    out = np.zeros(len(p))
+    for c in range(8):
+        o = np.array([(c >> a) & 1 for a in range(3)])
+        w = np.prod(np.where(o, f, 1 - f), axis=1)
+        out += w * grid[i[:, 0] + o[0], i[:, 1] + o[1], i[:, 2] + o[2]]
+    return out
+
+
+@pytest.mark.parametrize("amount", [0.0, 1.0])
+def test_ratio_tracking_estimates_the_transmittance_of_the_density_grid(amount):
+    from prep.render.media import tracked_transmittance
+    from prep.render.packing import medium_grid
+
+    medium = Medium(sigma_a=SIGMA_A, sigma_s=SIGMA_S, g=G, box_min=(-1.0, -1.0, -1.0), box_max=(1.0, 1.0, 1.0),
+                    density="noise", noise_cells=3, noise_amount=amount, noise_seed=5)
+    scene = Scene("s", "test", Camera((0, 0, 2), (0, 0, 0)), {}, medium=medium)
+    med, grid = pack_medium(scene), medium_grid(medium)
+    o, d = np.array([-0.3, 0.2, 2.0]), np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    t = np.linspace((2.0 - 1.0) / -d[2], (2.0 + 1.0) / -d[2], 20001)  # the chord through z in [-1, 1]
+    rho = _trilinear(grid, -1.0, 1.0, o + t[:, None] * d)
+    depth = np.trapezoid(rho, t) * (np.asarray(SIGMA_A) + SIGMA_S)
+    draws = np.array([tracked_transmittance(tuple(o), tuple(d), math.inf, med, grid, np.uint64(k), 0)
+                      for k in range(4000)])
+    se = draws.std(axis=0, ddof=1) / math.sqrt(len(draws))
+    assert np.all(np.abs(draws.mean(axis=0) - np.exp(-depth)) < 4 * se + 1e-12), (draws.mean(axis=0), np.exp(-depth))
+    if amount == 0.0:
+        np.testing.assert_allclose(depth, (np.asarray(SIGMA_A) + SIGMA_S) * 2 / -d[2], rtol=1e-9)
+
+
+def test_a_constant_density_grid_scatters_as_the_homogeneous_medium():
+    centre, radius = (1.5, 0.0, 1.0), 0.3
+    constant = Medium(sigma_a=SIGMA_A, sigma_s=SIGMA_S, g=G, density="noise", noise_amount=0.0, **SLAB)
+    scene, size = _looking_down(constant, {"spheres": [Sphere(centre, radius, "light")]})
+    assert scene.effects() == {"emitter", "medium", "heterogeneous"}
+    want = _single_scattering_quadrature(centre, radius, (4.0, 5.0, 6.0))
+    means = []
+    for s in (scene, _looking_down(_slab(), {"spheres": [Sphere(centre, radius, "light")]})[0]):
+        out = render(s, spp=2048, seed=11, width=size, height=size, max_depth=1, rr_depth=1)
+        pixels = out["default"].reshape(-1, 3).astype(np.float64)
+        mean, se = pixels.mean(axis=0), pixels.std(axis=0, ddof=1) / math.sqrt(len(pixels))
+        assert np.all(se < 0.03 * want), (se, want)
+        assert np.all(np.abs(mean - want) < 4 * se), (mean, want, se)
+        means.append((mean, se))
+    (m1, s1), (m2, s2) = means
+    assert np.all(np.abs(m1 - m2) < 4 * np.hypot(s1, s2))

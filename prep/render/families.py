@@ -461,9 +461,10 @@ def _ceiling_with_opening(w, h, d, hx, hz, wall="wall") -> list[Quad]:
 
 
 def media(rng_or_seed=None, name: str = "media") -> Scene:
-    """A room filled with fog (a homogeneous participating medium): lit by a ceiling light, or by a small bright
-    light above an opening in the ceiling, whose light falls through the fog as a shaft; mixed objects on the
-    floor. Fog density, colour (absorption) and forward scattering vary."""
+    """A room filled with fog (a participating medium), or a denser box of it on the floor: lit by a ceiling light,
+    or by a small bright light above an opening in the ceiling, whose light falls through the fog as a shaft;
+    mixed objects on the floor. Fog density, colour (absorption) and forward scattering vary, and half of the
+    media are heterogeneous (smoke: density from value noise)."""
     rng = _rng(rng_or_seed)
     wall = _u(rng, 0.55, 0.8)
     mats = {"wall": lambert(_colour(rng, sat=(0.0, 0.2), val=(wall, wall + 0.1))),
@@ -490,8 +491,17 @@ def media(rng_or_seed=None, name: str = "media") -> Scene:
         spheres.append(Sphere((x, r, z), r, f"sphere{i}"))
     tint = _colour(rng, sat=(0.0, 0.4), val=(0.6, 1.0))
     absorb = _u(rng, 0.0, 0.15)
-    fog = Medium(sigma_a=tuple(absorb * (1.2 - c) for c in tint), sigma_s=_u(rng, 0.08, 0.45),
-                 g=_u(rng, 0.0, 0.7), box_min=(-w / 2, 0.0, -d / 2), box_max=(w / 2, h, d / 2 + 2.0))
+    sigma_s = _u(rng, 0.08, 0.45)
+    box_min, box_max = (-w / 2, 0.0, -d / 2), (w / 2, h, d / 2 + 2.0)  # the room and the camera's side of it
+    if rng.uniform() < 0.4:  # a denser box of it standing on the floor instead
+        sx, sz, top = _u(rng, 0.8, 1.5), _u(rng, 0.6, 1.2), _u(rng, 1.0, 2.2)
+        cx, cz = _u(rng, -0.6, 0.6), _u(rng, -1.0, 0.3)
+        box_min, box_max, sigma_s = (cx - sx, 0.0, cz - sz), (cx + sx, top, cz + sz), 4 * sigma_s + 0.5
+    smoke = rng.uniform() < 0.5  # heterogeneous: density from value noise
+    fog = Medium(sigma_a=tuple(absorb * (1.2 - c) for c in tint), sigma_s=sigma_s, g=_u(rng, 0.0, 0.7),
+                 box_min=box_min, box_max=box_max, density="noise" if smoke else "homogeneous",
+                 noise_cells=int(rng.integers(2, 5)), noise_amount=_u(rng, 0.6, 1.0),
+                 noise_seed=int(rng.integers(0, 2**31)))
     cam = Camera(position=(_u(rng, -0.5, 0.5), _u(rng, 1.0, 1.5), _u(rng, 3.8, 4.4)),
                  look_at=(_u(rng, -0.3, 0.3), _u(rng, 0.8, 1.2), -1.0), fov=_u(rng, 45, 55))
     return Scene(name=name, family="media", camera=cam, materials=mats, spheres=spheres, quads=quads, medium=fog)

@@ -36,7 +36,17 @@ from prep.render.lights import (
     toward_sphere_light,
     triangle_point,
 )
-from prep.render.media import MD_G, free_flight, hg_sample, phase_value, transmittance
+from prep.render.media import (
+    MD_G,
+    TRACK_DIM,
+    TRACK_STRIDE,
+    free_flight,
+    hg_sample,
+    phase_value,
+    tracked_free_flight,
+    tracked_transmittance,
+    transmittance,
+)
 from prep.render.tracer import (
     DIMS_PER_BOUNCE,
     EMITTER,
@@ -113,6 +123,7 @@ HAS_LENS = True
 HAS_MESH = True
 HAS_ENVIRONMENT_MAP = True
 HAS_MEDIUM = True
+HAS_HETEROGENEOUS = True
 # --- end of effects ---
 
 
@@ -363,12 +374,22 @@ def medium_vertex(sc, key, base, x, d, bounce, ld, ls, bd, bs):
         if lit and pdf_l > 0.0:
             f, pdf_p = phase_value(g, d, wi)
             if not (occluded(x, wi, tmax, sc) or (HAS_MESH and occluded_mesh(x, wi, tmax, sc))):
-                c = _mul(_scale(le, power_heuristic(pdf_l, pdf_p) / pdf_l), transmittance(x, wi, tmax, sc.medium))
+                c = through_medium(_scale(le, power_heuristic(pdf_l, pdf_p) / pdf_l), sc, key, bounce, x, wi, tmax)
                 ld, ls = add_direct(ld, ls, bd, bs, zero, f, c, bounce)
     wi, pdf = hg_sample(g, d, rand(key, base + 4), rand(key, base + 5))
     if bounce == 0:
         return ld, ls, wi, zero, (1.0, 1.0, 1.0), pdf
     return ld, ls, wi, bd, bs, pdf
+
+
+@njit(cache=True, inline="always")
+def through_medium(c, sc, key, bounce, o, wi, tmax):
+    """``c`` times the medium's transmittance along the shadow ray o + t wi, t < tmax: exact for a homogeneous
+    medium, ratio tracking through a heterogeneous one."""
+    if HAS_HETEROGENEOUS and sc.medium_grid.shape[0] > 0:
+        return _mul(c, tracked_transmittance(o, wi, tmax, sc.medium, sc.medium_grid, key,
+                                             TRACK_DIM + bounce * TRACK_STRIDE + TRACK_STRIDE // 2))
+    return _mul(c, transmittance(o, wi, tmax, sc.medium))
 
 
 @njit(cache=True, inline="always")
@@ -378,7 +399,11 @@ def medium_step(sc, key, o, d, t, bounce, max_depth, rr_depth, ld, ls, bd, bs, w
     and goes on from (o, d), 2 where it ends. The free flight draws the one dimension of a bounce that no surface
     uses, so the surfaces keep their random numbers."""
     base = 2 + bounce * DIMS_PER_BOUNCE
-    scattered, ts, wm = free_flight(o, d, t, sc.medium, rand(key, base + 7))
+    if HAS_HETEROGENEOUS and sc.medium_grid.shape[0] > 0:
+        scattered, ts, wm = tracked_free_flight(o, d, t, sc.medium, sc.medium_grid, key,
+                                                TRACK_DIM + bounce * TRACK_STRIDE)
+    else:
+        scattered, ts, wm = free_flight(o, d, t, sc.medium, rand(key, base + 7))
     if bounce == 0:
         w0 = wm
     else:
@@ -505,7 +530,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                                             or (HAS_MESH and occluded_mesh(origin, wi, tmax, sc))):
                         c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
                         if HAS_MEDIUM:
-                            c = _mul(c, transmittance(origin, wi, tmax, sc.medium))
+                            c = through_medium(c, sc, key, bounce, origin, wi, tmax)
                         ld, ls = add_direct(ld, ls, bd, bs, fd, fs, c, bounce)
             ok, wi, bd, bs, prev_pdf = continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs)
             if not ok:

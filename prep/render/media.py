@@ -13,6 +13,12 @@ scatters at ``s`` by ``exp(-sigma_a s)`` (``sigma_s exp(-sigma_t s)`` over the d
 for all channels. Shadow rays multiply by the analytic transmittance ``exp(-sigma_t L)``, L the length of the
 shadow ray inside the box.
 
+A heterogeneous medium (``Medium.density = "noise"``, the ``heterogeneous`` effect) scales both coefficients by a
+density grid (``sc.medium_grid``, trilinear) and is tracked against a majorant (``MD_MAJORANT``): weighted delta
+tracking for free flight, ratio tracking for shadow rays (:func:`tracked_free_flight`,
+:func:`tracked_transmittance`). Their random numbers are dimensions of their own (``TRACK_DIM`` on), as many as
+the collisions a ray meets.
+
 HG convention: ``cos`` is the cosine between the direction the light travelled before the event (the ray
 direction ``d``) and the direction after it; ``g > 0`` scatters forwards.
 """
@@ -23,11 +29,16 @@ import math
 
 from numba import njit
 
-from prep.render.tracer import _dot, _scale, _to_world
+from prep.render.tracer import _dot, _madd, _scale, _to_world, rand
 
 # Columns of sc.medium, mirrored from packing.MEDIUM_* (a test checks they agree): absorption RGB, scattering,
 # HG asymmetry, the box's low and high corners.
-MD_SIGMA_A, MD_SIGMA_S, MD_G, MD_LO, MD_HI = 0, 3, 4, 5, 8
+MD_SIGMA_A, MD_SIGMA_S, MD_G, MD_LO, MD_HI, MD_MAJORANT = 0, 3, 4, 5, 8, 11
+# tracking's random dimensions: bounce b's free flight from TRACK_DIM + b TRACK_STRIDE, its shadow ray from half a
+# stride further; far above the dimensions of the surfaces and of the lens (tracer.LENS_DIM = 2**40)
+TRACK_DIM = 1 << 41
+TRACK_STRIDE = 1 << 20
+MAX_COLLISIONS = (1 << 18) - 2  # a guard: a ray meets about majorant x length of them
 INV_4PI = 1.0 / (4.0 * math.pi)
 
 
@@ -114,3 +125,83 @@ def phase_value(g, d, wi):
     """(phase RGB, density of :func:`hg_sample`) of the direction ``wi`` after travelling along ``d``."""
     p = hg_eval(g, _dot(d, wi))
     return _scale((1.0, 1.0, 1.0), p), p
+
+
+# ---------------------------------------------------------------------------------------------
+# heterogeneous density (HAS_HETEROGENEOUS kernels): a grid over the box, tracked against a majorant
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, inline="always")
+def _cell(p, med, a, n):
+    """(lattice index, fraction) of p along axis a of a grid of n points spanning the box."""
+    x = (p[a] - med[MD_LO + a]) / (med[MD_HI + a] - med[MD_LO + a]) * (n - 1)
+    x = min(max(x, 0.0), n - 1.0)
+    k = min(int(x), n - 2)
+    return k, x - k
+
+
+@njit(cache=True, inline="always")
+def density_at(grid, med, p):
+    """The density grid (n x n x n values at the lattice points spanning the box) trilinearly interpolated at p."""
+    n = grid.shape[0]
+    i, fx = _cell(p, med, 0, n)
+    j, fy = _cell(p, med, 1, n)
+    k, fz = _cell(p, med, 2, n)
+    c00 = grid[i, j, k] * (1.0 - fx) + grid[i + 1, j, k] * fx
+    c10 = grid[i, j + 1, k] * (1.0 - fx) + grid[i + 1, j + 1, k] * fx
+    c01 = grid[i, j, k + 1] * (1.0 - fx) + grid[i + 1, j, k + 1] * fx
+    c11 = grid[i, j + 1, k + 1] * (1.0 - fx) + grid[i + 1, j + 1, k + 1] * fx
+    return ((c00 * (1.0 - fy) + c10 * fy) * (1.0 - fz) + (c01 * (1.0 - fy) + c11 * fy) * fz)
+
+
+@njit(cache=True)
+def tracked_free_flight(o, d, tmax, med, grid, key, dim0):
+    """Free flight in a medium of density ``grid``: weighted delta tracking against the majorant mu (>= sigma_t x
+    density everywhere, every channel). Tentative collisions at rate mu; one at x is a scattering event with
+    probability sigma_s(x) / mu (weight 1), else a null collision weighted by (mu - sigma_t(x)) / (mu - sigma_s(x))
+    per channel, which carries absorption as the homogeneous :func:`free_flight` does. Random numbers: dimensions
+    ``dim0``, ``dim0 + 1``, ... of ``key``. Returns (scattered, t, weight) as :func:`free_flight`."""
+    one = (1.0, 1.0, 1.0)
+    t0, t1 = box_span(o, d, tmax, med)
+    mu = med[MD_MAJORANT]
+    if t1 <= t0 or mu <= 0.0:
+        return False, tmax, one
+    sa, ss = (med[0], med[1], med[2]), med[MD_SIGMA_S]
+    w0, w1, w2 = 1.0, 1.0, 1.0
+    t = t0
+    j = 0
+    while j < MAX_COLLISIONS:
+        t -= math.log1p(-rand(key, dim0 + j)) / mu
+        if t >= t1:
+            break
+        rho = density_at(grid, med, _madd(o, d, t))
+        if rand(key, dim0 + j + 1) * mu < ss * rho:
+            return True, t, (w0, w1, w2)
+        j += 2
+        null = mu - ss * rho
+        w0 *= (mu - (sa[0] + ss) * rho) / null
+        w1 *= (mu - (sa[1] + ss) * rho) / null
+        w2 *= (mu - (sa[2] + ss) * rho) / null
+    return False, tmax, (w0, w1, w2)
+
+
+@njit(cache=True)
+def tracked_transmittance(o, d, tmax, med, grid, key, dim0):
+    """Ratio tracking: an unbiased estimate of the RGB transmittance of o + t d, t in [0, tmax], through the
+    density ``grid``, the product of 1 - sigma_t(x) / mu over tentative collisions at rate mu."""
+    t0, t1 = box_span(o, d, tmax, med)
+    mu = med[MD_MAJORANT]
+    if t1 <= t0 or mu <= 0.0:
+        return (1.0, 1.0, 1.0)
+    ss = med[MD_SIGMA_S]
+    w0, w1, w2 = 1.0, 1.0, 1.0
+    t = t0
+    for j in range(MAX_COLLISIONS):
+        t -= math.log1p(-rand(key, dim0 + j)) / mu
+        if t >= t1:
+            break
+        rho = density_at(grid, med, _madd(o, d, t))
+        w0 *= 1.0 - (med[0] + ss) * rho / mu
+        w1 *= 1.0 - (med[1] + ss) * rho / mu
+        w2 *= 1.0 - (med[2] + ss) * rho / mu
+    return (w0, w1, w2)
