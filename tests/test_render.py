@@ -554,6 +554,7 @@ FAMILY_EFFECTS = {
     "cornell": {"texture"}, "spheres": {"environment", "texture"}, "boxes": {"environment"},
     "indirect": set(), "fireflies": {"glossy"}, "caustics": {"glass", "mirror"},
     "outdoor": {"environment_map", "lens", "texture", "mesh"}, "textures": {"texture", "mirror"},
+    "media": {"medium"},
 }
 # families lit by an environment map alone (the sun in the sky), not by emitters
 MAP_LIT = {"outdoor"}

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from kpcn_keras.studies.report import Report
 from prep.bounds import REPEATS, bounded, check_fields
-from prep.render.families import FAMILIES, check_families, make_scene
+from prep.render.families import DEFAULT_FAMILIES, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 from prep.render.scene import EFFECTS, Scene, lambert
 
@@ -31,7 +31,7 @@ REPORT = "render"  # render.json and render.md in the report folder
 
 @dataclass
 class RenderBenchConfig:
-    families: tuple[str, ...] = bounded(tuple(FAMILIES), distinct=True)  # scene 0 of each is timed
+    families: tuple[str, ...] = bounded(DEFAULT_FAMILIES, distinct=True)  # scene 0 of each is timed
     width: int = bounded(256, FRAME_SIDE)
     height: int = bounded(256, FRAME_SIDE)
     spp: int = bounded(16, SPP)

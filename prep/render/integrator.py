@@ -36,6 +36,17 @@ from prep.render.lights import (
     toward_sphere_light,
     triangle_point,
 )
+from prep.render.media import (
+    MD_G,
+    TRACK_DIM,
+    TRACK_STRIDE,
+    free_flight,
+    hg_sample,
+    phase_value,
+    tracked_free_flight,
+    tracked_transmittance,
+    transmittance,
+)
 from prep.render.tracer import (
     DIMS_PER_BOUNCE,
     EMITTER,
@@ -111,6 +122,8 @@ HAS_TEXTURE = True
 HAS_LENS = True
 HAS_MESH = True
 HAS_ENVIRONMENT_MAP = True
+HAS_MEDIUM = True
+HAS_HETEROGENEOUS = True
 # --- end of effects ---
 
 
@@ -332,18 +345,129 @@ def emitter_weight(sc, kind, idx, o, t, cos_d, bounce, prev_pdf):
                                                    lt[li, L_AREA], o, t, -cos_d, sc.light_prob[li]))
 
 
+@njit(cache=True)
+def light_sample(sc, key, base, origin):
+    """Next-event estimation from a point in the medium: a light picked by power and a sample on it,
+    (lit, wi, tmax, pdf, radiance), as a surface vertex draws it (same random dimensions)."""
+    li = search_cdf(sc.light_cdf, rand(key, base))
+    lk, u1, u2 = sc.light_kind[li], rand(key, base + 1), rand(key, base + 2)
+    lt = sc.light_table
+    if HAS_ENVIRONMENT_MAP and lk == L_ENVIRONMENT:
+        wi, pdf_dir, le = env_sample(sc, u1, u2)
+        return pdf_dir > 0.0, wi, np.inf, sc.light_prob[li] * pdf_dir, le
+    lit, wi, tmax, pdf_l = toward_light(lk, _row3(lt, li, L_A), _row3(lt, li, L_B), _row3(lt, li, L_C),
+                                        _row3(lt, li, L_NORMAL), lt[li, L_AREA], origin, sc.light_prob[li], u1, u2)
+    return lit, wi, tmax, pdf_l, _row3(lt, li, L_EMISSION)
+
+
+@njit(cache=True)
+def medium_vertex(sc, key, base, x, d, bounce, ld, ls, bd, bs):
+    """A scattering event at ``x`` in the medium, reached along ``d``: the light it scatters from a light sample
+    (phase function x transmittance, MIS-weighted against phase sampling) added to (ld, ls), then the next
+    direction drawn from the phase function. Returns (ld, ls, wi, bd, bs, pdf). At the first vertex the light
+    goes to the specular part (as Cycles' Volume passes are read, see docs/formats.md); the phase function is
+    sampled exactly, so the throughputs keep their value."""
+    g = sc.medium[MD_G]
+    zero = (0.0, 0.0, 0.0)
+    if sc.lights.shape[0] > 0:
+        lit, wi, tmax, pdf_l, le = light_sample(sc, key, base, x)
+        if lit and pdf_l > 0.0:
+            f, pdf_p = phase_value(g, d, wi)
+            if not (occluded(x, wi, tmax, sc) or (HAS_MESH and occluded_mesh(x, wi, tmax, sc))):
+                c = through_medium(_scale(le, power_heuristic(pdf_l, pdf_p) / pdf_l), sc, key, bounce, x, wi, tmax)
+                ld, ls = add_direct(ld, ls, bd, bs, zero, f, c, bounce)
+    wi, pdf = hg_sample(g, d, rand(key, base + 4), rand(key, base + 5))
+    if bounce == 0:
+        return ld, ls, wi, zero, (1.0, 1.0, 1.0), pdf
+    return ld, ls, wi, bd, bs, pdf
+
+
+@njit(cache=True, inline="always")
+def through_medium(c, sc, key, bounce, o, wi, tmax):
+    """``c`` times the medium's transmittance along the shadow ray o + t wi, t < tmax: exact for a homogeneous
+    medium, ratio tracking through a heterogeneous one."""
+    if HAS_HETEROGENEOUS and sc.medium_grid.shape[0] > 0:
+        return _mul(c, tracked_transmittance(o, wi, tmax, sc.medium, sc.medium_grid, key,
+                                             TRACK_DIM + bounce * TRACK_STRIDE + TRACK_STRIDE // 2))
+    return _mul(c, transmittance(o, wi, tmax, sc.medium))
+
+
+@njit(cache=True, inline="always")
+def medium_step(sc, key, o, d, t, bounce, max_depth, rr_depth, ld, ls, bd, bs, w0, prev_pdf, out):
+    """Free flight along o + t d up to the next surface at ``t``, and the scattering event where one is drawn:
+    (step, o, d, ld, ls, bd, bs, w0, prev_pdf), step 0 where the path goes on to the surface, 1 where it scattered
+    and goes on from (o, d), 2 where it ends. The free flight draws the one dimension of a bounce that no surface
+    uses, so the surfaces keep their random numbers."""
+    base = 2 + bounce * DIMS_PER_BOUNCE
+    if HAS_HETEROGENEOUS and sc.medium_grid.shape[0] > 0:
+        scattered, ts, wm = tracked_free_flight(o, d, t, sc.medium, sc.medium_grid, key,
+                                                TRACK_DIM + bounce * TRACK_STRIDE)
+    else:
+        scattered, ts, wm = free_flight(o, d, t, sc.medium, rand(key, base + 7))
+    if bounce == 0:
+        w0 = wm
+    else:
+        bd, bs = _mul(bd, wm), _mul(bs, wm)
+    if not scattered:
+        return 0, o, d, ld, ls, bd, bs, w0, prev_pdf
+    if bounce == 0:
+        out[12] = ts  # albedo and normal stay 0, as in the background (docs/formats.md)
+    if bounce == max_depth:
+        return 2, o, d, ld, ls, bd, bs, w0, prev_pdf
+    x = _madd(o, d, ts)
+    ld, ls, wi, bd, bs, prev_pdf = medium_vertex(sc, key, base, x, d, bounce, ld, ls, bd, bs)
+    if bounce >= rr_depth:
+        alive, bd, bs = roulette(bd, bs, rand(key, base + 6))
+        if not alive:
+            return 2, x, wi, ld, ls, bd, bs, w0, prev_pdf
+    return 1, x, wi, ld, ls, bd, bs, w0, prev_pdf
+
+
+@njit(cache=True, inline="always")
+def facing(ng, d):
+    """(cosine of ``d`` to the geometric normal, the shading normal): surfaces are double-sided, shaded on the
+    side the ray came from."""
+    cos_d = _dot(ng, d)
+    return cos_d, (_scale(ng, -1.0) if cos_d > 0.0 else ng)
+
+
+@njit(cache=True, inline="always")
+def has_diffuse(mk):
+    """Whether material kind ``mk`` has a diffuse lobe (an albedo)."""
+    return (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC)
+
+
+@njit(cache=True, inline="always")
+def first_hit(out, bounce, kd, n, t):
+    """The auxiliary features of the camera ray's first surface (bounce 0): albedo, normal, depth."""
+    if bounce == 0:
+        out[6], out[7], out[8] = kd
+        out[9], out[10], out[11] = n
+        out[12] = t
+
+
+@njit(cache=True, inline="always")
+def finish(out, ld, ls, w0):
+    """out[0:6] = the path's diffuse and specular radiance, scaled by the medium's weight ``w0`` on the camera
+    ray; a non-finite sample (should not happen) counts as black rather than poisoning its pixel."""
+    if HAS_MEDIUM:
+        ld, ls = _mul(ld, w0), _mul(ls, w0)
+    if all_finite(ld, ls):
+        out[0], out[1], out[2] = ld
+        out[3], out[4], out[5] = ls
+
+
 # ---------------------------------------------------------------------------------------------
 # the integrator
 # ---------------------------------------------------------------------------------------------
 
 @njit(cache=True, inline="always")
 def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
-    """Trace one camera ray through the packed scene ``sc``; writes out[0:13] = diffuse, specular,
-    albedo, normal, depth."""
+    """Trace one camera ray through the packed scene ``sc``: out[0:13] = diffuse, specular, albedo, normal, depth."""
     out[:13] = 0.0
     zero = (0.0, 0.0, 0.0)
-    ld, ls = zero, zero
-    bd, bs = zero, zero  # throughputs of the diffuse and of the glossy part of the first vertex
+    # radiance, throughputs of the first vertex's diffuse and glossy parts, the medium's weight on the camera ray
+    ld, ls, bd, bs, w0 = zero, zero, zero, zero, (1.0, 1.0, 1.0)
     prev_pdf = 0.0  # of the direction that led here; < 0 after a delta (mirror, glass) vertex
     materials, light_prob, lt = sc.materials, sc.light_prob, sc.light_table
     for bounce in range(max_depth + 1):
@@ -352,6 +476,13 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             tm, ti = intersect_mesh(o, d, t, sc)
             if ti >= 0:
                 t, kind, idx = tm, 2, ti
+        if HAS_MEDIUM:
+            step, o, d, ld, ls, bd, bs, w0, prev_pdf = medium_step(sc, key, o, d, t, bounce, max_depth, rr_depth,
+                                                                   ld, ls, bd, bs, w0, prev_pdf, out)
+            if step == 2:
+                break
+            if step == 1:
+                continue
         if kind < 0:
             env, w = escaped(sc, d, bounce, prev_pdf)
             ld, ls = add_emitted(ld, ls, bd, bs, env, w, bounce)
@@ -360,15 +491,9 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
         ng, tu, tv = surface(p, kind, idx, sc.spheres, sc.quads, sc.triangles)
         m = sc.tri_mat[idx] if HAS_MESH and kind == 2 else (sc.sphere_mat[idx] if kind == 0 else sc.quad_mat[idx])
         mk = int(materials[m, M_KIND])
-        cos_d = _dot(ng, d)
-        n = _scale(ng, -1.0) if cos_d > 0.0 else ng  # double-sided: shade the side the ray came from
-        kd = zero
-        if (HAS_LAMBERT and mk == LAMBERT) or (HAS_PLASTIC and mk == PLASTIC):
-            kd = albedo_at(sc, m, p, tu, tv)
-        if bounce == 0:
-            out[6], out[7], out[8] = kd
-            out[9], out[10], out[11] = n
-            out[12] = t
+        cos_d, n = facing(ng, d)
+        kd = albedo_at(sc, m, p, tu, tv) if has_diffuse(mk) else zero
+        first_hit(out, bounce, kd, n, t)
         if HAS_EMITTER and mk == EMITTER:
             if cos_d < 0.0:  # front side only
                 w = emitter_weight(sc, kind, idx, o, t, cos_d, bounce, prev_pdf)
@@ -404,6 +529,8 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
                     if pdf_b > 0.0 and not (occluded(origin, wi, tmax, sc)
                                             or (HAS_MESH and occluded_mesh(origin, wi, tmax, sc))):
                         c = _scale(le, ci * power_heuristic(pdf_l, pdf_b) / pdf_l)
+                        if HAS_MEDIUM:
+                            c = through_medium(c, sc, key, bounce, origin, wi, tmax)
                         ld, ls = add_direct(ld, ls, bd, bs, fd, fs, c, bounce)
             ok, wi, bd, bs, prev_pdf = continue_bsdf(key, base, mk, kd, ks, alpha, n, wo, bounce, bd, bs)
             if not ok:
@@ -413,9 +540,7 @@ def trace_sample(o, d, key, sc, max_depth, rr_depth, out):
             alive, bd, bs = roulette(bd, bs, rand(key, base + 6))
             if not alive:
                 break
-    if all_finite(ld, ls):  # a non-finite sample (should not happen) counts as black rather than poisoning it
-        out[0], out[1], out[2] = ld
-        out[3], out[4], out[5] = ls
+    finish(out, ld, ls, w0)
 
 
 @njit(cache=True, inline="always")

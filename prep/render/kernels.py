@@ -27,6 +27,7 @@ from types import ModuleType
 
 import prep.render.integrator as integrator
 import prep.render.lights as lights
+import prep.render.media as media
 import prep.render.packing as packing
 import prep.render.tracer as tracer
 from prep.errors import KpcnError
@@ -76,7 +77,7 @@ def kernel_for(effects) -> ModuleType:
         return _loaded[effects]
     text = _source(effects)
     tag = "".join("1" if e in effects else "0" for e in EFFECTS)
-    callees = "".join(Path(m.__file__).read_text() for m in (tracer, lights, packing))
+    callees = "".join(Path(m.__file__).read_text() for m in (tracer, lights, media, packing))
     digest = hashlib.sha256((text + callees).encode()).hexdigest()[:12]
     name = f"kpcn_integrator_{tag}_{digest}"
     path = kernel_dir() / f"{name}.py"

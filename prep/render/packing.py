@@ -42,6 +42,12 @@ BVH_LEFT, BVH_RIGHT, BVH_IS_LEAF = 0, 1, 2
 BVH_FIRST, BVH_COUNT = 0, 1
 BVH_LEAF_SIZE = 4
 BVH_MAX_DEPTH = 60
+# The participating medium (media.py mirrors the columns): absorption RGB, scattering, HG asymmetry, the box's
+# low and high corners, the majorant of sigma_t x density (0 for a homogeneous medium); all zeros (an empty box at
+# the origin) without a medium. A heterogeneous one's density is a MEDIUM_GRID^3 grid of lattice points over the box.
+MEDIUM_SIGMA_A, MEDIUM_SIGMA_S, MEDIUM_G, MEDIUM_LO, MEDIUM_HI, MEDIUM_MAJORANT = 0, 3, 4, 5, 8, 11
+MEDIUM_COLS = 12
+MEDIUM_GRID = 32
 _SAH_BINS = 12
 _SAH_DEPTH = 40  # below this depth splits are at the median, which bounds the depth by ~log2(triangles)
 
@@ -82,6 +88,8 @@ class PackedScene(NamedTuple):
     env_row_cdf: np.ndarray  # (H,)
     env_col_cdf: np.ndarray  # (H, W)
     env_light: int  # index of the map in lights, -1 without one (or for a black one)
+    medium: np.ndarray  # (MEDIUM_COLS,) the participating medium (MEDIUM_*)
+    medium_grid: np.ndarray  # (G, G, G) density of a heterogeneous medium; (0, 0, 0) otherwise
 
 
 def _quad_order(quads) -> tuple[list[int], int, np.ndarray, np.ndarray]:
@@ -254,7 +262,45 @@ def pack(scene: Scene) -> PackedScene:
         image_pixels=image_pixels, image_info=image_info,
         triangles=triangles, tri_mat=tri_mat, tri_light=tri_light, bvh_bounds=bvh_bounds, bvh_nodes=bvh_nodes,
         env_map=env_map, env_pdf=env_pdf, env_row_cdf=env_row_cdf, env_col_cdf=env_col_cdf, env_light=env_light,
+        medium=pack_medium(scene), medium_grid=medium_grid(scene.medium),
     )
+
+
+def pack_medium(scene: Scene) -> np.ndarray:
+    """The row of ``sc.medium`` (``MEDIUM_*``): zeros without a medium."""
+    out = np.zeros(MEDIUM_COLS, dtype=np.float64)
+    m = scene.medium
+    if m is not None:
+        out[MEDIUM_SIGMA_A:MEDIUM_SIGMA_A + 3] = m.sigma_a
+        out[MEDIUM_SIGMA_S], out[MEDIUM_G] = m.sigma_s, m.g
+        out[MEDIUM_LO:MEDIUM_LO + 3], out[MEDIUM_HI:MEDIUM_HI + 3] = m.box_min, m.box_max
+        if m.density == "noise":
+            out[MEDIUM_MAJORANT] = (max(m.sigma_a) + m.sigma_s) * medium_grid(m).max()
+    return out
+
+
+def _upsample(a: np.ndarray, n: int) -> np.ndarray:
+    """The lattice ``a`` (k^3 values) linearly interpolated to n^3 points spanning the same cube."""
+    for axis in range(3):
+        k = a.shape[axis]
+        x = np.linspace(0, k - 1, n)
+        i = np.minimum(x.astype(int), k - 2)
+        f = (x - i).reshape([-1 if ax == axis else 1 for ax in range(3)])
+        a = np.take(a, i, axis=axis) * (1 - f) + np.take(a, i + 1, axis=axis) * f
+    return a
+
+
+def medium_grid(medium) -> np.ndarray:
+    """The density grid of a heterogeneous medium: (1 - noise_amount) + noise_amount x value noise in [0, 1]
+    (three octaves of random lattices from noise_seed, noise_cells cells across the box at the coarsest,
+    interpolated to MEDIUM_GRID^3 points); an empty grid for none or a homogeneous one."""
+    if medium is None or medium.density != "noise":
+        return np.zeros((0, 0, 0))
+    rng = np.random.default_rng([int(medium.noise_seed), 0x6D656469])
+    noise = sum(_upsample(rng.random((c + 1,) * 3), MEDIUM_GRID) * 0.5 ** o
+                for o, c in enumerate(medium.noise_cells * 2 ** np.arange(3)))
+    noise = (noise - noise.min()) / max(noise.max() - noise.min(), 1e-12)
+    return (1.0 - medium.noise_amount) + medium.noise_amount * noise
 
 
 class _Lights:

@@ -38,7 +38,7 @@ from prep.files import (
     remove_temporaries,
 )
 from prep.parts import Part
-from prep.render.families import FAMILIES, REFERENCE_SPP_FACTOR, check_families, make_scene
+from prep.render.families import DEFAULT_FAMILIES, REFERENCE_SPP_FACTOR, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 
 log = logging.getLogger("kpcn")
@@ -54,7 +54,7 @@ class RenderConfig:
     """What :func:`render_set` renders and where."""
 
     set_name: str = "default"
-    families: tuple[str, ...] = bounded(tuple(FAMILIES), distinct=True)
+    families: tuple[str, ...] = bounded(DEFAULT_FAMILIES, distinct=True)
     per_family: int = bounded(3, PER_FAMILY)
     width: int = bounded(256, FRAME_SIDE)
     height: int = bounded(256, FRAME_SIDE)

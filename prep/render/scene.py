@@ -72,7 +72,8 @@ MATERIAL_KINDS = ("lambert", "glossy", "plastic", "emitter", "mirror", "glass")
 TEXTURES = ("none", "world", "uv", "image")
 # What a scene can call for; the tracer compiles a kernel for each set it meets (see kernels.py): the
 # material kinds, plus these.
-EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh", "environment_map")
+EFFECTS = MATERIAL_KINDS + ("environment", "texture", "lens", "mesh", "environment_map", "medium", "heterogeneous")
+DENSITIES = ("homogeneous", "noise")
 IOR_RANGE = (1.0, 3.0)
 
 Vec3 = tuple[float, float, float]
@@ -335,6 +336,47 @@ class EnvironmentMap:
             raise ValueError(f"EnvironmentMap.scale must be >= 0, got {self.scale!r}")
 
 
+@dataclass(frozen=True)
+class Medium:
+    """A homogeneous participating medium filling the axis-aligned box [``box_min``, ``box_max``] (fog, haze,
+    smoke of even density): RGB absorption coefficient ``sigma_a`` and grey scattering coefficient ``sigma_s``
+    (per unit length), Henyey-Greenstein phase function of asymmetry ``g`` (> 0 forwards). The box has no
+    surface of its own and no index of refraction; surfaces inside it are lit through it (``media.py``).
+    ``density`` ``"noise"`` makes it heterogeneous (smoke): both coefficients scaled by ``(1 - noise_amount) +
+    noise_amount x`` value noise in [0, 1] of ``noise_cells`` cells across the box, drawn from ``noise_seed``
+    (``packing.medium_grid``)."""
+
+    sigma_a: Vec3
+    sigma_s: float
+    g: float
+    box_min: Vec3
+    box_max: Vec3
+    density: str = "homogeneous"
+    noise_cells: int = 3
+    noise_amount: float = 1.0
+    noise_seed: int = 0
+
+    def __post_init__(self):
+        for name in ("sigma_a", "box_min", "box_max"):
+            object.__setattr__(self, name, _vec(getattr(self, name), f"Medium.{name}"))
+        if min(self.sigma_a) < 0 or not (math.isfinite(self.sigma_s) and self.sigma_s >= 0):
+            raise ValueError(f"Medium.sigma_a and Medium.sigma_s must be >= 0, got {self.sigma_a} and "
+                             f"{self.sigma_s!r}")
+        if not -0.95 <= self.g <= 0.95:
+            raise ValueError(f"Medium.g must be in [-0.95, 0.95], got {self.g!r}")
+        if self.density not in DENSITIES:
+            raise ValueError(f"Medium.density must be one of {', '.join(DENSITIES)}, got {self.density!r}")
+        if not is_integer(self.noise_cells) or not 1 <= self.noise_cells <= 8:
+            raise ValueError(f"Medium.noise_cells must be an integer in [1, 8], got {self.noise_cells!r}")
+        if not 0 <= self.noise_amount <= 1:
+            raise ValueError(f"Medium.noise_amount must be in [0, 1], got {self.noise_amount!r}")
+        if not is_integer(self.noise_seed) or self.noise_seed < 0:
+            raise ValueError(f"Medium.noise_seed must be an integer >= 0, got {self.noise_seed!r}")
+        if not all(lo < hi for lo, hi in zip(self.box_min, self.box_max)):
+            raise ValueError(f"Medium.box_min must be below Medium.box_max on every axis, got {self.box_min} "
+                             f"and {self.box_max}")
+
+
 def _lists(obj):
     """Tuples to lists, recursively, so a dict equals its JSON round trip."""
     if isinstance(obj, dict):
@@ -363,6 +405,7 @@ class Scene:
     seed: int | None = None  # the seed the family was generated from, if any
     meshes: list[Mesh] = field(default_factory=list)
     environment_map: EnvironmentMap | None = None
+    medium: Medium | None = None
 
     def validate(self) -> None:
         """Raise ValueError if an object names an unknown material or the environment is negative."""
@@ -386,7 +429,7 @@ class Scene:
         """The effects (names of :data:`EFFECTS`) this scene calls for: the kinds of the materials its
         objects use, ``texture`` if one of them is textured, ``environment`` if the environment is not black,
         ``environment_map`` with a map, ``lens`` for a thin-lens camera, ``mesh`` if the scene has a triangle
-        mesh."""
+        mesh, ``medium`` with a participating medium (and ``heterogeneous`` where its density varies)."""
         used = [self.materials[obj.material] for obj in self._objects()]
         out = {m.kind for m in used}
         if any(m.texture != "none" and m.kind in ("lambert", "plastic") for m in used):
@@ -399,6 +442,10 @@ class Scene:
             out.add("lens")
         if self.meshes:
             out.add("mesh")
+        if self.medium is not None:
+            out.add("medium")
+            if self.medium.density == "noise":
+                out.add("heterogeneous")
         return frozenset(out)
 
     def _environment_colour(self) -> bool:
@@ -421,6 +468,8 @@ class Scene:
             out["meshes"] = _lists([asdict(m) for m in self.meshes])
         if self.environment_map is not None:  # likewise
             out["environment_map"] = _lists(asdict(self.environment_map))
+        if self.medium is not None:  # likewise
+            out["medium"] = _lists(asdict(self.medium))
         return out
 
     @classmethod
@@ -435,6 +484,7 @@ class Scene:
             quads=[Quad(**q) for q in d["quads"]],
             meshes=[Mesh(**m) for m in d.get("meshes", [])],
             environment_map=_environment_map(d.get("environment_map")),
+            medium=None if d.get("medium") is None else Medium(**d["medium"]),
         )
 
 

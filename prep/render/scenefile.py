@@ -50,6 +50,10 @@ The file is one table (a TOML document or a JSON object) whose keys are the fiel
     ``cross(v1 - v0, v2 - v0)``.
     ``dump_scene`` writes meshes as ``vertices`` and ``faces``. A problem in the OBJ file names the key
     (``meshes[0].obj``), the OBJ file and its line.
+``[medium]`` (optional)
+    A homogeneous participating medium (``scene.Medium``) filling the box [``box_min``, ``box_max``]:
+    ``sigma_a`` (RGB absorption), ``sigma_s`` (grey scattering), ``g`` (Henyey-Greenstein asymmetry); ``density``
+    ``"noise"`` with ``noise_cells``, ``noise_amount``, ``noise_seed`` for smoke of varying density.
 ``[render]``
     The render settings, the keyword parameters of :func:`prep.render.render` but ``effects``:
     ``width``, ``height``, ``max_depth``, ``rr_depth`` (defaults: those of ``render``), ``spp`` and
