@@ -231,7 +231,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     slope = record.validation_slope
     calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
     if baselines.oidn_available():
-        calls["oidn"] = lambda: baselines.oidn_denoise(layers)
+        calls["oidn"] = lambda: baselines.oidn_denoise(layers, mode="plain")
     for call in calls.values():
         call()  # the warm-up: first-call allocations, OIDN's device
     reset = reset_peak_memory()
