@@ -12,9 +12,12 @@ The card is generated, never written by hand, from what the run itself holds, so
   network whose shard set was cut from another render set. A network fine-tuned from another (``--init``) says
   from which, with the checksums its run recorded.
 - **Held-out table**: the means per input spp over the held-out scenes of ``kpcn evaluate``'s
-  ``<run>/eval/metrics.json`` (relMSE and DSSIM of the input, NLM, OIDN where it was installed, and the run).
+  ``<run>/eval/metrics.json`` (relMSE and DSSIM of the input, NLM, OIDN where it was installed, and the run);
+  after them, where the report has them, prefiltered OIDN's, Blender's own frame's and the frames won (the run's
+  relMSE below the strongest of those anchors, ``EvaluatedFrame.won``).
 - **Validation table**, where the run was evaluated on another renderer's frames (``<run>/eval-validation/``,
-  ``make model``'s ``VALIDATION`` frames): one row per frame, beside OIDN when ``pyoidn`` was installed.
+  ``make model``'s ``VALIDATION`` frames): one row per frame, beside OIDN when ``pyoidn`` was installed, and the
+  same anchors and "won" where the report has them.
 - **Speed**: seconds of the full model on a 1920×1080 frame (:data:`SPEED_FRAME`) beside OIDN's, in one
   process, alternating, with the peak memory of the timing (:func:`speed`; the goal, :data:`SPEED_GOAL`: within
   3× OIDN's time). The measurement is shipped beside the card as ``speed.json`` (:data:`SPEED`), and the card's
@@ -57,6 +60,11 @@ VALIDATION_COLUMNS = (
     ("raw relMSE", "raw", "relmse"), ("OIDN relMSE", "oidn", "relmse"), ("kpcn relMSE", "denoised", "relmse"),
     ("raw DSSIM", "raw", "dssim"), ("OIDN DSSIM", "oidn", "dssim"), ("kpcn DSSIM", "denoised", "dssim"),
 )
+# after either table's columns, each where some row of the report has it (a report from before has none)
+ANCHOR_COLUMNS = (
+    ("OIDN prefiltered relMSE", "oidn_prefiltered", "relmse"), ("OIDN prefiltered DSSIM", "oidn_prefiltered", "dssim"),
+    ("Blender relMSE", "blender", "relmse"), ("Blender DSSIM", "blender", "dssim"),
+)
 SPEED = "speed.json"  # the card's speed measurement, shipped beside it
 MISSING = "–"  # a method the evaluation did not run (OIDN not installed, NLM on a frame without variance)
 
@@ -71,14 +79,32 @@ def _mean(values) -> float | None:
     return None if not values or any(v is None for v in values) else float(np.mean(values))
 
 
+def with_anchors(columns: tuple, rows: list[EvaluatedFrame]) -> tuple:
+    """``columns`` and those of :data:`ANCHOR_COLUMNS` whose method some of ``rows`` has."""
+    return columns + tuple(c for c in ANCHOR_COLUMNS if any(getattr(r, c[1]) is not None for r in rows))
+
+
+def _judged(rows: list[EvaluatedFrame]) -> bool:
+    """Whether the table says which frames are won: where the report has an anchor beyond plain OIDN."""
+    return any(r.oidn_prefiltered is not None or r.blender is not None for r in rows)
+
+
+def _won(rows: list[EvaluatedFrame]) -> str:
+    """"k of n": the frames won of those with an anchor (``EvaluatedFrame.won``)."""
+    judged = [r.won for r in rows if r.won is not None]
+    return f"{judged.count('yes')} of {len(judged)}" if judged else MISSING
+
+
 def held_out_means(rows: list[EvaluatedFrame]) -> list[dict]:
-    """Per input spp, ascending: ``spp``, ``frames`` and the mean of each column of :data:`HELD_OUT_COLUMNS`
-    over the rows of that spp (None for a method some of them lack)."""
+    """Per input spp, ascending: ``spp``, ``frames``, the mean of each column of :data:`HELD_OUT_COLUMNS` and of
+    the anchors' the rows have (:func:`with_anchors`) over the rows of that spp (None for a method some of them
+    lack) and ``won`` (:func:`_won`)."""
     out = []
     for spp in sorted({r.spp for r in rows}):
         of = [r for r in rows if r.spp == spp]
-        out.append({"spp": spp, "frames": len(of),
-                    **{header: _mean(r.score(m, k) for r in of) for header, m, k in HELD_OUT_COLUMNS}})
+        out.append({"spp": spp, "frames": len(of), "won": _won(of),
+                    **{header: _mean(r.score(m, k) for r in of)
+                       for header, m, k in with_anchors(HELD_OUT_COLUMNS, rows)}})
     return out
 
 
@@ -88,19 +114,20 @@ def _table(headers: list[str], lines: list[list[str]]) -> list[str]:
 
 
 def held_out_table(rows: list[EvaluatedFrame]) -> list[str]:
-    means = held_out_means(rows)
-    return _table(["input spp", "frames", *(h for h, _, _ in HELD_OUT_COLUMNS)],
-                  [[str(m["spp"]), str(m["frames"]), *(_number(m[h]) for h, _, _ in HELD_OUT_COLUMNS)]
-                   for m in means])
+    means, columns, won = held_out_means(rows), with_anchors(HELD_OUT_COLUMNS, rows), _judged(rows)
+    return _table(["input spp", "frames", *(h for h, _, _ in columns), *(["won"] if won else [])],
+                  [[str(m["spp"]), str(m["frames"]), *(_number(m[h]) for h, _, _ in columns),
+                    *([m["won"]] if won else [])] for m in means])
 
 
 def validation_table(rows: list[EvaluatedFrame]) -> list[str]:
-    lines = [[r.scene, str(r.spp), r.inputs or "full", *(_number(r.score(m, k)) for _, m, k in VALIDATION_COLUMNS)]
-             for r in rows]
+    columns, won = with_anchors(VALIDATION_COLUMNS, rows), _judged(rows)
+    lines = [[r.scene, str(r.spp), r.inputs or "full", *(_number(r.score(m, k)) for _, m, k in columns),
+              *([r.won or MISSING] if won else [])] for r in rows]
     if len(rows) > 1:
-        lines.append(["**mean**", "", "", *(_number(_mean(r.score(m, k) for r in rows))
-                                            for _, m, k in VALIDATION_COLUMNS)])
-    return _table(["scene", "input spp", "model", *(h for h, _, _ in VALIDATION_COLUMNS)], lines)
+        lines.append(["**mean**", "", "", *(_number(_mean(r.score(m, k) for r in rows)) for _, m, k in columns),
+                      *([_won(rows)] if won else [])])
+    return _table(["scene", "input spp", "model", *(h for h, _, _ in columns), *(["won"] if won else [])], lines)
 
 
 def _family(scene: str) -> str:
@@ -231,7 +258,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     slope = record.validation_slope
     calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
     if baselines.oidn_available():
-        calls["oidn"] = lambda: baselines.oidn_denoise(layers)
+        calls["oidn"] = lambda: baselines.oidn_denoise(layers, mode="plain")
     for call in calls.values():
         call()  # the warm-up: first-call allocations, OIDN's device
     reset = reset_peak_memory()

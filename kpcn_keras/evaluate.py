@@ -2,10 +2,13 @@
 
 For every (noisy, reference) pair it measures relMSE, the 99.9th percentile of the per-pixel relative
 squared error (relSE p99.9: the worst pixels, e.g. fireflies copied rather than repaired) and DSSIM of the
-raw input, of the denoised frame, of non-local means and, when ``pyoidn`` is installed, of Intel Open Image
-Denoise (``prep.baselines``), plus seconds per frame, and writes ``<run>/eval/`` with ``report.md``,
-``metrics.json`` (every metric of ``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | KPCN |
-reference). A baseline that is not installed has NaN in its columns. Every file of the report is checked
+raw input, of the denoised frame, of non-local means, when ``pyoidn`` is installed of Intel Open Image Denoise
+in both its modes (``prep.baselines.OIDN_MODES``: plain, and prefiltered as Blender runs it) and, where the
+folder has it, of Blender's own denoised frame of the same render (``<scene>-<spp>spp-blender-oidn.exr``), plus
+seconds per frame and whether the frame is won (its relMSE below the strongest of those anchors,
+``prep.baselines.anchor``), and writes ``<run>/eval/`` with ``report.md``, ``metrics.json`` (every metric of
+``prep.metrics.METRICS``) and one PNG per scene (input | NLM | OIDN | OIDN prefiltered | Blender | KPCN |
+reference). A baseline that did not run has NaN in its columns. Every file of the report is checked
 against every file the evaluation reads (renders, references, the run's models), and every reference against its
 frame's size (``prep.layouts.check_same_size``), before the run is loaded.
 A frame's row is an :class:`EvaluatedFrame`, written into ``metrics.json`` and read back (the card's tables) by
@@ -34,7 +37,8 @@ from prep import baselines, exr, layouts, metrics
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, check_outputs, check_writable, read_json
 
-METHODS = ("raw", "denoised", "nlm", "oidn")  # the outputs a row scores: the input, the network, the baselines
+# the outputs a row scores: the input, the network, the baselines ("oidn" is plain OIDN, as reports always held it)
+METHODS = ("raw", "denoised", "nlm", *baselines.ANCHORS)
 
 
 @dataclass(frozen=True)
@@ -42,9 +46,10 @@ class EvaluatedFrame:
     """One evaluated render, a row of ``metrics.json``: its scene and samples, what served it, the scores
     (``prep.metrics.all_metrics``: metric name -> value) of each of :data:`METHODS` against the reference, the
     seconds each took, and its side-by-side PNG. A baseline that did not run (NLM on a frame without colour
-    variance or under --no-baseline, OIDN without pyoidn) is None, as are ``ensemble`` at the default (one
-    member), layout, inputs, model and precision in a report from before evaluate recorded them, and ``spp``
-    and ``png`` in :func:`format_table`'s mean row; :meth:`to_json` leaves what is None out."""
+    variance or under --no-baseline, OIDN without pyoidn, Blender's frame where the folder has none) is None, as
+    are ``ensemble`` at the default (one member), layout, inputs, model and precision in a report from before
+    evaluate recorded them, and ``spp`` and ``png`` in :func:`format_table`'s mean row; :meth:`to_json` leaves
+    what is None out."""
 
     scene: str
     spp: int | None
@@ -60,13 +65,18 @@ class EvaluatedFrame:
     nlm_seconds: float | None = None
     oidn: dict[str, float] | None = None
     oidn_seconds: float | None = None
+    oidn_prefiltered: dict[str, float] | None = None
+    oidn_prefiltered_seconds: float | None = None
+    blender: dict[str, float] | None = None
     png: str | None = None
 
     # (field, its key in metrics.json), in the order evaluate has always written them
     JSON_KEYS = (("scene", "scene"), ("spp", "input spp"), ("layout", "layout"), ("inputs", "inputs"),
                  ("model", "model"), ("precision", "precision"), ("ensemble", "ensemble"), ("raw", "raw"),
                  ("denoised", "denoised"), ("seconds", "seconds"), ("nlm_seconds", "nlm_seconds"), ("nlm", "nlm"),
-                 ("oidn_seconds", "oidn_seconds"), ("oidn", "oidn"), ("png", "png"))
+                 ("oidn_seconds", "oidn_seconds"), ("oidn", "oidn"),
+                 ("oidn_prefiltered_seconds", "oidn_prefiltered_seconds"), ("oidn_prefiltered", "oidn_prefiltered"),
+                 ("blender", "blender"), ("png", "png"))
     REQUIRED = ("scene", "input spp", "raw", "denoised", "seconds", "png")  # in every row evaluate ever wrote
 
     def to_json(self) -> dict:
@@ -88,6 +98,16 @@ class EvaluatedFrame:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         scores = getattr(self, method)
         return None if scores is None else scores.get(metric)
+
+    @property
+    def won(self) -> str | None:
+        """"yes" where the network's relMSE is strictly below the strongest anchor's the row has (the better of
+        the OIDN modes and Blender's own frame: ``prep.baselines.anchor``), else "no"; None without an anchor,
+        and for :func:`mean_row` (a mean is no frame)."""
+        strongest = baselines.anchor({key: getattr(self, key) for key in baselines.ANCHORS})
+        if strongest is None or self.spp is None:
+            return None
+        return "yes" if self.denoised["relmse"] < strongest[1]["relmse"] else "no"
 
 
 def read_rows(folder: Path) -> list[EvaluatedFrame]:
@@ -117,6 +137,23 @@ COLUMNS = (
     ("OIDN relSE p99.9", "{:.4f}", ("oidn", "relse_p999")),
     ("s/frame", "{:.2f}", "seconds"),
 )
+# the anchors' columns after plain OIDN's, each only where some row has it (a report from before prefiltered OIDN
+# prints as it did); "won": the network below the strongest anchor (EvaluatedFrame.won), with the new anchors
+ANCHOR_COLUMNS = (
+    ("OIDN prefiltered relMSE", "{:.4f}", ("oidn_prefiltered", "relmse")),
+    ("OIDN prefiltered relSE p99.9", "{:.4f}", ("oidn_prefiltered", "relse_p999")),
+    ("Blender relMSE", "{:.4f}", ("blender", "relmse")),
+    ("Blender relSE p99.9", "{:.4f}", ("blender", "relse_p999")),
+    ("won", "{}", "won"),
+)
+
+
+def table_columns(rows: list[EvaluatedFrame]) -> tuple:
+    """The columns of ``rows``' table: :data:`COLUMNS`, with those of :data:`ANCHOR_COLUMNS` whose anchor some row
+    has inserted before the seconds."""
+    has = {key for key in ("oidn_prefiltered", "blender") if any(getattr(r, key) is not None for r in rows)}
+    extra = tuple(c for c in ANCHOR_COLUMNS if (c[2][0] in has if isinstance(c[2], tuple) else bool(has)))
+    return COLUMNS[:-1] + extra + COLUMNS[-1:]
 
 
 def held_out_pairs(run: Run, record: RunRecord) -> list[tuple[str, str]]:
@@ -218,11 +255,16 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     headers = {noisy: reading.header(noisy) for noisy, _ in pairs}
     for noisy, ref in pairs:  # before any work: a report is of every frame or of none
         layouts.check_same_size(noisy, headers[noisy].size, ref, reading.for_reference().header(ref).size)
+        own = baselines.renderer_denoised(noisy)
+        if baseline and own.is_file():
+            layouts.check_same_size(noisy, headers[noisy].size, own, reading.for_reference().header(own).size,
+                                    "denoised frame of Blender")
     serving = Serving(run, settings)
     given = {noisy: header.inputs for noisy, header in headers.items()}
     written = [("report", out_dir / REPORT), ("metrics", out_dir / METRICS)]
     written += [(f"the PNG of {noisy}", frame_png(out_dir, *exr.parse_render_filename(noisy))) for noisy, _ in pairs]
     read = [("input", noisy) for noisy, _ in pairs] + [("reference", ref) for _, ref in pairs]
+    read += [("Blender's own denoised frame", own) for own in map(baselines.renderer_denoised, given) if own.is_file()]
     models = serving.read_files(given.values())
     check_outputs(written, read + models, "choose another --out (a report folder takes one render of each name)")
     ensemble = settings.ensemble
@@ -258,17 +300,33 @@ def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: 
             nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
             found.update(nlm_seconds=time.perf_counter() - start, nlm=metrics.all_metrics(nlm, ref))
             panels.insert(1, (f"NLM relMSE {found['nlm']['relmse']:.4f}", nlm))
-        if baselines.oidn_available():
-            start = time.perf_counter()
-            oidn = baselines.oidn_denoise(noisy)
-            found.update(oidn_seconds=time.perf_counter() - start, oidn=metrics.all_metrics(oidn, ref))
-            panels.insert(len(panels) - 1, (f"OIDN relMSE {found['oidn']['relmse']:.4f}", oidn))
+        found.update(_anchors(noisy_path, noisy, ref, panels, reading))
     panels.append(("reference", ref))
     png = side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene)
     return EvaluatedFrame(scene, spp, raw=metrics.all_metrics(noisy["default"], ref), denoised=denoised,
                           seconds=seconds, layout=frame.layout, inputs=frame.inputs.name, model=str(denoiser.run.dir),
                           precision=denoiser.precision, ensemble=None if ensemble == DEFAULT_ENSEMBLE else ensemble,
                           png=str(png), **found)
+
+
+def _anchors(noisy_path: str, noisy: dict, ref: np.ndarray, panels: list, reading: ReadOptions) -> dict:
+    """The anchors' fields of a row: OIDN in each of its modes when ``pyoidn`` is installed (timed), and Blender's
+    own denoised frame where it lies beside ``noisy_path``; each one's panel goes in before the network's."""
+    found = {}
+    if baselines.oidn_available():
+        for mode in baselines.OIDN_MODES:
+            key = baselines.OIDN_KEYS[mode]
+            start = time.perf_counter()
+            oidn = baselines.oidn_denoise(noisy, mode=mode)
+            found.update({f"{key}_seconds": time.perf_counter() - start, key: metrics.all_metrics(oidn, ref)})
+            label = "OIDN" if mode == "plain" else f"OIDN {mode}"
+            panels.insert(len(panels) - 1, (f"{label} relMSE {found[key]['relmse']:.4f}", oidn))
+    own = baselines.renderer_denoised(noisy_path)
+    if own.is_file():
+        blender = reading.for_reference().read(own).layers["default"]
+        found["blender"] = metrics.all_metrics(blender, ref)
+        panels.insert(len(panels) - 1, (f"Blender relMSE {found['blender']['relmse']:.4f}", blender))
+    return found
 
 
 def _value(row: EvaluatedFrame, where):
@@ -279,8 +337,8 @@ def _value(row: EvaluatedFrame, where):
     return float("nan") if value is None else value
 
 
-def _cells(row: EvaluatedFrame) -> list[str]:
-    values = [(fmt, _value(row, where)) for _, fmt, where in COLUMNS]
+def _cells(row: EvaluatedFrame, columns=COLUMNS) -> list[str]:
+    values = [(fmt, _value(row, where)) for _, fmt, where in columns]
     return ["" if value is None else fmt.format(value) for fmt, value in values]  # None: the mean row's spp
 
 
@@ -288,7 +346,7 @@ def mean_row(rows: list[EvaluatedFrame]) -> EvaluatedFrame:
     """The table's mean row: the mean over ``rows`` of each column (for relSE p99.9 the mean of the scenes'
     percentiles, not a percentile of all their pixels); a method some row lacks is left out (NaN in the table)."""
     means = {}
-    for _, _, where in COLUMNS:
+    for _, _, where in (*COLUMNS, *ANCHOR_COLUMNS):
         if isinstance(where, tuple) and all(getattr(r, where[0]) is not None for r in rows):
             means.setdefault(where[0], {})[where[1]] = float(np.mean([_value(r, where) for r in rows]))
     return EvaluatedFrame("**mean**", None, seconds=float(np.mean([r.seconds for r in rows])), **means)
@@ -296,6 +354,14 @@ def mean_row(rows: list[EvaluatedFrame]) -> EvaluatedFrame:
 
 def format_table(rows: list[EvaluatedFrame]) -> str:
     """A Markdown table, one row per scene, with a :func:`mean_row` where there are several."""
-    lines = ["| " + " | ".join(name for name, _, _ in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-    lines += ["| " + " | ".join(_cells(r)) + " |" for r in rows + ([mean_row(rows)] if len(rows) > 1 else [])]
+    columns = table_columns(rows)
+    names = [name for name, _, _ in columns]
+    lines = ["| " + " | ".join(names) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(_cells(r, columns)) + " |" for r in rows]
+    if len(rows) > 1:
+        cells = _cells(mean_row(rows), columns)
+        if "won" in names:  # the mean row's: the frames won, of those judged
+            judged = [r.won for r in rows if r.won is not None]
+            cells[names.index("won")] = f"{judged.count('yes')} of {len(judged)}" if judged else ""
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

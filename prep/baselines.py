@@ -1,8 +1,13 @@
 """Denoisers to compare the networks with, at the same input spp: non-local means (always there) and Intel
-Open Image Denoise (the yardstick users hold up; the optional ``pyoidn`` package, ``pip install '.[oidn]'``).
+Open Image Denoise (the yardstick users hold up; the optional ``pyoidn`` package, ``pip install '.[oidn]'``) in
+each of :data:`OIDN_MODES`; and the anchors a frame is judged against (:data:`ANCHORS`, :func:`anchor`): a frame
+is won only where kpcn's relMSE is below the best of plain OIDN, prefiltered OIDN (as Blender runs it) and, where
+the folder has it, the renderer's own denoised frame (:func:`renderer_denoised`).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -36,20 +41,83 @@ def oidn_available() -> bool:
     return importlib.util.find_spec("pyoidn") is not None
 
 
-def oidn_denoise(aovs: dict[str, np.ndarray]) -> np.ndarray:
+OIDN_MODES = ("plain", "prefiltered")  # how OIDN treats the auxiliary layers; docs/design.md, "OIDN anchor"
+
+
+def _oidn_layers(aovs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The colour, albedo and normal layers as OIDN wants them: float32, contiguous, non-negative linear HDR
+    colour, albedo in [0, 1], normals in [-1, 1] (NaN to 0)."""
+
+    def layer(name, lo, hi):
+        return np.ascontiguousarray(np.clip(np.nan_to_num(aovs[name]), lo, hi), dtype=np.float32)
+
+    return layer("default", 0.0, np.finfo(np.float32).max), layer("albedo", 0.0, 1.0), layer("normal", -1.0, 1.0)
+
+
+def _oidn_auxiliary(pyoidn, device, name: str, image: np.ndarray) -> np.ndarray:
+    """OIDN's own denoise of one auxiliary layer: an ``RT`` filter with ``image`` as its only input, set in
+    the ``name`` slot (``albedo`` or ``normal``), high quality, written to a new array."""
+    out = np.empty_like(image)
+    with pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT) as flt:
+        flt.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
+        flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, pyoidn.OIDN_FORMAT_FLOAT3)
+        flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
+        flt.commit()
+        flt.execute()
+    error = device.get_error()
+    if error is not None:
+        raise RuntimeError(f"OIDN's {name} filter failed: {error}")
+    return out
+
+
+def oidn_denoise(aovs: dict[str, np.ndarray], mode: str = "prefiltered") -> np.ndarray:
     """Intel Open Image Denoise's ``RT`` filter, high quality, on the HDR colour with the albedo and normal
-    layers of the same render as its auxiliary inputs (OIDN prefilters them: they are noisy too).
+    layers of the same render as its auxiliary inputs, in one of :data:`OIDN_MODES`:
+
+    - ``prefiltered`` (the default; Blender's default, its *Accurate* prefilter): the albedo and the normal are
+      each denoised first by an ``RT`` filter that has only that layer as input, then the colour is filtered
+      with the cleaned layers and ``cleanAux`` set. The strongest OIDN there is: the anchor the tables judge by.
+    - ``plain``: one call with the noisy albedo and normal as they are (``cleanAux`` off: OIDN guards itself
+      against their noise inside the one filter); what the tables called "OIDN" before the prefiltered mode.
 
     OIDN wants non-negative linear HDR colour, albedo in [0, 1] and normals in [-1, 1]; the layers are
-    clipped to that. ImportError (naming the package) if ``pyoidn`` is not installed.
+    clipped to that. ValueError for another mode; ImportError (naming the package) if ``pyoidn`` is not
+    installed.
     """
+    if mode not in OIDN_MODES:
+        raise ValueError(f"OIDN mode {mode!r}: expected one of {', '.join(OIDN_MODES)}")
     try:
         import pyoidn
     except ImportError:
         raise ImportError("Intel Open Image Denoise needs the optional package pyoidn: pip install '.[oidn]'") from None
 
-    def layer(name, lo, hi):
-        return np.ascontiguousarray(np.clip(np.nan_to_num(aovs[name]), lo, hi), dtype=np.float32)
+    colour, albedo, normal = _oidn_layers(aovs)
+    if mode == "plain":
+        return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True)
+    with pyoidn.Device() as device:
+        device.commit()
+        albedo = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_ALBEDO, albedo)
+        normal = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_NORMAL, normal)
+    return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, clean_aux=True)
 
-    colour = layer("default", 0.0, np.finfo(np.float32).max)
-    return pyoidn.denoise(colour, albedo=layer("albedo", 0.0, 1.0), normal=layer("normal", -1.0, 1.0), hdr=True)
+
+# The anchors a frame is judged against, by their keys in the studies' and evaluate's rows: OIDN in each of
+# OIDN_MODES and the renderer's own denoised frame where the folder has it.
+OIDN_KEYS = {"plain": "oidn", "prefiltered": "oidn_prefiltered"}  # "oidn" kept for plain: older reports read as before
+ANCHORS = (*OIDN_KEYS.values(), "blender")
+RENDERER_DENOISED = "-blender-oidn.exr"  # the name Blender's own denoised frame ends in, beside its noisy render
+
+
+def renderer_denoised(noisy_path: Path) -> Path:
+    """Where the renderer's own denoised frame of ``noisy_path`` is (``<scene>-<spp>spp-blender-oidn.exr``
+    beside it), if it wrote one."""
+    noisy_path = Path(noisy_path)
+    return noisy_path.with_name(noisy_path.name[: -len(".exr")] + RENDERER_DENOISED)
+
+
+def anchor(row: dict) -> tuple[str, dict] | None:
+    """The strongest anchor of a row that holds some of :data:`ANCHORS` as ``{"relmse": ...}`` scores: (its key,
+    its scores), the lowest relMSE of those present (the first of :data:`ANCHORS` on a tie); None where the row
+    has none. A frame is won only where kpcn's relMSE is strictly below this one's."""
+    present = [(key, row[key]) for key in ANCHORS if row.get(key) is not None]
+    return min(present, key=lambda kv: kv[1]["relmse"]) if present else None

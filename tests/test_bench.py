@@ -136,6 +136,21 @@ def test_bench_on_a_tiny_rendered_set_writes_every_figure(tmp_path, monkeypatch)
                                               "NLM"} <= set(names)
     assert all(f"| {name} |" in md for name in names)
     assert [(r["preset"], r["budget"]) for r in record["training"]] == [("cpu", 1.0), ("cpu", 2.0)]
+    from prep import baselines, metrics
+
+    if baselines.oidn_available():  # both OIDN modes, each a curve of its own, scored on the same inputs
+        modes = {m["name"]: m for m in record["methods"] if m["name"].startswith("OIDN")}
+        assert set(modes) == {"OIDN", "OIDN prefiltered"}
+        assert {r["method"] for r in record["equal_error"] if r["method"].startswith("OIDN")} == set(modes)
+        first = modes["OIDN"]["points"][0]["frames"][0]["scene"]
+        s = next(s for s in json.loads((tmp_path / "data/renders/b/config.json").read_text())["scenes"]
+                 if s["name"] == first)
+        noisy = render(Scene.from_dict(s["scene"]), 4, int(s["seeds"]["4"]), 24, 20)
+        ref = exr.read_aovs(tmp_path / "data/renders/b" / s["files"][max(s["files"], key=int)], variances=False)
+        for name, mode in (("OIDN", "plain"), ("OIDN prefiltered", "prefiltered")):
+            frame = next(f for f in modes[name]["points"][0]["frames"] if f["scene"] == first)
+            assert frame["relmse"] == pytest.approx(
+                metrics.relmse(baselines.oidn_denoise(noisy, mode=mode), ref["default"]), rel=1e-5)
 
     # the cpu row's figures, recomputed in float64 from a fresh render and the run's own denoiser
     meta = json.loads((tmp_path / "data/renders/b/config.json").read_text())

@@ -222,3 +222,66 @@ def test_evaluate_refuses_a_reference_of_another_size_before_any_work(fixture_no
     res = run_main("denoise", noisy, "--reference", ref, "--run", MODELS_DIR / DEFAULT_MODEL, "-o", out, cwd=tmp_path)
     assert_one_line_error(res, f"the reference {ref} is {size[1]}x{size[0]} but {noisy} is 64x64")
     assert not out.exists()
+
+
+def test_a_frame_is_won_only_below_the_strongest_anchor_and_old_reports_print_as_before():
+    def row(scene, den, oidn=None, pre=None, blender=None):
+        def s(v):
+            return None if v is None else _scores(v, 1.0, 0.1)
+
+        return EvaluatedFrame(scene, 8, raw=_scores(0.5, 9.0, 0.3), denoised=_scores(den, 0.5, 0.02), seconds=0.5,
+                              oidn=s(oidn), oidn_prefiltered=s(pre), blender=s(blender), png=f"{scene}.png")
+
+    rows = [row("a-000", 0.010, oidn=0.020, pre=0.015),  # below both modes: won
+            row("b-000", 0.010, oidn=0.020, pre=0.008),  # below plain, above prefiltered: lost
+            row("c-000", 0.010, oidn=0.020, pre=0.015, blender=0.009),  # above Blender's own: lost
+            row("d-000", 0.010, oidn=0.020, pre=0.015, blender=0.011)]  # below all three: won
+    assert [r.won for r in rows] == ["yes", "no", "no", "yes"]
+    header, cells = _parse(format_table(rows))
+    assert header[header.index("OIDN relSE p99.9") + 1:] == ["OIDN prefiltered relMSE", "OIDN prefiltered relSE p99.9",
+                                                             "Blender relMSE", "Blender relSE p99.9", "won", "s/frame"]
+    assert [c[header.index("won")] for c in cells] == ["yes", "no", "no", "yes", "2 of 4"]
+    assert [c[header.index("Blender relMSE")] for c in cells] == ["nan", "nan", "0.0090", "0.0110", "nan"]
+    assert cells[-1][header.index("OIDN prefiltered relMSE")] == f"{np.mean([0.015, 0.008, 0.015, 0.015]):.4f}"
+    for r in rows:
+        assert EvaluatedFrame.from_json(json.loads(json.dumps(r.to_json()))) == r
+    # a report with plain OIDN alone (every report before the prefiltered mode) has the columns it always had
+    old = [row("a-000", 0.010, oidn=0.020), row("b-000", 0.030, oidn=0.020)]
+    assert _parse(format_table(old))[0] == [name for name, _, _ in COLUMNS]
+    assert [r.won for r in old] == ["yes", "no"]
+
+
+def test_evaluate_scores_both_oidn_modes_and_blenders_own_frame_beside_the_render(tiny_run, tmp_path, capsys):
+    from helpers.tiny import random_aovs
+
+    from prep import baselines, layouts
+
+    for scene, seed in (("x", 0), ("y", 1)):
+        exr.write_aovs(tmp_path / f"{scene}-00004spp.exr", random_aovs(16, 16, seed=seed))
+        exr.write_aovs(tmp_path / f"{scene}-00064spp.exr", random_aovs(16, 16, seed=seed + 10, variances=False))
+    blender = random_aovs(16, 16, seed=7, variances=False)
+    exr.write_aovs(tmp_path / "x-00004spp-blender-oidn.exr", blender)  # y has none: its Blender cell is NaN
+    out = tmp_path / "out"
+    assert main(["-q", "evaluate", "--run", str(tiny_run), str(tmp_path), "--out", str(out)]) == 0
+    rows = {r.scene: r for r in read_rows(out)}
+    assert set(rows) == {"x", "y"}
+    ref = exr.read_aovs(tmp_path / "x-00064spp.exr", variances=False)["default"]
+    assert rows["x"].blender == metrics.all_metrics(layouts.read(tmp_path / "x-00004spp-blender-oidn.exr")
+                                                    .layers["default"], ref)
+    assert rows["y"].blender is None
+    if baselines.oidn_available():
+        layers = layouts.read(tmp_path / "x-00004spp.exr").layers
+        for mode, key in baselines.OIDN_KEYS.items():
+            assert getattr(rows["x"], key) == metrics.all_metrics(baselines.oidn_denoise(layers, mode=mode), ref)
+    strongest = min(v["relmse"] for v in (rows["x"].oidn, rows["x"].oidn_prefiltered, rows["x"].blender) if v)
+    assert rows["x"].won == ("yes" if rows["x"].denoised["relmse"] < strongest else "no")
+    header, cells = _parse("\n".join(ln for ln in (out / "report.md").read_text().splitlines() if ln.startswith("|")))
+    assert cells[0][header.index("Blender relMSE")] == f"{rows['x'].blender['relmse']:.4f}"
+
+    # Blender's frame of another size: one line naming it, before any work
+    exr.write_aovs(tmp_path / "y-00004spp-blender-oidn.exr", random_aovs(8, 8, seed=3, variances=False))
+    capsys.readouterr()
+    assert main(["-q", "evaluate", "--run", str(tiny_run), str(tmp_path), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "y-00004spp-blender-oidn.exr is 8x8" in err[0] and "denoised frame of Blender" in err[0]
+    assert not (tmp_path / "o2" / "metrics.json").exists()

@@ -184,8 +184,9 @@ def _means(rows, spp, method, metric):
 
 
 def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
-    from kpcn_keras.card import HELD_OUT_COLUMNS, VALIDATION_COLUMNS, card_tables
+    from kpcn_keras.card import HELD_OUT_COLUMNS, VALIDATION_COLUMNS, card_tables, with_anchors
     from kpcn_keras.evaluate import read_rows
+    from prep import baselines
 
     tables = card_tables((shipped / "CARD.md").read_text())
     rows = read_rows(evaluated_run.eval_dir)
@@ -195,7 +196,7 @@ def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
     for line in held[1:]:
         spp = int(line[0])
         assert int(line[1]) == sum(r.spp == spp for r in rows)
-        for cell, (_, method, metric) in zip(line[2:], HELD_OUT_COLUMNS):
+        for cell, (_, method, metric) in zip(line[2:], with_anchors(HELD_OUT_COLUMNS, rows), strict=False):
             mean = _means(rows, spp, method, metric)
             if mean is None or not np.isfinite(mean):
                 assert cell == "–"
@@ -204,11 +205,18 @@ def test_the_cards_tables_are_the_runs_reports(evaluated_run, shipped):
     validation = read_rows(evaluated_run.validation_dir)
     lines = tables["Validation frames"][1:]
     assert len(lines) == len(validation) + (len(validation) > 1)
+    columns = with_anchors(VALIDATION_COLUMNS, validation)
+    if baselines.oidn_available():  # prefiltered OIDN beside plain, and which frames are won against the better
+        assert [h for h, _, _ in columns[-2:]] == ["OIDN prefiltered relMSE", "OIDN prefiltered DSSIM"]
+        assert tables["Validation frames"][0][-1] == held[0][-1] == "won"
     for line, row in zip(lines, validation):
         assert line[:3] == [row.scene, str(row.spp), "no-split-no-variance"]
-        for cell, (_, method, metric) in zip(line[3:], VALIDATION_COLUMNS):
+        for cell, (_, method, metric) in zip(line[3:], columns, strict=False):
             value = row.score(method, metric)
             assert cell == "–" if value is None else float(cell) == pytest.approx(value, abs=5e-5)
+        if baselines.oidn_available():
+            best = min(row.oidn["relmse"], row.oidn_prefiltered["relmse"])
+            assert line[-1] == ("yes" if row.denoised["relmse"] < best else "no")
     curve = tables["Learning curve"]
     assert {line[0] for line in curve[1:]} == set(INPUT_SETS)
 

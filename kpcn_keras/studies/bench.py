@@ -353,17 +353,22 @@ def baseline_methods(cfg: BenchConfig, scenes, seconds, inputs, log) -> list[dic
                            seconds, inputs)]
     if baselines.oidn_available():
         out.append(denoiser_method("OIDN", "baseline", "Intel Open Image Denoise, RT filter with albedo and "
-                                   "normal, high quality (pretrained)", baselines.oidn_denoise, cfg, scenes,
-                                   seconds, inputs))
+                                   "normal, high quality (pretrained)",
+                                   lambda a: baselines.oidn_denoise(a, mode="plain"), cfg, scenes, seconds, inputs))
+        out.append(denoiser_method("OIDN prefiltered", "baseline", "Intel Open Image Denoise as Blender runs it: "
+                                   "albedo and normal denoised first by its own filters, then the colour with "
+                                   "cleanAux (pretrained)", lambda a: baselines.oidn_denoise(a, mode="prefiltered"),
+                                   cfg, scenes, seconds, inputs))
     else:
         log("[OIDN] not installed (pip install '.[oidn]'): no OIDN curve")
     return out
 
 
 def equal_error_rows(cfg: BenchConfig, methods: list[dict], scenes: list[dict], seconds: dict) -> list[dict]:
-    """For each denoiser (ours, OIDN, NLM) and input spp: the per-scene equal-error spp and time saving."""
+    """For each denoiser (ours, OIDN in both modes, NLM) and input spp: the per-scene equal-error spp and time
+    saving."""
     rows = []
-    wanted = [OURS, "OIDN", "NLM"]
+    wanted = [OURS, "OIDN", "OIDN prefiltered", "NLM"]
     for method in sorted((m for m in methods if m["name"] in wanted), key=lambda m: wanted.index(m["name"])):
         for point in method["points"]:
             per_scene = []

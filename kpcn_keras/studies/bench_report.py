@@ -146,7 +146,9 @@ def plot_figure(record: dict):
               ("relse_p999", "relSE p99.9 (geometric mean over scenes)"))
     # fixed styles for the yardsticks, and a colour of its own for each network (tab20 has enough)
     fixed = {"raw Monte Carlo": dict(color="black", lw=2, marker="o"),
-             "OIDN": dict(color="crimson", ls="--", marker="s"), "NLM": dict(color="grey", ls="--", marker="s")}
+             "OIDN": dict(color="crimson", ls="--", marker="s"),
+             "OIDN prefiltered": dict(color="crimson", ls=":", marker="D"),
+             "NLM": dict(color="grey", ls="--", marker="s")}
     networks = [m["name"] for m in record["methods"] if m["name"] not in fixed]
     # tab10 without its red and grey (OIDN's and NLM's), then tab20's light shades
     colours = [plt.cm.tab10.colors[i] for i in (0, 1, 2, 4, 5, 6, 8, 9)] + list(plt.cm.tab20.colors[1::2])

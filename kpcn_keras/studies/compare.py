@@ -410,7 +410,7 @@ def measure(cfg: CompareConfig, plans: dict, *, log=print) -> tuple[list[dict], 
     oidn_here = baselines.oidn_available()
     if oidn_here:
         baseline_rows.append(("OIDN", "Intel Open Image Denoise, RT filter with albedo and normal (pretrained)",
-                              baselines.oidn_denoise))
+                              lambda aovs: baselines.oidn_denoise(aovs, mode="plain")))
     for name, what, fn in baseline_rows:
         scores = frame_scores([fn(f["noisy"]) for f in frames], frames)
         ms, samples = _median_ms(lambda fn=fn: fn(crop), cfg.repeats)

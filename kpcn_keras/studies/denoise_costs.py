@@ -87,7 +87,7 @@ def main() -> None:
                       for n in args.ensembles})
     calls = {p: (lambda d=d: d(layers)["default"]) for p, d in denoisers.items()}
     if baselines.oidn_available():
-        calls["oidn"] = lambda: baselines.oidn_denoise(layers)
+        calls["oidn"] = lambda: baselines.oidn_denoise(layers, mode="plain")
     outputs = {name: call() for name, call in calls.items()}  # the warm-ups
     best = dict.fromkeys(calls, float("inf"))
     for _ in range(args.repeats):

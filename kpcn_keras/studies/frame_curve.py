@@ -84,7 +84,8 @@ def measure(run_dir: Path, folder: Path, frame_folders: list[str], spp: set[int]
         scene, frame_spp = exr.parse_render_filename(noisy)
         layers = layouts.read(noisy).layers
         reference = layouts.read(ref).layers["default"]
-        oidn = metrics.relmse(baselines.oidn_denoise(layers), reference) if baselines.oidn_available() else None
+        oidn = (metrics.relmse(baselines.oidn_denoise(layers, mode="plain"), reference)
+                if baselines.oidn_available() else None)
         frames.append({"source": source, "name": f"{Path(noisy).parent.name}/{scene} {frame_spp} spp",
                        "layers": layers, "reference": reference, "oidn": oidn})
     final = {b: run.load_component(record, b) for b in record.branches}

@@ -5,9 +5,10 @@ frames one method wins, the grouping by input spp, and the panels.
 - **Other renderers' frames** (:func:`renderer_pairs`): every ``<scene>-<spp>spp.exr`` under the given files or
   folders that is not its scene's reference (the same folder's render of the scene with the most samples), with
   that reference.
-- **Beside kpcn** (:func:`beside`): Intel Open Image Denoise on the frame's colour, albedo and normal (``pyoidn``;
-  left out when it is not installed) and, where the folder has it, the renderer's own denoised frame
-  (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render time).
+- **Beside kpcn** (:func:`beside`): Intel Open Image Denoise on the frame's colour, albedo and normal in both its
+  modes (``pyoidn``, ``prep.baselines.OIDN_MODES``; left out when it is not installed) and, where the folder has
+  it, the renderer's own denoised frame (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render
+  time); :data:`BESIDE_KEYS` names each one's key in a study's rows.
 - **Scores** (:func:`scores`): relMSE, DSSIM and relSE p99.9 of ``prep.metrics``, float64.
 - **Wins** (:func:`wins`): on how many frames one method's relMSE is strictly below another's, of the frames that
   have both.
@@ -26,7 +27,9 @@ import numpy as np
 from prep import baselines, colour, exr, layouts, metrics
 from prep.files import pyplot
 
-RENDERER_DENOISED = "-blender-oidn.exr"  # the validation set's name for Blender's own denoised frame
+RENDERER_DENOISED = baselines.RENDERER_DENOISED  # the validation set's name for Blender's own denoised frame
+# each denoiser beside kpcn by its key in a study's rows (prep.baselines.ANCHORS)
+BESIDE_KEYS = {"OIDN": "oidn", "OIDN prefiltered": "oidn_prefiltered", "Blender": "blender"}
 SCORES = ("relmse", "dssim", "relse_p999")
 PANEL_COLUMNS = ("input", "kpcn", "OIDN", "Blender", "reference")
 
@@ -62,17 +65,16 @@ def renderer_pairs(paths) -> list[tuple[Path, Path]]:
     return [(Path(a), Path(b)) for a, b in pairs_for_inputs([str(p) for p in noisy])]
 
 
-def renderer_denoised(noisy_path: Path) -> Path:
-    """Where the renderer's own denoised frame of ``noisy_path`` is, if it wrote one."""
-    return noisy_path.with_name(noisy_path.name[: -len(".exr")] + RENDERER_DENOISED)
+renderer_denoised = baselines.renderer_denoised
 
 
 def beside(noisy_path: Path, layers: dict) -> dict[str, np.ndarray]:
-    """The other denoisers' outputs for a frame: ``OIDN`` when ``pyoidn`` is installed, ``Blender`` when the
-    renderer's own denoised frame is beside it."""
+    """The other denoisers' outputs for a frame: ``OIDN`` (plain) and ``OIDN prefiltered`` when ``pyoidn`` is
+    installed, ``Blender`` when the renderer's own denoised frame is beside it."""
     out = {}
     if baselines.oidn_available():
-        out["OIDN"] = baselines.oidn_denoise(layers)
+        out["OIDN"] = baselines.oidn_denoise(layers, mode="plain")
+        out["OIDN prefiltered"] = baselines.oidn_denoise(layers, mode="prefiltered")
     own = renderer_denoised(Path(noisy_path))
     if own.exists():
         out["Blender"] = layouts.read(own).layers["default"]

@@ -126,7 +126,7 @@ def held_out(cfg: InputsStudyConfig, plans: dict, *, log=print) -> dict:
     rows = [{"frame": f["name"], "raw": _scores(f["noisy"]["default"], f["reference"])} for f in frames]
     if baselines.oidn_available():
         for row, f in zip(rows, frames):
-            row["oidn"] = _scores(baselines.oidn_denoise(f["noisy"]), f["reference"])
+            row["oidn"] = _scores(baselines.oidn_denoise(f["noisy"], mode="plain"), f["reference"])
     for inputs in INPUT_SETS:
         den = Denoiser.from_run(Run(plans[inputs]["run"]))
         for row, f in zip(rows, frames):
@@ -197,7 +197,7 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
             row[key] = _scores(serving.denoiser(inputs)(frame_layers)["default"], ref)
             row[f"{key}_model"] = serving.record(inputs).inputs.name
         if baselines.oidn_available():
-            row["oidn"] = _scores(baselines.oidn_denoise(layers), ref)
+            row["oidn"] = _scores(baselines.oidn_denoise(layers, mode="plain"), ref)
         rows.append(row)
         log(f"inputs-study: pair {first.name} + {second.name}: relMSE without variance "
             f"{row['without']['relmse']:.4f}, with the pair's {row['pair']['relmse']:.4f}")

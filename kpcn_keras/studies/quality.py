@@ -82,6 +82,7 @@ from kpcn_keras.studies.compare import (
 )
 from kpcn_keras.studies.config import QUALITY_BASE, QUALITY_LEVERS, QualityConfig
 from kpcn_keras.studies.frames import (
+    BESIDE_KEYS,
     beside,
     panels_figure,
     renderer_pairs,
@@ -284,7 +285,8 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
         row = {"kind": "held-out", "frame": f["name"], "scene": scene, "spp": spp,
                "raw": scores(f["noisy"]["default"], f["reference"]), "levers": {}}
         if oidn:
-            row["oidn"] = scores(baselines.oidn_denoise(f["noisy"]), f["reference"])
+            for mode, key in baselines.OIDN_KEYS.items():
+                row[key] = scores(baselines.oidn_denoise(f["noisy"], mode=mode), f["reference"])
         rows.append(row)
     for f in frames:
         row = {"kind": "validation", "frame": validation_name(f), "scene": f["scene"],
@@ -292,7 +294,7 @@ def measure(cfg: QualityConfig, plans: dict, held: list[dict], frames: list[dict
                "renderer": f["renderer"], "layout": f["frame"].layout, "inputs": f["frame"].inputs.name,
                "raw": scores(f["frame"].layers["default"], f["reference"]), "levers": {}}
         for name, image in f["beside"].items():
-            row[name.lower()] = scores(image, f["reference"])
+            row[BESIDE_KEYS[name]] = scores(image, f["reference"])
         rows.append(row)
     servings = {}  # one per run, so two levers of one run load its networks once
     for lever, plan in plans.items():

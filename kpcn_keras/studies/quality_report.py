@@ -2,7 +2,8 @@
 and writing it.
 
 - **Judging** (:func:`best`, :func:`verdict`, :func:`default_target`, :func:`share_target`, :func:`dssim_target`):
-  the headline lever by frames, each lever and the measured model against OIDN and against the targets.
+  the headline lever by frames, each lever and the measured model against the anchor (a frame's strongest of plain
+  OIDN, prefiltered OIDN and Blender's own frame: ``prep.baselines.anchor``) and against the targets.
 - **quality.md** (:func:`format_report`): the levers, the tables of both kinds per input spp, each validation
   frame, the targets, the model beside the levers, the rules.
 - **quality.png** (:func:`panel_entries`, :func:`redraw_panels`): input | kpcn (the headline's lever) | the model
@@ -26,13 +27,13 @@ from kpcn_keras.config import DEFAULT_ENSEMBLE
 from kpcn_keras.studies.compare import against
 from kpcn_keras.studies.frames import PANEL_COLUMNS, SCORES, beside, by_spp, panels_figure
 from kpcn_keras.studies.report import Report
-from prep import layouts
+from prep import baselines, layouts
 from prep.files import read_json
 
 REPORT = "quality"  # quality.json, quality.md, quality.png in the report folder
 KINDS = ("held-out", "validation")
-BASELINES = ("raw", "oidn", "blender")
-LABELS = {"raw": "raw input", "oidn": "OIDN", "blender": "Blender's own"}
+BASELINES = ("raw", *baselines.ANCHORS)
+LABELS = {"raw": "raw input", "oidn": "OIDN", "oidn_prefiltered": "OIDN prefiltered", "blender": "Blender's own"}
 # the model measured beside the levers (the shipped one unless --model): its key in the record and in each row.
 # Not a lever: it trained for as long as it kept improving, not for the budget
 MODEL = "model"
@@ -65,13 +66,22 @@ def scores_of(row: dict, method: str) -> dict:
     return row[MODEL] if method == MODEL else row["levers"][method]
 
 
+def anchor_of(row: dict) -> dict | None:
+    """The scores of a frame's anchor: the lowest relMSE of plain OIDN, prefiltered OIDN (a record from before it
+    has plain alone) and Blender's own frame where the row has them (``prep.baselines.anchor``); None without
+    OIDN (Blender's frame alone does not make a frame judged: without OIDN nothing is counted)."""
+    if "oidn" not in row and "oidn_prefiltered" not in row:
+        return None
+    return baselines.anchor(row)[1]
+
+
 def against_oidn(rows: list[dict], method: str) -> dict | None:
-    """``method`` (a lever or :data:`MODEL`) against OIDN on the ``rows`` that have OIDN's scores
-    (``compare.against``: ``lower``, of ``frames``, ``median_ratio``); None where none has."""
-    both = [r for r in rows if "oidn" in r]
+    """``method`` (a lever or :data:`MODEL`) against the anchor (:func:`anchor_of`) on the ``rows`` that have
+    one (``compare.against``: ``lower``, of ``frames``, ``median_ratio``); None where none has."""
+    both = [r for r in rows if anchor_of(r) is not None]
     if not both:
         return None
-    return against({"frames": [scores_of(r, method) for r in both]}, {"frames": [r["oidn"] for r in both]})
+    return against({"frames": [scores_of(r, method) for r in both]}, {"frames": [anchor_of(r) for r in both]})
 
 
 def best(record: dict) -> str:
@@ -103,7 +113,10 @@ def share_target(rows: list[dict], method: str, share: Fraction) -> dict | None:
     OIDN's scores: ``lower`` (frames below OIDN's relMSE), ``frames``, ``needed`` (the frames the target asks for)
     and ``deciding``, the ratio to OIDN's relMSE of the frame that decides (the ``needed``-th lowest): below 1
     where the target is met, else how far it is out. None without such rows."""
-    ratios = sorted(scores_of(r, method)["relmse"] / r["oidn"]["relmse"] for r in rows if "oidn" in r)
+    def ratio(x: float, a: float) -> float:  # compare.against's convention where the anchor is exact
+        return x / a if a > 0 else (math.inf if x > 0 else 1.0)
+
+    ratios = sorted(ratio(scores_of(r, method)["relmse"], anchor_of(r)["relmse"]) for r in rows if anchor_of(r))
     if not ratios:
         return None
     needed = math.ceil(share * len(ratios))
@@ -119,12 +132,14 @@ def default_target(record: dict, method: str) -> dict | None:
 
 
 def dssim_target(record: dict, spp: int) -> dict | None:
-    """The model's mean DSSIM against OIDN's over the frames of both kinds at ``spp`` that have OIDN's scores
-    (``model``, ``oidn``, ``frames``); None without such frames."""
-    rows = [r for r in record["frames"] if r["spp"] == spp and "oidn" in r]
+    """The model's mean DSSIM against the anchors' over the frames of both kinds at ``spp`` that have an anchor
+    (``model``, ``oidn``: the mean of each frame's lowest DSSIM of its anchors, ``frames``); None without such
+    frames."""
+    rows = [r for r in record["frames"] if r["spp"] == spp and anchor_of(r) is not None]
     if not rows:
         return None
-    return {"model": mean(rows, MODEL, "dssim"), "oidn": mean(rows, "oidn", "dssim"), "frames": len(rows)}
+    lowest = [min(r[k]["dssim"] for k in baselines.ANCHORS if k in r) for r in rows]
+    return {"model": mean(rows, MODEL, "dssim"), "oidn": statistics.fmean(lowest), "frames": len(rows)}
 
 
 def _judged(ratio: float) -> str:
@@ -344,9 +359,13 @@ def _rules(record: dict) -> list[str]:
         "- **Same frames.** A lever with a render set of its own trains on a larger set rendered from the study's "
         "(the renders they share linked, the same bytes) whose validation scenes are the study's held-out scenes: "
         "no lever trains on a frame any lever is judged on.",
-        "- **By frames.** *Frames below OIDN's relMSE* counts the frames where the lever's relMSE is strictly "
-        "below OIDN's, of the frames OIDN has; the median ratio is over the same frames. A mean over frames can "
-        "be carried by one frame (`caustics`, whose reference is itself speckled); these cannot.",
+        "- **By frames, against the anchor.** A frame's anchor is the strongest of what it is judged against: "
+        "the lower relMSE of plain OIDN and OIDN as Blender runs it (albedo and normal prefiltered by OIDN's own "
+        "filters, then the colour with `cleanAux`), and of Blender's own denoised frame where the folder has it "
+        "(`prep/baselines.py`). *Frames below OIDN's relMSE* counts the frames where the lever's relMSE is "
+        "strictly below the anchor's, of the frames OIDN has; the median ratio (to *OIDN's*: the anchor's) is over "
+        "the same frames, and a DSSIM target is judged against each frame's lowest anchor DSSIM. A mean over "
+        "frames can be carried by one frame (`caustics`, whose reference is itself speckled); these cannot.",
         "- **Metrics** (`prep/metrics.py`): relMSE = mean((x − r)² / (r² + 0.01)); relSE p99.9, the error of the "
         "worst 0.1 % of pixels; DSSIM = (1 − SSIM) / 2 on tonemapped images. `quality.json` has every frame's "
         "values; `quality.png` shows input | kpcn (the best lever) | "

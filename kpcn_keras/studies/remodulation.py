@@ -81,7 +81,7 @@ def main() -> None:
                    if den.albedo_network is not None else None)
         albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k, s=s)
                                        for r, f, k, s in settings] + [learned, ref["albedo"] if whole else None]
-        scale = metrics.relmse(baselines.oidn_denoise(noisy), ref["default"]) if oidn else 1.0
+        scale = metrics.relmse(baselines.oidn_denoise(noisy, mode="plain"), ref["default"]) if oidn else 1.0
         floor = [np.nan] * len(albedos)
         if whole:
             irradiance = colour.irradiance(ref["diffuse"], ref["albedo"])
