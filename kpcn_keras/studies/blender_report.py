@@ -32,6 +32,7 @@ run, a recipe that is not JSON) is one line and exit status 2.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shlex
@@ -58,12 +59,11 @@ EXIT_USER_ERROR = 2
 
 def oidn_modes() -> dict:
     """The OIDN modes scored beside kpcn: name -> function of a frame's layers (``prep.layouts`` names) to the
-    denoised colour; none where ``pyoidn`` is not installed. The one place a mode joins (the prefiltered one,
-    ``oidn_prefiltered``: ``lambda layers: baselines.oidn_denoise(layers, mode="prefiltered")``, once
-    ``prep.baselines`` has it); every table and the "better OIDN mode" take what is here."""
+    denoised colour, one per ``prep.baselines.OIDN_MODES`` (``oidn_plain``, ``oidn_prefiltered``); none where
+    ``pyoidn`` is not installed. Every table and the "better OIDN mode" take what is here."""
     if not baselines.oidn_available():
         return {}
-    return {"oidn": baselines.oidn_denoise}
+    return {f"oidn_{mode}": functools.partial(baselines.oidn_denoise, mode=mode) for mode in baselines.OIDN_MODES}
 
 
 def model_method(name: str) -> str:
