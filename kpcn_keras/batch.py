@@ -309,12 +309,12 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     outputs = plan_outputs(inputs, output)
     serving = Serving(run, settings)
     headers = [reading.header(src) for src in inputs]
-    # a pair that is not a second render of the input is refused before a model is loaded
-    pair_size = pairs.check_header(inputs[0], reading.pair, reading.header).size if reading.pair is not None else None
+    if reading.pair is not None:  # a pair that is not a second render of the input (its size too), before a model loads
+        pairs.check_header(inputs[0], reading.pair, reading.header)
     # what each frame gives: a pair brings the variance its renders lack
     given = [InputSet(h.inputs.split, True) if reading.pair is not None else h.inputs for h in headers]
     _check_files(inputs, outputs, headers, serving.read_files(given), reference, reading, png=png,
-                 slope_map=slope_map, pair_size=pair_size)
+                 slope_map=slope_map)
     slopes = [slope] * len(inputs)
     if slope_map is not None:
         slopes = _read_slope_maps(slope_map, slope, [serving.record(g) for g in given], headers)
@@ -351,10 +351,10 @@ def _check_single_inputs(inputs: list[Path], reference, reading: ReadOptions) ->
 
 
 def _check_files(inputs: list[Path], outputs: list[Path], headers, models: list[tuple[str, Path]], reference,
-                 reading: ReadOptions, *, png: bool, slope_map, pair_size) -> None:
+                 reading: ReadOptions, *, png: bool, slope_map) -> None:
     """Before any work: no file written is one read (``models``: the model's files) or another written, each can
-    be written, the reference and the pair (of ``pair_size``) are each input's size, and this machine can hold
-    each frame."""
+    be written, the reference is each input's size (a pair's is ``prep.pairs.check_header``'s), and this machine
+    can hold each frame."""
     written = [("--output", out) for out in outputs] + [("side-by-side PNG", png_path(out)) for out in outputs if png]
     read = [("input", src) for src in inputs] + [(option, value) for option, value in
                                                  [("reference", reference), *reading.singles()] if value is not None]
@@ -363,9 +363,8 @@ def _check_files(inputs: list[Path], outputs: list[Path], headers, models: list[
     check_outputs(written, read + models, "choose another -o" + (" (or leave out --png)" if png else ""))
     ref_size = reading.for_reference().header(reference).size if reference is not None else None
     for src, header in zip(inputs, headers):
-        for other, path, size in (("reference", reference, ref_size), ("pair", reading.pair, pair_size)):
-            if size is not None:
-                layouts.check_same_size(src, header.size, path, size, other)
+        if ref_size is not None:
+            layouts.check_same_size(src, header.size, reference, ref_size)
         check_frame_memory(src, header.size, png=png, reference=reference is not None,
                            file_channels=header.channels, pair=reading.pair is not None)
     for out in outputs:
