@@ -656,14 +656,15 @@ def check_same_size(path, size: tuple[int, int], other, other_size: tuple[int, i
 @dataclass(frozen=True)
 class Header:
     """What a frame's header says: its size, the layout that reads it, the inputs it gives, its samples per
-    pixel (None if unknown) and how many channels its reader decodes whole beside the layers it makes (0 for
-    the kpcn layout, whose reader lets each go: ``Layout.decodes_whole``)."""
+    pixel (None if unknown), how many channels its reader decodes whole beside the layers it makes (0 for
+    the kpcn layout, whose reader lets each go: ``Layout.decodes_whole``) and its data window."""
 
     size: tuple[int, int]
     layout: str
     inputs: InputSet
     spp: int | None
     channels: int
+    data_window: tuple
 
 
 def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,
@@ -672,4 +673,4 @@ def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int 
     AOVError, as :func:`read` would raise it, for a layer the reader needs that is not whole."""
     image, adapter, ch, spp = _opened(path, layout, spp, view_layer)
     return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp,
-                  len(image.names) if adapter.decodes_whole else 0)
+                  len(image.names) if adapter.decodes_whole else 0, image.data_window)

@@ -51,10 +51,9 @@ def check_header(input_path, pair_path, read_header=layouts.read_header) -> layo
         raise OptionError("pair", f"{pair_path} is the input {input_path} itself: give a second render of the "
                                   "frame with another seed")
     heads = [read_header(p) for p in (input_path, pair_path)]
-    windows = [exr.read_image(p, header_only=True).data_window for p in (input_path, pair_path)]
     compared = [("layout", heads[0].layout, heads[1].layout),
                 ("size", *("x".join(map(str, h.size[::-1])) for h in heads)),
-                ("data window", *windows),
+                ("data window", heads[0].data_window, heads[1].data_window),
                 ("diffuse/specular split", heads[0].inputs.split, heads[1].inputs.split)]
     if None not in (heads[0].spp, heads[1].spp):
         compared.append(("spp", heads[0].spp, heads[1].spp))
