@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: blender-report model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-tune blender-report model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -127,6 +127,31 @@ model-tune: $(KPCN) $(BPY_VENV)/bin/python
 	cp -al $(MODEL_RUN)/inputs/no-split $(MODEL_RUN)/inputs/no-split-no-variance $(MODEL_RUN)-shipped/inputs/
 	cp -al $(MODEL_RUN)-$(CYCLES_SET)/inputs/no-variance $(MODEL_RUN)-shipped/inputs/
 	$(call evaluate_and_ship,$(MODEL_RUN)-shipped)
+
+# The Cycles world (docs/training.md §6): scenes of the effect catalogue rendered by kpcn render-cycles into
+# $(WORLD), growing run after run: stop it any time, the same command goes on where it stopped.
+WORLD ?= data/cycles/world
+WORLD_RENDER_ARGS ?= --scenes 0:400 --res 128 --spp 4,16,64 --ref-spp 1024
+world: $(KPCN) $(BPY_VENV)/bin/python
+	$(KPCN) render-cycles $(WORLD) --blender-python $(BPY_VENV)/bin/python $(WORLD_RENDER_ARGS)
+
+# The shipped model's no-variance network (the one that serves Cycles frames) trained on from where it is, on the
+# world's finished scenes beside make model's renders, as long as the held-out error falls (early stopping keeps
+# the best). The finished scenes become render set world-<N>; WORLD_SET names an earlier one, to resume its
+# training after the world grew. Held out: make model's scenes and every eighth of the world's (the first, the
+# ninth, ...). The run is runs/$(WORLD_SET); docs/training.md §6.
+WORLD_SET ?= world-$(shell $(BIN)/python -c 'import sys; from prep.imported import finished_scenes; print(len(finished_scenes(sys.argv[1])))' $(WORLD) 2>/dev/null)
+WORLD_TRAIN_ARGS ?= --preset cpu --lr 3e-4 --steps 12000 --decay-steps 12000 --patience 20
+WORLD_MIX := $(MODEL_SET)-$(WORLD_SET)
+world-tune: $(KPCN)
+	$(KPCN) render --set $(MODEL_SET) $(MODEL_RENDER_ARGS)
+	[ -d data/renders/$(WORLD_SET) ] || $(KPCN) import-renders $(WORLD) --set $(WORLD_SET)
+	mkdir -p data/renders/$(WORLD_MIX)
+	ln -f data/renders/$(MODEL_SET)/*.exr data/renders/$(WORLD_SET)/*.exr data/renders/$(WORLD_MIX)/
+	$(KPCN) shards --set $(WORLD_MIX) --inputs no-variance $(MODEL_SHARD_ARGS),$$(ls data/renders/$(WORLD_SET) | \
+		sed -n 's/-[0-9]*spp.exr$$//p' | sort -u | awk 'NR % 8 == 1' | paste -sd,)
+	$(KPCN) train --set $(WORLD_MIX) --inputs no-variance --run runs/$(WORLD_SET) --init models/default \
+		$(WORLD_TRAIN_ARGS)
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards

@@ -5,7 +5,9 @@ Every ``<scene>-<spp>spp.exr`` of SRC is read as kpcn reads it for denoising (``
 Mitsuba 3, PBRT-v4, kpcn's own) and written in kpcn's layout (``prep.exr``) into the render set
 (:class:`~prep.render.renderset.RenderSet`, ``<renders>/<set>/<same name>``), atomically; within a scene the file
 with the most samples is the reference, as for ``kpcn render``'s sets. Training needs the diffuse/specular split,
-so a frame without one is refused. A frame without variance layers (Cycles writes none) is written without them:
+so a frame without one is refused. In a folder that ``kpcn render-cycles`` is still filling, a scene whose recipe
+(``<scene>.json``) lists a frame not yet there is left out and said so: its frame with the most samples so far is no
+reference. A frame without variance layers (Cycles writes none) is written without them:
 such a set is cut with ``--inputs no-variance``, whose patch PDF then reads each input's error to its reference
 (``prep.sampling.reference_error_variances``); a set with variance inputs refuses it, naming the layer.
 
@@ -24,6 +26,7 @@ from pathlib import Path
 
 from prep import exr, layouts
 from prep.errors import KpcnError
+from prep.render.cycles import catalogue
 from prep.render.renderset import RenderSet
 from prep.shards.renders import discover_renders
 
@@ -39,8 +42,11 @@ def import_renders(src: str | Path, render_set: RenderSet, on_frame: Callable[[s
     if out.exists():
         raise KpcnError(f"{out}: the set folder exists; remove it or choose another --set")
     # the renders kpcn shards would find there: named by scene and spp, each scene with a reference
-    paths = sorted(Path(s.path) for scene in discover_renders(Path(src)).values()
-                   for s in (*scene["inputs"], scene["reference"]))
+    unfinished = unfinished_scenes(src)
+    for name in unfinished:
+        on_frame(f"{name}: left out, its recipe lists frames not rendered yet")
+    scenes = discover_renders(Path(src), leave_out=unfinished)
+    paths = sorted(Path(s.path) for scene in scenes.values() for s in (*scene["inputs"], scene["reference"]))
     for path in paths:
         header = layouts.read_header(path)
         if not header.inputs.split:
@@ -53,3 +59,16 @@ def import_renders(src: str | Path, render_set: RenderSet, on_frame: Callable[[s
         written.append(exr.write_aovs(out / path.name, {name: frame.layers[name] for name in keep}))
         on_frame(f"{path.name}: {frame.layout}, {frame.inputs}")
     return written
+
+
+def unfinished_scenes(src: str | Path) -> list[str]:
+    """The scenes of a ``kpcn render-cycles`` folder whose recipe lists a frame that is not there (yet)."""
+    cat = catalogue()
+    return [r["name"] for r in cat.read_recipes(str(src))
+            if not all((Path(src) / cat.frame_name(r["name"], spp)).is_file() for spp in r.get("frames", []))]
+
+
+def finished_scenes(src: str | Path) -> list[str]:
+    """The scenes of a ``kpcn render-cycles`` folder with every frame their recipe lists."""
+    unfinished = set(unfinished_scenes(src))
+    return [r["name"] for r in catalogue().read_recipes(str(src)) if r["name"] not in unfinished]

@@ -1,4 +1,5 @@
 """kpcn import-renders (prep/imported.py): another renderer's frames become a render set in kpcn's layout."""
+import json
 import shutil
 from pathlib import Path
 
@@ -64,3 +65,19 @@ def test_a_missing_source_folder_is_one_line_naming_it(tmp_path):
     res = run_main("import-renders", tmp_path / "nowhere", "--set", "mine", "--renders", tmp_path / "r", cwd=tmp_path)
     assert_one_line_error(res, "import-renders", "nowhere: no such folder of renders to import")
     assert not (tmp_path / "r").exists()
+
+
+def test_a_scene_that_render_cycles_has_not_finished_is_left_out_and_said_so(tmp_path):
+    src = _source(tmp_path)  # studio: 16 and 64 spp, both there
+    shutil.copy(CYCLES, src / "room-00016spp.exr")  # room: its 64-spp frame and reference not rendered yet
+    for index, (name, frames) in enumerate((("studio", [16, 64]), ("room", [16, 64, 1024]))):
+        (src / f"{name}.json").write_text(json.dumps({"seed": 0, "index": index, "name": name, "effects": [],
+                                                      "frames": frames}))
+    told = []
+    written = import_renders(src, RenderSet("cyc", tmp_path / "renders"), on_frame=told.append)
+    assert [p.name for p in written] == ["studio-00016spp.exr", "studio-00064spp.exr"]
+    assert told[0] == "room: left out, its recipe lists frames not rendered yet"
+    shutil.copy(CYCLES, src / "room-00064spp.exr")
+    shutil.copy(CYCLES, src / "room-01024spp.exr")
+    written = import_renders(src, RenderSet("cyc2", tmp_path / "renders"), on_frame=told.append)
+    assert [p.name for p in written][:3] == ["room-00016spp.exr", "room-00064spp.exr", "room-01024spp.exr"]

@@ -30,11 +30,12 @@ class Source:
     path: str
 
 
-def discover_renders(render_dir: Path, input_spp: int | None = None) -> dict[str, dict]:
+def discover_renders(render_dir: Path, input_spp: int | None = None, leave_out=()) -> dict[str, dict]:
     """``scene -> {"reference": Source, "inputs": [Source, ...]}`` for a folder of renders.
 
     Within a scene the file with the most samples is the reference; ``input_spp`` keeps only inputs of
-    that sample count. Dot-files (temporaries) are ignored. Errors name the folder or the scene.
+    that sample count; the scenes named in ``leave_out`` are not looked at. Dot-files (temporaries) are
+    ignored. Errors name the folder or the scene.
     """
     if not render_dir.is_dir():
         raise ShardError(f"{render_dir}: no such render folder (run 'kpcn render' first)")
@@ -43,6 +44,8 @@ def discover_renders(render_dir: Path, input_spp: int | None = None) -> dict[str
         if path.name.startswith("."):
             continue
         scene, spp = exr.parse_render_filename(path)
+        if scene in leave_out:
+            continue
         by_scene[scene].append(Source(scene, spp, str(path)))
     if not by_scene:
         raise ShardError(f"{render_dir}: no '<scene>-<spp>spp.exr' renders found")
