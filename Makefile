@@ -139,17 +139,20 @@ world: $(KPCN) $(BPY_VENV)/bin/python
 # world's finished scenes beside make model's renders, as long as the held-out error falls (early stopping keeps
 # the best). The finished scenes become render set world-<N>; WORLD_SET names an earlier one, to resume its
 # training after the world grew. Held out: make model's scenes and every eighth of the world's (the first, the
-# ninth, ...). The run is runs/$(WORLD_SET); docs/training.md §6.
+# ninth, ...). The run is runs/$(WORLD_SET); docs/training.md §6. WORLD_BESIDE= (empty) trains on the world alone.
 WORLD_SET ?= world-$(shell $(BIN)/python -c 'import sys; from prep.imported import finished_scenes; print(len(finished_scenes(sys.argv[1])))' $(WORLD) 2>/dev/null)
 WORLD_TRAIN_ARGS ?= --preset cpu --lr 3e-4 --steps 12000 --decay-steps 12000 --patience 20
-WORLD_MIX := $(MODEL_SET)-$(WORLD_SET)
+WORLD_BESIDE ?= $(MODEL_SET)
+WORLD_MIX := $(if $(WORLD_BESIDE),$(WORLD_BESIDE)-)$(WORLD_SET)
+WORLD_HELD_OUT = $(if $(WORLD_BESIDE),$(filter-out --val-scenes,$(MODEL_SHARD_ARGS)))
 world-tune: $(KPCN)
-	$(KPCN) render --set $(MODEL_SET) $(MODEL_RENDER_ARGS)
+	$(if $(WORLD_BESIDE),$(KPCN) render --set $(WORLD_BESIDE) $(MODEL_RENDER_ARGS))
 	[ -d data/renders/$(WORLD_SET) ] || $(KPCN) import-renders $(WORLD) --set $(WORLD_SET)
-	mkdir -p data/renders/$(WORLD_MIX)
-	ln -f data/renders/$(MODEL_SET)/*.exr data/renders/$(WORLD_SET)/*.exr data/renders/$(WORLD_MIX)/
-	$(KPCN) shards --set $(WORLD_MIX) --inputs no-variance $(MODEL_SHARD_ARGS),$$(ls data/renders/$(WORLD_SET) | \
-		sed -n 's/-[0-9]*spp.exr$$//p' | sort -u | awk 'NR % 8 == 1' | paste -sd,)
+	$(if $(WORLD_BESIDE),mkdir -p data/renders/$(WORLD_MIX) && \
+		ln -f data/renders/$(WORLD_BESIDE)/*.exr data/renders/$(WORLD_SET)/*.exr data/renders/$(WORLD_MIX)/)
+	$(KPCN) shards --set $(WORLD_MIX) --inputs no-variance --val-scenes $$(echo $(WORLD_HELD_OUT) \
+		$$(ls data/renders/$(WORLD_SET) | sed -n 's/-[0-9]*spp.exr$$//p' | sort -u | awk 'NR % 8 == 1') \
+		| tr ' ' '\n' | grep . | paste -sd,)
 	$(KPCN) train --set $(WORLD_MIX) --inputs no-variance --run runs/$(WORLD_SET) --init models/default \
 		$(WORLD_TRAIN_ARGS)
 
