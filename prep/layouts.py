@@ -330,18 +330,21 @@ class CyclesLayout(Layout):
         rgb = {role: ch.vector(layer) for role, layer in p.items() if role not in ("depth", "denoising_depth")}
         out = {"default": rgb["combined"][..., :3]}
         if self.inputs(ch, spp).split:
-            out["diffuse"] = exr.to_float32(
-                (rgb["diffuse_direct"].astype(np.float64) + rgb["diffuse_indirect"]) * rgb["diffuse_color"])
+            with np.errstate(invalid="ignore"):  # NaN passes: _combined_where_the_split_breaks
+                out["diffuse"] = exr.to_float32(
+                    (rgb["diffuse_direct"].astype(np.float64) + rgb["diffuse_indirect"]) * rgb["diffuse_color"])
             terms = [r for lobe in CYCLES_LOBES for r in (f"{lobe}_direct", f"{lobe}_indirect", f"{lobe}_color")]
             if all(r in p for r in terms + list(CYCLES_ADDED)):
-                out["specular"] = _sum(*[(rgb[f"{lobe}_direct"].astype(np.float64) + rgb[f"{lobe}_indirect"])
-                                         * rgb[f"{lobe}_color"] for lobe in CYCLES_LOBES],
-                                       *[rgb[r] for r in CYCLES_ADDED])
+                with np.errstate(invalid="ignore"):
+                    out["specular"] = _sum(*[(rgb[f"{lobe}_direct"].astype(np.float64) + rgb[f"{lobe}_indirect"])
+                                             * rgb[f"{lobe}_color"] for lobe in CYCLES_LOBES],
+                                           *[rgb[r] for r in CYCLES_ADDED])
             else:
                 lacking = [CYCLES_PASSES[r][0] for r in terms + list(CYCLES_ADDED) if r not in p]
                 notes.append(f"passes {', '.join(lacking)} missing: specular = Combined - diffuse, clipped at 0")
                 out["specular"] = exr.to_float32(np.maximum(out["default"].astype(np.float64) - out["diffuse"], 0))
             out["albedo"] = rgb["diffuse_color"]
+            _combined_where_the_split_breaks(out, notes)
             if "denoising_albedo" in p:
                 out["alternative.albedo"] = np.clip(rgb["denoising_albedo"], 0.0, 1.0)
         elif "denoising_albedo" in p:
@@ -674,3 +677,21 @@ def read_header(path: str | os.PathLike, layout: str | None = None, *, spp: int 
     image, adapter, ch, spp = _opened(path, layout, spp, view_layer)
     return Header(image.size, adapter.name, adapter.inputs(ch, spp), spp,
                   len(image.names) if adapter.decodes_whole else 0, image.data_window)
+
+
+def _combined_where_the_split_breaks(out: dict, notes: list) -> None:
+    """Where a pixel's composed split is not finite but Combined is (Cycles writes NaN colour passes at some
+    pixels of volumes), the pixel's Combined goes to specular, its diffuse and albedo are 0, as for light
+    scattered in a medium: the split still sums to Combined, where repairing each layer alone would zero both
+    branches and a denoised frame would come out black there."""
+    finite = lambda a: np.isfinite(a).all(axis=-1)  # noqa: E731
+    broken = ~(finite(out["diffuse"]) & finite(out["specular"])) & finite(out["default"])
+    if not broken.any():
+        return
+    for name in ("diffuse", "specular", "albedo"):
+        out[name] = np.array(out[name], dtype=np.float32)  # own, writable copies
+    out["diffuse"][broken] = 0.0
+    out["albedo"][broken] = 0.0
+    out["specular"][broken] = out["default"][broken]
+    notes.append(f"{int(broken.sum())} pixels whose light passes are not finite where Combined is: "
+                 "their Combined read as specular")

@@ -258,6 +258,28 @@ def test_a_cycles_file_with_a_volume_reads_combined_as_the_sum_of_its_split():
     assert np.abs(total - combined).max() <= 4 * np.finfo(np.float32).eps * np.abs(combined).max()
 
 
+def test_pixels_whose_cycles_passes_are_nan_keep_their_combined_as_specular(tmp_path):
+    # Blender writes NaN colour passes at some pixels of a smoke volume while their Combined is finite; the
+    # split must still sum to Combined there (each layer's own repair would give 0 + 0: a black pixel)
+    channels = cycles_channels(6, 5, seed=3)
+    hit = np.zeros((6, 5), bool)
+    hit[0, 1] = hit[4, 3] = True
+    for name in ("Diffuse Color", "Glossy Color", "Transmission Color"):
+        for c in "RGB":
+            channels[f"ViewLayer.{name}.{c}"][hit] = np.nan
+    path = write_channels(tmp_path / "smoke-00016spp.exr", channels, parts_of(channels))
+    frame = layouts.read(path)
+    combined = np.stack([channels[f"ViewLayer.Combined.{c}"] for c in "RGB"], axis=-1).astype(np.float64)
+    total = frame.layers["diffuse"].astype(np.float64) + frame.layers["specular"]
+    np.testing.assert_allclose(total, combined, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(frame.layers["specular"][hit], combined[hit].astype(np.float32))
+    assert not frame.layers["diffuse"][hit].any() and not frame.layers["albedo"][hit].any()
+    assert all(np.isfinite(a).all() for a in frame.layers.values())
+    assert any("2 pixels whose light passes are not finite" in n for n in frame.notes)
+    untouched = layouts.read(write_channels(tmp_path / "clean-00016spp.exr", cycles_channels(6, 5, seed=3)))
+    np.testing.assert_array_equal(frame.layers["diffuse"][~hit], untouched.layers["diffuse"][~hit])
+
+
 def test_blender_5s_multi_part_and_interleaved_files_read_alike():
     multi = layouts.read(RENDERERS / "cycles5" / "studio-00016spp.exr")
     interleaved = layouts.read(RENDERERS / "cycles5-interleaved" / "studio-00016spp.exr")
