@@ -1,12 +1,12 @@
 """``kpcn``: the command line of the toolkit.
 
 Subcommands: render, references, render-cycles, cycles-validation, import-renders, shards, train, resample, denoise,
-evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each
-fills its stage's config dataclass from the options the user gave; an option left out takes the dataclass's default.
-The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass
-holds (``--slope``, ``--port``, ...) are checked against their bounds before the command starts. The inference
-settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``, the model as one
-``Run``, each made once here.
+evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each
+(:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user gave; an option left out takes
+the dataclass's default. The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few
+options no dataclass holds (``--slope``, ``--port``, ...) are checked against their bounds before the command
+starts. The inference settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``,
+the model as one ``Run``, each made once here.
 ``render``, ``references``, ``render-cycles``, ``cycles-validation``, ``import-renders``, ``shards``, ``bench render``
 and ``figures --set`` never import keras or torch.
 

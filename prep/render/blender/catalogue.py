@@ -500,7 +500,7 @@ def verify(out: str):
     for r in read_recipes(out):
         for name in planned_files(r):
             if name not in recorded:
-                return f"{os.path.join(out, name)}: planned by {r['name']}.json but not rendered (run the command again)"
+                return f"{os.path.join(out, name)}: planned by {r['name']}.json but not rendered (run it again)"
     return None
 
 

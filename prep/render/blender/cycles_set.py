@@ -368,7 +368,8 @@ def setup(recipe, spp, seed, factor, denoise=False, passes=True):
     c.max_bounces = 12
     c.use_denoising = denoise
     if denoise:
-        c.denoiser, c.denoising_input_passes, c.denoising_prefilter = "OPENIMAGEDENOISE", "RGB_ALBEDO_NORMAL", "ACCURATE"
+        c.denoiser, c.denoising_input_passes = "OPENIMAGEDENOISE", "RGB_ALBEDO_NORMAL"
+        c.denoising_prefilter = "ACCURATE"
     scene.render.resolution_x = scene.render.resolution_y = recipe["res"]
     scene.render.resolution_percentage = 100
     vl = scene.view_layers[0]
