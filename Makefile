@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-tune blender-report model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-tune blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -179,6 +179,15 @@ inputs-study: shards
 quality: shards
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) quality --set $(SET) $(QUALITY_ARGS)
+
+# the held-out Cycles validation set (kpcn cycles-validation: 12 scenes of the catalogue's validation split, inputs
+# at 4, 16, 64 spp, Blender's own denoised frame of each, 2048-spp references, the sha256 of each file in its
+# manifest): rendered where it is missing, resumed where it stopped, then checked against its checksums
+CYCLES_VALIDATION ?= data/cycles/validation
+CYCLES_VALIDATION_ARGS ?=
+cycles-validation: $(KPCN) $(BPY_VENV)/bin/python
+	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --blender-python $(BPY_VENV)/bin/python $(CYCLES_VALIDATION_ARGS)
+	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --verify
 
 # the shipped model (BLENDER_ARGS="--model before=models/default --model after=RUN" for several) on Blender's frames
 # beside Blender's own denoised frame and OIDN: reports/blender.{md,json,png}

@@ -1,14 +1,14 @@
 """``kpcn``: the command line of the toolkit.
 
-Subcommands: render, references, render-cycles, import-renders, shards, train, resample, denoise, evaluate, ship,
-figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each (:data:`COMMANDS`). Each
-fills its stage's config dataclass from the options the user gave; an option left out takes the dataclass's default.
-The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few options no dataclass
-holds (``--slope``, ``--port``, ...) are checked against their bounds before the command starts. The inference
-settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``, the model as one
-``Run``, each made once here.
-``render``, ``references``, ``render-cycles``, ``import-renders``, ``shards``, ``bench render`` and ``figures --set``
-never import keras or torch.
+Subcommands: render, references, render-cycles, cycles-validation, import-renders, shards, train, resample, denoise,
+evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each
+(:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user gave; an option left out takes
+the dataclass's default. The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few
+options no dataclass holds (``--slope``, ``--port``, ...) are checked against their bounds before the command
+starts. The inference settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``,
+the model as one ``Run``, each made once here.
+``render``, ``references``, ``render-cycles``, ``cycles-validation``, ``import-renders``, ``shards``, ``bench render``
+and ``figures --set`` never import keras or torch.
 
 Errors: a :class:`prep.errors.KpcnError` (bad input, a bad option, a folder in the wrong state) ends with
 one line naming the file, layer or option, and exit status 2; an option is named by its flag. Anything
@@ -104,6 +104,19 @@ def cmd_render_cycles(args) -> int:
     out = render_cycles(cfg)
     print(manifest_summary(out))
     print(f"frames in {out}; kpcn import-renders {out} --set NAME makes them a render set")
+    return 0
+
+
+def cmd_cycles_validation(args) -> int:
+    from prep.render.cycles import ValidationConfig, manifest_summary, render_validation, verify_validation
+
+    cfg = ValidationConfig(out=args.out, **_given(args, ValidationConfig))
+    if cfg.verify:
+        print(verify_validation(cfg.out))
+        return 0
+    out = render_validation(cfg)
+    print(manifest_summary(out))
+    print(verify_validation(out))
     return 0
 
 
@@ -391,6 +404,7 @@ COMMANDS = {
     "render": cmd_render,
     "references": cmd_references,
     "render-cycles": cmd_render_cycles,
+    "cycles-validation": cmd_cycles_validation,
     "import-renders": cmd_import_renders,
     "shards": cmd_shards,
     "train": cmd_train,

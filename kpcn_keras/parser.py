@@ -258,6 +258,29 @@ def _render_cycles_options(add) -> None:
                    f"makes one) {d('blender_python')}")
 
 
+def _cycles_validation_options(add) -> None:
+    """The options of ``kpcn cycles-validation``: the held-out Cycles validation set, or its check."""
+    from prep.render.cycles import ValidationConfig
+
+    v = add("cycles-validation", (ValidationConfig,), help="render the held-out Cycles validation set (scenes of "
+            "the catalogue's validation split, drawn apart from every training scene, each carrying two effect "
+            "groups so that every group has two scenes or more): per scene an input per --spp with every pass, "
+            "Blender's own denoised frame of it (same seed: OIDN, albedo + normal, accurate prefilter) and a "
+            "reference of Combined alone; OUT/manifest.json records each file's sha256; resumes where it stopped")
+    d = _defaults(ValidationConfig)
+    v.add_argument("out", help="folder of the set (make cycles-validation: data/cycles/validation); a file "
+                   "already there is kept, so a killed run resumes")
+    v.add_argument("--scenes", type=int, help=f"how many scenes (indices 0 to N-1 of the split) {d('scenes')}")
+    v.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
+    v.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
+    v.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
+    v.add_argument("--seed", type=int, help=f"draws the scenes; another seed, other scenes {d('seed')}")
+    v.add_argument("--blender-python", help=f"a Python that has bpy, Blender's module {d('blender_python')}")
+    v.add_argument("--verify", action="store_true", help="render nothing: check every file of OUT against the "
+                   "sha256 its manifest records (exit status 2 and one line naming the first that is missing or "
+                   "differs)")
+
+
 def _import_renders_options(add) -> None:
     """The options of ``kpcn import-renders``: another renderer's frames into a render set."""
     from prep.render.renderset import RENDER_ROOT
@@ -695,6 +718,7 @@ BUILDERS = {
     "render": _render_options,
     "references": _references_options,
     "render-cycles": _render_cycles_options,
+    "cycles-validation": _cycles_validation_options,
     "import-renders": _import_renders_options,
     "shards": _shards_options,
     "train": _train_options,

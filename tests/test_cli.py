@@ -338,7 +338,8 @@ _POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame", "dilations"
 # what a command needs besides the option for its check to be reached (the option's bound is checked first)
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
           "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"],
-          "view": ["in.exr", "--run", "no-run"], "render-cycles": ["out"], "import-renders": ["src", "--set", "s"]}
+          "view": ["in.exr", "--run", "no-run"], "render-cycles": ["out"], "cycles-validation": ["out"],
+          "import-renders": ["src", "--set", "s"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
               ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"],
               ("train", "compositor_kernel"): ["--compositor", "kernel"],

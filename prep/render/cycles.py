@@ -142,3 +142,85 @@ def manifest_summary(out: str | Path) -> str:
     """The folder's manifest in a few lines (``OUT/manifest.json``, recounted from the folder)."""
     cat = catalogue()
     return cat.summary(cat.write_manifest(str(out)))
+
+
+VALIDATION_SCENES = Bound(1, 999)  # 9 or more cover each of the 9 effect groups twice (catalogue.forced_effects)
+
+
+@dataclass
+class ValidationConfig:
+    """What ``kpcn cycles-validation`` renders: the held-out Cycles validation set, scenes ``0:scenes`` of the
+    catalogue's validation split (drawn apart from every training scene: catalogue.SPLITS), each an input per
+    ``spp`` with every pass, Blender's own denoised frame of each (same seed), and a reference of Combined alone;
+    or, with ``verify``, the check of a folder against its manifest's checksums."""
+
+    out: str
+    scenes: int = bounded(12, VALIDATION_SCENES)
+    res: int = bounded(128, FRAME_SIDE)
+    spp: tuple[int, ...] = bounded((4, 16, 64), SPP, distinct=True)
+    ref_spp: int = bounded(2048, SPP)
+    seed: int = bounded(0, SEED)
+    blender_python: str = BLENDER_PYTHON
+    verify: bool = False
+
+    def __post_init__(self):
+        self.spp = tuple(self.spp)
+        check_fields(self)
+        if not self.out:
+            raise OptionError("out", "names no folder for the frames")
+        if self.ref_spp <= max(self.spp):
+            raise OptionError("ref_spp", f"must exceed every --spp, got {self.ref_spp} and {list(self.spp)}")
+
+
+def validation_command(cfg: ValidationConfig) -> list[str]:
+    """The command that renders ``cfg`` in its Python: :data:`BLENDER_SIDE` with ``--split validation``."""
+    return [cfg.blender_python, str(BLENDER_SIDE), cfg.out, "--split", "validation", "--scenes", f"0:{cfg.scenes}",
+            "--res", str(cfg.res), "--spp", ",".join(map(str, cfg.spp)), "--ref-spp", str(cfg.ref_spp),
+            "--seed", str(cfg.seed)]
+
+
+def check_validation_recorded(cfg: ValidationConfig) -> None:
+    """KpcnError if ``cfg.out`` records a validation scene other than this command draws under its name (another
+    --seed, --res, --spp or catalogue), or holds training scenes (their recipes have no split)."""
+    cat, out = catalogue(), Path(cfg.out)
+    if not out.is_dir():
+        return
+    frames = [*cfg.spp, cfg.ref_spp]
+    for path in sorted(out.glob("*.json")):
+        if path.name in (cat.MANIFEST, cat.RENDER_LOG) or path.name.startswith("."):
+            continue
+        try:
+            recorded = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise KpcnError(f"{path}: not a readable scene recipe ({e})") from None
+        if not isinstance(recorded, dict) or recorded.get("split") != "validation":
+            raise KpcnError(f"{path}: not a validation scene (a training folder?); choose another folder")
+        index = recorded.get("index")
+        drawn = cat.draw(cfg.seed, index, (cfg.res,), frames, "validation") if isinstance(index, int) else None
+        if json.loads(json.dumps(drawn)) != recorded:
+            raise KpcnError(f"{path} records another scene than --seed {cfg.seed} --res {cfg.res} --spp "
+                            f"{','.join(map(str, cfg.spp))} --ref-spp {cfg.ref_spp} draws; choose another folder")
+
+
+def verify_validation(out: str | Path) -> str:
+    """KpcnError naming the first file of ``out`` that is missing or differs from its manifest's checksum (or a
+    planned frame not rendered); else a line saying how many files were checked."""
+    cat = catalogue()
+    problem = cat.verify(str(out))
+    if problem:
+        raise KpcnError(problem)
+    with open(Path(out) / cat.MANIFEST) as f:
+        count = len(json.load(f)["sha256"])
+    return f"{out}: {count} files match their sha256 in {cat.MANIFEST}"
+
+
+def render_validation(cfg: ValidationConfig) -> Path:
+    """Render the validation set ``cfg`` (resuming: files there are kept) and write its manifest with every
+    file's checksum; KpcnError if Blender's Python stops with an error."""
+    check_validation_recorded(cfg)
+    check_blender_python(cfg.blender_python)
+    done = subprocess.run(validation_command(cfg)).returncode
+    if done != 0:
+        raise KpcnError(f"{cfg.out}: Blender's Python ({cfg.blender_python}) stopped with exit status {done}; the "
+                        "frames it wrote are kept, and the same command resumes")
+    return Path(cfg.out)

@@ -17,6 +17,7 @@ exposure probe), as ``render_log.json`` records it under ``cpu``; a frame logged
 seconds times the log's ``threads``.
 """
 import colorsys
+import hashlib
 import json
 import math
 import os
@@ -56,15 +57,39 @@ SAMPLE_TEXT = ("THE QUICK BROWN FOX", "Exit 12", "kpcn 0123456789", "Ristorante"
                "HOTEL", "No parking", "Cycles", "Departures")
 
 
-def scene_rng(seed: int, index: int) -> random.Random:
-    return random.Random(f"kpcn-cycles:{seed}:{index}")
+Split = namedtuple("Split", "name stream prefix azimuths textures texts")
+
+# A split partitions the draws: no training recipe can equal a validation one, whatever the seeds and indices.
+# Each split has its own random streams (the string that seeds them), its own camera azimuths (every scene has a
+# camera: the guarantee), and its own texture kinds and lines of text where a scene has them. Validation scenes
+# also carry two effect groups each, by a schedule that covers every group twice in any 9 consecutive indices
+# (forced_effects), brick walls of other proportions, and cameras inside their rooms. The training split is what
+# the catalogue drew before splits existed, to the bit (RECIPE_VERSION unchanged: folders rendered keep resuming).
+TRAIN = Split("train", "kpcn-cycles", "", ((-2.2, -0.9),), ("checker", "brick", "noise", "wave", "voronoi"),
+              SAMPLE_TEXT)
+VALIDATION = Split("validation", "kpcn-cycles-validation", "val-", ((-2.6, -2.25), (-0.85, -0.5)),
+                   ("magic", "gabor"), ("Way Out", "Bakery & Cafe", "Platform 9", "Zimmer frei", "42 Elm Street",
+                                        "CLOSED", "Fresh Fish", "Gate B7", "Quiet please", "Bus Stop"))
+SPLITS = {s.name: s for s in (TRAIN, VALIDATION)}
+PAIR_STEP = 4  # validation scene i carries groups i and i + PAIR_STEP (mod 9): a bijection, so 9 scenes cover 2x
 
 
-def scene_res(seed: int, index: int, resolutions) -> int:
+def scene_rng(seed: int, index: int, split=TRAIN) -> random.Random:
+    return random.Random(f"{split.stream}:{seed}:{index}")
+
+
+def scene_res(seed: int, index: int, resolutions, split=TRAIN) -> int:
     """The frame side of scene ``index``: one of ``resolutions``, drawn from a stream of its own so that the rest
     of a scene does not depend on the list."""
     resolutions = list(resolutions)
-    return resolutions[random.Random(f"kpcn-cycles-res:{seed}:{index}").randrange(len(resolutions))]
+    return resolutions[random.Random(f"{split.stream}-res:{seed}:{index}").randrange(len(resolutions))]
+
+
+def camera_split(recipe) -> str:
+    """The split whose camera azimuths hold the recipe's camera (its direction from the origin, seen from above)."""
+    x, y = recipe["camera"]["location"][:2]
+    theta = math.atan2(y, x)
+    return next(s.name for s in SPLITS.values() if any(lo <= theta <= hi for lo, hi in s.azimuths))
 
 
 def rgb(rng, sat=(0.0, 0.9), val=(0.1, 0.95)):
@@ -94,15 +119,30 @@ def draw_effects(rng) -> list:
     return sorted(chosen, key=list(BY_NAME).index)
 
 
-def texture(rng, kind=None, scale=None):
-    kind = kind or rng.choice(("checker", "brick", "noise", "wave", "voronoi"))
+def forced_effects(rng, index: int) -> list:
+    """Validation scene ``index``'s effects: one of group ``index`` and one of group ``index + PAIR_STEP`` (mod 9,
+    each by weight, none clashing with the other), and one time in three a third from the whole catalogue."""
+    chosen = []
+    for group in (GROUPS[index % len(GROUPS)], GROUPS[(index + PAIR_STEP) % len(GROUPS)]):
+        pool = [e for e in EFFECTS if e.group == group and not any(clash(e, BY_NAME[c]) for c in chosen)]
+        chosen.append(rng.choices(pool, weights=[p.weight for p in pool])[0].name)
+    if rng.random() < 1 / 3:
+        pool = [e for e in EFFECTS if e.name not in chosen and not any(clash(e, BY_NAME[c]) for c in chosen)]
+        chosen.append(rng.choices(pool, weights=[p.weight for p in pool])[0].name)
+    return sorted(chosen, key=list(BY_NAME).index)
+
+
+def texture(rng, kind=None, scale=None, split=TRAIN):
+    kind = kind or rng.choice(split.textures)
     t = {"kind": kind, "c1": rgb(rng), "c2": rgb(rng), "scale": scale or rng.uniform(2.0, 25.0)}
     if kind == "brick":
         t["mortar"] = rgb(rng, val=(0.5, 0.9))
+        if split is VALIDATION:  # other proportions than Blender's default 0.5 x 0.25 that training bricks keep
+            t.update(brick_width=rng.uniform(0.2, 0.4), row_height=rng.uniform(0.1, 0.2))
     return t
 
 
-def material(rng, effects, floor=False):
+def material(rng, effects, floor=False, split=TRAIN):
     """A Principled material: diffuse, plastic, metal, glass or coated, with the layers the effects ask for."""
     kind = rng.choices(("diffuse", "plastic", "metal", "glass", "coated"), weights=(3, 3, 2, 0 if floor else 1, 2))[0]
     m = {"kind": kind, "base": rgb(rng), "roughness": {
@@ -121,7 +161,7 @@ def material(rng, effects, floor=False):
         m.update(subsurface=1.0, sss_radius=[rng.uniform(0.5, 1.0), rng.uniform(0.2, 0.6), rng.uniform(0.05, 0.3)],
                  sss_scale=rng.uniform(0.05, 0.4), base=rgb(rng, sat=(0.1, 0.6), val=(0.6, 0.95)))
     if kind != "glass" and rng.random() < (0.6 if floor else 0.35):
-        m["texture"] = texture(rng)
+        m["texture"] = texture(rng, split=split)
     return m
 
 
@@ -157,10 +197,10 @@ def quad(location, rotation, size, mat, **extra):
             "material": mat, **extra}
 
 
-def room_walls(rng, effects, size, h, window):
+def room_walls(rng, effects, size, h, window, split=TRAIN):
     """Floor-less walls and ceiling of a room; with ``window``, the +x wall is closed around an opening and the
     room has a ceiling (light comes in through the window alone)."""
-    walls = material(rng, effects, floor=True)
+    walls = material(rng, effects, floor=True, split=split)
     out = [quad((0, size / 2, h / 2), (math.pi / 2, 0, 0), (size, h), walls),
            quad((-size / 2, 0, h / 2), (0, math.pi / 2, 0), (size, h), walls)]
     if window:
@@ -197,12 +237,12 @@ def primitive(rng, mat, location, size):
     return o
 
 
-def objects(rng, effects):
+def objects(rng, effects, split=TRAIN):
     out = []
     for _ in range(rng.randint(3, 7)):
         s = rng.uniform(0.15, 0.6)
         loc = (rng.uniform(-1.3, 1.3), rng.uniform(-1.0, 1.5), s * rng.uniform(0.6, 2.5))
-        out.append(primitive(rng, material(rng, effects), loc, s))
+        out.append(primitive(rng, material(rng, effects, split=split), loc, s))
     if "glass_caustics" in effects or "glass_medium" in effects:
         for o in rng.sample(out, rng.randint(1, 2)):
             o["material"] = glass(rng)
@@ -296,12 +336,20 @@ def media(rng, effects, extent):
     return out
 
 
-def camera(rng, effects, objs):
-    theta, dist = rng.uniform(-2.2, -0.9), rng.uniform(3.0, 5.0)
+def camera(rng, effects, objs, split=TRAIN, room=None):
+    """The camera: at an azimuth of the split's (:func:`camera_split`); a validation camera in a room of side
+    ``room`` stands inside it, with a wider lens (a training one may stand outside a closed room)."""
+    if split is TRAIN:
+        theta, dist = rng.uniform(-2.2, -0.9), rng.uniform(3.0, 5.0)
+    else:
+        theta = rng.uniform(*rng.choice(split.azimuths))
+        dist = rng.uniform(3.0, 5.0)
+        if room:
+            dist = min(dist, (room / 2 - 0.25) / max(abs(math.cos(theta)), abs(math.sin(theta))))
     low = "fine_tiles" in effects
     loc = [dist * math.cos(theta), dist * math.sin(theta), rng.uniform(0.15, 0.4) if low else rng.uniform(0.8, 2.4)]
     cam = {"location": loc, "target": [rng.uniform(-0.4, 0.4), rng.uniform(-0.2, 0.6), rng.uniform(0.2, 0.8)],
-           "lens": rng.uniform(24, 50)}
+           "lens": rng.uniform(16, 26) if room and split is not TRAIN else rng.uniform(24, 50)}
     if low:
         cam["target"][2] = rng.uniform(0.0, 0.3)
     if "dof" in effects or rng.random() < 0.1:
@@ -313,17 +361,17 @@ def camera(rng, effects, objs):
     return cam
 
 
-def extras(rng, effects, kind):
+def extras(rng, effects, kind, split=TRAIN):
     """The surfaces effects add: a far brick wall, a tiled floor, text, a water surface."""
     out = []
     if "brick_far" in effects:
         m = {"kind": "diffuse", "base": rgb(rng), "roughness": rng.uniform(0.7, 1.0),
-             "texture": texture(rng, "brick", rng.uniform(20.0, 60.0))}
+             "texture": texture(rng, "brick", rng.uniform(20.0, 60.0), split)}
         d = 2.9 if kind == "room" else rng.uniform(4.0, 10.0)
         out.append(quad((0, d, 3), (math.pi / 2, 0, 0), (12, 6), m))
     if "fine_tiles" in effects:
         m = {"kind": "plastic", "base": rgb(rng), "roughness": rng.uniform(0.1, 0.5),
-             "texture": texture(rng, rng.choice(("checker", "brick")), rng.uniform(40.0, 150.0))}
+             "texture": texture(rng, rng.choice(("checker", "brick")), rng.uniform(40.0, 150.0), split)}
         out.append(quad((0, 0, 0.002), (0, 0, 0), (8, 8), m))
     if "water_caustics" in effects:
         out.append(quad((rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(0.08, 0.25)), (0, 0, 0),
@@ -332,13 +380,13 @@ def extras(rng, effects, kind):
     return out
 
 
-def texts(rng, effects):
+def texts(rng, effects, split=TRAIN):
     if "text" not in effects:
         return []
     out = []
     for _ in range(rng.randint(1, 3)):
         on_floor = rng.random() < 0.5
-        out.append({"body": rng.choice(SAMPLE_TEXT), "size": rng.uniform(0.08, 0.3),
+        out.append({"body": rng.choice(split.texts), "size": rng.uniform(0.08, 0.3),
                     "location": [rng.uniform(-1.5, 1.0), rng.uniform(-1.0, 1.5), 0.003 if on_floor else
                                  rng.uniform(0.5, 1.8)],
                     "rotation": [0, 0, rng.uniform(0, 2 * math.pi)] if on_floor else [math.pi / 2, 0, 0],
@@ -347,41 +395,45 @@ def texts(rng, effects):
     return out
 
 
-def draw(seed: int, index: int, resolutions=(128,), frames=()) -> dict:
-    """The recipe of scene ``index`` under ``seed``: the same arguments draw the same dict. ``frames``, the sample
-    counts of its frames (the reference's last), is recorded, not drawn: the manifest's frames planned."""
-    rng = scene_rng(seed, index)
-    effects = draw_effects(rng)
+def draw(seed: int, index: int, resolutions=(128,), frames=(), split: str = "train") -> dict:
+    """The recipe of scene ``index`` under ``seed`` in ``split`` (:data:`SPLITS`): the same arguments draw the
+    same dict. ``frames``, the sample counts of its frames (the reference's last), is recorded, not drawn: the
+    manifest's frames planned. A validation recipe records its split; a training one is as it was before."""
+    sp = SPLITS[split]
+    rng = scene_rng(seed, index, sp)
+    effects = draw_effects(rng) if sp is TRAIN else forced_effects(rng, index)
     window = "window" in effects or "shafts" in effects
     kind = "room" if window else rng.choice(("studio", "ground")) if "sun_sky" in effects else rng.choice(KINDS)
     surfaces, opening = [], None
     if kind == "room":
         size, h = rng.uniform(3.0, 6.0), rng.uniform(2.4, 3.2)
-        walls, opening = room_walls(rng, effects, size, h, window)
-        surfaces = [quad((0, 0, 0), (0, 0, 0), (size, size), material(rng, effects, floor=True))] + walls
+        walls, opening = room_walls(rng, effects, size, h, window, sp)
+        surfaces = [quad((0, 0, 0), (0, 0, 0), (size, size), material(rng, effects, True, sp))] + walls
         extent = [size, size, h]
     elif kind == "studio":
-        surfaces = [quad((0, 0, 0), (0, 0, 0), (12, 12), material(rng, effects, floor=True)),
-                    quad((0, 3, 3), (math.pi / 2, 0, 0), (12, 6), material(rng, effects, floor=True))]
+        surfaces = [quad((0, 0, 0), (0, 0, 0), (12, 12), material(rng, effects, True, sp)),
+                    quad((0, 3, 3), (math.pi / 2, 0, 0), (12, 6), material(rng, effects, True, sp))]
         extent = [6, 6, 3]
     else:
-        surfaces = [quad((0, 0, 0), (0, 0, 0), (40, 40), material(rng, effects, floor=True))]
+        surfaces = [quad((0, 0, 0), (0, 0, 0), (40, 40), material(rng, effects, True, sp))]
         extent = [8, 8, 3]
-    surfaces += extras(rng, effects, kind)
-    objs = objects(rng, effects)
+    surfaces += extras(rng, effects, kind, sp)
+    objs = objects(rng, effects, sp)
     world_ = world(rng, kind, effects)
     lamps = lights(rng, kind, window)
     if "glass_caustics" in effects or "water_caustics" in effects:  # a small hard light makes sharp caustics
         lamps.append({"type": "point", "location": [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(2.0, 3.0)],
                       "target": [0, 0, 0], "rgb": warm(rng), "energy": rng.uniform(200, 800), "size": 0.02})
     lamps += sun_for(rng, world_, opening, effects)
-    return {"version": RECIPE_VERSION, "seed": seed, "index": index, "name": f"{kind}-{index:03d}", "kind": kind,
-            "res": scene_res(seed, index, resolutions), "effects": effects,
-            "groups": sorted({BY_NAME[e].group for e in effects}, key=GROUPS.index),
-            "exposure": random.Random(f"kpcn-cycles-exposure:{seed}:{index}").uniform(0.1, 0.5),
-            "frames": list(frames), "surfaces": surfaces, "objects": objs,
-            "texts": texts(rng, effects), "lights": lamps, "world": world_, "window": opening,
-            "media": media(rng, effects, extent), "camera": camera(rng, effects, objs)}
+    recipe = {"version": RECIPE_VERSION, "seed": seed, "index": index, "name": f"{sp.prefix}{kind}-{index:03d}",
+              "kind": kind, "res": scene_res(seed, index, resolutions, sp), "effects": effects,
+              "groups": sorted({BY_NAME[e].group for e in effects}, key=GROUPS.index),
+              "exposure": random.Random(f"{sp.stream}-exposure:{seed}:{index}").uniform(0.1, 0.5),
+              "frames": list(frames), "surfaces": surfaces, "objects": objs,
+              "texts": texts(rng, effects, sp), "lights": lamps, "world": world_, "window": opening,
+              "media": media(rng, effects, extent),
+              "camera": camera(rng, effects, objs, sp, extent[0] if kind == "room" else None)}
+    return recipe if sp is TRAIN else {"split": sp.name, **recipe}
 
 
 MANIFEST = "manifest.json"
@@ -390,6 +442,66 @@ RENDER_LOG = "render_log.json"
 
 def frame_name(scene: str, spp: int) -> str:
     return f"{scene}-{spp:05d}spp.exr"
+
+
+def denoised_name(scene: str, spp: int) -> str:
+    """Blender's own denoised frame of ``frame_name(scene, spp)`` (same seed), as a validation scene has."""
+    return f"{scene}-{spp:05d}spp-blender-oidn.exr"
+
+
+def planned_files(recipe) -> list:
+    """The frames a recipe plans: one per ``frames`` entry, and for a validation scene Blender's denoised frame
+    of each input (every entry but the last, the reference)."""
+    spps = recipe.get("frames", [])
+    names = [frame_name(recipe["name"], spp) for spp in spps]
+    if recipe.get("split") == VALIDATION.name:
+        names += [denoised_name(recipe["name"], spp) for spp in spps[:-1]]
+    return names
+
+
+def sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def checksums(out: str, recipes, fresh=()) -> dict:
+    """{file: sha256} of a validation folder's recipes and frames there: a file's checksum is the one recorded
+    in the manifest when it was first counted (so a file changed since shows in :func:`verify`), unless it is
+    in ``fresh`` (written again just now by the render, which records it anew)."""
+    try:
+        with open(os.path.join(out, MANIFEST)) as f:
+            old = json.load(f).get("sha256", {})
+    except (OSError, ValueError, AttributeError):
+        old = {}
+    names = [f"{r['name']}.json" for r in recipes] + [n for r in recipes for n in planned_files(r)]
+    return {n: old[n] if n in old and n not in fresh else sha256(os.path.join(out, n))
+            for n in sorted(names) if os.path.exists(os.path.join(out, n))}
+
+
+def verify(out: str):
+    """None if folder ``out`` holds every file its manifest's checksums name, each with that checksum, and every
+    frame its recipes plan; else one line naming the first file that is missing or differs."""
+    path = os.path.join(out, MANIFEST)
+    try:
+        with open(path) as f:
+            recorded = json.load(f)["sha256"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        return f"{path}: no manifest with checksums ({type(e).__name__}: {e})"
+    for name, digest in sorted(recorded.items()):
+        there = os.path.join(out, name)
+        if not os.path.isfile(there):
+            return f"{there}: missing (the manifest records sha256 {digest[:16]}...)"
+        found = sha256(there)
+        if found != digest:
+            return f"{there}: sha256 {found[:16]}... differs from the manifest's {digest[:16]}..."
+    for r in read_recipes(out):
+        for name in planned_files(r):
+            if name not in recorded:
+                return f"{os.path.join(out, name)}: planned by {r['name']}.json but not rendered (run it again)"
+    return None
 
 
 def read_recipes(out: str) -> list:
@@ -424,7 +536,7 @@ def count_manifest(out: str) -> dict:
             groups[g] += 1
         kinds[r["kind"]] = kinds.get(r["kind"], 0) + 1
         sizes[str(r["res"])] = sizes.get(str(r["res"]), 0) + 1
-        frames = [frame_name(r["name"], spp) for spp in r.get("frames", [])]
+        frames = planned_files(r)
         there = sum(os.path.exists(os.path.join(out, f)) for f in frames)
         planned, done, complete = planned + len(frames), done + there, complete + (there == len(frames) > 0)
     cpu_s = sum(cpu.get(name, seconds * threads) for name, seconds in wall.items())
@@ -435,9 +547,13 @@ def count_manifest(out: str) -> dict:
                            "logged without it: wall seconds x threads"}
 
 
-def write_manifest(out: str) -> dict:
-    """Count ``out`` and write its manifest (through a temporary name); returns it."""
+def write_manifest(out: str, fresh=()) -> dict:
+    """Count ``out`` and write its manifest (through a temporary name); returns it. A folder of validation scenes
+    also records the checksum of each of their files (:func:`checksums`; ``fresh``, the files just written)."""
     m = count_manifest(out)
+    valid = [r for r in read_recipes(out) if r.get("split") == VALIDATION.name]
+    if valid:
+        m["sha256"] = checksums(out, valid, fresh)
     tmp = os.path.join(out, "." + MANIFEST)
     with open(tmp, "w") as f:
         json.dump(m, f, indent=1)

@@ -58,14 +58,18 @@ def texture(t, nt):
         n.inputs["Scale"].default_value = t["scale"]
         if "mortar" in t:
             n.inputs["Mortar"].default_value = (*t["mortar"], 1.0)
+        if "brick_width" in t:  # a validation wall's proportions (a training one keeps Blender's default)
+            n.inputs["Brick Width"].default_value, n.inputs["Row Height"].default_value = t["brick_width"], \
+                t["row_height"]
         return n.outputs["Color"]
-    n = nt.nodes.new({"noise": "ShaderNodeTexNoise", "wave": "ShaderNodeTexWave",
-                      "voronoi": "ShaderNodeTexVoronoi"}[t["kind"]])
+    n = nt.nodes.new({"noise": "ShaderNodeTexNoise", "wave": "ShaderNodeTexWave", "voronoi": "ShaderNodeTexVoronoi",
+                      "magic": "ShaderNodeTexMagic", "gabor": "ShaderNodeTexGabor"}[t["kind"]])
     n.inputs["Scale"].default_value = t["scale"]
     r = nt.nodes.new("ShaderNodeValToRGB")
     r.color_ramp.elements[0].color = (*t["c1"], 1.0)
     r.color_ramp.elements[1].color = (*t["c2"], 1.0)
-    nt.links.new(n.outputs["Fac"] if "Fac" in n.outputs else n.outputs["Distance"], r.inputs["Fac"])
+    fac = next(n.outputs[o] for o in ("Fac", "Distance", "Value") if o in n.outputs)
+    nt.links.new(fac, r.inputs["Fac"])
     return r.outputs["Color"]
 
 
@@ -347,7 +351,10 @@ def exposure(recipe):
     return recipe["exposure"] / max(mean, 1e-4)
 
 
-def setup(recipe, spp, seed, factor):
+def setup(recipe, spp, seed, factor, denoise=False, passes=True):
+    """The scene to render at ``spp`` with Cycles' ``seed``: every pass a denoiser can use, or (``passes`` False)
+    Combined alone; ``denoise``: Blender's default denoiser at render time (OIDN on albedo + normal, accurate
+    prefilter), which writes the same render's noisy Combined beside it as "Noisy Image"."""
     scene = reset()
     build(scene, recipe)
     brighten(scene, factor)
@@ -359,15 +366,18 @@ def setup(recipe, spp, seed, factor):
     c.use_adaptive_sampling = False
     c.seed = seed
     c.max_bounces = 12
-    c.use_denoising = False
+    c.use_denoising = denoise
+    if denoise:
+        c.denoiser, c.denoising_input_passes = "OPENIMAGEDENOISE", "RGB_ALBEDO_NORMAL"
+        c.denoising_prefilter = "ACCURATE"
     scene.render.resolution_x = scene.render.resolution_y = recipe["res"]
     scene.render.resolution_percentage = 100
     vl = scene.view_layers[0]
-    for p in PASSES:
+    for p in PASSES if passes else ("combined",):
         setattr(vl, "use_pass_" + p, True)
-    vl.cycles.use_pass_volume_direct = True  # media scenes: what the fog scatters, direct and indirect
-    vl.cycles.use_pass_volume_indirect = True
-    vl.cycles.denoising_store_passes = True
+    vl.cycles.use_pass_volume_direct = passes  # media scenes: what the fog scatters, direct and indirect
+    vl.cycles.use_pass_volume_indirect = passes
+    vl.cycles.denoising_store_passes = passes
     im = scene.render.image_settings
     if hasattr(im, "media_type"):
         im.media_type = "MULTI_LAYER_IMAGE"
@@ -386,6 +396,7 @@ def arguments(argv):
     ap.add_argument("--spp", default="4,8,16,32,64")
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--split", default="train", choices=sorted(catalogue.SPLITS))
     return ap.parse_args(argv)
 
 
@@ -400,26 +411,45 @@ def write_json(path, obj):
     os.replace(tmp, path)
 
 
+def cycles_seed(a, index, li):
+    """Cycles' seed of frame ``li`` of scene ``index``; a validation scene's are others than a training one's."""
+    offset = 2**30 if a.split == catalogue.VALIDATION.name else 0
+    return (100 * index + li + 1 + 1_000_003 * a.seed + offset) % 2**31
+
+
+def planned_renders(a, recipe, spps):
+    """(file name, spp, frame number, denoise, passes) of every frame of a scene: the inputs with every pass;
+    the reference, of a validation scene Combined alone; Blender's denoised frame of each validation input."""
+    valid = a.split == catalogue.VALIDATION.name
+    out = []
+    for li, spp in enumerate(spps):
+        out.append((catalogue.frame_name(recipe["name"], spp), spp, li, False, not (valid and li == len(spps) - 1)))
+        if valid and li < len(spps) - 1:  # the same seed as the input beside it: the same noise, denoised
+            out.append((catalogue.denoised_name(recipe["name"], spp), spp, li, True, False))
+    return out
+
+
 def render_scene(a, index, log):
-    """Scene ``index``'s recipe (OUT/<scene>.json) and its frames; a frame already there is kept. SystemExit 2 if
-    the folder records another scene under that name (another seed, --res or catalogue version)."""
+    """Scene ``index``'s recipe (OUT/<scene>.json) and its frames; a frame already there is kept; returns the
+    names written. SystemExit if the folder records another scene under that name (another seed, --res or
+    catalogue version)."""
     spps = [int(s) for s in a.spp.split(",")] + [a.ref_spp]
-    recipe = json.loads(json.dumps(catalogue.draw(a.seed, index, [int(r) for r in a.res.split(",")], spps)))
+    recipe = json.loads(json.dumps(catalogue.draw(a.seed, index, [int(r) for r in a.res.split(",")], spps,
+                                                  a.split)))
     path = os.path.join(a.out, recipe["name"] + ".json")
     if os.path.exists(path):
         with open(path) as f:
             if without_frames(json.load(f)) != without_frames(recipe):
                 sys.exit(f"{path}: records another scene than --seed {a.seed} --res {a.res} draws; use another OUT")
     write_json(path, recipe)
-    factor = None
-    for li, spp in enumerate(spps):
-        name = catalogue.frame_name(recipe["name"], spp)
+    factor, written = None, []
+    for name, spp, li, denoise, passes in planned_renders(a, recipe, spps):
         if os.path.exists(os.path.join(a.out, name)):
             continue
         t, cpu = time.perf_counter(), time.process_time()
         if factor is None:
             factor = exposure(recipe)
-        scene = setup(recipe, spp, seed=(100 * index + li + 1 + 1_000_003 * a.seed) % 2**31, factor=factor)
+        scene = setup(recipe, spp, cycles_seed(a, index, li), factor, denoise, passes)
         scene.render.filepath = os.path.join(a.out, "." + name)
         bpy.ops.render.render(write_still=True)
         os.replace(scene.render.filepath, os.path.join(a.out, name))
@@ -428,6 +458,8 @@ def render_scene(a, index, log):
         log["threads"] = scene.render.threads
         print(name, f"{log['renders'][name]:.1f} s, {log['cpu'][name]:.1f} CPU s", flush=True)
         write_json(os.path.join(a.out, catalogue.RENDER_LOG), log)
+        written.append(name)
+    return written
 
 
 def main():
@@ -437,8 +469,8 @@ def main():
     log_path = os.path.join(a.out, catalogue.RENDER_LOG)
     log = json.load(open(log_path)) if os.path.exists(log_path) else {"blender": bpy.app.version_string, "renders": {}}
     for index in range(first, end):
-        render_scene(a, index, log)
-        manifest = catalogue.write_manifest(a.out)
+        written = render_scene(a, index, log)
+        manifest = catalogue.write_manifest(a.out, fresh=written)
         print(f"scene {index}: {manifest['scenes']} scenes, frames {manifest['frames_done']} of "
               f"{manifest['frames_planned']}, {manifest['cpu_hours']:.3f} CPU hours", flush=True)
 
