@@ -189,10 +189,11 @@ cycles-validation: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --blender-python $(BPY_VENV)/bin/python $(CYCLES_VALIDATION_ARGS)
 	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --verify
 
-# the shipped model (BLENDER_ARGS="--model before=models/default --model after=RUN" for several) on Blender's frames
-# beside Blender's own denoised frame and OIDN: reports/blender.{md,json,png}
-BLENDER_FRAMES ?= ../shared/validation/blender
-blender-report: $(KPCN)
+# the shipped model (BLENDER_ARGS="--model before=models/default --model after=RUN" for several) on the held-out
+# Cycles validation set (rendered first where it is not there) beside Blender's own denoised frame and both OIDN
+# modes: reports/blender.{md,json,png}. BLENDER_FRAMES=../shared/validation/blender is the further check.
+BLENDER_FRAMES ?= $(CYCLES_VALIDATION)
+blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cycles-validation)
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
 
