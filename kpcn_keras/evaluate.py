@@ -300,7 +300,7 @@ def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: 
             nlm = baselines.nlm_denoise(noisy["default"], noisy["colorVariance"])
             found.update(nlm_seconds=time.perf_counter() - start, nlm=metrics.all_metrics(nlm, ref))
             panels.insert(1, (f"NLM relMSE {found['nlm']['relmse']:.4f}", nlm))
-        found.update(_anchors(noisy_path, noisy, ref, panels, reading))
+        found.update(_anchors(noisy_path, baselines.oidn_inputs(frame), ref, panels, reading))
     panels.append(("reference", ref))
     png = side_by_side_png(frame_png(out_dir, scene, spp), panels, title=scene)
     return EvaluatedFrame(scene, spp, raw=metrics.all_metrics(noisy["default"], ref), denoised=denoised,
@@ -310,7 +310,8 @@ def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: 
 
 
 def _anchors(noisy_path: str, noisy: dict, ref: np.ndarray, panels: list, reading: ReadOptions) -> dict:
-    """The anchors' fields of a row: OIDN in each of its modes when ``pyoidn`` is installed (timed), and Blender's
+    """The anchors' fields of a row: OIDN in each of its modes on ``noisy`` (``baselines.oidn_inputs``) when
+    ``pyoidn`` is installed (timed), and Blender's
     own denoised frame where it lies beside ``noisy_path``; each one's panel goes in before the network's."""
     found = {}
     if baselines.oidn_available():

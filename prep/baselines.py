@@ -101,6 +101,14 @@ def oidn_denoise(aovs: dict[str, np.ndarray], mode: str = "prefiltered") -> np.n
     return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, clean_aux=True)
 
 
+def oidn_inputs(frame) -> dict[str, np.ndarray]:
+    """The layers OIDN is given for ``frame`` (a ``prep.layouts.Frame``): its own, with the albedo and normal
+    its renderer hands its own denoiser where the file has them in place of the network's (Cycles' Denoising
+    Albedo and Denoising Normal, which Blender gives OIDN: they follow mirrors and glass, where Diffuse Color is
+    black), so that the anchor is OIDN as the renderer runs it."""
+    return {**frame.layers, **{k: v for k, v in frame.alternatives.items() if k in ("albedo", "normal")}}
+
+
 # The anchors a frame is judged against, by their keys in the studies' and evaluate's rows: OIDN in each of
 # OIDN_MODES and the renderer's own denoised frame where the folder has it.
 OIDN_KEYS = {"plain": "oidn", "prefiltered": "oidn_prefiltered"}  # "oidn" kept for plain: older reports read as before

@@ -83,8 +83,9 @@ class Frame:
     display_window: tuple = ((0, 0), (0, 0))
     spp: int | None = None
     notes: tuple[str, ...] = ()
-    # layers the adapter could have taken instead (Cycles' clipped Denoising Albedo for its Diffuse Color), for
-    # a study to measure which denoises better
+    # layers the adapter could have taken instead (Cycles' clipped Denoising Albedo for its Diffuse Color, its
+    # Denoising Normal for its Normal): what Blender hands its own denoiser, for the OIDN anchor
+    # (prep.baselines.oidn_inputs) and for a study to measure which denoises better
     alternatives: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
@@ -352,6 +353,8 @@ class CyclesLayout(Layout):
             notes.append("albedo = Denoising Albedo clipped to [0, 1]")
         if "normal" in p:
             out["normal"] = rgb["normal"]
+            if "denoising_normal" in p:
+                out["alternative.normal"] = rgb["denoising_normal"]
         elif "denoising_normal" in p:
             out["normal"] = rgb["denoising_normal"]
             notes.append("normal = Denoising Normal (camera space; the networks are trained on world space)")

@@ -107,3 +107,25 @@ def test_a_frame_is_judged_against_the_strongest_anchor_it_has():
 def test_blenders_own_frame_is_named_beside_the_noisy_render():
     assert baselines.renderer_denoised(Path("val/studio-00016spp.exr")) == \
         Path("val/studio-00016spp-blender-oidn.exr")
+
+
+def test_oidn_is_given_the_auxiliaries_blender_gives_its_own_denoiser_where_the_file_has_them():
+    import OpenEXR
+
+    from prep import layouts
+
+    path = Path(__file__).parent / "fixtures" / "renderers" / "cycles5" / "studio-00016spp.exr"
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        raw = {n: np.asarray(c.pixels) for part in f.parts for n, c in part.channels.items()}
+
+    def passes(name, comps):
+        return np.stack([raw[f"ViewLayer.{name}.{c}"] for c in comps], axis=-1).astype(np.float64)
+
+    frame = layouts.read(path)
+    given = baselines.oidn_inputs(frame)
+    np.testing.assert_array_equal(given["albedo"], np.clip(passes("Denoising Albedo", "RGB"), 0, 1).astype(np.float32))
+    np.testing.assert_array_equal(given["normal"], passes("Denoising Normal", "XYZ").astype(np.float32))
+    assert not np.array_equal(given["albedo"], frame.layers["albedo"])  # Diffuse Color: the network's albedo
+    assert given["default"] is frame.layers["default"]
+    own = layouts.Frame(path=Path("x.exr"), layout="kpcn", layers=frame.layers, inputs=frame.inputs)
+    assert baselines.oidn_inputs(own) == frame.layers  # no alternatives: the network's own layers
