@@ -62,7 +62,7 @@ def main() -> None:
         variant = run.serving(frame.inputs)
         if variant.dir not in denoisers:
             denoisers[variant.dir] = Denoiser.from_run(variant)
-        methods = {"kpcn": denoisers[variant.dir](frame.layers)["default"], **beside(Path(noisy), frame.layers)}
+        methods = {"kpcn": denoisers[variant.dir](frame.layers)["default"], **beside(Path(noisy), frame)}
         for name, image in methods.items():
             got = split(image, reference)
             print(f"| {scene} {spp} spp | {name} | {got['relmse']:.5f} | "

@@ -68,13 +68,14 @@ def renderer_pairs(paths) -> list[tuple[Path, Path]]:
 renderer_denoised = baselines.renderer_denoised
 
 
-def beside(noisy_path: Path, layers: dict) -> dict[str, np.ndarray]:
+def beside(noisy_path: Path, frame: layouts.Frame) -> dict[str, np.ndarray]:
     """The other denoisers' outputs for a frame: ``OIDN`` (plain) and ``OIDN prefiltered`` when ``pyoidn`` is
-    installed, ``Blender`` when the renderer's own denoised frame is beside it."""
+    installed (on ``baselines.oidn_inputs``), ``Blender`` when the renderer's own denoised frame is beside it."""
     out = {}
     if baselines.oidn_available():
-        out["OIDN"] = baselines.oidn_denoise(layers, mode="plain")
-        out["OIDN prefiltered"] = baselines.oidn_denoise(layers, mode="prefiltered")
+        given = baselines.oidn_inputs(frame)
+        out["OIDN"] = baselines.oidn_denoise(given, mode="plain")
+        out["OIDN prefiltered"] = baselines.oidn_denoise(given, mode="prefiltered")
     own = renderer_denoised(Path(noisy_path))
     if own.exists():
         out["Blender"] = layouts.read(own).layers["default"]

@@ -156,7 +156,7 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
                "seconds": seconds, "raw": _scores(frame.layers["default"], ref), "kpcn": _scores(out, ref)}
         for name, layer in frame.alternatives.items():  # the layer the adapter could have taken instead
             row[f"kpcn_alternative_{name}"] = _scores(denoiser({**frame.layers, name: layer})["default"], ref)
-        images = {"input": frame.layers["default"], "kpcn": out, **beside(noisy_path, frame.layers), "reference": ref}
+        images = {"input": frame.layers["default"], "kpcn": out, **beside(noisy_path, frame), "reference": ref}
         for name in ("OIDN", "Blender"):
             if name in images:
                 row[name.lower()] = _scores(images[name], ref)

@@ -239,7 +239,7 @@ def validation_frames(cfg: QualityConfig) -> list[dict]:
         frames.append({"path": noisy_path, "reference_path": ref_path, "scene": scene, "spp": spp,
                        "renderer": noisy_path.parent.name, "frame": frame,
                        "reference": layouts.read(ref_path).layers["default"],
-                       "beside": beside(noisy_path, frame.layers)})
+                       "beside": beside(noisy_path, frame)})
     return frames
 
 

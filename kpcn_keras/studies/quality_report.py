@@ -425,7 +425,7 @@ def redraw_panels(record: dict):
     for entry in panel_entries(record):
         frame = layouts.read(entry["path"])
         images = {"input": frame.layers["default"], "kpcn": denoised(Run(entry["run"]), frame),
-                  **beside(Path(entry["path"]), frame.layers),
+                  **beside(Path(entry["path"]), frame),
                   "reference": layouts.read(entry["reference_path"]).layers["default"]}
         if record.get(MODEL):
             images[model_column(record)] = denoised(Run(record[MODEL]["run"]).serving(frame.inputs), frame)
