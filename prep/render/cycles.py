@@ -130,8 +130,14 @@ def render_cycles(cfg: CyclesConfig) -> Path:
     """Render ``cfg`` (its frames and ``render_log.json`` into ``cfg.out``) in its Python; KpcnError if that
     Python stops with an error (the frames written are kept: the same command resumes)."""
     check_recorded(cfg)
+    return run_blender_side(cfg, blender_command(cfg))
+
+
+def run_blender_side(cfg, command: list[str]) -> Path:
+    """Run ``command`` (the Blender side, in ``cfg.blender_python``, once that Python is checked) writing into
+    ``cfg.out``; KpcnError if it stops with an error (the frames it wrote are kept: the same command resumes)."""
     check_blender_python(cfg.blender_python)
-    done = subprocess.run(blender_command(cfg)).returncode
+    done = subprocess.run(command).returncode
     if done != 0:
         raise KpcnError(f"{cfg.out}: Blender's Python ({cfg.blender_python}) stopped with exit status {done}; the "
                         "frames it wrote are kept, and the same command resumes")
@@ -218,9 +224,4 @@ def render_validation(cfg: ValidationConfig) -> Path:
     """Render the validation set ``cfg`` (resuming: files there are kept) and write its manifest with every
     file's checksum; KpcnError if Blender's Python stops with an error."""
     check_validation_recorded(cfg)
-    check_blender_python(cfg.blender_python)
-    done = subprocess.run(validation_command(cfg)).returncode
-    if done != 0:
-        raise KpcnError(f"{cfg.out}: Blender's Python ({cfg.blender_python}) stopped with exit status {done}; the "
-                        "frames it wrote are kept, and the same command resumes")
-    return Path(cfg.out)
+    return run_blender_side(cfg, validation_command(cfg))
