@@ -231,7 +231,7 @@ test-oldest:
 	$(PYTHON) -m venv .venv-oldest
 	.venv-oldest/bin/pip install --quiet --disable-pip-version-check -c constraints.txt 'keras==$(KERAS_OLDEST)' -e '.[test]'
 	.venv-oldest/bin/python -c 'from importlib.metadata import version as v; from packaging.version import Version as V; assert V(v("keras")) == V("$(KERAS_OLDEST)"), v("keras")'
-	.venv-oldest/bin/python -m pytest -q tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_train_phases.py tests/test_albedo_network.py
+	.venv-oldest/bin/python -m pytest -q $(PYTEST_PARALLEL) tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_train_phases.py tests/test_albedo_network.py
 
 clean:
 	rm -rf data runs shards/*/

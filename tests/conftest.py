@@ -34,6 +34,17 @@ LONGEST_FIRST = ("test_resample_resume.py", "test_cli_resume.py", "test_distribu
                  "test_run.py", "test_train_phases.py", "test_bench.py")
 
 
+def pytest_sessionstart(session):
+    """With the slow tests (make test-all, CI), the all-effects render kernel is compiled into numba's disk cache
+    once, here, before the workers start: from a fresh clone every worker and every kpcn process started before
+    the cache is written would compile it again, half a minute each on two cores."""
+    if hasattr(session.config, "workerinput") or "not slow" in (session.config.option.markexpr or ""):
+        return
+    from prep.render import make_scene, render
+
+    render(make_scene("cornell", 0, 0), spp=2, seed=0, width=2, height=2)
+
+
 def pytest_collection_modifyitems(items):
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: a file keeps its order

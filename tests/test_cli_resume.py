@@ -218,10 +218,6 @@ def reference(tmp_path_factory):
     """(root, stage): one tree holding an uninterrupted run of every stage asked for so far (and of the
     stages before it); ``stage(name)`` runs them if needed and returns the seconds from lock to exit."""
     root = tmp_path_factory.mktemp("reference")
-    # the render kernel compiled (into numba's disk cache, which the commands' processes load) before any run
-    # is timed: a reference run that compiled it would put every kill point late for the runs that load it
-    from prep.render import make_scene, render
-    render(make_scene("cornell", 0, 0), spp=2, seed=0, width=2, height=2)
     done = {}
 
     def stage(name: str) -> float:
