@@ -199,8 +199,8 @@ def test_a_page_without_the_help_region_is_refused_naming_it(tmp_path, capsys):
 
 
 # the README's results table and the JSON it names for it (the command that writes it is named beside it)
-RESULTS_JSON = "reports/quality.json"
-RESULTS_GROUPS = {"blender": "Blender Cycles", "mitsuba": "Mitsuba 3"}  # a validation frame's renderer -> row
+RESULTS_JSON = "reports/blender.json"
+SHIPPED = "models/default"
 
 
 def readme_section(title: str) -> str:
@@ -216,27 +216,27 @@ def table_rows(text: str) -> list[list[str]]:
             if not rule[i] and not (i + 1 < len(lines) and rule[i + 1])]
 
 
-def results_rows(record: dict) -> dict[tuple[str, str], list[str]]:
-    """The README's results rows computed from the quality report's frames: per (frames, spp) the means of the
-    shipped model's, OIDN's and Blender's relMSE, the frames below OIDN and the median ratio; and one for all."""
+def results_rows(record: dict) -> dict[str, list[str]]:
+    """The README's results rows computed from the Blender report's frames: per spp the shipped model's,
+    Blender's and prefiltered OIDN's mean relMSE, the model's and Blender's mean DSSIM, the frames below
+    Blender's and below the better OIDN mode, and the median ratio to Blender's."""
     from statistics import mean, median
 
-    groups = {}
-    for frame in record["frames"]:
-        label = "held-out" if frame["kind"] == "held-out" else RESULTS_GROUPS[frame["renderer"]]
-        groups.setdefault((label, str(frame["spp"])), []).append(frame)
-    groups[("all", "")] = record["frames"]
-
-    def relmse(frames, method):
-        values = [f[method]["relmse"] for f in frames if method in f]
-        return f"{mean(values):.4f}" if len(values) == len(frames) else "–"
-
+    model = "kpcn " + next(name for name, path in record["models"].items() if path == SHIPPED)
     rows = {}
-    for (label, spp), frames in groups.items():
-        below = sum(f["model"]["relmse"] < f["oidn"]["relmse"] for f in frames)
-        ratio = f"{median(f['model']['relmse'] / f['oidn']['relmse'] for f in frames):.2f}×"
-        means = [relmse(frames, m) for m in ("model", "oidn", "blender")] if label != "all" else ["", "", ""]
-        rows[(label, spp)] = [label, spp, *means, f"{below} of {len(frames)}", ratio]
+    for spp in sorted({f["spp"] for f in record["frames"]}):
+        frames = [f["scores"] for f in record["frames"] if f["spp"] == spp]
+
+        def m(method, score, frames=frames):
+            return f"{mean(f[method][score] for f in frames):.4f}"
+
+        better = [min(f["oidn_plain"]["relmse"], f["oidn_prefiltered"]["relmse"]) for f in frames]
+        below_blender = sum(f[model]["relmse"] < f["blender"]["relmse"] for f in frames)
+        below_oidn = sum(f[model]["relmse"] < b for f, b in zip(frames, better))
+        ratio = median(f[model]["relmse"] / f["blender"]["relmse"] for f in frames)
+        rows[str(spp)] = [str(spp), m(model, "relmse"), m("blender", "relmse"), m("oidn_prefiltered", "relmse"),
+                          m(model, "dssim"), m("blender", "dssim"), f"{below_blender} of {len(frames)}",
+                          f"{below_oidn} of {len(frames)}", f"{ratio:.2f}×"]
     return rows
 
 
@@ -244,13 +244,13 @@ def test_every_figure_of_the_readme_results_table_is_the_json_it_names():
     import json
 
     section = readme_section("Results")
-    assert f"`{RESULTS_JSON}`" in section and "kpcn quality --measure-model" in section
+    assert f"`{RESULTS_JSON}`" in section and "make blender-report" in section
     shown = table_rows(section)
     assert shown, "no results table in the README"
     computed = results_rows(json.loads((ROOT / RESULTS_JSON).read_text(encoding="utf-8")))
-    assert {tuple(row[:2]) for row in shown} == set(computed), "the README's rows are not the JSON's groups"
+    assert {row[0] for row in shown} == set(computed), "the README's rows are not the JSON's spp"
     for row in shown:
-        assert row == computed[tuple(row[:2])], f"README row {row} is not {RESULTS_JSON}'s {computed[tuple(row[:2])]}"
+        assert row == computed[row[0]], f"README row {row} is not {RESULTS_JSON}'s {computed[row[0]]}"
 
 
 # The living pages (docs/results/ holds the dated records, the README and the card are checked above): a
