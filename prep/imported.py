@@ -21,6 +21,7 @@ the first is written.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,11 +65,24 @@ def import_renders(src: str | Path, render_set: RenderSet, on_frame: Callable[[s
 def unfinished_scenes(src: str | Path) -> list[str]:
     """The scenes of a ``kpcn render-cycles`` folder whose recipe lists a frame that is not there (yet)."""
     cat = catalogue()
-    return [r["name"] for r in cat.read_recipes(str(src))
+    return [r["name"] for r in _recipes(src)
             if not all((Path(src) / cat.frame_name(r["name"], spp)).is_file() for spp in r.get("frames", []))]
 
 
 def finished_scenes(src: str | Path) -> list[str]:
     """The scenes of a ``kpcn render-cycles`` folder with every frame their recipe lists."""
     unfinished = set(unfinished_scenes(src))
-    return [r["name"] for r in catalogue().read_recipes(str(src)) if r["name"] not in unfinished]
+    return [r["name"] for r in _recipes(src) if r["name"] not in unfinished]
+
+
+def _recipes(src: str | Path) -> list:
+    """The scene recipes (``<scene>.json``) of ``src``; KpcnError naming a JSON file there it cannot read."""
+    try:
+        return catalogue().read_recipes(str(src))
+    except (OSError, ValueError):
+        for path in sorted(Path(src).glob("*.json")):
+            try:
+                json.loads(path.read_text())
+            except (OSError, ValueError) as e:
+                raise KpcnError(f"{path}: not readable JSON ({e}); a scene recipe must be") from None
+        raise

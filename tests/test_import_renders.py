@@ -81,3 +81,11 @@ def test_a_scene_that_render_cycles_has_not_finished_is_left_out_and_said_so(tmp
     shutil.copy(CYCLES, src / "room-01024spp.exr")
     written = import_renders(src, RenderSet("cyc2", tmp_path / "renders"), on_frame=told.append)
     assert [p.name for p in written][:3] == ["room-00016spp.exr", "room-00064spp.exr", "room-01024spp.exr"]
+
+
+def test_a_json_file_that_is_not_json_is_one_line_naming_the_folder(tmp_path):
+    src = _source(tmp_path)
+    (src / "notes.json").write_text("{not json")
+    res = run_main("import-renders", src, "--set", "cyc", "--renders", tmp_path / "r", cwd=tmp_path)
+    assert_one_line_error(res, str(src / "notes.json"), "not readable JSON")
+    assert not (tmp_path / "r" / "cyc").exists()
