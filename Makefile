@@ -37,12 +37,10 @@ QUALITY_ARGS ?=
 
 .PHONY: world world-tune blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
-# torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range. --no-compile:
-# Python writes the bytecode of the modules it imports when it first imports them, rather than pip of every file
-# of every package at install (40 s of a 93 s install on a 2-core machine).
+# torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[test]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
 	touch $(KPCN)
 
 venv: $(KPCN)
@@ -73,7 +71,7 @@ train-inputs: render
 # the shipped model (docs/training.md §7): one command trains it, resuming an interrupted training where it stopped
 # (a run folder resumes by itself), then evaluates it and ships it with its card; run it again after an interrupt
 model: $(KPCN)
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]' || \
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]' || \
 		echo "kpcn: pyoidn not installed: the model's tables go without OIDN"
 	$(KPCN) render --set $(MODEL_SET) $(MODEL_RENDER_ARGS)
 	for inputs in $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)'); do \
@@ -113,7 +111,7 @@ MODEL_MIX := $(MODEL_SET)-$(CYCLES_SET)
 
 $(BPY_VENV)/bin/python:
 	$(BPY_PYTHON) -m venv $(BPY_VENV)
-	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check --no-compile 'numpy<2' 'bpy==5.0.1'
+	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check 'numpy<2' 'bpy==5.0.1'
 
 model-tune: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) train --set $(MODEL_SET) --inputs full --run $(MODEL_RUN)-tuned --init $(MODEL_RUN) $(TUNE_ARGS)
@@ -172,14 +170,14 @@ resample-study: shards
 # a network per input set for the same seconds (INPUTS_ARGS="--budget 300 --frames DIR ..."), on held-out frames
 # and other renderers' frames beside OIDN and Blender: reports/inputs.{md,json,png}
 inputs-study: shards
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) inputs-study --set $(SET) $(INPUTS_ARGS)
 
 # each lever for beating OIDN, alone and combined, for the same seconds (QUALITY_ARGS="--budget 600 --levers ..."),
 # on held-out frames and the validation frames (../shared/validation/blender, ../shared/fixtures/mitsuba) beside
 # OIDN and Blender's own denoiser: reports/quality.{md,json,png}; a lever with a render set of its own renders it
 quality: shards
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) quality --set $(SET) $(QUALITY_ARGS)
 
 # the held-out Cycles validation set (kpcn cycles-validation: 12 scenes of the catalogue's validation split, inputs
@@ -196,7 +194,7 @@ cycles-validation: $(KPCN) $(BPY_VENV)/bin/python
 # modes: reports/blender.{md,json,png}. BLENDER_FRAMES=../shared/validation/blender is the further check.
 BLENDER_FRAMES ?= $(CYCLES_VALIDATION)
 blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cycles-validation)
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
 
 evaluate: $(KPCN)
@@ -208,13 +206,13 @@ figures: $(KPCN)
 # every configuration for the same training seconds (COMPARE_ARGS="--budget 60"): reports/compare.{md,json,png};
 # with Intel Open Image Denoise (the optional extra pyoidn) as the row to beat
 compare: shards
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) compare --set $(SET) $(COMPARE_ARGS)
 
 # what accuracy costs in time: reports/accuracy_time.{md,json,png} (BENCH_ARGS="--full" for the full ladder);
 # with Intel Open Image Denoise (the optional extra pyoidn) as the curve to beat
 bench: shards
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) bench --set $(SET) $(BENCH_ARGS)
 
 # the fast suite: every test not marked slow, one worker process per core, each taking whole test files (a
@@ -231,7 +229,7 @@ test-all: $(KPCN)
 KERAS_OLDEST := $(shell sed -n 's/.*"keras>=\([0-9.]*\)".*/\1/p' pyproject.toml)
 test-oldest:
 	$(PYTHON) -m venv .venv-oldest
-	.venv-oldest/bin/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt 'keras==$(KERAS_OLDEST)' -e '.[test]'
+	.venv-oldest/bin/pip install --quiet --disable-pip-version-check -c constraints.txt 'keras==$(KERAS_OLDEST)' -e '.[test]'
 	.venv-oldest/bin/python -c 'from importlib.metadata import version as v; from packaging.version import Version as V; assert V(v("keras")) == V("$(KERAS_OLDEST)"), v("keras")'
 	.venv-oldest/bin/python -m pytest -q $(PYTEST_PARALLEL) tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_train_phases.py tests/test_albedo_network.py
 
@@ -251,5 +249,5 @@ time-train: $(KPCN)
 # on a 1920x1080 frame made of SPEED_SOURCE: models/$(MODEL)/speed.json and the card's speed section
 SPEED_SOURCE ?= tests/fixtures/fixture-00008spp.exr
 model-speed: $(KPCN)
-	$(BIN)/pip install --quiet --disable-pip-version-check --no-compile -c constraints.txt -e '.[oidn]'
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.card_speed --model models/$(MODEL) --frame $(SPEED_SOURCE)
