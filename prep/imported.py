@@ -64,15 +64,19 @@ def import_renders(src: str | Path, render_set: RenderSet, on_frame: Callable[[s
 
 def unfinished_scenes(src: str | Path) -> list[str]:
     """The scenes of a ``kpcn render-cycles`` folder whose recipe lists a frame that is not there (yet)."""
-    cat = catalogue()
-    return [r["name"] for r in _recipes(src)
-            if not all((Path(src) / cat.frame_name(r["name"], spp)).is_file() for spp in r.get("frames", []))]
+    return [name for name, finished in _scenes(src) if not finished]
 
 
 def finished_scenes(src: str | Path) -> list[str]:
     """The scenes of a ``kpcn render-cycles`` folder with every frame their recipe lists."""
-    unfinished = set(unfinished_scenes(src))
-    return [r["name"] for r in _recipes(src) if r["name"] not in unfinished]
+    return [name for name, finished in _scenes(src) if finished]
+
+
+def _scenes(src: str | Path) -> list[tuple[str, bool]]:
+    """Each recipe's scene of ``src`` and whether every frame it lists is there."""
+    cat = catalogue()
+    return [(r["name"], all((Path(src) / cat.frame_name(r["name"], spp)).is_file() for spp in r.get("frames", [])))
+            for r in _recipes(src)]
 
 
 def _recipes(src: str | Path) -> list:

@@ -135,8 +135,9 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
         if own.exists():
             shown[BLENDER] = layouts.read(own).layers["default"]
             layouts.check_same_size(noisy_path, frame.size, own, shown[BLENDER].shape[:2], "Blender's frame")
+        given = baselines.oidn_inputs(frame)
         for mode, denoise in modes.items():
-            shown[mode] = denoise(baselines.oidn_inputs(frame))
+            shown[mode] = denoise(given)
         row = {"frame": str(noisy_path), "scene": scene, "spp": spp, "groups": groups[noisy_path],
                "layout": frame.layout, "inputs": frame.inputs.name,
                "scores": {RAW if k == "input" else k: _scores(v, ref) for k, v in shown.items()}}
