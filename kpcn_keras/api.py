@@ -16,6 +16,7 @@ by the command's memory check before any array is copied.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import numbers
@@ -135,13 +136,18 @@ def _serving(run_dir: str, settings: InferenceSettings, stamp: float):
 
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
             run: str | os.PathLike | None = None, settings: InferenceSettings = InferenceSettings(),
-            slope: float | None = None) -> np.ndarray:
+            slope: float | None = None, quality: str | None = None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
     by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
     at ``slope`` (λ, for a run trained with it as an input), applied with ``settings``
     (``kpcn.InferenceSettings``: the tile, the trunks' precision, ``"auto"``, ``"float32"`` or ``"bfloat16"``, and
-    a self-ensemble's members where more than 1, that many times the time; ``kpcn_keras.settings``)."""
+    a self-ensemble's members where more than 1, that many times the time, and the quality mode;
+    ``kpcn_keras.settings``).
+    ``quality`` (``"fast"``, ``"balanced"`` or ``"high"``), where given, is that of ``settings``: the model's network
+    set for that mode, a KpcnError naming the modes it has where it lacks it."""
+    if quality is not None:
+        settings = dataclasses.replace(settings, quality=quality)  # checked there, as the command line's
     if run is None:
         from kpcn_keras.run import default_model
 

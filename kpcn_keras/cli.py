@@ -254,7 +254,7 @@ def cmd_evaluate(args) -> int:
                     reading=ReadOptions(layout=args.layout, view_layer=args.view_layer),
                     slope=getattr(args, "slope", None))
     print(format_table(rows))
-    print(f"report: {args.out or os.path.join(args.run, 'eval')}/report.md")
+    print(f"report: {args.out or Run(args.run).for_quality(settings.quality).eval_dir}/report.md")
     return 0
 
 
@@ -264,8 +264,13 @@ def cmd_ship(args) -> int:
 
     if "speed_frame" in args and len(args.speed_frame) != 2:
         raise OptionError("speed_frame", f"must be WIDTH,HEIGHT, got {list(args.speed_frame)}")
+    modes = {}
+    for mode, run in getattr(args, "mode", ()):
+        if mode in modes:
+            raise OptionError("mode", f"names the {mode} mode twice ({modes[mode].dir} and {run}); give each once")
+        modes[mode] = Run(run)
     shipped = ship(Run(args.run), args.out, _command_line(args, DATA_INVARIANT),
-                   **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args})
+                   **{k: tuple(getattr(args, k)) for k in ("speed_frame",) if k in args}, modes=modes)
     size = sum(f.stat().st_size for f in shipped.dir.rglob("*") if f.is_file())
     print(f"shipped {args.run} to {shipped.dir} ({size / 2**20:.1f} MiB); its card: {shipped.card_path}")
     return 0

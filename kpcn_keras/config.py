@@ -36,6 +36,11 @@ DEFAULT_PRECISION = "auto"
 # (docs/results/14-self-ensemble.md)
 ENSEMBLE = Bound(1, 8)
 DEFAULT_ENSEMBLE = 1
+# A model's quality modes, as OIDN's: one network set each (``Run.for_quality``). A run folder's own networks are
+# its DEFAULT_QUALITY mode; another mode lives in ``<model>/quality/<mode>/``, a run folder of its own (``kpcn ship
+# --mode``). ``--quality`` and ``kpcn.denoise(..., quality=...)`` pick one (``settings.InferenceSettings``)
+QUALITY_MODES = ("fast", "balanced", "high")
+DEFAULT_QUALITY = "balanced"
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
 # serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's

@@ -242,14 +242,17 @@ def evaluate(run: Run, pairs: list[tuple[str, str]] | None = None, *, out_dir=No
     input; refused elsewhere); writes the report and returns the rows. Inputs in any layout ``prep.layouts``
     reads, read by ``reading`` (its layout, view layer: ``batch.ReadOptions``), each denoised by the run's model
     for what it has (``Serving.variant``) with ``settings`` (tile, the trunks' precision, a self-ensemble's
-    members: a row then says how many)."""
-    out_dir = Path(out_dir) if out_dir else run.eval_dir
-    if run.card_path.is_file() and out_dir.resolve() in (run.eval_dir.resolve(), run.validation_dir.resolve()):
+    members: a row then says how many; the quality mode, whose run's held-out scenes and ``eval/`` are the
+    defaults)."""
+    mode = run.for_quality(settings.quality)  # a mode's report is its own folder's (and the model's: balanced)
+    out_dir = Path(out_dir) if out_dir else mode.eval_dir
+    if run.card_path.is_file() and out_dir.resolve() in {folder.resolve() for model in (run, mode)
+                                                          for folder in (model.eval_dir, model.validation_dir)}:
         raise KpcnError(f"{run.dir}: a shipped model, whose {out_dir.name}/ holds the tables its card shows; "
                         "evaluate it into another folder with --out DIR")
     check_writable(out_dir, "report folder (--out)", directory=True)
-    record = run.record()
-    pairs = pairs or held_out_pairs(run, record)
+    record = mode.record()
+    pairs = pairs or held_out_pairs(mode, record)
     if not pairs:
         raise KpcnError(f"{run.dir}: no held-out scenes to evaluate; pass noisy renders explicitly")
     headers = {noisy: reading.header(noisy) for noisy, _ in pairs}

@@ -38,6 +38,23 @@ def _csv_floats(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
+def _mode_run(text: str) -> tuple[str, str]:
+    """``MODE=RUN`` of ``kpcn ship --mode``: a quality mode other than the default (whose networks are --run's) and
+    a run folder."""
+    from kpcn_keras.config import DEFAULT_QUALITY, QUALITY_MODES
+
+    mode, sep, run = text.partition("=")
+    others = [m for m in QUALITY_MODES if m != DEFAULT_QUALITY]
+    if not sep or not run:
+        raise argparse.ArgumentTypeError(f"expected MODE=RUN (e.g. fast=runs/fast), got {text!r}")
+    if mode == DEFAULT_QUALITY:
+        raise argparse.ArgumentTypeError(f"the {DEFAULT_QUALITY} mode is the networks of --run; --mode names the "
+                                         f"others ({', '.join(others)}), got {text!r}")
+    if mode not in others:
+        raise argparse.ArgumentTypeError(f"the mode must be one of {', '.join(others)}, got {mode!r} in {text!r}")
+    return mode, run
+
+
 def _given(args, cls) -> dict:
     """The options of the subcommand that the user gave and that are fields of the dataclass ``cls``."""
     names = {f.name for f in dataclasses.fields(cls)} & set(args.flags)
@@ -107,8 +124,8 @@ def _check_own_bounds(args) -> None:
 
 
 def inference_settings(args):
-    """The ``kpcn_keras.settings.InferenceSettings`` of the options given (tile, precision, ensemble: those the
-    subcommand has), the others at their defaults; checked once, there (an OptionError naming the option)."""
+    """The ``kpcn_keras.settings.InferenceSettings`` of the options given (tile, precision, ensemble, quality: those
+    the subcommand has), the others at their defaults; checked once, there (an OptionError naming the option)."""
     from kpcn_keras.settings import InferenceSettings
 
     return InferenceSettings(**_given(args, InferenceSettings))
@@ -477,6 +494,7 @@ def _denoise_options(add) -> None:
                    "resized to the frame if its aspect ratio matches")
     _precision_option(n)
     _ensemble_option(n)
+    _quality_option(n)
     n.add_argument("--png", action="store_true", default=False, help="also write a tonemapped PNG beside each "
                    "output: input | denoised (| reference), side by side")
     _layout_option(n)
@@ -502,6 +520,7 @@ def _view_options(add) -> None:
     v.add_argument("--port", type=int, help=f"port on {VIEW_HOST} (default: {VIEW_PORT}; 0 takes a free one)")
     v.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
     _precision_option(v)
+    _quality_option(v)
     _layout_option(v)
 
 
@@ -519,6 +538,14 @@ def _ensemble_option(parser) -> None:
     parser.add_argument("--ensemble", type=int, help="denoise the frame moved by this many of the square's 8 "
                         "symmetries and keep each pixel's median: that many times the time, for a lower error "
                         f"(default: {DEFAULT_ENSEMBLE}, the networks once)")
+
+
+def _quality_option(parser) -> None:
+    from kpcn_keras.config import DEFAULT_QUALITY, QUALITY_MODES
+
+    parser.add_argument("--quality", choices=QUALITY_MODES, help="the model's quality mode, as OIDN's: the network "
+                        "set the model holds for it (kpcn ship --mode); a mode the model lacks is refused, naming "
+                        f"those it has (default: {DEFAULT_QUALITY}, the model's own networks)")
 
 
 def _layout_option(parser) -> None:
@@ -549,6 +576,7 @@ def _evaluate_options(add) -> None:
     e.add_argument("--no-baseline", action="store_true", default=False)
     _precision_option(e)
     _ensemble_option(e)
+    _quality_option(e)
     _layout_option(e)
 
 
@@ -563,6 +591,10 @@ def _ship_options(add) -> None:
     _run_option(s, required=True, help="the run folder: finished, for every input set (kpcn train --inputs), "
                 "evaluated (kpcn evaluate)")
     s.add_argument("--out", required=True, help="the model folder, e.g. models/<name>; an earlier one is replaced")
+    s.add_argument("--mode", action="append", type=_mode_run, metavar="MODE=RUN", help="also ship the finished run "
+                   "RUN (for every input set, as --run) as the quality mode MODE, into <out>/quality/MODE; "
+                   "repeatable (e.g. --mode fast=runs/fast --mode high=runs/high; default: the balanced mode "
+                   "alone, --run's)")
     s.add_argument("--speed-frame", type=_csv_ints, help="WIDTH,HEIGHT of the frame the card times beside OIDN "
                    f"(default: {','.join(map(str, SPEED_FRAME))})")
 

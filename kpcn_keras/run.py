@@ -22,12 +22,14 @@
     <run>/inputs/<inputs>/            the run's network for frames without a split or variance: a run folder of
                                       its own, of this layout, for each input set but the full one
                                       (``kpcn train --inputs``: :meth:`Run.for_inputs`)
+    <run>/quality/<mode>/             the networks of another quality mode (``config.QUALITY_MODES``): a run
+                                      folder of its own, of this layout (a shipped model's: ``kpcn ship --mode``)
 
-A *shipped model* (``models/<name>/``, :meth:`Run.ship`) is a run folder of this layout holding what serving
-needs and nothing else: the record, timings, the component files, the log and its curve, the reports' tables
-(``eval/`` and ``eval-validation/`` without their PNGs), the same for each ``inputs/<inputs>/`` (one for every
-input set), and its card ``CARD.md``; no checkpoints, no locks. ``kpcn denoise`` without ``--run`` uses
-:func:`default_model`.
+A run folder's own networks (and its ``inputs/`` variants) are its ``balanced`` mode (``config.DEFAULT_QUALITY``),
+so every run is a model of one mode; :meth:`Run.quality_modes` lists a model's modes and :meth:`Run.for_quality`
+gives the run of one (refused in one line naming the modes it has). A *shipped model* (``models/<name>/``) is
+``kpcn_keras/shipping.py``'s: a run folder of this layout holding what serving needs and nothing else.
+``kpcn denoise`` without ``--run`` uses :func:`default_model`.
 
 A run's record names its input set (``prep.inputs``; :attr:`RunRecord.inputs`: the full set for a record
 without one), and its denoiser reads frames restricted to it. :meth:`Run.serving` picks, among a run and its
@@ -76,7 +78,7 @@ from types import MappingProxyType
 
 import keras
 
-from kpcn_keras.config import HINT_FLAGS, SHIPPED_MAX_BYTES, CompositorConfig, ModelConfig, TrainConfig
+from kpcn_keras.config import DEFAULT_QUALITY, HINT_FLAGS, QUALITY_MODES, CompositorConfig, ModelConfig, TrainConfig
 from kpcn_keras.models import build_branch_model
 from prep.errors import KpcnError, OptionError
 from prep.files import atomic_path, atomic_write_json, exclusive_lock, read_json, remove_temporaries, sha256_file
@@ -85,6 +87,7 @@ from prep.shards import ShardSet
 
 RECORD = "config.json"
 INPUTS = "inputs"  # the folder of a run's variants for other input sets
+QUALITY = "quality"  # the folder of a model's other quality modes, one run folder each
 TIMINGS = "timings.json"  # the seconds of a folder: the one file whose bytes differ between identical runs
 STATE_ENTRY = "kpcn-state.json"
 CARD = "CARD.md"  # a shipped model's card (kpcn_keras/card.py)
@@ -170,6 +173,27 @@ class Run:
         """The run of ``inputs``: this run for the full set, else the run folder ``<run>/inputs/<name>``."""
         return self if inputs == FULL else Run(self.dir / INPUTS / inputs.name)
 
+    def quality_dir(self, mode: str) -> Path:
+        """Where the networks of quality mode ``mode`` are: this folder for the default mode, else
+        ``<run>/quality/<mode>``."""
+        return self.dir if mode == DEFAULT_QUALITY else self.dir / QUALITY / mode
+
+    def quality_modes(self) -> list[str]:
+        """The quality modes this model has, in the order of ``config.QUALITY_MODES``: the default one (its own
+        networks) and each whose folder ``quality/<mode>`` exists."""
+        return [mode for mode in QUALITY_MODES if mode == DEFAULT_QUALITY or self.quality_dir(mode).is_dir()]
+
+    def for_quality(self, mode: str) -> Run:
+        """The run of quality mode ``mode``: this run for the default mode, else ``quality/<mode>``, checked as a
+        model folder (:meth:`check_folder`). KpcnError in one line naming this folder, the mode and the modes it
+        has where it has not that one."""
+        if mode == DEFAULT_QUALITY:
+            return self
+        self.check_folder()
+        if mode not in self.quality_modes():
+            raise KpcnError(f"{self.dir} has no quality mode {mode!r}; its modes: {', '.join(self.quality_modes())}")
+        return Run(self.quality_dir(mode)).check_folder()
+
     def serving(self, frame: InputSet) -> Run:
         """The run whose networks denoise a frame that has ``frame``: this run, then its ``inputs/`` variants in
         the order of ``prep.inputs.INPUT_SETS`` (the most the frame has first), the first that is finished and
@@ -195,9 +219,9 @@ class Run:
                                                      ("variance layers", frame.variance)) if not has)
         what = f"without {lacks}" if lacks else "with a split and variance layers"
         raise KpcnError(f"{self.dir}: no finished model for a frame {what} (the run has: "
-                        f"{', '.join(found) or 'none'}); train it with {self._training_commands(frame)}")
+                        f"{', '.join(found) or 'none'}); train it with {self.training_commands(frame)}")
 
-    def _training_commands(self, inputs: InputSet) -> str:
+    def training_commands(self, inputs: InputSet) -> str:
         """'kpcn shards ...' then 'kpcn train ...': what trains this run's model for ``inputs``, on the base
         run's shard set cut for that input set (the model that serves it best)."""
         base = self.record().train if self.has_record() else TrainConfig()
@@ -235,114 +259,6 @@ class Run:
     def variants(self) -> list[Run]:
         """The run of every input set, in the order of ``prep.inputs.INPUT_SETS`` (this run first)."""
         return [self.for_inputs(InputSet.named(name)) for name in INPUT_SETS]
-
-    def shippable_records(self) -> list[RunRecord]:
-        """The finished record of every input set's run (:meth:`variants`): what :meth:`ship` needs. KpcnError
-        in one line naming the first that is missing (and the commands that train it) or unfinished (and the
-        command that resumes it)."""
-        records = []
-        for variant, name in zip(self.variants(), INPUT_SETS):
-            if not variant.has_record():
-                if variant is self:
-                    self.record()  # the one line that says this is not a run folder
-                raise KpcnError(f"{self.dir}: no model for the {name} input set ({variant.dir} is missing), which a "
-                                f"shipped model needs; train it with {self._training_commands(InputSet.named(name))}")
-            records.append(variant.finished_record())
-        return records
-
-    def shipped_files(self, record: RunRecord) -> list[str]:
-        """The files of this run (not of its variants), relative to its folder, that a shipped model holds:
-        the record, each component's file (what serving loads: a phase whose networks a later phase's file
-        holds too is left out), the timings, the log, its curve and the reports' tables, those that exist."""
-        files = [RECORD, *dict.fromkeys(entry.file for entry in record.components.values())]
-        optional = [TIMINGS, self.relative(self.log_path), self.relative(self.loss_curve_path)]
-        optional += [self.relative(folder / name) for folder in (self.eval_dir, self.validation_dir)
-                     for name in REPORT_TABLES]
-        return files + [f for f in optional if (self.dir / f).is_file()]
-
-    def check_ship_destination(self, new: Run) -> None:
-        """KpcnError unless ``new`` may be written by :meth:`ship`: neither this run, in it, nor holding it,
-        and absent or an earlier shipped model (which it replaces): never a folder of anything else."""
-        here, there = Path(os.path.abspath(self.dir)), Path(os.path.abspath(new.dir))
-        if here == there or here in there.parents or there in here.parents:
-            raise KpcnError(f"{new.dir}: the model folder (--out) cannot be the run {self.dir}, in it or hold it; "
-                            "choose another, e.g. models/<name>")
-        if new.dir.exists() and not (new.card_path.is_file() and new.has_record() and not new.checkpoint_dir.exists()):
-            raise KpcnError(f"{new.dir}: exists and is not a shipped model (no {CARD}, or a run with checkpoints), "
-                            "which shipping would replace; choose another --out")
-
-    def ship(self, dest: str | os.PathLike, extra: Mapping[str, str] | None = None, *,
-             max_bytes: int = SHIPPED_MAX_BYTES) -> Run:
-        """Copy this finished run, with a finished run for every input set, to ``dest`` as a shipped model (see
-        the module docstring): :meth:`shipped_files` of each variant, each record's shard set path made
-        relative to the copy, and ``extra`` (file name -> text: the card) at its top. Refused (KpcnError, one
-        line) for a run :meth:`shippable_records` refuses, or one whose copy would exceed ``max_bytes``
-        (``config.SHIPPED_MAX_BYTES``: a shipped model is kept in git), or a ``dest`` that
-        :meth:`check_ship_destination` refuses. Written under a temporary name and
-        renamed: ``dest`` is the earlier shipped model or the new one, whole (a kill between the two renames
-        that replace an earlier one leaves none, until shipped again). Every variant's lock is held while it is
-        read, so no trainer writes it meanwhile."""
-        import shutil
-        from contextlib import ExitStack
-
-        from prep.files import write_failure
-
-        new = Run(dest)
-        self.check_ship_destination(new)
-        self.shippable_records()  # before any lock: a lock would make the folder of a missing variant
-        with ExitStack() as locks:
-            for variant in self.variants():  # each variant has its own trainer, and lock
-                locks.enter_context(variant.lock())
-            copies = []
-            for variant, record in zip(self.variants(), self.shippable_records()):
-                files = variant.shipped_files(record)
-                for file in files:
-                    variant.check_file(record, file)  # the copy is what training wrote
-                copies.append((variant, record, files))
-            size = sum((variant.dir / f).stat().st_size for variant, _, files in copies for f in files)
-            size += sum(len(text.encode()) for text in (extra or {}).values())
-            if size > max_bytes:
-                raise KpcnError(f"{self.dir}: a shipped model of {size / 2**20:.1f} MiB is over the "
-                                f"{max_bytes / 2**20:.0f} MiB a model kept in git may have; train a smaller one")
-            new.dir.parent.mkdir(parents=True, exist_ok=True)
-            for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed ship's
-                shutil.rmtree(stale)
-            tmp = Run(new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}"))
-            writing = new.dir  # what is being written, named as the model will hold it: what a failure names
-            try:
-                for variant, record, files in copies:
-                    where = os.path.relpath(variant.dir, self.dir)
-                    target = Run(tmp.dir / where)
-                    final = new.dir / where  # where the copy's record will be read from
-                    for file in files:
-                        writing = final / file
-                        (target.dir / file).parent.mkdir(parents=True, exist_ok=True)
-                        if file != RECORD:
-                            shutil.copy2(variant.dir / file, target.dir / file)
-                    data = copy.deepcopy(dict(record.data))
-                    data["shards"] = {**data["shards"], "set_dir": os.path.relpath(
-                        os.path.abspath(variant.shard_set(record).dir), os.path.abspath(final))}
-                    writing = final / RECORD
-                    target.write_record(data)
-                for name, text in (extra or {}).items():
-                    writing = new.dir / name
-                    (tmp.dir / name).write_text(text)
-                writing = new.dir
-                old = new.dir.with_name(f".{new.dir.name}.tmp-old-{os.getpid()}")
-                if new.dir.exists():
-                    os.replace(new.dir, old)  # a folder is not replaced whole by one rename
-                os.replace(tmp.dir, new.dir)
-            except BaseException as exc:
-                shutil.rmtree(tmp.dir, ignore_errors=True)
-                # an OSError names the file it read as often as the one it wrote (shutil's copies name the source):
-                # the line names what was being written; atomic_path's own line names the temporary copy
-                cause = exc.__cause__ if isinstance(exc, KpcnError) else exc
-                failure = write_failure(writing, cause) if isinstance(cause, OSError) else None
-                if failure is not None:  # a full disk: one line naming the file
-                    raise failure from exc
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        return new
 
     def remove_temporaries(self) -> None:
         """Remove what killed trainers and resample loops left (hold :meth:`lock`; ``eval/`` and ``figures/``
@@ -459,9 +375,9 @@ class Run:
         for stale in new.dir.parent.glob(f".{new.dir.name}.tmp-*"):  # a killed fork's
             shutil.rmtree(stale)
         tmp = new.dir.with_name(f".{new.dir.name}.tmp-{os.getpid()}")
-        # not the variants of other input sets (inputs/): runs of their own, on shard sets of their own
+        # not the variants of other input sets (inputs/) nor other quality modes (quality/): runs of their own
         shutil.copytree(self.dir, tmp, ignore=lambda folder, names: [
-            n for n in names if n.startswith(".") or (n == INPUTS and Path(folder) == self.dir)])
+            n for n in names if n.startswith(".") or (n in (INPUTS, QUALITY) and Path(folder) == self.dir)])
         data["shards"]["set_dir"] = os.path.relpath(os.path.abspath(sset.dir), os.path.abspath(new.dir))
         Run(tmp).write_record(data)
         os.replace(tmp, new.dir)

@@ -1,7 +1,9 @@
 """A model as it serves frames: its variants, their records and files, and the denoisers loaded from them.
 
 A :class:`Serving` is one model (a run folder of ``kpcn train`` or a shipped model, a ``Run``) applied with one
-:class:`~kpcn_keras.settings.InferenceSettings`. A frame is denoised by the model's variant trained for what the
+:class:`~kpcn_keras.settings.InferenceSettings`. Its quality mode's run (``Run.for_quality`` of
+``settings.quality``: the model itself for ``balanced``) is found when it is made, refused in one line where the
+model lacks the mode. A frame is denoised by that run's variant trained for what the
 frame has (``Run.serving``: the run itself or one of its ``inputs/`` variants); each variant is found, its
 record read and its networks loaded (``Denoiser.from_run``) once, at its first frame, and kept for the next.
 ``kpcn denoise`` (``batch.denoise_files``), ``kpcn evaluate``, ``kpcn view`` and ``kpcn.denoise`` each hold one,
@@ -21,11 +23,13 @@ from prep.inputs import InputSet
 
 
 class Serving:
-    """``run`` with ``settings``; :attr:`load_s` and :attr:`warmup_s` are the seconds its denoisers took to load
-    and to warm up so far (a batch reports them apart from its frames' time)."""
+    """The model ``model`` with ``settings``: :attr:`run` is the run of its quality mode (``settings.quality``);
+    :attr:`load_s` and :attr:`warmup_s` are the seconds its denoisers took to load and to warm up so far (a batch
+    reports them apart from its frames' time)."""
 
-    def __init__(self, run: Run, settings: InferenceSettings = InferenceSettings()):
-        self.run, self.settings = run, settings
+    def __init__(self, model: Run, settings: InferenceSettings = InferenceSettings()):
+        self.model, self.settings = model, settings
+        self.run = model.for_quality(settings.quality)
         self._variants: dict[InputSet, Run] = {}
         self._records: dict[Path, RunRecord] = {}
         self._denoisers: dict[Path, Denoiser] = {}

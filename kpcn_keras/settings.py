@@ -1,8 +1,9 @@
 """How a trained model is applied: the settings of inference, one object from the command line to the networks.
 
 :class:`InferenceSettings` holds what changes how a frame is denoised but not which model denoises it nor what
-the frame is: the tile (memory), the trunks' precision (``kpcn_keras.precision``) and the self-ensemble's
-members (``kpcn_keras.denoise``). Its defaults and bounds are ``kpcn_keras.config``'s, checked once, when it is
+the frame is: the tile (memory), the trunks' precision (``kpcn_keras.precision``), the self-ensemble's
+members (``kpcn_keras.denoise``) and the quality mode, which of the model's network sets serves
+(``Run.for_quality``). Its defaults and bounds are ``kpcn_keras.config``'s, checked once, when it is
 made (an OptionError naming the option: the command line's flag), so a reader never checks them again. The
 parser fills it from the options given (``parser.inference_settings``); ``kpcn_keras.serving.Serving``,
 ``denoise.Denoiser``, ``evaluate``, ``figures``, the viewer and ``kpcn.denoise`` take it as it is. λ (``slope``,
@@ -15,7 +16,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from kpcn_keras.config import DEFAULT_ENSEMBLE, DEFAULT_PRECISION, DEFAULT_TILE, ENSEMBLE, PRECISIONS, TILE
+from kpcn_keras.config import (
+    DEFAULT_ENSEMBLE,
+    DEFAULT_PRECISION,
+    DEFAULT_QUALITY,
+    DEFAULT_TILE,
+    ENSEMBLE,
+    PRECISIONS,
+    QUALITY_MODES,
+    TILE,
+)
 from prep.bounds import bounded, check_fields
 from prep.errors import OptionError
 
@@ -25,15 +35,18 @@ class InferenceSettings:
     """``tile``: pixels per side of an inference tile (bounds memory at any resolution; ``--tile``);
     ``precision``: the trunks' arithmetic, one of ``config.PRECISIONS`` (``--precision``; "auto" is resolved for
     the machine by the denoiser, ``kpcn_keras.precision.resolve``); ``ensemble``: a self-ensemble's members, 1
-    for the networks once (``--ensemble``)."""
+    for the networks once (``--ensemble``); ``quality``: the model's mode, one of ``config.QUALITY_MODES``
+    (``--quality``; a mode the model lacks is refused when it is served, ``Run.for_quality``)."""
 
     tile: int = bounded(DEFAULT_TILE, TILE)
     precision: str = DEFAULT_PRECISION
     ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
+    quality: str = DEFAULT_QUALITY
 
     def __post_init__(self):
         check_fields(self)
         check_precision(self.precision)
+        check_quality(self.quality)
 
 
 def check_precision(precision: str) -> str:
@@ -43,4 +56,11 @@ def check_precision(precision: str) -> str:
     return precision
 
 
-__all__ = ["InferenceSettings", "check_precision"]
+def check_quality(quality: str) -> str:
+    """``quality`` if it is one of ``config.QUALITY_MODES``; OptionError echoing it otherwise."""
+    if quality not in QUALITY_MODES:
+        raise OptionError("quality", f"must be one of {', '.join(QUALITY_MODES)}, received {quality!r}")
+    return quality
+
+
+__all__ = ["InferenceSettings", "check_precision", "check_quality"]

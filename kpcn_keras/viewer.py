@@ -73,7 +73,9 @@ class ViewSession:
 
     def __init__(self, frame: layouts.Frame, denoiser: Denoiser, reference: np.ndarray | None = None, *,
                  slope: float | None = None, log=print):
-        self.path, self.shape, self.model = frame.path, frame.size, str(denoiser.run.dir)
+        # the mode's run folder, and the mode: what the page's status line says serves it
+        self.path, self.shape = frame.path, frame.size
+        self.model = f"{denoiser.run.dir} ({denoiser.settings.quality} quality)"
         self.lock = threading.Lock()  # held while the map or the views change: a stroke, inside torch, holds it
         self.closed = False
         begin = time.perf_counter()

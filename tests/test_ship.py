@@ -1,4 +1,4 @@
-"""Shipping a run as a model folder (``kpcn ship``, ``Run.ship``, ``kpcn_keras/card.py``) and the default model
+"""Shipping a run as a model folder (``kpcn ship``, ``shipping.ship``, ``kpcn_keras/card.py``) and the default model
 of ``kpcn denoise`` without ``--run``."""
 
 import json
@@ -304,14 +304,15 @@ def test_a_run_not_evaluated_or_evaluated_before_more_training_is_refused(evalua
 
 def test_a_model_over_the_size_limit_is_refused(evaluated_run, tmp_path):
     from kpcn_keras.run import Run
+    from kpcn_keras.shipping import ship
 
     size = sum(f.stat().st_size for f in Run(evaluated_run.dir).dir.rglob("*.keras") if "checkpoints" not in f.parts)
     with pytest.raises(Exception, match="MiB a model kept in git may have"):
-        Run(evaluated_run.dir).ship(tmp_path / "m", max_bytes=size // 2)
+        ship(Run(evaluated_run.dir), tmp_path / "m", max_bytes=size // 2)
     assert not (tmp_path / "m").exists() and not list(tmp_path.glob(".m.tmp-*"))
     # within the limit it is written, and shipping again replaces it whole
-    Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "one"})
-    Run(evaluated_run.dir).ship(tmp_path / "m", {"CARD.md": "two"})
+    ship(Run(evaluated_run.dir), tmp_path / "m", {"CARD.md": "one"})
+    ship(Run(evaluated_run.dir), tmp_path / "m", {"CARD.md": "two"})
     assert (tmp_path / "m" / "CARD.md").read_text() == "two" and not list(tmp_path.glob(".m.tmp-*"))
 
 
