@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-tune blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-set world-tune modes ship-modes blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -145,16 +145,49 @@ WORLD_TRAIN_ARGS ?= --preset cpu --lr 3e-4 --steps 12000 --decay-steps 12000 --p
 WORLD_BESIDE ?= $(MODEL_SET)
 WORLD_MIX := $(if $(WORLD_BESIDE),$(WORLD_BESIDE)-)$(WORLD_SET)
 WORLD_HELD_OUT = $(if $(WORLD_BESIDE),$(filter-out --val-scenes,$(MODEL_SHARD_ARGS)))
-world-tune: $(KPCN)
+WORLD_VAL_SCENES = --val-scenes $$(echo $(WORLD_HELD_OUT) \
+		$$(ls data/renders/$(WORLD_SET) | sed -n 's/-[0-9]*spp.exr$$//p' | sort -u | awk 'NR % 8 == 1') \
+		| tr ' ' '\n' | grep . | paste -sd,)
+# the world's finished scenes as render set $(WORLD_SET), beside $(WORLD_BESIDE)'s renders as $(WORLD_MIX)
+world-set: $(KPCN)
 	$(if $(WORLD_BESIDE),$(KPCN) render --set $(WORLD_BESIDE) $(MODEL_RENDER_ARGS))
 	[ -d data/renders/$(WORLD_SET) ] || $(KPCN) import-renders $(WORLD) --set $(WORLD_SET)
 	$(if $(WORLD_BESIDE),mkdir -p data/renders/$(WORLD_MIX) && \
 		ln -f data/renders/$(WORLD_BESIDE)/*.exr data/renders/$(WORLD_SET)/*.exr data/renders/$(WORLD_MIX)/)
-	$(KPCN) shards --set $(WORLD_MIX) --inputs no-variance --val-scenes $$(echo $(WORLD_HELD_OUT) \
-		$$(ls data/renders/$(WORLD_SET) | sed -n 's/-[0-9]*spp.exr$$//p' | sort -u | awk 'NR % 8 == 1') \
-		| tr ' ' '\n' | grep . | paste -sd,)
+
+world-tune: world-set
+	$(KPCN) shards --set $(WORLD_MIX) --inputs no-variance $(WORLD_VAL_SCENES)
 	$(KPCN) train --set $(WORLD_MIX) --inputs no-variance --run runs/$(WORLD_SET) --init models/default \
 		$(WORLD_TRAIN_ARGS)
+
+# The quality modes besides balanced (make model's networks; kpcn denoise --quality, docs/training.md §7): each mode's
+# networks trained from its preset (config.QUALITY_PRESETS) into $(MODEL_RUN)-<mode>, for every input set, as long
+# as the held-out error falls; the no-variance networks, which serve Cycles frames, on the Cycles world beside make
+# model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world grew), the
+# others on make model's; the no-variance networks of every mode first. Resumes where it stopped. make ship-modes then ships them into models/$(MODEL) beside its
+# balanced networks.
+MODES ?= fast high
+MODES_ARGS ?= --steps 12000 --decay-steps 12000 --patience 20
+mode_preset = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_PRESETS as p; print(p[sys.argv[1]])' $(1))
+modes: world-set
+	for inputs in no-variance $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)' \
+			| tr ' ' '\n' | grep -vx no-variance); do \
+		if [ $$inputs = no-variance ]; then set=$(WORLD_MIX); held="$(WORLD_VAL_SCENES)"; \
+		else set=$(MODEL_SET); held="$(MODEL_SHARD_ARGS)"; fi; \
+		$(KPCN) shards --set $$set --inputs $$inputs $$held || exit 1; \
+		for mode in $(MODES); do \
+			$(KPCN) train --set $$set --run $(MODEL_RUN)-$$mode --inputs $$inputs \
+				--preset $(call mode_preset,$$mode) $(MODES_ARGS) || exit 1; \
+		done; \
+	done
+	for mode in $(MODES); do $(KPCN) evaluate --run $(MODEL_RUN)-$$mode || exit 1; done
+
+# the trained modes shipped beside models/$(MODEL)'s balanced networks (a new folder, then renamed over it)
+ship-modes: $(KPCN)
+	rm -rf models/$(MODEL).next
+	$(KPCN) ship --run models/$(MODEL) $(foreach m,$(MODES),--mode $(m)=$(MODEL_RUN)-$(m)) --out models/$(MODEL).next
+	rm -rf models/$(MODEL).old && mv models/$(MODEL) models/$(MODEL).old && mv models/$(MODEL).next models/$(MODEL) \
+		&& rm -rf models/$(MODEL).old
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards

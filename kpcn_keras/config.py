@@ -41,6 +41,10 @@ DEFAULT_ENSEMBLE = 1
 # --mode``). ``--quality`` and ``kpcn.denoise(..., quality=...)`` pick one (``settings.InferenceSettings``)
 QUALITY_MODES = ("fast", "balanced", "high")
 DEFAULT_QUALITY = "balanced"
+# The training preset (PRESETS) each mode's networks are trained from (make modes; balanced is make model's):
+# fast a quarter of balanced's convolution work a pixel and 9x9 kernels, high a U-Net trunk that sees four times
+# as far (docs/training.md §7)
+QUALITY_PRESETS = {"fast": "fast", "balanced": "cpu", "high": "unet"}
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
 # serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's
@@ -362,6 +366,9 @@ PRESETS = {
     # cpu with its 7 convolutions dilated 1, 2, 4, 8, 4, 2, 1: a 45-pixel trunk field (every offset within it
     # reached, no gridding gaps) at cpu's cost a step, where the unet's steps cost twice as much
     "dilated": {"model": {"dilations": [1, 2, 4, 8, 4, 2, 1]}},
+    # the fast quality mode's: cpu's stack at half the width and 5 convolutions (about 15 000 multiply-adds a pixel
+    # against 68 000) with 9x9 kernels (81 taps to apply against 169), for frames that must come back quickly
+    "fast": {"model": {"width": 16, "depth": 5, "kernel_size": 9}},
     "kpal-paper": {
         "model": {"arch": "kpal", "width": 100, "depth": 13, "conv_size": 3, "kernel_size": 21, "dropout": 0.3},
         **_PAPER_TRAINING,

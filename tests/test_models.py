@@ -10,7 +10,7 @@ import torch
 from helpers.networks import finite_loss_and_gradients, randomise
 from helpers.numerics import extreme_features
 
-from kpcn_keras.config import PRESETS, TrainConfig
+from kpcn_keras.config import PRESETS, QUALITY_MODES, QUALITY_PRESETS, TrainConfig
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
 from kpcn_keras.models import (
@@ -160,6 +160,21 @@ def test_unet_preset_is_cpus_training_at_a_lower_rate_with_a_four_level_unet():
     assert set(PRESETS["unet"]) == {"model", "learning_rate"}
     with pytest.raises(OptionError, match="^levels is a setting of arch unet alone"):
         TrainConfig.from_preset("cpu", model={"levels": 3})
+
+
+def test_each_quality_mode_trains_from_a_preset_and_fast_costs_a_fraction_of_balanced():
+    assert set(QUALITY_PRESETS) == set(QUALITY_MODES) and set(QUALITY_PRESETS.values()) <= set(PRESETS)
+    fast, balanced = (TrainConfig.from_preset(QUALITY_PRESETS[m]).model for m in ("fast", "balanced"))
+
+    def multiply_adds(cfg):  # a stack of conv_size² convolutions, then the 1x1 kernel head
+        taps, w = cfg.conv_size ** 2, cfg.width
+        return taps * (cfg.in_channels * w + (cfg.depth - 1) * w * w) + w * cfg.kernel_size ** 2
+
+    assert fast.arch == balanced.arch == "kpcn" and fast.kernel_size < balanced.kernel_size
+    assert multiply_adds(fast) < 0.25 * multiply_adds(balanced)
+    # the count above is the network's own: its weights are the multiply-adds a pixel, less the biases
+    net = build_branch_model(fast)
+    assert net.count_params() - fast.depth * fast.width - fast.kernel_size ** 2 == multiply_adds(fast)
 
 
 def test_from_dict_rejects_unknown_keys():
