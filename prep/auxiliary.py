@@ -1,4 +1,4 @@
-"""The auxiliary layers a frame gives the networks: as rendered, or prefiltered first (docs/results/26-clean-auxiliaries.md).
+"""The auxiliary layers a frame gives the networks: as rendered, or prefiltered first (docs/results/26).
 
 The networks read a frame's ``albedo``, ``normal`` and ``depth`` (:data:`AUXILIARIES`) as features (``prep.features``)
 and the diffuse branch is multiplied back by the albedo (``prep.albedo``). At a few samples those layers are noisy
