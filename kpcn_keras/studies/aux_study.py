@@ -48,6 +48,13 @@ DEFAULT_RECORD = "reports/blender.json"
 BLENDER = "blender"
 # variant -> the prep.auxiliary method that gives it
 VARIANTS = {"raw": "raw", "oracle": "clean", "oidn": "oidn", "nlm": "nlm"}
+# what each variant gives the networks, as the report says it (prep.auxiliary's table)
+DESCRIPTIONS = {"raw": "as rendered", "oracle": "the scene's render with the most samples below the reference",
+                "oidn": "OIDN's auxiliary filters: albedo and normal each by an RT filter with that layer alone, "
+                        "depth through the albedo's filter as a grey image over its maximum",
+                "nlm": "prep.albedo's variance-guided NLM on all three, the variance estimated from each layer "
+                       "(prep.auxiliary.local_variance: the smallest of four directional second-difference "
+                       "estimates over 3x3)"}
 PANEL_SPP = 4
 CROP = 64  # the panel's crop, pixels a side (the whole frame where it is smaller)
 
@@ -124,7 +131,8 @@ def score_frames(paths, model: Path, names: dict[str, str], *, log=print) -> tup
 
 def summarise(rows: list[dict], names) -> dict:
     """Per spp and variant: the frames, median ratio of relMSE to Blender's, frames below Blender's (of the
-    frames that have Blender's), mean relMSE and DSSIM, mean prefilter seconds; Blender's means."""
+    frames that have Blender's), frames whose relMSE and whose DSSIM are below the raw variant's, mean relMSE
+    and DSSIM, mean prefilter seconds; Blender's means."""
     out = {}
     for spp in sorted({r["spp"] for r in rows}):
         sel = [r for r in rows if r["spp"] == spp]
@@ -136,6 +144,8 @@ def summarise(rows: list[dict], names) -> dict:
             block["variants"][v] = {
                 "median_ratio_blender": float(np.median(ratios)) if ratios else None,
                 "below_blender": sum(r["scores"][m]["relmse"] < r["scores"][BLENDER]["relmse"] for r in own),
+                "below_raw": {s: sum(r["scores"][m][s] < r["scores"][method("raw")][s] for r in sel)
+                              for s in ("relmse", "dssim")},
                 "relmse": float(np.mean([r["scores"][m]["relmse"] for r in sel])),
                 "dssim": float(np.mean([r["scores"][m]["dssim"] for r in sel])),
                 "prefilter_s": float(np.mean([r["prefilter_s"][v] for r in sel]))}
@@ -212,18 +222,19 @@ def format_report(record: dict) -> str:
              f"`{record['command']}`, {record['started']} to {record['finished']}; {record['machine']['cpus']} "
              f"CPUs. Frames: {', '.join(f'`{p}`' for p in record['frames_given'])}. Model: `{record['model']}`. "
              "Variants (the auxiliaries the networks see, `prep.auxiliary`): "
-             + ", ".join(f"`{v}` ({m})" for v, m in record["variants"].items()) + ".", "",
+             + "; ".join(f"`{v}` ({DESCRIPTIONS.get(v, m)})" for v, m in record["variants"].items()) + ".", "",
              "Scores against the scene's reference, float64 (`prep.metrics`); \"below\": relMSE strictly below "
              "Blender's own denoised frame. kpcn_keras/studies/aux_study.py says how.", "",
-             "| spp | variant | median relMSE ratio to Blender's | frames below Blender's | mean relMSE | "
-             "mean DSSIM | prefilter s/frame |", "|---|---|---|---|---|---|---|"]
+             "| spp | variant | median relMSE ratio to Blender's | frames below Blender's | frames below raw "
+             "(relMSE, DSSIM) | mean relMSE | mean DSSIM | prefilter s/frame |", "|---|---|---|---|---|---|---|---|"]
     for spp, block in record["summary"].items():
         for v, s in block["variants"].items():
             lines.append(f"| {spp} | {v} | {_n(s['median_ratio_blender'], '{:.3f}×')} | {s['below_blender']} of "
-                         f"{block['with_blender']} | {_n(s['relmse'])} | {_n(s['dssim'])} | "
+                         f"{block['with_blender']} | {s['below_raw']['relmse']}, {s['below_raw']['dssim']} of "
+                         f"{block['frames']} | {_n(s['relmse'])} | {_n(s['dssim'])} | "
                          f"{_n(s['prefilter_s'], '{:.3f}')} |")
         if BLENDER in block:
-            lines.append(f"| {spp} | Blender's | 1 | – | {_n(block[BLENDER]['relmse'])} | "
+            lines.append(f"| {spp} | Blender's | 1 | – | – | {_n(block[BLENDER]['relmse'])} | "
                          f"{_n(block[BLENDER]['dssim'])} | – |")
     check = record["check"]
     lines += ["", "Check: " + (f"the raw variant against `{check['record']}` (model `{check['model']}`), "
