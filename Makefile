@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-set world-tune modes ship-modes blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-set world-tune modes ship-modes blender-report aux-study cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -229,6 +229,13 @@ BLENDER_FRAMES ?= $(CYCLES_VALIDATION)
 blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cycles-validation)
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
+
+# the shipped model (AUX_ARGS="--model RUN" for another) on the held-out Cycles validation set with its auxiliary
+# inputs raw, from the scene's 64-spp render (the oracle), OIDN-prefiltered and NLM-prefiltered, beside Blender's own
+# denoised frame: reports/aux.{md,json,png} (docs/results/26-clean-auxiliaries.md)
+aux-study: $(KPCN) cycles-validation
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(KPCN) aux-study $(CYCLES_VALIDATION) $(AUX_ARGS)
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

@@ -1,7 +1,7 @@
 """``kpcn``: the command line of the toolkit.
 
 Subcommands: render, references, render-cycles, cycles-validation, import-renders, shards, train, resample, denoise,
-evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality: one ``cmd_*`` function each
+evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality, aux-study: one ``cmd_*`` function each
 (:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user gave; an option left out takes
 the dataclass's default. The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few
 options no dataclass holds (``--slope``, ``--port``, ...) are checked against their bounds before the command
@@ -404,6 +404,15 @@ def cmd_quality(args) -> int:
                   quality_report.REPORT)
 
 
+def cmd_aux_study(args) -> int:
+    from kpcn_keras.studies import aux_study
+
+    aux_study.study(args.frames, args.model, args.out, record_path=args.blender_record,
+                    command=_command_line(args), log=(lambda _: None) if args.quiet else print)
+    print(f"report: {args.out}/{aux_study.REPORT}.md, .json and .png")
+    return 0
+
+
 # the subcommand -> its function (the parser, kpcn_keras.parser, builds the same names)
 COMMANDS = {
     "render": cmd_render,
@@ -424,6 +433,7 @@ COMMANDS = {
     "resample-study": cmd_resample_study,
     "inputs-study": cmd_inputs_study,
     "quality": cmd_quality,
+    "aux-study": cmd_aux_study,
 }
 
 # the commands that divide their work between the processes torchrun starts (each its rank's share)

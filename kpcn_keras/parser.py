@@ -745,6 +745,19 @@ def _quality_options(add) -> None:
                       "reports again, training nothing")
 
 
+def _aux_study_options(add) -> None:
+    """The options of ``kpcn aux-study``."""
+    a = add("aux-study", help="the shipped model (or --model) on Cycles frames with its auxiliary inputs raw, "
+            "from the scene's cleanest render, OIDN-prefiltered and NLM-prefiltered, beside Blender's own "
+            "denoised frame; writes reports/aux.{md,json,png}")
+    a.add_argument("frames", nargs="*", default=["data/cycles/validation"], help="folders (or files) of Cycles "
+                   "frames with their references (default: data/cycles/validation)")
+    a.add_argument("--model", default="models/default", help="a run or model folder (default: models/default)")
+    a.add_argument("--out", default="reports", help="report folder (default: reports)")
+    a.add_argument("--blender-record", default="reports/blender.json", help="the Blender report's record to "
+                   "check the raw variant against (default: reports/blender.json; none there: no check)")
+
+
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options
 BUILDERS = {
     "render": _render_options,
@@ -765,4 +778,5 @@ BUILDERS = {
     "resample-study": _resample_study_options,
     "inputs-study": _inputs_study_options,
     "quality": _quality_options,
+    "aux-study": _aux_study_options,
 }

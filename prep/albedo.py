@@ -42,16 +42,19 @@ EPS = 1e-10  # keeps d² finite where both patches have no variance (then any di
 
 def prefilter(albedo: np.ndarray, variance: np.ndarray, region: tuple[int, int, int, int] | None = None,
               *, r: int = SEARCH_RADIUS, f: int = PATCH_RADIUS, k: float = STRENGTH,
-              s: int = VARIANCE_RADIUS) -> np.ndarray:
+              s: int = VARIANCE_RADIUS, bounds: tuple[float, float] | None = (0.0, 1.0)) -> np.ndarray:
     """The prefiltered albedo (float32, clipped to [0, 1]) of ``region`` (y0, y1, x0, x1; the whole frame by
-    default) of a frame's ``albedo`` (H, W, 3) and its per-pixel ``variance`` (H, W)."""
+    default) of a frame's ``albedo`` (H, W, 3) and its per-pixel ``variance`` (H, W). ``bounds``: what the
+    layer is clipped to first ((-1, 1) for a normal, None for a depth: ``prep.auxiliary`` filters those too)."""
     h, w = albedo.shape[:2]
     y0, y1, x0, x1 = (0, h, 0, w) if region is None else region
     m = r + f
     ys = np.clip(np.arange(y0 - m, y1 + m), 0, h - 1)
     xs = np.clip(np.arange(x0 - m, x1 + m), 0, w - 1)
     # the window first, then float64: a tile's filter never holds a copy of the whole frame
-    a = np.clip(np.asarray(albedo)[ys[:, None], xs[None, :]].astype(np.float64), 0.0, 1.0)
+    a = np.asarray(albedo)[ys[:, None], xs[None, :]].astype(np.float64)
+    if bounds is not None:
+        a = np.clip(a, *bounds)
     v = _box_mean(np.asarray(variance), ys, xs, s, h, w)
     if not (v[m : m + y1 - y0, m : m + x1 - x0] > 0.0).any():  # every pixel converged (or no variance layer)
         return a[m : m + y1 - y0, m : m + x1 - x0].astype(np.float32)

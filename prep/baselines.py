@@ -70,6 +70,19 @@ def _oidn_auxiliary(pyoidn, device, name: str, image: np.ndarray) -> np.ndarray:
     return out
 
 
+def oidn_filter_auxiliary(image: np.ndarray, name: str) -> np.ndarray:
+    """One auxiliary layer (H, W, 3) denoised by OIDN as the ``prefiltered`` mode does (an ``RT`` filter with
+    that layer alone in its ``name`` slot, ``albedo`` or ``normal``, high quality): the layer clipped to what
+    OIDN takes there ([0, 1] for an albedo, [-1, 1] for a normal) first. ImportError without ``pyoidn``."""
+    import pyoidn
+
+    lo = 0.0 if name == "albedo" else -1.0
+    image = np.ascontiguousarray(np.clip(np.nan_to_num(image), lo, 1.0), dtype=np.float32)
+    with pyoidn.Device() as device:
+        device.commit()
+        return _oidn_auxiliary(pyoidn, device, name, image)
+
+
 def oidn_denoise(aovs: dict[str, np.ndarray], mode: str = "prefiltered") -> np.ndarray:
     """Intel Open Image Denoise's ``RT`` filter, high quality, on the HDR colour with the albedo and normal
     layers of the same render as its auxiliary inputs, in one of :data:`OIDN_MODES`:
