@@ -1,4 +1,4 @@
-"""``kpcn resample`` killed during a round's shards or during a round's training, then run again with the
+"""``kpcn resample`` killed during a round's error maps, its training or its shards, then run again with the
 same command, ends where an uninterrupted loop ends: the same patches (count and (source, position) sets of
 every round, no position twice), byte-identical networks (weights and optimizer state), and every file of
 the tree byte-identical but the timings files (``timings.json``, one per folder that has seconds).
@@ -42,8 +42,9 @@ def _run(args, cwd) -> str:
     return out
 
 
-def _kill_when(args, cwd, reached, what: str) -> None:
-    """Start the command and SIGKILL it as soon as ``reached()`` holds; fails if it ended first."""
+def _kill_when(args, cwd, reached, what: str) -> str:
+    """Start the command and SIGKILL it as soon as ``reached()`` holds; what it printed until then. Fails if it
+    ended first."""
     proc = start_kpcn(args, cwd)
     deadline = time.monotonic() + TIMEOUT
     while not reached():
@@ -55,8 +56,9 @@ def _kill_when(args, cwd, reached, what: str) -> None:
             pytest.fail(f"kpcn {' '.join(args)} did not reach {what} in {TIMEOUT} s")
         time.sleep(0.002)
     proc.send_signal(signal.SIGKILL)
-    proc.communicate()
+    out, _ = proc.communicate()
     print(f"killed during {what}")
+    return out
 
 
 def patches(set_dir: Path) -> dict[str, list[tuple[int, int, int]]]:
@@ -121,52 +123,43 @@ def _assert_same_end(reference: Path, root: Path) -> None:
 
 
 @pytest.mark.slow
-def test_a_kill_during_a_rounds_shards_resumes_without_losing_or_duplicating_patches(trees, tmp_path):
+def test_kills_during_error_maps_training_and_shards_each_resume_to_the_end_of_an_uninterrupted_loop(trees, tmp_path):
+    """One tree killed three times, at each stage of a round, each run resuming what the one before left: during
+    round-001's error maps (the round is drawn again), during round-001's training (after the specular
+    network's first checkpoint: it resumes from there) and during round-002's shards (a part of its files
+    written: none lost or written twice); the last run then ends with the uninterrupted loop's files, weights,
+    optimizer state and log. A resume that went wrong at any of the three shows in that end (and each kill's
+    own checks say which stage left what), at the cost of one loop rather than one per kill point."""
     base, reference = trees
     root = _fresh_copy(base, tmp_path)
-    round_dir = root / "shards" / "t" / "round-002"
+    run, set_dir = root / "runs" / "r", root / "shards" / "t"
+
+    # the run before the rounds is measured; round 1's error maps come next
+    _kill_when(RESAMPLE, root, (run / "resample" / "rounds.json").is_file, "round-001's error maps")
+    assert not (set_dir / "round-001" / "plan.npz").is_file()
+
+    ckpt = run / "checkpoints" / "specular-round-001.keras"
+    _kill_when(RESAMPLE, root, ckpt.is_file, "round-001's training (specular, after its first epoch)")
+    assert not (run / "specular-round-001.keras").is_file()
+    assert (run / "diffuse-round-001.keras").is_file()
+
+    round_dir = set_dir / "round-002"
     total = len(list((reference / "shards" / "t" / "round-002").glob("shard-*.h5")))
 
     def in_shards():  # the plan is written and a part of the round's shard files
         return (round_dir / "plan.npz").is_file() and len(list(round_dir.glob("shard-*.h5"))) >= total // 4
 
-    _kill_when(RESAMPLE, root, in_shards, "round-002's shards")
-    manifest = json.loads((root / "shards" / "t" / "manifest.json").read_text())
+    out = _kill_when(RESAMPLE, root, in_shards, "round-002's shards")
+    assert "[specular-round-001] resuming from" in out  # its training went on from the checkpoint
+    assert (run / "specular-round-001.keras").is_file()
+    manifest = json.loads((set_dir / "manifest.json").read_text())
     assert manifest["rounds"]["round-002"]["status"] == "building"
     written = len(list(round_dir.glob("shard-*.h5")))
     assert 0 < written < total, (written, total)
+
     _run(RESAMPLE, root)
     _assert_same_end(reference, root)
-
-
-@pytest.mark.slow
-def test_a_kill_during_a_rounds_error_maps_draws_the_same_round_again(trees, tmp_path):
-    base, reference = trees
-    root = _fresh_copy(base, tmp_path)
-    record = root / "runs" / "r" / "resample" / "rounds.json"
-
-    def measured_before():  # the run before the rounds is measured; round 1's error maps come next
-        return record.is_file()
-
-    _kill_when(RESAMPLE, root, measured_before, "round-001's error maps")
-    assert not (root / "shards" / "t" / "round-001" / "plan.npz").is_file()
-    _run(RESAMPLE, root)
-    _assert_same_end(reference, root)
-
-
-@pytest.mark.slow
-def test_a_kill_during_a_rounds_training_ends_with_the_weights_of_an_uninterrupted_loop(trees, tmp_path):
-    base, reference = trees
-    root = _fresh_copy(base, tmp_path)
-    ckpt = root / "runs" / "r" / "checkpoints" / "specular-round-001.keras"
-    _kill_when(RESAMPLE, root, ckpt.is_file, "round-001's training (specular, after its first epoch)")
-    assert not (root / "runs" / "r" / "specular-round-001.keras").is_file()
-    assert (root / "runs" / "r" / "diffuse-round-001.keras").is_file()
-    out = _run(RESAMPLE, root)
-    assert "resuming" in out
-    _assert_same_end(reference, root)
-    log_ref = (reference / "runs" / "r" / "log.csv").read_bytes()
-    assert (root / "runs" / "r" / "log.csv").read_bytes() == log_ref
+    assert (run / "log.csv").read_bytes() == (reference / "runs" / "r" / "log.csv").read_bytes()
 
 
 @pytest.mark.slow
