@@ -15,11 +15,12 @@ from helpers.references import assert_read_features_close
 from helpers.tiny import build_tiny_shards, random_aovs, tiny_train_config
 
 from kpcn_keras.denoise import Denoiser
+from kpcn_keras.evaluate import evaluate
 from kpcn_keras.models import network_input
 from kpcn_keras.run import Run
 from kpcn_keras.settings import InferenceSettings
 from kpcn_keras.train import train
-from prep import auxiliary, baselines, colour, exr, features, shards
+from prep import auxiliary, baselines, colour, exr, features, metrics, shards
 from prep.albedo import prefilter
 
 needs_oidn = pytest.mark.skipif(not baselines.oidn_available(), reason="pyoidn is not installed")
@@ -50,13 +51,16 @@ def _check_patches_hold(cfg, method):
     sset = shards.ShardSet(cfg.set_dir)
     manifest = json.loads(sset.manifest_path.read_text())
     changed = seen = 0
+    given_of = {}  # each input's layers, prefiltered once
     for split in ("train", "val"):
         for path in shards.shard_paths(cfg.set_dir, split):
             with shards.open_shard(path) as f:
                 for k in range(len(f["source"])):
                     src = manifest["sources"][int(f["source"][k])]
                     noisy = exr.read_aovs(sset.resolve(src["path"]))
-                    given = auxiliary.auxiliaries(noisy, method)  # the frame whole, then cut
+                    if src["path"] not in given_of:  # the frame whole, then cut
+                        given_of[src["path"]] = auxiliary.auxiliaries(noisy, method)
+                    given = given_of[src["path"]]
                     y, x = f["position"][k]
                     win = np.s_[y:y + cfg.patch_size, x:x + cfg.patch_size]
                     got = shards.read_patch(f, list(shards.VIEWS), k)
@@ -92,8 +96,9 @@ def test_shards_cut_with_oidn_hold_its_auxiliaries(tmp_path):
     assert _check_patches_hold(cfg, "oidn") > 0
 
 
-def test_a_raw_set_is_the_set_cut_before_the_option(nlm_set):
-    raw, _ = nlm_set
+@pytest.mark.slow
+def test_a_raw_set_is_the_set_cut_before_the_option(tmp_path):
+    raw = build_tiny_shards(tmp_path)  # as the code before the option cut it: no auxiliaries anywhere
     explicit = shards.ShardConfig(**{**raw.to_dict(), "auxiliaries": "raw"})
     assert explicit.set_dir == raw.set_dir
     assert "auxiliaries" not in explicit.to_dict() and explicit.content_hash() == RAW_CONTENT_HASH
@@ -126,11 +131,11 @@ def test_a_runs_record_carries_its_auxiliaries_and_a_fine_tune_says_both(nlm_set
         train(tiny_train_config(nlm, shards_root=str(moved)), tmp_path / "wrong", verbose=0)
 
 
-def _by_hand(run, frame):
-    """The run's networks applied by hand to the features of ``prep.auxiliary.auxiliaries(frame, "nlm")``, the
+def _by_hand(run, frame, method="nlm"):
+    """The run's networks applied by hand to the features of ``prep.auxiliary.auxiliaries(frame, method)``, the
     whole frame at once, the diffuse branch multiplied back by the prefiltered albedo (``prep.albedo``)."""
     den = Denoiser.from_run(Run(run))
-    given = auxiliary.auxiliaries(frame, "nlm")
+    given = auxiliary.auxiliaries(frame, method)
     out = {}
     for branch in features.BRANCHES:
         feats = network_input(features.branch_features(given, branch), den.model_config, branch)
@@ -198,3 +203,16 @@ def test_a_model_trained_with_oidn_is_served_oidns_auxiliaries(nlm_run, tmp_path
     untiled = den(frame)["default"]
     tiled = Denoiser.from_run(Run(model), InferenceSettings(tile=8))(frame)["default"]
     np.testing.assert_allclose(tiled, untiled, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["nlm", pytest.param("oidn", marks=needs_oidn)])
+def test_kpcn_evaluate_scores_a_run_with_its_prefilter(nlm_run, tmp_path, method):
+    model = nlm_run if method == "nlm" else _as_oidn(nlm_run, tmp_path)
+    frame, reference = random_aovs(40, 44, seed=11), random_aovs(40, 44, seed=12, variances=False)
+    noisy_path, ref_path = tmp_path / exr.render_filename("x", 4), tmp_path / exr.render_filename("x", 64)
+    exr.write_aovs(noisy_path, frame)
+    exr.write_aovs(ref_path, reference)
+    rows = evaluate(Run(model), [(str(noisy_path), str(ref_path))], out_dir=tmp_path / "eval", baseline=False)
+    expected = metrics.all_metrics(_by_hand(model, frame, method).astype(np.float32), reference["default"])
+    assert rows[0].denoised["relmse"] == pytest.approx(expected["relmse"], rel=1e-4)
