@@ -165,27 +165,34 @@ world-tune: world-set
 # as the held-out error falls; the no-variance networks, which serve Cycles frames, on the Cycles world beside make
 # model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world grew), the
 # others on make model's; the no-variance networks of every mode first. Resumes where it stopped. make ship-modes then ships them into models/$(MODEL) beside its
-# balanced networks.
+# balanced networks. MODES_SHARD_ARGS are kpcn shards' further options: with --auxiliaries oidn (or nlm) the sets are
+# cut with prefiltered auxiliaries beside the raw ones (<set>[.<inputs>].aux-oidn), the modes trained on them into
+# $(MODEL_RUN)-<mode>-aux-oidn, served so, and make ship-modes with the same MODES_SHARD_ARGS ships those.
 MODES ?= fast high
 MODES_ARGS ?= --steps 12000 --decay-steps 12000 --patience 20
+MODES_SHARD_ARGS ?=
+# the --auxiliaries of MODES_SHARD_ARGS (empty for raw): kpcn train finds the set cut with it by the same option
+MODES_AUX = $(shell echo ' $(MODES_SHARD_ARGS) ' | sed -n 's/.* --auxiliaries[ =]\([a-z]*\) .*/\1/p' | grep -vx raw)
+mode_run = $(MODEL_RUN)-$(1)$(if $(MODES_AUX),-aux-$(MODES_AUX))
 mode_preset = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_PRESETS as p; print(p[sys.argv[1]])' $(1))
 modes: world-set
 	for inputs in no-variance $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)' \
 			| tr ' ' '\n' | grep -vx no-variance); do \
 		if [ $$inputs = no-variance ]; then set=$(WORLD_MIX); held="$(WORLD_VAL_SCENES)"; \
 		else set=$(MODEL_SET); held="$(MODEL_SHARD_ARGS)"; fi; \
-		$(KPCN) shards --set $$set --inputs $$inputs $$held || exit 1; \
+		$(KPCN) shards --set $$set --inputs $$inputs $$held $(MODES_SHARD_ARGS) || exit 1; \
 		for mode in $(MODES); do \
-			$(KPCN) train --set $$set --run $(MODEL_RUN)-$$mode --inputs $$inputs \
-				--preset $(call mode_preset,$$mode) $(MODES_ARGS) || exit 1; \
+			$(KPCN) train --set $$set --run $(call mode_run,$$mode) --inputs $$inputs \
+				$(if $(MODES_AUX),--auxiliaries $(MODES_AUX)) --preset $(call mode_preset,$$mode) $(MODES_ARGS) \
+				|| exit 1; \
 		done; \
 	done
-	for mode in $(MODES); do $(KPCN) evaluate --run $(MODEL_RUN)-$$mode || exit 1; done
+	for mode in $(MODES); do $(KPCN) evaluate --run $(call mode_run,$$mode) || exit 1; done
 
 # the trained modes shipped beside models/$(MODEL)'s balanced networks (a new folder, then renamed over it)
 ship-modes: $(KPCN)
 	rm -rf models/$(MODEL).next
-	$(KPCN) ship --run models/$(MODEL) $(foreach m,$(MODES),--mode $(m)=$(MODEL_RUN)-$(m)) --out models/$(MODEL).next
+	$(KPCN) ship --run models/$(MODEL) $(foreach m,$(MODES),--mode $(m)=$(call mode_run,$(m))) --out models/$(MODEL).next
 	rm -rf models/$(MODEL).old && mv models/$(MODEL) models/$(MODEL).old && mv models/$(MODEL).next models/$(MODEL) \
 		&& rm -rf models/$(MODEL).old
 

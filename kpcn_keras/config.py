@@ -16,12 +16,13 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from prep.auxiliary import RAW, TRAINED
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.inputs import FULL, InputSet
 from prep.render.frame import FRAME_SIDE
-from prep.shards.config import shard_set_dir, without_full_inputs
+from prep.shards.config import shard_set_dir, without_defaults
 
 ARCHS = ("kpcn", "kpal", "dpcn", "unet")
 DEFAULT_TILE = 256  # pixels per side of an inference tile: bounds memory at any resolution
@@ -55,8 +56,10 @@ MODEL_ENV = "KPCN_MODEL"
 # The flags of the options a message spells in a command it suggests (a run's hint, ``Run._training_commands``),
 # by command and option: the parser declares them under these (tests/test_cli.py holds the two equal), and a
 # library module spells them from here rather than reaching up to the parser
-HINT_FLAGS = {"shards": {"set_name": "--set", "out_root": "--out", "inputs": "--inputs"},
-              "train": {"set_name": "--set", "shards_root": "--shards", "run": "--run-dir", "inputs": "--inputs"}}
+HINT_FLAGS = {"shards": {"set_name": "--set", "out_root": "--out", "inputs": "--inputs",
+                         "auxiliaries": "--auxiliaries"},
+              "train": {"set_name": "--set", "shards_root": "--shards", "run": "--run-dir", "inputs": "--inputs",
+                        "auxiliaries": "--auxiliaries"}}
 SHIPPED_MAX_BYTES = 25 * 2**20  # a shipped model lives in git: refused above this
 # the shipped model's goal: a 1920x1080 frame within 3x OIDN's time on the same CPU; its card times
 # the two side by side (kpcn_keras/card.py), the best of SPEED_REPEATS alternating calls after a warm-up
@@ -478,6 +481,11 @@ class TrainConfig:
     network (``shared``) or a compositor, both made for two branches, is refused. A full configuration's
     dict is the one from before input sets existed (``prep.shards.config.without_full_inputs``), so the
     runs and checkpoints written before keep their identity.
+
+    ``auxiliaries`` (``prep.auxiliary.TRAINED``) is how the albedo, normal and depth the networks see are
+    prefiltered: the run trains on the shard set cut so (:attr:`set_dir`; ``kpcn train`` checks its manifest says
+    so) and is served its frames so (``kpcn_keras.denoise``). ``raw``, the default, is written nowhere, so the
+    runs from before keep their identity (a record without the key reads as raw).
     """
 
     set_name: str = "default"
@@ -517,9 +525,12 @@ class TrainConfig:
     seed: int = bounded(0, SEED)
     inputs: str = FULL.name
     init: str | None = None
+    auxiliaries: str = RAW
 
     def __post_init__(self):
         self.branches = tuple(self.branches)
+        if self.auxiliaries not in TRAINED:  # pyoidn is checked where it runs (shards, denoise), not where it is read
+            raise OptionError("auxiliaries", f"must be one of {', '.join(TRAINED)}, got {self.auxiliaries!r}")
         self.slope_range = tuple(self.slope_range)
         if not self.branches or any(b not in BRANCHES for b in self.branches):
             raise OptionError("branches", f"must be a non-empty subset of {','.join(BRANCHES)}, "
@@ -614,7 +625,7 @@ class TrainConfig:
 
     @property
     def set_dir(self) -> Path:
-        return shard_set_dir(self.shards_root, self.set_name, self.inputs)
+        return shard_set_dir(self.shards_root, self.set_name, self.inputs, self.auxiliaries)
 
     def phases(self) -> list[Phase]:
         """The run's phases in training order, each with its place in the run's epoch numbering."""
@@ -634,7 +645,7 @@ class TrainConfig:
         return phases
 
     def to_dict(self) -> dict:
-        d = without_full_inputs(dataclasses.asdict(self))
+        d = without_defaults(dataclasses.asdict(self))  # inputs full, auxiliaries raw: as written before either
         d["model"] = self.model.to_record()  # asdict would write the fields its to_record leaves out
         if self.compositor is not None:
             d["compositor"] = self.compositor.to_dict()  # asdict would write the fields its to_dict leaves out

@@ -18,6 +18,13 @@ each tile's window as the branches are; else the albedo prefiltered with its var
 albedo where a frame has no variance), each tile's from its own neighbourhood. Either way tiles still equal an
 untiled run.
 
+A run trained on prefiltered auxiliaries (``kpcn train --auxiliaries``, ``RunRecord.auxiliaries``) is given them
+so: each frame, as its input set reads it, has its albedo, normal and depth prefiltered once, whole, before any
+tile (``prep.auxiliary.network_layers``, the function its shards were cut with; :meth:`Denoiser.given`), so tiles
+still equal an untiled run. That holds three float32 layers more than the frame (seven channels) besides what the
+filter itself holds (OIDN's buffers, the frame's size), not bounded by the tile: a frame too large for that is
+denoised in crops by the caller. A run needing ``pyoidn`` where it is not installed is refused when it is loaded.
+
 A self-ensemble (``ensemble`` N > 1, ``--ensemble``) trades time for accuracy without training: each tile is
 predicted N times, from the frame moved by each of the first N symmetries of the square (``kpcn_keras.augment``'s
 spatial codes 0..N-1, the identity first), each prediction moved back, and each branch keeps the per-pixel,
@@ -60,8 +67,8 @@ from kpcn_keras.run import Run, RunRecord, check_architecture
 from kpcn_keras.settings import InferenceSettings
 from prep import colour, exr, features
 from prep.albedo import prefilter as prefilter_albedo
+from prep.auxiliary import check_method, network_layers
 from prep.errors import KpcnError, OptionError
-from prep.inputs import restrict
 
 
 class Denoiser:
@@ -73,8 +80,9 @@ class Denoiser:
     denoiser serves every λ. :meth:`without_compositor` is the same networks without a multiscale run's
     compositor (the "without" of a with/without comparison), nothing loaded again.
 
-    A frame is first restricted to the run's input set (``prep.inputs.restrict``, ``RunRecord.inputs``): the
-    networks see what their shards held. A no-split run has the diffuse network alone (:attr:`branches`):
+    A frame is first restricted to the run's input set (``prep.inputs.restrict``, ``RunRecord.inputs``) and its
+    auxiliaries prefiltered as the run's were (``RunRecord.auxiliaries``; :meth:`given`): the networks see what
+    their shards held. A no-split run has the diffuse network alone (:attr:`branches`):
     its input is the total colour, the specular branch is not run and its output is 0, so ``default`` is the
     diffuse output. ``settings`` (``kpcn_keras.settings``): the tile, the trunks' precision and the members of a
     self-ensemble (module docstring; 1: the networks once).
@@ -91,7 +99,7 @@ class Denoiser:
         self.precision = resolve(settings.precision)
         for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
             apply_precision(net, self.precision)
-        self.inputs, self.branches = record.inputs, record.branches
+        self.inputs, self.branches, self.auxiliaries = record.inputs, record.branches, record.auxiliaries
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
         self.align = input_alignment(self.model_config)
@@ -116,6 +124,7 @@ class Denoiser:
         current round. Only the networks of the branches the run's input set runs are read
         (``RunRecord.branches``)."""
         record = (run.record() if record is None else record).finished(resampling=resampling)
+        check_method(record.auxiliaries, f"model {run.dir}")  # before any network is read
         names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
         networks = {}
         for name in names:
@@ -129,6 +138,12 @@ class Denoiser:
             albedo = run.load_component(record, ALBEDO_NETWORK)
             check_architecture(albedo, record.model, record.component_path(ALBEDO_NETWORK))
         return cls(run, record, networks, compositor, settings, albedo)
+
+    def given(self, aovs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The layers of the frame ``aovs`` the networks are given: as the run's input set reads them, the
+        auxiliaries prefiltered, whole, as the run's shards were (``prep.auxiliary.network_layers``). A frame
+        is given once: every tile, branch and member reads the result."""
+        return network_layers(aovs, self.inputs, self.auxiliaries)
 
     @property
     def ensemble(self) -> int:
@@ -246,7 +261,7 @@ class Denoiser:
         self.check_slope(slope, (h, w))
         if branch not in self.models:
             return np.zeros((h, w, 3), dtype=np.float32)
-        aovs = restrict(aovs, self.inputs)
+        aovs = self.given(aovs)
         scale = features.depth_scale(aovs["depth"])
         out = np.empty((h, w, 3), dtype=np.float32)
         for tile, window in self.tiles(h, w):
@@ -260,9 +275,10 @@ class Denoiser:
 
         Tile by tile, both branches and their recombination: beyond ``aovs`` and the three float32 outputs,
         what this holds is bounded by the tile (features of one window, its network activations, the float64
-        recombination of one tile), at any frame size. The frame is restricted to the run's input set first
-        (what is kept is not copied); the specular branch a no-split run does not run gives 0."""
-        aovs = restrict(aovs, self.inputs)
+        recombination of one tile), at any frame size (and, for a run with prefiltered auxiliaries, the
+        frame's prefiltered auxiliaries). The frame is restricted to the run's input set first (what is kept is
+        not copied; :meth:`given`); the specular branch a no-split run does not run gives 0."""
+        aovs = self.given(aovs)
         h, w = aovs["depth"].shape
         self.check_slope(slope, (h, w))
         scale = features.depth_scale(aovs["depth"])  # the one whole-image statistic of the features
@@ -355,7 +371,7 @@ class PreparedFrame:
 
     def __init__(self, denoiser: Denoiser, aovs: dict[str, np.ndarray]):
         self.denoiser = denoiser
-        aovs = restrict(aovs, denoiser.inputs)
+        aovs = denoiser.given(aovs)  # once per frame, as the trunks
         self.shape = aovs["depth"].shape
         scale = features.depth_scale(aovs["depth"])
         # filtered once, as the trunks run once (a map re-runs only what follows λ), tile by tile as a denoise does

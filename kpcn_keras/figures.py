@@ -86,8 +86,8 @@ def kernel_figure(den: Denoiser, aovs: dict, ref: dict | None, path: Path, pixel
     if not (r <= y < h - r and r <= x < w - r):
         raise OptionError("pixel", f"must be at least {r} pixels from the border of the {w}x{h} frame, got {y},{x}")
     # the branches the run's networks denoise, of the layers they read (the pixel is chosen on the frame as
-    # it is: a no-variance run reads no variance)
-    aovs = restrict(aovs, den.inputs)
+    # it is: a no-variance run reads no variance), its auxiliaries as the run's were prefiltered
+    aovs = den.given(aovs)
     ref = None if ref is None else restrict(ref, InputSet(split=den.inputs.split, variance=False))
     plt = pyplot()
     fig, axes = plt.subplots(len(den.branches), 4, figsize=(10, 2.7 * len(den.branches)), squeeze=False)

@@ -226,9 +226,11 @@ class Run:
         run's shard set cut for that input set (the model that serves it best)."""
         base = self.record().train if self.has_record() else TrainConfig()
         root = None if base.shards_root == TrainConfig.shards_root else base.shards_root
-        shards = _hint_command("shards", {"set_name": base.set_name, "out_root": root, "inputs": inputs.name})
+        aux = None if base.auxiliaries == TrainConfig.auxiliaries else base.auxiliaries  # the run's, for its variants
+        shards = _hint_command("shards", {"set_name": base.set_name, "out_root": root, "inputs": inputs.name,
+                                          "auxiliaries": aux})
         train = _hint_command("train", {"set_name": base.set_name, "shards_root": root, "run": str(self.dir),
-                                        "inputs": inputs.name})
+                                        "inputs": inputs.name, "auxiliaries": aux})
         return f"'{shards}' then '{train}'"
 
     def check_folder(self) -> Run:
@@ -494,6 +496,12 @@ class RunRecord:
     def inputs(self) -> InputSet:
         """The input set the run was trained for (the full set for a record written before input sets)."""
         return self.train.input_set
+
+    @property
+    def auxiliaries(self) -> str:
+        """How the albedo, normal and depth the run's networks see are prefiltered (``prep.auxiliary.TRAINED``):
+        what its shard set was cut with, and what its denoiser gives it (raw for a record written before)."""
+        return self.train.auxiliaries
 
     @property
     def branches(self) -> tuple[str, ...]:

@@ -103,6 +103,7 @@ from kpcn_keras.multiscale import (
     multiscale_output,
 )
 from kpcn_keras.run import Run, check_architecture, load_model, read_state, save_model
+from prep.auxiliary import RAW
 from prep.errors import KpcnError, OptionError
 from prep.features import BRANCHES
 from prep.files import atomic_path, atomic_write_json, check_writable, pyplot, read_json, save_png, sha256_file
@@ -291,6 +292,10 @@ def check_inputs(cfg: TrainConfig, sset: ShardSet) -> tuple[dict, dict]:
     if cut_for != cfg.inputs:
         raise KpcnError(f"{sset.manifest_path}: the shard set was cut for the input set {cut_for}, not {cfg.inputs} "
                         f"(--inputs); cut it with 'kpcn shards --set {cfg.set_name} --inputs {cfg.inputs}'")
+    cut_with = manifest.get("config", {}).get("auxiliaries", RAW)
+    if cut_with != cfg.auxiliaries:  # a folder another name rule wrote, or moved by hand: not the set asked for
+        raise KpcnError(f"{sset.manifest_path}: the shard set was cut with --auxiliaries {cut_with}, not "
+                        f"{cfg.auxiliaries} (--auxiliaries)")
     if manifest.get("features") is not None and len(manifest["features"]) != cfg.model.in_channels:
         raise OptionError("in_channels", f"is {cfg.model.in_channels} but the shards in {sset.dir} have "
                           f"{len(manifest['features'])} feature channels")
@@ -360,6 +365,9 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet,
     }
     if init is not None:
         record["init"] = {"run": run.relative(_init_run(cfg).dir), "networks": init}
+        started = _init_run(cfg).finished_record().auxiliaries
+        if RAW != started or RAW != cfg.auxiliaries:  # a fine-tune across methods says both; raw to raw as before
+            record["init"]["auxiliaries"] = started
     run.write_record(record)
     return record
 

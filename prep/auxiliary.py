@@ -21,7 +21,13 @@ nlm        kpcn's own prefilter, ``prep.albedo``'s variance-guided non-local mea
 =========  ====================================================================================================
 
 Every other layer (colour, split, variances) is the frame's own array, not copied: the variance layers still
-describe the rendered auxiliaries (a network trained on prefiltered auxiliaries would learn with them so).
+describe the rendered auxiliaries (a network trained on prefiltered auxiliaries learns with them so).
+
+A network is trained and served with one of :data:`TRAINED` (``kpcn shards --auxiliaries``; ``clean`` needs a
+second render, which a frame to denoise does not have): the shard writer cuts its patches from
+:func:`network_layers` of each noisy input, and the denoiser (``kpcn_keras.denoise``) gives its networks
+:func:`network_layers` of each frame, the same function, so a network is served its auxiliaries exactly as it was
+trained on them. :func:`check_method` refuses, in one line, a method that cannot run here.
 """
 
 from __future__ import annotations
@@ -31,9 +37,12 @@ import numpy as np
 from prep import albedo as albedo_filter
 from prep.errors import KpcnError
 from prep.exr import VARIANCE_OF, to_float32
+from prep.inputs import InputSet, restrict
 
 AUXILIARIES = ("albedo", "normal", "depth")
 METHODS = ("raw", "clean", "oidn", "nlm")
+TRAINED = ("raw", "oidn", "nlm")  # the methods a network is trained and served with (no second render needed)
+RAW = "raw"  # what every network trained before the option existed was given: left out of records at this value
 # the clip before the filter, as each layer's feature clips it (prep.features): None for the depth
 BOUNDS = {"albedo": (0.0, 1.0), "normal": (-1.0, 1.0), "depth": None}
 # the four directions of the second differences of local_variance: along x, y and both diagonals
@@ -118,3 +127,26 @@ def auxiliaries(layers: dict[str, np.ndarray], method: str = "raw", *,
     else:
         new = {k: nlm_layer(layers[k], k, layers.get(VARIANCE_OF[k])) for k in AUXILIARIES}
     return {**layers, **new}
+
+
+def check_method(method: str, what: str) -> str:
+    """``method`` if a network can be trained and served with it here (one of :data:`TRAINED`, and ``pyoidn``
+    importable for ``oidn``); else KpcnError in one line naming ``what`` (an option, a model folder) and the
+    remedy."""
+    if method not in TRAINED:
+        raise KpcnError(f"{what}: auxiliaries {method!r}: expected one of {', '.join(TRAINED)}")
+    if method == "oidn":
+        import importlib.util
+
+        if importlib.util.find_spec("pyoidn") is None:
+            raise KpcnError(f"{what}: its auxiliaries are prefiltered by OIDN (--auxiliaries oidn), which needs the "
+                            "optional package pyoidn: pip install 'kpcn[oidn]'")
+    return method
+
+
+def network_layers(layers: dict[str, np.ndarray], inputs: InputSet, method: str = RAW) -> dict[str, np.ndarray]:
+    """What a network of the input set ``inputs`` trained with ``method`` (one of :data:`TRAINED`) is given of a
+    frame's ``layers``: the frame as that set reads it (``prep.inputs.restrict``), then its auxiliaries by
+    ``method`` (:func:`auxiliaries`, on the whole frame: OIDN and the NLM filter see all of it). The one function
+    both the shard writer and the denoiser call; with ``raw`` it is ``restrict`` alone."""
+    return auxiliaries(restrict(layers, inputs), method)

@@ -38,7 +38,6 @@ def main() -> None:
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, default_model
     from prep import albedo, baselines, colour, features, layouts, metrics
-    from prep.inputs import restrict
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", help="a run or model folder (default: the shipped model)")
@@ -76,7 +75,7 @@ def main() -> None:
         den = denoisers[served.dir]
         log_irradiance = den.run_branch("diffuse", noisy)
         specular = colour.specular_from_log(den.run_branch("specular", noisy))
-        given = restrict(noisy, den.inputs)  # as the denoiser reads it: no variance layer is zeros
+        given = den.given(noisy)  # as the denoiser reads it: no variance layer is zeros
         learned = (den.frame_albedo(given, features.depth_scale(given["depth"]))
                    if den.albedo_network is not None else None)
         albedos = [noisy["albedo"]] + [albedo.prefilter(noisy["albedo"], given["albedoVariance"], r=r, f=f, k=k, s=s)

@@ -20,6 +20,7 @@ import shutil
 from dataclasses import dataclass
 
 from prep import colour, features
+from prep.auxiliary import check_method
 from prep.errors import KpcnError
 from prep.files import atomic_write_json, check_writable, read_json, remove_temporaries
 from prep.parts import Part
@@ -105,6 +106,7 @@ def build_shards(config: ShardConfig, *, progress: bool = True, workers: int | N
     """
     sset = ShardSet(config.set_dir)
     check_writable(sset.dir, "shard set folder (--out)", directory=True)
+    check_method(config.auxiliaries, "--auxiliaries")
     plan = _plan(config, sset)
     with sset.lock():
         manifest = _open_manifest(sset, config, plan)

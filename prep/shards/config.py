@@ -7,6 +7,13 @@ A set is cut for one input set (``inputs``, ``prep.inputs``): its patches hold w
 set, ``<out_root>/<set>.<inputs>`` for the others, all cut from the same renders (``<render_root>/<set>``). A
 full configuration's dict, and so its hash, is the one from before input sets existed (no ``inputs`` key):
 every set cut before is still the set this code cuts.
+
+A set's patches hold the auxiliaries of ``auxiliaries`` (``prep.auxiliary.TRAINED``: ``raw``, as rendered, or
+prefiltered by ``oidn`` or ``nlm``, each noisy input's whole frame once before its patches are cut; the
+reference as it is). A prefiltered set is another set, of its own folder, ``<set>[.<inputs>].aux-<method>``
+(:func:`shard_set_dir`), so that it is cut beside the raw set of the same renders rather than refused over it
+(the raw set, and the runs trained on it, stay as they are). A raw configuration's dict has no ``auxiliaries``
+key (:func:`without_defaults`): every set cut before is still the set this code cuts, byte for byte.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from prep.auxiliary import RAW, TRAINED
 from prep.bounds import PATCH_COUNT, SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.files import check_set_name
@@ -35,10 +43,12 @@ MAX_SHARD_BYTES = 2 << 30
 PATCH_SIZE = Bound(3, 512)
 
 
-def shard_set_dir(out_root: str | Path, set_name: str, inputs: str) -> Path:
+def shard_set_dir(out_root: str | Path, set_name: str, inputs: str, auxiliaries: str = RAW) -> Path:
     """The folder of the shard set ``set_name`` cut for the input set ``inputs`` (a name of
-    ``prep.inputs.INPUT_SETS``): the one rule, for ``kpcn shards`` and for ``kpcn train``."""
-    return Path(out_root) / (set_name if inputs == FULL.name else f"{set_name}.{inputs}")
+    ``prep.inputs.INPUT_SETS``) with the auxiliaries ``auxiliaries`` (``prep.auxiliary.TRAINED``): the one rule,
+    for ``kpcn shards`` and for ``kpcn train``."""
+    name = set_name if inputs == FULL.name else f"{set_name}.{inputs}"
+    return Path(out_root) / (name if auxiliaries == RAW else f"{name}.aux-{auxiliaries}")
 
 
 def without_full_inputs(d: dict) -> dict:
@@ -48,6 +58,15 @@ def without_full_inputs(d: dict) -> dict:
     if d.get("inputs") == FULL.name:
         d.pop("inputs")
     return d
+
+
+def without_defaults(d: dict) -> dict:
+    """``d`` (a shard or train configuration's dict) without the fields added since the first sets and runs that
+    hold the value those were made with (``inputs`` full, ``auxiliaries`` raw), so that their hashes and
+    records are unchanged."""
+    if d.get("auxiliaries") == RAW:
+        d.pop("auxiliaries")
+    return without_full_inputs(d)
 
 
 @dataclass
@@ -70,12 +89,15 @@ class ShardConfig:
     uniform_mix: float = bounded(0.1, Bound(0.0, 1.0, integer=False, low_open=True))
     seed: int = bounded(0, SEED)
     inputs: str = FULL.name  # what the set's patches hold (prep.inputs.INPUT_SETS)
+    auxiliaries: str = RAW  # the auxiliaries the patches hold (prep.auxiliary.TRAINED)
     command: str = field(default="", compare=False)
 
     def __post_init__(self):
         self.val_scenes = tuple(self.val_scenes)
         check_set_name(self.set_name)
         InputSet.named(self.inputs)
+        if self.auxiliaries not in TRAINED:  # pyoidn is checked where it runs (build_shards), not where it is read
+            raise OptionError("auxiliaries", f"must be one of {', '.join(TRAINED)}, got {self.auxiliaries!r}")
         check_fields(self)
         if self.colour_weight < 0 or self.normal_weight < 0 or self.colour_weight + self.normal_weight <= 0:
             raise OptionError("colour_weight", f"and normal_weight must be >= 0 and not both 0, got "
@@ -99,10 +121,10 @@ class ShardConfig:
 
     @property
     def set_dir(self) -> Path:
-        return shard_set_dir(self.out_root, self.set_name, self.inputs)
+        return shard_set_dir(self.out_root, self.set_name, self.inputs, self.auxiliaries)
 
     def to_dict(self) -> dict:
-        return without_full_inputs(dataclasses.asdict(self))
+        return without_defaults(dataclasses.asdict(self))
 
     def content_hash(self) -> str:
         """Hash of the options that change the shards' content (not where files are, nor the command)."""

@@ -12,6 +12,11 @@ split the same way), at the positions drawn from the render as it is: the render
 positions, and the variance PDF stays the variance's where the model is given none. Renders without variance
 layers (another renderer's, ``kpcn import-renders``) can be cut for the input sets without variance
 alone; their PDF reads their error to the reference instead (:func:`round_pdf`).
+
+A set cut with prefiltered auxiliaries (``ShardConfig.auxiliaries``) cuts its patches from
+``prep.auxiliary.network_layers`` of each noisy input (the whole frame prefiltered once, before any patch is cut:
+what the denoiser gives its networks); the reference is as it is, and the positions are drawn from the render as
+it is (the PDF reads the variance and colour layers, which no prefilter changes), so they are the raw set's.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep import colour, convergence, features, sampling
+from prep.auxiliary import RAW, network_layers
 from prep.exr import VARIANCE_LAYERS
 from prep.inputs import InputSet, restrict
 from prep.shards.config import ShardConfig
@@ -33,14 +39,16 @@ def noisy_variances(inputs: InputSet) -> bool | None:
     return True if inputs.variance else None
 
 
-def shard_layers(noisy: dict, reference: dict, inputs: InputSet) -> tuple[dict, dict]:
-    """The layers the patches of a set of ``inputs`` are cut from: the noisy render as a model of that set
-    reads it (``prep.inputs.restrict``), and the reference restricted alike: a no-split set's diffuse
+def shard_layers(noisy: dict, reference: dict, inputs: InputSet, auxiliaries: str = RAW) -> tuple[dict, dict]:
+    """The layers the patches of a set of ``inputs`` and ``auxiliaries`` are cut from: the noisy render as a
+    model of that set reads it (``prep.auxiliary.network_layers``: ``prep.inputs.restrict``, then the
+    auxiliaries prefiltered), and the reference restricted alike: a no-split set's diffuse
     reference is the total colour, and its variance ``colorVariance``, whatever the set's inputs (the
     reference's variance is no network input, only its ``ref_relse``). A reference without every variance
     layer (read with ``variances=None``: another renderer's) is given zeros, so its ``ref_relse`` is 0."""
     has_variance = all(name in reference for name in VARIANCE_LAYERS)
-    return restrict(noisy, inputs), restrict(reference, InputSet(split=inputs.split, variance=has_variance))
+    given = InputSet(split=inputs.split, variance=has_variance)
+    return network_layers(noisy, inputs, auxiliaries), restrict(reference, given)
 
 
 def image_datasets(noisy: dict, reference: dict) -> dict[str, np.ndarray]:
@@ -147,5 +155,5 @@ def variance_patches(noisy: dict, reference: dict, config: ShardConfig, source_i
     layers of the set's input set (:func:`shard_layers`)."""
     positions, pdf = draw(round_pdf(noisy, config, reference=reference), config.patches_per_image, config,
                           source_id, 0)
-    return ImagePatches.at(*shard_layers(noisy, reference, config.input_set), positions, pdf, source_id=source_id,
-                           round=0, patch_size=config.patch_size)
+    layers = shard_layers(noisy, reference, config.input_set, config.auxiliaries)
+    return ImagePatches.at(*layers, positions, pdf, source_id=source_id, round=0, patch_size=config.patch_size)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from prep import colour, exr, features, threads
+from prep.auxiliary import RAW
 from prep.bounds import is_integer
 from prep.errors import OptionError
 from prep.files import atomic_write_json, remove_temporaries
@@ -123,7 +124,7 @@ def write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, spe
     atomic_write_json(record_path, manifest)
 
     writer = _RoundWriter(str(sset.dir), manifest["sources"], k, config.patch_size, draw_of,
-                          _shard_attrs(config, manifest, command), config.input_set)
+                          _shard_attrs(config, manifest, command), config.input_set, config.auxiliaries)
 
     def record(spec: ShardSpec, checksum: tuple[str, str]) -> None:
         written[spec.index] = _entry(sset, round_dir / shard_name(spec.index), spec, checksum)
@@ -185,7 +186,7 @@ class _RoundWriter:
     It keeps, between shards, the :class:`ImagePatches` of the input it cut last (an input spans at most a
     few consecutive shards) with its reference, and one shard buffer (reused: allocating it per shard
     costs its page faults each time). The positions are drawn from the render as read, the patches cut
-    from the layers of the set's ``inputs`` (``prep.shards.patches.shard_layers``)."""
+    from the layers of the set's ``inputs`` and ``auxiliaries`` (``prep.shards.patches.shard_layers``)."""
 
     set_dir: str
     sources: list[dict]
@@ -194,6 +195,7 @@ class _RoundWriter:
     draw_of: RoundDraw
     attrs: dict
     inputs: InputSet = InputSet()
+    auxiliaries: str = RAW
     _current: ImagePatches | None = field(default=None, repr=False)
     _reference: tuple[str, dict] | None = field(default=None, repr=False)
     _buffer: dict[str, np.ndarray] | None = field(default=None, repr=False)
@@ -226,7 +228,8 @@ class _RoundWriter:
             noisy = exr.read_aovs(sset.resolve(src["path"]), variances=noisy_variances(self.inputs))
             self._current = None  # free the previous image before the next is cut
             positions, pdf = self.draw_of(source_id, noisy, self._reference[1])
-            self._current = ImagePatches.at(*shard_layers(noisy, self._reference[1], self.inputs), positions, pdf,
+            layers = shard_layers(noisy, self._reference[1], self.inputs, self.auxiliaries)
+            self._current = ImagePatches.at(*layers, positions, pdf,
                                             source_id=source_id, round=self.k, patch_size=self.patch_size)
         return self._current
 
