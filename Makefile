@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-tune blender-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-tune blender-report modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -196,6 +196,15 @@ BLENDER_FRAMES ?= $(CYCLES_VALIDATION)
 blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cycles-validation)
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
+
+# kpcn's quality modes beside OIDN's: each mode of models/$(MODEL) and OIDN at fast, balanced and high (prefiltered
+# and plain) timed on a 1920x1080 frame made of SPEED_SOURCE, in one process, alternately (run it on an idle machine:
+# it is a timing): reports/mode_costs.json; then error (reports/blender.json, from make blender-report with
+# BLENDER_ARGS="--model default=models/$(MODEL)") against those seconds: reports/modes.{png,json}
+modes-report: $(KPCN)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(BIN)/python -m kpcn_keras.studies.mode_costs --model models/$(MODEL) --frame $(SPEED_SOURCE) --out reports/mode_costs.json
+	$(BIN)/python -m kpcn_keras.studies.modes_plot --costs reports/mode_costs.json --errors reports/blender.json --out reports
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)
