@@ -103,6 +103,8 @@ def points(costs: dict, errors: dict, name: str) -> tuple[str, list[dict]]:
 
 def figure(record: dict):
     """A panel per spp: each family's points (kpcn, OIDN prefiltered, OIDN plain) joined in quality order."""
+    from matplotlib import ticker
+
     plt = pyplot()
     spps = sorted({spp for p in record["points"] for spp in p["error"]}, key=int)
     fig, axes = plt.subplots(1, max(len(spps), 1), figsize=(4.2 * max(len(spps), 1), 3.6), squeeze=False)
@@ -115,6 +117,9 @@ def figure(record: dict):
             for p, x, y in zip(mine, xs, ys):
                 ax.annotate(p["quality"], (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_xscale("log")
+        for axis in (ax.xaxis.set_major_formatter, ax.xaxis.set_minor_formatter):
+            axis(ticker.FormatStrFormatter("%g"))  # 0.3, 2: not 3×10⁻¹ on every minor tick
+        ax.tick_params(axis="x", which="both", labelsize=7)
         ax.set_title(f"{spp} spp", fontsize=9)
         ax.set_xlabel(f"seconds per {record['size'][0]}×{record['size'][1]} frame (best of {record['repeats']})")
         ax.set_ylabel(record["y"])
