@@ -150,3 +150,27 @@ def test_the_plot_refuses_a_record_that_is_not_one_in_one_line(tmp_path, capsys)
                             "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("modes-plot: error: ") and "costs.json: not a readable" in err and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_the_card_times_each_mode_beside_oidn_at_the_same_quality(two_mode_model, fixture_noisy, tmp_path):
+    import shutil
+
+    from kpcn_keras.card import SPEED, card_tables, retime, speed_lines
+    from kpcn_keras.run import Run
+
+    model = shutil.copytree(two_mode_model, tmp_path / "two")  # retime writes the card and speed.json again
+    for found in (json.loads((model / SPEED).read_text()),  # as kpcn ship --mode timed it
+                  retime(Run(model), fixture_noisy, "test", frame_size=(40, 32))):
+        assert list(found["modes"]) == ["fast", "balanced"]
+        assert found["modes"]["balanced"]["kpcn_s"] == found["kpcn_s"]  # the model itself, timed once
+        assert found["modes"]["fast"]["kpcn_s"] > 0
+        if baselines.oidn_available():
+            assert all(t["oidn_s"] > 0 for t in found["modes"].values())
+        else:
+            assert all(t["oidn_s"] is None for t in found["modes"].values())
+    card = (model / "CARD.md").read_text()
+    assert "\n".join(speed_lines(found)) in card
+    rows = {r[0]: r for r in card_tables(card)["Speed"]}
+    assert rows["fast"][1] == f"{found['modes']['fast']['kpcn_s']:.2f}"
+    assert rows["balanced"][1] == f"{found['kpcn_s']:.2f}"
