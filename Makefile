@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-set world-tune modes ship-modes blender-report aux-study cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: world world-set world-tune modes ship-modes blender-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -243,6 +243,15 @@ blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cy
 aux-study: $(KPCN) cycles-validation
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(KPCN) aux-study $(CYCLES_VALIDATION) $(AUX_ARGS)
+
+# kpcn's quality modes beside OIDN's: each mode of models/$(MODEL) and OIDN at fast, balanced and high (prefiltered
+# and plain) timed on a 1920x1080 frame made of SPEED_SOURCE, in one process, alternately (run it on an idle machine:
+# it is a timing): reports/mode_costs.json; then error (reports/blender.json, from make blender-report with
+# BLENDER_ARGS="--model default=models/$(MODEL)") against those seconds: reports/modes.{png,json}
+modes-report: $(KPCN)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(BIN)/python -m kpcn_keras.studies.mode_costs --model models/$(MODEL) --frame $(SPEED_SOURCE) --out reports/mode_costs.json
+	$(BIN)/python -m kpcn_keras.studies.modes_plot --costs reports/mode_costs.json --errors reports/blender.json --out reports
 
 evaluate: $(KPCN)
 	$(KPCN) evaluate --run runs/$(RUN)

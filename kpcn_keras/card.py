@@ -22,8 +22,9 @@ The card is generated, never written by hand, from what the run itself holds, so
   same anchors and "won" where the report has them.
 - **Speed**: seconds of the full model on a 1920×1080 frame (:data:`SPEED_FRAME`) beside OIDN's, in one
   process, alternating, with the peak memory of the timing (:func:`speed`; the goal, :data:`SPEED_GOAL`: within
-  3× OIDN's time). The measurement is shipped beside the card as ``speed.json`` (:data:`SPEED`), and the card's
-  figures are that file's (:func:`speed_lines`).
+  3× OIDN's time). A model with several quality modes has each mode timed too, beside plain OIDN at the same
+  quality, in the same alternation. The measurement is shipped beside the card as ``speed.json``
+  (:data:`SPEED`), and the card's figures are that file's (:func:`speed_lines`).
 - **Learning curve**: ``loss.png`` and, per phase, the validation loss (the held-out patches' loss after each
   epoch) at its first, best and last epoch: a best before the last says the phase stopped improving.
 
@@ -43,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_QUALITY, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
+from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_QUALITY, QUALITY_MODES, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
 from kpcn_keras.evaluate import EvaluatedFrame, read_rows
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
 from kpcn_keras.shipping import check_modes, shippable_records
@@ -239,14 +240,17 @@ def frame_of_size(layers: dict[str, np.ndarray], width: int, height: int) -> dic
 
 
 def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME,
-          repeats: int = SPEED_REPEATS, source: str | os.PathLike | None = None) -> dict:
+          repeats: int = SPEED_REPEATS, source: str | os.PathLike | None = None,
+          modes: dict[str, Run] | None = None) -> dict:
     """Seconds to denoise a ``frame_size`` (width, height) frame, made of ``source`` (an EXR in any layout) or else
     the run's first held-out frame (:func:`frame_of_size`; a shipped model keeps no renders, so re-timing one
     names a frame), by the run's full model (in the default precision, ``kpcn_keras.precision``, as
     ``kpcn denoise`` runs it) and by OIDN when ``pyoidn`` is installed: side by side in this process, each
     warmed up, then called alternately ``repeats`` times, the best of each; with torch's threads, the precision,
     the peak resident memory during the timed calls and what the frame holds whole
-    (``batch.frame_bytes``: beyond it, memory is bounded by the tile)."""
+    (``batch.frame_bytes``: beyond it, memory is bounded by the tile). With ``modes`` (mode -> run: the other
+    quality modes), each mode's full model and plain OIDN at that quality are timed in the same alternation, and
+    ``modes`` in the record holds, per mode (the default one too: the model itself), both seconds."""
     import time
 
     from kpcn_keras.batch import frame_bytes, torch_threads
@@ -263,6 +267,8 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
     calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
     if baselines.oidn_available():
         calls["oidn"] = lambda: baselines.oidn_denoise(layers, mode="plain")
+    if modes:
+        calls.update(_mode_calls({DEFAULT_QUALITY: run, **modes}, layers, slope))
     for call in calls.values():
         call()  # the warm-up: first-call allocations, OIDN's device
     reset = reset_peak_memory()
@@ -272,10 +278,33 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
             start = time.perf_counter()
             call()
             best[name] = min(best[name], time.perf_counter() - start)
-    return {"width": width, "height": height, "frame": Path(noisy).name, "held_out": source is None,
-            "kpcn_s": best["kpcn"], "oidn_s": best.get("oidn"), "repeats": repeats, "threads": torch_threads(),
-            "cpus": os.cpu_count(), "precision": denoiser.precision,
-            "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
+    found = {"width": width, "height": height, "frame": Path(noisy).name, "held_out": source is None,
+             "kpcn_s": best["kpcn"], "oidn_s": best.get("oidn"), "repeats": repeats, "threads": torch_threads(),
+             "cpus": os.cpu_count(), "precision": denoiser.precision,
+             "peak_mb": peak_memory_mb() if reset else None, "frame_mb": frame_bytes(height, width, png=False) / 2**20}
+    if modes:  # only then: a model of the default mode alone keeps the record it always had
+        kpcn = {k.removeprefix("kpcn "): v for k, v in best.items() if k.startswith("kpcn ")}
+        kpcn[DEFAULT_QUALITY] = best["kpcn"]
+        found["modes"] = {mode: {"kpcn_s": kpcn[mode], "oidn_s": best.get(f"oidn {mode}")}
+                          for mode in QUALITY_MODES if mode in kpcn}
+    return found
+
+
+def _mode_calls(modes: dict[str, Run], layers: dict, slope) -> dict:
+    """A call per quality mode but the default (``kpcn MODE``: the mode's full model at its record's validation
+    slope) and, where ``pyoidn`` is installed, plain OIDN at each mode's quality (``oidn MODE``)."""
+    from kpcn_keras.denoise import Denoiser
+    from prep import baselines
+
+    calls = {}
+    for mode, source in modes.items():
+        if mode != DEFAULT_QUALITY:  # the default mode is the model itself, timed as "kpcn"
+            record = source.record()
+            denoiser = Denoiser.from_run(source, record=record)
+            calls[f"kpcn {mode}"] = lambda d=denoiser, s=record.validation_slope: d(layers, slope=s)
+        if baselines.oidn_available():
+            calls[f"oidn {mode}"] = lambda q=mode: baselines.oidn_denoise(layers, mode="plain", quality=q)
+    return calls
 
 
 def speed_lines(found: dict) -> list[str]:
@@ -300,6 +329,13 @@ def speed_lines(found: dict) -> list[str]:
     lines += _table(["denoiser", f"seconds a {size} frame"], rows) + [""]
     peak = "" if found["peak_mb"] is None else "peak resident memory of the process during the timing (torch and " \
         f"the networks included) {found['peak_mb']:.0f} MiB; "
+    if "modes" in found:
+        lines += ["Each quality mode (its own networks) beside plain OIDN at the same quality, in the same "
+                  "alternation:", ""]
+        lines += _table(["quality mode", "kpcn s", "OIDN s (same quality)", "kpcn / OIDN"],
+                        [[mode, f"{t['kpcn_s']:.2f}", MISSING if t["oidn_s"] is None else f"{t['oidn_s']:.2f}",
+                          MISSING if t["oidn_s"] is None else f"{t['kpcn_s'] / t['oidn_s']:.2f}×"]
+                         for mode, t in found["modes"].items()]) + [""]
     lines.append(f"Memory: {peak}the frame's own layers and outputs {found['frame_mb']:.0f} MiB, the rest bounded "
                  "by the tile (docs/denoise.md §3).")
     return lines
@@ -387,7 +423,7 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
                   f"Another renderer's frames, from `{Path(run.validation_dir.name) / METRICS}`; "
                   "*model* is the input set of the network that served the frame:", ""]
         lines += validation_table(read_rows(run.validation_dir)) + [""]
-    found = speed(run, record, speed_frame)
+    found = speed(run, record, speed_frame, modes=modes)
     lines += ["## Speed", ""] + speed_lines(found) + [""]
     lines += ["## Learning curve", "", "![training and validation loss per epoch](loss.png)", "",
               "Validation loss (the held-out patches, after each epoch) per phase of each input set's run; a best "
@@ -418,7 +454,8 @@ def retime(model: Run, source: str | os.PathLike, command: str, frame_size: tupl
     start, end = text.find("## Speed\n"), text.find("\n## ", text.find("## Speed\n") + 1)
     if start < 0 or end < 0:
         raise KpcnError(f"{card_path}: no speed section followed by another to replace")
-    found = speed(model, model.record(), frame_size, source=source)
+    others = {mode: model.for_quality(mode) for mode in model.quality_modes() if mode != DEFAULT_QUALITY}
+    found = speed(model, model.record(), frame_size, source=source, modes=others)
     found.update(measured=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), command=command)
     atomic_write_text(model.dir / SPEED, json.dumps(found, indent=2) + "\n")
     section = "\n".join(["## Speed", ""] + speed_lines(found) + [""])

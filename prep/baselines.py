@@ -42,6 +42,10 @@ def oidn_available() -> bool:
 
 
 OIDN_MODES = ("plain", "prefiltered")  # how OIDN treats the auxiliary layers; docs/design.md, "OIDN anchor"
+# OIDN's own quality setting (its filters' "quality"), the names kpcn's --quality takes too; "high" is OIDN's default
+# and every anchor's unless a study asks for another
+OIDN_QUALITIES = ("fast", "balanced", "high")
+DEFAULT_OIDN_QUALITY = "high"
 
 
 def _oidn_layers(aovs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -54,14 +58,19 @@ def _oidn_layers(aovs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, n
     return layer("default", 0.0, np.finfo(np.float32).max), layer("albedo", 0.0, 1.0), layer("normal", -1.0, 1.0)
 
 
-def _oidn_auxiliary(pyoidn, device, name: str, image: np.ndarray) -> np.ndarray:
+def _oidn_quality(pyoidn, quality: str) -> int:
+    return {"fast": pyoidn.OIDN_QUALITY_FAST, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+            "high": pyoidn.OIDN_QUALITY_HIGH}[quality]
+
+
+def _oidn_auxiliary(pyoidn, device, name: str, image: np.ndarray, quality: str) -> np.ndarray:
     """OIDN's own denoise of one auxiliary layer: an ``RT`` filter with ``image`` as its only input, set in
-    the ``name`` slot (``albedo`` or ``normal``), high quality, written to a new array."""
+    the ``name`` slot (``albedo`` or ``normal``), at ``quality``, written to a new array."""
     out = np.empty_like(image)
     with pyoidn.Filter(device, pyoidn.OIDN_FILTER_TYPE_RT) as flt:
         flt.set_image(name, image, pyoidn.OIDN_FORMAT_FLOAT3)
         flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, pyoidn.OIDN_FORMAT_FLOAT3)
-        flt.set_quality(pyoidn.OIDN_QUALITY_HIGH)
+        flt.set_quality(_oidn_quality(pyoidn, quality))
         flt.commit()
         flt.execute()
     error = device.get_error()
@@ -70,48 +79,56 @@ def _oidn_auxiliary(pyoidn, device, name: str, image: np.ndarray) -> np.ndarray:
     return out
 
 
-def oidn_filter_auxiliary(image: np.ndarray, name: str) -> np.ndarray:
+def oidn_filter_auxiliary(image: np.ndarray, name: str, quality: str = DEFAULT_OIDN_QUALITY) -> np.ndarray:
     """One auxiliary layer (H, W, 3) denoised by OIDN as the ``prefiltered`` mode does (an ``RT`` filter with
-    that layer alone in its ``name`` slot, ``albedo`` or ``normal``, high quality): the layer clipped to what
-    OIDN takes there ([0, 1] for an albedo, [-1, 1] for a normal) first. ImportError without ``pyoidn``."""
+    that layer alone in its ``name`` slot, ``albedo`` or ``normal``, at ``quality``, high unless asked): the layer
+    clipped to what OIDN takes there ([0, 1] for an albedo, [-1, 1] for a normal) first. ImportError without
+    ``pyoidn``."""
     import pyoidn
 
     lo = 0.0 if name == "albedo" else -1.0
     image = np.ascontiguousarray(np.clip(np.nan_to_num(image), lo, 1.0), dtype=np.float32)
     with pyoidn.Device() as device:
         device.commit()
-        return _oidn_auxiliary(pyoidn, device, name, image)
+        return _oidn_auxiliary(pyoidn, device, name, image, quality)
 
 
-def oidn_denoise(aovs: dict[str, np.ndarray], mode: str = "prefiltered") -> np.ndarray:
-    """Intel Open Image Denoise's ``RT`` filter, high quality, on the HDR colour with the albedo and normal
-    layers of the same render as its auxiliary inputs, in one of :data:`OIDN_MODES`:
+def oidn_denoise(aovs: dict[str, np.ndarray], mode: str = "prefiltered",
+                 quality: str = DEFAULT_OIDN_QUALITY) -> np.ndarray:
+    """Intel Open Image Denoise's ``RT`` filter at ``quality`` (one of :data:`OIDN_QUALITIES`, OIDN's own
+    ``fast`` / ``balanced`` / ``high``; ``high``, OIDN's default, unless asked) on the HDR colour with the albedo
+    and normal layers of the same render as its auxiliary inputs, in one of :data:`OIDN_MODES`:
 
     - ``prefiltered`` (the default; Blender's default, its *Accurate* prefilter): the albedo and the normal are
       each denoised first by an ``RT`` filter that has only that layer as input, then the colour is filtered
       with the cleaned layers and ``cleanAux`` set. The strongest OIDN there is: the anchor the tables judge by.
+      The auxiliary filters run at the same ``quality`` as the colour's, as Blender's Cycles runs them (its
+      ``denoiser_oidn.cpp`` sets the one denoising quality on the colour filter and on each prefilter alike).
     - ``plain``: one call with the noisy albedo and normal as they are (``cleanAux`` off: OIDN guards itself
       against their noise inside the one filter); what the tables called "OIDN" before the prefiltered mode.
 
     OIDN wants non-negative linear HDR colour, albedo in [0, 1] and normals in [-1, 1]; the layers are
-    clipped to that. ValueError for another mode; ImportError (naming the package) if ``pyoidn`` is not
-    installed.
+    clipped to that. ValueError for another mode or quality; ImportError (naming the package) if ``pyoidn`` is
+    not installed.
     """
     if mode not in OIDN_MODES:
         raise ValueError(f"OIDN mode {mode!r}: expected one of {', '.join(OIDN_MODES)}")
+    if quality not in OIDN_QUALITIES:
+        raise ValueError(f"OIDN quality {quality!r}: expected one of {', '.join(OIDN_QUALITIES)}")
     try:
         import pyoidn
     except ImportError:
         raise ImportError("Intel Open Image Denoise needs the optional package pyoidn: pip install '.[oidn]'") from None
 
     colour, albedo, normal = _oidn_layers(aovs)
+    level = _oidn_quality(pyoidn, quality)
     if mode == "plain":
-        return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True)
+        return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, quality=level)
     with pyoidn.Device() as device:
         device.commit()
-        albedo = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_ALBEDO, albedo)
-        normal = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_NORMAL, normal)
-    return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, clean_aux=True)
+        albedo = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_ALBEDO, albedo, quality)
+        normal = _oidn_auxiliary(pyoidn, device, pyoidn.OIDN_IMAGE_NORMAL, normal, quality)
+    return pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, clean_aux=True, quality=level)
 
 
 def oidn_inputs(frame) -> dict[str, np.ndarray]:

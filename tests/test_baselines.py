@@ -24,11 +24,14 @@ def _noisy_frame(size=40, seed=0) -> dict[str, np.ndarray]:
             "normal": np.clip(normal + 0.3 * rng.standard_normal(normal.shape), -1, 1).astype(np.float32)}
 
 
-def _by_hand(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def _by_hand(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray, quality=None) -> np.ndarray:
     """OIDN's prefiltering recipe written out with pyoidn's filters on one fresh device: an RT filter with the
     albedo as its only input, one with the normal as its only input, then the colour's RT filter with the cleaned
-    layers, HDR and cleanAux set; every filter at high quality."""
+    layers, HDR and cleanAux set; every filter at ``quality`` (an OIDN_QUALITY_* constant; high where None), as
+    Blender's Cycles sets its one denoising quality on the prefilters and the colour filter alike."""
     import pyoidn
+
+    quality = pyoidn.OIDN_QUALITY_HIGH if quality is None else quality
 
     def run(images: dict, **flags) -> np.ndarray:
         out = np.zeros_like(next(iter(images.values())))
@@ -38,7 +41,7 @@ def _by_hand(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.n
             flt.set_image("output", out, pyoidn.OIDN_FORMAT_FLOAT3)
             for name, value in flags.items():
                 flt.set_bool(name, value)
-            flt.set_int("quality", pyoidn.OIDN_QUALITY_HIGH)
+            flt.set_int("quality", quality)
             flt.commit()
             flt.execute()
         assert device.get_error() is None
@@ -89,6 +92,27 @@ def test_both_modes_clip_the_layers_to_what_oidn_takes():
 def test_an_unknown_mode_is_refused_naming_the_modes():
     with pytest.raises(ValueError, match="plain, prefiltered"):
         baselines.oidn_denoise(_noisy_frame(8), mode="accurate")
+    with pytest.raises(ValueError, match="OIDN quality 'ultra': expected one of fast, balanced, high"):
+        baselines.oidn_denoise(_noisy_frame(8), quality="ultra")
+
+
+@needs_oidn
+def test_each_oidn_quality_equals_pyoidns_filters_at_that_quality_by_hand():
+    import pyoidn
+
+    aovs = _noisy_frame(seed=2)
+    colour, albedo, normal = (np.ascontiguousarray(aovs[k]) for k in ("default", "albedo", "normal"))
+    levels = {"fast": pyoidn.OIDN_QUALITY_FAST, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+              "high": pyoidn.OIDN_QUALITY_HIGH}
+    assert tuple(levels) == baselines.OIDN_QUALITIES
+    outs = {}
+    for quality, level in levels.items():
+        outs[quality] = baselines.oidn_denoise(aovs, mode="prefiltered", quality=quality)
+        np.testing.assert_array_equal(outs[quality], _by_hand(colour, albedo, normal, level))
+        np.testing.assert_array_equal(baselines.oidn_denoise(aovs, mode="plain", quality=quality),
+                                      pyoidn.denoise(colour, albedo=albedo, normal=normal, hdr=True, quality=level))
+    assert np.array_equal(baselines.oidn_denoise(aovs), outs["high"])  # the default quality is OIDN's own: high
+    assert np.mean(np.abs(outs["fast"] - outs["high"])) > 1e-4 * np.mean(outs["high"])  # another network
 
 
 def test_a_frame_is_judged_against_the_strongest_anchor_it_has():

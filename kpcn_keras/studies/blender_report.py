@@ -13,6 +13,11 @@ The contract:
   model), by the run's network for what the frame has (``Run.serving``); Blender's own denoised frame
   (``<scene>-<spp>spp-blender-oidn.exr``: OIDN at render time, albedo + normal, prefiltered), where the folder
   has it; and each OIDN mode of :func:`oidn_modes` (``pyoidn``; none where it is not installed).
+- **Quality modes** (:func:`model_columns`): a model that holds several (``Run.quality_modes``) is one column
+  per mode, ``kpcn NAME MODE``, each denoised by that mode's networks (``InferenceSettings(quality=MODE)``), and
+  OIDN is scored at each of those qualities too (``oidn_<mode> <quality>``; at ``high``, OIDN's default, under
+  the plain names), so that each mode stands beside OIDN's same one; the record's ``quality_modes`` says which.
+  A model with only ``balanced`` is one column, ``kpcn NAME``, and the record has the keys it always had.
 - **Scores** (``prep.metrics``, float64): relMSE, DSSIM and relSE p99.9, per frame; their means per spp and per
   effect group and spp.
 - **Effect groups**: a scene's groups are the ``groups`` (else ``effects``) list of ``<scene>.json`` beside its
@@ -24,6 +29,11 @@ The contract:
 - **Writes** ``<out>/blender.json`` (every number), ``blender.md`` (the tables) and ``blender.png`` (input |
   each model | Blender's | reference, one row per effect group at each of :data:`PANEL_SPPS`: the group's first
   scene by name), through ``kpcn_keras.studies.report``.
+
+Frames of any layout ``kpcn denoise`` reads come in the same way: the project's own renders (its held-out
+scenes' folders, references at 512 spp) and the Mitsuba fixture (``../shared/fixtures/mitsuba``, 8 and 1024 spp).
+Without Blender's frames the anchor is the better OIDN mode: Blender's columns stay empty, the OIDN counts are
+"k of N".
 
 Bad input (a folder without a noisy frame and its reference, a ``--model`` that is not ``NAME=RUN`` or names no
 run, a recipe that is not JSON) is one line and exit status 2.
@@ -41,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpcn_keras.config import DEFAULT_QUALITY, QUALITY_MODES
 from kpcn_keras.studies.frames import SCORES, panels_figure, renderer_denoised, renderer_pairs
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
@@ -57,13 +68,47 @@ RAW = "raw"
 EXIT_USER_ERROR = 2
 
 
-def oidn_modes() -> dict:
+def oidn_modes(qualities=(baselines.DEFAULT_OIDN_QUALITY,)) -> dict:
     """The OIDN modes scored beside kpcn: name -> function of a frame's layers (``prep.layouts`` names) to the
-    denoised colour, one per ``prep.baselines.OIDN_MODES`` (``oidn_plain``, ``oidn_prefiltered``); none where
-    ``pyoidn`` is not installed. Every table and the "better OIDN mode" take what is here."""
+    denoised colour, one per ``prep.baselines.OIDN_MODES`` and each of ``qualities`` (OIDN's own: ``oidn_plain``,
+    ``oidn_prefiltered`` at ``high``, ``oidn_plain fast`` ... at another); none where ``pyoidn`` is not installed.
+    Every table and the "better OIDN mode" take what is here."""
     if not baselines.oidn_available():
         return {}
-    return {f"oidn_{mode}": functools.partial(baselines.oidn_denoise, mode=mode) for mode in baselines.OIDN_MODES}
+    return {oidn_method(mode, quality): functools.partial(baselines.oidn_denoise, mode=mode, quality=quality)
+            for quality in qualities for mode in baselines.OIDN_MODES}
+
+
+def oidn_method(mode: str, quality: str = baselines.DEFAULT_OIDN_QUALITY) -> str:
+    """The method name of OIDN in ``mode`` at ``quality``: ``oidn_<mode>`` at OIDN's default quality (the names
+    the reports always had), ``oidn_<mode> <quality>`` at another."""
+    return f"oidn_{mode}" if quality == baselines.DEFAULT_OIDN_QUALITY else f"oidn_{mode} {quality}"
+
+
+def several_modes(models: dict[str, Path]) -> dict[str, list[str]]:
+    """{name: its quality modes} of the ``models`` that hold more than the default one (``Run.quality_modes``)."""
+    from kpcn_keras.run import Run
+
+    found = {name: Run(path).quality_modes() for name, path in models.items()}
+    return {name: modes for name, modes in found.items() if modes != [DEFAULT_QUALITY]}
+
+
+def model_columns(models: dict[str, Path]) -> dict[str, tuple[Path, str]]:
+    """The model columns of the report: key -> (model folder, quality mode). A model with only the default mode
+    is one column keyed by its name; one with several, a column per mode keyed ``NAME MODE``."""
+    several = several_modes(models)
+    columns = {}
+    for name, path in models.items():
+        for mode in several.get(name, [DEFAULT_QUALITY]):
+            columns[f"{name} {mode}" if name in several else name] = (Path(path), mode)
+    return columns
+
+
+def oidn_qualities(models: dict[str, Path]) -> tuple[str, ...]:
+    """OIDN's qualities scored beside ``models``: its default (``high``) and each mode of a model that has
+    several, in the order of ``config.QUALITY_MODES``."""
+    wanted = {baselines.DEFAULT_OIDN_QUALITY, *(m for modes in several_modes(models).values() for m in modes)}
+    return tuple(q for q in QUALITY_MODES if q in wanted)
 
 
 def model_method(name: str) -> str:
@@ -112,6 +157,7 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
     and the images of the frames ``keep(row)`` asks for: {frame: {column: image}}."""
     from kpcn_keras.run import Run
     from kpcn_keras.serving import Serving
+    from kpcn_keras.settings import InferenceSettings
 
     try:
         pairs = renderer_pairs(paths)
@@ -121,8 +167,9 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
         raise KpcnError(f"{' '.join(map(str, paths))}: no noisy frame <scene>-<spp>spp.exr with its scene's "
                         "reference (the render with the most samples) beside it")
     groups = {noisy: effect_groups(noisy) for noisy, _ in pairs}  # a bad recipe is refused before any work
-    servings = {name: Serving(Run(path)) for name, path in models.items()}
-    modes = oidn_modes()
+    servings = {key: Serving(Run(path), InferenceSettings(quality=mode))
+                for key, (path, mode) in model_columns(models).items()}
+    modes = oidn_modes(oidn_qualities(models))
     rows, images = [], {}
     for noisy_path, ref_path in pairs:
         frame, ref = layouts.read(noisy_path), layouts.read(ref_path).layers["default"]
@@ -180,7 +227,8 @@ def means(rows: list[dict]) -> dict:
 
 
 def summarise(rows: list[dict], models) -> dict:
-    """Per spp, and per effect group and spp: the frames, the mean scores and each model against the anchors."""
+    """Per spp, and per effect group and spp: the frames, the mean scores and each model column (``models``: the
+    keys of :func:`model_columns`) against the anchors."""
     def block(group_rows):
         return {"frames": len(group_rows), "means": means(group_rows),
                 "models": {name: against_anchors(group_rows, model_method(name)) for name in models}}
@@ -216,12 +264,15 @@ def study(paths, models: dict[str, Path], out_dir, *, note: str = "", command: s
     # the panel rows are known only once every frame's groups are: keep the images of every frame at a panel spp
     rows, images = score_frames(paths, models, keep=lambda row: row["spp"] in PANEL_SPPS, log=log)
     panels = panel_frames(rows)
+    keys = list(model_columns(models))
     record = {**session.envelope(command), "frames_given": [str(p) for p in paths],
               "models": {name: str(path) for name, path in models.items()}, "note": note,
-              "oidn_modes": list(oidn_modes()), "machine": session.machine(), "frames": rows,
-              "summary": summarise(rows, models),
+              "oidn_modes": list(oidn_modes(oidn_qualities(models))), "machine": session.machine(), "frames": rows,
+              "summary": summarise(rows, keys),
               "panels": [{"group": g, "frame": f} for g, f in panels]}
-    columns = ("input", *map(model_method, models), BLENDER, "reference")
+    if several := several_modes(models):  # only then: models with the default mode alone keep the keys they had
+        record["quality_modes"] = several
+    columns = ("input", *map(model_method, keys), BLENDER, "reference")
     shown = [(f"{g}: {Path(f).name}", images[f]) for g, f in panels]
     return report.write(record, format_report(record), lambda _: panels_figure(shown, columns))
 
@@ -238,8 +289,15 @@ def _count(against: dict, key: str) -> str:
     return f"{against[f'below_{key}']} of {of}" if of else "–"
 
 
+def model_keys(record: dict) -> list[str]:
+    """The model columns of a record (:func:`model_columns`' keys): ``NAME MODE`` for each mode of a model in its
+    ``quality_modes``, ``NAME`` for any other."""
+    modes = record.get("quality_modes", {})
+    return [f"{n} {m}" if n in modes else n for n in record["models"] for m in modes.get(n, [DEFAULT_QUALITY])]
+
+
 def _methods(record: dict) -> list[str]:
-    return [RAW, *map(model_method, record["models"]), BLENDER, *record["oidn_modes"]]
+    return [RAW, *map(model_method, model_keys(record)), BLENDER, *record["oidn_modes"]]
 
 
 def _block_table(title: str, blocks: dict, record: dict) -> list[str]:
@@ -247,13 +305,13 @@ def _block_table(title: str, blocks: dict, record: dict) -> list[str]:
     against the anchors."""
     methods = _methods(record)
     head = (["", "spp", "frames"] + [f"{m} {s}" for s in ("relMSE", "DSSIM", "relSE p99.9") for m in methods]
-            + [f"{model_method(n)} {c}" for n in record["models"]
+            + [f"{model_method(n)} {c}" for n in model_keys(record)
                for c in ("below Blender's", "below the better OIDN", "median ratio to Blender's")])
     lines = [title, "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for key, by_spp in blocks.items():
         for spp, block in by_spp.items():
             cells = [_n(block["means"].get(m, {}).get(s)) for s in SCORES for m in methods]
-            for name in record["models"]:
+            for name in model_keys(record):
                 a = block["models"][name]
                 cells += [_count(a, "blender"), _count(a, "oidn"), _n(a["median_ratio_blender"], "{:.2f}×")]
             lines.append(f"| {key} | {spp} | {block['frames']} | " + " | ".join(cells) + " |")
