@@ -4,8 +4,8 @@
 A :class:`ViewSession` reads the frame (any layout ``prep.layouts`` reads), the model that serves it
 (``kpcn_keras.serving.Serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the
 ``reference`` (``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, with the albedo and
-normal its renderer gives its own denoiser, when ``pyoidn`` is installed). For a run with a loss-specialisation module (``--slope-module``) and no compositor
-it prepares the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
+normal its renderer gives its own denoiser, when ``pyoidn`` is installed). For a run with a loss-specialisation
+module (``--slope-module``) and no compositor it prepares the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
 the map's new values in a rectangle, re-applied to that rectangle alone (``PreparedFrame(map, region)``: the
 module is 1x1, so pixels outside a changed region keep their values exactly). Any other run shows its
 denoised frame with the brush off and says why.
@@ -115,7 +115,8 @@ class ViewSession:
         from prep import baselines
 
         if baselines.oidn_available():
-            log("Intel Open Image Denoise on the same colour, with the albedo and normal its renderer gives its own denoiser")
+            log("Intel Open Image Denoise on the same colour, with the albedo and normal its renderer gives its own "
+                "denoiser")
             self.views["oidn"] = baselines.oidn_denoise(baselines.oidn_inputs(frame))
         else:
             self.missing["oidn"] = "pyoidn is not installed (pip install '.[oidn]')"
