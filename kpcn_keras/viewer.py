@@ -5,10 +5,10 @@ A :class:`ViewSession` reads the frame (any layout ``prep.layouts`` reads), the 
 (``kpcn_keras.serving.Serving``), and what the page shows, once: the noisy ``input``, the ``denoised`` frame, the
 ``reference`` (``--reference``) and ``oidn`` (Intel Open Image Denoise on the same colour, with the albedo and
 normal its renderer gives its own denoiser, when ``pyoidn`` is installed). For a run with a loss-specialisation
-module (``--slope-module``) and no compositor it prepares the frame (``Denoiser.prepare``: each trunk run once) and holds a λ map, uniform at first; a brush stroke is
-the map's new values in a rectangle, re-applied to that rectangle alone (``PreparedFrame(map, region)``: the
-module is 1x1, so pixels outside a changed region keep their values exactly). Any other run shows its
-denoised frame with the brush off and says why.
+module (``--slope-module``) and no compositor it prepares the frame (``Denoiser.prepare``: each trunk run once) and
+holds a λ map, uniform at first; a brush stroke is the map's new values in a rectangle, re-applied to that rectangle
+alone (``PreparedFrame(map, region)``: the module is 1x1, so pixels outside a changed region keep their values
+exactly). Any other run shows its denoised frame with the brush off and says why.
 
 :func:`listen` and :func:`serve` answer on 127.0.0.1 only (``http.server``, the standard library; the page is
 three files of ``kpcn_keras/view/``, nothing fetched from elsewhere, so it works offline):

@@ -57,7 +57,8 @@ def test_presets_reach_the_papers_architectures():
     assert sum(isinstance(layer, keras.layers.BatchNormalization) for layer in kpal_paper.layers) == 27
     assert {layer.rate for layer in kpal_paper.layers if isinstance(layer, keras.layers.Dropout)} == {0.3}
     assert kpal.batch_size == 12 and kpal.learning_rate == 1e-4 and kpal.joint_learning_rate == 1e-6
-    assert TrainConfig().preset == "cpu" and set(PRESETS) == {"cpu", "unet", "dilated", "fast", "kpcn-paper", "kpal-paper"}
+    assert TrainConfig().preset == "cpu"
+    assert set(PRESETS) == {"cpu", "unet", "dilated", "fast", "kpcn-paper", "kpal-paper"}
     # flags override the preset
     assert TrainConfig.from_preset("kpcn-paper", model={"conv_size": 3, "dropout": 0.1}).model.conv_size == 3
 
