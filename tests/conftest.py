@@ -35,14 +35,15 @@ LONGEST_FIRST = ("test_resample_resume.py", "test_cli_resume.py", "test_distribu
 
 
 def pytest_sessionstart(session):
-    """With the slow tests (make test-all, CI), the all-effects render kernel is compiled into numba's disk cache
-    once, here, before the workers start: from a fresh clone every worker and every kpcn process started before
-    the cache is written would compile it again, half a minute each on two cores."""
-    if hasattr(session.config, "workerinput") or "not slow" in (session.config.option.markexpr or ""):
+    """The library's numba functions compiled into numba's disk cache once, here, before the workers start
+    (helpers.compiled): from a fresh clone every worker and every kpcn process started before the cache is
+    written would compile each again, the albedo prefilter over a minute on two loaded cores. The all-effects
+    render kernel (half a minute) only where the slow tests run, which render."""
+    if hasattr(session.config, "workerinput"):
         return
-    from prep.render import make_scene, render
+    from helpers.compiled import compile_all
 
-    render(make_scene("cornell", 0, 0), spp=2, seed=0, width=2, height=2)
+    compile_all(render="not slow" not in (session.config.option.markexpr or ""))
 
 
 def pytest_collection_modifyitems(items):

@@ -15,7 +15,9 @@
 - ``exr_layouts``: EXR files in the layouts other renderers write (Cycles' passes, one part per pass);
 - ``browser``: headless Chromium driving ``kpcn view``'s page;
 - ``chi_square``: Pearson's chi-square test of drawn counts against expected ones, low cells pooled, with a
-  Šidák correction for a family of tests."""
+  Šidák correction for a family of tests;
+- ``compiled``: the library's numba functions compiled into numba's disk cache before the workers start
+  (conftest.py), and what a process loaded from that cache or compiled afresh."""
 
 import os
 
