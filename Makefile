@@ -283,8 +283,12 @@ test-all: $(KPCN)
 
 # the training tests on the oldest Keras that pyproject.toml allows, in an environment of its own
 KERAS_OLDEST := $(shell sed -n 's/.*"keras>=\([0-9.]*\)".*/\1/p' pyproject.toml)
-test-oldest:
+# .venv's packages (torch among them) are seen from .venv-oldest through a .pth file, after its own: pip installs
+# the oldest keras (and what it needs otherwise) into .venv-oldest alone and leaves .venv as it is
+test-oldest: $(KPCN)
 	$(PYTHON) -m venv .venv-oldest
+	$(BIN)/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])' > \
+		"$$(.venv-oldest/bin/python -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/kpcn-venv.pth"
 	.venv-oldest/bin/pip install --quiet --disable-pip-version-check -c constraints.txt 'keras==$(KERAS_OLDEST)' -e '.[test]'
 	.venv-oldest/bin/python -c 'from importlib.metadata import version as v; from packaging.version import Version as V; assert V(v("keras")) == V("$(KERAS_OLDEST)"), v("keras")'
 	.venv-oldest/bin/python -m pytest -q $(PYTEST_PARALLEL) tests/test_train.py tests/test_models.py tests/test_layers.py tests/test_train_phases.py tests/test_albedo_network.py
