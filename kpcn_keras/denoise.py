@@ -22,8 +22,8 @@ A run trained on prefiltered auxiliaries (``kpcn train --auxiliaries``, ``RunRec
 so: each frame, as its input set reads it, has its albedo, normal and depth prefiltered once, whole, before any
 tile (``prep.auxiliary.network_layers``, the function its shards were cut with; :meth:`Denoiser.given`), so tiles
 still equal an untiled run. That holds three float32 layers more than the frame (seven channels) besides what the
-filter itself holds (OIDN's buffers, the frame's size), not bounded by the tile: a frame too large for that is
-denoised in crops by the caller. A run needing ``pyoidn`` where it is not installed is refused when it is loaded.
+filter itself holds (OIDN's buffers, the frame's size), not bounded by the tile (docs/denoise.md §3). A run needing
+``pyoidn`` where it is not installed is refused when it is loaded.
 
 A self-ensemble (``ensemble`` N > 1, ``--ensemble``) trades time for accuracy without training: each tile is
 predicted N times, from the frame moved by each of the first N symmetries of the square (``kpcn_keras.augment``'s

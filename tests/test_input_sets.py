@@ -70,8 +70,8 @@ def test_restrict_fills_each_missing_layer_as_the_table_of_the_module_says(name)
 def test_a_full_shard_config_keeps_the_folder_and_the_hash_of_the_sets_cut_before_input_sets():
     cfg = shards.ShardConfig()
     assert cfg.set_dir == Path("shards/default") and cfg.input_set == FULL
-    before = {k: v for k, v in dataclasses.asdict(cfg).items()
-              if k not in ("inputs", "command", "out_root", "render_root")}
+    before = {k: v for k, v in dataclasses.asdict(cfg).items()  # inputs and auxiliaries: added since
+              if k not in ("inputs", "auxiliaries", "command", "out_root", "render_root")}
     assert cfg.content_hash() == hashlib.sha256(json.dumps(before, sort_keys=True).encode()).hexdigest()[:16]
     assert "inputs" not in cfg.to_dict()
     other = shards.ShardConfig(inputs="no-split")

@@ -10,9 +10,9 @@ import sys
 import keras
 import numpy as np
 import pytest
-from helpers.commands import assert_one_line_error, run_main
+from helpers.commands import assert_one_line_error, kpcn, run_main
 from helpers.references import assert_read_features_close
-from helpers.tiny import build_tiny_shards, random_aovs, tiny_train_config
+from helpers.tiny import build_tiny_shards, make_renders, random_aovs, tiny_train_config
 
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.evaluate import evaluate
@@ -86,6 +86,20 @@ def test_shards_cut_with_nlm_hold_its_auxiliaries_in_a_set_of_their_own(nlm_set)
         for a, b in zip(shards.shard_paths(raw.set_dir, split), shards.shard_paths(nlm.set_dir, split), strict=True):
             with shards.open_shard(a) as fa, shards.open_shard(b) as fb:
                 np.testing.assert_array_equal(fa["position"][:], fb["position"][:])
+
+
+@pytest.mark.slow
+def test_kpcn_shards_cuts_a_prefiltered_set_in_worker_processes(tmp_path):
+    """A forked worker would enter the NLM filter's parallel loops under the parent's OpenMP, which aborts it."""
+    make_renders(tmp_path / "renders" / "s")
+    res = kpcn("shards", "--set", "s", "--renders", tmp_path / "renders", "--out", tmp_path / "shards", "--threads",
+               "2", "--patch-size", "16", "--patches-per-image", "7", "--patches-per-shard", "5", "--val-fraction",
+               "0.5", "--auxiliaries", "nlm", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    cfg = shards.ShardConfig(set_name="s", render_root=str(tmp_path / "renders"), out_root=str(tmp_path / "shards"),
+                             patch_size=16, patches_per_image=7, patches_per_shard=5, val_fraction=0.5,
+                             auxiliaries="nlm")
+    assert _check_patches_hold(cfg, "nlm") > 0
 
 
 @needs_oidn

@@ -101,6 +101,9 @@ def score_frames(paths, model: Path, names: dict[str, str], *, log=print) -> tup
         scene, spp = exr.parse_render_filename(noisy_path)
         shown, seconds = {"input": frame.layers["default"]}, {}
         denoise = serving.denoiser(frame.inputs)
+        if denoise.auxiliaries != auxiliary.RAW:  # its variants would be prefiltered twice
+            raise KpcnError(f"{denoise.run.dir}: trained with --auxiliaries {denoise.auxiliaries}; the study "
+                            "varies what a network trained on raw auxiliaries is given: pass such a model")
         for variant, how in names.items():
             clean = None
             if how == "clean":

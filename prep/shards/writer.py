@@ -138,7 +138,7 @@ def write_round(sset: ShardSet, config: ShardConfig, manifest: dict, k: int, spe
             for spec in todo:
                 record(spec, writer.write(spec))
             return
-        pool = ProcessPoolExecutor(workers, mp_context=_worker_context(), initializer=_start_worker,
+        pool = ProcessPoolExecutor(workers, mp_context=_worker_context(writer.auxiliaries), initializer=_start_worker,
                                    initargs=(writer, os.getpid()))
         try:
             jobs = {pool.submit(_write_in_worker, spec): spec for spec in todo}
@@ -237,14 +237,17 @@ class _RoundWriter:
 _worker: _RoundWriter | None = None
 
 
-def _worker_context():
+def _worker_context(auxiliaries: str = RAW):
     """fork where torch is not loaded (``kpcn shards``: prep never imports it), spawn where it is (an error
     round cut by ``kpcn resample``). A forked worker starts in milliseconds with everything imported; a
     spawned one imports and loads the features kernel again (~0.6 s of CPU each, a sixth of a default set
-    here), but a fork copies torch's thread pools half-made. The workers run no parallel region of numba's
-    or anyone's, so the idle OpenMP threads of ``prep.threads`` that a fork leaves behind are never waited on.
+    here), but a fork copies torch's thread pools half-made. The workers of a raw set run no parallel region
+    of numba's or anyone's, so the idle OpenMP threads of ``prep.threads`` that a fork leaves behind are never
+    waited on; those of a set with prefiltered ``auxiliaries`` do (the NLM filter's numba loops, OIDN's
+    threads), and GNU OpenMP aborts a forked child that enters one: spawn, whose cost the prefilter's dwarfs.
     spawn on every system but Linux: Windows cannot fork, and macOS's system libraries are not safe across one."""
-    return multiprocessing.get_context("fork" if LINUX and "torch" not in sys.modules else "spawn")
+    fork = LINUX and "torch" not in sys.modules and auxiliaries == RAW
+    return multiprocessing.get_context("fork" if fork else "spawn")
 
 
 def _start_worker(writer: _RoundWriter, parent: int) -> None:
