@@ -162,12 +162,13 @@ world-tune: world-set
 
 # The quality modes besides balanced (make model's networks; kpcn denoise --quality, docs/training.md §7): each mode's
 # networks trained from its preset (config.QUALITY_PRESETS) into $(MODEL_RUN)-<mode>, for every input set, as long
-# as the held-out error falls; the no-variance networks, which serve Cycles frames, on the Cycles world beside make
-# model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world grew), the
-# others on make model's; the no-variance networks of every mode first. Resumes where it stopped. make ship-modes then ships them into models/$(MODEL) beside its
-# balanced networks. MODES_SHARD_ARGS are kpcn shards' further options: with --auxiliaries oidn (or nlm) the sets are
-# cut with prefiltered auxiliaries beside the raw ones (<set>[.<inputs>].aux-oidn), the modes trained on them into
-# $(MODEL_RUN)-<mode>-aux-oidn, served so, and make ship-modes with the same MODES_SHARD_ARGS ships those.
+# as the held-out error falls; the no-variance networks, which serve Cycles frames, first and on the Cycles world
+# beside make model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world
+# grew), the others on make model's. Resumes where it stopped. make ship-modes then ships them into models/$(MODEL)
+# beside its balanced networks. MODES_SHARD_ARGS are kpcn shards' further options: with --auxiliaries oidn (or nlm)
+# the sets are cut with prefiltered auxiliaries beside the raw ones (<set>[.<inputs>].aux-oidn), the modes trained
+# on them into $(MODEL_RUN)-<mode>-aux-oidn, served so, and make ship-modes with the same MODES_SHARD_ARGS ships
+# those.
 MODES ?= fast high
 MODES_ARGS ?= --steps 12000 --decay-steps 12000 --patience 20
 MODES_SHARD_ARGS ?=
