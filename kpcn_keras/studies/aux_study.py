@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.studies.frames import panels_figure, renderer_pairs
+from kpcn_keras.studies.frames import panels_figure, some_renderer_pairs
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
 from prep import auxiliary, baselines, exr, layouts
@@ -85,13 +85,7 @@ def score_frames(paths, model: Path, names: dict[str, str], *, log=print) -> tup
     from kpcn_keras.run import Run
     from kpcn_keras.serving import Serving
 
-    try:
-        pairs = renderer_pairs(paths)
-    except KpcnError:
-        pairs = []
-    if not pairs:
-        raise KpcnError(f"{' '.join(map(str, paths))}: no noisy frame <scene>-<spp>spp.exr with its scene's "
-                        "reference (the render with the most samples) beside it")
+    pairs = some_renderer_pairs(paths)
     clean_of, cleans = cleanest(pairs), {}
     serving = Serving(Run(model))
     rows, images = [], {}

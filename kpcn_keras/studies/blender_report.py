@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_QUALITY, QUALITY_MODES
-from kpcn_keras.studies.frames import SCORES, panels_figure, renderer_denoised, renderer_pairs
+from kpcn_keras.studies.frames import SCORES, panels_figure, renderer_denoised, some_renderer_pairs
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
 from prep import baselines, exr, layouts
@@ -159,13 +159,7 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
     from kpcn_keras.serving import Serving
     from kpcn_keras.settings import InferenceSettings
 
-    try:
-        pairs = renderer_pairs(paths)
-    except KpcnError:
-        pairs = []
-    if not pairs:
-        raise KpcnError(f"{' '.join(map(str, paths))}: no noisy frame <scene>-<spp>spp.exr with its scene's "
-                        "reference (the render with the most samples) beside it")
+    pairs = some_renderer_pairs(paths)
     groups = {noisy: effect_groups(noisy) for noisy, _ in pairs}  # a bad recipe is refused before any work
     servings = {key: Serving(Run(path), InferenceSettings(quality=mode))
                 for key, (path, mode) in model_columns(models).items()}

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from prep import baselines, colour, exr, layouts, metrics
+from prep.errors import KpcnError
 from prep.files import pyplot
 
 RENDERER_DENOISED = baselines.RENDERER_DENOISED  # the validation set's name for Blender's own denoised frame
@@ -63,6 +64,19 @@ def renderer_pairs(paths) -> list[tuple[Path, Path]]:
             if spp < most:
                 noisy.append(path)
     return [(Path(a), Path(b)) for a, b in pairs_for_inputs([str(p) for p in noisy])]
+
+
+def some_renderer_pairs(paths) -> list[tuple[Path, Path]]:
+    """:func:`renderer_pairs` of ``paths``, or a KpcnError in one line naming them where they hold none (a path
+    that is no render, or a folder without a noisy frame and its reference)."""
+    try:
+        pairs = renderer_pairs(paths)
+    except KpcnError:
+        pairs = []
+    if not pairs:
+        raise KpcnError(f"{' '.join(map(str, paths))}: no noisy frame <scene>-<spp>spp.exr with its scene's "
+                        "reference (the render with the most samples) beside it")
+    return pairs
 
 
 renderer_denoised = baselines.renderer_denoised
