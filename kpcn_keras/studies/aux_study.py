@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpcn_keras.studies.frames import panels_figure, some_renderer_pairs
+from kpcn_keras.studies.frames import panels_figure, read_pairs, some_renderer_pairs
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
 from prep import auxiliary, baselines, exr, layouts
@@ -89,10 +89,7 @@ def score_frames(paths, model: Path, names: dict[str, str], *, log=print) -> tup
     clean_of, cleans = cleanest(pairs), {}
     serving = Serving(Run(model))
     rows, images = [], {}
-    for noisy_path, ref_path in pairs:
-        frame, ref = layouts.read(noisy_path), layouts.read(ref_path).layers["default"]
-        layouts.check_same_size(noisy_path, frame.size, ref_path, ref.shape[:2])
-        scene, spp = exr.parse_render_filename(noisy_path)
+    for noisy_path, frame, ref, scene, spp in read_pairs(pairs):
         shown, seconds = {"input": frame.layers["default"]}, {}
         denoise = serving.denoiser(frame.inputs)
         if denoise.auxiliaries != auxiliary.RAW:  # its variants would be prefiltered twice

@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.config import DEFAULT_QUALITY, QUALITY_MODES
-from kpcn_keras.studies.frames import SCORES, panels_figure, renderer_denoised, some_renderer_pairs
+from kpcn_keras.studies.frames import SCORES, panels_figure, read_pairs, renderer_denoised, some_renderer_pairs
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
 from prep import baselines, exr, layouts
@@ -165,10 +165,7 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
                 for key, (path, mode) in model_columns(models).items()}
     modes = oidn_modes(oidn_qualities(models))
     rows, images = [], {}
-    for noisy_path, ref_path in pairs:
-        frame, ref = layouts.read(noisy_path), layouts.read(ref_path).layers["default"]
-        layouts.check_same_size(noisy_path, frame.size, ref_path, ref.shape[:2])
-        scene, spp = exr.parse_render_filename(noisy_path)
+    for noisy_path, frame, ref, scene, spp in read_pairs(pairs):
         shown = {"input": frame.layers["default"]}
         for name, serving in servings.items():
             shown[model_method(name)] = serving.denoiser(frame.inputs)(frame.layers)["default"]

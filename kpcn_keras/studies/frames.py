@@ -79,6 +79,15 @@ def some_renderer_pairs(paths) -> list[tuple[Path, Path]]:
     return pairs
 
 
+def read_pairs(pairs):
+    """``(noisy_path, frame, reference colour, scene, spp)`` of each pair of :func:`renderer_pairs`, read in its own
+    layout (``prep.layouts``), a reference of another size refused in one line naming both files."""
+    for noisy_path, ref_path in pairs:
+        frame, ref = layouts.read(noisy_path), layouts.read(ref_path).layers["default"]
+        layouts.check_same_size(noisy_path, frame.size, ref_path, ref.shape[:2])
+        yield (noisy_path, frame, ref, *exr.parse_render_filename(noisy_path))
+
+
 renderer_denoised = baselines.renderer_denoised
 
 
