@@ -364,8 +364,9 @@ def _open_record(run: Run, cfg: TrainConfig, manifest: dict, sset: ShardSet,
         "results": {},
     }
     if init is not None:
-        record["init"] = {"run": run.relative(_init_run(cfg).dir), "networks": init}
-        started = _init_run(cfg).finished_record().auxiliaries
+        source = _init_run(cfg)
+        record["init"] = {"run": run.relative(source.dir), "networks": init}
+        started = source.finished_record().auxiliaries
         if RAW != started or RAW != cfg.auxiliaries:  # a fine-tune across methods says both; raw to raw as before
             record["init"]["auxiliaries"] = started
     run.write_record(record)

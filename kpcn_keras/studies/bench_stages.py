@@ -19,7 +19,6 @@ reading time does not depend on the pixels)::
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import re
 import resource
@@ -192,15 +191,12 @@ def _tile_to(aovs: dict, width: int, height: int) -> dict:
 def _alternating_best(fns: dict, frame: dict, repeats: int) -> dict:
     """Best seconds of each of ``fns`` on ``frame``, called in turn ``repeats`` times after one warm-up call
     each, so that a slow spell of a shared machine hits them alike."""
+    from kpcn_keras.studies.denoise_costs import alternating_seconds
+
     for fn in fns.values():
         fn(frame)
-    best = {name: math.inf for name in fns}
-    for _ in range(repeats):
-        for name, fn in fns.items():
-            start = time.perf_counter()
-            fn(frame)
-            best[name] = min(best[name], time.perf_counter() - start)
-    return best
+    calls = {name: (lambda fn=fn: fn(frame)) for name, fn in fns.items()}
+    return {name: min(seconds) for name, seconds in alternating_seconds(calls, repeats).items()}
 
 
 def shards_command_cost(set_dir: Path, scratch: Path) -> dict:

@@ -39,6 +39,19 @@ def busy() -> list[str]:
     return [rest.strip() for pid, ppid, rest in rows if os.getpid() not in (int(pid), int(ppid))][:4]
 
 
+def alternating_seconds(calls: dict, repeats: int) -> dict[str, list[float]]:
+    """Each of ``calls``' seconds (name -> a call of no arguments) over ``repeats`` rounds, the calls in turn in
+    each round, so that a slow spell of a shared machine hits them alike. Warm each up first: a first call's
+    allocations are not its cost."""
+    seconds = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, call in calls.items():
+            start = time.perf_counter()
+            call()
+            seconds[name].append(time.perf_counter() - start)
+    return seconds
+
+
 def profile(call) -> dict[str, float]:
     """Seconds of one ``call`` by part (:data:`PARTS`), from torch's profiler (its own overhead included)."""
     from torch.profiler import ProfilerActivity
@@ -89,12 +102,7 @@ def main() -> None:
     if baselines.oidn_available():
         calls["oidn"] = lambda: baselines.oidn_denoise(layers, mode="plain")
     outputs = {name: call() for name, call in calls.items()}  # the warm-ups
-    best = dict.fromkeys(calls, float("inf"))
-    for _ in range(args.repeats):
-        for name, call in calls.items():
-            start = time.perf_counter()
-            call()
-            best[name] = min(best[name], time.perf_counter() - start)
+    best = {name: min(seconds) for name, seconds in alternating_seconds(calls, args.repeats).items()}
     found["seconds"] = best
     if "oidn" in best:
         found["ratio_to_oidn"] = {p: best[p] / best["oidn"] for p in denoisers}

@@ -23,7 +23,6 @@ import os
 import shlex
 import statistics
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("KERAS_BACKEND", "torch")
@@ -65,16 +64,13 @@ def methods(model: Path, frame, size: tuple[int, int]) -> dict:
 
 
 def timed(calls: dict, repeats: int) -> dict[str, list[float]]:
-    """Each call's seconds over ``repeats`` rounds, after one warm-up each, the calls alternating in each round."""
+    """Each call's seconds over ``repeats`` rounds, after one warm-up each, the calls alternating in each round
+    (``denoise_costs.alternating_seconds``)."""
+    from kpcn_keras.studies.denoise_costs import alternating_seconds
+
     for call in calls.values():
         call()  # the warm-ups: first-call allocations, OIDN's device and weights
-    seconds = {name: [] for name in calls}
-    for _ in range(repeats):
-        for name, call in calls.items():
-            start = time.perf_counter()
-            call()
-            seconds[name].append(time.perf_counter() - start)
-    return seconds
+    return alternating_seconds(calls, repeats)
 
 
 def ratios(best: dict[str, float]) -> dict:
