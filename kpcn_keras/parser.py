@@ -330,9 +330,9 @@ def _shards_options(add) -> None:
     s.add_argument("--seed", type=int, help=d("seed"))
     s.add_argument("--inputs", help=f"input set the patches hold: {_input_sets()} {d('inputs')}; another than "
                    "full writes the shard set <set>.<inputs>")
-    s.add_argument("--auxiliaries", help="raw, oidn or nlm: the albedo, normal and depth the patches hold, as rendered "
-                   "or prefiltered (prep.auxiliary; oidn needs pyoidn) (default: raw); another than raw writes the "
-                   "shard set <set>[.<inputs>].aux-<auxiliaries>")
+    s.add_argument("--auxiliaries", help=f"{_auxiliaries()}: the albedo, normal and depth the patches hold, as "
+                   f"rendered or prefiltered (prep.auxiliary; oidn needs pyoidn) {d('auxiliaries')}; another than "
+                   "raw writes the shard set <set>[.<inputs>].aux-<auxiliaries>")
     _part_option(s, "shards")
 
 
@@ -349,8 +349,9 @@ def _train_options(add) -> None:
     _run_option(t, default="runs/default", help="run folder, created or resumed (default: runs/default)")
     t.add_argument("--inputs", help=f"input set of the network: {_input_sets()} {d('inputs')}; another than full "
                    "trains on the shard set <set>.<inputs> into <run>/inputs/<inputs>")
-    t.add_argument("--auxiliaries", help="raw, oidn or nlm: train on the shard set cut with kpcn shards --auxiliaries "
-                   "(<set>[.<inputs>].aux-<auxiliaries>); the run is served its auxiliaries so (default: raw)")
+    t.add_argument("--auxiliaries", help=f"{_auxiliaries()}: train on the shard set cut with kpcn shards "
+                   "--auxiliaries (<set>[.<inputs>].aux-<auxiliaries>); the run is served its auxiliaries so "
+                   f"{d('auxiliaries')}")
     t.add_argument("--preset", help=f"{', '.join(PRESETS)} {d('preset')}; the options below override it")
     _network_options(t.add_argument_group("network (each branch, or the shared one)"))
     _phase_options(t.add_argument_group("phases"), d)
@@ -453,6 +454,13 @@ def _input_sets() -> str:
     from prep.inputs import INPUT_SETS
 
     return ", ".join(INPUT_SETS)
+
+
+def _auxiliaries() -> str:
+    """The prefilters a network is trained and served with (``prep.auxiliary.TRAINED``), as "a, b or c"."""
+    from prep.auxiliary import TRAINED
+
+    return f"{', '.join(TRAINED[:-1])} or {TRAINED[-1]}"
 
 
 def _resample_options(add) -> None:
