@@ -161,31 +161,27 @@ world-tune: world-set
 		$(WORLD_TRAIN_ARGS)
 
 # The quality modes besides balanced (make model's networks; kpcn denoise --quality, docs/training.md §7): each mode's
-# networks trained from its preset (config.QUALITY_PRESETS) into $(MODEL_RUN)-<mode>, for every input set, as long
-# as the held-out error falls; the no-variance networks, which serve Cycles frames, first and on the Cycles world
-# beside make model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world
-# grew), the others on make model's. Resumes where it stopped. make ship-modes then ships them into models/$(MODEL)
-# beside its balanced networks. MODES_SHARD_ARGS are kpcn shards' further options: with --auxiliaries oidn (or nlm)
-# the sets are cut with prefiltered auxiliaries beside the raw ones (<set>[.<inputs>].aux-oidn), the modes trained
-# on them into $(MODEL_RUN)-<mode>-aux-oidn, served so, and make ship-modes with the same MODES_SHARD_ARGS ships
-# those.
+# networks trained from its preset on its auxiliaries (config.QUALITY_PRESETS, config.QUALITY_AUXILIARIES) into
+# $(MODEL_RUN)-<mode> ($(MODEL_RUN)-<mode>-aux-<method> where they are prefiltered), for every input set, as long as
+# the held-out error falls; the no-variance networks, which serve Cycles frames, first and on the Cycles world beside
+# make model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world grew),
+# the others on make model's. Each set is cut once for each auxiliaries a mode asks for. Resumes where it stopped.
+# make ship-modes then ships them into models/$(MODEL) beside its balanced networks.
 MODES ?= fast high
 MODES_ARGS ?= --steps 12000 --decay-steps 12000 --patience 20
-MODES_SHARD_ARGS ?=
-# the --auxiliaries of MODES_SHARD_ARGS (empty for raw): kpcn train finds the set cut with it by the same option
-MODES_AUX = $(shell echo ' $(MODES_SHARD_ARGS) ' | sed -n 's/.* --auxiliaries[ =]\([a-z]*\) .*/\1/p' | grep -vx raw)
-mode_run = $(MODEL_RUN)-$(1)$(if $(MODES_AUX),-aux-$(MODES_AUX))
+# shell words: a mode's auxiliaries method (its value in config.QUALITY_AUXILIARIES) and its run folder
+mode_aux = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_AUXILIARIES as a; print(a[sys.argv[1]])' $(1))
+mode_run = $(MODEL_RUN)-$(1)$$(aux=$(call mode_aux,$(1)); [ $$aux = raw ] || echo -aux-$$aux)
 mode_preset = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_PRESETS as p; print(p[sys.argv[1]])' $(1))
 modes: world-set
 	for inputs in no-variance $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)' \
 			| tr ' ' '\n' | grep -vx no-variance); do \
 		if [ $$inputs = no-variance ]; then set=$(WORLD_MIX); held="$(WORLD_VAL_SCENES)"; \
 		else set=$(MODEL_SET); held="$(MODEL_SHARD_ARGS)"; fi; \
-		$(KPCN) shards --set $$set --inputs $$inputs $$held $(MODES_SHARD_ARGS) || exit 1; \
 		for mode in $(MODES); do \
+			$(KPCN) shards --set $$set --inputs $$inputs $$held --auxiliaries $(call mode_aux,$$mode) || exit 1; \
 			$(KPCN) train --set $$set --run $(call mode_run,$$mode) --inputs $$inputs \
-				$(if $(MODES_AUX),--auxiliaries $(MODES_AUX)) --preset $(call mode_preset,$$mode) $(MODES_ARGS) \
-				|| exit 1; \
+				--auxiliaries $(call mode_aux,$$mode) --preset $(call mode_preset,$$mode) $(MODES_ARGS) || exit 1; \
 		done; \
 	done
 	for mode in $(MODES); do $(KPCN) evaluate --run $(call mode_run,$$mode) || exit 1; done
@@ -193,7 +189,8 @@ modes: world-set
 # the trained modes shipped beside models/$(MODEL)'s balanced networks (a new folder, then renamed over it)
 ship-modes: $(KPCN)
 	rm -rf models/$(MODEL).next
-	$(KPCN) ship --run models/$(MODEL) $(foreach m,$(MODES),--mode $(m)=$(call mode_run,$(m))) --out models/$(MODEL).next
+	$(KPCN) ship --run models/$(MODEL) $$(for mode in $(MODES); do echo --mode $$mode=$(call mode_run,$$mode); done) \
+		--out models/$(MODEL).next
 	rm -rf models/$(MODEL).old && mv models/$(MODEL) models/$(MODEL).old && mv models/$(MODEL).next models/$(MODEL) \
 		&& rm -rf models/$(MODEL).old
 

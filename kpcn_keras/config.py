@@ -46,6 +46,10 @@ DEFAULT_QUALITY = "balanced"
 # fast a quarter of balanced's convolution work a pixel and 9x9 kernels, high a U-Net trunk that sees four times
 # as far (docs/training.md §7)
 QUALITY_PRESETS = {"fast": "fast", "balanced": "cpu", "high": "unet"}
+# The auxiliaries (prep.auxiliary.TRAINED) each mode's networks are trained and served on: OIDN's prefilter of the
+# albedo, normal and depth for high; fast cannot afford it (at 1920x1080 the prefilter alone costs more than OIDN's
+# whole fast mode: reports/mode_costs.json) and balanced is make model's, raw
+QUALITY_AUXILIARIES = {"fast": "raw", "balanced": "raw", "high": "oidn"}
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
 # serves from any folder; the environment variable MODEL_ENV names another folder instead (a model of one's

@@ -10,7 +10,7 @@ import torch
 from helpers.networks import finite_loss_and_gradients, randomise
 from helpers.numerics import extreme_features
 
-from kpcn_keras.config import PRESETS, QUALITY_MODES, QUALITY_PRESETS, TrainConfig
+from kpcn_keras.config import PRESETS, QUALITY_AUXILIARIES, QUALITY_MODES, QUALITY_PRESETS, TrainConfig
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
 from kpcn_keras.models import (
@@ -22,7 +22,7 @@ from kpcn_keras.models import (
     receptive_radius,
     trunk_radius,
 )
-from prep import colour, exr
+from prep import auxiliary, colour, exr
 from prep.colour import LOG_COLOUR_MAX
 from prep.errors import OptionError
 from prep.features import NUM_FEATURES
@@ -164,6 +164,9 @@ def test_unet_preset_is_cpus_training_at_a_lower_rate_with_a_four_level_unet():
 
 def test_each_quality_mode_trains_from_a_preset_and_fast_costs_a_fraction_of_balanced():
     assert set(QUALITY_PRESETS) == set(QUALITY_MODES) and set(QUALITY_PRESETS.values()) <= set(PRESETS)
+    assert set(QUALITY_AUXILIARIES) == set(QUALITY_MODES)
+    assert set(QUALITY_AUXILIARIES.values()) <= set(auxiliary.TRAINED)
+    assert QUALITY_AUXILIARIES["balanced"] == TrainConfig().auxiliaries  # make model's networks, as trained
     fast, balanced = (TrainConfig.from_preset(QUALITY_PRESETS[m]).model for m in ("fast", "balanced"))
 
     def multiply_adds(cfg):  # a stack of conv_size² convolutions, then the 1x1 kernel head

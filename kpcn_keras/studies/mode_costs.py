@@ -3,7 +3,8 @@ process (``make modes-report`` runs it, then ``kpcn_keras.studies.modes_plot``).
 
 Prints one JSON object (and with ``--out`` writes it there too): the seconds to denoise a frame wrapped around to
 1920 x 1080 (``card.frame_of_size``) by each quality mode the model has (``Run.quality_modes``; each mode's own
-networks, ``InferenceSettings(quality=MODE)``, as ``kpcn denoise --quality MODE`` runs them) and by OIDN at
+networks, ``InferenceSettings(quality=MODE)``, as ``kpcn denoise --quality MODE`` runs them), by the prefilter of a
+mode's auxiliaries alone where it has one (``Denoiser.given``: that share of the mode's time), and by OIDN at
 ``fast``, ``balanced`` and ``high`` (``prep.baselines.oidn_denoise``), both prefiltered (as Blender runs it: the
 albedo and normal each denoised first at the same quality) and plain, on the layers OIDN is given
 (``baselines.oidn_inputs``). Every method is warmed up, then all are called alternately ``--repeats`` times, so
@@ -40,20 +41,30 @@ def oidn_method(mode: str, quality: str) -> str:
     return f"oidn_{mode} {quality}"
 
 
+def prefilter_method(method: str) -> str:
+    """The probe's name of the auxiliaries prefilter ``method`` (``prep.auxiliary``) alone."""
+    return f"prefilter {method}"
+
+
 def methods(model: Path, frame, size: tuple[int, int]) -> dict:
     """name -> a call denoising ``frame`` (a ``prep.layouts.Frame``) wrapped to ``size`` (width, height): each
-    quality mode of ``model``, then OIDN in each mode at each quality (none where ``pyoidn`` is missing)."""
+    quality mode of ``model``, the prefilter of a mode's auxiliaries alone (where it has one), then OIDN in each
+    mode at each quality (none where ``pyoidn`` is missing)."""
     from kpcn_keras.card import frame_of_size
     from kpcn_keras.run import Run
     from kpcn_keras.serving import Serving
     from kpcn_keras.settings import InferenceSettings
-    from prep import baselines
+    from prep import auxiliary, baselines
 
     layers = frame_of_size(frame.layers, *size)
-    calls = {}
+    calls, prefilters = {}, {}
     for mode in Run(model).quality_modes():
         denoiser = Serving(Run(model), InferenceSettings(quality=mode)).denoiser(frame.inputs)
         calls[kpcn_method(mode)] = lambda d=denoiser: d(layers)["default"]
+        if denoiser.auxiliaries != auxiliary.RAW:  # the share of the mode's time its prefilter takes
+            prefilters[prefilter_method(denoiser.auxiliaries)] = (
+                lambda d=denoiser: d.given(layers))
+    calls.update(prefilters)
     if baselines.oidn_available():
         given = frame_of_size(baselines.oidn_inputs(frame), *size)
         for quality in baselines.OIDN_QUALITIES:
