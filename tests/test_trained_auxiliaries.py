@@ -230,3 +230,13 @@ def test_kpcn_evaluate_scores_a_run_with_its_prefilter(nlm_run, tmp_path, method
     rows = evaluate(Run(model), [(str(noisy_path), str(ref_path))], out_dir=tmp_path / "eval", baseline=False)
     expected = metrics.all_metrics(_by_hand(model, frame, method).astype(np.float32), reference["default"])
     assert rows[0].denoised["relmse"] == pytest.approx(expected["relmse"], rel=1e-4)
+
+
+@pytest.mark.slow
+def test_the_mode_probe_times_a_modes_prefilter_apart(nlm_run, fixture_noisy, capsys):
+    from kpcn_keras.studies import mode_costs
+
+    assert mode_costs.main(["--model", str(nlm_run), "--frame", str(fixture_noisy), "--size", "40,32",
+                            "--repeats", "1"]) == 0
+    best = json.loads(capsys.readouterr().out)["best_s"]
+    assert list(best)[:2] == ["kpcn balanced", "prefilter nlm"] and all(s > 0 for s in best.values())
