@@ -22,6 +22,7 @@ import logging
 import os
 import sys
 
+from kpcn_keras import oidn_args
 from kpcn_keras.parser import (
     DATA_INVARIANT,
     _check_own_bounds,
@@ -452,11 +453,24 @@ def _check_launcher(command: str) -> None:
                         "without torchrun")
 
 
+def _user_error(command: str, message: str) -> int:
+    print(f"kpcn {command}: error: {message}", file=sys.stderr)
+    return EXIT_USER_ERROR
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="kpcn: %(message)s")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if oidn_args.applies(argv):  # oidnDenoise's options: run as kpcn denoise's own (kpcn_keras/oidn_args.py)
+        try:
+            return oidn_args.run(argv, main)
+        except KpcnError as exc:
+            if os.environ.get("KPCN_DEBUG"):
+                raise
+            return _user_error("denoise", str(exc))
     parser = build_parser()
     args = parser.parse_args(argv)
-    args.argv, args.parser = (sys.argv[1:] if argv is None else list(argv)), parser
+    args.argv, args.parser = argv, parser
     args.flags = _flags(parser, args.command)
     try:
         from prep.processes import keep_freed_memory
@@ -475,8 +489,7 @@ def main(argv=None) -> int:
             flag = args.flags.get(exc.option)
             if flag:
                 message = f"{flag} {exc.detail}"
-        print(f"kpcn {args.command}: error: {message}", file=sys.stderr)
-        return EXIT_USER_ERROR
+        return _user_error(args.command, message)
     except KeyboardInterrupt:
         print(f"kpcn {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130

@@ -67,7 +67,7 @@ from kpcn_keras.run import Run, RunRecord, check_architecture
 from kpcn_keras.settings import InferenceSettings
 from prep import colour, exr, features
 from prep.albedo import prefilter as prefilter_albedo
-from prep.auxiliary import check_method, network_layers
+from prep.auxiliary import RAW, check_method, network_layers
 from prep.errors import KpcnError, OptionError
 
 
@@ -124,7 +124,8 @@ class Denoiser:
         current round. Only the networks of the branches the run's input set runs are read
         (``RunRecord.branches``)."""
         record = (run.record() if record is None else record).finished(resampling=resampling)
-        check_method(record.auxiliaries, f"model {run.dir}")  # before any network is read
+        if not settings.clean_aux:  # clean auxiliaries are given as they are: no prefilter runs
+            check_method(record.auxiliaries, f"model {run.dir}")  # before any network is read
         names = dict.fromkeys("shared" if record.model.branch_channels else b for b in record.branches)
         networks = {}
         for name in names:
@@ -142,8 +143,9 @@ class Denoiser:
     def given(self, aovs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The layers of the frame ``aovs`` the networks are given: as the run's input set reads them, the
         auxiliaries prefiltered, whole, as the run's shards were (``prep.auxiliary.network_layers``). A frame
-        is given once: every tile, branch and member reads the result."""
-        return network_layers(aovs, self.inputs, self.auxiliaries)
+        is given once: every tile, branch and member reads the result. With ``settings.clean_aux`` the frame's
+        auxiliaries are clean already and are given as they are."""
+        return network_layers(aovs, self.inputs, RAW if self.settings.clean_aux else self.auxiliaries)
 
     @property
     def ensemble(self) -> int:

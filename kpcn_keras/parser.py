@@ -488,7 +488,9 @@ def _denoise_options(add) -> None:
     from kpcn_keras.settings import InferenceSettings
 
     n = add("denoise", (InferenceSettings,), {"slope": SLOPE}, help="denoise EXRs (kpcn, Blender "
-            "Cycles, Mitsuba 3, PBRT-v4 or plain colour): files, or every render in a folder, in one process")
+            "Cycles, Mitsuba 3, PBRT-v4 or plain colour): files, or every render in a folder, in one process; "
+            "or, with OIDN's options (kpcn denoise --hdr color.pfm --alb albedo.pfm --nrm normal.pfm -o out.pfm), "
+            "as oidnDenoise (kpcn denoise --hdr x -h lists what it takes)")
     n.add_argument("inputs", nargs="+", metavar="input", help="EXR files and folders (a folder: every *.exr in it "
                    "but earlier *-denoised.exr outputs)")
     from kpcn_keras.config import DEFAULT_MODEL, MODEL_ENV
@@ -515,6 +517,8 @@ def _denoise_options(add) -> None:
                    "spp: the two are denoised as one frame, its variance from their difference")
     n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
     n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
+    n.add_argument("--clean-aux", action="store_true", help="the frame's albedo, normal and depth are clean "
+                   "already (OIDN's cleanAux): a model trained on prefiltered auxiliaries is given them as they are")
 
 
 def _view_options(add) -> None:

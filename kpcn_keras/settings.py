@@ -36,12 +36,15 @@ class InferenceSettings:
     ``precision``: the trunks' arithmetic, one of ``config.PRECISIONS`` (``--precision``; "auto" is resolved for
     the machine by the denoiser, ``kpcn_keras.precision.resolve``); ``ensemble``: a self-ensemble's members, 1
     for the networks once (``--ensemble``); ``quality``: the model's mode, one of ``config.QUALITY_MODES``
-    (``--quality``; a mode the model lacks is refused when it is served, ``Run.for_quality``)."""
+    (``--quality``; a mode the model lacks is refused when it is served, ``Run.for_quality``); ``clean_aux``: the
+    frame's albedo, normal and depth are clean already (``--clean-aux``, OIDN's ``cleanAux``), so a model trained
+    on prefiltered auxiliaries is given them as they are (``prep.auxiliary``'s ``raw``) instead of prefiltered."""
 
     tile: int = bounded(DEFAULT_TILE, TILE)
     precision: str = DEFAULT_PRECISION
     ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
     quality: str = DEFAULT_QUALITY
+    clean_aux: bool = False
 
     def __post_init__(self):
         check_fields(self)
