@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: world world-set world-tune modes ship-modes blender-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: addon world world-set world-tune modes ship-modes blender-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -293,6 +293,12 @@ test-oldest: $(KPCN)
 
 clean:
 	rm -rf data runs shards/*/
+
+# the Blender add-on (blender/kpcn_addon, docs/blender.md) as the extension zip Blender 4.2+ installs:
+# $(ADDON_DIST)/kpcn-blender-<version>.zip, the version from its blender_manifest.toml (the standard library alone)
+ADDON_DIST ?= dist
+addon:
+	$(PYTHON) blender/build.py --out $(ADDON_DIST)
 
 # every subcommand's --help written into docs/commands.md §4 (tests/test_docs.py checks it is up to date)
 docs: $(KPCN)
