@@ -32,6 +32,7 @@ from kpcn_keras.parser import (
     build_parser,
     inference_settings,
 )
+from kpcn_keras.version import version_text
 from prep.errors import KpcnError, OptionError
 
 # The exit status of a KpcnError; argparse uses the same for a malformed command line.
@@ -468,6 +469,9 @@ def main(argv=None) -> int:
             if os.environ.get("KPCN_DEBUG"):
                 raise
             return _user_error("denoise", str(exc))
+    if [a for a in argv if a not in ("-q", "--quiet")] == ["--version"]:  # what the Blender add-on's Check runs
+        print(version_text())
+        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv, args.parser = argv, parser

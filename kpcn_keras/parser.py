@@ -200,37 +200,10 @@ def _add_subcommand(p: argparse.ArgumentParser, sub, name: str, configs=(), own=
     return p.get_default("subcommands")[name]
 
 
-class _Version(argparse.Action):
-    """``kpcn --version``: what a program driving kpcn (the Blender add-on) shows to say which kpcn it found."""
-
-    def __init__(self, option_strings, dest, **kw):
-        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kw)
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        from importlib.metadata import PackageNotFoundError, version
-
-        from kpcn_keras.run import default_model  # here: the model's modes need the run (keras), --help does not
-        from prep.errors import KpcnError
-
-        try:
-            number = version("kpcn")
-        except PackageNotFoundError:
-            number = "(not installed as a package)"
-        try:
-            model = default_model()
-            found = f"model {model.dir} (quality modes: {', '.join(model.quality_modes())})"
-        except KpcnError as exc:
-            found = f"no model: {exc}"
-        print(f"kpcn {number}\n{found}")
-        parser.exit(0)
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``kpcn``: every subcommand of :data:`BUILDERS`, each option's help stating its bound."""
     p = argparse.ArgumentParser(prog="kpcn", description="Kernel-predicting denoisers for path-traced renders.")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--version", action=_Version, help="kpcn's version and the model kpcn denoise uses without "
-                   "--run (its folder and quality modes), then exit")
     sub = p.add_subparsers(dest="command", required=True)
     p.set_defaults(subcommands={}, bounded={})
 

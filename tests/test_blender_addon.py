@@ -68,12 +68,32 @@ def test_the_checkbox_turns_on_the_passes_kpcn_render_cycles_does_each_one_kpcn_
         "use_pass_volume_direct", "use_pass_volume_indirect", "denoising_store_passes")
 
 
-def test_the_addon_imports_nothing_of_kpcn_only_the_standard_library_bpy_and_itself():
+def test_the_addon_imports_nothing_of_kpcn_only_the_standard_library_bpy_numpy_and_itself():
     for path in ADDON.glob("*.py"):
         tree = ast.parse(path.read_text())
         names = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         names |= {n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level == 0}
-        assert names - set(sys.stdlib_module_names) <= {"bpy"}, (path.name, names)
+        assert names - set(sys.stdlib_module_names) <= {"bpy", "numpy"}, (path.name, names)  # Blender ships numpy
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_the_addon_reads_the_colour_of_kpcns_output_exr_as_openexr_does(tmp_path, half):
+    # the add-on's own reader (Blender loads kpcn's layered output as a multilayer image, without pixels in Python)
+    sys.path.insert(0, str(ADDON))
+    try:
+        import exr_colour
+    finally:
+        sys.path.remove(str(ADDON))
+    rng = np.random.default_rng(0)
+    colour, alpha = rng.random((37, 21, 3), np.float32) * 4, rng.random((37, 21), np.float32)
+    path = exr.write_aovs(tmp_path / "out.exr", {"albedo": rng.random((37, 21, 3), np.float32), "default": colour,
+                                                 "default.A": alpha, "depth": rng.random((37, 21))}, half=half)
+    import OpenEXR
+
+    expected = OpenEXR.File(str(path)).parts[0].channels["default"].pixels.astype(np.float32)
+    np.testing.assert_array_equal(exr_colour.read_colour(str(path)), expected)
+    with pytest.raises(exr_colour.ExrError, match="no layer nothing"):
+        exr_colour.read_colour(str(path), "nothing")
 
 
 def test_make_addon_builds_the_zip_named_after_the_manifest_version_the_same_bytes_each_time(tmp_path):

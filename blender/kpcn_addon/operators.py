@@ -8,6 +8,7 @@ import tempfile
 import bpy
 
 from . import passes
+from .exr_colour import ExrError
 from .runner import AddonError, Job, denoise_command, find_kpcn, version
 
 
@@ -35,7 +36,10 @@ def start_job(context, scene) -> Job:
 
 def finish_job(job: Job):
     """The denoised image loaded and shown (AddonError with kpcn's error line where it failed)."""
-    image = passes.load_result(job.result(), job.label)
+    try:
+        image = passes.load_result(job.result(), job.label)
+    except ExrError as exc:
+        raise AddonError(str(exc)) from None
     prefs().last_message = f"denoised into image '{image.name}'"
     return image
 

@@ -4,6 +4,9 @@ multilayer EXR kpcn reads, and kpcn's output loaded back as an image shown in th
 import os
 
 import bpy
+import numpy as np
+
+from .exr_colour import read_colour
 
 # The view layer's passes kpcn's Cycles layout reads (prep/layouts.py CYCLES_PASSES: the diffuse / specular split,
 # its colour passes, Emit, Env, the normal and depth), as kpcn render-cycles turns them on for the frames the shipped
@@ -60,13 +63,15 @@ def image_name(scene, frame: int) -> str:
 
 
 def load_result(path: str, name: str):
-    """kpcn's output loaded as image ``name`` (one of that name before is replaced), packed into the .blend (the
-    temporary file goes), and shown in every open Image Editor."""
+    """kpcn's denoised colour as image ``name`` (float, scene linear; one of that name before is replaced), packed
+    into the .blend (the temporary file goes), and shown in every open Image Editor."""
+    colour = read_colour(path)
+    height, width = colour.shape[:2]
     old = bpy.data.images.get(name)
     if old is not None:
         bpy.data.images.remove(old)
-    image = bpy.data.images.load(path, check_existing=False)
-    image.name = name
+    image = bpy.data.images.new(name, width, height, alpha=True, float_buffer=True)
+    image.pixels.foreach_set(np.ascontiguousarray(colour[::-1]).ravel())  # Blender's rows run bottom to top
     image.pack()
     show(image)
     return image
