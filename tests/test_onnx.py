@@ -98,6 +98,7 @@ def test_the_onnx_runtime_denoises_as_torch_does_and_its_tiles_equal_an_untiled_
         np.testing.assert_allclose(got_tiled[name], got[name], rtol=1e-5, atol=1e-6, err_msg=name)
 
 
+@pytest.mark.slow  # traces the shipped model's seven networks: about a minute
 def test_the_shipped_model_through_onnx_equals_keras_on_the_fixture_for_every_input_set():
     frame = {name: layer[:48, :64] for name, layer in layouts.read(FIXTURES / "fixture-00008spp.exr").layers.items()}
     shipped = Run(REPO / "models" / "default")
@@ -112,6 +113,7 @@ def test_the_shipped_model_through_onnx_equals_keras_on_the_fixture_for_every_in
             assert relative.max() < TOLERANCE, (run.dir, name, relative.max())
 
 
+@pytest.mark.slow  # trains a tiny run of every input set and traces each network
 def test_kpcn_export_writes_every_network_of_every_input_set_with_its_card(tiny_run_of_every_input_set, tmp_path):
     model = Run(tiny_run_of_every_input_set)
     res = run_main("export", model.dir, "--onnx", tmp_path / "onnx", cwd=tmp_path)
