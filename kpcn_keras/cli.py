@@ -22,7 +22,7 @@ import logging
 import os
 import sys
 
-from kpcn_keras import oidn_args
+from kpcn_keras import oidn_args, onnx_cli
 from kpcn_keras.parser import (
     DATA_INVARIANT,
     _check_own_bounds,
@@ -429,6 +429,7 @@ COMMANDS = {
     "view": cmd_view,
     "evaluate": cmd_evaluate,
     "ship": cmd_ship,
+    "export": onnx_cli.cmd_export,
     "figures": cmd_figures,
     "bench": cmd_bench,
     "compare": cmd_compare,

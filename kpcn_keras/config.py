@@ -32,6 +32,10 @@ DEFAULT_SLOPES = (1.0, 2.0, 4.0, 8.0)  # the λ sweep of ``kpcn figures``
 # multiplies it natively, float32 elsewhere
 PRECISIONS = ("auto", "float32", "bfloat16")
 DEFAULT_PRECISION = "auto"
+# What runs the networks at inference: torch through Keras, or onnxruntime on their ONNX graphs (the optional extra
+# "onnx", kpcn_keras/onnx_runtime.py); torch stays the default: it was the faster on this CPU (reports/onnx_speed.md)
+RUNTIMES = ("torch", "onnx")
+DEFAULT_RUNTIME = "torch"
 # A self-ensemble (kpcn_keras/denoise.py, --ensemble N) denoises the frame moved by the first N of the square's 8
 # symmetries and keeps each pixel's median: N times the time, for a few per cent of relMSE
 # (docs/results/14-self-ensemble.md)

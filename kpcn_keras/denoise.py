@@ -61,6 +61,8 @@ from kpcn_keras.models import (
     slope_plane,
 )
 from kpcn_keras.multiscale import build_multiscale_model, multiscale_radius, tile_alignment
+from kpcn_keras.onnx_export import onnx_networks
+from kpcn_keras.onnx_runtime import check_servable
 from kpcn_keras.precision import apply as apply_precision
 from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord, check_architecture
@@ -99,6 +101,8 @@ class Denoiser:
         self.precision = resolve(settings.precision)
         for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
             apply_precision(net, self.precision)
+        if settings.runtime == "onnx":
+            networks, self.albedo_network = self._onnx(networks, albedo, compositor)
         self.inputs, self.branches, self.auxiliaries = record.inputs, record.branches, record.auxiliaries
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
@@ -114,6 +118,19 @@ class Denoiser:
         # and the unet's at each of its levels)
         self.margin = -(-self.margin // self.align) * self.align
         self.tile = -(-self.asked_tile // self.align) * self.align
+
+    def _onnx(self, networks: dict, albedo, compositor):
+        """The networks (and the albedo network) as onnxruntime runs them (``kpcn_keras.onnx_runtime``), float32;
+        OptionError (``--runtime``) naming the run where that runtime cannot serve it."""
+        # "auto" precision is float32 here: the graphs are float32 (an explicit bfloat16 is refused)
+        check_servable(self.run.dir, precision=self.settings.precision, compositor=compositor is not None,
+                       slope_module=bool(self.model_config.slope_module))
+        self.precision = "float32"
+        align = input_alignment(self.model_config)
+        for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
+            apply_precision(net, "float32")
+        networks = onnx_networks(networks, align)
+        return networks, None if albedo is None else onnx_networks({"albedo": albedo}, align)["albedo"]
 
     @classmethod
     def from_run(cls, run: Run, settings: InferenceSettings = InferenceSettings(), *,

@@ -44,6 +44,7 @@ __all__ = [
     "kernel_apply",
     "pad_edge",
     "softmax_kernels",
+    "traced_kernel_apply",
 ]
 
 
@@ -166,11 +167,38 @@ def kernel_apply(colour, logits, k: int, dilation: int = 1):
 
         colour = ops.convert_to_tensor(colour)
         logits = ops.convert_to_tensor(logits, dtype=colour.dtype)
+        if torch.onnx.is_in_onnx_export():  # the fast paths run numba on numpy, which a trace keeps as constants
+            return traced_kernel_apply(colour, logits, k, d)
         # CPU only: on a GPU (H100, 1920 x 1080, k=13) the cache-sized row blocks are many small launches
         # and lost to the shifted-slice loop, 76 against 20 ms
         if isinstance(colour, torch.Tensor) and colour.device.type == "cpu":
             return _torch_kernel_apply(colour, logits, k, d)
     return apply_kernels(colour, softmax_kernels(logits), k, d)
+
+
+def traced_kernel_apply(colour, logits, k: int, d: int):
+    """:func:`kernel_apply` in torch ops a trace records whole (``kpcn_keras.onnx_export``): the k*k shifted
+    planes of the edge-padded colour, each cut by offsets from both ends so that the graph holds no frame size
+    (it runs at any H and W), weighted by the exponentials of the max-subtracted logits, summed, and divided by
+    their sum once (the softmax's normalisation after the sum, one division per colour instead of per tap).
+    Taps lead the weights' layout and channels the colour's, so each product broadcasts over a leading axis,
+    which onnxruntime runs as a plain loop (measured: against a channels-first product and a softmax over the last
+    axis, onnxruntime's Softmax was most of the time). Equal to the other paths to float rounding (tested)."""
+    import torch
+    import torch.nn.functional as F
+
+    r = (k // 2) * d
+    taps = logits.permute(3, 0, 1, 2)  # (k*k, B, H, W)
+    e = torch.exp(taps - taps.amax(dim=0, keepdim=True))
+    planes = F.pad(colour.permute(0, 3, 1, 2), (r, r, r, r), mode="replicate").permute(1, 0, 2, 3)  # (C, B, ., .)
+    out = None
+    for i in range(k):
+        for j in range(k):
+            rows = slice(i * d, (i * d - 2 * r) or None)
+            cols = slice(j * d, (j * d - 2 * r) or None)
+            term = e[i * k + j : i * k + j + 1] * planes[:, :, rows, cols]
+            out = term if out is None else out + term
+    return (out / e.sum(dim=0, keepdim=True)).permute(1, 2, 3, 0)
 
 
 def _is_symbolic(x) -> bool:

@@ -1,15 +1,14 @@
 """The argparse parser of ``kpcn``: one builder per subcommand, and what reads a command line back.
 
-Each subcommand's options are the fields of its stage's config dataclass (``kpcn_keras.config``,
-``kpcn_keras.studies.config``, ``prep``); an option left out takes the dataclass's default, and a help
-text states that default from the dataclass (:func:`_default`) and the bound it is checked against from the
-same ``prep.bounds.Bound`` (:func:`_state_bounds`): the parser never retypes either. The few options no
-dataclass holds (``--slope``, ``--port``, ...) are checked against theirs (:func:`_check_own_bounds`) before
-the command starts. :func:`command_line` turns values back into the arguments of a command, under the flags
-this parser gives them. The command functions are in :mod:`kpcn_keras.cli`.
-
-Building the parser imports no keras and no torch (the configs are plain dataclasses), so ``kpcn --help``,
-``kpcn render`` and ``kpcn shards`` stay light.
+Each subcommand's options are the fields of its stage's config dataclass (``kpcn_keras.config``, ``kpcn_keras.studies.
+config``, ``prep``); an option left out takes the dataclass's default, and a help text states that default from the
+dataclass (:func:`_default`) and the bound it is checked against from the same ``prep.bounds.Bound``
+(:func:`_state_bounds`): the parser never retypes either. The few options no dataclass holds (``--slope``,
+``--port``, ...) are checked against theirs (:func:`_check_own_bounds`) before the command starts. :func:`command_line`
+turns values back into the arguments of a command, under the flags this parser gives them. The command functions
+are in :mod:`kpcn_keras.cli`; ``kpcn export`` and ``--runtime``, in :mod:`kpcn_keras.onnx_cli`. Building the parser
+imports no keras and no torch (the configs are plain dataclasses), so ``kpcn --help``, ``kpcn render`` and ``kpcn
+shards`` stay light.
 """
 
 from __future__ import annotations
@@ -17,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from kpcn_keras.onnx_cli import export_options, runtime_option
 from prep.bounds import BOUND, DISTINCT, check_distinct
 
 
@@ -547,6 +547,7 @@ def _precision_option(parser) -> None:
     parser.add_argument("--precision", choices=PRECISIONS, help="the networks' arithmetic: bfloat16 convolutions "
                         "are faster where the CPU has them natively, and change the output slightly; auto takes "
                         f"bfloat16 there and float32 elsewhere (default: {DEFAULT_PRECISION})")
+    runtime_option(parser)
 
 
 def _ensemble_option(parser) -> None:
@@ -789,11 +790,10 @@ BUILDERS = {
     "view": _view_options,
     "evaluate": _evaluate_options,
     "ship": _ship_options,
+    "export": export_options,
     "figures": _figures_options,
     "bench": _bench_options,
     "compare": _compare_options,
-    "resample-study": _resample_study_options,
-    "inputs-study": _inputs_study_options,
-    "quality": _quality_options,
-    "aux-study": _aux_study_options,
+    "resample-study": _resample_study_options, "inputs-study": _inputs_study_options,
+    "quality": _quality_options, "aux-study": _aux_study_options,
 }

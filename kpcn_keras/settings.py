@@ -20,10 +20,12 @@ from kpcn_keras.config import (
     DEFAULT_ENSEMBLE,
     DEFAULT_PRECISION,
     DEFAULT_QUALITY,
+    DEFAULT_RUNTIME,
     DEFAULT_TILE,
     ENSEMBLE,
     PRECISIONS,
     QUALITY_MODES,
+    RUNTIMES,
     TILE,
 )
 from prep.bounds import bounded, check_fields
@@ -38,18 +40,22 @@ class InferenceSettings:
     for the networks once (``--ensemble``); ``quality``: the model's mode, one of ``config.QUALITY_MODES``
     (``--quality``; a mode the model lacks is refused when it is served, ``Run.for_quality``); ``clean_aux``: the
     frame's albedo, normal and depth are clean already (``--clean-aux``, OIDN's ``cleanAux``), so a model trained
-    on prefiltered auxiliaries is given them as they are (``prep.auxiliary``'s ``raw``) instead of prefiltered."""
+    on prefiltered auxiliaries is given them as they are (``prep.auxiliary``'s ``raw``) instead of prefiltered;
+    ``runtime``: what runs the networks, one of ``config.RUNTIMES`` (``--runtime``): torch, or onnxruntime on their
+    ONNX graphs (``kpcn_keras.onnx_runtime``; what it cannot serve is refused when the model is loaded)."""
 
     tile: int = bounded(DEFAULT_TILE, TILE)
     precision: str = DEFAULT_PRECISION
     ensemble: int = bounded(DEFAULT_ENSEMBLE, ENSEMBLE)
     quality: str = DEFAULT_QUALITY
     clean_aux: bool = False
+    runtime: str = DEFAULT_RUNTIME
 
     def __post_init__(self):
         check_fields(self)
         check_precision(self.precision)
         check_quality(self.quality)
+        check_runtime(self.runtime)
 
 
 def check_precision(precision: str) -> str:
@@ -66,4 +72,11 @@ def check_quality(quality: str) -> str:
     return quality
 
 
-__all__ = ["InferenceSettings", "check_precision", "check_quality"]
+def check_runtime(runtime: str) -> str:
+    """``runtime`` if it is one of ``config.RUNTIMES``; OptionError echoing it otherwise."""
+    if runtime not in RUNTIMES:
+        raise OptionError("runtime", f"must be one of {', '.join(RUNTIMES)}, received {runtime!r}")
+    return runtime
+
+
+__all__ = ["InferenceSettings", "check_precision", "check_quality", "check_runtime"]

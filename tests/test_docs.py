@@ -256,7 +256,8 @@ def test_every_figure_of_the_readme_results_table_is_the_json_it_names():
 # The living pages (docs/results/ holds the dated records, the README and the card are checked above): a
 # measured figure there names the committed JSON a command wrote it into, or links the dated page that printed it.
 LIVING_PAGES = [*(ROOT / "docs" / f"{name}.md" for name in
-                  ("denoise", "training", "scenes", "formats", "method", "robustness", "design", "commands")),
+                  ("denoise", "training", "scenes", "formats", "method", "robustness", "design", "commands",
+                   "onnx")),
                 ROOT / "shards" / "README.md"]
 # a number and a unit of time, memory, throughput, or a ratio ("1.28×", "4x"; "65 × 65" is a size, not a ratio)
 MEASURED = re.compile(r"(?<![\w.,/-])\d[\d,]*(?:\.\d+)?\s?(?:(?:ms|min|minutes?|seconds?|hours?|s|h"
