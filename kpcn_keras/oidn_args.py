@@ -76,6 +76,10 @@ class OidnCommand:
     help: bool = False
     kpcn: dict[str, str] = field(default_factory=dict)
 
+    def inputs(self) -> dict[str, Path]:
+        """The image files given, by the OIDN option that named each (``--hdr``, ``--alb``, ``--nrm``)."""
+        return {o: p for o, p in (("--hdr", self.colour), ("--alb", self.albedo), ("--nrm", self.normal)) if p}
+
 
 def _subcommand_at(argv: list[str]) -> int | None:
     """The index of ``denoise`` in ``argv`` when it is the subcommand (after kpcn's global options), else None."""
@@ -151,7 +155,7 @@ def parse(tokens: list[str]) -> OidnCommand:
         _mapped(cmd, name, option, value)
         i += 1 if value is None else 2
     if cmd.colour is None and not cmd.help:
-        given = " and ".join(o for o, f in (("--alb", cmd.albedo), ("--nrm", cmd.normal)) if f is not None)
+        given = " and ".join(cmd.inputs())  # no --hdr: what is given is --alb, --nrm or neither
         raise KpcnError(f"{given or 'no --hdr'}: oidnDenoise denoises an albedo or a normal given alone; kpcn "
                         "denoises a colour: give it as --hdr")
     return cmd
@@ -174,7 +178,7 @@ def _images(cmd: OidnCommand, folder: Path) -> dict[str, Path]:
     KpcnError naming the file for one kpcn cannot take or of another size than the colour."""
     from prep import exr, pfm
 
-    given = {o: p for o, p in (("--hdr", cmd.colour), ("--alb", cmd.albedo), ("--nrm", cmd.normal)) if p is not None}
+    given = cmd.inputs()
     out, sizes = {}, {}
     for option, path in given.items():
         if _checked_suffix(path, option) == ".exr":
@@ -216,7 +220,7 @@ def run(argv: list[str], main) -> int:
     if cmd.help:
         print(usage())
         return 0
-    read = [(o, p) for o, p in (("--hdr", cmd.colour), ("--alb", cmd.albedo), ("--nrm", cmd.normal)) if p]
+    read = list(cmd.inputs().items())
     for option, path in read:
         _checked_suffix(path, option)
     output = cmd.output or default_output(cmd.colour)
