@@ -97,12 +97,17 @@ class Denoiser:
         self.networks, self.compositor, self.asked_tile = networks, compositor, settings.tile
         self.albedo_network = albedo
         self.symmetries = tuple(Augmentation(code) for code in range(settings.ensemble))
-        # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16"
-        self.precision = resolve(settings.precision)
+        onnx = settings.runtime == "onnx"
+        if onnx:  # what onnxruntime cannot serve is refused before any network is touched
+            check_servable(run.dir, precision=settings.precision, compositor=compositor is not None,
+                           slope_module=bool(self.model_config.slope_module))
+        # the trunks' arithmetic, set on the networks given (kpcn_keras/precision.py): "float32" or "bfloat16";
+        # with onnx "auto" is float32: the graphs are float32 (an explicit bfloat16 was refused above)
+        self.precision = "float32" if onnx else resolve(settings.precision)
         for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
             apply_precision(net, self.precision)
-        if settings.runtime == "onnx":
-            networks, self.albedo_network = self._onnx(networks, albedo, compositor)
+        if onnx:
+            networks, self.albedo_network = self._onnx(networks, albedo)
         self.inputs, self.branches, self.auxiliaries = record.inputs, record.branches, record.auxiliaries
         names = {b: "shared" if self.model_config.branch_channels else b for b in self.branches}
         self.margin = receptive_radius(self.model_config)
@@ -119,16 +124,9 @@ class Denoiser:
         self.margin = -(-self.margin // self.align) * self.align
         self.tile = -(-self.asked_tile // self.align) * self.align
 
-    def _onnx(self, networks: dict, albedo, compositor):
-        """The networks (and the albedo network) as onnxruntime runs them (``kpcn_keras.onnx_runtime``), float32;
-        OptionError (``--runtime``) naming the run where that runtime cannot serve it."""
-        # "auto" precision is float32 here: the graphs are float32 (an explicit bfloat16 is refused)
-        check_servable(self.run.dir, precision=self.settings.precision, compositor=compositor is not None,
-                       slope_module=bool(self.model_config.slope_module))
-        self.precision = "float32"
+    def _onnx(self, networks: dict, albedo):
+        """The float32 networks (and the albedo network) as onnxruntime runs them (``kpcn_keras.onnx_runtime``)."""
         align = input_alignment(self.model_config)
-        for net in [*networks.values(), *([albedo] if albedo is not None else [])]:
-            apply_precision(net, "float32")
         networks = onnx_networks(networks, align)
         return networks, None if albedo is None else onnx_networks({"albedo": albedo}, align)["albedo"]
 
