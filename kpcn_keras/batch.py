@@ -29,11 +29,11 @@ from kpcn_keras.panels import panels_png
 from kpcn_keras.precision import resolve
 from kpcn_keras.run import Run, RunRecord
 from kpcn_keras.serving import Serving
-from kpcn_keras.settings import InferenceSettings
+from kpcn_keras.settings import AdaptSettings, InferenceSettings
 from prep import exr, layouts, pairs
 from prep.errors import KpcnError, OptionError
 from prep.files import check_outputs, check_writable
-from prep.inputs import InputSet, pair_layers
+from prep.inputs import InputSet, mean_layers, pair_layers
 from prep.processes import memory_shortfall, peak_memory_mb, process_age
 
 DENOISED_SUFFIX = "-denoised.exr"  # what default_output appends; a folder's renders never include one
@@ -145,10 +145,13 @@ class ReadOptions:
     renderer's layout (default: found from its channels, ``prep.layouts``); ``spp`` is the samples per pixel of a
     frame whose name and header do not say; ``view_layer`` the Cycles view layer to read (default: the one with the
     most passes kpcn uses); ``pair`` is a second render of the same frame (another seed), ``albedo`` and ``normal``
-    files of an rgb frame's auxiliaries: each for a single input."""
+    files of an rgb frame's auxiliaries: each for a single input. ``halves``: the pair is the two halves a model
+    adapts on (``kpcn_keras.adapt``), read as one frame of their mean with each half's own variance
+    (``prep.inputs.mean_layers``), not the variance of their difference."""
 
     layout: str | None = None
     pair: str | os.PathLike | None = None
+    halves: bool = False
     albedo: str | os.PathLike | None = None
     normal: str | os.PathLike | None = None
     spp: int | None = None
@@ -177,7 +180,8 @@ class FrameReport:
     """What :func:`denoise_frame` did for one frame: ``input``, its ``layout``, ``inputs`` (what the frame gave),
     ``model`` (the run folder that denoised it), ``output``, ``png`` (if written), ``seconds`` (features, network
     and recombination: no file I/O), ``read_s``, ``write_s``, ``png_s``, ``frame_s`` (all of it) and, with a
-    reference, ``metrics`` and ``input_metrics`` (``prep.metrics.all_metrics``)."""
+    reference, ``metrics`` and ``input_metrics`` (``prep.metrics.all_metrics``); ``adaptation``, what adapting to
+    the frame's two halves did (``kpcn_keras.adapt.Outcome``; its seconds are not in ``seconds``)."""
 
     input: str
     layout: str
@@ -192,6 +196,7 @@ class FrameReport:
     png: str | None = None
     input_metrics: dict[str, float] | None = None
     metrics: dict[str, float] | None = None
+    adaptation: object | None = None  # kpcn_keras.adapt.Outcome, where the model adapted to the frame first
 
 
 @dataclass(frozen=True)
@@ -216,22 +221,30 @@ class BatchReport:
 def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Frame:
     """The frame to denoise: ``input_path`` in its layout (``prep.layouts.read``), or with ``reading.pair`` (a second
     render of the same frame, another seed) the two as one frame whose variance comes from their difference
-    (``prep.inputs.pair_layers``), after ``prep.pairs``' checks that it is one: OptionError naming both files if
+    (``prep.inputs.pair_layers``), or with ``reading.halves`` their mean with each one's own variance
+    (``prep.inputs.mean_layers``), after ``prep.pairs``' checks that it is one: OptionError naming both files if
     not."""
-    pair = reading.pair
-    if pair is not None:
-        pairs.check_header(input_path, pair, reading.header)
-    frame = reading.read(input_path)
-    if pair is None:
-        return frame
-    other = reading.read(pair)
-    pairs.check_colours(input_path, frame.layers["default"], pair, other.layers["default"])
+    if reading.pair is None:
+        return reading.read(input_path)
+    frame, other = read_halves(input_path, reading)
     spp = frame.spp + other.spp if frame.spp and other.spp else None
     alpha = frame.alpha if frame.alpha is None or other.alpha is None else exr.to_float32(
         (np.asarray(frame.alpha, np.float64) + other.alpha) / 2)
+    if reading.halves:
+        return dataclasses.replace(frame, layers=mean_layers(frame.layers, other.layers), alpha=alpha, spp=spp,
+                                   notes=frame.notes + (f"the mean of the halves {input_path} + {reading.pair}",))
     return dataclasses.replace(frame, layers=pair_layers(frame.layers, other.layers),
                                inputs=InputSet(split=frame.inputs.split, variance=True), alpha=alpha, spp=spp,
-                               notes=frame.notes + (f"variance from the pair {input_path} + {pair}",))
+                               notes=frame.notes + (f"variance from the pair {input_path} + {reading.pair}",))
+
+
+def read_halves(input_path, reading: ReadOptions) -> tuple[layouts.Frame, layouts.Frame]:
+    """``input_path`` and ``reading.pair``, two renders of one frame with different seeds, each as it is, after
+    ``prep.pairs``' checks that they are: OptionError naming both files if not."""
+    pairs.check_header(input_path, reading.pair, reading.header)
+    frame, other = reading.read(input_path), reading.read(reading.pair)
+    pairs.check_colours(input_path, frame.layers["default"], reading.pair, other.layers["default"])
+    return frame, other
 
 
 def read_reference(reference, input_path, size: tuple[int, int], reading: ReadOptions = ReadOptions()) -> np.ndarray:
@@ -287,7 +300,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
 
 def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: InferenceSettings = InferenceSettings(),
                   reading: ReadOptions = ReadOptions(), png: bool = True, slope: float | None = None,
-                  slope_map=None, on_frame=None) -> BatchReport:
+                  slope_map=None, on_frame=None, adapt: AdaptSettings | None = None, on_adapt=None) -> BatchReport:
     """Denoise many EXRs in one process with the model ``run``, applied with ``settings``: each of its variants
     is loaded and warmed up once.
 
@@ -301,9 +314,15 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     written before it are complete (each is written atomically) and are named in the message.
     ``on_frame(report)`` is called after each frame (progress). ``slope_map``: a painted λ map
     (``kpcn_keras.slope_map``) instead of ``slope``, for a run with a specialisation module, read for each
-    frame's size before any work.
+    frame's size before any work. ``adapt``: with a pair, the model first adapts to the frame's two halves
+    (:func:`adapt_to_halves`; ``on_adapt(step, loss, seconds)`` its progress), then denoises their mean.
     """
     startup = process_age()
+    if adapt is not None:
+        if reading.pair is None:
+            raise OptionError("adapt", "needs --pair: a second render of the frame with another seed (each of the "
+                              "two at half the samples)")
+        reading = dataclasses.replace(reading, halves=True)
     inputs, skipped = collect_inputs([inputs] if isinstance(inputs, (str, os.PathLike)) else inputs)
     _check_single_inputs(inputs, reference, reading)
     outputs = plan_outputs(inputs, output)
@@ -311,8 +330,9 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     headers = [reading.header(src) for src in inputs]
     if reading.pair is not None:  # a pair that is not a second render of the input (its size too), before a model loads
         pairs.check_header(inputs[0], reading.pair, reading.header)
-    # what each frame gives: a pair brings the variance its renders lack
-    given = [InputSet(h.inputs.split, True) if reading.pair is not None else h.inputs for h in headers]
+    # what each frame gives: a pair brings the variance its renders lack (halves to adapt on bring their own)
+    given = [InputSet(h.inputs.split, True) if reading.pair is not None and not reading.halves else h.inputs
+             for h in headers]
     _check_files(inputs, outputs, headers, serving.read_files(given), reference, reading, png=png,
                  slope_map=slope_map)
     slopes = [slope] * len(inputs)
@@ -323,8 +343,12 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     frames = []
     for src, out, frame_inputs, frame_slope in zip(inputs, outputs, given, slopes):
         denoiser = serving.denoiser(frame_inputs, warm_up=True, slope=slopes[0])
+        outcome = None
+        if adapt is not None:
+            denoiser, outcome = adapt_to_halves(denoiser, src, reading, adapt, on_adapt)
         try:
-            frames.append(denoise_frame(denoiser, src, out, reference, png=png, slope=frame_slope, reading=reading))
+            frames.append(dataclasses.replace(denoise_frame(denoiser, src, out, reference, png=png, slope=frame_slope,
+                                                            reading=reading), adaptation=outcome))
         except KpcnError as exc:
             if frames:
                 raise KpcnError(f"{exc} (stopped after {len(frames)} of {len(inputs)} frames; written: "
@@ -335,6 +359,78 @@ def denoise_files(inputs, run: Run, output=None, reference=None, *, settings: In
     return BatchReport(startup_s=startup, load_s=serving.load_s, warmup_s=serving.warmup_s, threads=torch_threads(),
                        precision=resolve(settings.precision), ensemble=settings.ensemble,
                        peak_memory_mb=peak_memory_mb(), frames=tuple(frames), skipped=tuple(map(str, skipped)))
+
+
+def adapt_to_halves(denoiser: Denoiser, input_path, reading: ReadOptions, settings: AdaptSettings, progress=None):
+    """``(denoiser, outcome)``: ``denoiser`` followed by a post-correction adapted to the frame ``input_path`` and
+    ``reading.pair``, two independent renders of it (``kpcn_keras.adapt``; :func:`read_halves`' checks first), or
+    ``denoiser`` itself where the guard refused it, and what the adaptation decided (``Outcome``)."""
+    from kpcn_keras.adapt import Adapter, Corrected
+
+    a, b = read_halves(input_path, reading)
+    adapter = Adapter(denoiser, [(a.layers, b.layers)], settings)
+    del a, b  # the adapter keeps its crops alone
+    outcome = adapter.run(progress)
+    return (denoiser if adapter.post is None else Corrected(denoiser, adapter.post)), outcome
+
+
+PAIR_SUFFIXES = ("-pair-a.exr", "-pair-b.exr")  # a folder's pairs: <scene>-<spp>spp-pair-a.exr and -pair-b.exr
+
+
+def shot_pairs(frames, second_renders=None) -> list[tuple[Path, Path]]:
+    """(A, B) of each frame of a shot: ``frames`` files with ``second_renders`` the second render of each, in order,
+    or folders of pairs named by :data:`PAIR_SUFFIXES` (``second_renders`` None). OptionError naming what does not
+    pair."""
+    frames = [Path(f) for f in frames]
+    if second_renders:
+        if len(second_renders) != len(frames):
+            raise OptionError("pairs", f"gives {len(second_renders)} second renders for {len(frames)} frames")
+        return list(zip(frames, map(Path, second_renders)))
+    out = []
+    for folder in frames:
+        if not folder.is_dir():
+            raise OptionError("pairs", f"{folder} is a file: give the second render of each frame with --pairs, "
+                              "or a folder of *-pair-a.exr and *-pair-b.exr")
+        for a in sorted(folder.glob(f"*{PAIR_SUFFIXES[0]}")):
+            b = a.with_name(a.name[: -len(PAIR_SUFFIXES[0])] + PAIR_SUFFIXES[1])
+            if not b.is_file():
+                raise OptionError("pairs", f"{a} has no second half {b.name} beside it")
+            out.append((a, b))
+        if not out:
+            raise OptionError("pairs", f"{folder} holds no *{PAIR_SUFFIXES[0]} renders")
+    return out
+
+
+def adapt_shot(pairs, model: Run, out, *, settings: InferenceSettings = InferenceSettings(),
+               adapt: AdaptSettings | None = None, reading: ReadOptions = ReadOptions(), progress=None):
+    """``(outcome, folder)``: ``model`` adapted once on the shot ``pairs`` ((A, B) files: two independent renders of
+    each frame, :func:`read_halves`' checks on each) at ``settings``' quality, written as the model folder ``out``
+    (``kpcn_keras.adapted_model.write_adapted``); an adapted ``model`` goes on from its post-correction. Every
+    frame must give the same inputs (one variant is adapted): OptionError naming the first that does not."""
+    from kpcn_keras.adapt import Adapter
+    from kpcn_keras.adapted_model import write_adapted
+
+    adapt = adapt or AdaptSettings()
+    serving = Serving(model, settings)
+    halves = [read_halves(a, dataclasses.replace(reading, pair=b)) for a, b in pairs]
+    given = halves[0][0].inputs
+    for (a, _), (frame, _) in zip(pairs, halves):
+        if frame.inputs != given:
+            raise OptionError("pairs", f"{a} gives {frame.inputs.name}, the first frame {given.name}: a shot's frames "
+                              "share one layout")
+    record = serving.record(given)
+    start = serving.adaptation()
+    if start is not None:
+        start.check(model, settings.quality, record.inputs.name)
+    adapter = Adapter(serving.plain(given), [(a.layers, b.layers) for a, b in halves], adapt,
+                      None if start is None else start.post)
+    del halves
+    outcome = adapter.run(progress)
+    source = start.record["source"] if start is not None else str(model.dir)
+    entry = {"source": source, "quality": settings.quality, "inputs": record.inputs.name,
+             "pairs": [[str(a), str(b)] for a, b in pairs], "settings": dataclasses.asdict(adapt),
+             "outcome": outcome.to_dict(), "corrects": adapter.post is not None}
+    return outcome, write_adapted(model, out, adapter.post, entry)
 
 
 def _check_single_inputs(inputs: list[Path], reference, reading: ReadOptions) -> None:

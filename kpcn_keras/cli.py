@@ -1,12 +1,12 @@
 """``kpcn``: the command line of the toolkit.
 
 Subcommands: render, references, render-cycles, cycles-validation, import-renders, shards, train, resample, denoise,
-evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality, aux-study: one ``cmd_*`` function each
-(:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user gave; an option left out takes
-the dataclass's default. The parser, which never retypes a default or a bound, is :mod:`kpcn_keras.parser`; the few
-options no dataclass holds (``--slope``, ``--port``, ...) are checked against their bounds before the command
-starts. The inference settings (``--tile``, ``--precision``, ``--ensemble``) travel as one ``InferenceSettings``,
-the model as one ``Run``, each made once here.
+adapt, evaluate, ship, figures, bench, compare, resample-study, inputs-study, quality, aux-study: one ``cmd_*``
+function each (:data:`COMMANDS`). Each fills its stage's config dataclass from the options the user gave; an option
+left out takes the dataclass's default. The parser, which never retypes a default or a bound, is
+:mod:`kpcn_keras.parser`; the few options no dataclass holds (``--slope``, ``--port``, ...) are checked against
+their bounds before the command starts. The inference settings (``--tile``, ``--precision``, ``--ensemble``) travel
+as one ``InferenceSettings``, the model as one ``Run``, each made once here.
 ``render``, ``references``, ``render-cycles``, ``cycles-validation``, ``import-renders``, ``shards``, ``bench render``
 and ``figures --set`` never import keras or torch.
 
@@ -29,6 +29,7 @@ from kpcn_keras.parser import (
     _command_line,
     _flags,
     _given,
+    adapt_settings,
     build_parser,
     inference_settings,
 )
@@ -203,13 +204,17 @@ def cmd_denoise(args) -> int:
               + f" ({report.layout} layout, {report.inputs}, model {report.model}; "
               f"{report.seconds * 1000:.0f} ms denoising, {report.frame_s * 1000:.0f} ms with files)")
 
-    settings = inference_settings(args)
+    settings, adapt = inference_settings(args), adapt_settings(args)
     reading = ReadOptions(layout=args.layout, pair=args.pair, albedo=args.albedo, normal=args.normal,
                           view_layer=args.view_layer)
-    batch = denoise_files(args.inputs, _model(args), args.output, args.reference, settings=settings, reading=reading,
-                          png=args.png, slope=getattr(args, "slope", None), slope_map=getattr(args, "slope_map", None),
-                          on_frame=frame)
+    with _AdaptBar(adapt, args.quiet) as bar:
+        batch = denoise_files(args.inputs, _model(args), args.output, args.reference, settings=settings,
+                              reading=reading, png=args.png, slope=getattr(args, "slope", None),
+                              slope_map=getattr(args, "slope_map", None), on_frame=frame, adapt=adapt, on_adapt=bar)
     frames = batch.frames
+    for report in frames:
+        if report.adaptation is not None:
+            print(report.adaptation.line())
     if batch.skipped:
         print(f"skipped {len(batch.skipped)} earlier outputs or temporaries: {', '.join(batch.skipped)}")
     startup = "?" if batch.startup_s is None else f"{batch.startup_s:.2f} s"
@@ -226,6 +231,49 @@ def cmd_denoise(args) -> int:
         print(f"{'':10s} " + " ".join(f"{m:>10s}" for m in report.metrics))
         for label, measured in (("input", report.input_metrics), ("denoised", report.metrics)):
             print(f"{label:10s} " + " ".join(f"{v:10.5f}" for v in measured.values()))
+    return 0
+
+
+class _AdaptBar:
+    """The progress of an adaptation (``AdaptSettings``: steps, or seconds), with the self-supervised loss; a
+    callable ``(step, loss, seconds)``; nothing where ``adapt`` is None or ``quiet``."""
+
+    def __init__(self, adapt, quiet: bool):
+        self.adapt, self.quiet, self.bar = adapt, quiet, None
+
+    def __enter__(self):
+        if self.adapt is not None and not self.quiet:
+            from tqdm import tqdm
+
+            steps = self.adapt.steps
+            self.bar = tqdm(total=steps if steps is not None else self.adapt.seconds, desc="adapting",
+                            unit="step" if steps is not None else "s", bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} "
+                            "{unit} [{elapsed}<{remaining}{postfix}]")
+        return self
+
+    def __call__(self, step: int, loss: float, seconds: float) -> None:
+        if self.bar is not None:
+            self.bar.n = step if self.adapt.steps is not None else min(seconds, self.adapt.seconds)
+            self.bar.set_postfix(step=step, loss=f"{loss:.4g}", refresh=False)
+            self.bar.refresh()
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def cmd_adapt(args) -> int:
+    from kpcn_keras.batch import ReadOptions, adapt_shot, shot_pairs
+
+    adapt = adapt_settings(args)
+    pairs = shot_pairs(args.frames, getattr(args, "pairs", None))
+    reading = ReadOptions(layout=args.layout, view_layer=args.view_layer)
+    with _AdaptBar(adapt, args.quiet) as bar:
+        outcome, out = adapt_shot(pairs, _model(args), args.out, settings=inference_settings(args), adapt=adapt,
+                                  reading=reading, progress=bar)
+    print(outcome.line())
+    print(f"wrote {out} ({len(pairs)} frame{'s' if len(pairs) > 1 else ''}; "
+          + ("denoise with --run " + str(out) if outcome.kept else "it serves as the model it came from") + ")")
     return 0
 
 
@@ -426,6 +474,7 @@ COMMANDS = {
     "train": cmd_train,
     "resample": cmd_resample,
     "denoise": cmd_denoise,
+    "adapt": cmd_adapt,
     "view": cmd_view,
     "evaluate": cmd_evaluate,
     "ship": cmd_ship,

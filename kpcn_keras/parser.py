@@ -17,25 +17,22 @@ import argparse
 import dataclasses
 
 from kpcn_keras.onnx_cli import export_options, runtime_option
+from kpcn_keras.options import csv as _csv
+from kpcn_keras.options import csv_floats as _csv_floats
+from kpcn_keras.options import csv_ints as _csv_ints
+from kpcn_keras.options import default as _default
+from kpcn_keras.options import defaults as _defaults
+from kpcn_keras.study_options import STUDY_BUILDERS
 from prep.bounds import BOUND, DISTINCT, check_distinct
 
 
-def _csv(text: str) -> tuple[str, ...]:
-    return tuple(t for t in (s.strip() for s in text.split(",")) if t)
+def _adapt_own() -> dict:
+    """kpcn denoise's adaptation options (dest -> bound), bounded as ``AdaptSettings``' fields are."""
+    from kpcn_keras.settings import AdaptSettings
+    from prep.bounds import bound_of
 
-
-def _csv_ints(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(t) for t in _csv(text))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-
-
-def _csv_floats(text: str) -> tuple[float, ...]:
-    try:
-        return tuple(float(t) for t in _csv(text))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    return {dest: bound_of(AdaptSettings, field) for dest, field in
+            (("adapt", "seconds"), ("adapt_steps", "steps"), ("adapt_seed", "seed"))}
 
 
 def _mode_run(text: str) -> tuple[str, str]:
@@ -131,13 +128,6 @@ def inference_settings(args):
     return InferenceSettings(**_given(args, InferenceSettings))
 
 
-def _default(cls, name: str) -> str:
-    """A dataclass field's default, for help texts."""
-    f = next(f for f in dataclasses.fields(cls) if f.name == name)
-    value = f.default_factory() if f.default is dataclasses.MISSING else f.default
-    return ",".join(map(str, value)) if isinstance(value, tuple) else str(value)
-
-
 def _run_option(parser: argparse.ArgumentParser, **kwargs) -> None:
     """``--run`` (the run folder), also spelled ``--run-dir``: launched by ``torchrun ... -m kpcn_keras.cli``,
     our arguments pass through torchrun's own parser first, which takes ``--run`` for an ambiguous
@@ -149,15 +139,6 @@ def _run_option(parser: argparse.ArgumentParser, **kwargs) -> None:
 def _part_option(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument("--part", help=f"write only part i of N of the {what} (1 <= i <= N; e.g. 1/4), the last part "
                         "to finish merging the record (default: RANK of WORLD_SIZE under torchrun, else all)")
-
-
-def _experiment_folders(p: argparse.ArgumentParser, d, runs: str) -> None:
-    """--set, --shards, --runs and --out of a command that trains runs of its own (compare, resample-study);
-    ``d(name)`` is the help text of a field's default."""
-    p.add_argument("--set", dest="set_name", help=f"shard set {d('set_name')}")
-    p.add_argument("--shards", dest="shards_root", help=f"folder holding shard sets {d('shards_root')}")
-    p.add_argument("--runs", dest="runs_root", help=f"folder of {runs}, reused when run again {d('runs_root')}")
-    p.add_argument("--out", dest="out_dir", help=f"report folder {d('out_dir')}")
 
 
 def _flags(parser: argparse.ArgumentParser, command: str) -> dict[str, str]:
@@ -181,11 +162,6 @@ def command_line(command: str, values: dict) -> list[str]:
         if value is not None:
             args += [flags[dest], str(value)]
     return args
-
-
-def _defaults(cls):
-    """``d(name)``: the help text of the default of field ``name`` of the dataclass ``cls``."""
-    return lambda name: f"(default: {_default(cls, name)})"
 
 
 def _add_subcommand(p: argparse.ArgumentParser, sub, name: str, configs=(), own=None, own_distinct=(), **kw):
@@ -485,9 +461,9 @@ def _resample_options(add) -> None:
 def _denoise_options(add) -> None:
     """The options of ``kpcn denoise``."""
     from kpcn_keras.config import DEFAULT_TILE, SLOPE
-    from kpcn_keras.settings import InferenceSettings
+    from kpcn_keras.settings import AdaptSettings, InferenceSettings
 
-    n = add("denoise", (InferenceSettings,), {"slope": SLOPE}, help="denoise EXRs (kpcn, Blender "
+    n = add("denoise", (InferenceSettings,), {"slope": SLOPE, **_adapt_own()}, help="denoise EXRs (kpcn, Blender "
             "Cycles, Mitsuba 3, PBRT-v4 or plain colour): files, or every render in a folder, in one process; "
             "or, with OIDN's options (kpcn denoise --hdr color.pfm --alb albedo.pfm --nrm normal.pfm -o out.pfm), "
             "as oidnDenoise (kpcn denoise --hdr x -h lists what it takes)")
@@ -514,11 +490,58 @@ def _denoise_options(add) -> None:
                    "output: input | denoised (| reference), side by side")
     _layout_option(n)
     n.add_argument("--pair", default=None, help="a second render of a single input with another seed and the same "
-                   "spp: the two are denoised as one frame, its variance from their difference")
+                   "spp: the two are denoised as one frame, its variance from their difference (with --adapt: the "
+                   "two halves the model adapts on, then denoises the mean of)")
+    n.add_argument("--adapt", type=float, help="with --pair: seconds at most of adapting a post-correction to the "
+                   "frame's two halves, each the other's target (docs/adapt.md; default: none)")
+    n.add_argument("--adapt-steps", type=int, help="with --pair: adapt for exactly this many steps instead (the same "
+                   "seed and steps give the same result on any machine)")
+    n.add_argument("--adapt-seed", type=int, help=f"the adaptation's seed {_defaults(AdaptSettings)('seed')}")
     n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
     n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
     n.add_argument("--clean-aux", action="store_true", help="the frame's albedo, normal and depth are clean "
                    "already (OIDN's cleanAux): a model trained on prefiltered auxiliaries is given them as they are")
+
+
+def adapt_settings(args):
+    """The ``kpcn_keras.settings.AdaptSettings`` of the options given: ``kpcn adapt``'s own, or ``kpcn denoise``'s
+    --adapt, --adapt-steps and --adapt-seed (None where neither --adapt nor --adapt-steps is given)."""
+    from kpcn_keras.settings import AdaptSettings
+
+    if args.command == "adapt":
+        return AdaptSettings(**_given(args, AdaptSettings))
+    if "adapt" not in args and "adapt_steps" not in args:
+        return None
+    given = {"seconds": getattr(args, "adapt", None), "steps": getattr(args, "adapt_steps", None),
+             "seed": getattr(args, "adapt_seed", None)}
+    return AdaptSettings(**{k: v for k, v in given.items() if v is not None})
+
+
+def _adapt_options(add) -> None:
+    """The options of ``kpcn adapt``."""
+    from kpcn_keras.config import DEFAULT_MODEL
+    from kpcn_keras.settings import AdaptSettings, InferenceSettings
+
+    a = add("adapt", (AdaptSettings, InferenceSettings), help="adapt a model to a shot: a post-correction trained on "
+            "frames given as two independent renders each (no reference), written as a model folder that kpcn "
+            "denoise --run, evaluate, view and kpcn.denoise take (docs/adapt.md)")
+    d = _defaults(AdaptSettings)
+    a.add_argument("frames", nargs="+", help="the first render of each frame (files), or folders of pairs named "
+                   "<scene>-<spp>spp-pair-a.exr and -pair-b.exr")
+    a.add_argument("--pairs", nargs="+", help="the second render of each frame given as a file, in order")
+    a.add_argument("--out", required=True, help="the adapted model folder to write (a new folder)")
+    _run_option(a, help=f"the model to adapt (default: as kpcn denoise, models/{DEFAULT_MODEL})")
+    _quality_option(a)
+    _layout_option(a)
+    a.add_argument("--seconds", type=float, help=f"seconds of adapting at most {d('seconds')}")
+    a.add_argument("--steps", type=int, help="exactly this many steps instead (reproducible on any machine)")
+    a.add_argument("--seed", type=int, help=d("seed"))
+    a.add_argument("--learning-rate", type=float, help=d("learning_rate"))
+    a.add_argument("--crop", type=int, help=f"side of the training crops {d('crop')}")
+    a.add_argument("--crops", type=int, help=f"crops per render at most (bounds memory) {d('crops')}")
+    a.add_argument("--block", type=int, help=f"side of the held-out blocks {d('block')}")
+    a.add_argument("--check-every", type=int, help=f"steps between held-out checks {d('check_every')}")
+    a.add_argument("--confidence", type=float, help=f"standard errors the held-out gain must clear {d('confidence')}")
 
 
 def _view_options(add) -> None:
@@ -641,141 +664,6 @@ def _figures_options(add) -> None:
     f.add_argument("--tile", type=int, help=f"tile size in pixels (default: {DEFAULT_TILE})")
 
 
-def _bench_options(add) -> None:
-    """The options of ``kpcn bench`` and of ``kpcn bench render``."""
-    from kpcn_keras.studies.config import BENCH_PRESETS, BenchConfig
-    from kpcn_keras.studies.render_bench import RenderBenchConfig
-
-    b = add("bench", (BenchConfig, RenderBenchConfig), help="what accuracy costs in time: "
-               "reports/accuracy_time.{md,json,png} (or, with 'render', the path tracer's samples per second: "
-               "reports/render.{md,json})")
-    d = _defaults(BenchConfig)
-    b.add_argument("what", nargs="?", choices=["accuracy", "render"], default="accuracy",
-                   help="accuracy (the default): error against time per frame of raw Monte Carlo, our denoisers "
-                   "and the baselines, equal-error spp, training cost, stage costs; render: samples per second "
-                   "per scene family, specialised against all-effects kernels")
-    _experiment_folders(b, d, "the bench's trained runs")
-    b.add_argument("--full", action="store_true", help="the full ladder (every spp, five times the training); "
-                   "default: the reduced one, under 45 minutes on a 2-core CPU")
-    b.add_argument("--raw-spp", type=_csv_ints, help="raw Monte Carlo spp, comma-separated (default: the ladder's)")
-    b.add_argument("--input-spp", type=_csv_ints, help="spp the denoisers get, comma-separated (default: the ladder's)")
-    b.add_argument("--budget", type=float, help="training seconds of every configuration (default: the ladder's)")
-    b.add_argument("--budget-fractions", type=_csv_floats, help="the presets' training-cost curve, fractions of "
-                   "--budget (default: the ladder's)")
-    b.add_argument("--configurations", type=_csv, help="configurations of kpcn compare to train and measure "
-                   "(default: the ladder's)")
-    b.add_argument("--presets", type=_csv, help="presets of the training-cost curve (default: "
-                   f"{','.join(BENCH_PRESETS)})")
-    b.add_argument("--large-frame", type=_csv_ints, help="WIDTH,HEIGHT of the frame timed against OIDN "
-                   f"{d('large_frame')}")
-    b.add_argument("--repeats", type=int, help=f"timed calls per stage cost {d('repeats')}")
-    b.add_argument("--seed", type=int, help=d("seed"))
-    d = _defaults(RenderBenchConfig)
-    b.add_argument("--families", type=_csv, help=f"bench render: comma-separated scene families {d('families')}")
-    b.add_argument("--width", type=int, help=f"bench render: {d('width')}")
-    b.add_argument("--height", type=int, help=f"bench render: {d('height')}")
-    b.add_argument("--spp", type=int, help=f"bench render: {d('spp')}")
-
-
-def _compare_options(add) -> None:
-    """The options of ``kpcn compare``."""
-    from kpcn_keras.studies.config import CompareConfig
-
-    c = add("compare", (CompareConfig,), help="train every configuration for the same seconds, then compare accuracy "
-               "and cost on held-out frames; writes reports/compare.{md,json,png}")
-    d = _defaults(CompareConfig)
-    _experiment_folders(c, d, "the comparison's runs")
-    c.add_argument("--budget", type=float, help=f"seconds of training per configuration {d('budget')}")
-    c.add_argument("--configurations", type=_csv, help=f"comma-separated {d('configurations')}")
-    c.add_argument("--frame", type=int, help=f"side of the crop whose inference is timed {d('frame')}")
-    c.add_argument("--repeats", type=int, help=f"timed calls per row, the median is reported {d('repeats')}")
-    c.add_argument("--seed", type=int, help=d("seed"))
-    c.add_argument("--report-only", action="store_true", help="write compare.md and compare.png again from the "
-                   "--out folder's compare.json, training and measuring nothing")
-
-
-def _resample_study_options(add) -> None:
-    """The options of ``kpcn resample-study``."""
-    from kpcn_keras.config import ResampleConfig
-    from kpcn_keras.studies.config import ResampleStudyConfig
-
-    y = add("resample-study", (ResampleStudyConfig, ResampleConfig), help="error rounds against variance sampling "
-               "alone, at equal steps and equal wall time, over several seeds; writes reports/resample.{md,json,png}")
-    d = _defaults(ResampleStudyConfig)
-    _experiment_folders(y, d, "the study's runs and shard copies")
-    y.add_argument("--seeds", type=_csv_ints, help=f"training seeds, comma-separated {d('seeds')}")
-    y.add_argument("--arms", type=_csv, help=f"comma-separated {d('arms')}")
-    y.add_argument("--base-steps", type=int, help=f"steps per network of each seed's base run {d('base_steps')}")
-    y.add_argument("--rounds", type=int, help=d("rounds"))
-    y.add_argument("--round-steps", type=int, help=f"steps per network per round {d('round_steps')}")
-    y.add_argument("--patches-per-image", type=int, help="new patches per training input per round "
-                   f"{d('patches_per_image')}")
-    y.add_argument("--error-weight", type=float, help="share of the error PDF in the error arm's mix (default: "
-                   f"{_default(ResampleConfig, 'error_weight')})")
-    y.add_argument("--metric", help=f"smape or relmse (default: {_default(ResampleConfig, 'metric')})")
-
-
-def _inputs_study_options(add) -> None:
-    """The options of ``kpcn inputs-study``."""
-    from kpcn_keras.studies.config import InputsStudyConfig
-
-    s = add("inputs-study", (InputsStudyConfig,), help="a network per input set for the same seconds, measured on "
-            "held-out frames and on other renderers' frames beside OIDN and Blender; writes "
-            "reports/inputs.{md,json,png}")
-    d = _defaults(InputsStudyConfig)
-    _experiment_folders(s, d, "the study's runs")
-    s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
-    s.add_argument("--frames", nargs="+", help="other renderers' frames: files or folders, each noisy frame with its "
-                   f"reference beside it {d('frames')}")
-    s.add_argument("--pairs", nargs="+", help="folders of two renders of a frame, <scene>-<spp>spp.exr and "
-                   "<scene>-<spp>spp-b.exr, with the scene's reference (python -m "
-                   "kpcn_keras.studies.render_blender_pairs; default: none)")
-    s.add_argument("--budget", type=float, help=f"seconds of training per input set {d('budget')}")
-    s.add_argument("--preset", help=f"training preset of every run {d('preset')}")
-    s.add_argument("--seed", type=int, help=d("seed"))
-
-
-def _quality_options(add) -> None:
-    """The options of ``kpcn quality``."""
-    from kpcn_keras.studies.config import QualityConfig
-
-    q = add("quality", (QualityConfig,), help="each lever for beating OIDN, alone and combined, for the same "
-            "seconds, measured on held-out and validation frames beside OIDN and Blender; writes "
-            "reports/quality.{md,json,png}")
-    d = _defaults(QualityConfig)
-    _experiment_folders(q, d, "the study's runs")
-    q.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
-    q.add_argument("--levers", type=_csv, help=f"comma-separated {d('levers')}")
-    q.add_argument("--frames", nargs="+", help="validation frames: files or folders, each noisy frame with its "
-                   f"reference beside it {d('frames')}")
-    q.add_argument("--budget", type=float, help=f"seconds of training per lever, shared by its networks {d('budget')}")
-    q.add_argument("--panel-spp", type=int, help=f"input spp of the validation frames in the panels {d('panel_spp')}")
-    q.add_argument("--seed", type=int, help=d("seed"))
-    q.add_argument("--ensemble", type=int, help="denoise every frame as a self-ensemble of this many members (as "
-                   f"kpcn denoise --ensemble); the trained runs serve every value {d('ensemble')}")
-    q.add_argument("--model", help="a finished run or shipped model measured beside the levers on the same frames "
-                   "(default: the one kpcn denoise uses without --run, where there is one)")
-    mode = q.add_mutually_exclusive_group()
-    mode.add_argument("--report-only", action="store_true", help="write quality.md and quality.png again from the "
-                      "--out folder's quality.json (and the frames and runs it names), training nothing")
-    mode.add_argument("--measure-model", action="store_true", help="measure the model (--model, else the shipped "
-                      "one) on the frames of the --out folder's quality.json, add it to the record and write the "
-                      "reports again, training nothing")
-
-
-def _aux_study_options(add) -> None:
-    """The options of ``kpcn aux-study``."""
-    a = add("aux-study", help="the shipped model (or --model) on Cycles frames with its auxiliary inputs raw, "
-            "from the scene's cleanest render, OIDN-prefiltered and NLM-prefiltered, beside Blender's own "
-            "denoised frame; writes reports/aux.{md,json,png}")
-    a.add_argument("frames", nargs="*", default=["data/cycles/validation"], help="folders (or files) of Cycles "
-                   "frames with their references (default: data/cycles/validation)")
-    a.add_argument("--model", default="models/default", help="a run or model folder (default: models/default)")
-    a.add_argument("--out", default="reports", help="report folder (default: reports)")
-    a.add_argument("--blender-record", default="reports/blender.json", help="the Blender report's record to "
-                   "check the raw variant against (default: reports/blender.json; none there: no check)")
-
-
 # the subcommands, in the order of ``kpcn --help``: name -> the builder of its options
 BUILDERS = {
     "render": _render_options,
@@ -787,13 +675,11 @@ BUILDERS = {
     "train": _train_options,
     "resample": _resample_options,
     "denoise": _denoise_options,
+    "adapt": _adapt_options,
     "view": _view_options,
     "evaluate": _evaluate_options,
     "ship": _ship_options,
     "export": export_options,
     "figures": _figures_options,
-    "bench": _bench_options,
-    "compare": _compare_options,
-    "resample-study": _resample_study_options, "inputs-study": _inputs_study_options,
-    "quality": _quality_options, "aux-study": _aux_study_options,
+    **STUDY_BUILDERS,
 }

@@ -7,7 +7,9 @@ model lacks the mode. A frame is denoised by that run's variant trained for what
 frame has (``Run.serving``: the run itself or one of its ``inputs/`` variants); each variant is found, its
 record read and its networks loaded (``Denoiser.from_run``) once, at its first frame, and kept for the next.
 ``kpcn denoise`` (``batch.denoise_files``), ``kpcn evaluate``, ``kpcn view`` and ``kpcn.denoise`` each hold one,
-so a frame is denoised by the same networks, tiles and arithmetic whichever way it came in.
+so a frame is denoised by the same networks, tiles and arithmetic whichever way it came in. A model adapted on a
+shot (``kpcn adapt``: ``kpcn_keras.adapted_model``) serves the frames it was adapted for through its post-correction
+(``kpcn_keras.adapt.Corrected``) and refuses others in one line.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ class Serving:
         self._records: dict[Path, RunRecord] = {}
         self._denoisers: dict[Path, Denoiser] = {}
         self.load_s = self.warmup_s = 0.0
+        self._adaptation = _UNREAD
 
     def variant(self, inputs: InputSet) -> Run:
         """The run whose networks denoise a frame that has ``inputs`` (``Run.serving``, found once); KpcnError
@@ -59,10 +62,29 @@ class Serving:
         variants = {self.variant(inputs).dir: inputs for inputs in given}
         return [item for inputs in variants.values() for item in self.variant(inputs).read_files(self.record(inputs))]
 
+    def adaptation(self):
+        """The model's post-correction (``kpcn_keras.adapted_model.Adaptation``), read once; None where it has none."""
+        if self._adaptation is _UNREAD:
+            from kpcn_keras.adapted_model import load_adaptation
+
+            self._adaptation = load_adaptation(self.model)
+        return self._adaptation
+
     def denoiser(self, inputs: InputSet, *, warm_up: bool = False, slope=None) -> Denoiser:
         """The denoiser of :meth:`variant` (``inputs``) with this serving's settings, loaded at its first call
         and, with ``warm_up``, warmed up then at ``slope`` (``Denoiser.warm_up``), so that the frames' timings
-        exclude both."""
+        exclude both. For an adapted model, that denoiser followed by its post-correction (``adapt.Corrected``),
+        called as a denoiser is; KpcnError where the frame is not one it was adapted for."""
+        adaptation = self.adaptation()
+        if adaptation is not None:
+            from kpcn_keras.adapt import Corrected
+
+            adaptation.check(self.model, self.settings.quality, self.record(inputs).inputs.name)
+            return Corrected(self.plain(inputs, warm_up=warm_up, slope=slope), adaptation.post)
+        return self.plain(inputs, warm_up=warm_up, slope=slope)
+
+    def plain(self, inputs: InputSet, *, warm_up: bool = False, slope=None) -> Denoiser:
+        """:meth:`denoiser` without an adapted model's post-correction: the networks alone."""
         variant = self.variant(inputs)
         if variant.dir not in self._denoisers:
             begin = time.perf_counter()
@@ -75,5 +97,7 @@ class Serving:
             self._denoisers[variant.dir] = denoiser
         return self._denoisers[variant.dir]
 
+
+_UNREAD = object()  # an adaptation not read yet (None: read, and the model has none)
 
 __all__ = ["Serving"]

@@ -28,7 +28,7 @@ from kpcn_keras.config import (
     RUNTIMES,
     TILE,
 )
-from prep.bounds import bounded, check_fields
+from prep.bounds import SEED, Bound, bounded, check_fields
 from prep.errors import OptionError
 
 
@@ -79,4 +79,35 @@ def check_runtime(runtime: str) -> str:
     return runtime
 
 
-__all__ = ["InferenceSettings", "check_precision", "check_quality", "check_runtime"]
+@dataclass(frozen=True)
+class AdaptSettings:
+    """How a model adapts to a frame given as two independent renders (``kpcn_keras.adapt``; ``--adapt``):
+    ``seconds`` of training at most on this machine (0: none), or exactly ``steps`` steps where given (what makes
+    a run reproducible: the same seed and steps give the same weights, whatever the machine's speed); ``seed``
+    draws the crops, their order, the held-out blocks and the post-correction's first weights; ``learning_rate``
+    of Adam; ``crop`` the side of the training crops and ``crops`` the most of them per render (what bounds
+    memory at any frame size);
+    ``block`` the side of the held-out blocks, one in :data:`kpcn_keras.adapt.HELD_OUT_EVERY` of them, which
+    decide when to stop and whether to keep the adapted network (``check_every`` steps apart, the gain kept only
+    where it clears ``confidence`` standard errors)."""
+
+    seconds: float = bounded(60.0, Bound(0.0, 86400.0, integer=False))
+    steps: int | None = bounded(None, Bound(1, 10**6))
+    seed: int = bounded(0, SEED)
+    learning_rate: float = bounded(1e-3, Bound(0.0, 1.0, integer=False, low_open=True))
+    crop: int = bounded(128, Bound(16, 1024))
+    crops: int = bounded(16, Bound(1, 1024))
+    block: int = bounded(16, Bound(2, 256))
+    check_every: int = bounded(10, Bound(1, 10**4))
+    confidence: float = bounded(2.0, Bound(0.0, 10.0, integer=False))
+
+    def __post_init__(self):
+        check_fields(self)
+
+    @property
+    def active(self) -> bool:
+        """Whether any training is asked for."""
+        return self.steps is not None or self.seconds > 0
+
+
+__all__ = ["AdaptSettings", "InferenceSettings", "check_precision", "check_quality", "check_runtime"]

@@ -107,6 +107,17 @@ def pair_variance(a: np.ndarray, b: np.ndarray, radius: int = PAIR_SMOOTHING) ->
     return to_float32(box_mean(v, radius) if radius else v)
 
 
+def mean_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One frame from two independent renders of it, each keeping its own variance: each layer the mean of the two,
+    and each variance layer the variance of that mean, (var_a + var_b) / 4 (where both have it). What a model that
+    adapted on the two halves apart denoises (``kpcn_keras.adapt``): no variance from their difference."""
+    out = {}
+    for k in (k for k in a if k in b):
+        total = np.asarray(a[k], np.float64) + b[k]
+        out[k] = to_float32(total / 4.0 if k in VARIANCE_LAYERS else total / 2.0)
+    return out
+
+
 def pair_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """One frame from two renders of it with different seeds: each layer the mean of the two, and the
     variance layers from their difference (:func:`pair_variance`). Without a split (``diffuse`` in neither),

@@ -330,7 +330,7 @@ def test_shards_record_their_command_without_the_options_that_change_no_byte():
 
 # --- the bounds of every numeric option, and no repeats in a list ---
 
-_NUMERIC = ("int", "float", "_csv_ints", "_csv_floats")
+_NUMERIC = ("int", "float", "csv_ints", "csv_floats")
 _STATED = re.compile(r"(an odd integer|an integer|a number) in ([\[(])([^,]+), ([^\])]+)([\])])")
 # the lists whose entries have a place (y,x; width,height; low,high; a dilation per convolution): a repeat means
 # something there
@@ -339,7 +339,8 @@ _POSITIONAL = {"pixel", "large_frame", "slope_range", "speed_frame", "dilations"
 _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-run"], "figures": ["--run", "no-run"],
           "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"],
           "view": ["in.exr", "--run", "no-run"], "render-cycles": ["out"], "cycles-validation": ["out"],
-          "import-renders": ["src", "--set", "s"], "export": ["no-run", "--onnx", "out"]}
+          "import-renders": ["src", "--set", "s"], "export": ["no-run", "--onnx", "out"],
+          "adapt": ["in.exr", "--out", "m", "--run", "no-run"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
               ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"],
               ("train", "compositor_kernel"): ["--compositor", "kernel"],
@@ -431,7 +432,7 @@ def test_train_compositor_options_reach_its_config_and_are_refused_in_one_line(t
 
 def test_every_list_option_whose_repeats_mean_nothing_refuses_one_naming_it(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    lists = [(c, a) for c, a in _options() if getattr(a.type, "__name__", None) in ("_csv", "_csv_ints", "_csv_floats")]
+    lists = [(c, a) for c, a in _options() if getattr(a.type, "__name__", None) in ("csv", "csv_ints", "csv_floats")]
     assert {a.dest for _, a in lists} >= {"families", "input_spp", "branches", "configurations", "arms", "seeds",
                                           "val_scenes", "presets", "raw_spp", "budget_fractions", "slopes"}
     for command, action in lists:

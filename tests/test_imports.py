@@ -15,7 +15,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("prep", "kpcn_keras", "kpcn")
 DEEP_LEARNING = ("keras", "torch")
-COMMAND_LINE = ("kpcn_keras.cli", "kpcn_keras.parser", "kpcn_keras.helpdoc")  # the one way in to the studies
+# the one way in to the studies
+COMMAND_LINE = ("kpcn_keras.cli", "kpcn_keras.parser", "kpcn_keras.options", "kpcn_keras.study_options",
+                "kpcn_keras.helpdoc")
 STUDIES = ("kpcn_keras.studies",)  # the lab: every study and cost probe, and nothing else
 FLOORS = (("prep",), ("kpcn_keras", "kpcn"), (*STUDIES, *COMMAND_LINE))  # the ground first
 

@@ -1,0 +1,360 @@
+"""Self-supervised adaptation: a model corrected on the user's own frames, given as two independent renders each.
+
+Two renders A and B of one frame with different seeds are independent, unbiased estimates of the same image c.
+Noise2Noise (Lehtinen et al. 2018) trains a network to map one to the other: where the loss's minimiser under a
+noisy target is the target's mean, training on noisy targets is training on clean ones, in expectation. Back et
+al. (*Self-Supervised Post-Correction for Monte Carlo Denoising*, SIGGRAPH 2022) make the point that matters here:
+the test frame itself, where it is unlike the training data, is the data to correct a supervised denoiser on, with
+a small post-correction network trained on it alone. kpcn does that: a post-correction network (:func:`build_post`)
+trained on the frame's two halves, A -> B and B -> A, then applied to the model's denoise of their mean, which has
+all the samples.
+
+What is trained, and why not the model's own layers: fine-tuning the kernel head of the shipped network (its last
+1x1 convolution, the trunk frozen and run once) on the halves made the validation frames worse at every step
+count and learning rate tried, its held-out loss rising with the error (docs/adapt.md). The post-correction
+instead blends, per pixel, the model's denoised colour with box blurs of it (radii :data:`RADII`: what the
+low-frequency residue and a volume left noisy need), weights from a softmax, so its output is a convex combination
+of the model's own pixels: it can smooth more where the model kept noise, never add a firefly or extrapolate. Its
+guide is the candidates' log colour, the noisy colour and the albedo, normal and depth; it starts as the model's
+output (all weight on it but e^-:data:`STAY_BIAS`), and it holds about 3,000 weights, few enough for a frame's
+noisy targets to fit in seconds without fitting their noise.
+
+The loss (:func:`n2n_loss`) is relMSE with a stop-gradient denominator: L = mean(w (f - y)^2), w = 1 / (sg(f)^2
++ RELMSE_EPS), f the corrected linear colour of one half, y the other half's noisy colour. The weight is the
+relMSE users are judged by (``prep.metrics``), with f for the unknown reference, and it is a function of the input
+half alone, so independent of y: the gradient 2 w (f - y) df/dθ is linear in y, and its expectation over y is the
+gradient with the clean target c (``tests/test_adapt.py`` checks it against a statistical bound). A weight or
+tone map of the target itself would not be: E[(f - y)^2 / (y^2 + ε)] is minimised by E[y / (y^2 + ε)] / E[1 /
+(y^2 + ε)], not by c; Tinits and Mann (2025) bound which nonlinearities of the target stay nearly unbiased, and
+a linear target needs none of their bound.
+
+Each half is given to the model as it is, alone: its own layers and the variance its renderer wrote (or none),
+never a variance from the pair's difference: (A - B)^2 tells the network about B's noise, and the minimiser
+becomes E[B | A, |A - B|], which is not c. So the model's variant is the one for what a half has
+(``Serving.variant``), and the mean frame's variance layers (where the halves have them) those of a mean of two
+(``prep.inputs.mean_layers``).
+
+The guard: blocks of ``block`` pixels, one in :data:`HELD_OUT_EVERY`, on the same pixels in both directions, never
+enter the loss. Every ``check_every`` steps their loss (weights frozen at the unadapted output, so two networks
+compare on one scale; its expectation is the error against c plus the target's variance, the same for both)
+decides: the best network so far is kept, and it replaces the identity only where its gain clears ``confidence``
+standard errors of the per-block differences. :class:`Outcome` says what was decided and why. With a seed and
+``steps`` the adapted weights are the same from run to run; with ``seconds`` the steps depend on the machine.
+
+Memory: training holds, per crop (at most ``crops`` of ``crop`` pixels a side per render), the guide and the
+candidates of its window; applying holds the same for one tile at a time (:data:`MARGIN` around it), beyond the
+frame and its denoised output.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import keras
+import numpy as np
+
+from kpcn_keras.settings import AdaptSettings
+from prep import features
+from prep.errors import KpcnError
+from prep.inputs import box_mean
+from prep.metrics import RELMSE_EPS
+
+RADII = (2, 5, 12)  # box blur radii of the candidates besides the model's own output
+WIDTH = 16  # filters of the post-correction's two 3x3 convolutions
+STAY_BIAS = 8.0  # the starting logit of the model's own output (the others 0): all but 0.1% of the weight
+MARGIN = 2 + max(RADII)  # what a pixel's correction reads around it: the convolutions' reach, then the blurs'
+HELD_OUT_EVERY = 4  # one block in this many is held out (the guard's pixels)
+OUTPUTS = ("default", "diffuse", "specular")  # the denoised layers corrected, each with the same weights
+GUIDE_CHANNELS = 3 * (1 + len(RADII)) + 3 + 3 + 3 + 1
+
+
+def n2n_loss(f, y, mask=None):
+    """The adaptation loss of corrected colour ``f`` against the noisy target ``y`` (linear, any shape, backend
+    tensors): mean of (f - y)^2 / (sg(f)^2 + RELMSE_EPS) over the elements of ``mask`` (broadcast to ``f``; all
+    where None). Its expected gradient over an unbiased noisy target is its gradient with the clean target (module
+    docstring)."""
+    ops = keras.ops
+    err = (f - y) ** 2 / (ops.stop_gradient(f) ** 2 + RELMSE_EPS)
+    if mask is None:
+        return ops.mean(err)
+    mask = ops.broadcast_to(ops.cast(mask, err.dtype), ops.shape(err))
+    return ops.sum(err * mask) / ops.maximum(ops.sum(mask), 1.0)
+
+
+def build_post(seed: int = 0) -> keras.Model:
+    """The post-correction network: guide (None, None, :data:`GUIDE_CHANNELS`) -> logits of the candidates
+    (None, None, 1 + len(RADII)), two 3x3 convolutions of :data:`WIDTH` then a zero-initialised 1x1 whose bias
+    favours the model's own output (:data:`STAY_BIAS`)."""
+    guide = keras.Input((None, None, GUIDE_CHANNELS), name="guide")
+    x = guide
+    for i in range(2):
+        x = keras.layers.Conv2D(WIDTH, 3, padding="same", activation="relu",
+                                kernel_initializer=keras.initializers.HeNormal(seed=seed + i), name=f"post_conv{i}")(x)
+    bias = np.zeros(1 + len(RADII), np.float32)
+    bias[0] = STAY_BIAS
+    logits = keras.layers.Conv2D(1 + len(RADII), 1, kernel_initializer="zeros",
+                                 bias_initializer=keras.initializers.Constant(bias), name="post_logits")(x)
+    return keras.Model(guide, logits, name="post_correction")
+
+
+def _candidates(colour: np.ndarray) -> np.ndarray:
+    """(K, h, w, 3) float32: ``colour`` (linear) and its box blurs of :data:`RADII`, each cut at the window's border."""
+    c = np.asarray(colour, np.float64)
+    blurs = [np.stack([box_mean(c[..., i], r) for i in range(3)], -1) for r in RADII]
+    return np.stack([c, *blurs]).astype(np.float32)
+
+
+def _guide(candidates: np.ndarray, layers: dict, window, scale: float) -> np.ndarray:
+    """(h, w, GUIDE_CHANNELS) float32 guide of ``window`` (y0, y1, x0, x1) of the frame ``layers``: the candidates'
+    log colour, the noisy log colour, the albedo, the normal and the depth over the frame's depth ``scale``."""
+    ya, yb, xa, xb = window
+    cut = np.s_[ya:yb, xa:xb]
+    parts = [np.log1p(np.maximum(c, 0.0)) for c in candidates]
+    parts += [np.log1p(np.maximum(layers["default"][cut], 0.0)), np.clip(layers["albedo"][cut], 0.0, 1.0),
+              layers["normal"][cut], (layers["depth"][cut] / scale)[..., None]]
+    return np.concatenate(parts, -1).astype(np.float32)
+
+
+@dataclass
+class _Window:
+    """One window of a frame as the post-correction reads it: its ``guide``, the ``candidates`` of each denoised
+    layer (backend tensors), and ``kept``, the slices of its pixels that are the tile's."""
+
+    guide: object
+    candidates: dict
+    kept: tuple
+
+
+def _window(denoised: dict, layers: dict, tile, shape, scale: float, names=OUTPUTS) -> _Window:
+    """:class:`_Window` of ``tile`` (y0, y1, x0, x1) in a frame of ``shape``: grown by :data:`MARGIN`, cut at the
+    border."""
+    h, w = shape
+    y0, y1, x0, x1 = tile
+    ya, yb, xa, xb = max(y0 - MARGIN, 0), min(y1 + MARGIN, h), max(x0 - MARGIN, 0), min(x1 + MARGIN, w)
+    cands = {name: _candidates(denoised[name][ya:yb, xa:xb]) for name in names if name in denoised}
+    guide = _guide(cands["default"], layers, (ya, yb, xa, xb), scale)
+    tensor = keras.ops.convert_to_tensor
+    return _Window(guide=tensor(guide[None]), candidates={k: tensor(v) for k, v in cands.items()},
+                   kept=np.s_[y0 - ya : y1 - ya, x0 - xa : x1 - xa])
+
+
+def _blend(post: keras.Model, window: _Window, names=("default",)) -> dict:
+    """The corrected layers ``names`` of ``window``'s tile (backend tensors (h, w, 3)): each candidate weighted by
+    the softmax of the post-correction's logits."""
+    weights = keras.ops.softmax(post(window.guide)[0], axis=-1)[window.kept]  # (h, w, K)
+    weights = keras.ops.transpose(weights, (2, 0, 1))[..., None]  # (K, h, w, 1)
+    return {name: keras.ops.sum(window.candidates[name][(slice(None), *window.kept)] * weights, axis=0)
+            for name in names}
+
+
+def correct(post: keras.Model, denoised: dict, layers: dict, tile_size: int) -> dict:
+    """``denoised`` (a model's output of the frame ``layers``: linear ``default`` and, where it has them,
+    ``diffuse`` and ``specular``) corrected by ``post``, tile by tile (``tile_size``): each layer blended with the
+    same weights, so the corrected diffuse and specular still sum to the corrected colour."""
+    import torch
+
+    h, w = layers["depth"].shape
+    scale = features.depth_scale(layers["depth"])
+    out = {name: np.empty_like(denoised[name]) for name in OUTPUTS if name in denoised}
+    with torch.no_grad():
+        for y0 in range(0, h, tile_size):
+            for x0 in range(0, w, tile_size):
+                tile = (y0, min(y0 + tile_size, h), x0, min(x0 + tile_size, w))
+                blended = _blend(post, _window(denoised, layers, tile, (h, w), scale), tuple(out))
+                for name, value in blended.items():
+                    out[name][tile[0] : tile[1], tile[2] : tile[3]] = keras.ops.convert_to_numpy(value)
+    return out
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What an adaptation did: ``kept`` (the post-correction applies), ``steps`` run in ``seconds``, the held-out
+    loss of the model's output (``initial``) and of the best checkpoint (``best``, at ``best_step``), that gain in
+    standard errors of the per-block differences (``z``), and ``reason``."""
+
+    kept: bool
+    steps: int
+    seconds: float
+    initial: float
+    best: float
+    best_step: int
+    z: float
+    reason: str
+
+    def line(self) -> str:
+        change = 100.0 * (self.best / self.initial - 1.0) if self.initial > 0 else 0.0
+        return (f"adaptation {'kept' if self.kept else 'not kept'}: held-out loss {self.initial:.5g} -> "
+                f"{self.best:.5g} ({change:+.2f}%, {self.z:.1f} standard errors) at step {self.best_step} of "
+                f"{self.steps} in {self.seconds:.1f} s; {self.reason}")
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Crop:
+    """One crop of one half as a step uses it: its window (:class:`_Window`), the other half's colour of its pixels
+    (the target), and which of them are trained on and held out (``blocks``: the held-out block of each, -1 for
+    trained on)."""
+
+    window: _Window
+    target: object
+    train: object
+    blocks: np.ndarray
+    frame: int
+
+
+def _held_blocks(tile, s: AdaptSettings, frame_w: int) -> np.ndarray:
+    """Per pixel of ``tile`` (frame coordinates) its held-out block's index in the frame, -1 where trained on:
+    the same pixels in both directions of a pair."""
+    y0, y1, x0, x1 = tile
+    by = np.arange(y0, y1)[:, None] // s.block
+    bx = np.arange(x0, x1)[None, :] // s.block
+    index = by * -(-frame_w // s.block) + bx
+    return np.where((by * 3 + bx) % HELD_OUT_EVERY == 0, index, -1)
+
+
+def _crop_tiles(shape, s: AdaptSettings, rng) -> list[tuple]:
+    """The crops of a frame of ``shape``: tiles of ``s.crop``, at most ``s.crops`` of them, drawn by ``rng``."""
+    h, w = shape
+    tiles = [(y0, min(y0 + s.crop, h), x0, min(x0 + s.crop, w))
+             for y0 in range(0, h, s.crop) for x0 in range(0, w, s.crop)]
+    if len(tiles) > s.crops:
+        tiles = [tiles[i] for i in sorted(rng.choice(len(tiles), s.crops, replace=False))]
+    return tiles
+
+
+class Adapter:
+    """A post-correction of ``denoise`` (a callable: frame layers -> the model's denoised layers, e.g. a
+    ``Denoiser``) trained on ``pairs``, a list of (A, B) layer dicts, two independent renders of each frame.
+    ``post``: a network to continue from (an adapted model's); default a new one (:func:`build_post`).
+    :meth:`run` trains and decides; :attr:`post` is then the network to apply (:func:`correct`), or None where the
+    guard refused it."""
+
+    def __init__(self, denoise, pairs, settings: AdaptSettings | None = None, post: keras.Model | None = None):
+        self.settings = settings = settings or AdaptSettings()
+        self.start = post
+        self.net = build_post(settings.seed) if post is None else keras.models.clone_model(post)
+        if post is not None:
+            self.net.set_weights(post.get_weights())
+        rng = np.random.default_rng(settings.seed)
+        self.crops = []
+        for frame, (a, b) in enumerate(pairs):
+            outputs = {id(a): denoise(a), id(b): denoise(b)}
+            for x, y in ((a, b), (b, a)):
+                self.crops += self._prepare(x, outputs[id(x)], y, frame, rng)
+        self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
+        self.post: keras.Model | None = None
+        self.outcome: Outcome | None = None
+
+    def _prepare(self, half: dict, denoised: dict, other: dict, frame: int, rng) -> list[_Crop]:
+        """The crops of ``half`` (``denoised``: the model's output of it), ``other``'s colour their target; ``frame``
+        the pair's index."""
+        shape = half["depth"].shape
+        scale = features.depth_scale(half["depth"])
+        out = []
+        for tile in _crop_tiles(shape, self.settings, rng):
+            y0, y1, x0, x1 = tile
+            blocks = _held_blocks(tile, self.settings, shape[1])
+            out.append(_Crop(window=_window(denoised, half, tile, shape, scale, ("default",)),
+                             target=keras.ops.convert_to_tensor(np.asarray(other["default"][y0:y1, x0:x1], np.float32)),
+                             train=keras.ops.convert_to_tensor((blocks < 0)[..., None]), blocks=blocks, frame=frame))
+        return out
+
+    def _held_losses(self, weights: list | None = None) -> tuple[np.ndarray, list]:
+        """The held-out loss of each held-out block (a block of a frame: both directions' pixels of it), in a fixed
+        order, and the per-crop loss weights used (``weights``: the unadapted output's, computed here where None)."""
+        import torch
+
+        sums, counts, used = {}, {}, []
+        with torch.no_grad():
+            for i, crop in enumerate(self.crops):
+                f = _blend(self.net, crop.window)["default"]
+                w = 1.0 / (f**2 + RELMSE_EPS) if weights is None else weights[i]
+                used.append(w)
+                err = keras.ops.convert_to_numpy(keras.ops.mean(w * (f - crop.target) ** 2, axis=-1))
+                held = crop.blocks >= 0
+                keys, index = np.unique(crop.blocks[held], return_inverse=True)
+                total, n = np.bincount(index, err[held]), np.bincount(index)
+                for key, t, c in zip(keys, total, n):
+                    sums[crop.frame, key] = sums.get((crop.frame, key), 0.0) + t
+                    counts[crop.frame, key] = counts.get((crop.frame, key), 0) + c
+        return np.array([sums[k] / counts[k] for k in sorted(sums)]), used
+
+    def run(self, progress=None) -> Outcome:
+        """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
+        seconds)`` after each step. Ends with :attr:`post` the best held-out checkpoint, or None where the guard
+        refuses it (module docstring)."""
+        import torch
+
+        s, begin = self.settings, time.perf_counter()
+        params = self.net.trainable_weights
+        start = [keras.ops.convert_to_numpy(p.value).copy() for p in params]
+        initial, weights = self._held_losses()
+        if initial.size < 2:
+            raise KpcnError(f"the frame is too small to hold out blocks for the guard: it needs {s.block} x "
+                            f"{HELD_OUT_EVERY} pixels a side at least")
+        best = (float(initial.mean()), 0, initial, start)
+        opt = keras.optimizers.Adam(learning_rate=s.learning_rate)
+        opt.build(params)
+        step = 0
+        while (step < s.steps) if s.steps is not None else (time.perf_counter() - begin < s.seconds):
+            crop = self.crops[int(self.rng.integers(len(self.crops)))]
+            loss = n2n_loss(_blend(self.net, crop.window)["default"], crop.target, crop.train)
+            for p in params:
+                p.value.grad = None
+            loss.backward()
+            with torch.no_grad():
+                opt.apply([p.value.grad for p in params], params)
+            step += 1
+            if progress is not None:
+                progress(step, float(loss.detach()), time.perf_counter() - begin)
+            if step % s.check_every == 0:
+                blocks, _ = self._held_losses(weights)
+                if blocks.mean() < best[0]:
+                    best = (float(blocks.mean()), step, blocks, [keras.ops.convert_to_numpy(p.value).copy()
+                                                                 for p in params])
+        self.outcome = self._decide(initial, best, step, time.perf_counter() - begin)
+        for p, value in zip(params, best[3] if self.outcome.kept else start):
+            p.assign(value)
+        self.post = self.net if self.outcome.kept else self.start
+        return self.outcome
+
+    def _decide(self, initial: np.ndarray, best, steps: int, seconds: float) -> Outcome:
+        """The guard's decision on the best checkpoint ``best`` (loss, step, per-block losses, weights)."""
+        s = self.settings
+        diff = best[2] - initial
+        se = float(diff.std(ddof=1) / np.sqrt(diff.size))
+        z = float(-diff.mean() / se) if se > 0 else (float("inf") if diff.mean() < 0 else 0.0)
+        kept = best[1] > 0 and z >= s.confidence
+        if kept:
+            reason = f"its held-out gain clears {s.confidence:g} standard errors"
+        elif best[1] == 0:
+            reason = "no checkpoint did better on the held-out blocks than the model's own output"
+        else:
+            reason = f"its held-out gain is within {s.confidence:g} standard errors of none"
+        return Outcome(kept, steps, seconds, float(initial.mean()), best[0], best[1], z, reason)
+
+
+class Corrected:
+    """A denoiser (``kpcn_keras.denoise.Denoiser``) followed by a post-correction ``post``, called as the denoiser
+    is (frame layers -> ``default``, ``diffuse``, ``specular``); what else a denoiser has (its ``run``, ``record``,
+    ``settings``, ``precision``, ``warm_up``...) is the denoiser's."""
+
+    def __init__(self, denoiser, post: keras.Model):
+        self.denoiser, self.post = denoiser, post
+
+    def __getattr__(self, name):
+        return getattr(self.denoiser, name)
+
+    def __call__(self, aovs: dict, slope=None) -> dict:
+        return correct(self.post, self.denoiser(aovs, slope=slope), aovs, self.denoiser.tile)
+
+    def prepare(self, aovs: dict):
+        raise KpcnError(f"{self.denoiser.run.dir}: a frame prepared for λ maps skips the post-correction of an "
+                        "adapted model; denoise it whole")
+
+
+__all__ = ["GUIDE_CHANNELS", "HELD_OUT_EVERY", "MARGIN", "RADII", "Adapter", "Corrected", "Outcome", "build_post",
+           "correct", "n2n_loss"]
