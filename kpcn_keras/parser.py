@@ -282,14 +282,17 @@ def _cycles_validation_options(add) -> None:
     v = add("cycles-validation", (ValidationConfig,), help="render the held-out Cycles validation set (scenes of "
             "the catalogue's validation split, drawn apart from every training scene, each carrying two effect "
             "groups so that every group has two scenes or more): per scene an input per --spp with every pass, "
-            "Blender's own denoised frame of it (same seed: OIDN, albedo + normal, accurate prefilter) and a "
-            "reference of Combined alone; OUT/manifest.json records each file's sha256; resumes where it stopped")
+            "Blender's own denoised frame of it (same seed: OIDN, albedo + normal, accurate prefilter), its two "
+            "halves (<scene>-<spp/2>spp-pair-a.exr and -pair-b.exr: two other seeds, every pass, for kpcn denoise "
+            "--pair) and a reference of Combined alone; OUT/manifest.json records each file's sha256; resumes "
+            "where it stopped (a folder rendered before pairs gains its halves)")
     d = _defaults(ValidationConfig)
     v.add_argument("out", help="folder of the set (make cycles-validation: data/cycles/validation); a file "
                    "already there is kept, so a killed run resumes")
     v.add_argument("--scenes", type=int, help=f"how many scenes (indices 0 to N-1 of the split) {d('scenes')}")
     v.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
-    v.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
+    v.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts, each even (its halves) "
+                   f"{d('spp')}")
     v.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
     v.add_argument("--seed", type=int, help=f"draws the scenes; another seed, other scenes {d('seed')}")
     v.add_argument("--blender-python", help=f"a Python that has bpy, Blender's module {d('blender_python')}")

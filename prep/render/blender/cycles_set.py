@@ -417,15 +417,28 @@ def cycles_seed(a, index, li):
     return (100 * index + li + 1 + 1_000_003 * a.seed + offset) % 2**31
 
 
+def pair_seeds(a, index, li):
+    """Cycles' seeds of the two halves of frame ``li`` of scene ``index`` (catalogue.pair_names): each other
+    than the other's and than the full frame's (2**28 and 2**29 above it; no other frame's either while
+    1_000_003 * --seed + 100 * index stays under 2**28), so the halves' noise is independent of each other and
+    of the input beside them."""
+    return tuple((cycles_seed(a, index, li) + k * 2**28) % 2**31 for k in (1, 2))
+
+
 def planned_renders(a, recipe, spps):
-    """(file name, spp, frame number, denoise, passes) of every frame of a scene: the inputs with every pass;
-    the reference, of a validation scene Combined alone; Blender's denoised frame of each validation input."""
+    """(file name, spp, Cycles seed, denoise, passes) of every frame of a scene: the inputs with every pass;
+    the reference, of a validation scene Combined alone; of each validation input, Blender's denoised frame (the
+    input's seed: its noise) and the input's two halves at half its spp (every pass, two seeds of their own)."""
     valid = a.split == catalogue.VALIDATION.name
     out = []
     for li, spp in enumerate(spps):
-        out.append((catalogue.frame_name(recipe["name"], spp), spp, li, False, not (valid and li == len(spps) - 1)))
+        seed = cycles_seed(a, recipe["index"], li)
+        out.append((catalogue.frame_name(recipe["name"], spp), spp, seed, False,
+                    not (valid and li == len(spps) - 1)))
         if valid and li < len(spps) - 1:  # the same seed as the input beside it: the same noise, denoised
-            out.append((catalogue.denoised_name(recipe["name"], spp), spp, li, True, False))
+            out.append((catalogue.denoised_name(recipe["name"], spp), spp, seed, True, False))
+            for name, half_seed in zip(catalogue.pair_names(recipe["name"], spp), pair_seeds(a, recipe["index"], li)):
+                out.append((name, spp // 2, half_seed, False, True))
     return out
 
 
@@ -443,13 +456,13 @@ def render_scene(a, index, log):
                 sys.exit(f"{path}: records another scene than --seed {a.seed} --res {a.res} draws; use another OUT")
     write_json(path, recipe)
     factor, written = None, []
-    for name, spp, li, denoise, passes in planned_renders(a, recipe, spps):
+    for name, spp, seed, denoise, passes in planned_renders(a, recipe, spps):
         if os.path.exists(os.path.join(a.out, name)):
             continue
         t, cpu = time.perf_counter(), time.process_time()
         if factor is None:
             factor = exposure(recipe)
-        scene = setup(recipe, spp, cycles_seed(a, index, li), factor, denoise, passes)
+        scene = setup(recipe, spp, seed, factor, denoise, passes)
         scene.render.filepath = os.path.join(a.out, "." + name)
         bpy.ops.render.render(write_still=True)
         os.replace(scene.render.filepath, os.path.join(a.out, name))
