@@ -72,7 +72,7 @@ def cmd_render_scene(args) -> int:
     from prep.render import RenderConfig
     from prep.render.scenefile import render_scene_file
 
-    shared = {"width", "height", "seed", "out_root"}  # the options that also mean something with --scene
+    shared = {"width", "height", "seed", "out_root", "pair"}  # the options that also mean something with --scene
     for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared | {"part"}):
         if dest in args:
             raise OptionError(dest, "is for a built-in scene set, not for --scene FILE (use --spp)")
@@ -82,8 +82,11 @@ def cmd_render_scene(args) -> int:
                         "launcher's processes: run it without torchrun")
     overrides = {k: getattr(args, k) for k in ("spp", "seed", "width", "height") if k in args}
     report = render_scene_file(args.scene, getattr(args, "out_root", None), overrides=overrides,
-                               png="no_png" not in args)
-    print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
+                               png="no_png" not in args, pair="pair" in args)
+    if "outputs" in report:  # --pair: the frame's two halves
+        print("wrote " + " and ".join(map(str, report["outputs"])))
+    else:
+        print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
     print(f"rendered in {report['seconds']:.2f} s")
     return 0
 

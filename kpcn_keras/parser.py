@@ -233,11 +233,16 @@ def _render_options(add) -> None:
     r.add_argument("--reference-spp", type=int, help=d("reference_spp"))
     r.add_argument("--seed", type=int, help=d("seed"))
     r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}; with --scene: "
-                   "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file)")
+                   "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file; with --pair, the "
+                   "folder of the two halves)")
     r.add_argument("--scene", help="render this scene file (.toml or .json; docs/scenes.md §5) instead "
                    "of a set; --spp, --seed, --width, --height override its [render] table")
     r.add_argument("--spp", type=int, help="with --scene: samples per pixel (default: the file's)")
     r.add_argument("--no-png", action="store_true", help="with --scene: no tonemapped PNG beside the EXR")
+    r.add_argument("--pair", action="store_true", help="also render each input as two halves of half its "
+                   "samples with two seeds of their own, <scene>-<spp/2>spp-pair-a.exr and -pair-b.exr beside it "
+                   "(their spp in the header), for kpcn denoise A --pair B; with --scene: the two halves of the "
+                   "file's frame instead of the frame")
     _part_option(r, "renders")
 
 

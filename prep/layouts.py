@@ -41,7 +41,8 @@ a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. 
 is in the file but not whole (a channel missing) is refused naming the layer and the channel, from the header
 (:meth:`Layout.check`, by :func:`read_header` as by :func:`read`), never passed over for another layout. The
 samples per pixel come from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles
-``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``), else the caller's ``spp``.
+``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``, kpcn ``kpcn.spp``: ``prep.exr.SPP_ATTRIBUTE``), else
+the caller's ``spp``.
 """
 
 from __future__ import annotations
@@ -216,6 +217,10 @@ class KpcnLayout(Layout):
 
     def inputs(self, ch, spp):
         return InputSet(split=True, variance=all(ch.has(n, SCALAR) for n in exr.VARIANCE_LAYERS))
+
+    def spp(self, ch):
+        samples = ch.image.attributes.get(exr.SPP_ATTRIBUTE)  # a half of a pair states it (kpcn render --pair)
+        return int(samples) if isinstance(samples, (int, np.integer)) and samples > 0 else None
 
     decodes_whole = False
 

@@ -22,6 +22,7 @@ import json
 import math
 import os
 import random
+import re
 from collections import namedtuple
 
 Effect = namedtuple("Effect", "name group weight builds")
@@ -458,6 +459,15 @@ def pair_names(scene: str, spp: int) -> tuple:
     if spp < 2 or spp % 2:
         raise ValueError(f"{spp} spp has no two equal halves (an even count of samples, 2 or more)")
     return tuple(f"{scene}-{spp // 2:05d}spp-pair-{half}.exr" for half in "ab")
+
+
+_HALF = re.compile(r"^(?P<scene>.+)-(?P<spp>\d{5,})spp-pair-(?P<half>[ab])\.exr$")
+
+
+def pair_half(name: str):
+    """(scene, spp of the whole frame, "a" or "b") of a file name :func:`pair_names` gives; None for any other."""
+    m = _HALF.match(name)
+    return None if m is None else (m["scene"], 2 * int(m["spp"]), m["half"])
 
 
 def planned_files(recipe) -> list:
