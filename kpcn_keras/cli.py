@@ -125,6 +125,15 @@ def cmd_cycles_validation(args) -> int:
     return 0
 
 
+def cmd_blend_pair(args) -> int:
+    from prep.render.blendpair import BlendPairConfig, render_blend_pair
+
+    cfg = BlendPairConfig(blend=args.blend, **_given(args, BlendPairConfig))
+    a, b = render_blend_pair(cfg)
+    print(f"kpcn denoise {a} --pair {b} denoises their mean")
+    return 0
+
+
 def cmd_import_renders(args) -> int:
     from prep.imported import import_renders
     from prep.render.renderset import RENDER_ROOT, RenderSet
@@ -424,6 +433,7 @@ COMMANDS = {
     "references": cmd_references,
     "render-cycles": cmd_render_cycles,
     "cycles-validation": cmd_cycles_validation,
+    "blend-pair": cmd_blend_pair,
     "import-renders": cmd_import_renders,
     "shards": cmd_shards,
     "train": cmd_train,

@@ -306,6 +306,21 @@ def _cycles_validation_options(add) -> None:
                    "differs)")
 
 
+def _blend_pair_options(add) -> None:
+    """The options of ``kpcn blend-pair``: a user's .blend frame as two halves, in Blender's Python."""
+    from prep.render.blendpair import BlendPairConfig
+
+    b = add("blend-pair", (BlendPairConfig,), help="render a .blend file's frame with Cycles as two halves for "
+            "kpcn denoise A --pair B: twice at half the samples with two seeds of their own, every pass kpcn reads, "
+            "<blend stem>-<spp/2>spp-pair-a.exr and -pair-b.exr (32-bit multilayer EXR); in a Python with bpy")
+    d = _defaults(BlendPairConfig)
+    b.add_argument("blend", help="the .blend file (its scene, camera, resolution and light paths as saved)")
+    b.add_argument("--spp", type=int, help=f"the whole frame's samples, even: each half renders half {d('spp')}")
+    b.add_argument("--frame", type=int, help="the frame to render (default: the file's current frame)")
+    b.add_argument("--out", help="folder of the two halves (default: beside the .blend); a half there is kept")
+    b.add_argument("--blender-python", help=f"a Python that has bpy, Blender's module {d('blender_python')}")
+
+
 def _import_renders_options(add) -> None:
     """The options of ``kpcn import-renders``: another renderer's frames into a render set."""
     from prep.render.renderset import RENDER_ROOT
@@ -790,6 +805,7 @@ BUILDERS = {
     "references": _references_options,
     "render-cycles": _render_cycles_options,
     "cycles-validation": _cycles_validation_options,
+    "blend-pair": _blend_pair_options,
     "import-renders": _import_renders_options,
     "shards": _shards_options,
     "train": _train_options,

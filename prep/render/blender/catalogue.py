@@ -461,6 +461,12 @@ def pair_names(scene: str, spp: int) -> tuple:
     return tuple(f"{scene}-{spp // 2:05d}spp-pair-{half}.exr" for half in "ab")
 
 
+def half_seeds(seed: int) -> tuple:
+    """Cycles' seeds of the two halves of a frame rendered with ``seed``: 2**28 and 2**29 above it (mod 2**31),
+    so each is other than the other's and than the frame's own."""
+    return tuple((seed + k * 2**28) % 2**31 for k in (1, 2))
+
+
 _HALF = re.compile(r"^(?P<scene>.+)-(?P<spp>\d{5,})spp-pair-(?P<half>[ab])\.exr$")
 
 

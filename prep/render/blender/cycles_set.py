@@ -372,12 +372,24 @@ def setup(recipe, spp, seed, factor, denoise=False, passes=True):
         c.denoising_prefilter = "ACCURATE"
     scene.render.resolution_x = scene.render.resolution_y = recipe["res"]
     scene.render.resolution_percentage = 100
-    vl = scene.view_layers[0]
+    use_passes(scene.view_layers[0], passes)
+    multilayer_exr(scene)
+    return scene
+
+
+def use_passes(vl, passes=True):
+    """View layer ``vl`` with every pass kpcn reads (:data:`PASSES`, the volume passes, Denoising Data), or
+    (``passes`` False) Combined alone: the one place the passes are turned on, for the training and validation
+    frames as for a user's .blend (``blend_pair.py``)."""
     for p in PASSES if passes else ("combined",):
         setattr(vl, "use_pass_" + p, True)
     vl.cycles.use_pass_volume_direct = passes  # media scenes: what the fog scatters, direct and indirect
     vl.cycles.use_pass_volume_indirect = passes
     vl.cycles.denoising_store_passes = passes
+
+
+def multilayer_exr(scene):
+    """The scene's output: one 32-bit multilayer OpenEXR (ZIP) a frame, its colours as rendered (Standard)."""
     im = scene.render.image_settings
     if hasattr(im, "media_type"):
         im.media_type = "MULTI_LAYER_IMAGE"
@@ -385,7 +397,6 @@ def setup(recipe, spp, seed, factor, denoise=False, passes=True):
     im.color_depth = "32"
     im.exr_codec = "ZIP"
     scene.view_settings.view_transform = "Standard"
-    return scene
 
 
 def arguments(argv):
@@ -418,11 +429,10 @@ def cycles_seed(a, index, li):
 
 
 def pair_seeds(a, index, li):
-    """Cycles' seeds of the two halves of frame ``li`` of scene ``index`` (catalogue.pair_names): each other
-    than the other's and than the full frame's (2**28 and 2**29 above it; no other frame's either while
-    1_000_003 * --seed + 100 * index stays under 2**28), so the halves' noise is independent of each other and
-    of the input beside them."""
-    return tuple((cycles_seed(a, index, li) + k * 2**28) % 2**31 for k in (1, 2))
+    """Cycles' seeds of the two halves of frame ``li`` of scene ``index`` (catalogue.half_seeds of its seed; no
+    other frame's either while 1_000_003 * --seed + 100 * index stays under 2**28), so the halves' noise is
+    independent of each other and of the input beside them."""
+    return catalogue.half_seeds(cycles_seed(a, index, li))
 
 
 def planned_renders(a, recipe, spps):
