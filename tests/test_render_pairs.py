@@ -15,7 +15,7 @@ from prep.render.renderset import _renders, render_seed
 from prep.shards.renders import discover_renders
 
 cat = catalogue()
-H, REF = 8, 512  # a half's spp, the reference's
+H, REF = 8, 1024  # a half's spp, the reference's
 
 
 def _colour(path):
@@ -36,13 +36,15 @@ def test_every_half_has_a_seed_of_its_own_and_odd_inputs_are_refused(tmp_path):
 
 
 def test_the_halves_are_independent_and_their_mean_has_half_the_squared_error(tmp_path):
-    cfg = RenderConfig(set_name="p", families=("cornell",), per_family=1, width=64, height=64, input_spp=(2 * H,),
+    # the boxes family: its noise has light tails at 8 spp (no caustics, no small bright lights), so the standard
+    # error estimated from the pixels is an honest one (over seeds 0-7 the statistic below stayed within 1.5 of them)
+    cfg = RenderConfig(set_name="p", families=("boxes",), per_family=1, width=64, height=64, input_spp=(2 * H,),
                        reference_spp=REF, out_root=str(tmp_path), pair=True)
     render_set(cfg, progress=False)
     folder = tmp_path / "p"
-    scene = "cornell-000"
+    scene = _renders(cfg)[0].name.rsplit("-", 1)[0]
     a_path, b_path = (folder / n for n in cat.pair_names(scene, 2 * H))
-    assert a_path.name == "cornell-000-00008spp-pair-a.exr"
+    assert a_path.name == f"{scene}-00008spp-pair-a.exr"
     a, b = (layouts.read(p) for p in (a_path, b_path))
     assert a.spp == b.spp == H and layouts.read(folder / f"{scene}-00016spp.exr").spp == 2 * H  # header, name
     ref = _colour(folder / f"{scene}-{REF:05d}spp.exr")
@@ -57,7 +59,7 @@ def test_the_halves_are_independent_and_their_mean_has_half_the_squared_error(tm
     q = (H / REF) / (1 + H / REF)
     se = np.std(ea * eb) / np.sqrt(ea.size) / (2 * avg)
     assert abs(ratio - (1 + q) / 2) < 4 * se, (ratio, (1 + q) / 2, se)
-    assert (1 + q) / 2 + 4 * se < 1  # the bound tells 1/2 from 1 (one render twice): the test can fail
+    assert (1 + q) / 2 + 4 * se < 0.6  # the bound tells 1/2 from 1 (one render twice): the test can fail
     full = _colour(folder / f"{scene}-00016spp.exr") - ref  # and the mean is as noisy as the 2H-spp input
     assert 0.5 < np.mean(full**2) / np.mean(((ea + eb) / 2) ** 2) < 2.0
     # kpcn shards reads the inputs and reference, not the halves
