@@ -1,6 +1,6 @@
 """A user's .blend frame as two halves for ``kpcn denoise A --pair B``: the frame rendered twice by Cycles at half
 the samples with two seeds (catalogue.half_seeds of the scene's own seed), every pass kpcn reads on each view
-layer (cycles_set.use_passes), one 32-bit multilayer EXR each, OUT/<blend stem>-<spp/2>spp-pair-a.exr and -b.exr
+layer (cycles_set.use_passes), one 32-bit multilayer EXR each, OUT/<blend stem>-<spp/2>spp-pair-a.exr and -pair-b.exr
 (catalogue.pair_names), Cycles writing each half's samples in its header.
 
 Runs under bpy, started by ``kpcn blend-pair`` (``prep.render.blendpair``, which checks the options and the
