@@ -13,12 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from prep.bounds import bounded, check_fields
+from prep.bounds import Bound, bounded, check_fields
 from prep.errors import OptionError
 from prep.render.cycles import BLENDER_PYTHON, catalogue, run_blender_side
 from prep.render.frame import SPP
 
 BLENDER_SIDE = Path(__file__).with_name("blender") / "blend_pair.py"
+FRAME = Bound(-1_048_574, 1_048_574)  # Blender's frame numbers (MINAFRAME, MAXFRAME)
 
 
 @dataclass
@@ -28,7 +29,7 @@ class BlendPairConfig:
 
     blend: str
     spp: int = bounded(64, SPP)  # the whole frame's samples: the mean of the two halves has them
-    frame: int | None = None
+    frame: int | None = bounded(None, FRAME)
     out: str | None = None
     blender_python: str = BLENDER_PYTHON
 
