@@ -247,6 +247,7 @@ class Adapter:
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
+        self.snapshots: dict = {}
 
     def _prepare(self, half: dict, denoised: dict, other: dict, frame: int, rng) -> list[_Crop]:
         """The crops of ``half`` (``denoised``: the model's output of it), ``other``'s colour their target; ``frame``
@@ -282,13 +283,17 @@ class Adapter:
                     counts[crop.frame, key] = counts.get((crop.frame, key), 0) + c
         return np.array([sums[k] / counts[k] for k in sorted(sums)]), used
 
-    def run(self, progress=None) -> Outcome:
+    def run(self, progress=None, marks=()) -> Outcome:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
         seconds)`` after each step. Ends with :attr:`post` the best held-out checkpoint, or None where the guard
-        refuses it (module docstring)."""
+        refuses it (module docstring). ``marks``: seconds at which to note what a run stopped there would have given
+        (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None), taken at the first held-out check at or
+        after the mark), so one run measures several budgets."""
         import torch
 
         s, begin = self.settings, time.perf_counter()
+        self.snapshots = {}
+        pending = sorted(marks)
         params = self.net.trainable_weights
         start = [keras.ops.convert_to_numpy(p.value).copy() for p in params]
         initial, weights = self._held_losses()
@@ -315,11 +320,26 @@ class Adapter:
                 if blocks.mean() < best[0]:
                     best = (float(blocks.mean()), step, blocks, [keras.ops.convert_to_numpy(p.value).copy()
                                                                  for p in params])
+                while pending and time.perf_counter() - begin >= pending[0]:
+                    self._snapshot(pending.pop(0), initial, best, step, time.perf_counter() - begin)
         self.outcome = self._decide(initial, best, step, time.perf_counter() - begin)
+        for mark in pending:  # the run ended before them: what it gives is what they give
+            self.snapshots[mark] = (self.outcome, best[3] if self.outcome.kept else None)
         for p, value in zip(params, best[3] if self.outcome.kept else start):
             p.assign(value)
         self.post = self.net if self.outcome.kept else self.start
         return self.outcome
+
+    def _snapshot(self, mark: float, initial, best, step: int, seconds: float) -> None:
+        outcome = self._decide(initial, best, step, seconds)
+        self.snapshots[mark] = (outcome, best[3] if outcome.kept else None)
+
+    def apply_weights(self, weights) -> keras.Model:
+        """A copy of the post-correction with ``weights`` (a snapshot's), to apply (:func:`correct`)."""
+        net = keras.models.clone_model(self.net)
+        for p, value in zip(net.trainable_weights, weights):
+            p.assign(value)
+        return net
 
     def _decide(self, initial: np.ndarray, best, steps: int, seconds: float) -> Outcome:
         """The guard's decision on the best checkpoint ``best`` (loss, step, per-block losses, weights)."""

@@ -73,7 +73,7 @@ def cmd_render_scene(args) -> int:
     from prep.render import RenderConfig
     from prep.render.scenefile import render_scene_file
 
-    shared = {"width", "height", "seed", "out_root"}  # the options that also mean something with --scene
+    shared = {"width", "height", "seed", "out_root", "pair"}  # the options that also mean something with --scene
     for dest in sorted({f.name for f in dataclasses.fields(RenderConfig)} - shared | {"part"}):
         if dest in args:
             raise OptionError(dest, "is for a built-in scene set, not for --scene FILE (use --spp)")
@@ -83,8 +83,11 @@ def cmd_render_scene(args) -> int:
                         "launcher's processes: run it without torchrun")
     overrides = {k: getattr(args, k) for k in ("spp", "seed", "width", "height") if k in args}
     report = render_scene_file(args.scene, getattr(args, "out_root", None), overrides=overrides,
-                               png="no_png" not in args)
-    print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
+                               png="no_png" not in args, pair="pair" in args)
+    if "outputs" in report:  # --pair: the frame's two halves
+        print("wrote " + " and ".join(map(str, report["outputs"])))
+    else:
+        print(f"wrote {report['output']}" + (f" and {report['png']}" if "png" in report else ""))
     print(f"rendered in {report['seconds']:.2f} s")
     return 0
 
@@ -120,6 +123,15 @@ def cmd_cycles_validation(args) -> int:
     out = render_validation(cfg)
     print(manifest_summary(out))
     print(verify_validation(out))
+    return 0
+
+
+def cmd_blend_pair(args) -> int:
+    from prep.render.blendpair import BlendPairConfig, render_blend_pair
+
+    cfg = BlendPairConfig(blend=args.blend, **_given(args, BlendPairConfig))
+    a, b = render_blend_pair(cfg)
+    print(f"kpcn denoise {a} --pair {b} denoises their mean")
     return 0
 
 
@@ -469,6 +481,7 @@ COMMANDS = {
     "references": cmd_references,
     "render-cycles": cmd_render_cycles,
     "cycles-validation": cmd_cycles_validation,
+    "blend-pair": cmd_blend_pair,
     "import-renders": cmd_import_renders,
     "shards": cmd_shards,
     "train": cmd_train,

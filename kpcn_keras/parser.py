@@ -209,11 +209,16 @@ def _render_options(add) -> None:
     r.add_argument("--reference-spp", type=int, help=d("reference_spp"))
     r.add_argument("--seed", type=int, help=d("seed"))
     r.add_argument("--out", dest="out_root", help=f"folder holding render sets {d('out_root')}; with --scene: "
-                   "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file)")
+                   "the EXR (default: <scene file stem>-<spp>spp.exr beside the scene file; with --pair, the "
+                   "folder of the two halves)")
     r.add_argument("--scene", help="render this scene file (.toml or .json; docs/scenes.md §5) instead "
                    "of a set; --spp, --seed, --width, --height override its [render] table")
     r.add_argument("--spp", type=int, help="with --scene: samples per pixel (default: the file's)")
     r.add_argument("--no-png", action="store_true", help="with --scene: no tonemapped PNG beside the EXR")
+    r.add_argument("--pair", action="store_true", help="also render each input as two halves of half its "
+                   "samples with two seeds of their own, <scene>-<spp/2>spp-pair-a.exr and -pair-b.exr beside it "
+                   "(their spp in the header), for kpcn denoise A --pair B; with --scene: the two halves of the "
+                   "file's frame instead of the frame")
     _part_option(r, "renders")
 
 
@@ -258,20 +263,38 @@ def _cycles_validation_options(add) -> None:
     v = add("cycles-validation", (ValidationConfig,), help="render the held-out Cycles validation set (scenes of "
             "the catalogue's validation split, drawn apart from every training scene, each carrying two effect "
             "groups so that every group has two scenes or more): per scene an input per --spp with every pass, "
-            "Blender's own denoised frame of it (same seed: OIDN, albedo + normal, accurate prefilter) and a "
-            "reference of Combined alone; OUT/manifest.json records each file's sha256; resumes where it stopped")
+            "Blender's own denoised frame of it (same seed: OIDN, albedo + normal, accurate prefilter), its two "
+            "halves (<scene>-<spp/2>spp-pair-a.exr and -pair-b.exr: two other seeds, every pass, for kpcn denoise "
+            "--pair) and a reference of Combined alone; OUT/manifest.json records each file's sha256; resumes "
+            "where it stopped (a folder rendered before pairs gains its halves)")
     d = _defaults(ValidationConfig)
     v.add_argument("out", help="folder of the set (make cycles-validation: data/cycles/validation); a file "
                    "already there is kept, so a killed run resumes")
     v.add_argument("--scenes", type=int, help=f"how many scenes (indices 0 to N-1 of the split) {d('scenes')}")
     v.add_argument("--res", type=int, help=f"frame side in pixels {d('res')}")
-    v.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts {d('spp')}")
+    v.add_argument("--spp", type=_csv_ints, help=f"comma-separated input sample counts, each even (its halves) "
+                   f"{d('spp')}")
     v.add_argument("--ref-spp", type=int, help=f"the reference's samples {d('ref_spp')}")
     v.add_argument("--seed", type=int, help=f"draws the scenes; another seed, other scenes {d('seed')}")
     v.add_argument("--blender-python", help=f"a Python that has bpy, Blender's module {d('blender_python')}")
     v.add_argument("--verify", action="store_true", help="render nothing: check every file of OUT against the "
                    "sha256 its manifest records (exit status 2 and one line naming the first that is missing or "
                    "differs)")
+
+
+def _blend_pair_options(add) -> None:
+    """The options of ``kpcn blend-pair``: a user's .blend frame as two halves, in Blender's Python."""
+    from prep.render.blendpair import BlendPairConfig
+
+    b = add("blend-pair", (BlendPairConfig,), help="render a .blend file's frame with Cycles as two halves for "
+            "kpcn denoise A --pair B: twice at half the samples with two seeds of their own, every pass kpcn reads, "
+            "<blend stem>-<spp/2>spp-pair-a.exr and -pair-b.exr (32-bit multilayer EXR); in a Python with bpy")
+    d = _defaults(BlendPairConfig)
+    b.add_argument("blend", help="the .blend file (its scene, camera, resolution and light paths as saved)")
+    b.add_argument("--spp", type=int, help=f"the whole frame's samples, even: each half renders half {d('spp')}")
+    b.add_argument("--frame", type=int, help="the frame to render (default: the file's current frame)")
+    b.add_argument("--out", help="folder of the two halves (default: beside the .blend); a half there is kept")
+    b.add_argument("--blender-python", help=f"a Python that has bpy, Blender's module {d('blender_python')}")
 
 
 def _import_renders_options(add) -> None:
@@ -670,6 +693,7 @@ BUILDERS = {
     "references": _references_options,
     "render-cycles": _render_cycles_options,
     "cycles-validation": _cycles_validation_options,
+    "blend-pair": _blend_pair_options,
     "import-renders": _import_renders_options,
     "shards": _shards_options,
     "train": _train_options,

@@ -92,8 +92,8 @@ def _inputs_study_options(add) -> None:
     s.add_argument("--renders", dest="render_root", help=f"folder holding render sets {d('render_root')}")
     s.add_argument("--frames", nargs="+", help="other renderers' frames: files or folders, each noisy frame with its "
                    f"reference beside it {d('frames')}")
-    s.add_argument("--pairs", nargs="+", help="folders of two renders of a frame, <scene>-<spp>spp.exr and "
-                   "<scene>-<spp>spp-b.exr, with the scene's reference (python -m "
+    s.add_argument("--pairs", nargs="+", help="folders of two renders of a frame, <scene>-<spp>spp-pair-a.exr and "
+                   "-pair-b.exr, with the scene's reference (kpcn cycles-validation's folder, python -m "
                    "kpcn_keras.studies.render_blender_pairs; default: none)")
     s.add_argument("--budget", type=float, help=f"seconds of training per input set {d('budget')}")
     s.add_argument("--preset", help=f"training preset of every run {d('preset')}")

@@ -68,6 +68,9 @@ BASE_LAYERS = ("diffuse", "specular", "albedo", "normal", "depth")
 _SUM_ROWS = 64  # rows per block of the derived default's float64 sum
 
 _RENDER_NAME = re.compile(r"^(?P<scene>.+)-(?P<spp>\d{5,})spp\.exr$")
+# the header attribute (int) that states a kpcn frame's samples per pixel where its name does not (a half of a
+# pair, <scene>-<spp>spp-pair-a.exr: prep/render/blender/catalogue.pair_names); prep.layouts reads it
+SPP_ATTRIBUTE = "kpcn.spp"
 
 
 class AOVError(KpcnError, ValueError):

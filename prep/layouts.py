@@ -40,8 +40,10 @@ Every layout: half or float channels, ``X Y Z`` or ``R G B`` for a vector, ``Z``
 a lone channel for a scalar; non-finite values repaired by ``prep.exr``'s rule. A layer a layout reads that
 is in the file but not whole (a channel missing) is refused naming the layer and the channel, from the header
 (:meth:`Layout.check`, by :func:`read_header` as by :func:`read`), never passed over for another layout. The
-samples per pixel come from the file name (``<scene>-<spp>spp.exr``), else the header (Cycles
-``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``), else the caller's ``spp``.
+samples per pixel come from the file name (``<scene>-<spp>spp.exr``, or a half of a pair
+``<scene>-<spp>spp-pair-a.exr``: its own spp), else the header (Cycles
+``cycles.<view layer>.samples``, pbrt ``samplesPerPixel``, kpcn ``kpcn.spp``: ``prep.exr.SPP_ATTRIBUTE``), else
+the caller's ``spp``.
 """
 
 from __future__ import annotations
@@ -216,6 +218,10 @@ class KpcnLayout(Layout):
 
     def inputs(self, ch, spp):
         return InputSet(split=True, variance=all(ch.has(n, SCALAR) for n in exr.VARIANCE_LAYERS))
+
+    def spp(self, ch):
+        samples = ch.image.attributes.get(exr.SPP_ATTRIBUTE)  # a half of a pair states it (kpcn render --pair)
+        return int(samples) if isinstance(samples, (int, np.integer)) and samples > 0 else None
 
     decodes_whole = False
 
@@ -612,10 +618,15 @@ def _opened(path, layout: str | None, spp: int | None, view_layer: str | None):
 
 
 def _spp_of(path: Path) -> int | None:
+    """The spp the file's name states: ``<scene>-<spp>spp.exr``, or a half of a pair,
+    ``<scene>-<spp>spp-pair-a.exr`` (``catalogue.pair_names``: the half's own spp, as Mitsuba writes none)."""
     try:
         return exr.parse_render_filename(path)[1]
     except AOVError:
-        return None
+        from prep.render.cycles import catalogue  # the pairs' names have one owner, beside Blender's side
+
+        half = catalogue().pair_half(Path(path).name)
+        return None if half is None else half[1] // 2
 
 
 def read(path: str | os.PathLike, layout: str | None = None, *, spp: int | None = None,

@@ -1,7 +1,8 @@
 """The held-out Cycles validation set (kpcn cycles-validation, prep/render/cycles.py and the catalogue's
 validation split): training draws are what they were, no validation draw can be a training one, every effect
 group has two scenes, the manifest's checksums catch a changed byte, and where a Python with bpy is at hand a
-tiny set renders the input, Blender's own denoised frame of the same noise and a reference that verify."""
+tiny set renders the input, Blender's own denoised frame of the same noise, the input's two halves (two other
+seeds, half its samples each) and a reference that verify."""
 import hashlib
 import importlib.util
 import json
@@ -96,14 +97,31 @@ def test_the_blender_side_reads_the_validation_command_back():
         ("o", "validation", "0:14", "96", "2,8", 512, 3)
     default = side.arguments(validation_command(ValidationConfig(out="o"))[2:])
     assert (default.scenes, default.res, default.spp, default.ref_spp) == ("0:12", "128", "4,16,64", 2048)
-    # the validation inputs and their denoised twins share their Cycles seed; the training ones have others
+    # the validation inputs and their denoised twins share their Cycles seed; each input's two halves (half its
+    # spp, every pass) have two seeds of their own; the training ones have others
     recipe = cat.draw(0, 3, (128,), (4, 16, 64, 2048), "validation")
     plan = side.planned_renders(got, recipe, [4, 16, 64, 2048])
-    assert [(n, dn, ps) for n, _, _, dn, ps in plan] == [
-        ("val-studio-003-00004spp.exr", False, True), ("val-studio-003-00004spp-blender-oidn.exr", True, False),
-        ("val-studio-003-00016spp.exr", False, True), ("val-studio-003-00016spp-blender-oidn.exr", True, False),
-        ("val-studio-003-00064spp.exr", False, True), ("val-studio-003-00064spp-blender-oidn.exr", True, False),
-        ("val-studio-003-02048spp.exr", False, False)]
+    rows = []
+    for n in (4, 16, 64):
+        rows += [(f"val-studio-003-{n:05d}spp.exr", n, False, True),
+                 (f"val-studio-003-{n:05d}spp-blender-oidn.exr", n, True, False),
+                 (f"val-studio-003-{n // 2:05d}spp-pair-a.exr", n // 2, False, True),
+                 (f"val-studio-003-{n // 2:05d}spp-pair-b.exr", n // 2, False, True)]
+    assert [(n, spp, dn, ps) for n, spp, _, dn, ps in plan] == rows + [("val-studio-003-02048spp.exr", 2048, False,
+                                                                        False)]
+    seeds = {n: s for n, _, s, _, _ in plan}
+    for n in (4, 16, 64):
+        full, a, b = seeds[cat.frame_name(recipe["name"], n)], *(seeds[p] for p in cat.pair_names(recipe["name"], n))
+        assert seeds[cat.denoised_name(recipe["name"], n)] == full
+        assert len({full, a, b}) == 3
+    # no two frames of the set share a seed but an input and its denoised twin (the halves' noise is their own)
+    every = [s for i in range(12) for n, _, s, dn, _ in side.planned_renders(
+        side.arguments(validation_command(ValidationConfig(out="o"))[2:]),
+        cat.draw(0, i, (128,), (4, 16, 64, 2048), "validation"), [4, 16, 64, 2048]) if not dn]
+    assert len(set(every)) == len(every) == 12 * 10
+    assert cat.pair_names("s", 64) == ("s-00032spp-pair-a.exr", "s-00032spp-pair-b.exr")
+    with pytest.raises(ValueError, match="5 spp"):
+        cat.pair_names("s", 5)
     train = side.arguments(["o", "--seed", "3"])
     assert side.cycles_seed(got, 3, 1) != side.cycles_seed(train, 3, 1)
 
@@ -123,11 +141,12 @@ def _fake_set(out: Path, scenes=2):
 def test_verify_passes_a_folder_as_written_and_names_a_file_with_one_changed_byte(tmp_path):
     recipes = _fake_set(tmp_path / "val")
     m = json.loads((tmp_path / "val" / "manifest.json").read_text())
-    assert len(m["sha256"]) == 2 * 8 and (m["frames_done"], m["frames_planned"]) == (14, 14)
+    # a scene: its recipe, 3 inputs, their 3 denoised frames, their 6 halves and a reference
+    assert len(m["sha256"]) == 2 * 14 and (m["frames_done"], m["frames_planned"]) == (26, 26)
     name = cat.denoised_name(recipes[1]["name"], 16)
     assert m["sha256"][name] == hashlib.sha256((tmp_path / "val" / name).read_bytes()).hexdigest()
     res = run_main("cycles-validation", tmp_path / "val", "--verify", cwd=tmp_path)
-    assert res.returncode == 0 and "16 files match" in res.stdout, res.stderr
+    assert res.returncode == 0 and "28 files match" in res.stdout, res.stderr
     data = bytearray((tmp_path / "val" / name).read_bytes())
     data[5] ^= 1
     (tmp_path / "val" / name).write_bytes(bytes(data))
@@ -161,6 +180,7 @@ def test_a_folder_of_other_scenes_is_refused_in_one_line_before_blender_starts(t
 
 
 @pytest.mark.parametrize("args, needle", [(("--scenes", "0"), "--scenes"), (("--spp", "4,4"), "--spp"),
+                                          (("--spp", "4,5"), "--spp"),
                                           (("--spp", "8", "--ref-spp", "8"), "--ref-spp"), (("--res", "0"), "--res")])
 def test_bad_options_are_refused_in_one_line(tmp_path, args, needle):
     res = run_main("cycles-validation", tmp_path / "val", *args, "--blender-python", tmp_path / "none", cwd=tmp_path)
@@ -174,9 +194,9 @@ def _pixels(path):
     return {c: p.channels[c].pixels for p in f.parts for c in p.channels}
 
 
-@pytest.mark.slow  # two runs of Blender's Python, about 10 renders of 16 x 16
+@pytest.mark.slow  # three runs of Blender's Python, about 12 renders of 16 x 16
 @pytest.mark.skipif(not Path(BPY).exists(), reason="no Python with bpy (make .venv-bpy/bin/python)")
-def test_a_tiny_set_renders_the_input_blenders_denoised_frame_of_its_noise_and_a_reference(tmp_path):
+def test_a_tiny_set_renders_the_input_its_denoised_frame_its_two_halves_and_a_reference(tmp_path):
     from kpcn_keras.studies.blender_report import effect_groups
     from kpcn_keras.studies.frames import renderer_pairs
 
@@ -200,8 +220,37 @@ def test_a_tiny_set_renders_the_input_blenders_denoised_frame_of_its_noise_and_a
     assert renderer_pairs([out]) == [(out / cat.frame_name(recipe["name"], 2), out / cat.frame_name(recipe["name"],
                                                                                                       4))]
     assert effect_groups(out / cat.frame_name(recipe["name"], 2)) == sorted(recipe["groups"])
+    # the input's two halves: 1 spp each (name and header), every pass the input has, each its own noise
+    halves = [out / n for n in cat.pair_names(recipe["name"], 2)]
+    assert [h.name for h in halves] == ["val-studio-000-00001spp-pair-a.exr", "val-studio-000-00001spp-pair-b.exr"]
+    a, b = (_pixels(h) for h in halves)
+    assert set(a) == set(b) == set(noisy)
+    assert [_samples(h) for h in halves] == [1, 1] and _samples(out / cat.frame_name(recipe["name"], 2)) == 2
+    combined = [x["ViewLayer.Combined.R"] for x in (a, b, noisy)]
+    assert min(np.abs(x - y).max() for i, x in enumerate(combined) for y in combined[i + 1:]) > 1e-3
     # a killed run resumes: the file it lacks is rendered again, recorded anew, and the folder verifies
     (out / cat.denoised_name(recipe["name"], 2)).unlink()
     res = run_main(*args, cwd=tmp_path)
     assert res.returncode == 0 and "files match" in res.stdout, res.stderr[-3000:]
     assert (out / cat.denoised_name(recipe["name"], 2)).exists()
+    # a folder rendered before halves were planned (its manifest without them) gains them when run again
+    for h in halves:
+        h.unlink()
+    m = json.loads((out / "manifest.json").read_text())
+    (out / "manifest.json").write_text(json.dumps({**m, "sha256": {k: v for k, v in m["sha256"].items()
+                                                                   if "-pair-" not in k}}))
+    res = run_main("cycles-validation", out, "--verify", cwd=tmp_path)
+    assert_one_line_error(res, str(halves[0]), "not rendered (run it again)")
+    res = run_main(*args, cwd=tmp_path)
+    assert res.returncode == 0 and "files match" in res.stdout, res.stderr[-3000:]
+    # the same seed: the same render (its header's render time aside; threads may reorder a sum: 1e-5)
+    np.testing.assert_allclose(_pixels(halves[0])["ViewLayer.Combined.R"], combined[0], rtol=1e-5, atol=1e-6)
+    assert set(json.loads((out / "manifest.json").read_text())["sha256"]) >= {h.name for h in halves}
+
+
+def _samples(path):
+    """The samples per pixel Cycles wrote in the frame's header."""
+    import OpenEXR
+
+    header = OpenEXR.File(str(path), header_only=True).header()
+    return int(next(v for k, v in header.items() if k.startswith("cycles.") and k.endswith(".samples")))

@@ -32,8 +32,8 @@ def test_the_study_trains_every_input_set_and_serves_each_renderers_frame_by_its
     pairs = tmp_path / "pairs"
     pairs.mkdir()
     a, b = (cycles_channels(12, 10, seed=1, noise_seed=s) for s in (1, 2))  # two renders of one frame
-    write_channels(pairs / "p-00004spp.exr", a, parts_of(a))
-    write_channels(pairs / "p-00004spp-b.exr", b, parts_of(b))
+    write_channels(pairs / "p-00004spp-pair-a.exr", a, parts_of(a))  # the halves of an 8-spp frame
+    write_channels(pairs / "p-00004spp-pair-b.exr", b, parts_of(b))
     reference = cycles_channels(12, 10, seed=3)
     write_channels(pairs / "p-00256spp.exr", {k: v for k, v in reference.items() if ".Combined." in k})
     cfg = InputsStudyConfig(set_name="s", render_root=full.render_root, shards_root=full.out_root,

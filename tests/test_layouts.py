@@ -119,6 +119,16 @@ def test_mitsuba_without_a_known_spp_is_read_without_variance(tmp_path):
     assert layouts.read(tmp_path / "mi.exr", spp=8).inputs.variance
 
 
+def test_a_half_of_a_pair_has_its_own_spp_from_its_name(tmp_path):
+    # Mitsuba writes no spp: a half's name (catalogue.pair_names, kpcn denoise --pair) gives it, 16 for a 32-spp frame
+    ch = _mitsuba_channels(3, 4, seed=2)
+    half = layouts.read(write_channels(tmp_path / "mi-00016spp-pair-b.exr", ch))
+    whole = layouts.read(write_channels(tmp_path / "mi-00016spp.exr", ch))
+    assert half.spp == whole.spp == 16 and half.inputs.variance
+    np.testing.assert_array_equal(half.layers["colorVariance"], whole.layers["colorVariance"])
+    assert layouts.read(write_channels(tmp_path / "mi-00016spp-pair-c.exr", ch)).spp is None  # no half of ours
+
+
 def test_pbrt_variance_is_per_sample_and_depth_is_the_distance_to_the_camera(tmp_path):
     rng = np.random.default_rng(5)
     ch = {}

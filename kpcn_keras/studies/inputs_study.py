@@ -19,8 +19,9 @@ The contract:
   (``prep.layouts``) and denoised by the run's model for what it has; beside them the raw input, OIDN on the same
   colour + albedo + normal, and, where the folder has it, the renderer's own denoised frame
   (``<scene>-<spp>spp-blender-oidn.exr``: what Blender wrote at render time).
-- **Two renders of half the samples** (``pairs``: folders of ``<scene>-<spp>spp.exr`` with its second render
-  ``<scene>-<spp>spp-b.exr``, another seed, and the scene's reference; ``kpcn_keras.studies.render_blender_pairs``):
+- **Two renders of half the samples** (``pairs``: folders of ``<scene>-<spp>spp-pair-a.exr`` and ``-pair-b.exr``,
+  two seeds, and the scene's reference: ``kpcn cycles-validation``'s folder,
+  ``kpcn_keras.studies.render_blender_pairs``):
   their mean denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), the
   same pixels either way.
 - **Writes** ``<out_dir>/inputs.md`` (the tables, with the date and the machine), ``inputs.json`` (every number)
@@ -31,6 +32,7 @@ The contract:
 from __future__ import annotations
 
 import functools
+import glob
 import time
 from pathlib import Path
 
@@ -167,11 +169,34 @@ def renderers(cfg: InputsStudyConfig, plans: dict, *, log=print) -> tuple[list[d
     return rows, panels
 
 
-PAIR_SUFFIX = "-b.exr"  # <scene>-<spp>spp.exr's second render, another seed (kpcn_keras.studies.render_blender_pairs)
+def pair_files(paths) -> list[tuple[Path, Path, Path]]:
+    """(half a, half b, reference) of every pair of renders under ``paths`` (files or folders): each
+    ``<scene>-<spp>spp-pair-a.exr`` (``catalogue.pair_names``) with its ``-pair-b.exr`` and the scene's render
+    with the most samples, ``<scene>-<spp>spp.exr`` beside it; a half without either is passed over."""
+    from prep.render.cycles import catalogue
+
+    cat, out = catalogue(), []
+    for given in map(Path, paths):
+        for first in sorted(given.rglob("*-pair-a.exr")) if given.is_dir() else [given]:
+            half = cat.pair_half(first.name)
+            if half is None:
+                continue
+            second = first.with_name(cat.pair_names(half[0], half[1])[1])
+            renders = []
+            for p in first.parent.glob(f"{glob.escape(half[0])}-*spp.exr"):
+                try:
+                    scene, spp = exr.parse_render_filename(p)
+                except exr.AOVError:
+                    continue
+                if scene == half[0]:  # not "<scene>-extra-...": another scene's
+                    renders.append((spp, p))
+            if second.exists() and renders and max(renders)[0] > half[1]:
+                out.append((first, second, max(renders)[1]))
+    return out
 
 
 def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
-    """Per pair of renders under ``cfg.pairs`` (``<stem>.exr`` and ``<stem>-b.exr``): the scores of their mean
+    """Per pair of renders under ``cfg.pairs`` (:func:`pair_files`): the scores of their mean
     denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), each by the
     run's model for it, beside the mean's raw scores and OIDN's on it."""
     from kpcn_keras.batch import ReadOptions, read_frame
@@ -179,19 +204,17 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
     from kpcn_keras.serving import Serving
     from prep import baselines
     from prep.exr import VARIANCE_LAYERS
+    from prep.render.cycles import catalogue
 
     serving = Serving(Run(plans["full"]["run"]))
     rows = []
-    for first, ref_path in renderer_pairs(cfg.pairs):
-        second = first.with_name(first.name[: -len(".exr")] + PAIR_SUFFIX)
-        if not second.exists():
-            continue
+    for first, second, ref_path in pair_files(cfg.pairs):
         with_variance = read_frame(first, ReadOptions(pair=second))
         layers = {k: v for k, v in with_variance.layers.items() if k not in VARIANCE_LAYERS}
         without = InputSet(split=with_variance.inputs.split, variance=False)
         ref = layouts.read(ref_path).layers["default"]
-        scene, spp = exr.parse_render_filename(first)
-        row = {"scene": scene, "spp": 2 * spp, "raw": _scores(layers["default"], ref)}
+        scene, spp, _ = catalogue().pair_half(first.name)
+        row = {"scene": scene, "spp": spp, "raw": _scores(layers["default"], ref)}
         for key, frame_layers, inputs in (("without", layers, without), ("pair", with_variance.layers,
                                                                          with_variance.inputs)):
             row[key] = _scores(serving.denoiser(inputs)(frame_layers)["default"], ref)

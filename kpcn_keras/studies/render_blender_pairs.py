@@ -2,10 +2,10 @@
 
 For each scene of the validation set's script (shared/validation/render_blender_validation.py, which builds the
 scenes) and each total spp N of its ladder (4, 16, 64): two renders of N/2 spp with different seeds,
-OUT/<scene>-<N/2>spp.exr and OUT/<scene>-<N/2>spp-b.exr, with every pass of the validation frames (so their
-mean has N spp, as the validation set's own N-spp frame), and the validation set's reference copied beside them
-(OUT/<scene>-<ref>spp.exr), so `kpcn inputs-study --pairs OUT` compares, at the same samples, the mean without
-variance against the mean with the variance of their difference.
+OUT/<scene>-<N/2>spp-pair-a.exr and -pair-b.exr (catalogue.pair_names), with every pass of the validation frames
+(so their mean has N spp, as the validation set's own N-spp frame), and the validation set's reference copied
+beside them (OUT/<scene>-<ref>spp.exr), so `kpcn inputs-study --pairs OUT` compares, at the same samples, the
+mean without variance against the mean with the variance of their difference.
 
 A study's input, not a user's step (the pairs serve only ``kpcn inputs-study --pairs``), so it lives with the
 studies. It runs in Blender's Python (the `bpy` wheel; 5.0.1 wants numpy < 2, so its own venv, the one
@@ -33,13 +33,17 @@ def main():
     sys.path.insert(0, a.validation)
     import render_blender_validation as validation  # noqa: E402  (Blender's scenes; needs bpy)
 
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "prep", "render", "blender"))
+    import catalogue  # noqa: E402  the pairs' names (the standard library alone: this Python has no kpcn)
+
     os.makedirs(a.out, exist_ok=True)
     references = sorted(f for f in os.listdir(os.path.join(a.validation, "blender")) if f.endswith("02048spp.exr"))
     for si, name in enumerate(a.scenes.split(",")):
         for li, total in enumerate(SPPS):
             half = total // 2
-            for suffix, seed in (("", 5000 + 100 * si + 10 * li + 1), ("-b", 5000 + 100 * si + 10 * li + 2)):
-                path = os.path.join(a.out, f"{name}-{half:05d}spp{suffix}.exr")
+            names = catalogue.pair_names(name, total)
+            for file, seed in zip(names, (5000 + 100 * si + 10 * li + 1, 5000 + 100 * si + 10 * li + 2)):
+                path = os.path.join(a.out, file)
                 seconds = validation.render(path, name=name, res=a.res, spp=half, seed=seed, denoise=False,
                                             passes=True)
                 print(f"{path}: {seconds:.1f} s", flush=True)

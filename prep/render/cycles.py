@@ -157,8 +157,9 @@ VALIDATION_SCENES = Bound(1, 999)  # 9 or more cover each of the 9 effect groups
 class ValidationConfig:
     """What ``kpcn cycles-validation`` renders: the held-out Cycles validation set, scenes ``0:scenes`` of the
     catalogue's validation split (drawn apart from every training scene: catalogue.SPLITS), each an input per
-    ``spp`` with every pass, Blender's own denoised frame of each (same seed), and a reference of Combined alone;
-    or, with ``verify``, the check of a folder against its manifest's checksums."""
+    ``spp`` with every pass, Blender's own denoised frame of each (same seed), the input's two halves at half its
+    spp with two other seeds (catalogue.pair_names: every pass), and a reference of Combined alone; or, with
+    ``verify``, the check of a folder against its manifest's checksums."""
 
     out: str
     scenes: int = bounded(12, VALIDATION_SCENES)
@@ -176,6 +177,9 @@ class ValidationConfig:
             raise OptionError("out", "names no folder for the frames")
         if self.ref_spp <= max(self.spp):
             raise OptionError("ref_spp", f"must exceed every --spp, got {self.ref_spp} and {list(self.spp)}")
+        odd = [n for n in self.spp if n % 2]
+        if odd:  # each input is also rendered as two halves of n / 2 samples (catalogue.pair_names)
+            raise OptionError("spp", f"must be even (each input is also rendered in two halves), got {odd}")
 
 
 def validation_command(cfg: ValidationConfig) -> list[str]:

@@ -5,6 +5,7 @@ long it took in ``timings.json`` (the one file that differs between runs). This 
 :class:`RenderSet` names it and its files (for the commands, ``kpcn import-renders`` and the studies alike)::
 
     <set>/<scene>-<spp>spp.exr             every input and reference render
+    <set>/<scene>-<spp/2>spp-pair-{a,b}.exr  with ``pair``: each input's two halves (catalogue.pair_names)
     <set>/config.json                      the config, and once every render is there, every scene and its seeds
     <set>/timings.json                     seconds per render
     <set>/timings.part-<i>-of-<N>.json     a part's seconds (``prep.parts``), until the last part folds them in
@@ -27,7 +28,7 @@ import numpy as np
 
 from prep.bounds import SEED, Bound, bounded, check_fields, is_integer
 from prep.errors import KpcnError, OptionError
-from prep.exr import render_filename, write_aovs
+from prep.exr import SPP_ATTRIBUTE, render_filename, write_aovs
 from prep.files import (
     atomic_path,
     atomic_write_json,
@@ -38,6 +39,7 @@ from prep.files import (
     remove_temporaries,
 )
 from prep.parts import Part
+from prep.render.cycles import catalogue
 from prep.render.families import DEFAULT_FAMILIES, REFERENCE_SPP_FACTOR, check_families, make_scene
 from prep.render.frame import FRAME_SIDE, SPP, check_frame, render
 
@@ -62,6 +64,7 @@ class RenderConfig:
     reference_spp: int = bounded(512, SPP)  # times families.REFERENCE_SPP_FACTOR for the families slow to converge
     seed: int = bounded(0, SEED)
     out_root: str = RENDER_ROOT
+    pair: bool = False  # each input also as two halves of half its spp, two seeds of their own (kpcn denoise --pair)
 
     def __post_init__(self):
         if is_integer(self.input_spp):
@@ -75,6 +78,10 @@ class RenderConfig:
         if not self.input_spp:
             raise OptionError("input_spp", "must name at least one sample count")
         check_fields(self)
+        odd = [n for n in self.input_spp if n % 2 or n < 4]
+        if self.pair and odd:  # a half renders at least 2 spp, as every render (prep.render.frame.SPP)
+            raise OptionError("input_spp", f"with --pair each input renders as two halves of half its samples, "
+                              f"so each must be even and 4 or more, got {odd}")
         if self.reference_spp <= max(self.input_spp):
             raise OptionError("reference_spp", f"must exceed every input_spp (the reference is a scene's render "
                                                f"with the most samples), got {self.reference_spp} and "
@@ -132,10 +139,12 @@ def reference_spp(config: RenderConfig, family: str) -> int:
     return config.reference_spp * REFERENCE_SPP_FACTOR.get(family, 1)
 
 
-def render_seed(seed: int, family: str, index: int, spp: int) -> int:
+def render_seed(seed: int, family: str, index: int, spp: int, half: str = "") -> int:
     """The seed of the ``spp`` render of scene ``index`` of ``family`` in a set with ``seed``: one per
-    sample count, stable, derived by SeedSequence so that no two renders of a set share noise."""
-    ss = np.random.SeedSequence([int(seed), zlib.crc32(family.encode()), int(index), int(spp), 0x52454E44])
+    sample count, stable, derived by SeedSequence so that no two renders of a set share noise; ``half`` "a" or
+    "b": the seed of that half of the ``spp`` input (its own entropy word, 1 or 2: another seed than any frame's)."""
+    words = [int(seed), zlib.crc32(family.encode()), int(index), int(spp), 0x52454E44]
+    ss = np.random.SeedSequence(words + ([" ab".index(half)] if half else []))
     return int(ss.generate_state(1, dtype=np.uint64)[0])
 
 
@@ -155,10 +164,13 @@ class _Render:
     spp: int
     seed: int
     name: str  # the EXR's file name
+    half: str = ""  # "a" or "b": a half of the input of ``2 * spp`` samples (its spp is the half's own)
 
 
 def _renders(config: RenderConfig) -> list[_Render]:
-    """Every render of the set, scene by scene (families x per_family), inputs by sample count, then the reference."""
+    """Every render of the set, scene by scene (families x per_family), inputs by sample count, each followed by
+    its two halves with ``pair``, then the reference."""
+    pair_names = catalogue().pair_names
     out = []
     for fam in config.families:
         for index in range(config.per_family):
@@ -166,6 +178,9 @@ def _renders(config: RenderConfig) -> list[_Render]:
             for spp in sorted(config.input_spp) + [reference_spp(config, fam)]:
                 out.append(_Render(fam, index, spp, render_seed(config.seed, fam, index, spp),
                                    render_filename(name, spp)))
+                if config.pair and spp in config.input_spp:
+                    out += [_Render(fam, index, spp // 2, render_seed(config.seed, fam, index, spp, half), file,
+                                    half) for half, file in zip("ab", pair_names(name, spp))]
     return out
 
 
@@ -279,7 +294,8 @@ def _render_all(config: RenderConfig, out_dir: Path, renders: list[_Render], tim
                     scene = {(r.family, r.index): make_scene(r.family, r.index, config.seed)}
                 t0 = time.perf_counter()
                 layers = render(scene[r.family, r.index], r.spp, r.seed, config.width, config.height)
-                write_aovs(path, layers)
+                # a half's name does not parse as <scene>-<spp>spp.exr: its header states its spp
+                write_aovs(path, layers, attributes={SPP_ATTRIBUTE: r.spp} if r.half else None)
                 times[path.name] = round(time.perf_counter() - t0, 3)
                 atomic_write_json(times_path, times)
             bar.update(1)
@@ -300,6 +316,10 @@ def _finish(config: RenderConfig, out_dir: Path, renders: list[_Render], part: P
             scene = make_scene(r.family, r.index, config.seed)
             meta["scenes"].append({"name": scene.name, "family": r.family, "index": r.index, "seeds": {},
                                    "files": {}, "scene": scene.to_dict()})
+        if r.half:  # under the input's spp, apart from the seeds by spp that reuse_renders reads
+            halves = meta["scenes"][-1].setdefault("pairs", {}).setdefault(str(2 * r.spp), {})
+            halves[r.half] = {"seed": r.seed, "file": r.name}
+            continue
         meta["scenes"][-1]["seeds"][str(r.spp)] = r.seed
         meta["scenes"][-1]["files"][str(r.spp)] = r.name
     atomic_write_json(out_dir / RECORD, meta)

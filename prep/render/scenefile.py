@@ -496,6 +496,41 @@ def dump_scene(scene: Scene, settings: RenderSettings | None = None, format: str
 # kpcn render --scene
 # ------------------------------------------------------------------------------------------------
 
+def half_seeds(seed: int, spp: int) -> tuple[int, int]:
+    """The noise seeds of the two halves of a scene file's ``spp`` frame of noise seed ``seed``: two words of
+    one SeedSequence (its entropy the frame's seed, spp and a tag of its own), neither the frame's own seed."""
+    words = np.random.SeedSequence([int(seed), int(spp), 0x50414952]).generate_state(2, dtype=np.uint64)
+    return tuple(int(w) for w in words)
+
+
+def render_pair(scene_path, scene, settings, read, folder, png: bool) -> dict:
+    """The two halves of the scene file's frame (``catalogue.pair_names``: ``settings.spp / 2`` samples each,
+    stated in the header, seeds :func:`half_seeds`) into ``folder`` (default: beside the scene file), each with
+    a PNG with ``png``. OptionError ``spp`` for an odd spp or one below 4 (a half renders 2 spp or more)."""
+    from prep.exr import SPP_ATTRIBUTE, write_aovs
+    from prep.files import check_outputs, check_writable
+    from prep.render.cycles import catalogue
+
+    if settings.spp % 2 or settings.spp < 4:
+        raise OptionError("spp", f"with --pair the frame renders as two halves of half its samples: it needs an "
+                          f"even spp of 4 or more, got {settings.spp}")
+    folder = Path(folder) if folder is not None else Path(scene_path).parent
+    outputs = [folder / n for n in catalogue().pair_names(Path(scene_path).stem, settings.spp)]
+    pngs = [png_path(o) for o in outputs] if png else []
+    check_outputs(zip(("half a (--out)", "half b (--out)", "PNG preview", "PNG preview"), outputs + pngs), read,
+                  "choose another --out")
+    for path in outputs + pngs:
+        check_writable(path, "output EXR (--out)")
+    report = {"outputs": outputs, "seconds": 0.0, "settings": settings}
+    for path, seed in zip(outputs, half_seeds(settings.seed, settings.spp)):
+        t0 = time.perf_counter()
+        layers = render(scene, **{**dataclasses.asdict(settings), "spp": settings.spp // 2, "seed": seed})
+        report["seconds"] += time.perf_counter() - t0
+        write_aovs(path, layers, attributes={SPP_ATTRIBUTE: settings.spp // 2})
+        if png:
+            _write_png(png_path(path), layers["default"])
+    return report
+
 def default_output(scene_path, spp: int) -> Path:
     """``<scene file stem>-<spp, 5 digits>spp.exr`` beside the scene file."""
     from prep.exr import render_filename
@@ -522,7 +557,8 @@ def _write_png(path: Path, colour: np.ndarray) -> None:
         matplotlib.image.imsave(tmp, pixels, format="png")
 
 
-def render_scene_file(scene_path, output=None, *, overrides: dict | None = None, png: bool = True) -> dict:
+def render_scene_file(scene_path, output=None, *, overrides: dict | None = None, png: bool = True,
+                      pair: bool = False) -> dict:
     """Render a scene file to one EXR in the AOV layout (``prep.exr.write_aovs``) and, with ``png``, a
     tonemapped PNG beside it. ``overrides`` (``spp``, ``seed``, ``width``, ... as given on the command
     line) replace the file's ``[render]`` values. The outputs are checked before rendering; an output that
@@ -531,6 +567,8 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
 
     A render setting out of range raises OptionError when it came from ``overrides`` (the command line
     names the flag) and SceneFileError naming ``render.<key>`` when it came from the file.
+
+    ``pair``: the frame's two halves instead (:func:`render_pair`; ``output``, their folder).
     """
     from prep.exr import write_aovs
     from prep.files import check_outputs, check_writable
@@ -544,6 +582,8 @@ def render_scene_file(scene_path, output=None, *, overrides: dict | None = None,
     if "seed" in overrides:  # an option's seed, in the project's one range; a file's is the noise seed itself
         SEED.check("seed", overrides["seed"])
     settings = dataclasses.replace(settings, **overrides)
+    if pair:
+        return render_pair(scene_path, scene, settings, read, output, png)
     output = Path(output) if output is not None else default_output(scene_path, settings.spp)
     outputs = [output] + ([png_path(output)] if png else [])
     check_outputs(zip(("output EXR (--out)", "PNG preview"), outputs), read, "choose another --out")

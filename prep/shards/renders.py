@@ -17,6 +17,7 @@ from pathlib import Path
 from prep import exr
 from prep.errors import OptionError
 from prep.files import sha256_file
+from prep.render.cycles import catalogue
 from prep.shards.config import PATCH_SIZE, ShardConfig
 from prep.shards.format import ShardError
 from prep.shards.patches import noisy_variances
@@ -35,13 +36,14 @@ def discover_renders(render_dir: Path, input_spp: int | None = None, leave_out=(
 
     Within a scene the file with the most samples is the reference; ``input_spp`` keeps only inputs of
     that sample count; the scenes named in ``leave_out`` are not looked at. Dot-files (temporaries) are
-    ignored. Errors name the folder or the scene.
+    ignored, and so are the halves of a pair (``kpcn render --pair``: their mean is an input, not either one).
+    Errors name the folder or the scene.
     """
     if not render_dir.is_dir():
         raise ShardError(f"{render_dir}: no such render folder (run 'kpcn render' first)")
     by_scene: dict[str, list[Source]] = defaultdict(list)
     for path in sorted(render_dir.glob("*.exr")):
-        if path.name.startswith("."):
+        if path.name.startswith(".") or catalogue().pair_half(path.name):  # a half of a pair: no shard input
             continue
         scene, spp = exr.parse_render_filename(path)
         if scene in leave_out:

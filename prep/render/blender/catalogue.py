@@ -22,6 +22,7 @@ import json
 import math
 import os
 import random
+import re
 from collections import namedtuple
 
 Effect = namedtuple("Effect", "name group weight builds")
@@ -449,13 +450,40 @@ def denoised_name(scene: str, spp: int) -> str:
     return f"{scene}-{spp:05d}spp-blender-oidn.exr"
 
 
+def pair_names(scene: str, spp: int) -> tuple:
+    """The two halves of ``frame_name(scene, spp)``: two renders of the frame with different seeds, each of
+    ``spp / 2`` samples (its own spp, in its name as in its header), whose mean has ``spp`` samples, as
+    ``kpcn denoise A --pair B`` takes them: ``<scene>-<spp/2, 5 digits>spp-pair-a.exr`` and ``...-pair-b.exr``.
+    Every renderer's pairs are named here (kpcn's tracer, Cycles, the docs' Mitsuba recipe). ValueError for an
+    odd ``spp`` (no two equal halves)."""
+    if spp < 2 or spp % 2:
+        raise ValueError(f"{spp} spp has no two equal halves (an even count of samples, 2 or more)")
+    return tuple(f"{scene}-{spp // 2:05d}spp-pair-{half}.exr" for half in "ab")
+
+
+def half_seeds(seed: int) -> tuple:
+    """Cycles' seeds of the two halves of a frame rendered with ``seed``: 2**28 and 2**29 above it (mod 2**31),
+    so each is other than the other's and than the frame's own."""
+    return tuple((seed + k * 2**28) % 2**31 for k in (1, 2))
+
+
+_HALF = re.compile(r"^(?P<scene>.+)-(?P<spp>\d{5,})spp-pair-(?P<half>[ab])\.exr$")
+
+
+def pair_half(name: str):
+    """(scene, spp of the whole frame, "a" or "b") of a file name :func:`pair_names` gives; None for any other."""
+    m = _HALF.match(name)
+    return None if m is None else (m["scene"], 2 * int(m["spp"]), m["half"])
+
+
 def planned_files(recipe) -> list:
     """The frames a recipe plans: one per ``frames`` entry, and for a validation scene Blender's denoised frame
-    of each input (every entry but the last, the reference)."""
+    of each input (every entry but the last, the reference) and the input's two halves (:func:`pair_names`)."""
     spps = recipe.get("frames", [])
     names = [frame_name(recipe["name"], spp) for spp in spps]
     if recipe.get("split") == VALIDATION.name:
         names += [denoised_name(recipe["name"], spp) for spp in spps[:-1]]
+        names += [n for spp in spps[:-1] for n in pair_names(recipe["name"], spp)]
     return names
 
 

@@ -372,12 +372,24 @@ def setup(recipe, spp, seed, factor, denoise=False, passes=True):
         c.denoising_prefilter = "ACCURATE"
     scene.render.resolution_x = scene.render.resolution_y = recipe["res"]
     scene.render.resolution_percentage = 100
-    vl = scene.view_layers[0]
+    use_passes(scene.view_layers[0], passes)
+    multilayer_exr(scene)
+    return scene
+
+
+def use_passes(vl, passes=True):
+    """View layer ``vl`` with every pass kpcn reads (:data:`PASSES`, the volume passes, Denoising Data), or
+    (``passes`` False) Combined alone: the one place the passes are turned on, for the training and validation
+    frames as for a user's .blend (``blend_pair.py``)."""
     for p in PASSES if passes else ("combined",):
         setattr(vl, "use_pass_" + p, True)
     vl.cycles.use_pass_volume_direct = passes  # media scenes: what the fog scatters, direct and indirect
     vl.cycles.use_pass_volume_indirect = passes
     vl.cycles.denoising_store_passes = passes
+
+
+def multilayer_exr(scene):
+    """The scene's output: one 32-bit multilayer OpenEXR (ZIP) a frame, its colours as rendered (Standard)."""
     im = scene.render.image_settings
     if hasattr(im, "media_type"):
         im.media_type = "MULTI_LAYER_IMAGE"
@@ -385,7 +397,6 @@ def setup(recipe, spp, seed, factor, denoise=False, passes=True):
     im.color_depth = "32"
     im.exr_codec = "ZIP"
     scene.view_settings.view_transform = "Standard"
-    return scene
 
 
 def arguments(argv):
@@ -417,15 +428,27 @@ def cycles_seed(a, index, li):
     return (100 * index + li + 1 + 1_000_003 * a.seed + offset) % 2**31
 
 
+def pair_seeds(a, index, li):
+    """Cycles' seeds of the two halves of frame ``li`` of scene ``index`` (catalogue.half_seeds of its seed; no
+    other frame's either while 1_000_003 * --seed + 100 * index stays under 2**28), so the halves' noise is
+    independent of each other and of the input beside them."""
+    return catalogue.half_seeds(cycles_seed(a, index, li))
+
+
 def planned_renders(a, recipe, spps):
-    """(file name, spp, frame number, denoise, passes) of every frame of a scene: the inputs with every pass;
-    the reference, of a validation scene Combined alone; Blender's denoised frame of each validation input."""
+    """(file name, spp, Cycles seed, denoise, passes) of every frame of a scene: the inputs with every pass;
+    the reference, of a validation scene Combined alone; of each validation input, Blender's denoised frame (the
+    input's seed: its noise) and the input's two halves at half its spp (every pass, two seeds of their own)."""
     valid = a.split == catalogue.VALIDATION.name
     out = []
     for li, spp in enumerate(spps):
-        out.append((catalogue.frame_name(recipe["name"], spp), spp, li, False, not (valid and li == len(spps) - 1)))
+        seed = cycles_seed(a, recipe["index"], li)
+        out.append((catalogue.frame_name(recipe["name"], spp), spp, seed, False,
+                    not (valid and li == len(spps) - 1)))
         if valid and li < len(spps) - 1:  # the same seed as the input beside it: the same noise, denoised
-            out.append((catalogue.denoised_name(recipe["name"], spp), spp, li, True, False))
+            out.append((catalogue.denoised_name(recipe["name"], spp), spp, seed, True, False))
+            for name, half_seed in zip(catalogue.pair_names(recipe["name"], spp), pair_seeds(a, recipe["index"], li)):
+                out.append((name, spp // 2, half_seed, False, True))
     return out
 
 
@@ -443,13 +466,13 @@ def render_scene(a, index, log):
                 sys.exit(f"{path}: records another scene than --seed {a.seed} --res {a.res} draws; use another OUT")
     write_json(path, recipe)
     factor, written = None, []
-    for name, spp, li, denoise, passes in planned_renders(a, recipe, spps):
+    for name, spp, seed, denoise, passes in planned_renders(a, recipe, spps):
         if os.path.exists(os.path.join(a.out, name)):
             continue
         t, cpu = time.perf_counter(), time.process_time()
         if factor is None:
             factor = exposure(recipe)
-        scene = setup(recipe, spp, cycles_seed(a, index, li), factor, denoise, passes)
+        scene = setup(recipe, spp, seed, factor, denoise, passes)
         scene.render.filepath = os.path.join(a.out, "." + name)
         bpy.ops.render.render(write_still=True)
         os.replace(scene.render.filepath, os.path.join(a.out, name))
