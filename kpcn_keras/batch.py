@@ -374,13 +374,12 @@ def adapt_to_halves(denoiser: Denoiser, input_path, reading: ReadOptions, settin
     return (denoiser if adapter.post is None else Corrected(denoiser, adapter.post)), outcome
 
 
-PAIR_SUFFIXES = ("-pair-a.exr", "-pair-b.exr")  # a folder's pairs: <scene>-<spp>spp-pair-a.exr and -pair-b.exr
-
-
 def shot_pairs(frames, second_renders=None) -> list[tuple[Path, Path]]:
     """(A, B) of each frame of a shot: ``frames`` files with ``second_renders`` the second render of each, in order,
-    or folders of pairs named by :data:`PAIR_SUFFIXES` (``second_renders`` None). OptionError naming what does not
-    pair."""
+    or folders of pairs named as ``prep.render.blender.catalogue.pair_names`` names them (``second_renders`` None).
+    OptionError naming what does not pair."""
+    from prep.render.blender.catalogue import pair_half, pair_names
+
     frames = [Path(f) for f in frames]
     if second_renders:
         if len(second_renders) != len(frames):
@@ -391,13 +390,17 @@ def shot_pairs(frames, second_renders=None) -> list[tuple[Path, Path]]:
         if not folder.is_dir():
             raise OptionError("pairs", f"{folder} is a file: give the second render of each frame with --pairs, "
                               "or a folder of *-pair-a.exr and *-pair-b.exr")
-        for a in sorted(folder.glob(f"*{PAIR_SUFFIXES[0]}")):
-            b = a.with_name(a.name[: -len(PAIR_SUFFIXES[0])] + PAIR_SUFFIXES[1])
+        for a in sorted(folder.iterdir()):
+            half = pair_half(a.name)
+            if half is None or half[2] != "a":
+                continue
+            b = a.with_name(pair_names(half[0], half[1])[1])
             if not b.is_file():
                 raise OptionError("pairs", f"{a} has no second half {b.name} beside it")
             out.append((a, b))
         if not out:
-            raise OptionError("pairs", f"{folder} holds no *{PAIR_SUFFIXES[0]} renders")
+            raise OptionError("pairs", f"{folder} holds no pair of renders (<scene>-<spp>spp-pair-a.exr and "
+                              "-pair-b.exr)")
     return out
 
 
