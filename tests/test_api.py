@@ -254,3 +254,18 @@ def test_a_pair_or_adapt_it_cannot_take_is_one_line_naming_it(halves_files):
         with pytest.raises(kpcn.KpcnError) as err:
             kpcn.denoise(**kw, run=MODEL)
         _one_line(err, *words)
+
+
+def test_halves_without_depth_adapt_to_a_finite_frame_and_the_guide_s_depth_is_over_the_largest(halves_files):
+    from kpcn_keras.adapt import _candidates, _guide
+    from kpcn_keras.settings import AdaptSettings
+    from prep import features
+
+    fa, fb = (kpcn.read(p) for p in halves_files)
+    outcomes = []
+    out = kpcn.denoise(fa.layers["default"], pair=fb.layers["default"], run=MODEL, on_outcome=outcomes.append,
+                       adapt=AdaptSettings(steps=10, seed=1))  # no depth: filled 0, as the rgb layout fills it
+    assert np.isfinite(out).all() and np.isfinite([outcomes[0].initial, outcomes[0].best]).all()
+    depth = fa.layers["depth"]
+    guide = _guide(_candidates(fa.layers["default"]), fa.layers, (0, PAIR_H, 0, PAIR_W), features.depth_scale(depth))
+    np.testing.assert_allclose(guide[..., -1], depth.astype(np.float64) / depth.astype(np.float64).max(), rtol=1e-6)
