@@ -107,12 +107,14 @@ def _candidates(colour: np.ndarray) -> np.ndarray:
 
 def _guide(candidates: np.ndarray, layers: dict, window, scale: float) -> np.ndarray:
     """(h, w, GUIDE_CHANNELS) float32 guide of ``window`` (y0, y1, x0, x1) of the frame ``layers``: the candidates'
-    log colour, the noisy log colour, the albedo, the normal and the depth over the frame's depth ``scale``."""
+    log colour, the noisy log colour, the albedo, the normal and the depth times ``scale``
+    (``prep.features.depth_scale``: 1 / the frame's largest depth, 0 where it has none), in [0, 1] as the
+    features' depth is."""
     ya, yb, xa, xb = window
     cut = np.s_[ya:yb, xa:xb]
     parts = [np.log1p(np.maximum(c, 0.0)) for c in candidates]
     parts += [np.log1p(np.maximum(layers["default"][cut], 0.0)), np.clip(layers["albedo"][cut], 0.0, 1.0),
-              layers["normal"][cut], (layers["depth"][cut] / scale)[..., None]]
+              layers["normal"][cut], (layers["depth"][cut] * scale)[..., None]]
     return np.concatenate(parts, -1).astype(np.float32)
 
 

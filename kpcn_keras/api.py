@@ -11,7 +11,9 @@ serving object, and the denoisers it loaded, are kept for the next call with the
 the run's record changes: a run trained again is loaded again). As a file's layers are, the arrays are repaired by
 ``prep.exr``'s rule for non-finite values, with its warning; an argument that is not an array of real numbers of
 the right shape is an :class:`~prep.errors.ArrayError` naming it, and a frame this machine cannot hold is refused
-by the command's memory check before any array is copied.
+by the command's memory check before any array is copied. ``pair=`` (a second render of the frame) and ``adapt=``
+(seconds of adapting to the two halves first) do what ``kpcn denoise --pair B [--adapt S]`` does, through the same
+functions (:func:`denoise`).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from kpcn_keras.settings import InferenceSettings
-from prep.errors import ArrayError, KpcnError
+from prep.errors import ArrayError, KpcnError, OptionError
 from prep.exr import VARIANCE_LAYERS, repair_layers, repair_note
 from prep.inputs import InputSet
 from prep.layouts import FILL, Frame
@@ -136,7 +138,8 @@ def _serving(run_dir: str, settings: InferenceSettings, stamp: float):
 
 def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffuse=None, specular=None,
             run: str | os.PathLike | None = None, settings: InferenceSettings = InferenceSettings(),
-            slope: float | None = None, quality: str | None = None) -> np.ndarray:
+            slope: float | None = None, quality: str | None = None, pair=None, adapt=None, on_adapt=None,
+            on_outcome=None) -> np.ndarray:
     """The denoised colour, (H, W, 3) float32, of ``color`` ((H, W, 3), linear, or (H, W, 4) with alpha), with the
     auxiliary buffers given (module docstring), or of ``color`` a frame of ``kpcn.read`` with every layer it has,
     by the model of ``run`` (a run folder of ``kpcn train``; default: the shipped model, ``run.default_model``)
@@ -145,18 +148,107 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
     a self-ensemble's members where more than 1, that many times the time, and the quality mode;
     ``kpcn_keras.settings``).
     ``quality`` (``"fast"``, ``"balanced"`` or ``"high"``), where given, is that of ``settings``: the model's network
-    set for that mode, a KpcnError naming the modes it has where it lacks it."""
+    set for that mode, a KpcnError naming the modes it has where it lacks it.
+
+    ``pair``: a second render of the frame with another seed, given as the frame is (a ``kpcn.read`` frame beside
+    one; beside arrays, a dict of this function's array arguments, ``color`` and whichever others, or the second
+    colour alone, whose albedo, normal and depth are then the frame's), checked as ``kpcn denoise --pair`` checks
+    a file (``prep.pairs.check_colours``). Without ``adapt`` the two are denoised as one frame whose variance comes
+    from their difference (``kpcn denoise A --pair B``); with ``adapt`` (seconds, or a
+    ``kpcn_keras.settings.AdaptSettings`` for steps and seed) the model first adapts to the two halves, then
+    denoises their mean (``kpcn denoise A --pair B --adapt``, by the same functions: ``batch.join_pair``,
+    ``batch.adapt_to_layers``). ``on_adapt(step, loss, seconds)`` is the adaptation's progress, ``on_outcome`` is
+    handed what it decided (``kpcn_keras.adapt.Outcome``: ``kept``, ``line()``...), which is also logged at INFO
+    on the ``kpcn`` logger."""
+    from kpcn_keras.batch import adapt_to_layers, join_pair
+
     if quality is not None:
         settings = dataclasses.replace(settings, quality=quality)  # checked there, as the command line's
+    adapt = _adapt_settings(adapt, pair)
     if run is None:
         from kpcn_keras.run import default_model
 
         run = default_model().dir
-    if isinstance(color, Frame):  # kpcn.read's frame, as it was read
-        frame = color
-    else:
-        frame = frame_from_arrays(color, albedo, normal, depth, variance, diffuse=diffuse, specular=specular)
+    arrays = dict(albedo=albedo, normal=normal, depth=depth, variance=variance, diffuse=diffuse, specular=specular)
+    frame = _frame(color, arrays)
+    halves = None
+    if pair is not None:
+        other = _pair_frame(pair, frame, color, arrays)
+        halves = (frame.layers, other.layers)
+        frame = join_pair(frame, other, _names(frame, other), halves=adapt is not None)
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
     denoiser = _serving(str(Path(run).resolve()), settings, stamp).denoiser(frame.inputs)
+    if adapt is not None:
+        denoiser, outcome = adapt_to_layers(denoiser, *halves, adapt, on_adapt)
+        del halves
+        log.info("%s: %s", WHERE, outcome.line())
+        if on_outcome is not None:
+            on_outcome(outcome)
     return denoiser(frame.layers, slope=slope)["default"]
+
+
+def _frame(color, arrays: dict) -> Frame:
+    """``color`` as :func:`denoise` takes it: a ``kpcn.read`` frame as it was read, or arrays
+    (:func:`frame_from_arrays`)."""
+    if isinstance(color, Frame):  # kpcn.read's frame, as it was read
+        return color
+    return frame_from_arrays(color, **arrays)
+
+
+def _adapt_settings(adapt, pair):
+    """``adapt`` as ``AdaptSettings`` (None where not given); KpcnError naming ``adapt`` for anything else, or for
+    an adaptation without a ``pair``."""
+    from kpcn_keras.settings import AdaptSettings
+
+    if adapt is None:
+        return None
+    if pair is None:
+        raise OptionError("adapt", "needs pair=: a second render of the frame with another seed (each of the two at "
+                          "half the samples)")
+    if isinstance(adapt, AdaptSettings):
+        return adapt
+    if isinstance(adapt, bool) or not isinstance(adapt, numbers.Real):
+        raise OptionError("adapt", f"must be seconds (a number) or an AdaptSettings, got {type(adapt).__name__}")
+    try:
+        return AdaptSettings(seconds=float(adapt))
+    except OptionError as exc:
+        raise OptionError("adapt", exc.detail) from None
+
+
+def _pair_frame(pair, frame: Frame, color, arrays: dict) -> Frame:
+    """The second render ``pair`` as a frame (:func:`denoise`'s docstring), after refusing in one line one not given
+    as the frame is, of another size or inputs, or not a second render of it (``prep.pairs.check_colours``)."""
+    from prep import pairs
+
+    if isinstance(color, Frame) != isinstance(pair, Frame):
+        raise ArrayError("pair must be given as the frame is: " + ("a kpcn.read frame beside one" if
+                         isinstance(color, Frame) else "arrays (a dict of color, albedo... or a colour array) "
+                                                          f"beside arrays, not a {type(pair).__name__}"))
+    if isinstance(pair, Frame):
+        other = pair
+    elif isinstance(pair, dict):
+        unknown = sorted(set(pair) - {"color", *arrays})
+        if unknown or "color" not in pair:
+            raise ArrayError(f"pair's dict takes color (required), {', '.join(arrays)}; got {', '.join(sorted(pair))}")
+        other = frame_from_arrays(**pair)
+    else:
+        other = frame_from_arrays(pair, albedo=arrays["albedo"], normal=arrays["normal"], depth=arrays["depth"])
+    if other.size != frame.size:
+        raise ArrayError(f"pair is {other.size[1]}x{other.size[0]}, the frame {frame.size[1]}x{frame.size[0]}: a "
+                         "second render of the frame has its size")
+    if other.inputs != frame.inputs:
+        raise ArrayError(f"pair gives {other.inputs.name}, the frame {frame.inputs.name}: give the second render "
+                         "the layers the first has (a variance, a diffuse/specular split)")
+    if frame.spp and other.spp and frame.spp != other.spp:
+        raise ArrayError(f"pair has {other.spp} spp, the frame {frame.spp}: the two halves have the same samples")
+    names = _names(frame, other)
+    pairs.check_colours(names[0], frame.layers["default"], names[1], other.layers["default"])
+    return other
+
+
+def _names(frame: Frame, other: Frame) -> tuple[str, str]:
+    """What the two renders are called in a message: their files, or the arguments they came from."""
+    if frame.path == other.path == Path("<arrays>"):
+        return "color", "pair"
+    return str(frame.path), str(other.path)

@@ -227,15 +227,23 @@ def read_frame(input_path, reading: ReadOptions = ReadOptions()) -> layouts.Fram
     if reading.pair is None:
         return reading.read(input_path)
     frame, other = read_halves(input_path, reading)
+    return join_pair(frame, other, (input_path, reading.pair), halves=reading.halves)
+
+
+def join_pair(frame: layouts.Frame, other: layouts.Frame, names, *, halves: bool) -> layouts.Frame:
+    """Two renders of one frame (another seed each; ``names``: what to call the two in its notes) as the one frame
+    denoised: their mean with each one's own variance (``prep.inputs.mean_layers``) where ``halves`` (the halves a
+    model adapts on), else their mean with the variance of their difference (``prep.inputs.pair_layers``). Files
+    (:func:`read_frame`) and arrays (``kpcn.denoise(..., pair=)``) are joined by this one function."""
     spp = frame.spp + other.spp if frame.spp and other.spp else None
     alpha = frame.alpha if frame.alpha is None or other.alpha is None else exr.to_float32(
         (np.asarray(frame.alpha, np.float64) + other.alpha) / 2)
-    if reading.halves:
+    if halves:
         return dataclasses.replace(frame, layers=mean_layers(frame.layers, other.layers), alpha=alpha, spp=spp,
-                                   notes=frame.notes + (f"the mean of the halves {input_path} + {reading.pair}",))
+                                   notes=frame.notes + (f"the mean of the halves {names[0]} + {names[1]}",))
     return dataclasses.replace(frame, layers=pair_layers(frame.layers, other.layers),
                                inputs=InputSet(split=frame.inputs.split, variance=True), alpha=alpha, spp=spp,
-                               notes=frame.notes + (f"variance from the pair {input_path} + {reading.pair}",))
+                               notes=frame.notes + (f"variance from the pair {names[0]} + {names[1]}",))
 
 
 def read_halves(input_path, reading: ReadOptions) -> tuple[layouts.Frame, layouts.Frame]:
@@ -365,11 +373,16 @@ def adapt_to_halves(denoiser: Denoiser, input_path, reading: ReadOptions, settin
     """``(denoiser, outcome)``: ``denoiser`` followed by a post-correction adapted to the frame ``input_path`` and
     ``reading.pair``, two independent renders of it (``kpcn_keras.adapt``; :func:`read_halves`' checks first), or
     ``denoiser`` itself where the guard refused it, and what the adaptation decided (``Outcome``)."""
+    a, b = read_halves(input_path, reading)
+    return adapt_to_layers(denoiser, a.layers, b.layers, settings, progress)
+
+
+def adapt_to_layers(denoiser: Denoiser, a: dict, b: dict, settings: AdaptSettings, progress=None):
+    """:func:`adapt_to_halves` of a frame's two halves given as their layers ``a`` and ``b`` (checked already): the
+    one function files, arrays (``kpcn.denoise(..., pair=, adapt=)``) and ``kpcn view`` adapt by."""
     from kpcn_keras.adapt import Adapter, Corrected
 
-    a, b = read_halves(input_path, reading)
-    adapter = Adapter(denoiser, [(a.layers, b.layers)], settings)
-    del a, b  # the adapter keeps its crops alone
+    adapter = Adapter(denoiser, [(a, b)], settings)  # from here the adapter needs only its crops
     outcome = adapter.run(progress)
     return (denoiser if adapter.post is None else Corrected(denoiser, adapter.post)), outcome
 

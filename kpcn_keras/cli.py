@@ -296,8 +296,9 @@ def cmd_view(args) -> int:
     settings = inference_settings(args)
     httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
     try:
-        session = ViewSession.open(args.frame, _model(args), args.reference,
-                                   reading=ReadOptions(layout=args.layout, view_layer=args.view_layer),
+        reading = ReadOptions(layout=args.layout, view_layer=args.view_layer, pair=args.pair,
+                              halves=args.pair is not None)
+        session = ViewSession.open(args.frame, _model(args), args.reference, reading=reading,
                                    slope=getattr(args, "slope", None), settings=settings)
     except BaseException:
         httpd.server_close()

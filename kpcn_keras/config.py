@@ -120,6 +120,7 @@ ALBEDO_NETWORK = "albedo"  # the phase, component and model name of a run's albe
 PIXEL = Bound(0, FRAME_SIDE.high - 1)  # y or x of a pixel (figures --pixel)
 PORT = Bound(0, 65535)  # kpcn view --port; 0 takes a free one
 VIEW_HOST, VIEW_PORT = "127.0.0.1", 8765  # kpcn view's page is for the person at this machine: nothing else reaches it
+VIEW_ADAPT_SECONDS = 30.0  # the seconds kpcn view's adapt field starts at (kpcn denoise --adapt has no default)
 
 
 def check_kernel_size(k) -> int:

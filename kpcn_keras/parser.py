@@ -578,6 +578,9 @@ def _view_options(add) -> None:
     v.add_argument("frame", help="an EXR in any layout kpcn denoise reads")
     _run_option(v, help=f"a finished run folder or shipped model (default: as kpcn denoise, models/{DEFAULT_MODEL})")
     v.add_argument("--reference", default=None, help="the frame's reference EXR, a view of the page")
+    v.add_argument("--pair", default=None, metavar="B.exr", help="a second render of the frame with another seed, "
+                   "each at half the samples: the page shows their mean, and its adapt action adapts the model to "
+                   "the two halves (docs/adapt.md)")
     v.add_argument("--slope", type=float, help="λ to start from (everywhere), for a run trained with λ as an "
                    "input (default: the run's validation λ)")
     v.add_argument("--port", type=int, help=f"port on {VIEW_HOST} (default: {VIEW_PORT}; 0 takes a free one)")

@@ -20,7 +20,12 @@ three files of ``kpcn_keras/view/``, nothing fetched from elsewhere, so it works
 - ``POST /api/stroke?y0=&y1=&x0=&x1=``: the body is the map's new λ in that rectangle, float32 row-major; the
   answer is the rectangle's denoised RGB (as a view), the seconds it took in ``X-Seconds``;
 - ``GET /api/map.png``: the map as a 16-bit greyscale PNG over the run's λ range (what ``kpcn denoise
-  --slope-map`` reads back: ``slope_map.png_bytes``).
+  --slope-map`` reads back: ``slope_map.png_bytes``);
+- with ``--pair`` (the frame's second render: the page shows the two halves' mean, ``batch.join_pair``):
+  ``POST /api/adapt?seconds=`` (or ``steps=&seed=``) starts adapting the model to the two halves in the background
+  (``kpcn_keras.view_adapt``; 202 and its status, 409 while one runs), ``GET /api/adapt`` is its status (state, step,
+  loss, seconds, and once done what the guard decided), which the page polls; once done the ``adapted`` view is the
+  mean denoised by the adapted model (``kpcn denoise A --pair B --adapt``'s output).
 
 A request the session cannot take (a rectangle outside the frame, λ outside the run's range, a body of
 the wrong length, a brush on a run without the module) is answered 400 or 409 with a one-line message; a
@@ -48,31 +53,35 @@ from urllib.parse import parse_qs, urlsplit
 import numpy as np
 
 from kpcn_keras import slope_map
-from kpcn_keras.batch import ReadOptions, read_frame, read_reference
-from kpcn_keras.config import VIEW_HOST, VIEW_PORT
+from kpcn_keras.batch import ReadOptions, join_pair, read_frame, read_halves, read_reference
+from kpcn_keras.config import VIEW_ADAPT_SECONDS, VIEW_HOST, VIEW_PORT
 from kpcn_keras.denoise import Denoiser, check_region
 from kpcn_keras.run import Run
 from kpcn_keras.serving import Serving
 from kpcn_keras.settings import InferenceSettings
+from kpcn_keras.view_adapt import Adaptation, settings_of
 from prep import layouts
 from prep.errors import KpcnError, OptionError
 
 PAGE_DIR = Path(__file__).with_name("view")
 PAGE_FILES = {"/": ("index.html", "text/html"), "/view.js": ("view.js", "text/javascript"),
               "/view.css": ("view.css", "text/css")}
-VIEWS = ("input", "denoised", "reference", "oidn")  # in the page's order
+VIEWS = ("input", "denoised", "adapted", "reference", "oidn")  # in the page's order ("adapted": with a pair alone)
 STOP_SECONDS = 30.0  # how long a stop waits for the stroke being painted
 DROP_SECONDS, DROP_BYTES = 1.0, 1 << 20  # how much of a refused body is read and dropped before closing
-VIEW_LABELS = {"input": "noisy input", "denoised": "kpcn", "reference": "reference", "oidn": "OIDN"}
+VIEW_LABELS = {"input": "noisy input", "denoised": "kpcn", "adapted": "kpcn adapted", "reference": "reference",
+               "oidn": "OIDN"}
 
 
 class ViewSession:
     """One frame, the denoiser that serves it and the views of the page; :meth:`stroke` paints λ (the module
     docstring). :meth:`open` reads them from files; ``slope`` is λ to start from, everywhere (default: the
-    run's validation λ); ``log(message)`` tells the console what is being computed."""
+    run's validation λ); ``log(message)`` tells the console what is being computed. ``halves``: the layers of the
+    two renders ``frame`` is the mean of (``--pair``), which the page's adapt action adapts to
+    (:attr:`adaptation`, ``kpcn_keras.view_adapt``; None without)."""
 
     def __init__(self, frame: layouts.Frame, denoiser: Denoiser, reference: np.ndarray | None = None, *,
-                 slope: float | None = None, log=print):
+                 slope: float | None = None, log=print, halves: tuple[dict, dict] | None = None):
         # the mode's run folder, and the mode: what the page's status line says serves it
         self.path, self.shape = frame.path, frame.size
         self.model = f"{denoiser.run.dir} ({denoiser.settings.quality} quality)"
@@ -121,6 +130,7 @@ class ViewSession:
         else:
             self.missing["oidn"] = "pyoidn is not installed (pip install '.[oidn]')"
         self.views = {name: np.ascontiguousarray(view, "<f4") for name, view in self.views.items()}
+        self.adaptation = None if halves is None else Adaptation(denoiser, halves, frame.layers, slope=slope, log=log)
         log(f"ready in {time.perf_counter() - begin:.1f} s")
 
     @classmethod
@@ -128,24 +138,42 @@ class ViewSession:
              slope: float | None = None, settings: InferenceSettings = InferenceSettings(), log=print) -> ViewSession:
         """The session of the frame in ``frame_path`` (read by ``reading``: its layout, found from its channels
         by default, and view layer), the model ``run``'s variant that serves it (``Serving.variant``), applied
-        with ``settings``, and the ``reference`` EXR if given."""
-        frame = read_frame(frame_path, reading)
+        with ``settings``, and the ``reference`` EXR if given. With ``reading.pair`` the frame is the mean of the
+        two halves (``batch.join_pair``, each its own variance) and the page can adapt to them."""
+        halves = None
+        if reading.pair is None:
+            frame = read_frame(frame_path, reading)
+        else:
+            a, b = read_halves(frame_path, reading)
+            frame, halves = join_pair(a, b, (frame_path, reading.pair), halves=True), (a.layers, b.layers)
         ref = None if reference is None else read_reference(reference, frame_path, frame.size, reading)
-        return cls(frame, Serving(run, settings).denoiser(frame.inputs), ref, slope=slope, log=log)
+        return cls(frame, Serving(run, settings).denoiser(frame.inputs), ref, slope=slope, log=log, halves=halves)
 
     def info(self) -> dict:
         h, w = self.shape
         brush = None
         if self.prepared is not None:
             brush = {"range": list(self.slope_range), "slope": self.slope}
-        return {"name": self.path.name, "width": w, "height": h, "model": self.model,
-                "views": [{"name": v, "label": VIEW_LABELS[v], "available": v in self.views,
-                           **({"missing": self.missing[v]} if v in self.missing else {})} for v in VIEWS],
-                "brush": brush, "brush_note": self.brush_note}
+        adapted = self.adaptation is not None and self.adaptation.view_bytes() is not None
+        views = [{"name": v, "label": VIEW_LABELS[v], "available": v in self.views or (v == "adapted" and adapted),
+                  **({"missing": self.missing[v]} if v in self.missing else {})}
+                 for v in VIEWS if v != "adapted" or self.adaptation is not None]
+        for view in views:
+            if view["name"] == "adapted" and not adapted:
+                view["missing"] = "not adapted yet: press adapt"
+        adapt = None if self.adaptation is None else {"seconds": VIEW_ADAPT_SECONDS}
+        return {"name": self.path.name, "width": w, "height": h, "model": self.model, "views": views,
+                "brush": brush, "brush_note": self.brush_note, "adapt": adapt,
+                "adapt_note": None if adapt else "no --pair given: adapting needs a second render of the frame"}
 
     def view_bytes(self, name: str) -> bytes:
         if name not in VIEWS:
             raise OptionError("view", f"must be one of {', '.join(VIEWS)}, got {name!r}")
+        if name == "adapted":
+            data = self._adaptation().view_bytes()
+            if data is None:
+                raise KpcnError("view adapted is not available: not adapted yet (POST /api/adapt)")
+            return data
         if name not in self.views:
             raise OptionError("view", f"{name} is not available: {self.missing[name]}")
         with self.lock:
@@ -177,10 +205,26 @@ class ViewSession:
             self.views["denoised"][y0:y1, x0:x1] = rgb
             return np.ascontiguousarray(rgb, "<f4"), time.perf_counter() - begin
 
+    def _adaptation(self) -> Adaptation:
+        if self.adaptation is None:
+            raise KpcnError("no adaptation: no --pair given (adapting needs a second render of the frame)")
+        return self.adaptation
+
+    def adapt(self, query: dict) -> dict:
+        """Start adapting with the settings of ``query`` (``view_adapt.settings_of``): its status."""
+        adaptation = self._adaptation()
+        return adaptation.start(settings_of(query))
+
+    def adapt_status(self) -> dict:
+        return self._adaptation().status()
+
     def close(self, timeout: float) -> bool:
-        """Take no more strokes, once the one being painted (if any) has ended: whether it ended within
-        ``timeout`` seconds. An interpreter that exits while a stroke's thread is inside torch aborts
-        ("terminate called without an active exception"), so a process exits only after this is True."""
+        """Take no more strokes or adaptations, once the stroke being painted and the adaptation running (if any)
+        have ended: whether they ended within ``timeout`` seconds. An interpreter that exits while a thread is
+        inside torch aborts ("terminate called without an active exception"), so a process exits only after this
+        is True."""
+        if self.adaptation is not None and not self.adaptation.stop(timeout):
+            return False
         if not self.lock.acquire(timeout=timeout):
             return False
         self.closed = True
@@ -269,18 +313,34 @@ class _Handler(BaseHTTPRequestHandler):
         if path.startswith("/api/view/"):
             return self._answer(lambda: self._send(HTTPStatus.OK, self.session.view_bytes(path[len("/api/view/"):]),
                                                    "application/octet-stream"))
+        if path == "/api/adapt":
+            return self._answer(lambda: self._json(HTTPStatus.OK, self.session.adapt_status()))
         if path == "/api/map.png":
             name = f"{self.session.path.stem}-lambda.png"
             return self._answer(lambda: self._send(HTTPStatus.OK, self.session.map_png(), "image/png",
                                                    Content_Disposition=f'attachment; filename="{name}"'))
         self._fail(HTTPStatus.NOT_FOUND, f"no such page: {path}")
 
+    def _json(self, status: int, value: dict) -> None:
+        self._send(status, json.dumps(value).encode(), "application/json")
+
     def do_POST(self):  # noqa: N802
         url = urlsplit(self.path)
+        if url.path == "/api/adapt":
+            return self._answer(lambda: self._adapt(parse_qs(url.query)))
         if url.path != "/api/stroke":
             self.unread = 1  # a body, if any, is not read: dropped after the answer
             return self._fail(HTTPStatus.NOT_FOUND, f"no such endpoint: {url.path}")
         self._answer(lambda: self._stroke(parse_qs(url.query)))
+
+    def _adapt(self, query: dict) -> None:
+        """Start an adaptation (its settings in the query; a body, which it takes none of, dropped after the
+        answer)."""
+        length = self.headers.get("Content-Length", "0").strip()
+        self.unread = int(length) if length.isdigit() else 1
+        self._json(HTTPStatus.ACCEPTED, self.session.adapt(query))
+        if self.unread:
+            self._drop_rest()
 
     def _stroke(self, query: dict) -> None:
         """Answer a stroke, its body read only once the rectangle says how many bytes it takes."""
@@ -389,7 +449,7 @@ def serve(httpd: ViewServer, session: ViewSession, log=print) -> int:
                 signal.signal(sig, lambda signum, frame: _exit_now(status))
         httpd.server_close()
         if not session.close(STOP_SECONDS):
-            log(f"a stroke did not end within {STOP_SECONDS:g} s: exiting without it")
+            log(f"a stroke or the adaptation did not end within {STOP_SECONDS:g} s: exiting without it")
             _exit_now(status)
         log("stopped")
     return status

@@ -2,6 +2,7 @@
 warning, and an array it cannot take (not numbers, complex, of a wrong shape, or of a frame the machine cannot hold)
 is a one-line ``kpcn.ArrayError`` or ``kpcn.KpcnError`` naming the argument, before anything is allocated."""
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -154,3 +155,117 @@ def test_a_frame_the_machine_cannot_hold_is_refused_by_the_commands_memory_check
     with pytest.raises(kpcn.KpcnError) as err:
         kpcn.denoise(np.broadcast_to(np.float32(0.5), (side, side, 3)), run=MODEL)
     _one_line(err, "color", f"{side}x{side}", "this machine has available")
+
+
+# ---------------------------------------------------------------- pair= and adapt=: as kpcn denoise --pair [--adapt]
+
+PAIR_H, PAIR_W = 48, 64  # three held-out blocks of 16 pixels: the guard's smallest frame with room to spare
+STEPS = 30
+
+
+@pytest.fixture(scope="module")
+def halves_files(tmp_path_factory):
+    from helpers.halves import write_halves
+
+    return write_halves(tmp_path_factory.mktemp("halves"), PAIR_H, PAIR_W, seed=5)
+
+
+def _command(tmp_path, a, b, *extra):
+    from helpers.commands import run_main
+
+    from prep import exr
+
+    out = tmp_path / "out.exr"
+    res = run_main("denoise", a, "--pair", b, "--run", MODEL, "--precision", "float32", "-o", out, *extra,
+                   cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return exr.read_aovs(out, variances=False)["default"], res.stdout
+
+
+@pytest.mark.parametrize("given", ["frames", "arrays"])
+def test_adapting_to_a_pair_gives_what_the_command_gives_on_the_same_files_and_steps(given, halves_files, tmp_path):
+    from kpcn_keras.settings import AdaptSettings, InferenceSettings
+
+    a, b = halves_files
+    want, printed = _command(tmp_path, a, b, "--adapt-steps", STEPS, "--adapt-seed", 3)
+    fa, fb = kpcn.read(a), kpcn.read(b)
+    if given == "frames":
+        frame, pair = fa, fb
+    else:
+        frame = {"color": fa.layers["default"], "albedo": fa.layers["albedo"], "normal": fa.layers["normal"],
+                 "depth": fa.layers["depth"], "diffuse": fa.layers["diffuse"], "specular": fa.layers["specular"],
+                 "variance": {k: v for k, v in fa.layers.items() if k.endswith("Variance")}}
+        pair = {**frame, "color": fb.layers["default"], "diffuse": fb.layers["diffuse"],
+                "specular": fb.layers["specular"],
+                "variance": {k: v for k, v in fb.layers.items() if k.endswith("Variance")}}
+        frame = (frame.pop("color"), frame)
+    progress, outcomes = [], []
+    args, kw = ((frame,), {}) if given == "frames" else ((frame[0],), frame[1])
+    got = kpcn.denoise(*args, **kw, pair=pair, run=MODEL, settings=InferenceSettings(precision="float32"),
+                       adapt=AdaptSettings(steps=STEPS, seed=3), on_adapt=lambda *p: progress.append(p),
+                       on_outcome=outcomes.append)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    (outcome,) = outcomes
+    assert [p[0] for p in progress] == list(range(1, STEPS + 1)) and all(np.isfinite(p[1]) for p in progress)
+    assert outcome.kept, outcome.line()  # these halves and steps clear the guard: the correction is what is compared
+    assert outcome.steps == STEPS and f"at step {outcome.best_step} of {STEPS}" in printed
+    assert ("adaptation kept" if outcome.kept else "adaptation not kept") in printed
+    plain = kpcn.denoise(*args, **kw, pair=pair, run=MODEL, settings=InferenceSettings(precision="float32"),
+                         adapt=AdaptSettings(steps=STEPS, seed=3, confidence=10.0))  # a guard nothing clears
+    from prep.inputs import mean_layers
+
+    mean = kpcn.denoise(dataclasses.replace(fa, layers=mean_layers(fa.layers, fb.layers)), run=MODEL,
+                        settings=InferenceSettings(precision="float32"))
+    np.testing.assert_array_equal(plain, mean)  # refused: the model's output of the halves' mean, as it is
+    assert np.abs(got - mean).max() > 1e-4  # kept: the correction changed the output
+
+
+def test_a_pair_without_adapt_gives_what_the_command_gives(halves_files, tmp_path):
+    from kpcn_keras.settings import InferenceSettings
+
+    a, b = halves_files
+    want, _ = _command(tmp_path, a, b)
+    got = kpcn.denoise(kpcn.read(a), pair=kpcn.read(b), run=MODEL, settings=InferenceSettings(precision="float32"))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    alone = kpcn.denoise(kpcn.read(a), run=MODEL, settings=InferenceSettings(precision="float32"))
+    assert np.abs(got - alone).max() > 1e-4  # the pair is used
+
+
+def test_a_pair_or_adapt_it_cannot_take_is_one_line_naming_it(halves_files):
+    from kpcn_keras.settings import AdaptSettings
+
+    fa, fb = (kpcn.read(p) for p in halves_files)
+    colour, other = fa.layers["default"], fb.layers["default"]
+    cases = [
+        (dict(color=colour, adapt=5), ("adapt", "needs pair=")),
+        (dict(color=colour, pair=other, adapt="soon"), ("adapt", "str")),
+        (dict(color=colour, pair=other, adapt=-1), ("adapt", "-1")),
+        (dict(color=colour, pair=other[:10]), ("pair", "64x10", "64x48")),
+        (dict(color=colour, pair=colour.copy()), ("pair", "same pixels", "color")),
+        (dict(color=colour, pair=other[::-1, ::-1] * 0 + np.random.default_rng(0).random(other.shape)),
+         ("pair", "correlates")),
+        (dict(color=fa, pair=other), ("pair", "kpcn.read frame")),
+        (dict(color=colour, pair=fb), ("pair", "Frame")),
+        (dict(color=colour, pair={"colour": other}), ("pair", "colour")),
+        (dict(color=colour, variance=fa.layers["colorVariance"], pair=other), ("pair", "no-variance")),
+        (dict(color=colour, pair=other, adapt=AdaptSettings(steps=2, block=256)), ("too small",)),
+    ]
+    for kw, words in cases:
+        with pytest.raises(kpcn.KpcnError) as err:
+            kpcn.denoise(**kw, run=MODEL)
+        _one_line(err, *words)
+
+
+def test_halves_without_depth_adapt_to_a_finite_frame_and_the_guide_s_depth_is_over_the_largest(halves_files):
+    from kpcn_keras.adapt import _candidates, _guide
+    from kpcn_keras.settings import AdaptSettings
+    from prep import features
+
+    fa, fb = (kpcn.read(p) for p in halves_files)
+    outcomes = []
+    out = kpcn.denoise(fa.layers["default"], pair=fb.layers["default"], run=MODEL, on_outcome=outcomes.append,
+                       adapt=AdaptSettings(steps=10, seed=1))  # no depth: filled 0, as the rgb layout fills it
+    assert np.isfinite(out).all() and np.isfinite([outcomes[0].initial, outcomes[0].best]).all()
+    depth = fa.layers["depth"]
+    guide = _guide(_candidates(fa.layers["default"]), fa.layers, (0, PAIR_H, 0, PAIR_W), features.depth_scale(depth))
+    np.testing.assert_allclose(guide[..., -1], depth.astype(np.float64) / depth.astype(np.float64).max(), rtol=1e-6)

@@ -1,7 +1,8 @@
 """``kpcn view``'s server (kpcn_keras/viewer.py) over HTTP, without a browser: the views are the frame, the
 reference and the run's own denoise; a stroke re-applies the λ map in its rectangle alone, equal to a full
-denoise at the new map; the map comes back as the PNG ``kpcn denoise --slope-map`` reads; requests it cannot take
-are refused in one line. The page in a real browser: ``test_viewer_browser.py``."""
+denoise at the new map; the map comes back as the PNG ``kpcn denoise --slope-map`` reads; with a pair, the adapt
+action runs in the background, its progress polled, and its view is ``kpcn denoise --pair --adapt``'s output;
+requests it cannot take are refused in one line. The page in a real browser: ``test_viewer_browser.py``."""
 
 import json
 import socket
@@ -84,7 +85,8 @@ def test_the_page_shows_the_frame_the_reference_and_the_runs_own_denoise(frame, 
     with serving(module_session) as url:
         info = json.loads(get(f"{url}/api/info"))
         assert (info["width"], info["height"]) == (W, H)
-        assert [v["name"] for v in info["views"]] == list(VIEWS)
+        assert [v["name"] for v in info["views"]] == [v for v in VIEWS if v != "adapted"]  # no pair, no adapting
+        assert info["adapt"] is None and "no --pair" in info["adapt_note"]
         assert {v["name"]: v["available"] for v in info["views"]}["oidn"] == baselines.oidn_available()
         assert info["brush"] == {"range": [1.0, 8.0], "slope": 2.0} and info["brush_note"] is None
         aovs, ref = exr.read_aovs(frame[0]), exr.read_aovs(frame[1], variances=False)
@@ -146,7 +148,11 @@ def test_requests_the_session_cannot_take_are_refused_in_one_line(module_session
             for needle in needles:
                 assert needle in message, (query, message)
         code, message = refused(lambda: get(f"{url}/api/view/albedo"))
-        assert code == 400 and "input, denoised, reference, oidn" in message
+        assert code == 400 and "input, denoised, adapted, reference, oidn" in message
+        code, message = refused(lambda: post(f"{url}/api/adapt?seconds=5", b""))
+        assert code == 409 and "no --pair given" in message
+        code, message = refused(lambda: get(f"{url}/api/adapt"))
+        assert code == 409 and "no --pair given" in message
         assert get(f"{url}/api/view/denoised") == before  # nothing applied
     plain = ViewSession.open(frame[0], Run(tiny_run), log=quiet)
     assert plain.info()["brush"] is None and "takes no λ" in plain.info()["brush_note"]
@@ -173,3 +179,96 @@ def test_kpcn_view_refuses_a_taken_port_a_missing_frame_and_a_slope_the_run_cann
     assert_one_line_error(run_main("view", frame[0], "--run", tiny_slope_module_run, "--slope", "20", *free,
                                    cwd=tmp_path), "--slope", "[1.0, 8.0]", "20")
     assert_one_line_error(run_main("view", frame[0], "--run", tiny_run, "--port", "70000", cwd=tmp_path), "--port")
+    assert_one_line_error(run_main("view", frame[0], "--run", tiny_run, "--pair", frame[0], *free, cwd=tmp_path),
+                          "--pair", "is the input", "itself")
+
+
+# ---------------------------------------------------------------- the adapt action (kpcn view A --pair B)
+
+PH, PW = 48, 64  # the guard's blocks of 16 pixels: three held out
+STEPS = 20
+
+
+@pytest.fixture(scope="module")
+def halves_files(tmp_path_factory):
+    from helpers.halves import write_halves
+
+    return write_halves(tmp_path_factory.mktemp("view-halves"), PH, PW, seed=7)
+
+
+def pair_session(halves_files, tiny_run):
+    from kpcn_keras.batch import ReadOptions
+
+    a, b = halves_files
+    return ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b, halves=True),
+                            settings=InferenceSettings(precision="float32"), log=quiet)
+
+
+def poll(url: str, seconds: float = 300.0) -> list[dict]:
+    """GET /api/adapt until it is no longer running: every status seen."""
+    import time
+
+    seen, deadline = [], time.monotonic() + seconds
+    while not seen or seen[-1]["state"] == "running":
+        assert time.monotonic() < deadline, seen[-1]
+        seen.append(json.loads(get(f"{url}/api/adapt")))
+        time.sleep(0.05)
+    return seen
+
+
+def test_the_adapt_action_shows_what_kpcn_denoise_pair_adapt_writes_with_its_progress(halves_files, tiny_run,
+                                                                                       tmp_path):
+    from prep.inputs import mean_layers
+
+    a, b = halves_files
+    session = pair_session(halves_files, tiny_run)
+    with serving(session) as url:
+        info = json.loads(get(f"{url}/api/info"))
+        views = {v["name"]: v for v in info["views"]}
+        assert list(views) == list(VIEWS) and not views["adapted"]["available"]
+        assert "press adapt" in views["adapted"]["missing"] and info["adapt"] == {"seconds": 30.0}
+        code, message = refused(lambda: get(f"{url}/api/view/adapted"))
+        assert code == 409 and "not adapted yet" in message
+        assert json.loads(get(f"{url}/api/adapt"))["state"] == "idle"
+        started = json.loads(post(f"{url}/api/adapt?steps={STEPS}&seed=3", b"")[0])
+        assert started["state"] in ("running", "done") and started["steps"] == STEPS
+        seen = poll(url)
+        adapted = rgb(get(f"{url}/api/view/adapted"), PH, PW)
+        denoised = rgb(get(f"{url}/api/view/denoised"), PH, PW)
+        assert {v["name"]: v["available"] for v in json.loads(get(f"{url}/api/info"))["views"]}["adapted"]
+    done = seen[-1]
+    assert done["state"] == "done" and done["step"] == STEPS and np.isfinite(done["loss"]), done
+    steps = [s["step"] for s in seen]
+    assert steps == sorted(steps)  # progress only goes forward
+    res = run_main("denoise", a, "--pair", b, "--adapt-steps", STEPS, "--adapt-seed", 3, "--run", tiny_run,
+                   "--precision", "float32", "-o", tmp_path / "out.exr", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    want = exr.read_aovs(tmp_path / "out.exr", variances=False)["default"]
+    np.testing.assert_allclose(adapted, want, rtol=1e-5, atol=1e-6)
+    outcome = done["outcome"]
+    assert f"at step {outcome['best_step']} of {STEPS}" in res.stdout and outcome["line"].split(" in ")[0] in res.stdout
+    ha, hb = exr.read_aovs(a), exr.read_aovs(b)
+    plain = Denoiser.from_run(Run(tiny_run), InferenceSettings(precision="float32"))(mean_layers(ha, hb))["default"]
+    np.testing.assert_allclose(denoised, plain, rtol=1e-5, atol=1e-6)  # kpcn's view: the halves' mean, as it is
+    if outcome["kept"]:
+        assert np.abs(adapted - denoised).max() > 1e-4
+    else:
+        np.testing.assert_allclose(adapted, denoised, rtol=1e-5, atol=1e-6)
+
+
+def test_an_adaptation_refuses_a_second_one_and_bad_settings_and_stops_with_the_viewer(halves_files, tiny_run):
+    session = pair_session(halves_files, tiny_run)
+    with serving(session) as url:
+        for query, words in (("seconds=soon", ("seconds must be a number", "'soon'")), ("seconds=-1", ("seconds",)),
+                             ("speed=3", ("takes seconds, steps, seed", "speed")), ("seconds=nan", ("finite",))):
+            code, message = refused(lambda q=query: post(f"{url}/api/adapt?{q}", b""))
+            assert code == 400 and "\n" not in message and all(w in message for w in words), (query, message)
+        assert json.loads(get(f"{url}/api/adapt"))["state"] == "idle"  # nothing started
+        assert json.loads(post(f"{url}/api/adapt?steps=1000000", b"")[0])["state"] == "running"
+        code, message = refused(lambda: post(f"{url}/api/adapt?seconds=5", b""))
+        assert code == 409 and "an adaptation is running" in message
+        assert session.close(60.0)  # the viewer stopping ends it at its next step
+        status = json.loads(get(f"{url}/api/adapt"))
+        assert status["state"] == "stopped" and 0 < status["step"] < 1000000, status
+        code, message = refused(lambda: post(f"{url}/api/adapt?steps=5", b""))
+        assert code == 409 and "stopping" in message

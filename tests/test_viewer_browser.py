@@ -1,8 +1,10 @@
 """``kpcn view``'s page in a real browser (headless Chromium, driven by Selenium): it loads, the four views are
 there (OIDN's enabled exactly where ``pyoidn`` is installed), a pixel on the canvas is the view through the
 display transform of ``prep.colour.tonemap`` after the exposure, and a brush stroke scripted with the mouse
-changes the denoised pixels under it and none far from it, on the server and on the screen."""
+changes the denoised pixels under it and none far from it, on the server and on the screen; with a pair, a click
+on *adapt* adapts in the background and shows the adapted view beside kpcn's, drawn as the server's."""
 
+import json
 import threading
 import urllib.request
 
@@ -70,7 +72,8 @@ def test_the_page_loads_with_the_four_views_and_draws_them_through_the_display_t
     driver, url = page
     options = driver.execute_script("return Array.from(document.getElementById('left').options).map("
                                     "o => [o.value, o.disabled])")
-    assert [name for name, _ in options] == [*VIEWS, "lambda"]
+    assert [name for name, _ in options] == [*(v for v in VIEWS if v != "adapted"), "lambda"]  # no pair: no adapting
+    assert driver.execute_script("return document.getElementById('adapt-run').disabled")
     assert dict(options)["oidn"] is not baselines.oidn_available()
     assert not any(disabled for name, disabled in options if name != "oidn")
     for side in ("left", "right"):
@@ -121,3 +124,41 @@ def test_a_scripted_brush_stroke_changes_the_denoised_pixels_under_it_and_none_f
 
     with Image.open(tmp_path / "view.png") as shot:
         assert list(shot.size) == driver.execute_script("return [window.innerWidth, window.innerHeight]")
+
+
+def test_a_click_on_adapt_adapts_in_the_background_and_shows_the_adapted_view_beside_kpcns(tmp_path, tiny_run):
+    from helpers.halves import write_halves
+
+    from kpcn_keras.batch import ReadOptions
+
+    a, b = write_halves(tmp_path, H, W, seed=9)
+    session = ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b, halves=True),
+                               settings=InferenceSettings(precision="float32"), log=lambda m: None)
+    httpd = listen(0)
+    httpd.session = session
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{httpd.server_address[1]}/"
+    try:
+        with headless_chromium(tmp_path / "profile") as driver:
+            driver.get(url)
+            page_wait(driver, "window.kpcn && window.kpcn.ready")
+            disabled = driver.execute_script("return Array.from(document.getElementById('right').options).map("
+                                             "o => [o.value, o.disabled])")
+            assert dict(disabled)["adapted"]  # nothing to show before adapting
+            page_input(driver, "adapt-seconds", 2)
+            driver.find_element("id", "adapt-run").click()
+            page_wait(driver, "kpcn.state.adaptations === 1 && !kpcn.busy()", timeout=120)
+            with urllib.request.urlopen(f"{url}api/view/adapted", timeout=60) as res:
+                adapted = np.frombuffer(res.read(), "<f4").reshape(H, W, 3)
+            with urllib.request.urlopen(f"{url}api/adapt", timeout=60) as res:
+                line = json.loads(res.read())["outcome"]["line"]
+            assert driver.execute_script("return [kpcn.state.left, kpcn.state.right]") == ["denoised", "adapted"]
+            page_input(driver, "split", 0.0)  # the right view everywhere: the adapted one
+            points = [(5, 7), (33, 20), (60, 44)]
+            np.testing.assert_allclose(canvas_pixels(driver, points),
+                                       np.round(255 * tonemap(np.stack([adapted[y, x] for x, y in points]))), atol=1)
+            assert line in driver.find_element("id", "status").text
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        assert session.close(30.0)

@@ -3,21 +3,27 @@
 // float32 RGB and are drawn through the display transform of prep.colour.tonemap after the exposure:
 // v = max(x * 2^EV, 0), (v / (1 + v))^(1 / 2.2), rounded to 8 bits (tests/test_viewer_browser.py checks a pixel
 // against it). A brush stroke paints log λ into the page's copy of the map; when the stroke ends, the map's
-// rectangle under it goes to the server, which answers that rectangle denoised again.
+// rectangle under it goes to the server, which answers that rectangle denoised again. With a pair, the adapt
+// button starts the model's adaptation to the two halves on the server and polls its progress (GET api/adapt)
+// until it is done, then shows the adapted view beside kpcn's.
 
 const $ = (id) => document.getElementById(id);
 const LAMBDA_VIEW = "lambda";
 const SOFT_EDGE = 0.3; // the outer share of the brush radius over which its weight falls to 0
 const DIVIDER_GRAB = 6; // screen pixels either side of the swipe divider that grab it in pan mode
+const POLL_MS = 250; // how often the page asks how the adaptation goes
 
 const state = {
   info: null, views: {}, images: {}, left: "input", right: "denoised", split: 0.5, exposure: 0,
   zoom: 1, ox: 0, oy: 0, mode: "pan", radius: 24, brushGrey: 1, map: null,
   pending: null, inflight: false, painting: false, strokes: 0, drag: null, mouse: null, lastStroke: null,
-  stale: new Set(),
+  stale: new Set(), adapting: false, adaptations: 0, adaptStatus: null,
 };
 // for tests and the curious: ready once every view is drawn; busy while a stroke is painted or re-applied
-window.kpcn = { ready: false, state, busy: () => state.painting || state.inflight || state.pending !== null };
+window.kpcn = {
+  ready: false, state,
+  busy: () => state.painting || state.inflight || state.pending !== null || state.adapting,
+};
 
 const canvas = $("canvas");
 const ctx = canvas.getContext("2d");
@@ -213,6 +219,72 @@ async function send() {
   if (state.pending) send();
 }
 
+// ------------------------------------------------------------------ the adaptation (with --pair)
+
+function adaptText(s) {
+  const loss = s.loss === null ? "" : `, loss ${s.loss.toPrecision(4)}`;
+  const budget = s.steps !== null ? `step ${s.step} of ${s.steps}` : `${s.seconds.toFixed(1)} of ${s.budget_seconds} s, step ${s.step}`;
+  return `adapting: ${budget}${loss}`;
+}
+
+async function startAdapt() {
+  const seconds = $("adapt-seconds").value;
+  try {
+    const res = await fetch(`api/adapt?seconds=${encodeURIComponent(seconds)}`, { method: "POST" });
+    if (!res.ok) throw new Error(await res.text());
+  } catch (err) {
+    status(`adaptation not started: ${err.message}`);
+    return;
+  }
+  state.adapting = true;
+  $("adapt-run").disabled = true;
+  pollAdapt();
+}
+
+async function pollAdapt() {
+  let s;
+  try {
+    s = await (await fetch("api/adapt")).json();
+  } catch (err) {
+    s = { state: "failed", error: err.message };
+  }
+  state.adaptStatus = s;
+  if (s.state === "running") {
+    $("adapt-state").textContent = adaptText(s);
+    setTimeout(pollAdapt, POLL_MS);
+    return;
+  }
+  if (s.state === "done") await showAdapted(s.outcome);
+  else {
+    $("adapt-state").textContent = `adaptation ${s.state}`;
+    status(`adaptation ${s.state}: ${s.error}`);
+  }
+  state.adapting = false;
+  $("adapt-run").disabled = false;
+}
+
+// the adapted view beside kpcn's: fetched, its option enabled, kpcn left and adapted right
+async function showAdapted(outcome) {
+  const { width, height } = state.info;
+  state.views.adapted = new Float32Array(await (await fetch("api/view/adapted")).arrayBuffer());
+  if (!state.images.adapted) {
+    state.images.adapted = document.createElement("canvas");
+    state.images.adapted.width = width; state.images.adapted.height = height;
+  }
+  for (const id of ["left", "right"]) {
+    const option = Array.from($(id).options).find((o) => o.value === "adapted");
+    option.disabled = false; option.textContent = "kpcn adapted";
+  }
+  state.left = "denoised"; state.right = "adapted";
+  $("left").value = "denoised"; $("right").value = "adapted";
+  state.stale.add("adapted"); state.stale.add("denoised");
+  refreshShown();
+  draw();
+  state.adaptations += 1;
+  $("adapt-state").textContent = outcome.kept ? "adapted: kept" : "adapted: not kept (the model as it was)";
+  status(`kpcn | kpcn adapted: ${outcome.line}`);
+}
+
 // ------------------------------------------------------------------ events
 
 function setMode(mode) {
@@ -320,6 +392,7 @@ function bindControls() {
     $("brush-radius-value").textContent = `${state.radius} px`;
     draw();
   });
+  $("adapt-run").addEventListener("click", startAdapt);
   $("fill").addEventListener("click", () => {
     const { width, height } = state.info;
     state.map.fill(slopeOfGrey(state.brushGrey));
@@ -363,6 +436,12 @@ async function load() {
   } else {
     $("brush").classList.add("off");
     document.querySelector("input[value=paint]").disabled = true;
+  }
+  if (info.adapt) $("adapt-seconds").value = info.adapt.seconds;
+  else {
+    $("adapt").classList.add("off");
+    $("adapt").title = info.adapt_note;
+    $("adapt-run").disabled = true;
   }
   $("brush-radius-value").textContent = `${state.radius} px`;
   fillSelects(names);
