@@ -1,11 +1,14 @@
 """The Blender add-on (blender/kpcn_addon, docs/blender.md): built into the extension zip by make addon, installed
 from it into real headless Blender (bpy 5.0.1 in its own venv, .venv-bpy, as make .venv-bpy/bin/python makes it),
 its checkbox turning on the passes kpcn reads, its operator denoising a real render into the same pixels as
-``kpcn denoise`` of the same EXR, and kpcn's problems as one report line. ``kpcn --version``, which its check
+``kpcn denoise`` of the same EXR, its pair operator rendering the frame's two halves (kpcn blend-pair's seeds and
+samples) into the pixels ``kpcn denoise A --pair B --adapt-steps N`` gives, and kpcn's problems as one report
+line. ``kpcn --version``, which its check
 button runs, too. The tests needing bpy skip, saying so, only where .venv-bpy has no bpy (CI's .ci/run makes it)."""
 import ast
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -122,7 +125,7 @@ def test_kpcn_version_names_the_package_version_and_the_model_it_serves(tmp_path
                                        f"model {model.dir} (quality modes: {', '.join(model.quality_modes())})"]
 
 
-def _blender(tmp_path, mode: str) -> dict:
+def _blender(tmp_path, mode: str, *args) -> dict:
     """The add-on built, installed and driven in bpy's Python (tests/helpers/blender_side.py), Blender's user
     folders and temporary files (the EXR the add-on writes) inside ``tmp_path``."""
     zip_path = addon_build.build(tmp_path / "dist")
@@ -130,8 +133,8 @@ def _blender(tmp_path, mode: str) -> dict:
     out.mkdir(), temp.mkdir()
     env = dict(os.environ, HOME=str(tmp_path / "home"), BLENDER_USER_RESOURCES=str(tmp_path / "blender"),
                TMPDIR=str(temp))
-    res = subprocess.run([BPY_PYTHON, BLENDER_SIDE, zip_path, KPCN_EXE, out, mode], env=env, capture_output=True,
-                         text=True, timeout=900)
+    res = subprocess.run([BPY_PYTHON, BLENDER_SIDE, zip_path, KPCN_EXE, out, mode, *map(str, args)], env=env,
+                         capture_output=True, text=True, timeout=900)
     assert res.returncode == 0 and (out / "result.json").exists(), (res.stdout + res.stderr)[-3000:]
     return json.loads((out / "result.json").read_text())
 
@@ -177,6 +180,75 @@ def test_in_blender_the_button_loads_the_pixels_kpcn_denoise_gives_for_the_exr_i
     shot = os.environ.get("KPCN_ADDON_PNG")  # docs/blender.md: how reports/blender_addon.png is made
     if shot:
         _picture(written[0], loaded, shot)
+
+
+ADAPT_STEPS = 3  # the pair test's adaptation: a few exact steps, the same on any machine
+
+
+@pytest.mark.slow
+@needs_bpy
+def test_in_blender_the_pair_button_renders_two_halves_and_loads_what_kpcn_denoise_pair_adapt_gives(tmp_path):
+    from prep.layouts import read, read_header
+    from prep.render.cycles import catalogue
+
+    seeds = catalogue().half_seeds(7)  # kpcn blend-pair's seeds of the scene's seed, 7
+    got = _blender(tmp_path, "pair", ADAPT_STEPS, *seeds)
+    assert got["pair"]["result"] == ["FINISHED"], got
+    # kpcn adapted for the steps the operator was given, and said what its guard decided
+    assert re.fullmatch(rf"denoised into image 'Scene frame 1 kpcn pair'; adaptation (not )?kept: .* at step \d+ of "
+                        rf"{ADAPT_STEPS} in .*", got["message"]), got["message"]
+    assert got["after"] == got["before"], got  # the scene's samples, seed, adaptive sampling, denoiser given back
+    assert got["before"]["samples"] == 4 and got["before"]["use_denoising"], got
+    assert "Scene frame 1 kpcn pair" in got["images"] and got["packed"]
+    odd = got["odd"]["report"].strip()
+    assert got["odd"]["result"] == ["RuntimeError"] and odd == (
+        "Error: a pair renders the frame as two halves of half its samples: the scene's render samples must be even "
+        "and 4 or more, got 5"), got["odd"]
+    folders = list((tmp_path / "temp").glob("kpcn-*/render-a.exr"))
+    assert len(folders) == 1, folders  # one pair written; the odd samples rendered nothing
+    half_a, half_b = folders[0], folders[0].with_name("render-b.exr")
+    assert [read_header(h).spp for h in (half_a, half_b)] == [2, 2]  # Cycles' header: half the scene's 4
+    colours = [read(h).layers["default"] for h in (half_a, half_b)]
+    assert not np.array_equal(*colours)
+    for colour, seed in zip(colours, seeds):  # each half is Cycles' 2 spp frame of its seed, Blender's denoiser off
+        np.testing.assert_array_equal(colour, read(tmp_path / "out" / f"seed-{seed}.exr").layers["default"])
+    res = kpcn("denoise", half_a, "--pair", half_b, "--adapt-steps", ADAPT_STEPS, "-o", tmp_path / "cli.exr",
+               cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    expected = exr.read_rgb(tmp_path / "cli.exr")
+    loaded = np.load(tmp_path / "out" / "loaded.npy")
+    assert loaded.shape[:2] == expected.shape[:2] == (32, 32)
+    np.testing.assert_array_equal(loaded[..., :3], expected)
+
+
+def test_the_addons_half_seeds_are_kpcn_blend_pairs_and_its_commands_pass_the_pair():
+    from prep.render.cycles import catalogue
+
+    sys.path.insert(0, str(ADDON))
+    try:
+        import halves
+        import runner
+    finally:
+        sys.path.remove(str(ADDON))
+    for seed in (0, 7, 2**28, 2**31 - 1, 1234567):
+        assert halves.half_seeds(seed) == catalogue().half_seeds(seed)
+    assert [halves.half_samples(n) for n in (4, 6, 128)] == [2, 3, 64]
+    for bad in (2, 3, 5, 0):
+        with pytest.raises(ValueError, match=f"must be even and 4 or more, got {bad}$"):
+            halves.half_samples(bad)
+    cmd = ["k", "denoise", "a.exr", "-o", "o.exr"]
+    assert runner.denoise_command("k", "a.exr", "o.exr") == cmd
+    assert runner.denoise_command("k", "a.exr", "o.exr", pair="b.exr") == cmd + ["--pair", "b.exr"]
+    assert runner.denoise_command("k", "a.exr", "o.exr", "fast", 2, "b.exr", 12.5) == cmd + [
+        "--quality", "fast", "--ensemble", "2", "--pair", "b.exr", "--adapt", "12.5"]
+    assert runner.denoise_command("k", "a.exr", "o.exr", pair="b.exr", adapt_seconds=60, adapt_steps=3) == cmd + [
+        "--pair", "b.exr", "--adapt-steps", "3"]
+    assert runner.denoise_command("k", "a.exr", "o.exr", adapt_seconds=60) == cmd  # no pair: nothing to adapt to
+    log = ("adapting: 100%| 3/3 step\rwrote o.exr\nadaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 "
+           "standard errors) at step 0 of 3 in 1.5 s; no checkpoint did better\npeak memory 514 MiB\n")
+    assert runner.adaptation_line(log) == ("adaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 standard "
+                                           "errors) at step 0 of 3 in 1.5 s; no checkpoint did better")
+    assert runner.adaptation_line("wrote o.exr\n") == ""
 
 
 def _picture(noisy_exr: Path, loaded: np.ndarray, path: str) -> None:

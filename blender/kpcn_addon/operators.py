@@ -1,6 +1,6 @@
-"""The add-on's operators: check the kpcn executable, denoise the last render (a modal operator from the
-button: progress in the status bar, Esc cancels; run from a script it waits), and the render handlers that
-denoise after every render and every frame of an animation written."""
+"""The add-on's operators: check the kpcn executable, denoise the last render, render the frame as a pair and
+denoise it adapting (modal operators from the button: progress in the status bar, Esc cancels; run from a script
+they wait), and the render handlers that denoise after every render and every frame of an animation written."""
 
 import os
 import tempfile
@@ -16,6 +16,12 @@ def prefs(context=None):
     return (context or bpy.context).preferences.addons[__package__].preferences
 
 
+def command(p, kpcn: str, src: str, out: str, pair: str = "", adapt_steps: int = 0) -> list[str]:
+    """``runner.denoise_command`` with the preferences ``p`` (quality, ensemble, Adaptation Seconds)."""
+    quality = "" if p.quality == "MODEL" else p.quality
+    return denoise_command(kpcn, src, out, quality, p.ensemble, pair, p.adapt_seconds, adapt_steps)
+
+
 def start_job(context, scene) -> Job:
     """The Render Result written to a fresh temporary folder and ``kpcn denoise`` started on it. AddonError in one
     line where kpcn is not there or nothing was rendered."""
@@ -29,18 +35,31 @@ def start_job(context, scene) -> Job:
     passes.save_render_result(scene, image, src)
     if not os.path.isfile(src):
         raise AddonError(f"Blender wrote no {src}")
-    quality = "" if p.quality == "MODEL" else p.quality
-    label = passes.image_name(scene, scene.frame_current)
-    return Job(denoise_command(kpcn, src, out, quality, p.ensemble), out, label)
+    return Job(command(p, kpcn, src, out), out, passes.image_name(scene, scene.frame_current))
+
+
+def start_pair_job(context, scene, adapt_steps: int = 0) -> Job:
+    """The current frame rendered as two halves into a fresh temporary folder (``passes.render_halves``) and
+    ``kpcn denoise A --pair B`` started on them, adapting for the preferences' Adaptation Seconds (or exactly
+    ``adapt_steps`` steps where > 0). AddonError in one line where kpcn is not there (before any render) or the
+    halves cannot be rendered."""
+    p = prefs(context)
+    kpcn = find_kpcn(p.kpcn_path)
+    folder = tempfile.mkdtemp(prefix="kpcn-")
+    half_a, half_b = passes.render_halves(scene, folder)
+    out = os.path.join(folder, "denoised.exr")
+    label = passes.image_name(scene, scene.frame_current, "kpcn pair")
+    return Job(command(p, kpcn, half_a, out, half_b, adapt_steps), out, label)
 
 
 def finish_job(job: Job):
-    """The denoised image loaded and shown (AddonError with kpcn's error line where it failed)."""
+    """The denoised image loaded and shown (AddonError with kpcn's error line where it failed); the panel's last
+    message names it, with what kpcn's adaptation decided where it adapted."""
     try:
         image = passes.load_result(job.result(), job.label)
     except ExrError as exc:
         raise AddonError(str(exc)) from None
-    prefs().last_message = f"denoised into image '{image.name}'"
+    prefs().last_message = f"denoised into image '{image.name}'" + (f"; {job.adaptation}" if job.adaptation else "")
     return image
 
 
@@ -62,11 +81,10 @@ class KPCN_OT_check(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class KPCN_OT_denoise_render(bpy.types.Operator):
-    """Denoise the last render with kpcn: the result is an image named after the scene and frame"""
-
-    bl_idname = "kpcn.denoise_render"
-    bl_label = "Denoise Last Render"
+class DenoiseJob:
+    """What both denoise operators do with the job their ``start(context)`` starts: from a script, wait for kpcn and
+    load its output; from the button, kpcn runs while Blender stays responsive, its progress in the status bar,
+    Esc cancelling it."""
 
     _job = None
     _timer = None
@@ -74,18 +92,18 @@ class KPCN_OT_denoise_render(bpy.types.Operator):
     def execute(self, context):
         """From a script: wait for kpcn, then load its output."""
         try:
-            job = start_job(context, context.scene)
+            job = self.start(context)
             job.wait()
-            image = finish_job(job)
+            finish_job(job)
         except AddonError as exc:
             return self._fail(exc)
-        self.report({"INFO"}, f"kpcn: denoised into image '{image.name}'")
+        self.report({"INFO"}, f"kpcn: {prefs().last_message}")
         return {"FINISHED"}
 
     def invoke(self, context, event):
         """From the button: kpcn runs while Blender stays responsive; the status bar shows its progress."""
         try:
-            self._job = start_job(context, context.scene)
+            self._job = self.start(context)
         except AddonError as exc:
             return self._fail(exc)
         wm = context.window_manager
@@ -107,10 +125,10 @@ class KPCN_OT_denoise_render(bpy.types.Operator):
             return {"RUNNING_MODAL"}
         self._end(context)
         try:
-            image = finish_job(self._job)
+            finish_job(self._job)
         except AddonError as exc:
             return self._fail(exc)
-        self.report({"INFO"}, f"kpcn: denoised into image '{image.name}'")
+        self.report({"INFO"}, f"kpcn: {prefs().last_message}")
         return {"FINISHED"}
 
     def _end(self, context):
@@ -121,6 +139,31 @@ class KPCN_OT_denoise_render(bpy.types.Operator):
         prefs().last_message = f"error: {exc}"
         self.report({"ERROR"}, str(exc))
         return {"CANCELLED"}
+
+
+class KPCN_OT_denoise_render(DenoiseJob, bpy.types.Operator):
+    """Denoise the last render with kpcn: the result is an image named after the scene and frame"""
+
+    bl_idname = "kpcn.denoise_render"
+    bl_label = "Denoise Last Render"
+
+    def start(self, context) -> Job:
+        return start_job(context, context.scene)
+
+
+class KPCN_OT_denoise_pair(DenoiseJob, bpy.types.Operator):
+    """Render the frame twice at half the samples with two seeds, and denoise the pair with kpcn, adapting to it
+    for the preferences' Adaptation Seconds: the result is an image named after the scene and frame"""
+
+    bl_idname = "kpcn.denoise_pair"
+    bl_label = "Render a Pair and Adapt"
+
+    # a script's (and the tests') reproducible adaptation: exactly this many steps instead of the seconds
+    adapt_steps: bpy.props.IntProperty(name="Adaptation Steps", default=0, min=0,
+                                       options={"HIDDEN", "SKIP_SAVE"})
+
+    def start(self, context) -> Job:
+        return start_pair_job(context, context.scene, self.adapt_steps)
 
 
 # Handlers: jobs started by a render run one after another, polled by a timer (no operator owns them)
@@ -162,6 +205,8 @@ def after_render(scene, *_):
     """After a render (preference): the Render Result denoised and loaded, as the button does."""
     if not prefs().after_render or bpy.app.background:  # a headless render script calls the operator itself
         return
+    if passes.RENDERING_HALVES[0]:  # a pair's half: the pair operator denoises both
+        return
     try:
         _queue(start_job(bpy.context, scene), load=True)
     except AddonError as exc:
@@ -179,12 +224,11 @@ def after_frame_written(scene, *_):
         return
     p = prefs()
     try:
-        quality = "" if p.quality == "MODEL" else p.quality
         out = passes.denoised_path(path)
-        _queue(Job(denoise_command(find_kpcn(p.kpcn_path), path, out, quality, p.ensemble), out, out), load=False)
+        _queue(Job(command(p, find_kpcn(p.kpcn_path), path, out), out, out), load=False)
     except AddonError as exc:
         _handler_error(exc)
 
 
-CLASSES = (KPCN_OT_check, KPCN_OT_denoise_render)
+CLASSES = (KPCN_OT_check, KPCN_OT_denoise_render, KPCN_OT_denoise_pair)
 HANDLERS = ((bpy.app.handlers.render_complete, after_render), (bpy.app.handlers.render_write, after_frame_written))

@@ -1,12 +1,15 @@
 """Blender's side of the round trip: the passes kpcn reads best turned on, the Render Result written as the
-multilayer EXR kpcn reads, and kpcn's output loaded back as an image shown in the Image Editor."""
+multilayer EXR kpcn reads (or the frame rendered as two halves, each written so), and kpcn's output loaded back
+as an image shown in the Image Editor."""
 
 import os
 
 import bpy
 import numpy as np
 
+from . import halves
 from .exr_colour import read_colour
+from .runner import AddonError
 
 # The view layer's passes kpcn's Cycles layout reads (prep/layouts.py CYCLES_PASSES: the diffuse / specular split,
 # its colour passes, Emit, Env, the normal and depth), as kpcn render-cycles turns them on for the frames the shipped
@@ -17,6 +20,10 @@ PASSES = ("combined", "z", "normal", "emit", "environment",
           "transmission_direct", "transmission_indirect", "transmission_color")
 # Cycles' own passes of the view layer: what a medium scatters (kpcn adds it to specular) and Denoising Data
 CYCLES_PASSES = ("use_pass_volume_direct", "use_pass_volume_indirect", "denoising_store_passes")
+# Cycles' settings a half sets (as kpcn blend-pair does) and the scene gets back after the pair
+HALF_SETTINGS = ("samples", "seed", "use_animated_seed", "use_adaptive_sampling", "use_denoising", "time_limit")
+# True while the halves render: the after-render handler leaves them alone (the pair operator denoises them)
+RENDERING_HALVES = [False]
 
 
 def use_passes(scene, on: bool) -> None:
@@ -58,8 +65,43 @@ def save_render_result(scene, image, path: str) -> None:
             setattr(im, k, before[k])
 
 
-def image_name(scene, frame: int) -> str:
-    return f"{scene.name} frame {frame} kpcn"
+def render_halves(scene, folder: str) -> list[str]:
+    """The current frame rendered twice by Cycles, each half at half the scene's samples at every pixel (adaptive
+    sampling off) with its own seed (``halves.half_seeds`` of the scene's), Blender's denoiser off, no time
+    limit, the passes as the scene has them; each Render Result written as :func:`save_render_result` writes it,
+    ``folder``/``halves.NAMES``: their paths. The scene's settings are given back after (:data:`HALF_SETTINGS`),
+    whatever happens; the Render Result is the second half's. AddonError in one line for a scene that does not
+    render with Cycles, samples that do not halve, or a render cancelled."""
+    if scene.render.engine != "CYCLES":
+        raise AddonError(f"a pair is rendered by Cycles (its seed): scene '{scene.name}' renders with "
+                         f"{scene.render.engine}")
+    c = scene.cycles
+    try:
+        samples = halves.half_samples(c.samples)
+    except ValueError as exc:
+        raise AddonError(str(exc)) from None
+    before = {k: getattr(c, k) for k in HALF_SETTINGS}
+    paths = [os.path.join(folder, name) for name in halves.NAMES]
+    RENDERING_HALVES[0] = True
+    try:
+        for path, seed in zip(paths, halves.half_seeds(before["seed"])):
+            c.samples, c.seed, c.time_limit = samples, seed, 0.0
+            c.use_animated_seed = c.use_adaptive_sampling = c.use_denoising = False
+            if "FINISHED" not in bpy.ops.render.render():
+                raise AddonError("render cancelled: no pair to denoise")
+            save_render_result(scene, render_result(), path)
+            if not os.path.isfile(path):
+                raise AddonError(f"Blender wrote no {path}")
+    finally:
+        RENDERING_HALVES[0] = False
+        for k, v in before.items():
+            setattr(c, k, v)
+    return paths
+
+
+def image_name(scene, frame: int, what: str = "kpcn") -> str:
+    """The denoised image's name: ``<scene> frame <n> kpcn`` (``kpcn pair`` for a pair's)."""
+    return f"{scene.name} frame {frame} {what}"
 
 
 def load_result(path: str, name: str):

@@ -1,5 +1,6 @@
-"""The kpcn executable seen from Blender, without bpy: where it is, the command that denoises a file, and a
-running denoise that Blender polls, cancels and reads one error line from.
+"""The kpcn executable seen from Blender, without bpy: where it is, the command that denoises a file (or a
+frame's two halves, adapting to them), and a running denoise that Blender polls, cancels and reads one error
+line from.
 
 The add-on adds no package to Blender's Python: kpcn runs in its own environment, as a subprocess."""
 
@@ -27,14 +28,24 @@ def find_kpcn(path: str) -> str:
     return os.path.abspath(found)
 
 
-def denoise_command(kpcn: str, src: str, out: str, quality: str = "", ensemble: int = 1) -> list[str]:
+def denoise_command(kpcn: str, src: str, out: str, quality: str = "", ensemble: int = 1, pair: str = "",
+                    adapt_seconds: float = 0.0, adapt_steps: int = 0) -> list[str]:
     """``kpcn denoise SRC -o OUT`` with the preferences' quality mode (empty: the model's default) and
-    ensemble (1: the networks once, kpcn's default)."""
+    ensemble (1: the networks once, kpcn's default). With ``pair`` (a second render of SRC's frame with another
+    seed, each at half the samples): ``--pair PAIR``, adapting for ``--adapt-steps`` where ``adapt_steps`` > 0
+    (the same result on any machine), else ``--adapt`` seconds where ``adapt_seconds`` > 0, else not at all (the
+    two halves' mean denoised)."""
     cmd = [kpcn, "denoise", src, "-o", out]
     if quality:
         cmd += ["--quality", quality]
     if ensemble > 1:
         cmd += ["--ensemble", str(ensemble)]
+    if pair:
+        cmd += ["--pair", pair]
+        if adapt_steps > 0:
+            cmd += ["--adapt-steps", str(adapt_steps)]
+        elif adapt_seconds > 0:
+            cmd += ["--adapt", f"{adapt_seconds:g}"]
     return cmd
 
 
@@ -46,6 +57,14 @@ def last_error(log: str, returncode: int, program: str = "kpcn") -> str:
     if errors:
         return errors[-1]
     return lines[-1] if lines else f"{program} exited with status {returncode}"
+
+
+def adaptation_line(log: str) -> str:
+    """kpcn's line saying what its adaptation's guard decided (``adaptation kept: ...`` or ``adaptation not kept:
+    ...``, kpcn_keras.adapt.Outcome.line), empty where it printed none (no pair, no adaptation)."""
+    lines = [line.strip() for line in log.replace("\r", "\n").splitlines()]
+    found = [line for line in lines if line.startswith(("adaptation kept: ", "adaptation not kept: "))]
+    return found[-1] if found else ""
 
 
 def version(kpcn: str) -> str:
@@ -66,6 +85,7 @@ class Job:
 
     def __init__(self, cmd: list[str], out: str, label: str):
         self.cmd, self.out, self.label = cmd, out, label
+        self.adaptation = ""  # once it has ended: kpcn's adaptation_line
         self.log = tempfile.NamedTemporaryFile("w+", prefix="kpcn-", suffix=".log", delete=False)
         self.started = time.monotonic()
         try:
@@ -103,6 +123,7 @@ class Job:
         code = self.proc.wait()
         text = self._text()
         self._close()
+        self.adaptation = adaptation_line(text)
         if code != 0:
             raise AddonError(last_error(text, code))
         if not os.path.isfile(self.out):

@@ -1,5 +1,5 @@
 """What the user sees: the add-on's preferences (where kpcn is, how it denoises) and the kpcn panel in the
-render properties (the passes checkbox and the denoise button)."""
+render properties (the passes checkbox, the denoise button and the pair button)."""
 
 import bpy
 
@@ -24,8 +24,9 @@ class KpcnPreferences(bpy.types.AddonPreferences):
         description="Denoise the frame under this many of the square's 8 symmetries and keep each pixel's median: "
                     "that many times the time, for a lower error (kpcn denoise --ensemble)")
     adapt_seconds: bpy.props.FloatProperty(
-        name="Adaptation Seconds", default=0.0, min=0.0,
-        description="Seconds of adaptation to a rendered pair: stored for kpcn versions that adapt; not used yet")
+        name="Adaptation Seconds", default=60.0, min=0.0, max=86400.0,
+        description="Render a Pair and Adapt: seconds at most of adapting to the frame's two halves (kpcn denoise "
+                    "--pair --adapt); 0: the pair's mean denoised without adapting")
     after_render: bpy.props.BoolProperty(name="Denoise After Every Render", default=False,
                                          description="Denoise the Render Result when a render finishes")
     each_frame: bpy.props.BoolProperty(
@@ -77,6 +78,7 @@ class RENDER_PT_kpcn(bpy.types.Panel):
         layout = self.layout
         layout.prop(context.scene.kpcn, "use_passes")
         layout.operator("kpcn.denoise_render", icon="IMAGE")
+        layout.operator("kpcn.denoise_pair", icon="RENDER_STILL")
         message = context.preferences.addons[__package__].preferences.last_message
         if message:
             layout.label(text=message, icon="ERROR" if message.startswith("error") else "INFO")
