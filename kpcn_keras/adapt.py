@@ -267,14 +267,19 @@ class Adapter:
 
     def _held_losses(self, weights: list | None = None) -> tuple[np.ndarray, list]:
         """The held-out loss of each held-out block (a block of a frame: both directions' pixels of it), in a fixed
-        order, and the per-crop loss weights used (``weights``: the unadapted output's, computed here where None)."""
+        order, and the per-crop loss weights used. ``weights`` None: those of the model's own output (the first
+        candidate, exactly: what the guard compares with), whose losses these are; else the current network's
+        losses, weighted by ``weights``."""
         import torch
 
         sums, counts, used = {}, {}, []
         with torch.no_grad():
             for i, crop in enumerate(self.crops):
-                f = _blend(self.net, crop.window)["default"]
-                w = 1.0 / (f**2 + RELMSE_EPS) if weights is None else weights[i]
+                if weights is None:
+                    f = crop.window.candidates["default"][(0, *crop.window.kept)]
+                    w = 1.0 / (f**2 + RELMSE_EPS)
+                else:
+                    f, w = _blend(self.net, crop.window)["default"], weights[i]
                 used.append(w)
                 err = keras.ops.convert_to_numpy(keras.ops.mean(w * (f - crop.target) ** 2, axis=-1))
                 held = crop.blocks >= 0
