@@ -249,6 +249,8 @@ def summarise(rows: list[dict], marks) -> dict:
                 "median_dssim_ratio_blender": float(np.median([_ratio(r, m, "dssim") for r in sel])),
                 "below_blender": sum(r["scores"][m]["relmse"] < r["scores"][BLENDER]["relmse"] for r in sel)}
         block["kept"] = {f"{mark:g}": sum(r["guard"][f"{mark:g}"]["kept"] for r in sel) for mark in marks}
+        block["median_steps"] = {f"{mark:g}": float(np.median([r["guard"][f"{mark:g}"]["steps"] for r in sel]))
+                                 for mark in marks}
         out[str(spp)] = block
     return out
 
@@ -296,16 +298,30 @@ def costs(models: Frames, files: dict, size: tuple[int, int], steps: int, seed: 
         begin = time.perf_counter()
         adapter = Adapter(denoiser, [(ha, hb)], AdaptSettings(steps=steps, seed=seed))
         prepare = time.perf_counter() - begin
-        outcome = adapter.run()
+        times = [0.0]
+        outcome = adapter.run(lambda step, loss, seconds, times=times: times.append(seconds))
+        step_s, check_s = _step_and_check(np.diff(times), adapter.settings.check_every)
         begin = time.perf_counter()
         plain = denoiser(mean)
         denoise = time.perf_counter() - begin
         begin = time.perf_counter()
         correct(adapter.net, plain, mean, denoiser.tile)
         found[name] = {"size": [int(ha["depth"].shape[1]), int(ha["depth"].shape[0])], "crops": len(adapter.crops),
-                       "prepare_s": prepare, "step_s": outcome.seconds / outcome.steps, "denoise_s": denoise,
+                       "prepare_s": prepare, "seconds_per_step": outcome.seconds / outcome.steps,
+                       "step_s": step_s, "check_s": check_s, "denoise_s": denoise,
                        "apply_s": time.perf_counter() - begin, "load_average": list(os.getloadavg())}
     return found
+
+
+def _step_and_check(intervals: np.ndarray, every: int) -> tuple[float, float | None]:
+    """(median seconds of a training step, median seconds of a held-out check) from the seconds between the ends
+    of consecutive steps (``intervals[k]``: step k + 1's), where a check follows every ``every``-th step and so
+    lands in the next interval; the first interval (first-call allocations) left out."""
+    index = np.arange(1, len(intervals) + 1)  # the step each interval ends
+    checked = (index > 1) & ((index - 1) % every == 0)
+    plain = intervals[(~checked) & (index > 1)]
+    step = float(np.median(plain)) if plain.size else float(np.median(intervals))
+    return step, float(np.median(intervals[checked]) - step) if checked.any() else None
 
 
 # ---------------------------------------------------------------- the run
@@ -362,13 +378,14 @@ def study(args, command: str, log=print) -> dict:
     while True:
         done = {(r["scene"], r["spp"]) for r in rows}
         todo = [f for f in frames_ready(folder, args.spp) if (f[0]["name"], f[1]) not in done]
-        if record["costs"] is None and args.costs_steps and rows and not any(f[1] == args.spp[0] for f in todo):
+        if (record["costs"] is None and args.costs_steps and rows and not args.report_only
+                and not any(f[1] == args.spp[0] for f in todo)):
             first = next(r for r in rows if r["spp"] == args.spp[0])
             log(f"adapt-report: costs at {args.costs_size[0]}x{args.costs_size[1]} ...")
             record["costs"] = costs(models, {k: Path(v) for k, v in first["files"].items()}, args.costs_size,
                                     args.costs_steps, args.seed)
             _write(report, session, record, command, cache, args)
-        if not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
+        if args.report_only or not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
             break
         recipe, spp, files = todo[0]
         load, others = list(os.getloadavg()), busy()
@@ -500,7 +517,10 @@ def _summary_lines(record: dict) -> list[str]:
                          f"{s['below_blender']} of {block['frames']} |")
     lines += ["", "Frames on which the guard kept the correction, per mark: " + "; ".join(
         f"{spp} spp: " + ", ".join(f"{k} s {v} of {b['frames']}" for k, v in b["kept"].items())
-        for spp, b in record["summary"].items()), ""]
+        for spp, b in record["summary"].items()) + ". Median steps run by each mark (at the held-out check that "
+        "decided it; the machine's load sets how many a second buys): " + "; ".join(
+        f"{spp} spp: " + ", ".join(f"{k} s {v:g}" for k, v in b["median_steps"].items())
+        for spp, b in record["summary"].items()) + ".", ""]
     return lines
 
 
@@ -524,16 +544,20 @@ def _costs_lines(c: dict | None) -> list[str]:
     if not c:
         return ["## Costs", "", "Not measured yet (they are measured once the target spp's frames are done).", ""]
     sizes = [k for k in c if isinstance(c[k], dict)]
-    head = ["frame", "crops", "preparation s", "s per step", "kpcn on the mean s", "correction applied s", "load"]
+    head = ["frame", "crops", "preparation s", "s per step (checks included)", "s per training step",
+            "s per held-out check", "kpcn on the mean s", "correction applied s", "load"]
     lines = ["## What adapting costs", "",
              f"One process, {c['steps']} steps each (held-out checks included), the frame `{c['frame']}` as it is "
              "and wrapped to the larger size (`card.frame_of_size`). Preparation: the model on both halves and "
-             "their crops; a run of S seconds then takes S / (s per step) steps.", "",
+             "their crops (at most 16 of 128 pixels a side per half, so a training step costs the same at any "
+             "size; a held-out check every 10 steps runs every crop); a run of S seconds then takes about "
+             "S / (s per step) steps.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k in sizes:
         v = c[k]
-        lines.append(f"| {v['size'][0]}x{v['size'][1]} | {v['crops']} | {v['prepare_s']:.2f} | {v['step_s']:.4f} | "
-                     f"{v['denoise_s']:.2f} | {v['apply_s']:.2f} | {v['load_average'][0]:.2f} |")
+        lines.append(f"| {v['size'][0]}x{v['size'][1]} | {v['crops']} | {v['prepare_s']:.2f} | "
+                     f"{v['seconds_per_step']:.4f} | {v['step_s']:.4f} | {_n(v['check_s'])} | {v['denoise_s']:.2f} | "
+                     f"{v['apply_s']:.2f} | {v['load_average'][0]:.2f} |")
     return lines + [""]
 
 
@@ -610,6 +634,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default=DEFAULT_CACHE, help="the panels' images of each frame, kept for a resumed run "
                    "(default: %(default)s)")
     p.add_argument("--fresh", action="store_true", help="start over: keep no frame of an earlier run")
+    p.add_argument("--report-only", action="store_true", help="write the md and png again from the json an earlier "
+                   "run with the same settings wrote, computing nothing")
     p.add_argument("--limit", type=int, default=0, help="stop after this many new frames (0: all)")
     p.add_argument("--costs-size", type=_size, default=COSTS_SIZE, help="WIDTH,HEIGHT of the cost probe (default: "
                    "1920,1080)")
