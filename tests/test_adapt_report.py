@@ -105,6 +105,11 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     for key in ("below_blender", "median_ratio", "worst_change"):
         assert t[key]["holds"] in (True, False)
     assert f"All three hold: **{'yes' if t['held'] else 'no'}**" in md
+    import hashlib
+
+    from kpcn_keras import adapt
+
+    assert record["code"]["adapt_py_sha256"] == hashlib.sha256(Path(adapt.__file__).read_bytes()).hexdigest()
     costs = record["costs"]
     assert costs["64x48"]["size"] == [64, 48] and costs["validation"]["size"] == [W, H]
     for size in ("64x48", "validation"):  # 12 steps: one held-out check, after the 10th

@@ -349,6 +349,25 @@ def _cache_path(cache: Path, row_or_key) -> Path:
     return Path(cache) / f"{scene}-{spp:05d}spp.npz"
 
 
+def code_version() -> dict:
+    """The commit of the code that ran, whether its tree had changes, and the SHA-256 of ``kpcn_keras/adapt.py``
+    (the method measured)."""
+    import subprocess
+
+    from kpcn_keras import adapt
+    from prep.files import sha256_file
+
+    root = Path(adapt.__file__).resolve().parents[1]
+    git = ["git", "-C", str(root)]
+    try:
+        commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=30).stdout.strip()
+        dirty = bool(subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                    text=True, timeout=30).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, None
+    return {"commit": commit or None, "changed": dirty, "adapt_py_sha256": sha256_file(adapt.__file__)}
+
+
 def study(args, command: str, log=print) -> dict:
     """Run the study (module docstring); returns the record written last."""
     from kpcn_keras.batch import torch_threads
@@ -371,7 +390,8 @@ def study(args, command: str, log=print) -> dict:
     old = _load(report, key, args.fresh)
     cache = Path(args.cache)
     rows = [r for r in old.get("frames", []) if _cache_path(cache, (r["scene"], r["spp"])).exists()]
-    record = {"settings": key, "folder": str(folder), "busy_at_start": busy(), "threads": torch_threads(),
+    record = {"settings": key, "folder": str(folder), "code": code_version(), "busy_at_start": busy(),
+              "threads": torch_threads(),
               "costs": old.get("costs"), "frames": rows, "resumed": len(rows)}
     models = Frames(model)
     settings = AdaptSettings(seconds=max(args.marks), steps=args.steps, seed=args.seed)
@@ -391,7 +411,7 @@ def study(args, command: str, log=print) -> dict:
         load, others = list(os.getloadavg()), busy()
         images, guard, seconds = adapt_frame(models, files, settings, args.marks)
         row = {**score_row(recipe, spp, files, images, args.marks), "guard": guard, "seconds": seconds,
-               "load_average": load, "busy": others}
+               "load_average": load, "busy": others, "adapt_py_sha256": record["code"]["adapt_py_sha256"]}
         _save_images(_cache_path(cache, (row["scene"], spp)), images, args.marks)
         rows.append(row)
         log(f"adapt-report: {recipe['name']} {spp} spp: " + ", ".join(
@@ -561,6 +581,13 @@ def _costs_lines(c: dict | None) -> list[str]:
     return lines + [""]
 
 
+def _code(code: dict | None) -> str:
+    if not code:
+        return "unrecorded"
+    return (f"`{(code['commit'] or 'no commit')[:12]}`" + (" with changes" if code["changed"] else "")
+            + f", `kpcn_keras/adapt.py` sha256 `{code['adapt_py_sha256'][:12]}`")
+
+
 def format_report(record: dict) -> str:
     s, machine = record["settings"], record["machine"]
     lines = [f"# Adapting kpcn to each frame's two halves, beside Blender's own denoiser ({record['date']})", "",
@@ -568,7 +595,7 @@ def format_report(record: dict) -> str:
              f"{s['seed']}, marks {', '.join(f'{m:g}' for m in s['marks'])} s"
              + (f", {s['steps']} steps" if s["steps"] else "") + f"; frames `{record['folder']}`"
              + (f" ({record['resumed']} frames kept from an earlier run with the same settings)"
-                if record["resumed"] else "") + ".", "",
+                if record["resumed"] else "") + f"; code {_code(record.get('code'))}.", "",
              f"Machine: {machine['cpus']} CPUs, torch threads {record['threads']}, load average "
              f"{machine['load_average_before'][0]:.2f} before and {machine['load_average_after'][0]:.2f} after; "
              "busiest other processes at the start: " + "; ".join(f"`{p}`" for p in record["busy_at_start"])
