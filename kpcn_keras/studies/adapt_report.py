@@ -349,6 +349,20 @@ def _cache_path(cache: Path, row_or_key) -> Path:
     return Path(cache) / f"{scene}-{spp:05d}spp.npz"
 
 
+def others(count: int = 6) -> list[str]:
+    """What else runs on the machine: the ``count`` busiest other processes as "%CPU nice command line" (the line
+    cut at 160 characters), this process and its children left out."""
+    import subprocess
+
+    try:
+        ps = subprocess.run(["ps", "-eo", "pid,ppid,pcpu,ni,args", "--sort=-pcpu"], capture_output=True, text=True,
+                            timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    rows = [line.split(None, 2) for line in ps.splitlines()[1:]]
+    return [rest.strip()[:160] for pid, ppid, rest in rows if os.getpid() not in (int(pid), int(ppid))][:count]
+
+
 def code_version() -> dict:
     """The commit of the code that ran, whether its tree had changes, and the SHA-256 of ``kpcn_keras/adapt.py``
     (the method measured)."""
@@ -373,7 +387,6 @@ def study(args, command: str, log=print) -> dict:
     from kpcn_keras.batch import torch_threads
     from kpcn_keras.run import default_model
     from kpcn_keras.settings import AdaptSettings
-    from kpcn_keras.studies.denoise_costs import busy
 
     folder = Path(args.frames)
     if not folder.is_dir():
@@ -390,7 +403,7 @@ def study(args, command: str, log=print) -> dict:
     old = _load(report, key, args.fresh)
     cache = Path(args.cache)
     rows = [r for r in old.get("frames", []) if _cache_path(cache, (r["scene"], r["spp"])).exists()]
-    record = {"settings": key, "folder": str(folder), "code": code_version(), "busy_at_start": busy(),
+    record = {"settings": key, "folder": str(folder), "code": code_version(), "busy_at_start": others(),
               "threads": torch_threads(),
               "costs": old.get("costs"), "frames": rows, "resumed": len(rows)}
     models = Frames(model)
@@ -408,10 +421,10 @@ def study(args, command: str, log=print) -> dict:
         if args.report_only or not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
             break
         recipe, spp, files = todo[0]
-        load, others = list(os.getloadavg()), busy()
+        load, running = list(os.getloadavg()), others()
         images, guard, seconds = adapt_frame(models, files, settings, args.marks)
         row = {**score_row(recipe, spp, files, images, args.marks), "guard": guard, "seconds": seconds,
-               "load_average": load, "busy": others, "adapt_py_sha256": record["code"]["adapt_py_sha256"]}
+               "load_average": load, "busy": running, "adapt_py_sha256": record["code"]["adapt_py_sha256"]}
         _save_images(_cache_path(cache, (row["scene"], spp)), images, args.marks)
         rows.append(row)
         log(f"adapt-report: {recipe['name']} {spp} spp: " + ", ".join(
@@ -581,6 +594,19 @@ def _costs_lines(c: dict | None) -> list[str]:
     return lines + [""]
 
 
+def _seen(record: dict) -> list[str]:
+    """The commands (cut at 100 characters) among the three busiest processes at any frame's start, once each, not
+    already named at the run's start; the CPU share and nice left out."""
+    def command(line: str) -> str:  # "%CPU nice command line", or "%CPU name" as earlier runs recorded it
+        parts = line.split(None, 2)
+        nice = len(parts) == 3 and parts[1].lstrip("-").isdigit()
+        return (parts[2] if nice else line.split(None, 1)[-1])[:100]
+
+    start = {command(p) for p in record["busy_at_start"]}
+    seen = dict.fromkeys(command(p) for r in record["frames"] for p in r.get("busy", [])[:3])
+    return [c for c in seen if c not in start and "ps -eo" not in c] or ["nothing else"]
+
+
 def _code(code: dict | None) -> str:
     if not code:
         return "unrecorded"
@@ -598,9 +624,11 @@ def format_report(record: dict) -> str:
                 if record["resumed"] else "") + f"; code {_code(record.get('code'))}.", "",
              f"Machine: {machine['cpus']} CPUs, torch threads {record['threads']}, load average "
              f"{machine['load_average_before'][0]:.2f} before and {machine['load_average_after'][0]:.2f} after; "
-             "busiest other processes at the start: " + "; ".join(f"`{p}`" for p in record["busy_at_start"])
+             "busiest other processes at the start (%CPU, nice, command): " + "; ".join(
+                 f"`{p}`" for p in record["busy_at_start"])
+             + ". Also among the three busiest at a frame's start: " + "; ".join(f"`{c}`" for c in _seen(record))
              + ". The machine is shared (a render was running): seconds of adaptation buy fewer steps than on an "
-             "idle one; each frame's load average and steps are in its row.", "",
+             "idle one; each frame's load average and steps are in its row, what ran beside it in the json.", "",
              "Each frame of N spp is given as two renders of N/2 spp (its halves, different seeds). `input`: their "
              "mean; `kpcn pair`: the model on the mean, unadapted (0 s); `kpcn adapted S s`: after S seconds of "
              "adaptation on the halves (one run, what stopping at S gives: `Adapter.snapshots`; the unadapted "
