@@ -573,7 +573,7 @@ def _frame_lines(record: dict) -> list[str]:
     return lines + [""]
 
 
-def _costs_lines(c: dict | None) -> list[str]:
+def _costs_lines(c: dict | None, rows: list[dict]) -> list[str]:
     if not c:
         return ["## Costs", "", "Not measured yet (they are measured once the target spp's frames are done).", ""]
     sizes = [k for k in c if isinstance(c[k], dict)]
@@ -591,6 +591,11 @@ def _costs_lines(c: dict | None) -> list[str]:
         lines.append(f"| {v['size'][0]}x{v['size'][1]} | {v['crops']} | {v['prepare_s']:.2f} | "
                      f"{v['seconds_per_step']:.4f} | {v['step_s']:.4f} | {_n(v['check_s'])} | {v['denoise_s']:.2f} | "
                      f"{v['apply_s']:.2f} | {v['load_average'][0]:.2f} |")
+    runs = [r["seconds"]["adapt_s"] / r["seconds"]["steps"] for r in rows if r["seconds"]["steps"]]
+    if runs:  # many steps, under the same load as the scores: the probe's few steps are noisier
+        lines += ["", f"Over the frames' own runs ({len(runs)}, at the validation size, checks included): median "
+                  f"{np.median(runs):.3f} s per step (from {min(runs):.3f} to {max(runs):.3f}), with preparations "
+                  f"of median {np.median([r['seconds']['prepare_s'] for r in rows]):.2f} s."]
     return lines + [""]
 
 
@@ -639,7 +644,7 @@ def format_report(record: dict) -> str:
         lines += _targets_lines(record["targets"])
     if record["summary"]:
         lines += _summary_lines(record)
-    lines += _costs_lines(record.get("costs"))
+    lines += _costs_lines(record.get("costs"), record["frames"])
     lines += _frame_lines(record)
     lines += ["`adapt.png`: the median ratio of relMSE (left) and DSSIM (right) to Blender's against the seconds of "
               "adaptation, one line per spp (0 s: unadapted); under it input | kpcn (pair, unadapted) | kpcn adapted "
