@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: addon world world-set world-tune modes ship-modes blender-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: addon world world-set world-tune modes ship-modes blender-report adapt-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -234,6 +234,13 @@ BLENDER_FRAMES ?= $(CYCLES_VALIDATION)
 blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cycles-validation)
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
+
+# issue 53: the shipped model adapted to each Cycles validation frame's two halves (10, 30, 60, 120 s of one run; at
+# 16, then 4 and 64 spp) beside Blender's own denoiser on one render of all the samples, the targets checked, what
+# adapting costs at 1920x1080: reports/adapt.{md,json,png}. Long (2+ minutes a frame); run again, it resumes.
+ADAPT_ARGS ?=
+adapt-report: $(KPCN) cycles-validation
+	$(BIN)/python -m kpcn_keras.studies.adapt_report $(CYCLES_VALIDATION) $(ADAPT_ARGS)
 
 # the shipped model (AUX_ARGS="--model RUN" for another) on the held-out Cycles validation set with its auxiliary
 # inputs raw, from the scene's 64-spp render (the oracle), OIDN-prefiltered and NLM-prefiltered, beside Blender's own
