@@ -632,8 +632,8 @@ def format_report(record: dict) -> str:
              "busiest other processes at the start (%CPU, nice, command): " + "; ".join(
                  f"`{p}`" for p in record["busy_at_start"])
              + ". Also among the three busiest at a frame's start: " + "; ".join(f"`{c}`" for c in _seen(record))
-             + ". The machine is shared (a render was running): seconds of adaptation buy fewer steps than on an "
-             "idle one; each frame's load average and steps are in its row, what ran beside it in the json.", "",
+             + ". Seconds of adaptation buy fewer steps on a busy machine than on an idle one; each frame's load "
+             "average and steps are in its row, what ran beside it in the json.", "",
              "Each frame of N spp is given as two renders of N/2 spp (its halves, different seeds). `input`: their "
              "mean; `kpcn pair`: the model on the mean, unadapted (0 s); `kpcn adapted S s`: after S seconds of "
              "adaptation on the halves (one run, what stopping at S gives: `Adapter.snapshots`; the unadapted "
