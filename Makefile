@@ -103,6 +103,8 @@ endef
 TUNE_ARGS  ?= --preset cpu --lr 3e-4 --steps 6000 --decay-steps 6000 --albedo-steps 3000
 BPY_PYTHON ?= python3.11
 BPY_VENV   := .venv-bpy
+# the add-on is tested in CI on bpy 5.0.1; BPY_VERSION=4.5.3 (in a clone of its own) runs its tests on Blender 4.5
+BPY_VERSION ?= 5.0.1
 CYCLES_SET ?= cycles
 CYCLES_RENDER_ARGS ?= --scenes 0:48 --res 128 --spp 4,8,16,32,64 --ref-spp 2048
 CYCLES_VAL_SCENES  ?= room-024,studio-025,ground-026
@@ -111,7 +113,7 @@ MODEL_MIX := $(MODEL_SET)-$(CYCLES_SET)
 
 $(BPY_VENV)/bin/python:
 	$(BPY_PYTHON) -m venv $(BPY_VENV)
-	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check 'numpy<2' 'bpy==5.0.1'
+	$(BPY_VENV)/bin/pip install --quiet --disable-pip-version-check 'numpy<2' 'bpy==$(BPY_VERSION)'
 
 model-tune: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) train --set $(MODEL_SET) --inputs full --run $(MODEL_RUN)-tuned --init $(MODEL_RUN) $(TUNE_ARGS)
