@@ -296,7 +296,6 @@ class Adapter:
         refuses it (module docstring). ``marks``: seconds at which to note what a run stopped there would have given
         (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None), taken at the first held-out check at or
         after the mark), so one run measures several budgets."""
-        import torch
 
         s, begin = self.settings, time.perf_counter()
         self.snapshots = {}
@@ -312,13 +311,7 @@ class Adapter:
         opt.build(params)
         step = 0
         while (step < s.steps) if s.steps is not None else (time.perf_counter() - begin < s.seconds):
-            crop = self.crops[int(self.rng.integers(len(self.crops)))]
-            loss = n2n_loss(_blend(self.net, crop.window)["default"], crop.target, crop.train)
-            for p in params:
-                p.value.grad = None
-            loss.backward()
-            with torch.no_grad():
-                opt.apply([p.value.grad for p in params], params)
+            loss = self.step(opt)
             step += 1
             if progress is not None:
                 progress(step, float(loss.detach()), time.perf_counter() - begin)
@@ -336,6 +329,13 @@ class Adapter:
             p.assign(value)
         self.post = self.net if self.outcome.kept else self.start
         return self.outcome
+
+    def step(self, opt):
+        """One step of ``opt`` on the loss of a crop drawn by the adapter's stream; the loss (a backend tensor)."""
+        crop = self.crops[int(self.rng.integers(len(self.crops)))]
+        loss = n2n_loss(_blend(self.net, crop.window)["default"], crop.target, crop.train)
+        descend(self.net.trainable_weights, opt, loss)
+        return loss
 
     def _snapshot(self, mark: float, initial, best, step: int, seconds: float) -> None:
         outcome = self._decide(initial, best, step, seconds)
@@ -364,6 +364,17 @@ class Adapter:
         return Outcome(kept, steps, seconds, float(initial.mean()), best[0], best[1], z, reason)
 
 
+def descend(params: list, opt, loss) -> None:
+    """One step of the built optimizer ``opt`` on ``params`` (Keras variables on torch) down ``loss``'s gradient."""
+    import torch
+
+    for p in params:
+        p.value.grad = None
+    loss.backward()
+    with torch.no_grad():
+        opt.apply([p.value.grad for p in params], params)
+
+
 class Corrected:
     """A denoiser (``kpcn_keras.denoise.Denoiser``) followed by a post-correction ``post``, called as the denoiser
     is (frame layers -> ``default``, ``diffuse``, ``specular``); what else a denoiser has (its ``run``, ``record``,
@@ -384,4 +395,4 @@ class Corrected:
 
 
 __all__ = ["GUIDE_CHANNELS", "HELD_OUT_EVERY", "MARGIN", "RADII", "Adapter", "Corrected", "Outcome", "build_post",
-           "correct", "n2n_loss"]
+           "correct", "descend", "n2n_loss"]

@@ -22,7 +22,7 @@ from pathlib import Path
 import keras
 import numpy as np
 
-from kpcn_keras.adapt import Adapter, _blend, correct, n2n_loss
+from kpcn_keras.adapt import Adapter, correct, descend, n2n_loss
 from kpcn_keras.batch import ReadOptions, read_frame, read_halves
 from kpcn_keras.models import network_input
 from kpcn_keras.run import Run
@@ -84,18 +84,12 @@ class HeadTuning:
         return total
 
     def train(self, steps: int, learning_rate: float = 1e-3) -> None:
-        import torch
 
         opt = keras.optimizers.Adam(learning_rate=learning_rate)
         opt.build(self.params)
         for _ in range(steps):
             crop = self.crops[int(self.rng.integers(len(self.crops)))]
-            loss = n2n_loss(self._predict(crop), crop[3])
-            for p in self.params:
-                p.value.grad = None
-            loss.backward()
-            with torch.no_grad():
-                opt.apply([p.value.grad for p in self.params], self.params)
+            descend(self.params, opt, n2n_loss(self._predict(crop), crop[3]))
 
     def denoise(self, layers: dict) -> np.ndarray:
         from kpcn_keras.denoise import Denoiser
@@ -107,17 +101,8 @@ class HeadTuning:
 
 def _train_post(adapter: Adapter, opt, steps: int) -> None:
     """``steps`` steps of the adapter's own loss on its crops, every checkpoint kept as it is (no guard)."""
-    import torch
-
-    params = adapter.net.trainable_weights
     for _ in range(steps):
-        crop = adapter.crops[int(adapter.rng.integers(len(adapter.crops)))]
-        loss = n2n_loss(_blend(adapter.net, crop.window)["default"], crop.target, crop.train)
-        for p in params:
-            p.value.grad = None
-        loss.backward()
-        with torch.no_grad():
-            opt.apply([p.value.grad for p in params], params)
+        adapter.step(opt)
 
 
 def measure(folder: Path, scene: str, spp: int, steps: list[int], model: Run, seed: int) -> dict:
