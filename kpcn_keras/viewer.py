@@ -430,7 +430,9 @@ class _Terminated(Exception):
 def serve(httpd: ViewServer, session: ViewSession, log=print) -> int:
     """Serve ``session`` on ``httpd`` until SIGTERM (the exit status is 0) or Ctrl-C (130). A stroke being
     painted then ends first (at most :data:`STOP_SECONDS`, else the process exits at once, with the same
-    status): an interpreter that exits while a thread is inside torch aborts."""
+    status): an interpreter that exits while a thread is inside torch aborts. Served from the main thread (the
+    command), the process then exits without the interpreter's finalisation, which can abort on torch's own
+    worker threads that strokes left behind ("terminate called without an active exception")."""
     httpd.session, httpd.log = session, log
     main = threading.current_thread() is threading.main_thread()
     if main:
@@ -452,6 +454,8 @@ def serve(httpd: ViewServer, session: ViewSession, log=print) -> int:
             log(f"a stroke or the adaptation did not end within {STOP_SECONDS:g} s: exiting without it")
             _exit_now(status)
         log("stopped")
+    if main:
+        _exit_now(status)
     return status
 
 
