@@ -34,12 +34,19 @@ becomes E[B | A, |A - B|], which is not c. So the model's variant is the one for
 (``Serving.variant``), and the mean frame's variance layers (where the halves have them) those of a mean of two
 (``prep.inputs.mean_layers``).
 
-The guard: blocks of ``block`` pixels, one in :data:`HELD_OUT_EVERY`, on the same pixels in both directions, never
-enter the loss. Every ``check_every`` steps their loss (weights frozen at the unadapted output, so two networks
-compare on one scale; its expectation is the error against c plus the target's variance, the same for both)
-decides: the best network so far is kept, and it replaces the identity only where its gain clears ``confidence``
-standard errors of the per-block differences. :class:`Outcome` says what was decided and why. With a seed and
-``steps`` the adapted weights are the same from run to run; with ``seconds`` the steps depend on the machine.
+The guard, cross-fitted: the correction is :data:`FOLDS` networks trained side by side, each never shown its own
+blocks of ``block`` pixels (one in :data:`HELD_OUT_EVERY`, on the same pixels in both directions; the folds' blocks
+are disjoint), and applied as the mean of their blends (:func:`combine`). Every ``check_every`` steps each
+held-out block's loss under the network that never saw it (weights frozen at the unadapted output, so two
+networks compare on one scale; its expectation is the error against c plus the target's variance, the same for
+both) decides: the best checkpoint so far is kept, and it replaces the identity only where its gain clears
+``confidence`` standard errors of the per-block differences. Two folds give the guard twice the held-out blocks of
+one network with the same share of the frame hidden from it: a frame of 128 pixels a side has 32 blocks of 16, not
+16, to judge by. The mean applied is at least as good, pixel by pixel, as the mean of its folds' losses (the loss
+is convex in f at a fixed weight), and each fold's loss is what its held-out blocks vouch for; on the blocks one
+fold trained on, the other's is the honest estimate, as in cross-fitting. :class:`Outcome` says what was decided
+and why. With a seed and ``steps`` the adapted weights are the same from run to run; with ``seconds`` the steps
+depend on the machine.
 
 Memory: training holds, per crop (at most ``crops`` of ``crop`` pixels a side per render), the guide and the
 candidates of its window; applying holds the same for one tile at a time (:data:`MARGIN` around it), beyond the
@@ -64,7 +71,8 @@ RADII = (2, 5, 12)  # box blur radii of the candidates besides the model's own o
 WIDTH = 16  # filters of the post-correction's two 3x3 convolutions
 STAY_BIAS = 8.0  # the starting logit of the model's own output (the others 0): all but 0.1% of the weight
 MARGIN = 2 + max(RADII)  # what a pixel's correction reads around it: the convolutions' reach, then the blurs'
-HELD_OUT_EVERY = 4  # one block in this many is held out (the guard's pixels)
+HELD_OUT_EVERY = 4  # one block in this many is held out from each fold's network (the guard's pixels)
+FOLDS = 2  # networks cross-fitted, each judged on the blocks held out from it alone (module docstring)
 OUTPUTS = ("default", "diffuse", "specular")  # the denoised layers corrected, each with the same weights
 GUIDE_CHANNELS = 3 * (1 + len(RADII)) + 3 + 3 + 3 + 1
 
@@ -82,10 +90,10 @@ def n2n_loss(f, y, mask=None):
     return ops.sum(err * mask) / ops.maximum(ops.sum(mask), 1.0)
 
 
-def build_post(seed: int = 0) -> keras.Model:
-    """The post-correction network: guide (None, None, :data:`GUIDE_CHANNELS`) -> logits of the candidates
-    (None, None, 1 + len(RADII)), two 3x3 convolutions of :data:`WIDTH` then a zero-initialised 1x1 whose bias
-    favours the model's own output (:data:`STAY_BIAS`)."""
+def _build_fold(seed: int, name: str) -> keras.Model:
+    """One fold's network: guide (None, None, :data:`GUIDE_CHANNELS`) -> logits of the candidates (None, None,
+    1 + len(RADII)), two 3x3 convolutions of :data:`WIDTH` then a zero-initialised 1x1 whose bias favours the
+    model's own output (:data:`STAY_BIAS`)."""
     guide = keras.Input((None, None, GUIDE_CHANNELS), name="guide")
     x = guide
     for i in range(2):
@@ -95,7 +103,43 @@ def build_post(seed: int = 0) -> keras.Model:
     bias[0] = STAY_BIAS
     logits = keras.layers.Conv2D(1 + len(RADII), 1, kernel_initializer="zeros",
                                  bias_initializer=keras.initializers.Constant(bias), name="post_logits")(x)
-    return keras.Model(guide, logits, name="post_correction")
+    return keras.Model(guide, logits, name=name)
+
+
+@keras.saving.register_keras_serializable(package="kpcn")
+class LogMeanSoftmax(keras.layers.Layer):
+    """log of the mean of the softmaxes of its inputs (logits, the last axis): logits whose softmax is the mean
+    of theirs, so the combined network blends the candidates as the mean of its folds' blends."""
+
+    def call(self, logits):
+        ops = keras.ops
+        mean = ops.mean(ops.stack([ops.softmax(x, axis=-1) for x in logits]), axis=0)
+        return ops.log(ops.maximum(mean, 1e-30))
+
+    def compute_output_shape(self, input_shape):
+        return input_shape[0]
+
+
+CUSTOM_OBJECTS = {"kpcn>LogMeanSoftmax": LogMeanSoftmax}  # what loading a saved post-correction needs
+
+
+def combine(folds: list) -> keras.Model:
+    """The post-correction applied: guide -> logits whose softmax is the mean of ``folds``' (networks of
+    :func:`_build_fold`'s shape, whose layers it shares)."""
+    guide = keras.Input((None, None, GUIDE_CHANNELS), name="guide")
+    return keras.Model(guide, LogMeanSoftmax(name="mean_blend")([net(guide) for net in folds]),
+                       name="post_correction")
+
+
+def fold_networks(post: keras.Model) -> list:
+    """The fold networks of a combined post-correction (:func:`combine`), in order."""
+    return [post.get_layer(f"post_fold{k}") for k in range(FOLDS)]
+
+
+def build_post(seed: int = 0) -> keras.Model:
+    """The post-correction network: :data:`FOLDS` networks (:func:`_build_fold`, each its own seed) combined
+    (:func:`combine`); it starts as the model's own output, all but e^-:data:`STAY_BIAS` of the weight on it."""
+    return combine([_build_fold(seed + 2 * k, f"post_fold{k}") for k in range(FOLDS)])
 
 
 def _candidates(colour: np.ndarray) -> np.ndarray:
@@ -197,24 +241,28 @@ class Outcome:
 @dataclass
 class _Crop:
     """One crop of one half as a step uses it: its window (:class:`_Window`), the other half's colour of its pixels
-    (the target), and which of them are trained on and held out (``blocks``: the held-out block of each, -1 for
-    trained on)."""
+    (the target), which of them each fold trains on (``train``, a mask per fold), and which are held out
+    (``blocks``: the held-out block of each, -1 where no fold holds it out; ``folds``: the fold that does)."""
 
     window: _Window
     target: object
-    train: object
+    train: list
     blocks: np.ndarray
+    folds: np.ndarray
     frame: int
 
 
-def _held_blocks(tile, s: AdaptSettings, frame_w: int) -> np.ndarray:
-    """Per pixel of ``tile`` (frame coordinates) its held-out block's index in the frame, -1 where trained on:
-    the same pixels in both directions of a pair."""
+def _held_blocks(tile, s: AdaptSettings, frame_w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``tile`` (frame coordinates) its held-out block's index in the frame and the fold whose
+    network never sees it, both -1 where every fold trains on it: the same pixels in both directions of a pair.
+    Each fold holds out one block in :data:`HELD_OUT_EVERY`, spread across the frame."""
     y0, y1, x0, x1 = tile
     by = np.arange(y0, y1)[:, None] // s.block
     bx = np.arange(x0, x1)[None, :] // s.block
     index = by * -(-frame_w // s.block) + bx
-    return np.where((by * 3 + bx) % HELD_OUT_EVERY == 0, index, -1)
+    code, spacing = (by * 3 + bx) % HELD_OUT_EVERY, HELD_OUT_EVERY // FOLDS
+    folds = np.where(code % spacing == 0, code // spacing, -1)
+    return np.where(folds >= 0, index, -1), folds
 
 
 def _crop_tiles(shape, s: AdaptSettings, rng) -> list[tuple]:
@@ -240,6 +288,7 @@ class Adapter:
         self.net = build_post(settings.seed) if post is None else keras.models.clone_model(post)
         if post is not None:
             self.net.set_weights(post.get_weights())
+        self.folds = fold_networks(self.net)
         rng = np.random.default_rng(settings.seed)
         self.crops = []
         for frame, (a, b) in enumerate(pairs):
@@ -259,29 +308,34 @@ class Adapter:
         out = []
         for tile in _crop_tiles(shape, self.settings, rng):
             y0, y1, x0, x1 = tile
-            blocks = _held_blocks(tile, self.settings, shape[1])
+            blocks, folds = _held_blocks(tile, self.settings, shape[1])
+            train = [keras.ops.convert_to_tensor((folds != k)[..., None]) for k in range(FOLDS)]
             out.append(_Crop(window=_window(denoised, half, tile, shape, scale, ("default",)),
                              target=keras.ops.convert_to_tensor(np.asarray(other["default"][y0:y1, x0:x1], np.float32)),
-                             train=keras.ops.convert_to_tensor((blocks < 0)[..., None]), blocks=blocks, frame=frame))
+                             train=train, blocks=blocks, folds=folds, frame=frame))
         return out
 
     def _held_losses(self, weights: list | None = None) -> tuple[np.ndarray, list]:
         """The held-out loss of each held-out block (a block of a frame: both directions' pixels of it), in a fixed
         order, and the per-crop loss weights used. ``weights`` None: those of the model's own output (the first
-        candidate, exactly: what the guard compares with), whose losses these are; else the current network's
-        losses, weighted by ``weights``."""
+        candidate, exactly: what the guard compares with), whose losses these are; else each block's loss under the
+        fold network that never saw it, weighted by ``weights``."""
         import torch
 
         sums, counts, used = {}, {}, []
+        mean = lambda f, w, crop: keras.ops.convert_to_numpy(keras.ops.mean(w * (f - crop.target) ** 2, axis=-1))  # noqa: E731
         with torch.no_grad():
             for i, crop in enumerate(self.crops):
                 if weights is None:
                     f = crop.window.candidates["default"][(0, *crop.window.kept)]
                     w = 1.0 / (f**2 + RELMSE_EPS)
+                    err = mean(f, w, crop)
                 else:
-                    f, w = _blend(self.net, crop.window)["default"], weights[i]
+                    w, err = weights[i], np.zeros(crop.folds.shape, np.float32)
+                    for k, net in enumerate(self.folds):
+                        held = crop.folds == k
+                        err[held] = mean(_blend(net, crop.window)["default"], w, crop)[held]
                 used.append(w)
-                err = keras.ops.convert_to_numpy(keras.ops.mean(w * (f - crop.target) ** 2, axis=-1))
                 held = crop.blocks >= 0
                 keys, index = np.unique(crop.blocks[held], return_inverse=True)
                 total, n = np.bincount(index, err[held]), np.bincount(index)
@@ -331,9 +385,11 @@ class Adapter:
         return self.outcome
 
     def step(self, opt):
-        """One step of ``opt`` on the loss of a crop drawn by the adapter's stream; the loss (a backend tensor)."""
+        """One step of ``opt`` on a crop drawn by the adapter's stream: each fold's network on the loss of the
+        pixels it trains on, their mean the loss (a backend tensor)."""
         crop = self.crops[int(self.rng.integers(len(self.crops)))]
-        loss = n2n_loss(_blend(self.net, crop.window)["default"], crop.target, crop.train)
+        loss = sum(n2n_loss(_blend(net, crop.window)["default"], crop.target, crop.train[k])
+                   for k, net in enumerate(self.folds)) / FOLDS
         descend(self.net.trainable_weights, opt, loss)
         return loss
 
@@ -394,5 +450,5 @@ class Corrected:
                         "adapted model; denoise it whole")
 
 
-__all__ = ["GUIDE_CHANNELS", "HELD_OUT_EVERY", "MARGIN", "RADII", "Adapter", "Corrected", "Outcome", "build_post",
-           "correct", "descend", "n2n_loss"]
+__all__ = ["CUSTOM_OBJECTS", "FOLDS", "GUIDE_CHANNELS", "HELD_OUT_EVERY", "MARGIN", "RADII", "Adapter", "Corrected",
+           "LogMeanSoftmax", "Outcome", "build_post", "combine", "correct", "descend", "fold_networks", "n2n_loss"]

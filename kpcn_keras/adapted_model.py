@@ -19,6 +19,7 @@ from pathlib import Path
 
 import keras
 
+from kpcn_keras.adapt import CUSTOM_OBJECTS
 from kpcn_keras.run import Run
 from prep.errors import KpcnError
 from prep.files import sha256_file
@@ -63,7 +64,7 @@ def load_adaptation(model: Run) -> Adaptation | None:
     post_path = folder / POST_FILE
     if not post_path.is_file() or sha256_file(post_path) != digest:
         raise KpcnError(f"{post_path}: missing or not the network {path} lists (SHA-256)")
-    return Adaptation(quality, inputs, keras.models.load_model(post_path), record)
+    return Adaptation(quality, inputs, keras.models.load_model(post_path, custom_objects=CUSTOM_OBJECTS), record)
 
 
 def write_adapted(source: Run, out, post: keras.Model | None, record: dict) -> Path:
