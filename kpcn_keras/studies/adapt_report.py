@@ -30,7 +30,7 @@ The contract:
   hold, on how many frames.
 - **Costs** (:func:`costs`): the adaptation's preparation (the model on both halves, their crops), seconds per
   step (held-out checks included, as a run pays them), the model on the mean and the correction's application, for
-  a frame wrapped to ``--costs-size`` (1920 x 1080, ``card.frame_of_size``) and at the validation resolution, in
+  a frame wrapped to each ``--costs-size`` (256 x 256 and 1920 x 1080, ``card.frame_of_size``) and at the validation resolution, in
   one process, ``--costs-steps`` steps each; measured once, after the target spp's frames.
 - **Resumable**: the record is written after every frame (``<out>/adapt.{json,md,png}``); a later run with the
   same settings keeps the rows it finds (and their panel images, cached under ``--cache``) and goes on.
@@ -74,7 +74,7 @@ TARGET_GAIN = 0.25  # the median ratio to Blender's at least this much lower tha
 TARGET_WORST = 0.02  # no frame more than this much worse than unadapted
 MEDIA = "media"  # the effect group of participating media (catalogue.EFFECTS)
 PANEL_ROWS = 4
-COSTS_SIZE = (1920, 1080)
+COSTS_SIZES = ((256, 256), (1920, 1080))
 BLENDER, PAIR, SINGLE, INPUT, INPUT_SINGLE = "blender", "kpcn pair", "kpcn single", "input", "input single"
 EXIT_USER_ERROR = 2
 
@@ -281,9 +281,9 @@ def targets(rows: list[dict], spp: int, mark: float) -> dict:
 # ---------------------------------------------------------------- the costs
 
 
-def costs(models: Frames, files: dict, size: tuple[int, int], steps: int, seed: int) -> dict:
-    """What adapting costs at the validation resolution and for the frame wrapped to ``size`` (width, height), in
-    this process, ``steps`` steps each (module docstring)."""
+def costs(models: Frames, files: dict, sizes, steps: int, seed: int) -> dict:
+    """What adapting costs at the validation resolution and for the frame wrapped to each of ``sizes`` ((width,
+    height) each), in this process, ``steps`` steps each (module docstring)."""
     from kpcn_keras.adapt import Adapter, correct
     from kpcn_keras.card import frame_of_size
     from kpcn_keras.settings import AdaptSettings
@@ -291,9 +291,10 @@ def costs(models: Frames, files: dict, size: tuple[int, int], steps: int, seed: 
 
     a, b = read_halves(files)
     found = {"frame": str(files["a"]), "steps": steps}
-    for name, (ha, hb) in {"validation": (a.layers, b.layers),
-                           "x".join(map(str, size)): (frame_of_size(a.layers, *size),
-                                                      frame_of_size(b.layers, *size))}.items():
+    frames = {"validation": (a.layers, b.layers)}
+    frames.update({"x".join(map(str, size)): (frame_of_size(a.layers, *size), frame_of_size(b.layers, *size))
+                   for size in sizes})
+    for name, (ha, hb) in frames.items():
         denoiser, mean = models.denoiser(a.inputs), mean_layers(ha, hb)
         begin = time.perf_counter()
         adapter = Adapter(denoiser, [(ha, hb)], AdaptSettings(steps=steps, seed=seed))
@@ -328,8 +329,11 @@ def _step_and_check(intervals: np.ndarray, every: int) -> tuple[float, float | N
 
 
 def _settings_key(args, model: Path) -> dict:
+    """What a resumed run must share with the record it goes on from: the method's code (``adapt.py``) among it,
+    so that rows of another method are never mixed in."""
     return {"model": str(model), "marks": list(args.marks), "seed": args.seed, "steps": args.steps,
-            "target_spp": args.spp[0]}
+            "target_spp": args.spp[0], "costs_size": [list(v) for v in args.costs_size],
+            "adapt_py_sha256": code_version()["adapt_py_sha256"]}
 
 
 def _load(report: Report, key: dict, fresh: bool) -> dict:
@@ -414,7 +418,7 @@ def study(args, command: str, log=print) -> dict:
         if (record["costs"] is None and args.costs_steps and rows and not args.report_only
                 and not any(f[1] == args.spp[0] for f in todo)):
             first = next(r for r in rows if r["spp"] == args.spp[0])
-            log(f"adapt-report: costs at {args.costs_size[0]}x{args.costs_size[1]} ...")
+            log("adapt-report: costs at " + ", ".join(f"{w}x{h}" for w, h in args.costs_size) + " ...")
             record["costs"] = costs(models, {k: Path(v) for k, v in first["files"].items()}, args.costs_size,
                                     args.costs_steps, args.seed)
             _write(report, session, record, command, cache, args)
@@ -581,7 +585,7 @@ def _costs_lines(c: dict | None, rows: list[dict]) -> list[str]:
             "s per held-out check", "kpcn on the mean s", "correction applied s", "load"]
     lines = ["## What adapting costs", "",
              f"One process, {c['steps']} steps each (held-out checks included), the frame `{c['frame']}` as it is "
-             "and wrapped to the larger size (`card.frame_of_size`). Preparation: the model on both halves and "
+             "and wrapped to the larger sizes (`card.frame_of_size`). Preparation: the model on both halves and "
              "their crops (at most 16 of 128 pixels a side per half, so a training step costs the same at any "
              "size; a held-out check every 10 steps runs every crop); a run of S seconds then takes about "
              "S / (s per step) steps.", "",
@@ -697,8 +701,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--report-only", action="store_true", help="write the md and png again from the json an earlier "
                    "run with the same settings wrote, computing nothing")
     p.add_argument("--limit", type=int, default=0, help="stop after this many new frames (0: all)")
-    p.add_argument("--costs-size", type=_size, default=COSTS_SIZE, help="WIDTH,HEIGHT of the cost probe (default: "
-                   "1920,1080)")
+    p.add_argument("--costs-size", type=_size, nargs="+", default=COSTS_SIZES, help="WIDTH,HEIGHT of each size the "
+                   "cost probe wraps the frame to (default: 256,256 1920,1080)")
     p.add_argument("--costs-steps", type=int, default=20, help="steps timed per size (0: no cost probe)")
     return p
 
