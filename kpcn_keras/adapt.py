@@ -16,8 +16,8 @@ instead blends, per pixel, the model's denoised colour with box blurs of it (rad
 low-frequency residue and a volume left noisy need), weights from a softmax, so its output is a convex combination
 of the model's own pixels: it can smooth more where the model kept noise, never add a firefly or extrapolate. Its
 guide is the candidates' log colour, the noisy colour and the albedo, normal and depth; it starts as the model's
-output (all weight on it but e^-:data:`STAY_BIAS`), and it holds about 3,000 weights, few enough for a frame's
-noisy targets to fit in seconds without fitting their noise.
+output (all weight on it but e^-:data:`STAY_BIAS`), and each of its :data:`FOLDS` networks (the guard's, below)
+holds about 5,600 weights, few enough for a frame's noisy targets to fit in seconds without fitting their noise.
 
 The loss (:func:`n2n_loss`) is relMSE with a stop-gradient denominator: L = mean(w (f - y)^2), w = 1 / (sg(f)^2
 + RELMSE_EPS), f the corrected linear colour of one half, y the other half's noisy colour. The weight is the

@@ -17,7 +17,9 @@ import torch
 from helpers.commands import assert_one_line_error, run_main
 
 from kpcn_keras.adapt import (
+    FOLDS,
     GUIDE_CHANNELS,
+    HELD_OUT_EVERY,
     MARGIN,
     RADII,
     Adapter,
@@ -137,6 +139,49 @@ def test_the_guard_keeps_the_models_output_where_the_correction_would_not_help(p
     corrected = Corrected(plain, forced.post)(frame)["default"]
     # measured: relMSE 2.479e-4 -> 2.553e-4, MSE 8.47e-5 -> 8.60e-5
     assert relmse(corrected, clean) > relmse(model, clean) and mse(corrected, clean) > mse(model, clean)
+
+
+@pytest.mark.slow
+def test_each_fold_never_learns_from_its_own_held_out_blocks_and_the_applied_blend_is_their_mean(plain):
+    # what makes the guard's per-block losses honest: a fold's weights are the same whatever the targets of the
+    # pixels held out from it, and change with those of the pixels it trains on
+    clean = smooth_clean(64, 64)
+    a, b = noisy_half(clean, 31, 1.0), noisy_half(clean, 32, 1.0)
+    settings = AdaptSettings(steps=8, seed=3, crop=64, block=8)
+
+    def trained(changed_fold=None):
+        adapter = Adapter(plain, [(a, b)], settings)
+        if changed_fold is not None:  # the targets tripled on the pixels that fold holds out, in both directions
+            for crop in adapter.crops:
+                target = keras.ops.convert_to_numpy(crop.target).copy()
+                target[crop.folds == changed_fold] *= 3.0
+                crop.target = keras.ops.convert_to_tensor(target)
+        opt = keras.optimizers.Adam(learning_rate=1e-2)
+        opt.build(adapter.net.trainable_weights)
+        for _ in range(settings.steps):
+            adapter.step(opt)
+        return adapter
+
+    base = trained()
+    folds = base.crops[0].folds
+    # each fold holds out about one block in HELD_OUT_EVERY, none of another fold's
+    assert [round(float((folds == k).mean()), 2) for k in range(FOLDS)] == [1 / HELD_OUT_EVERY] * FOLDS
+    for k in range(FOLDS):
+        changed = trained(k)
+        for j, (net, other) in enumerate(zip(base.folds, changed.folds, strict=True)):
+            same = all(np.array_equal(x, y) for x, y in zip(net.get_weights(), other.get_weights(), strict=True))
+            assert same == (j == k), (k, j)
+    # applied: the softmax of the combined logits is the mean of the folds' softmaxes (float64 numpy)
+    guide = base.crops[0].window.guide
+    blends = [_softmax(net(guide)) for net in base.folds]
+    assert np.abs(_softmax(base.net(guide)) - np.mean(blends, axis=0)).max() < 1e-6
+    assert np.abs(blends[0] - blends[1]).max() > 1e-4  # the folds differ: the mean is a blend of two
+
+
+def _softmax(logits) -> np.ndarray:
+    z = np.asarray(keras.ops.convert_to_numpy(logits), np.float64)
+    e = np.exp(z - z.max(-1, keepdims=True))
+    return e / e.sum(-1, keepdims=True)
 
 
 # -- 2. the loss's expected gradient -------------------------------------------------------------------------------

@@ -30,8 +30,9 @@ The contract:
   hold, on how many frames.
 - **Costs** (:func:`costs`): the adaptation's preparation (the model on both halves, their crops), seconds per
   step (held-out checks included, as a run pays them), the model on the mean and the correction's application, for
-  a frame wrapped to each ``--costs-size`` (256 x 256 and 1920 x 1080, ``card.frame_of_size``) and at the validation resolution, in
-  one process, ``--costs-steps`` steps each; measured once, after the target spp's frames.
+  a frame wrapped to each ``--costs-size`` (256 x 256 and 1920 x 1080, ``card.frame_of_size``) and at the
+  validation resolution, in one process, ``--costs-steps`` steps each; measured once, after the target spp's
+  frames.
 - **Resumable**: the record is written after every frame (``<out>/adapt.{json,md,png}``); a later run with the
   same settings keeps the rows it finds (and their panel images, cached under ``--cache``) and goes on.
   ``--fresh`` starts over.
