@@ -286,7 +286,7 @@ test: $(KPCN)
 
 # everything, the slow tests too (subprocesses, kills and resumes, trainings, renders, kernel compiles): what CI runs
 test-all: $(KPCN)
-	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL)
+	$(BIN)/python -m pytest -q $(PYTEST_PARALLEL) --durations=30
 
 # the training tests on the oldest Keras that pyproject.toml allows, in an environment of its own
 KERAS_OLDEST := $(shell sed -n 's/.*"keras>=\([0-9.]*\)".*/\1/p' pyproject.toml)
