@@ -348,8 +348,9 @@ class Adapter:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
         seconds)`` after each step. Ends with :attr:`post` the best held-out checkpoint, or None where the guard
         refuses it (module docstring). ``marks``: seconds at which to note what a run stopped there would have given
-        (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None), taken at the first held-out check at or
-        after the mark), so one run measures several budgets."""
+        (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None, the best checkpoint's weights whatever
+        the guard decided, None where none did better than the model's output), taken at the first held-out check
+        at or after the mark), so one run measures several budgets."""
 
         s, begin = self.settings, time.perf_counter()
         self.snapshots = {}
@@ -378,7 +379,8 @@ class Adapter:
                     self._snapshot(pending.pop(0), initial, best, step, time.perf_counter() - begin)
         self.outcome = self._decide(initial, best, step, time.perf_counter() - begin)
         for mark in pending:  # the run ended before them: what it gives is what they give
-            self.snapshots[mark] = (self.outcome, best[3] if self.outcome.kept else None)
+            self.snapshots[mark] = (self.outcome, best[3] if self.outcome.kept else None,
+                                    best[3] if best[1] > 0 else None)
         for p, value in zip(params, best[3] if self.outcome.kept else start):
             p.assign(value)
         self.post = self.net if self.outcome.kept else self.start
@@ -395,7 +397,7 @@ class Adapter:
 
     def _snapshot(self, mark: float, initial, best, step: int, seconds: float) -> None:
         outcome = self._decide(initial, best, step, seconds)
-        self.snapshots[mark] = (outcome, best[3] if outcome.kept else None)
+        self.snapshots[mark] = (outcome, best[3] if outcome.kept else None, best[3] if best[1] > 0 else None)
 
     def apply_weights(self, weights) -> keras.Model:
         """A copy of the post-correction with ``weights`` (a snapshot's), to apply (:func:`correct`)."""

@@ -97,6 +97,7 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
         for mark in ("0.001", "0.002"):  # 3 steps: no held-out check yet, so the guard keeps the model's output
             assert row["guard"][mark]["kept"] is False and row["guard"][mark]["steps"] == 3
             assert row["scores"][f"kpcn adapted {mark} s"] == row["scores"]["kpcn pair"]
+        assert row["scores"]["kpcn unguarded"] == row["scores"]["kpcn pair"]  # no checkpoint yet: nothing forgone
     _check_summary(record, list(rows.values()))
     md = (out / "adapt.md").read_text()
     assert "Below Blender's own denoiser at equal samples (relMSE) on at least half the validation frames" in md

@@ -77,6 +77,7 @@ MEDIA = "media"  # the effect group of participating media (catalogue.EFFECTS)
 PANEL_ROWS = 4
 COSTS_SIZES = ((256, 256), (1920, 1080))
 BLENDER, PAIR, SINGLE, INPUT, INPUT_SINGLE = "blender", "kpcn pair", "kpcn single", "input", "input single"
+UNGUARDED = "kpcn unguarded"  # the target mark's best checkpoint applied whatever the guard decided: what it forgoes
 EXIT_USER_ERROR = 2
 
 
@@ -86,7 +87,12 @@ def adapted(mark: float) -> str:
 
 
 def methods(marks) -> list[str]:
-    return [INPUT, PAIR, *map(adapted, marks), BLENDER, SINGLE, INPUT_SINGLE]
+    return [INPUT, PAIR, *map(adapted, marks), UNGUARDED, BLENDER, SINGLE, INPUT_SINGLE]
+
+
+def target_mark(marks) -> float:
+    """The mark the targets are judged at: :data:`TARGET_MARK` where measured, else the largest."""
+    return TARGET_MARK if TARGET_MARK in marks else marks[-1]
 
 
 # ---------------------------------------------------------------- the frames
@@ -207,11 +213,14 @@ def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dic
     outcome = adapter.run(marks=marks)
     seconds.update(adapt_s=outcome.seconds, steps=outcome.steps)
     guard = {}
+    apply = lambda weights: plain["default"] if weights is None else correct(  # noqa: E731
+        adapter.apply_weights(weights), plain, mean, denoiser.tile)["default"]
     for mark in marks:
-        decided, weights = adapter.snapshots[mark]
+        decided, weights, best = adapter.snapshots[mark]
         guard[f"{mark:g}"] = decided.to_dict()
-        images[adapted(mark)] = plain["default"] if weights is None else correct(
-            adapter.apply_weights(weights), plain, mean, denoiser.tile)["default"]
+        images[adapted(mark)] = apply(weights)
+        if mark == target_mark(marks):
+            images[UNGUARDED] = apply(best)
     return images, guard, seconds
 
 
@@ -433,8 +442,8 @@ def study(args, command: str, log=print) -> dict:
         _save_images(_cache_path(cache, (row["scene"], spp)), images, args.marks)
         rows.append(row)
         log(f"adapt-report: {recipe['name']} {spp} spp: " + ", ".join(
-            f"{m} {row['scores'][m]['relmse']:.4f}" for m in (PAIR, adapted(TARGET_MARK) if TARGET_MARK in
-                                                               args.marks else adapted(args.marks[-1]), BLENDER)))
+            f"{m} {row['scores'][m]['relmse']:.4f}" for m in (PAIR, adapted(target_mark(args.marks)), UNGUARDED,
+                                                               BLENDER)))
         _write(report, session, record, command, cache, args)
     return _write(report, session, record, command, cache, args)
 
@@ -447,9 +456,8 @@ def _save_images(path: Path, images: dict, marks) -> None:
     the figure of a resumed run."""
     from prep.files import atomic_path
 
-    mark = TARGET_MARK if TARGET_MARK in marks else marks[-1]
-    shown = {INPUT: images[INPUT], PAIR: images[PAIR], "adapted": images[adapted(mark)], BLENDER: images[BLENDER],
-             "reference": images["reference"]}
+    shown = {INPUT: images[INPUT], PAIR: images[PAIR], "adapted": images[adapted(target_mark(marks))],
+             BLENDER: images[BLENDER], "reference": images["reference"]}
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **{k: np.asarray(v, np.float32) for k, v in shown.items()})
@@ -466,10 +474,10 @@ def _write(report: Report, session, record: dict, command: str, cache: Path, arg
     rows, marks = record["frames"], args.marks
     out = {**session.envelope(command), **record, "methods": methods(marks),
            "machine": session.machine(threads=record["threads"]), "summary": summarise(rows, marks) if rows else {},
-           "targets": targets(rows, args.spp[0], TARGET_MARK if TARGET_MARK in marks else marks[-1])}
+           "targets": targets(rows, args.spp[0], target_mark(marks))}
     panels = [(r, _cache_path(cache, (r["scene"], r["spp"]))) for r in panel_rows(rows, args.spp[0])]
     out["panels"] = [r["scene"] for r, _ in panels]
-    out["target_mark"] = TARGET_MARK if TARGET_MARK in marks else marks[-1]
+    out["target_mark"] = target_mark(marks)
     return report.write(out, format_report(out), lambda rec: figure(rec, panels))
 
 
@@ -564,11 +572,11 @@ def _summary_lines(record: dict) -> list[str]:
 
 def _frame_lines(record: dict) -> list[str]:
     marks = record["settings"]["marks"]
-    shown = [INPUT, PAIR, *map(adapted, marks), BLENDER, SINGLE]
+    shown = [INPUT, PAIR, *map(adapted, marks), UNGUARDED, BLENDER, SINGLE]
     head = ["scene", "spp", "groups", *(f"{m} relMSE" for m in shown), "adapted / Blender's",
             *(f"{m} DSSIM" for m in shown), "guard per mark", "steps", "load"]
     lines = ["## Per frame", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    target = adapted(TARGET_MARK if TARGET_MARK in marks else marks[-1])
+    target = adapted(target_mark(marks))
     for r in record["frames"]:
         guard = " ".join(("kept" if r["guard"][f"{m:g}"]["kept"] else "no") for m in marks)
         lines.append(f"| {r['scene']} | {r['spp']} | {', '.join(r['groups'])} | "
@@ -642,7 +650,9 @@ def format_report(record: dict) -> str:
              "Each frame of N spp is given as two renders of N/2 spp (its halves, different seeds). `input`: their "
              "mean; `kpcn pair`: the model on the mean, unadapted (0 s); `kpcn adapted S s`: after S seconds of "
              "adaptation on the halves (one run, what stopping at S gives: `Adapter.snapshots`; the unadapted "
-             "output where the guard refused the correction); `blender`: Blender's own denoiser (OIDN) on one "
+             "output where the guard refused the correction); `kpcn unguarded`: the best held-out checkpoint at "
+             f"{record['target_mark']:g} s applied whatever the guard decided (what the guard forgoes, or spares); "
+             "`blender`: Blender's own denoiser (OIDN) on one "
              "render of N spp; `kpcn single`: the model on that one render. Scores against the 2048-spp reference "
              "in float64 (`prep.metrics`).", ""]
     if record["targets"].get("held") is not None or record["frames"]:
