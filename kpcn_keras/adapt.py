@@ -142,6 +142,17 @@ def build_post(seed: int = 0) -> keras.Model:
     return combine([_build_fold(seed + 2 * k, f"post_fold{k}") for k in range(FOLDS)])
 
 
+def _continue_from(net: keras.Model, post: keras.Model) -> None:
+    """Set ``net`` (:func:`build_post`'s) to the weights of ``post``: a post-correction of the same folds, or one
+    network (as adaptations before the guard was cross-fitted wrote), which then starts every fold."""
+    weights = post.get_weights()
+    if len(weights) == len(net.get_weights()):
+        net.set_weights(weights)
+    else:
+        for fold in fold_networks(net):
+            fold.set_weights(weights)
+
+
 def _candidates(colour: np.ndarray) -> np.ndarray:
     """(K, h, w, 3) float32: ``colour`` (linear) and its box blurs of :data:`RADII`, each cut at the window's border."""
     c = np.asarray(colour, np.float64)
@@ -285,9 +296,9 @@ class Adapter:
     def __init__(self, denoise, pairs, settings: AdaptSettings | None = None, post: keras.Model | None = None):
         self.settings = settings = settings or AdaptSettings()
         self.start = post
-        self.net = build_post(settings.seed) if post is None else keras.models.clone_model(post)
+        self.net = build_post(settings.seed)
         if post is not None:
-            self.net.set_weights(post.get_weights())
+            _continue_from(self.net, post)
         self.folds = fold_networks(self.net)
         rng = np.random.default_rng(settings.seed)
         self.crops = []

@@ -24,6 +24,7 @@ from kpcn_keras.adapt import (
     RADII,
     Adapter,
     Corrected,
+    _build_fold,
     _guide,
     n2n_loss,
 )
@@ -182,6 +183,22 @@ def _softmax(logits) -> np.ndarray:
     z = np.asarray(keras.ops.convert_to_numpy(logits), np.float64)
     e = np.exp(z - z.max(-1, keepdims=True))
     return e / e.sum(-1, keepdims=True)
+
+
+def test_an_adaptation_goes_on_from_a_post_correction_of_folds_or_of_one_network(plain):
+    clean = smooth_clean(32, 32)
+    pairs = [(noisy_half(clean, 1, 1.0), noisy_half(clean, 2, 1.0))]
+    settings = AdaptSettings(steps=1, seed=9, crop=32, block=8)
+    first = Adapter(plain, pairs, settings)
+    for k, w in enumerate(first.net.trainable_weights):  # weights no fresh network has
+        w.assign(w.value + 0.01 * (k + 1))
+    again = Adapter(plain, pairs, dataclasses.replace(settings, seed=10), first.net)
+    assert all(np.array_equal(x, y) for x, y in zip(first.net.get_weights(), again.net.get_weights(), strict=True))
+    one = _build_fold(5, "post_correction")  # one network, as adaptations before the cross-fitted guard wrote
+    for w in one.trainable_weights:
+        w.assign(w.value - 0.02)
+    for fold in Adapter(plain, pairs, settings, one).folds:
+        assert all(np.array_equal(x, y) for x, y in zip(fold.get_weights(), one.get_weights(), strict=True))
 
 
 # -- 2. the loss's expected gradient -------------------------------------------------------------------------------
