@@ -37,16 +37,18 @@ becomes E[B | A, |A - B|], which is not c. So the model's variant is the one for
 The guard, cross-fitted: the correction is :data:`FOLDS` networks trained side by side, each never shown its own
 blocks of ``block`` pixels (one in :data:`HELD_OUT_EVERY`, on the same pixels in both directions; the folds' blocks
 are disjoint), and applied as the mean of their blends (:func:`combine`). Every ``check_every`` steps each
-held-out block's loss under the network that never saw it (weights frozen at the unadapted output, so two
-networks compare on one scale; its expectation is the error against c plus the target's variance, the same for
-both) decides: the best checkpoint so far is kept, and it replaces the identity only where its gain clears
-``confidence`` standard errors of the per-block differences. Two folds give the guard twice the held-out blocks of
-one network with the same share of the frame hidden from it: a frame of 128 pixels a side has 32 blocks of 16, not
-16, to judge by. The mean applied is at least as good, pixel by pixel, as the mean of its folds' losses (the loss
-is convex in f at a fixed weight), and each fold's loss is what its held-out blocks vouch for; on the blocks one
-fold trained on, the other's is the honest estimate, as in cross-fitting. :class:`Outcome` says what was decided
-and why. With a seed and ``steps`` the adapted weights are the same from run to run; with ``seconds`` the steps
-depend on the machine.
+held-out block's loss is taken under the network that never saw it (weights frozen at the unadapted output, so
+two networks compare on one scale; its expectation is the error against c plus the target's variance, the same
+for both). Where to stop is cross-fitted too: each fold's checkpoint is the one at the step where the *other*
+folds' blocks did best (:class:`_Choice`), so its own blocks, which then test it, took no part in choosing it: a
+best-of-hundreds checkpoint judged on the blocks that chose it would look better than it is. The chosen
+checkpoints replace the identity only where their gain clears ``confidence`` standard errors of the per-block
+differences. Two folds give the guard twice the held-out blocks of one network with the same share of the frame
+hidden from it: a frame of 128 pixels a side has 32 blocks of 16, not 16, to judge by. The mean applied is at
+least as good, pixel by pixel, as the mean of its folds' losses (the loss is convex in f at a fixed weight), and
+each fold's loss is what its held-out blocks vouch for; on the blocks one fold trained on, the other's is the
+honest estimate, as in cross-fitting. :class:`Outcome` says what was decided and why. With a seed and ``steps``
+the adapted weights are the same from run to run; with ``seconds`` the steps depend on the machine.
 
 Memory: training holds, per crop (at most ``crops`` of ``crop`` pixels a side per render), the guide and the
 candidates of its window; applying holds the same for one tile at a time (:data:`MARGIN` around it), beyond the
@@ -227,26 +229,39 @@ def correct(post: keras.Model, denoised: dict, layers: dict, tile_size: int) -> 
 @dataclass(frozen=True)
 class Outcome:
     """What an adaptation did: ``kept`` (the post-correction applies), ``steps`` run in ``seconds``, the held-out
-    loss of the model's output (``initial``) and of the best checkpoint (``best``, at ``best_step``), that gain in
-    standard errors of the per-block differences (``z``), and ``reason``."""
+    loss of the model's output (``initial``) and of the chosen checkpoints (``best``: each fold's network at its
+    step of ``best_steps``, 0 for the model's output, on the blocks held out from it), that gain in standard errors
+    of the per-block differences (``z``), and ``reason``."""
 
     kept: bool
     steps: int
     seconds: float
     initial: float
     best: float
-    best_step: int
+    best_steps: tuple
     z: float
     reason: str
 
     def line(self) -> str:
         change = 100.0 * (self.best / self.initial - 1.0) if self.initial > 0 else 0.0
         return (f"adaptation {'kept' if self.kept else 'not kept'}: held-out loss {self.initial:.5g} -> "
-                f"{self.best:.5g} ({change:+.2f}%, {self.z:.1f} standard errors) at step {self.best_step} of "
-                f"{self.steps} in {self.seconds:.1f} s; {self.reason}")
+                f"{self.best:.5g} ({change:+.2f}%, {self.z:.1f} standard errors) at steps "
+                f"{' and '.join(map(str, self.best_steps))} of {self.steps} in {self.seconds:.1f} s; {self.reason}")
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+@dataclass
+class _Choice:
+    """A fold's checkpoint, chosen by the held-out loss of the other folds' blocks alone (``criterion``): its
+    ``step``, the held-out losses of the fold's own blocks there (``own``: the guard's test, which the choice never
+    looked at) and the fold network's ``weights``."""
+
+    criterion: float
+    step: int
+    own: np.ndarray
+    weights: list
 
 
 @dataclass
@@ -307,6 +322,12 @@ class Adapter:
             for x, y in ((a, b), (b, a)):
                 self.crops += self._prepare(x, outputs[id(x)], y, frame, rng)
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
+        folds = {}
+        for c in self.crops:
+            held = c.blocks >= 0
+            keys, first = np.unique(c.blocks[held], return_index=True)
+            folds.update(zip([(c.frame, k) for k in keys], c.folds[held][first]))
+        self.block_folds = np.array([folds[k] for k in sorted(folds)])  # per held-out block, as _held_losses orders
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
         self.snapshots: dict = {}
@@ -357,24 +378,23 @@ class Adapter:
 
     def run(self, progress=None, marks=()) -> Outcome:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
-        seconds)`` after each step. Ends with :attr:`post` the best held-out checkpoint, or None where the guard
-        refuses it (module docstring). ``marks``: seconds at which to note what a run stopped there would have given
-        (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None, the best checkpoint's weights whatever
-        the guard decided, None where none did better than the model's output), taken at the first held-out check
-        at or after the mark), so one run measures several budgets."""
+        seconds)`` after each step. Ends with :attr:`post` the folds' chosen checkpoints, or None where the guard
+        refuses them (module docstring). ``marks``: seconds at which to note what a run stopped there would have given
+        (:attr:`snapshots`: mark -> (Outcome, the weights to apply or None, the chosen checkpoints' weights whatever
+        the guard decided, None where every fold chose the model's output; weights are a list per fold), taken at the
+        first held-out check at or after the mark), so one run measures several budgets."""
 
         s, begin = self.settings, time.perf_counter()
         self.snapshots = {}
         pending = sorted(marks)
-        params = self.net.trainable_weights
-        start = [keras.ops.convert_to_numpy(p.value).copy() for p in params]
         initial, weights = self._held_losses()
         if initial.size < 2:
             raise KpcnError(f"the frame is too small to hold out blocks for the guard: it needs {s.block} x "
                             f"{HELD_OUT_EVERY} pixels a side at least")
-        best = (float(initial.mean()), 0, initial, start)
+        choices = [self._choice(k, 0, initial) for k in range(FOLDS)]
+        start = [c.weights for c in choices]
         opt = keras.optimizers.Adam(learning_rate=s.learning_rate)
-        opt.build(params)
+        opt.build(self.net.trainable_weights)
         step = 0
         while (step < s.steps) if s.steps is not None else (time.perf_counter() - begin < s.seconds):
             loss = self.step(opt)
@@ -383,19 +403,23 @@ class Adapter:
                 progress(step, float(loss.detach()), time.perf_counter() - begin)
             if step % s.check_every == 0:
                 blocks, _ = self._held_losses(weights)
-                if blocks.mean() < best[0]:
-                    best = (float(blocks.mean()), step, blocks, [keras.ops.convert_to_numpy(p.value).copy()
-                                                                 for p in params])
+                for k in range(FOLDS):
+                    if blocks[self.block_folds != k].mean() < choices[k].criterion:
+                        choices[k] = self._choice(k, step, blocks)
                 while pending and time.perf_counter() - begin >= pending[0]:
-                    self._snapshot(pending.pop(0), initial, best, step, time.perf_counter() - begin)
-        self.outcome = self._decide(initial, best, step, time.perf_counter() - begin)
+                    self._snapshot(pending.pop(0), initial, choices, step, time.perf_counter() - begin)
+        self.outcome = self._decide(initial, choices, step, time.perf_counter() - begin)
         for mark in pending:  # the run ended before them: what it gives is what they give
-            self.snapshots[mark] = (self.outcome, best[3] if self.outcome.kept else None,
-                                    best[3] if best[1] > 0 else None)
-        for p, value in zip(params, best[3] if self.outcome.kept else start):
-            p.assign(value)
+            self._snapshot(mark, initial, choices, step, self.outcome.seconds)
+        for fold, value in zip(self.folds, [c.weights for c in choices] if self.outcome.kept else start):
+            fold.set_weights(value)
         self.post = self.net if self.outcome.kept else self.start
         return self.outcome
+
+    def _choice(self, k: int, step: int, blocks: np.ndarray) -> _Choice:
+        """Fold ``k``'s checkpoint now, at ``step``, the held-out losses of every block ``blocks``."""
+        return _Choice(float(blocks[self.block_folds != k].mean()), step, blocks[self.block_folds == k].copy(),
+                       self.folds[k].get_weights())
 
     def step(self, opt):
         """One step of ``opt`` on a crop drawn by the adapter's stream: each fold's network on the loss of the
@@ -406,31 +430,38 @@ class Adapter:
         descend(self.net.trainable_weights, opt, loss)
         return loss
 
-    def _snapshot(self, mark: float, initial, best, step: int, seconds: float) -> None:
-        outcome = self._decide(initial, best, step, seconds)
-        self.snapshots[mark] = (outcome, best[3] if outcome.kept else None, best[3] if best[1] > 0 else None)
+    def _snapshot(self, mark: float, initial, choices: list, step: int, seconds: float) -> None:
+        outcome = self._decide(initial, choices, step, seconds)
+        chosen = [c.weights for c in choices]
+        self.snapshots[mark] = (outcome, chosen if outcome.kept else None, chosen if any(outcome.best_steps) else None)
 
     def apply_weights(self, weights) -> keras.Model:
-        """A copy of the post-correction with ``weights`` (a snapshot's), to apply (:func:`correct`)."""
-        net = keras.models.clone_model(self.net)
-        for p, value in zip(net.trainable_weights, weights):
-            p.assign(value)
+        """A copy of the post-correction with ``weights`` (a snapshot's: each fold network's), to apply
+        (:func:`correct`)."""
+        net = build_post(self.settings.seed)
+        for fold, value in zip(fold_networks(net), weights, strict=True):
+            fold.set_weights(value)
         return net
 
-    def _decide(self, initial: np.ndarray, best, steps: int, seconds: float) -> Outcome:
-        """The guard's decision on the best checkpoint ``best`` (loss, step, per-block losses, weights)."""
+    def _decide(self, initial: np.ndarray, choices: list, steps: int, seconds: float) -> Outcome:
+        """The guard's decision on the folds' chosen checkpoints ``choices``: each block's held-out loss there, under
+        the network that never saw it at a step chosen without it, against the model's output."""
         s = self.settings
-        diff = best[2] - initial
+        tested = np.empty_like(initial)
+        for k, choice in enumerate(choices):
+            tested[self.block_folds == k] = choice.own
+        diff = tested - initial
         se = float(diff.std(ddof=1) / np.sqrt(diff.size))
         z = float(-diff.mean() / se) if se > 0 else (float("inf") if diff.mean() < 0 else 0.0)
-        kept = best[1] > 0 and z >= s.confidence
+        steps_chosen = tuple(c.step for c in choices)
+        kept = any(steps_chosen) and z >= s.confidence
         if kept:
             reason = f"its held-out gain clears {s.confidence:g} standard errors"
-        elif best[1] == 0:
+        elif not any(steps_chosen):
             reason = "no checkpoint did better on the held-out blocks than the model's own output"
         else:
             reason = f"its held-out gain is within {s.confidence:g} standard errors of none"
-        return Outcome(kept, steps, seconds, float(initial.mean()), best[0], best[1], z, reason)
+        return Outcome(bool(kept), steps, seconds, float(initial.mean()), float(tested.mean()), steps_chosen, z, reason)
 
 
 def descend(params: list, opt, loss) -> None:

@@ -195,7 +195,8 @@ def test_in_blender_the_pair_button_renders_two_halves_and_loads_what_kpcn_denoi
     got = _blender(tmp_path, "pair", ADAPT_STEPS, *seeds)
     assert got["pair"]["result"] == ["FINISHED"], got
     # kpcn adapted for the steps the operator was given, and said what its guard decided
-    assert re.fullmatch(rf"denoised into image 'Scene frame 1 kpcn pair'; adaptation (not )?kept: .* at step \d+ of "
+    assert re.fullmatch(rf"denoised into image 'Scene frame 1 kpcn pair'; adaptation (not )?kept: .* at steps "
+                        rf"[\d and]+ of "
                         rf"{ADAPT_STEPS} in .*", got["message"]), got["message"]
     assert got["after"] == got["before"], got  # the scene's samples, seed, adaptive sampling, denoiser given back
     assert got["before"]["samples"] == 4 and got["before"]["use_denoising"], got
@@ -245,9 +246,9 @@ def test_the_addons_half_seeds_are_kpcn_blend_pairs_and_its_commands_pass_the_pa
         "--pair", "b.exr", "--adapt-steps", "3"]
     assert runner.denoise_command("k", "a.exr", "o.exr", adapt_seconds=60) == cmd  # no pair: nothing to adapt to
     log = ("adapting: 100%| 3/3 step\rwrote o.exr\nadaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 "
-           "standard errors) at step 0 of 3 in 1.5 s; no checkpoint did better\npeak memory 514 MiB\n")
+           "standard errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better\npeak memory 514 MiB\n")
     assert runner.adaptation_line(log) == ("adaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 standard "
-                                           "errors) at step 0 of 3 in 1.5 s; no checkpoint did better")
+                                           "errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better")
     assert runner.adaptation_line("wrote o.exr\n") == ""
 
 
