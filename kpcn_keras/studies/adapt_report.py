@@ -77,7 +77,7 @@ MEDIA = "media"  # the effect group of participating media (catalogue.EFFECTS)
 PANEL_ROWS = 4
 COSTS_SIZES = ((256, 256), (1920, 1080))
 BLENDER, PAIR, SINGLE, INPUT, INPUT_SINGLE = "blender", "kpcn pair", "kpcn single", "input", "input single"
-UNGUARDED = "kpcn unguarded"  # the target mark's best checkpoint applied whatever the guard decided: what it forgoes
+UNGUARDED = "kpcn unguarded"  # the target mark's chosen checkpoints applied whatever the guard decided
 EXIT_USER_ERROR = 2
 
 
@@ -650,7 +650,7 @@ def format_report(record: dict) -> str:
              "Each frame of N spp is given as two renders of N/2 spp (its halves, different seeds). `input`: their "
              "mean; `kpcn pair`: the model on the mean, unadapted (0 s); `kpcn adapted S s`: after S seconds of "
              "adaptation on the halves (one run, what stopping at S gives: `Adapter.snapshots`; the unadapted "
-             "output where the guard refused the correction); `kpcn unguarded`: the best held-out checkpoint at "
+             "output where the guard refused the correction); `kpcn unguarded`: the chosen checkpoints at "
              f"{record['target_mark']:g} s applied whatever the guard decided (what the guard forgoes, or spares); "
              "`blender`: Blender's own denoiser (OIDN) on one "
              "render of N spp; `kpcn single`: the model on that one render. Scores against the 2048-spp reference "
