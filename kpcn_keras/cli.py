@@ -248,22 +248,26 @@ def cmd_denoise(args) -> int:
 
 class _AdaptBar:
     """The progress of an adaptation (``AdaptSettings``: steps, or seconds), with the self-supervised loss; a
-    callable ``(step, loss, seconds)``; nothing where ``adapt`` is None or ``quiet``."""
+    callable ``(step, loss, seconds)``; nothing where ``adapt`` is None or ``quiet``. The bar appears at the first
+    step, so that a pair refused before training is its one line alone."""
 
     def __init__(self, adapt, quiet: bool):
         self.adapt, self.quiet, self.bar = adapt, quiet, None
 
     def __enter__(self):
-        if self.adapt is not None and not self.quiet:
-            from tqdm import tqdm
-
-            steps = self.adapt.steps
-            self.bar = tqdm(total=steps if steps is not None else self.adapt.seconds, desc="adapting",
-                            unit="step" if steps is not None else "s", bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} "
-                            "{unit} [{elapsed}<{remaining}{postfix}]")
         return self
 
+    def _open(self):
+        from tqdm import tqdm
+
+        steps = self.adapt.steps
+        return tqdm(total=steps if steps is not None else self.adapt.seconds, desc="adapting",
+                    unit="step" if steps is not None else "s", bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} "
+                    "{unit} [{elapsed}<{remaining}{postfix}]")
+
     def __call__(self, step: int, loss: float, seconds: float) -> None:
+        if self.bar is None and self.adapt is not None and not self.quiet:
+            self.bar = self._open()
         if self.bar is not None:
             self.bar.n = step if self.adapt.steps is not None else min(seconds, self.adapt.seconds)
             self.bar.set_postfix(step=step, loss=f"{loss:.4g}", refresh=False)

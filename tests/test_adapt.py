@@ -409,3 +409,17 @@ def test_the_guides_depth_is_the_depth_over_its_largest_and_finite_without_one()
     zero = np.zeros((h, w), np.float32)
     guide = _guide(candidates, {**layers, "depth": zero}, (0, h, 0, w), depth_scale(zero))
     assert np.all(np.isfinite(guide)) and np.all(guide[..., -1] == 0)
+
+
+def test_the_progress_bar_appears_at_the_first_step_so_a_refused_pair_is_its_one_line_alone(capsys):
+    from kpcn_keras.cli import _AdaptBar
+
+    with _AdaptBar(AdaptSettings(steps=3), quiet=False):
+        pass  # refused before training: no step
+    assert capsys.readouterr().err == ""
+    with _AdaptBar(AdaptSettings(steps=3), quiet=False) as bar:
+        bar(1, 0.5, 0.1)
+    assert "adapting" in capsys.readouterr().err
+    with _AdaptBar(AdaptSettings(steps=3), quiet=True) as bar:
+        bar(1, 0.5, 0.1)
+    assert capsys.readouterr().err == ""
