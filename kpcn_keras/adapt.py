@@ -268,7 +268,9 @@ class _Choice:
 class _Crop:
     """One crop of one half as a step uses it: its window (:class:`_Window`), the other half's colour of its pixels
     (the target), which of them each fold trains on (``train``, a mask per fold), and which are held out
-    (``blocks``: the held-out block of each, -1 where no fold holds it out; ``folds``: the fold that does)."""
+    (``blocks``: the held-out block of each, -1 where no fold holds it out; ``folds``: the fold that does);
+    ``slots``: of each held-out pixel (``blocks >= 0``, in order) its block's place among all the adapter's held-out
+    blocks (set by :class:`Adapter`, which numbers them once)."""
 
     window: _Window
     target: object
@@ -276,6 +278,7 @@ class _Crop:
     blocks: np.ndarray
     folds: np.ndarray
     frame: int
+    slots: np.ndarray | None = None
 
 
 def _held_blocks(tile, s: AdaptSettings, frame_w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -322,15 +325,25 @@ class Adapter:
             for x, y in ((a, b), (b, a)):
                 self.crops += self._prepare(x, outputs[id(x)], y, frame, rng)
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
-        folds = {}
-        for c in self.crops:
-            held = c.blocks >= 0
-            keys, first = np.unique(c.blocks[held], return_index=True)
-            folds.update(zip([(c.frame, k) for k in keys], c.folds[held][first]))
-        self.block_folds = np.array([folds[k] for k in sorted(folds)])  # per held-out block, as _held_losses orders
+        self._number_blocks()
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
         self.snapshots: dict = {}
+
+    def _number_blocks(self) -> None:
+        """Number the held-out blocks of all crops once (a block of a frame: both directions' pixels of it, in
+        (frame, block) order): each crop's ``slots``, :attr:`block_folds` (the fold holding out each block) and
+        :attr:`block_pixels` (the pixels of each, what a block's mean loss divides by)."""
+        keys = sorted({(c.frame, int(k)) for c in self.crops for k in np.unique(c.blocks[c.blocks >= 0])})
+        place = {key: i for i, key in enumerate(keys)}
+        self.block_folds = np.full(len(keys), -1)
+        self.block_pixels = np.zeros(len(keys), np.int64)
+        for c in self.crops:
+            held = c.blocks >= 0
+            found, index = np.unique(c.blocks[held], return_inverse=True)
+            c.slots = np.array([place[c.frame, int(k)] for k in found], np.int64)[index]
+            self.block_folds[c.slots] = c.folds[held]
+            self.block_pixels += np.bincount(c.slots, minlength=len(keys))
 
     def _prepare(self, half: dict, denoised: dict, other: dict, frame: int, rng) -> list[_Crop]:
         """The crops of ``half`` (``denoised``: the model's output of it), ``other``'s colour their target; ``frame``
@@ -354,7 +367,7 @@ class Adapter:
         fold network that never saw it, weighted by ``weights``."""
         import torch
 
-        sums, counts, used = {}, {}, []
+        sums, used = np.zeros(self.block_pixels.size), []
         mean = lambda f, w, crop: keras.ops.convert_to_numpy(keras.ops.mean(w * (f - crop.target) ** 2, axis=-1))  # noqa: E731
         with torch.no_grad():
             for i, crop in enumerate(self.crops):
@@ -368,13 +381,8 @@ class Adapter:
                         held = crop.folds == k
                         err[held] = mean(_blend(net, crop.window)["default"], w, crop)[held]
                 used.append(w)
-                held = crop.blocks >= 0
-                keys, index = np.unique(crop.blocks[held], return_inverse=True)
-                total, n = np.bincount(index, err[held]), np.bincount(index)
-                for key, t, c in zip(keys, total, n):
-                    sums[crop.frame, key] = sums.get((crop.frame, key), 0.0) + t
-                    counts[crop.frame, key] = counts.get((crop.frame, key), 0) + c
-        return np.array([sums[k] / counts[k] for k in sorted(sums)]), used
+                sums += np.bincount(crop.slots, err[crop.blocks >= 0], minlength=sums.size)
+        return sums / self.block_pixels, used
 
     def run(self, progress=None, marks=()) -> Outcome:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
