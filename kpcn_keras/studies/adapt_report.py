@@ -343,7 +343,7 @@ def _settings_key(args, model: Path) -> dict:
     so that rows of another method are never mixed in."""
     return {"model": str(model), "marks": list(args.marks), "seed": args.seed, "steps": args.steps,
             "target_spp": args.spp[0], "costs_size": [list(v) for v in args.costs_size],
-            "adapt_py_sha256": code_version()["adapt_py_sha256"]}
+            "adapt_py_sha256": adapt_sha256()}
 
 
 def _load(report: Report, key: dict, fresh: bool) -> dict:
@@ -377,13 +377,20 @@ def others(count: int = 6) -> list[str]:
     return [rest.strip()[:160] for pid, ppid, rest in rows if os.getpid() not in (int(pid), int(ppid))][:count]
 
 
+def adapt_sha256() -> str:
+    """The SHA-256 of ``kpcn_keras/adapt.py``: the method measured."""
+    from kpcn_keras import adapt
+    from prep.files import sha256_file
+
+    return sha256_file(adapt.__file__)
+
+
 def code_version() -> dict:
     """The commit of the code that ran, whether its tree had changes, and the SHA-256 of ``kpcn_keras/adapt.py``
     (the method measured)."""
     import subprocess
 
     from kpcn_keras import adapt
-    from prep.files import sha256_file
 
     root = Path(adapt.__file__).resolve().parents[1]
     git = ["git", "-C", str(root)]
@@ -393,7 +400,7 @@ def code_version() -> dict:
                                     text=True, timeout=30).stdout.strip())
     except (OSError, subprocess.SubprocessError):
         commit, dirty = None, None
-    return {"commit": commit or None, "changed": dirty, "adapt_py_sha256": sha256_file(adapt.__file__)}
+    return {"commit": commit or None, "changed": dirty, "adapt_py_sha256": adapt_sha256()}
 
 
 def study(args, command: str, log=print) -> dict:
