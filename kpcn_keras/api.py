@@ -153,13 +153,12 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
     ``pair``: a second render of the frame with another seed, given as the frame is (a ``kpcn.read`` frame beside
     one; beside arrays, a dict of this function's array arguments, ``color`` and whichever others, or the second
     colour alone, whose albedo, normal and depth are then the frame's), checked as ``kpcn denoise --pair`` checks
-    a file (``prep.pairs.check_colours``). Without ``adapt`` the two are denoised as one frame whose variance comes
-    from their difference (``kpcn denoise A --pair B``); with ``adapt`` (seconds, or a
-    ``kpcn_keras.settings.AdaptSettings`` for steps and seed) the model first adapts to the two halves, then
-    denoises their mean (``kpcn denoise A --pair B --adapt``, by the same functions: ``batch.join_pair``,
-    ``batch.adapt_to_layers``). ``on_adapt(step, loss, seconds)`` is the adaptation's progress, ``on_outcome`` is
-    handed what it decided (``kpcn_keras.adapt.Outcome``: ``kept``, ``line()``...), which is also logged at INFO
-    on the ``kpcn`` logger."""
+    a file (``prep.pairs.check_colours``). The two are denoised as one render of all their samples, their mean
+    (``kpcn denoise A --pair B``, by the same function: ``batch.join_pair``); with ``adapt`` (seconds, or a
+    ``kpcn_keras.settings.AdaptSettings`` for steps and seed) the model first adapts to the two halves
+    (``kpcn denoise A --pair B --adapt``: ``batch.adapt_to_layers``). ``on_adapt(step, loss, seconds)`` is the
+    adaptation's progress, ``on_outcome`` is handed what it decided (``kpcn_keras.adapt.Outcome``: ``kept``,
+    ``line()``...), which is also logged at INFO on the ``kpcn`` logger."""
     from kpcn_keras.batch import adapt_to_layers, join_pair
 
     if quality is not None:
@@ -174,8 +173,8 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
     halves = None
     if pair is not None:
         other = _pair_frame(pair, frame, color, arrays)
-        halves = (frame.layers, other.layers)
-        frame = join_pair(frame, other, _names(frame, other), halves=adapt is not None)
+        halves = (frame.layers, other.layers) if adapt is not None else None
+        frame = join_pair(frame, other, _names(frame, other))
     record = Path(run) / "config.json"
     stamp = record.stat().st_mtime if record.exists() else 0.0  # a run trained again is loaded again
     denoiser = _serving(str(Path(run).resolve()), settings, stamp).denoiser(frame.inputs)

@@ -300,8 +300,7 @@ def cmd_view(args) -> int:
     settings = inference_settings(args)
     httpd = listen(**{k: getattr(args, k) for k in ("port",) if k in args})
     try:
-        reading = ReadOptions(layout=args.layout, view_layer=args.view_layer, pair=args.pair,
-                              halves=args.pair is not None)
+        reading = ReadOptions(layout=args.layout, view_layer=args.view_layer, pair=args.pair)
         session = ViewSession.open(args.frame, _model(args), args.reference, reading=reading,
                                    slope=getattr(args, "slope", None), settings=settings)
     except BaseException:

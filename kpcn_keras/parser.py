@@ -513,8 +513,8 @@ def _denoise_options(add) -> None:
                    "output: input | denoised (| reference), side by side")
     _layout_option(n)
     n.add_argument("--pair", default=None, help="a second render of a single input with another seed and the same "
-                   "spp: the two are denoised as one frame, its variance from their difference (with --adapt: the "
-                   "two halves the model adapts on, then denoises the mean of)")
+                   "spp: the two are denoised as one render of all their samples, their mean (with --adapt: the two "
+                   "halves the model adapts on first)")
     n.add_argument("--adapt", type=float, help="with --pair: seconds at most of adapting a post-correction to the "
                    "frame's two halves, each the other's target (docs/adapt.md; default: none)")
     n.add_argument("--adapt-steps", type=int, help="with --pair: adapt for exactly this many steps instead (the same "

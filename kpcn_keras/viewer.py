@@ -145,7 +145,7 @@ class ViewSession:
             frame = read_frame(frame_path, reading)
         else:
             a, b = read_halves(frame_path, reading)
-            frame, halves = join_pair(a, b, (frame_path, reading.pair), halves=True), (a.layers, b.layers)
+            frame, halves = join_pair(a, b, (frame_path, reading.pair)), (a.layers, b.layers)
         ref = None if reference is None else read_reference(reference, frame_path, frame.size, reading)
         return cls(frame, Serving(run, settings).denoiser(frame.inputs), ref, slope=slope, log=log, halves=halves)
 

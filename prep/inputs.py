@@ -16,8 +16,8 @@ split                      diffuse = the total colour, diffuseVariance = colorVa
 =========================  ==========================================================================
 
 A frame with more than its model's set is restricted to it (a split frame served by a no-split model gives
-that model its total colour). :func:`pair_variance` estimates the variance of the mean from two renders of
-the same frame with different seeds, for renderers that write none (``kpcn denoise A.exr --pair B.exr``).
+that model its total colour). :func:`mean_layers` joins two renders of the same frame with different seeds
+into one render of all their samples (``kpcn denoise A.exr --pair B.exr``).
 """
 
 from __future__ import annotations
@@ -27,11 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from prep.errors import OptionError
-from prep.exr import VARIANCE_LAYERS, VARIANCE_OF, to_float32
+from prep.exr import VARIANCE_LAYERS, to_float32
 
 # the order of INPUT_SETS is the order of preference of a model for a frame: the most the frame has first
 INPUT_SETS = ("full", "no-variance", "no-split", "no-split-no-variance")
-PAIR_SMOOTHING = 1  # radius of the box that smooths a two-buffer variance: 3x3
 
 
 @dataclass(frozen=True)
@@ -95,37 +94,12 @@ def box_mean(image: np.ndarray, radius: int) -> np.ndarray:
     return total / ((y1 - y0)[:, None] * (x1 - x0)[None, :])
 
 
-def pair_variance(a: np.ndarray, b: np.ndarray, radius: int = PAIR_SMOOTHING) -> np.ndarray:
-    """Variance of the mean (a + b) / 2 of two independent renders of the same pixels, one (H, W) layer:
-    (a - b)^2 / 4 averaged over the channels, smoothed by a (2 radius + 1)^2 box. (a - b)^2 / 4 is unbiased
-    for each pixel (E (a - b)^2 = 2 var(a) and var((a + b) / 2) = var(a) / 2) but has one degree of freedom;
-    the box trades a little bias at edges for 9 of them."""
-    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
-    v = d * d / 4.0
-    if v.ndim == 3:
-        v = v.mean(axis=-1)
-    return to_float32(box_mean(v, radius) if radius else v)
-
-
 def mean_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """One frame from two independent renders of it, each keeping its own variance: each layer the mean of the two,
-    and each variance layer the variance of that mean, (var_a + var_b) / 4 (where both have it). What a model that
-    adapted on the two halves apart denoises (``kpcn_keras.adapt``): no variance from their difference."""
+    """One frame from two independent renders of it, as one render of all their samples: each layer the mean of the
+    two, and each variance layer the variance of that mean, (var_a + var_b) / 4 (where both have it). No variance is
+    made from their difference for a renderer that writes none (``kpcn_keras.batch.join_pair`` says why)."""
     out = {}
     for k in (k for k in a if k in b):
         total = np.asarray(a[k], np.float64) + b[k]
         out[k] = to_float32(total / 4.0 if k in VARIANCE_LAYERS else total / 2.0)
-    return out
-
-
-def pair_layers(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """One frame from two renders of it with different seeds: each layer the mean of the two, and the
-    variance layers from their difference (:func:`pair_variance`). Without a split (``diffuse`` in neither),
-    ``diffuseVariance`` and ``specularVariance`` are the colour's, as every layout without a split gives them."""
-    out = {k: to_float32((np.asarray(a[k], np.float64) + b[k]) / 2.0) for k in a if k in b}
-    split = "diffuse" in a and "diffuse" in b
-    for layer in ("default", "albedo", "normal", "depth", *(("diffuse", "specular") if split else ())):
-        out[VARIANCE_OF[layer]] = pair_variance(a[layer], b[layer])
-    if not split:
-        out["diffuseVariance"] = out["specularVariance"] = out["colorVariance"]
     return out

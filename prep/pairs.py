@@ -1,15 +1,16 @@
 """Whether a file given as ``--pair`` is a second render of the input's frame (docs/robustness.md §4).
 
-Two renders of one frame with different seeds give the variance their renderer does not write
-(``prep.inputs.pair_layers``); any other file gives a variance of something else, silently. Two checks refuse
-such a file in one line naming both files:
+Two renders of one frame with different seeds are denoised as one render of all their samples
+(``prep.inputs.mean_layers``) and adapted on, each the other's target (``kpcn_keras.adapt``); any other file
+would be averaged into the frame, or taken for its noise, silently. Two checks refuse such a file in one line
+naming both files:
 
 - :func:`check_header`, from the two headers alone, before a model is loaded or anything written: the input
   itself (the same file, however named), another layout, size, data window, diffuse/specular split or spp;
-- :func:`check_colours`, on the two colours once read: identical pixels (the same render twice: a variance of
-  0), or a correlation of their smoothed log luminance below :data:`MIN_CORRELATION` (another frame). The
-  smoothing (a 5x5 box) averages the noise away and keeps what the picture is; log(1 + luminance) keeps a few
-  bright pixels from deciding it. On the validation frames (Blender, three scenes at 4, 16 and 64 spp:
+- :func:`check_colours`, on the two colours once read: identical pixels (the same render twice), or a
+  correlation of their smoothed log luminance below :data:`MIN_CORRELATION` (another frame). The smoothing
+  (a 5x5 box) averages the noise away and keeps what the picture is; log(1 + luminance) keeps a few bright
+  pixels from deciding it. On the validation frames (Blender, three scenes at 4, 16 and 64 spp:
   ``python -m prep.pairs ../shared/validation/blender``, ``reports/pair_correlation.json``) two renders of one
   scene correlate at 0.98 and above, renders of different scenes at 0.31 and below: 0.6 lies between with a
   margin each side.

@@ -1,13 +1,15 @@
-"""``prep.inputs``: the input sets and which serves which, and the variance of two renders of one frame (what a
-model of each set reads, ``restrict``, is held in ``test_input_sets.py`` with the shards and runs cut for it)."""
+"""``prep.inputs``: the input sets and which serves which, two renders of one frame joined as one, and the studies'
+variance of two renders from their difference (what a model of each set reads, ``restrict``, is held in
+``test_input_sets.py`` with the shards and runs cut for it)."""
 
 import numpy as np
 import pytest
 from helpers.tiny import random_aovs
 
+from kpcn_keras.studies.pair_variance import pair_layers, pair_variance
 from prep import exr
 from prep.errors import OptionError
-from prep.inputs import INPUT_SETS, InputSet, pair_layers, pair_variance
+from prep.inputs import INPUT_SETS, InputSet, mean_layers
 
 
 def test_input_sets_are_named_and_named_back():
@@ -58,3 +60,15 @@ def test_pair_layers_average_each_layer_and_make_every_variance():
     assert set(exr.VARIANCE_LAYERS) <= set(both)
     d = a["depth"].astype(np.float64) - b["depth"]
     np.testing.assert_allclose(pair_variance(a["depth"], b["depth"], radius=0), d * d / 4, rtol=1e-6)
+
+
+def test_two_renders_join_as_one_render_of_all_their_samples():
+    a, b = random_aovs(5, 6, seed=1), random_aovs(5, 6, seed=2)
+    del b["specularVariance"]  # a variance one render lacks is not made up
+    both = mean_layers(a, b)
+    for k in b:
+        a64, b64 = a[k].astype(np.float64), b[k].astype(np.float64)
+        # the mean of two independent renders has a quarter of their summed variance
+        expected = (a64 + b64) / 4 if k in exr.VARIANCE_LAYERS else (a64 + b64) / 2
+        np.testing.assert_allclose(both[k], expected, rtol=1e-6, err_msg=k)
+    assert "specularVariance" not in both and both["default"].dtype == np.float32

@@ -22,18 +22,6 @@ CYCLES45 = RENDERERS / "cycles45" / "studio-00016spp.exr"
 H, W = 16, 12
 
 
-def _box3(v: np.ndarray) -> np.ndarray:
-    """Mean over the 3x3 box of each pixel cut at the border, by loops in float64."""
-    h, w = v.shape
-    return np.array([[v[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].mean() for x in range(w)] for y in range(h)])
-
-
-def _two_render_variance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The variance of (a + b) / 2 from two renders: (a - b)^2 / 4 over the channels, 3x3 box, float64."""
-    d = np.asarray(a, np.float64) - np.asarray(b, np.float64)
-    return _box3((d * d / 4).mean(axis=-1))
-
-
 def _rgb(seed: int, noise_seed: int) -> dict:
     """A plain colour file's channels: one scene (``seed``), one render of it (±10% noise from ``noise_seed``)."""
     base = np.random.default_rng(seed).uniform(0, 1, (H, W, 3))
@@ -69,13 +57,13 @@ NO_SPLIT = {"rgb": "rgb", "cycles-combined": "rgb", "cycles-no-diffuse-color": "
 
 
 @pytest.mark.parametrize("kind", NO_SPLIT)
-def test_a_pair_without_a_split_gives_the_variance_of_the_colour_from_its_two_renders(tmp_path, kind):
+def test_a_pair_is_read_as_one_render_of_all_its_samples(tmp_path, kind):
     a, b, extra, ca, cb = _pair_of(kind, tmp_path)
+    single = read_frame(a, ReadOptions(**extra))
     frame = read_frame(a, ReadOptions(pair=b, **extra))
-    assert frame.layout == NO_SPLIT[kind] and frame.inputs == InputSet(split=False, variance=True)
-    expected = _two_render_variance(ca, cb)
-    for name in ("colorVariance", "diffuseVariance", "specularVariance"):
-        np.testing.assert_allclose(frame.layers[name], expected, rtol=1e-6, atol=1e-12, err_msg=name)
+    # what one render gives, no variance made from the two renders' difference
+    assert frame.layout == NO_SPLIT[kind] and frame.inputs == single.inputs == InputSet(split=False, variance=False)
+    assert frame.spp == 16 and not set(frame.layers) & set(exr.VARIANCE_LAYERS)
     np.testing.assert_allclose(frame.layers["default"], (ca.astype(np.float64) + cb) / 2, rtol=1e-6)
     served = restrict(frame.layers, frame.inputs)  # what the no-split network reads
     assert all(np.isfinite(v).all() for v in served.values())
@@ -89,7 +77,8 @@ def test_kpcn_denoise_takes_a_pair_of_every_layout_without_a_split(tiny_run_of_e
     args = [f"--{k}={v}" for k, v in extra.items()]
     res = run_main("denoise", a, "--pair", b, *args, "--run", run, "-o", tmp_path / "o.exr", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert f"({NO_SPLIT[kind]} layout, no-split, model {run / 'inputs' / 'no-split'};" in res.stdout, res.stdout
+    served = "no-split-no-variance"
+    assert f"({NO_SPLIT[kind]} layout, {served}, model {run / 'inputs' / served};" in res.stdout, res.stdout
     colour = np.stack([exr.read_image(tmp_path / "o.exr").channels[f"default.{c}"] for c in "RGB"], axis=-1)
     assert colour.shape == (H, W, 3) and np.isfinite(colour).all()
 
@@ -115,10 +104,11 @@ def test_a_pair_that_is_the_input_itself_is_refused_in_one_line_before_any_work(
     assert not (tmp_path / "o.exr").exists()
 
 
-def test_a_copy_of_the_input_as_its_pair_is_refused_as_the_same_render(tmp_path, tiny_run):
+def test_a_copy_of_the_input_as_its_pair_is_refused_as_the_same_render(tmp_path, tiny_run_of_every_input_set):
     a, _ = _cycles_pair(tmp_path)
     shutil.copy(a, tmp_path / "copy-00008spp.exr")
-    res = run_main("denoise", a, "--pair", "copy-00008spp.exr", "--run", tiny_run, "-o", "o.exr", cwd=tmp_path)
+    res = run_main("denoise", a, "--pair", "copy-00008spp.exr", "--run", tiny_run_of_every_input_set, "-o", "o.exr",
+                   cwd=tmp_path)
     assert_one_line_error(res, f"--pair copy-00008spp.exr has the same pixels as {a}: the same render twice")
     assert not (tmp_path / "o.exr").exists()
 
@@ -142,11 +132,13 @@ def test_a_pair_of_another_header_is_refused_in_one_line_before_any_work(tmp_pat
     assert not (tmp_path / "o.exr").exists()
 
 
-def test_a_pair_of_another_scene_of_the_same_size_and_spp_is_refused_in_one_line(tmp_path, tiny_run):
+def test_a_pair_of_another_scene_of_the_same_size_and_spp_is_refused_in_one_line(tmp_path,
+                                                                               tiny_run_of_every_input_set):
     a, b = _cycles_pair(tmp_path, seeds=(5, 6))
     r = pairs.correlation(layouts.read(a).layers["default"], layouts.read(b).layers["default"])
     assert r < pairs.MIN_CORRELATION
-    res = run_main("denoise", a, "--pair", b, "--run", tiny_run, "-o", tmp_path / "o.exr", cwd=tmp_path)
+    res = run_main("denoise", a, "--pair", b, "--run", tiny_run_of_every_input_set, "-o", tmp_path / "o.exr",
+                   cwd=tmp_path)
     assert_one_line_error(res, f"--pair {b} is not a render of the frame {a}: their smoothed log luminance "
                                f"correlates at {r:.3f}, below 0.6")
     assert not (tmp_path / "o.exr").exists()

@@ -102,14 +102,20 @@ def test_a_file_of_a_layout_kpcn_does_not_read_is_one_line_before_any_work(tiny_
     assert_one_line_error(res, "not a cycles file: cycles looks for <view layer>.Combined and Blender's passes")
 
 
-def test_a_pair_of_renders_without_variance_is_denoised_as_one_frame_with_variance(tiny_run_of_every_input_set,
-                                                                                  tmp_path):
+def test_a_pair_of_renders_is_denoised_as_one_render_of_all_their_samples(tiny_run_of_every_input_set, tmp_path):
     a, b = (cycles_channels(12, 10, seed=1, noise_seed=s) for s in (1, 2))
     pa = write_channels(tmp_path / "a-00008spp.exr", a, parts_of(a))
     pb = write_channels(tmp_path / "b-00008spp.exr", b, parts_of(b))
     run = tiny_run_of_every_input_set
     res = run_main("denoise", pa, "--pair", pb, "--run", run, "-o", tmp_path / "o.exr", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert f"(cycles layout, full, model {run};" in res.stdout  # the pair's variance brings the full model
+    # what one render gives (no variance made from the two): the network for one Cycles render serves it
+    assert f"(cycles layout, no-variance, model {run / 'inputs' / 'no-variance'};" in res.stdout, res.stdout
+    # each layer the two renders' mean (float64), as one render of their samples
+    mean = {k: (layouts.read(pa).layers[k].astype(np.float64) + layouts.read(pb).layers[k]) / 2
+            for k in ("default", "diffuse", "specular", "albedo", "normal", "depth")}
+    single = kpcn.denoise(color=mean.pop("default"), **mean, run=run)
+    pair = np.stack([exr.read_image(tmp_path / "o.exr").channels[f"default.{c}"] for c in "RGB"], axis=-1)
+    np.testing.assert_allclose(pair, single, rtol=1e-5, atol=1e-6)
     res = run_main("denoise", pa, tmp_path / "o.exr", "--pair", pb, "--run", run, "-o", tmp_path / "x", cwd=tmp_path)
     assert_one_line_error(res, "--pair is for one input, got 2")

@@ -200,7 +200,7 @@ def pair_session(halves_files, tiny_run):
     from kpcn_keras.batch import ReadOptions
 
     a, b = halves_files
-    return ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b, halves=True),
+    return ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b),
                             settings=InferenceSettings(precision="float32"), log=quiet)
 
 

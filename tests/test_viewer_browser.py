@@ -132,7 +132,7 @@ def test_a_click_on_adapt_adapts_in_the_background_and_shows_the_adapted_view_be
     from kpcn_keras.batch import ReadOptions
 
     a, b = write_halves(tmp_path, H, W, seed=9)
-    session = ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b, halves=True),
+    session = ViewSession.open(a, Run(tiny_run), reading=ReadOptions(pair=b),
                                settings=InferenceSettings(precision="float32"), log=lambda m: None)
     httpd = listen(0)
     httpd.session = session

@@ -109,7 +109,7 @@ def measure(folder: Path, scene: str, spp: int, steps: list[int], model: Run, se
     """Both parts on ``scene``'s pair of ``spp`` samples in ``folder``: relMSE of the pair's mean after each count
     of ``steps``, the unadapted model's, and the comparison frame's (Blender's denoised frame of one render)."""
     a_path, b_path = (folder / n for n in pair_names(scene, spp))
-    reading = ReadOptions(pair=b_path, halves=True)
+    reading = ReadOptions(pair=b_path)
     a, b = read_halves(a_path, reading)
     mean = read_frame(a_path, reading).layers
     ref = layouts.read(folder / frame_name(scene, 2048)).layers["default"]

@@ -15,7 +15,7 @@ The contract:
   frame, so scenes that finish during the run are taken, target spp first.
 - **Methods**, each scored against the reference (``prep.metrics`` in float64: relMSE, DSSIM, relSE p99.9):
   ``input`` (the halves' mean), ``kpcn pair`` (the model, unadapted, on the mean: ``prep.inputs.mean_layers``, the
-  network for what a half has, as ``kpcn denoise --pair --adapt`` runs it), ``kpcn adapted S s`` for each mark S
+  network for what a half has, as ``kpcn denoise --pair`` runs it), ``kpcn adapted S s`` for each mark S
   of ``--marks`` (one :class:`kpcn_keras.adapt.Adapter` run of max(marks) seconds, or ``--steps``; at each mark
   what stopping there gives, ``Adapter.snapshots``: its post-correction applied to the unadapted output, or that
   output itself where the guard refused it), ``blender`` (``<scene>-<N>spp-blender-oidn.exr``), ``kpcn single``

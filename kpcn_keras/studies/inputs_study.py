@@ -22,8 +22,8 @@ The contract:
 - **Two renders of half the samples** (``pairs``: folders of ``<scene>-<spp>spp-pair-a.exr`` and ``-pair-b.exr``,
   two seeds, and the scene's reference: ``kpcn cycles-validation``'s folder,
   ``kpcn_keras.studies.render_blender_pairs``):
-  their mean denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), the
-  same pixels either way.
+  their mean denoised without variance (``kpcn denoise A --pair B``) and with the variance of their difference
+  (``studies.pair_variance``), the same pixels either way.
 - **Writes** ``<out_dir>/inputs.md`` (the tables, with the date and the machine), ``inputs.json`` (every number)
   and ``inputs.png`` (input | kpcn | OIDN | Blender | reference of every other renderer's frame at the middle
   spp), through ``kpcn_keras.studies.report``.
@@ -197,11 +197,11 @@ def pair_files(paths) -> list[tuple[Path, Path, Path]]:
 
 def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
     """Per pair of renders under ``cfg.pairs`` (:func:`pair_files`): the scores of their mean
-    denoised without variance and with the variance of their difference (``kpcn denoise A --pair B``), each by the
+    denoised without variance and with the variance of their difference (``studies.pair_variance``), each by the
     run's model for it, beside the mean's raw scores and OIDN's on it."""
-    from kpcn_keras.batch import ReadOptions, read_frame
     from kpcn_keras.run import Run
     from kpcn_keras.serving import Serving
+    from kpcn_keras.studies.pair_variance import read_with_pair_variance
     from prep import baselines
     from prep.exr import VARIANCE_LAYERS
     from prep.render.cycles import catalogue
@@ -209,7 +209,7 @@ def pairs(cfg: InputsStudyConfig, plans: dict, *, log=print) -> list[dict]:
     serving = Serving(Run(plans["full"]["run"]))
     rows = []
     for first, second, ref_path in pair_files(cfg.pairs):
-        with_variance = read_frame(first, ReadOptions(pair=second))
+        with_variance = read_with_pair_variance(first, second)
         layers = {k: v for k, v in with_variance.layers.items() if k not in VARIANCE_LAYERS}
         without = InputSet(split=with_variance.inputs.split, variance=False)
         ref = layouts.read(ref_path).layers["default"]

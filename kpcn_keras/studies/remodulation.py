@@ -33,10 +33,11 @@ os.environ.setdefault("KERAS_BACKEND", "torch")
 def main() -> None:
     import numpy as np
 
-    from kpcn_keras.batch import ReadOptions, read_frame
+    from kpcn_keras.batch import read_frame
     from kpcn_keras.denoise import Denoiser
     from kpcn_keras.evaluate import held_out_pairs, pairs_for_inputs
     from kpcn_keras.run import Run, default_model
+    from kpcn_keras.studies.pair_variance import read_with_pair_variance
     from prep import albedo, baselines, colour, features, layouts, metrics
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -44,7 +45,7 @@ def main() -> None:
     parser.add_argument("--setting", action="append", default=[],
                         help="a prefilter setting r,f,k[,s] beyond the module's own (repeat for more)")
     parser.add_argument("--pair-suffix", help="each frame with its second render, the file named with this after "
-                        "its stem (as kpcn denoise --pair): the variance from the two")
+                        "its stem: the variance from the two (studies.pair_variance)")
     parser.add_argument("frames", nargs="*", help="noisy renders (default: the run's held-out frames)")
     args = parser.parse_args()
     run = Run(args.run) if args.run else default_model()
@@ -64,7 +65,7 @@ def main() -> None:
         pair = None
         if args.pair_suffix:
             pair = Path(noisy_path).with_name(Path(noisy_path).stem + args.pair_suffix + Path(noisy_path).suffix)
-        frame = read_frame(noisy_path, ReadOptions(pair=pair))
+        frame = read_frame(noisy_path) if pair is None else read_with_pair_variance(noisy_path, pair)
         reference = layouts.read(ref_path)
         noisy, ref = frame.layers, reference.layers
         # a reference without a split or an albedo of its own (an rgb file) has no floor and no oracle
