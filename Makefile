@@ -237,12 +237,19 @@ blender-report: $(KPCN) $(if $(filter $(CYCLES_VALIDATION),$(BLENDER_FRAMES)),cy
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
 	$(BIN)/python -m kpcn_keras.studies.blender_report $(BLENDER_FRAMES) $(BLENDER_ARGS)
 
-# issue 53: the shipped model adapted to each Cycles validation frame's two halves (10, 30, 60, 120 s of one run; at
-# 16, then 4 and 64 spp) beside Blender's own denoiser on one render of all the samples, the targets checked, what
-# adapting costs at 1920x1080: reports/adapt.{md,json,png}. Long (2+ minutes a frame); run again, it resumes.
+# the shipped model adapted to each Cycles validation frame's two halves (10, 30, 60, 120 s of one run; at 16, then 4
+# and 64 spp) beside Blender's own denoiser on one render of all the samples, the targets checked, what adapting
+# costs at 1920x1080; then the same on kpcn's own scenes in pairs (ADAPT_PROJECT: one scene per family at a seed no
+# model trained on, rendered here) against the better OIDN mode: reports/adapt.{md,json,png}. Long (2+ minutes a
+# frame); run again, it resumes (the renders too).
 ADAPT_ARGS ?=
+ADAPT_PROJECT_SEED ?= 53
+ADAPT_PROJECT ?= data/renders/adapt-project
 adapt-report: $(KPCN) cycles-validation
-	$(BIN)/python -m kpcn_keras.studies.adapt_report $(CYCLES_VALIDATION) $(ADAPT_ARGS)
+	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
+	$(KPCN) render --set $(notdir $(ADAPT_PROJECT)) --out $(dir $(ADAPT_PROJECT)) --pair --input-spp 16 --per-family 1 \
+		--seed $(ADAPT_PROJECT_SEED)
+	$(BIN)/python -m kpcn_keras.studies.adapt_report $(CYCLES_VALIDATION) --more $(ADAPT_PROJECT) $(ADAPT_ARGS)
 
 # the shipped model (AUX_ARGS="--model RUN" for another) on the held-out Cycles validation set with its auxiliary
 # inputs raw, from the scene's 64-spp render (the oracle), OIDN-prefiltered and NLM-prefiltered, beside Blender's own

@@ -36,23 +36,25 @@ becomes E[B | A, |A - B|], which is not c. So the model's variant is the one for
 
 The guard, cross-fitted: the correction is :data:`FOLDS` networks trained side by side, each never shown its own
 blocks of ``block`` pixels (one in :data:`HELD_OUT_EVERY`, on the same pixels in both directions; the folds' blocks
-are disjoint), and applied as the mean of their blends (:func:`combine`). Every ``check_every`` steps each
-held-out block's loss is taken under the network that never saw it (weights frozen at the unadapted output, so
-two networks compare on one scale; its expectation is the error against c plus the target's variance, the same
-for both). Where to stop is cross-fitted too: each fold's checkpoint is the one at the step where the *other*
-folds' blocks did best (:class:`_Choice`), so its own blocks, which then test it, took no part in choosing it: a
-best-of-hundreds checkpoint judged on the blocks that chose it would look better than it is. The chosen
-checkpoints replace the identity only where their gain clears ``confidence`` standard errors of the per-block
-differences. Two folds give the guard twice the held-out blocks of one network with the same share of the frame
-hidden from it: a frame of 128 pixels a side has 32 blocks of 16, not 16, to judge by. The mean applied is at
-least as good, pixel by pixel, as the mean of its folds' losses (the loss is convex in f at a fixed weight), and
-each fold's loss is what its held-out blocks vouch for; on the blocks one fold trained on, the other's is the
-honest estimate, as in cross-fitting. :class:`Outcome` says what was decided and why. With a seed and ``steps``
-the adapted weights are the same from run to run; with ``seconds`` the steps depend on the machine.
+are disjoint), and applied as the mean of their blends (:func:`combine`). Where to stop: every ``check_every``
+steps each held-out block's loss on the halves is taken under the network that never saw it, and each fold's
+checkpoint is the one at the step where the *other* folds' blocks did best (:class:`_Choice`), so its own
+blocks, which then test it, took no part in choosing it. Whether to keep it: the halves' loss judges the
+correction at half the samples (one half in, the other the target), but it is applied to the model's output of
+their mean, which has all of them and less noise left, and on the validation frames that verdict did not carry
+over (docs/adapt.md §5). So the guard estimates the error of what is applied: on each fold's held-out blocks, the
+mean's output corrected by the fold that never saw them against the mean's output itself, each by the pair's own
+risk estimate (``kpcn_keras.risk``: the halves' half-difference probes the mean's noise, the outputs of each half
+give the secant), and keeps the chosen checkpoints only where the gain clears ``confidence`` standard errors of
+the per-block differences. Two folds give it half the frame's blocks to judge by. The mean applied is at least
+as good, pixel by pixel, as the mean of its folds' errors (the squared error is convex in the output); on the
+blocks one fold trained on, the other's is the honest estimate, as in cross-fitting. :class:`Outcome` says what
+was decided and why. With a seed and ``steps`` the adapted weights are the same from run to run; with
+``seconds`` the steps depend on the machine.
 
-Memory: training holds, per crop (at most ``crops`` of ``crop`` pixels a side per render), the guide and the
-candidates of its window; applying holds the same for one tile at a time (:data:`MARGIN` around it), beyond the
-frame and its denoised output.
+Memory: training holds, per crop (at most ``crops`` of ``crop`` pixels a side per render, the same for both
+halves), the guide and the candidates of its window, and the guard the same of the mean's; applying holds the
+same for one tile at a time (:data:`MARGIN` around it), beyond the frame and its denoised output.
 """
 
 from __future__ import annotations
@@ -63,10 +65,11 @@ from dataclasses import dataclass
 import keras
 import numpy as np
 
+from kpcn_keras.risk import pair_risk
 from kpcn_keras.settings import AdaptSettings
 from prep import features
 from prep.errors import KpcnError
-from prep.inputs import box_mean
+from prep.inputs import box_mean, mean_layers
 from prep.metrics import RELMSE_EPS
 
 RADII = (2, 5, 12)  # box blur radii of the candidates besides the model's own output
@@ -228,8 +231,9 @@ def correct(post: keras.Model, denoised: dict, layers: dict, tile_size: int) -> 
 
 @dataclass(frozen=True)
 class Outcome:
-    """What an adaptation did: ``kept`` (the post-correction applies), ``steps`` run in ``seconds``, the held-out
-    loss of the model's output (``initial``) and of the chosen checkpoints (``best``: each fold's network at its
+    """What an adaptation did: ``kept`` (the post-correction applies), ``steps`` run in ``seconds``, the error of
+    the model's output of the halves' mean estimated from the halves on the held-out blocks (``initial``,
+    ``kpcn_keras.risk``) and that of the chosen checkpoints' correction of it (``best``: each fold's network at its
     step of ``best_steps``, 0 for the model's output, on the blocks held out from it), that gain in standard errors
     of the per-block differences (``z``), and ``reason``."""
 
@@ -243,9 +247,11 @@ class Outcome:
     reason: str
 
     def line(self) -> str:
-        change = 100.0 * (self.best / self.initial - 1.0) if self.initial > 0 else 0.0
-        return (f"adaptation {'kept' if self.kept else 'not kept'}: held-out loss {self.initial:.5g} -> "
-                f"{self.best:.5g} ({change:+.2f}%, {self.z:.1f} standard errors) at steps "
+        # an unbiased estimate of a small error can come out at or below 0: then the change alone says something
+        change = (f"{100.0 * (self.best / self.initial - 1.0):+.2f}%" if self.initial > 0 else
+                  f"{self.best - self.initial:+.3g}")
+        return (f"adaptation {'kept' if self.kept else 'not kept'}: estimated held-out error {self.initial:.5g} -> "
+                f"{self.best:.5g} ({change}, {self.z:.1f} standard errors) at steps "
                 f"{' and '.join(map(str, self.best_steps))} of {self.steps} in {self.seconds:.1f} s; {self.reason}")
 
     def to_dict(self) -> dict:
@@ -255,12 +261,10 @@ class Outcome:
 @dataclass
 class _Choice:
     """A fold's checkpoint, chosen by the held-out loss of the other folds' blocks alone (``criterion``): its
-    ``step``, the held-out losses of the fold's own blocks there (``own``: the guard's test, which the choice never
-    looked at) and the fold network's ``weights``."""
+    ``step`` and the fold network's ``weights``. The fold's own blocks, which then test it, took no part."""
 
     criterion: float
     step: int
-    own: np.ndarray
     weights: list
 
 
@@ -275,6 +279,25 @@ class _Crop:
     window: _Window
     target: object
     train: list
+    blocks: np.ndarray
+    folds: np.ndarray
+    frame: int
+    slots: np.ndarray | None = None
+
+
+@dataclass
+class _Probe:
+    """One crop's pixels as the guard estimates their error at all the samples (``kpcn_keras.risk``): the window of
+    the halves' mean (``mean``, its candidates from the model's output of the mean) and of each half (``halves``:
+    the two directions' crops' windows), the mean's noisy colour (``colour``), the halves' half-difference
+    (``diff``), the loss weight of the model's output (``weight``), and the crop's held-out ``blocks``, ``folds`` and
+    ``slots`` (numbered by :class:`Adapter`)."""
+
+    mean: _Window
+    halves: tuple
+    colour: np.ndarray
+    diff: np.ndarray
+    weight: np.ndarray
     blocks: np.ndarray
     folds: np.ndarray
     frame: int
@@ -304,6 +327,22 @@ def _crop_tiles(shape, s: AdaptSettings, rng) -> list[tuple]:
     return tiles
 
 
+def _number_blocks(parts: list) -> tuple[np.ndarray, np.ndarray]:
+    """Number the held-out blocks of ``parts`` (:class:`_Crop` or :class:`_Probe`) once (a block of a frame: all its
+    pixels in them, in (frame, block) order), setting each part's ``slots``; returns the fold holding out each block
+    and the pixels of each (what a block's mean divides by)."""
+    keys = sorted({(c.frame, int(k)) for c in parts for k in np.unique(c.blocks[c.blocks >= 0])})
+    place = {key: i for i, key in enumerate(keys)}
+    folds, pixels = np.full(len(keys), -1), np.zeros(len(keys), np.int64)
+    for c in parts:
+        held = c.blocks >= 0
+        found, index = np.unique(c.blocks[held], return_inverse=True)
+        c.slots = np.array([place[c.frame, int(k)] for k in found], np.int64)[index]
+        folds[c.slots] = c.folds[held]
+        pixels += np.bincount(c.slots, minlength=len(keys))
+    return folds, pixels
+
+
 class Adapter:
     """A post-correction of ``denoise`` (a callable: frame layers -> the model's denoised layers, e.g. a
     ``Denoiser``) trained on ``pairs``, a list of (A, B) layer dicts, two independent renders of each frame.
@@ -319,39 +358,27 @@ class Adapter:
             _continue_from(self.net, post)
         self.folds = fold_networks(self.net)
         rng = np.random.default_rng(settings.seed)
-        self.crops = []
+        self.crops, self.probes = [], []
         for frame, (a, b) in enumerate(pairs):
-            outputs = {id(a): denoise(a), id(b): denoise(b)}
-            for x, y in ((a, b), (b, a)):
-                self.crops += self._prepare(x, outputs[id(x)], y, frame, rng)
+            tiles = _crop_tiles(a["depth"].shape, settings, rng)
+            fa, fb = denoise(a), denoise(b)
+            ca, cb = self._prepare(a, fa, b, frame, tiles), self._prepare(b, fb, a, frame, tiles)
+            self.crops += ca + cb
+            self.probes += self._probes(denoise, a, b, tiles, ca, cb, frame)
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
-        self._number_blocks()
+        self.block_folds, self.block_pixels = _number_blocks(self.crops)
+        self.probe_folds, self.probe_pixels = _number_blocks(self.probes)
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
         self.snapshots: dict = {}
 
-    def _number_blocks(self) -> None:
-        """Number the held-out blocks of all crops once (a block of a frame: both directions' pixels of it, in
-        (frame, block) order): each crop's ``slots``, :attr:`block_folds` (the fold holding out each block) and
-        :attr:`block_pixels` (the pixels of each, what a block's mean loss divides by)."""
-        keys = sorted({(c.frame, int(k)) for c in self.crops for k in np.unique(c.blocks[c.blocks >= 0])})
-        place = {key: i for i, key in enumerate(keys)}
-        self.block_folds = np.full(len(keys), -1)
-        self.block_pixels = np.zeros(len(keys), np.int64)
-        for c in self.crops:
-            held = c.blocks >= 0
-            found, index = np.unique(c.blocks[held], return_inverse=True)
-            c.slots = np.array([place[c.frame, int(k)] for k in found], np.int64)[index]
-            self.block_folds[c.slots] = c.folds[held]
-            self.block_pixels += np.bincount(c.slots, minlength=len(keys))
-
-    def _prepare(self, half: dict, denoised: dict, other: dict, frame: int, rng) -> list[_Crop]:
-        """The crops of ``half`` (``denoised``: the model's output of it), ``other``'s colour their target; ``frame``
-        the pair's index."""
+    def _prepare(self, half: dict, denoised: dict, other: dict, frame: int, tiles) -> list[_Crop]:
+        """The crops ``tiles`` of ``half`` (``denoised``: the model's output of it), ``other``'s colour their target;
+        ``frame`` the pair's index."""
         shape = half["depth"].shape
         scale = features.depth_scale(half["depth"])
         out = []
-        for tile in _crop_tiles(shape, self.settings, rng):
+        for tile in tiles:
             y0, y1, x0, x1 = tile
             blocks, folds = _held_blocks(tile, self.settings, shape[1])
             train = [keras.ops.convert_to_tensor((folds != k)[..., None]) for k in range(FOLDS)]
@@ -360,11 +387,28 @@ class Adapter:
                              train=train, blocks=blocks, folds=folds, frame=frame))
         return out
 
+    def _probes(self, denoise, a: dict, b: dict, tiles, crops_a, crops_b, frame: int) -> list[_Probe]:
+        """The guard's :class:`_Probe` of each crop of ``tiles``: the model's output of the halves' mean, cut as
+        the crops are, beside the crops of each half (``crops_a``, ``crops_b``)."""
+        mean = mean_layers(a, b)
+        out_mean = denoise(mean)
+        shape, scale = mean["depth"].shape, features.depth_scale(mean["depth"])
+        probes = []
+        for tile, ca, cb in zip(tiles, crops_a, crops_b):
+            cut = np.s_[tile[0] : tile[1], tile[2] : tile[3]]
+            model = np.asarray(out_mean["default"][cut], np.float64)
+            diff = (np.asarray(a["default"][cut], np.float64) - b["default"][cut]) / 2
+            probes.append(_Probe(mean=_window(out_mean, mean, tile, shape, scale, ("default",)),
+                                 halves=(ca.window, cb.window), colour=np.asarray(mean["default"][cut], np.float64),
+                                 diff=diff, weight=1.0 / (model**2 + RELMSE_EPS), blocks=ca.blocks, folds=ca.folds,
+                                 frame=frame))
+        return probes
+
     def _held_losses(self, weights: list | None = None) -> tuple[np.ndarray, list]:
         """The held-out loss of each held-out block (a block of a frame: both directions' pixels of it), in a fixed
         order, and the per-crop loss weights used. ``weights`` None: those of the model's own output (the first
-        candidate, exactly: what the guard compares with), whose losses these are; else each block's loss under the
-        fold network that never saw it, weighted by ``weights``."""
+        candidate, exactly: what the checkpoints are compared with), whose losses these are; else each block's
+        loss under the fold network that never saw it, weighted by ``weights``."""
         import torch
 
         sums, used = np.zeros(self.block_pixels.size), []
@@ -384,6 +428,28 @@ class Adapter:
                 sums += np.bincount(crop.slots, err[crop.blocks >= 0], minlength=sums.size)
         return sums / self.block_pixels, used
 
+    def _estimates(self, nets: list | None) -> tuple[np.ndarray, np.ndarray]:
+        """Per held-out block of the probes: the error of the model's output of the halves' mean, estimated from
+        the halves (``kpcn_keras.risk.pair_risk``), and the change to it of the fold network of ``nets`` that
+        never saw the block (0 where ``nets`` is None): the corrections of the mean and of each half, the same
+        estimate."""
+        import torch
+
+        model, change = np.zeros(self.probe_pixels.size), np.zeros(self.probe_pixels.size)
+        numpy = keras.ops.convert_to_numpy
+        with torch.no_grad():
+            for p in self.probes:
+                windows = (p.mean, *p.halves)
+                base = pair_risk(p.weight, p.colour, p.diff, *(numpy(w.candidates["default"][(0, *w.kept)])
+                                                                for w in windows))
+                held = p.blocks >= 0
+                model += np.bincount(p.slots, base[held], minlength=model.size)
+                for k, net in enumerate(nets or ()):
+                    own = (p.folds == k)[held]
+                    est = pair_risk(p.weight, p.colour, p.diff, *(numpy(_blend(net, w)["default"]) for w in windows))
+                    change += np.bincount(p.slots[own], (est - base)[held][own], minlength=change.size)
+        return model / self.probe_pixels, change / self.probe_pixels
+
     def run(self, progress=None, marks=()) -> Outcome:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
         seconds)`` after each step. Ends with :attr:`post` the folds' chosen checkpoints, or None where the guard
@@ -396,7 +462,7 @@ class Adapter:
         self.snapshots = {}
         pending = sorted(marks)
         initial, weights = self._held_losses()
-        if initial.size < 2:
+        if initial.size < 2 or self.probe_pixels.size < 2:
             raise KpcnError(f"the frame is too small to hold out blocks for the guard: it needs {s.block} x "
                             f"{HELD_OUT_EVERY} pixels a side at least")
         choices = [self._choice(k, 0, initial) for k in range(FOLDS)]
@@ -415,10 +481,10 @@ class Adapter:
                     if blocks[self.block_folds != k].mean() < choices[k].criterion:
                         choices[k] = self._choice(k, step, blocks)
                 while pending and time.perf_counter() - begin >= pending[0]:
-                    self._snapshot(pending.pop(0), initial, choices, step, time.perf_counter() - begin)
-        self.outcome = self._decide(initial, choices, step, time.perf_counter() - begin)
+                    self._snapshot(pending.pop(0), choices, step, time.perf_counter() - begin)
+        self.outcome = self._decide(choices, step, time.perf_counter() - begin)
         for mark in pending:  # the run ended before them: what it gives is what they give
-            self._snapshot(mark, initial, choices, step, self.outcome.seconds)
+            self._snapshot(mark, choices, step, self.outcome.seconds)
         for fold, value in zip(self.folds, [c.weights for c in choices] if self.outcome.kept else start):
             fold.set_weights(value)
         self.post = self.net if self.outcome.kept else self.start
@@ -426,8 +492,7 @@ class Adapter:
 
     def _choice(self, k: int, step: int, blocks: np.ndarray) -> _Choice:
         """Fold ``k``'s checkpoint now, at ``step``, the held-out losses of every block ``blocks``."""
-        return _Choice(float(blocks[self.block_folds != k].mean()), step, blocks[self.block_folds == k].copy(),
-                       self.folds[k].get_weights())
+        return _Choice(float(blocks[self.block_folds != k].mean()), step, self.folds[k].get_weights())
 
     def step(self, opt):
         """One step of ``opt`` on a crop drawn by the adapter's stream: each fold's network on the loss of the
@@ -438,8 +503,8 @@ class Adapter:
         descend(self.net.trainable_weights, opt, loss)
         return loss
 
-    def _snapshot(self, mark: float, initial, choices: list, step: int, seconds: float) -> None:
-        outcome = self._decide(initial, choices, step, seconds)
+    def _snapshot(self, mark: float, choices: list, step: int, seconds: float) -> None:
+        outcome = self._decide(choices, step, seconds)
         chosen = [c.weights for c in choices]
         self.snapshots[mark] = (outcome, chosen if outcome.kept else None, chosen if any(outcome.best_steps) else None)
 
@@ -451,25 +516,25 @@ class Adapter:
             fold.set_weights(value)
         return net
 
-    def _decide(self, initial: np.ndarray, choices: list, steps: int, seconds: float) -> Outcome:
-        """The guard's decision on the folds' chosen checkpoints ``choices``: each block's held-out loss there, under
-        the network that never saw it at a step chosen without it, against the model's output."""
+    def _decide(self, choices: list, steps: int, seconds: float) -> Outcome:
+        """The guard's decision on the folds' chosen checkpoints ``choices``: each held-out block's error at all the
+        samples, estimated from the halves (:meth:`_estimates`), under the network that never saw it at a step
+        chosen without it, against the model's output."""
         s = self.settings
-        tested = np.empty_like(initial)
-        for k, choice in enumerate(choices):
-            tested[self.block_folds == k] = choice.own
-        diff = tested - initial
+        steps_chosen = tuple(c.step for c in choices)
+        nets = fold_networks(self.apply_weights([c.weights for c in choices])) if any(steps_chosen) else None
+        model, diff = self._estimates(nets)
         se = float(diff.std(ddof=1) / np.sqrt(diff.size))
         z = float(-diff.mean() / se) if se > 0 else (float("inf") if diff.mean() < 0 else 0.0)
-        steps_chosen = tuple(c.step for c in choices)
         kept = any(steps_chosen) and z >= s.confidence
         if kept:
-            reason = f"its held-out gain clears {s.confidence:g} standard errors"
+            reason = f"its estimated gain clears {s.confidence:g} standard errors"
         elif not any(steps_chosen):
             reason = "no checkpoint did better on the held-out blocks than the model's own output"
         else:
-            reason = f"its held-out gain is within {s.confidence:g} standard errors of none"
-        return Outcome(bool(kept), steps, seconds, float(initial.mean()), float(tested.mean()), steps_chosen, z, reason)
+            reason = f"its estimated gain is within {s.confidence:g} standard errors of none"
+        return Outcome(bool(kept), steps, seconds, float(model.mean()), float((model + diff).mean()), steps_chosen,
+                       z, reason)
 
 
 def descend(params: list, opt, loss) -> None:

@@ -12,6 +12,7 @@ from skimage.metrics import structural_similarity
 
 import kpcn
 from kpcn_keras.studies import adapt_report as ar
+from prep import baselines
 from prep.colour import tonemap
 
 H, W = 40, 48
@@ -48,6 +49,19 @@ def _folder(root: Path) -> Path:
     return root
 
 
+def _project_folder(root: Path) -> Path:
+    """One scene of kpcn's own renders as ``kpcn render --pair`` lays them out: no recipe, no Blender frame; the
+    frame of 16 spp, its two halves and the 512-spp reference (in the Cycles layout here: what is read is the same)."""
+    root.mkdir()
+    ref = cycles_channels(H, W, seed=7)
+    write_channels(root / "cornell-000-00512spp.exr", ref, parts_of(ref))
+    for name, noise in (("cornell-000-00016spp.exr", 70), ("cornell-000-00008spp-pair-a.exr", 71),
+                        ("cornell-000-00008spp-pair-b.exr", 72)):
+        ch = cycles_channels(H, W, seed=7, noise_seed=noise)
+        write_channels(root / name, ch, parts_of(ch))
+    return root
+
+
 def _relmse(x, r) -> float:
     x, r = np.asarray(x, np.float64), np.asarray(r, np.float64)
     return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
@@ -68,13 +82,15 @@ def _mean_frame(a_path: Path, b_path: Path):
 @pytest.mark.slow
 def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_run_of_every_input_set, tmp_path):
     run, frames = tiny_run_of_every_input_set, _folder(tmp_path / "frames")
+    project = _project_folder(tmp_path / "project")
     out, cache = tmp_path / "reports", tmp_path / "cache"
     args = [str(frames), "--model", str(run), "--spp", "16", "--marks", "0.001,0.002", "--steps", "3", "--out",
-            str(out), "--cache", str(cache), "--costs-size", "64,48", "--costs-steps", "12"]
+            str(out), "--cache", str(cache), "--costs-size", "64,48", "--costs-steps", "12", "--more", str(project)]
     assert ar.main(args) == 0
     record = json.loads((out / "adapt.json").read_text())
     assert (out / "adapt.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rows = {r["scene"]: r for r in record["frames"]}
+    _check_project_row(record, project, run)
+    rows = {r["scene"]: r for r in record["frames"] if r["set"] == "frames"}
     assert sorted(rows) == sorted(s for s, _, _ in SCENES)  # the scene without its halves is left out
     assert record["panels"] == ["val-studio-000", "val-room-001"]  # participating media first
     for scene, row in rows.items():
@@ -102,6 +118,7 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     md = (out / "adapt.md").read_text()
     assert "Below Blender's own denoiser at equal samples (relMSE) on at least half the validation frames" in md
     assert "at least 25% lower than the unadapted pair's" in md and "No frame more than 2% worse" in md
+    assert "## `project`: medians per spp (not in the targets)" in md
     t = record["targets"]
     for key in ("below_blender", "median_ratio", "worst_change"):
         assert t[key]["holds"] in (True, False)
@@ -120,11 +137,25 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     # run again with the same settings: every frame is kept, none computed again
     assert ar.main(args) == 0
     again = json.loads((out / "adapt.json").read_text())
-    assert again["resumed"] == 2 and again["frames"] == record["frames"] and again["costs"] == costs
+    assert again["resumed"] == 3 and again["frames"] == record["frames"] and again["costs"] == costs
     (out / "adapt.md").unlink()
     assert ar.main([*args, "--report-only"]) == 0  # the md again, from the json alone
     assert f"All three hold: **{'yes' if t['held'] else 'no'}**" in (out / "adapt.md").read_text()
     assert json.loads((out / "adapt.json").read_text())["frames"] == record["frames"]
+
+
+def _check_project_row(record: dict, project: Path, run: Path) -> None:
+    """A folder without Blender's frames: its row judged against the better OIDN mode on the one render, by relMSE
+    against its reference; its own summary, out of the targets."""
+    (row,) = [r for r in record["frames"] if r["set"] == "project"]
+    assert row["scene"] == "cornell-000" and row["groups"] == ["cornell"]
+    single, ref = kpcn.read(project / "cornell-000-00016spp.exr"), kpcn.read(project / "cornell-000-00512spp.exr")
+    ref = np.asarray(ref.layers["default"], np.float64)
+    modes = {f"oidn_{m}": _relmse(baselines.oidn_denoise(single.layers, mode=m), ref) for m in baselines.OIDN_MODES}
+    assert row["anchor"] == min(modes, key=modes.get)
+    assert row["scores"]["blender"]["relmse"] == pytest.approx(min(modes.values()), rel=1e-4)
+    assert record["more_summary"]["project"]["16"]["frames"] == 1
+    assert record["targets"]["frames"] == 2 and "cornell-000" not in record["panels"]
 
 
 def _check_summary(record: dict, rows: list[dict]) -> None:

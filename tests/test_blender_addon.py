@@ -245,10 +245,11 @@ def test_the_addons_half_seeds_are_kpcn_blend_pairs_and_its_commands_pass_the_pa
     assert runner.denoise_command("k", "a.exr", "o.exr", pair="b.exr", adapt_seconds=60, adapt_steps=3) == cmd + [
         "--pair", "b.exr", "--adapt-steps", "3"]
     assert runner.denoise_command("k", "a.exr", "o.exr", adapt_seconds=60) == cmd  # no pair: nothing to adapt to
-    log = ("adapting: 100%| 3/3 step\rwrote o.exr\nadaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 "
-           "standard errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better\npeak memory 514 MiB\n")
-    assert runner.adaptation_line(log) == ("adaptation not kept: held-out loss 0.1 -> 0.1 (+0.00%, 0.0 standard "
-                                           "errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better")
+    log = ("adapting: 100%| 3/3 step\rwrote o.exr\nadaptation not kept: estimated held-out error 0.1 -> 0.1 "
+           "(+0.00%, 0.0 standard errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better\n"
+           "peak memory 514 MiB\n")
+    assert runner.adaptation_line(log) == ("adaptation not kept: estimated held-out error 0.1 -> 0.1 (+0.00%, 0.0 "
+                                           "standard errors) at steps 0 and 0 of 3 in 1.5 s; no checkpoint did better")
     assert runner.adaptation_line("wrote o.exr\n") == ""
 
 

@@ -58,6 +58,23 @@ from pathlib import Path
 
 import numpy as np
 
+from kpcn_keras.studies.adapt_report_md import (
+    BLENDER,
+    INPUT,
+    INPUT_SINGLE,
+    PAIR,
+    SINGLE,
+    TARGET_GAIN,
+    TARGET_WORST,
+    UNGUARDED,
+    _ratio,
+    adapted,
+    figure,
+    format_report,
+    methods,
+    panel_rows,
+    target_mark,
+)
 from kpcn_keras.studies.frames import scores as _scores
 from kpcn_keras.studies.report import Report
 from prep import layouts
@@ -70,29 +87,8 @@ DEFAULT_FRAMES = "data/cycles/validation"
 DEFAULT_CACHE = "runs/adapt-report"
 SPPS = (16, 4, 64)
 MARKS = (10.0, 30.0, 60.0, 120.0)
-TARGET_MARK = 60.0
-TARGET_GAIN = 0.25  # the median ratio to Blender's at least this much lower than the unadapted pair's
-TARGET_WORST = 0.02  # no frame more than this much worse than unadapted
-MEDIA = "media"  # the effect group of participating media (catalogue.EFFECTS)
-PANEL_ROWS = 4
 COSTS_SIZES = ((256, 256), (1920, 1080))
-BLENDER, PAIR, SINGLE, INPUT, INPUT_SINGLE = "blender", "kpcn pair", "kpcn single", "input", "input single"
-UNGUARDED = "kpcn unguarded"  # the target mark's chosen checkpoints applied whatever the guard decided
 EXIT_USER_ERROR = 2
-
-
-def adapted(mark: float) -> str:
-    """The method name of kpcn adapted for ``mark`` seconds."""
-    return f"kpcn adapted {mark:g} s"
-
-
-def methods(marks) -> list[str]:
-    return [INPUT, PAIR, *map(adapted, marks), UNGUARDED, BLENDER, SINGLE, INPUT_SINGLE]
-
-
-def target_mark(marks) -> float:
-    """The mark the targets are judged at: :data:`TARGET_MARK` where measured, else the largest."""
-    return TARGET_MARK if TARGET_MARK in marks else marks[-1]
 
 
 # ---------------------------------------------------------------- the frames
@@ -114,24 +110,32 @@ def _recorded(folder: Path) -> set | None:
 
 
 def _recipes(folder: Path) -> list[dict]:
+    """The scene recipes of a Cycles folder; for a folder without any (``kpcn render --pair``'s set), one for each
+    scene whose halves are there: its name and, as its one group, its family (the name without its index)."""
     cat = _catalogue()
     try:
-        return cat.read_recipes(str(folder))
+        recipes = cat.read_recipes(str(folder))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise KpcnError(f"{folder}: a scene recipe <scene>.json is not readable ({type(exc).__name__}: "
                         f"{exc})") from None
+    scenes = sorted({found[0] for p in folder.glob("*-pair-a.exr") if (found := cat.pair_half(p.name))})
+    return recipes or [{"name": s, "groups": [s.rsplit("-", 1)[0]]} for s in scenes]
 
 
 def frame_files(folder: Path, recipe: dict, spp: int) -> dict:
-    """The files of ``recipe``'s scene at ``spp`` under ``folder``: ``single``, ``blender``, ``a``, ``b``,
-    ``reference`` (the recipe's last frame; else the render with the most samples there)."""
+    """The files of ``recipe``'s scene at ``spp`` under ``folder``: ``single``, ``blender`` (Cycles folders alone:
+    their recipes say which effects they hold), ``a``, ``b``, ``reference`` (the recipe's last frame; else the
+    render with the most samples there)."""
     cat, scene = _catalogue(), recipe["name"]
     a, b = cat.pair_names(scene, spp)
     ref_spp = recipe["frames"][-1] if recipe.get("frames") else max(
         (found[1] for p in folder.glob(f"{scene}-*spp.exr") if (found := _render(p)) and found[0] == scene),
         default=0)
-    return {"single": folder / cat.frame_name(scene, spp), "blender": folder / cat.denoised_name(scene, spp),
-            "a": folder / a, "b": folder / b, "reference": folder / cat.frame_name(scene, ref_spp)}
+    files = {"single": folder / cat.frame_name(scene, spp), "blender": folder / cat.denoised_name(scene, spp),
+             "a": folder / a, "b": folder / b, "reference": folder / cat.frame_name(scene, ref_spp)}
+    if "effects" not in recipe:  # no Blender frame: the anchor is the better OIDN mode (adapt_frame)
+        del files["blender"]
+    return files
 
 
 def _render(path: Path):
@@ -191,8 +195,9 @@ def read_halves(files: dict):
     return _read(files["a"], ReadOptions(pair=files["b"]))
 
 
-def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dict, dict]:
-    """One frame: (images of every method, the guard's outcome at each mark, seconds of each part)."""
+def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dict, dict, str]:
+    """One frame: (images of every method, the guard's outcome at each mark, seconds of each part, the anchor
+    ``BLENDER`` stands for: :func:`_anchor`)."""
     from kpcn_keras.adapt import Adapter, correct
     from prep.inputs import mean_layers
 
@@ -203,10 +208,11 @@ def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dic
     plain = denoiser(mean)
     seconds = {"denoise_s": time.perf_counter() - begin}
     single = layouts.read(files["single"])
+    reference = _read_same(files["reference"], files["a"], a.size)
+    anchor, anchor_image = _anchor(files, single, reference, a.size)
     images = {INPUT: mean["default"], PAIR: plain["default"],
               SINGLE: models.denoiser(single.inputs)(single.layers)["default"],
-              INPUT_SINGLE: single.layers["default"], BLENDER: _read_same(files["blender"], files["a"], a.size),
-              "reference": _read_same(files["reference"], files["a"], a.size)}
+              INPUT_SINGLE: single.layers["default"], BLENDER: anchor_image, "reference": reference}
     begin = time.perf_counter()
     adapter = Adapter(denoiser, [(a.layers, b.layers)], settings)
     seconds["prepare_s"] = time.perf_counter() - begin
@@ -221,7 +227,23 @@ def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dic
         images[adapted(mark)] = apply(weights)
         if mark == target_mark(marks):
             images[UNGUARDED] = apply(best)
-    return images, guard, seconds
+    return images, guard, seconds, anchor
+
+
+def _anchor(files: dict, single, reference: np.ndarray, size) -> tuple[str, np.ndarray]:
+    """(name, image) of what kpcn is judged against on one render of all the samples (``single``): Blender's own
+    denoised frame where the folder has it, else the better, by relMSE against ``reference``, of OIDN's modes
+    (``prep.baselines.OIDN_MODES``: prefiltered auxiliaries as Blender runs it, and plain)."""
+    from prep import baselines, metrics
+
+    if "blender" in files:
+        return BLENDER, _read_same(files["blender"], files["a"], size)
+    if not baselines.oidn_available():
+        raise KpcnError(f"{files['single']}: no Blender frame beside it, and the better OIDN mode in its place needs "
+                        "pyoidn (pip install -e '.[oidn]')")
+    found = {f"oidn_{m}": baselines.oidn_denoise(single.layers, mode=m) for m in baselines.OIDN_MODES}
+    best = min(found, key=lambda m: metrics.relmse(found[m], reference))
+    return best, found[best]
 
 
 def _read_same(path: Path, frame_path: Path, size) -> np.ndarray:
@@ -238,10 +260,6 @@ def score_row(recipe: dict, spp: int, files: dict, images: dict, marks) -> dict:
 
 
 # ---------------------------------------------------------------- the summary
-
-
-def _ratio(row: dict, method: str, score: str = "relmse") -> float:
-    return row["scores"][method][score] / row["scores"][BLENDER][score]
 
 
 def summarise(rows: list[dict], marks) -> dict:
@@ -342,7 +360,7 @@ def _settings_key(args, model: Path) -> dict:
     """What a resumed run must share with the record it goes on from: the method's code (``adapt.py``) among it,
     so that rows of another method are never mixed in."""
     return {"model": str(model), "marks": list(args.marks), "seed": args.seed, "steps": args.steps,
-            "target_spp": args.spp[0], "costs_size": [list(v) for v in args.costs_size],
+            "target_spp": args.spp[0], "costs_size": [list(v) for v in args.costs_size], "more": list(args.more),
             "adapt_py_sha256": adapt_sha256()}
 
 
@@ -361,6 +379,18 @@ def _load(report: Report, key: dict, fresh: bool) -> dict:
 def _cache_path(cache: Path, row_or_key) -> Path:
     scene, spp = row_or_key
     return Path(cache) / f"{scene}-{spp:05d}spp.npz"
+
+
+def _save_images(path: Path, images: dict, marks) -> None:
+    """The panel images of a frame (input, unadapted, adapted at the target mark, the anchor, reference), kept for
+    the figure of a resumed run."""
+    from prep.files import atomic_path
+
+    shown = {INPUT: images[INPUT], PAIR: images[PAIR], "adapted": images[adapted(target_mark(marks))],
+             BLENDER: images[BLENDER], "reference": images["reference"]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **{k: np.asarray(v, np.float32) for k, v in shown.items()})
 
 
 def others(count: int = 6) -> list[str]:
@@ -403,37 +433,52 @@ def code_version() -> dict:
     return {"commit": commit or None, "changed": dirty, "adapt_py_sha256": adapt_sha256()}
 
 
+def _folders(args) -> list[Path]:
+    """The folders of frames: the validation folder (the targets' frames) first, then those of ``--more``."""
+    folders = [Path(args.frames), *map(Path, args.more)]
+    for folder in folders:
+        if not folder.is_dir():
+            raise KpcnError(f"{folder}: no such folder of frames")
+        if not frames_ready(folder, args.spp):
+            raise KpcnError(f"{folder}: no complete frame at {', '.join(map(str, args.spp))} spp (a scene's frame, "
+                            "Blender's denoised frame in a Cycles folder, the two halves and the reference)")
+    if len({f.name for f in folders}) < len(folders):
+        raise KpcnError("--more: each folder of frames needs a name of its own (the report's rows say which)")
+    return folders
+
+
+def _todo(folders: list[Path], spps, rows: list[dict]) -> list[tuple]:
+    """(folder, recipe, spp, files) of each frame ready and not yet measured: the validation folder's first."""
+    done = {(r["set"], r["scene"], r["spp"]) for r in rows}
+    return [(folder, *f) for folder in folders for f in frames_ready(folder, spps)
+            if (folder.name, f[0]["name"], f[1]) not in done]
+
+
 def study(args, command: str, log=print) -> dict:
     """Run the study (module docstring); returns the record written last."""
     from kpcn_keras.batch import torch_threads
     from kpcn_keras.run import default_model
     from kpcn_keras.settings import AdaptSettings
 
-    folder = Path(args.frames)
-    if not folder.is_dir():
-        raise KpcnError(f"{folder}: no such folder of validation frames")
+    folders = _folders(args)
     model = Path(args.model) if args.model else default_model().dir
     if not model.is_dir():
         raise KpcnError(f"--model {model}: no such run or model folder")
     report = Report(Path(args.out), REPORT)
     report.check_writable()
-    if not frames_ready(folder, args.spp):
-        raise KpcnError(f"{folder}: no complete frame at {', '.join(map(str, args.spp))} spp (a scene's frame, "
-                        "Blender's denoised frame, the two halves and the reference)")
     session, key = report.begin(), _settings_key(args, model)
     old = _load(report, key, args.fresh)
     cache = Path(args.cache)
     rows = [r for r in old.get("frames", []) if _cache_path(cache, (r["scene"], r["spp"])).exists()]
-    record = {"settings": key, "folder": str(folder), "code": code_version(), "busy_at_start": others(),
-              "threads": torch_threads(),
+    record = {"settings": key, "folder": str(folders[0]), "more": [str(f) for f in folders[1:]],
+              "code": code_version(), "busy_at_start": others(), "threads": torch_threads(),
               "costs": old.get("costs"), "frames": rows, "resumed": len(rows)}
     models = Frames(model)
     settings = AdaptSettings(seconds=max(args.marks), steps=args.steps, seed=args.seed)
     while True:
-        done = {(r["scene"], r["spp"]) for r in rows}
-        todo = [f for f in frames_ready(folder, args.spp) if (f[0]["name"], f[1]) not in done]
+        todo = _todo(folders, args.spp, rows)
         if (record["costs"] is None and args.costs_steps and rows and not args.report_only
-                and not any(f[1] == args.spp[0] for f in todo)):
+                and not any(f[0] == folders[0] and f[2] == args.spp[0] for f in todo)):
             first = next(r for r in rows if r["spp"] == args.spp[0])
             log("adapt-report: costs at " + ", ".join(f"{w}x{h}" for w, h in args.costs_size) + " ...")
             record["costs"] = costs(models, {k: Path(v) for k, v in first["files"].items()}, args.costs_size,
@@ -441,238 +486,35 @@ def study(args, command: str, log=print) -> dict:
             _write(report, session, record, command, cache, args)
         if args.report_only or not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
             break
-        recipe, spp, files = todo[0]
+        folder, recipe, spp, files = todo[0]
         load, running = list(os.getloadavg()), others()
-        images, guard, seconds = adapt_frame(models, files, settings, args.marks)
-        row = {**score_row(recipe, spp, files, images, args.marks), "guard": guard, "seconds": seconds,
-               "load_average": load, "busy": running, "adapt_py_sha256": record["code"]["adapt_py_sha256"]}
+        images, guard, seconds, anchor = adapt_frame(models, files, settings, args.marks)
+        row = {"set": folder.name, **score_row(recipe, spp, files, images, args.marks), "anchor": anchor,
+               "guard": guard, "seconds": seconds, "load_average": load, "busy": running,
+               "adapt_py_sha256": record["code"]["adapt_py_sha256"]}
         _save_images(_cache_path(cache, (row["scene"], spp)), images, args.marks)
         rows.append(row)
         log(f"adapt-report: {recipe['name']} {spp} spp: " + ", ".join(
-            f"{m} {row['scores'][m]['relmse']:.4f}" for m in (PAIR, adapted(target_mark(args.marks)), UNGUARDED,
-                                                               BLENDER)))
+            f"{m} {row['scores'][m]['relmse']:.4f}" for m in (PAIR, adapted(target_mark(args.marks)), UNGUARDED))
+            + f", {anchor} {row['scores'][BLENDER]['relmse']:.4f}")
         _write(report, session, record, command, cache, args)
     return _write(report, session, record, command, cache, args)
 
 
-PANEL_COLUMNS = (INPUT, PAIR, "adapted", BLENDER, "reference")
-
-
-def _save_images(path: Path, images: dict, marks) -> None:
-    """The panel images of a frame (input, unadapted, adapted at the target mark, Blender's, reference), kept for
-    the figure of a resumed run."""
-    from prep.files import atomic_path
-
-    shown = {INPUT: images[INPUT], PAIR: images[PAIR], "adapted": images[adapted(target_mark(marks))],
-             BLENDER: images[BLENDER], "reference": images["reference"]}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, **{k: np.asarray(v, np.float32) for k, v in shown.items()})
-
-
-def panel_rows(rows: list[dict], spp: int) -> list[dict]:
-    """The frames shown in panels: at ``spp``, those with participating media first, then the others, by scene,
-    :data:`PANEL_ROWS` at most."""
-    sel = sorted((r for r in rows if r["spp"] == spp), key=lambda r: (MEDIA not in r["groups"], r["scene"]))
-    return sel[:PANEL_ROWS]
-
-
 def _write(report: Report, session, record: dict, command: str, cache: Path, args) -> dict:
-    rows, marks = record["frames"], args.marks
+    """The record, its md and its png: the summary, targets and panels of the validation folder's frames; each
+    further folder's summary apart (``more_summary``)."""
+    marks, first = args.marks, Path(record["folder"]).name
+    rows = [r for r in record["frames"] if r["set"] == first]
+    more = {Path(f).name: [r for r in record["frames"] if r["set"] == Path(f).name] for f in record["more"]}
     out = {**session.envelope(command), **record, "methods": methods(marks),
            "machine": session.machine(threads=record["threads"]), "summary": summarise(rows, marks) if rows else {},
+           "more_summary": {name: summarise(sel, marks) for name, sel in more.items() if sel},
            "targets": targets(rows, args.spp[0], target_mark(marks))}
     panels = [(r, _cache_path(cache, (r["scene"], r["spp"]))) for r in panel_rows(rows, args.spp[0])]
     out["panels"] = [r["scene"] for r, _ in panels]
     out["target_mark"] = target_mark(marks)
     return report.write(out, format_report(out), lambda rec: figure(rec, panels))
-
-
-def figure(record: dict, panels):
-    """The error-against-seconds plot over the panels."""
-    from prep.files import pyplot
-
-    plt = pyplot()
-    marks = record["settings"]["marks"]
-    fig = plt.figure(figsize=(11, 3.6 + 2.4 * len(panels)))
-    top, bottom = fig.subfigures(2, 1, height_ratios=[3.6, 2.4 * len(panels)]) if panels else (fig, None)
-    axes = top.subplots(1, 2)
-    for ax, score in zip(axes, ("median_ratio_blender", "median_dssim_ratio_blender")):
-        for spp, block in record["summary"].items():
-            ys = [block["methods"][PAIR][score]] + [block["methods"][adapted(m)][score] for m in marks]
-            ax.plot([0.0, *marks], ys, marker="o", label=f"{spp} spp ({block['frames']} frames)")
-        ax.axhline(1.0, color="k", lw=1, ls="--", label="Blender's denoiser")
-        ax.set_xlabel("adaptation seconds")
-        ax.set_ylabel(("relMSE" if score == "median_ratio_blender" else "DSSIM") + " / Blender's (median)")
-        ax.legend(fontsize=7)
-    if panels:
-        _draw_panels(bottom, panels, record["target_mark"])
-    return fig
-
-
-def _draw_panels(target, panels, mark: float) -> None:
-    """One row per frame of ``panels`` ((row, cached images)), :data:`PANEL_COLUMNS` in order, each image
-    tonemapped (``prep.colour.tonemap``, the same for every column)."""
-    from prep.colour import tonemap
-
-    axes = target.subplots(len(panels), len(PANEL_COLUMNS), squeeze=False)
-    names = {PAIR: "kpcn (unadapted)", "adapted": f"kpcn adapted {mark:g} s", BLENDER: "Blender's"}
-    for row_axes, (row, path) in zip(axes, panels):
-        with np.load(path) as data:
-            images = {k: data[k] for k in data.files}
-        for ax, name in zip(row_axes, PANEL_COLUMNS):
-            ax.axis("off")
-            ax.imshow(tonemap(images[name]), interpolation="nearest")
-            title = names.get(name, name)
-            if name in (PAIR, "adapted", BLENDER):
-                title += f"\nrelMSE {row['scores'][adapted(mark) if name == 'adapted' else name]['relmse']:.4f}"
-            elif name == INPUT:
-                title = f"{row['scene']} {row['spp']} spp\n({', '.join(row['groups'])}) input"
-            ax.set_title(title, fontsize=8)
-
-
-# ---------------------------------------------------------------- the markdown
-
-
-def _n(value, fmt="{:.4f}") -> str:
-    return "–" if value is None else fmt.format(value)
-
-
-def _holds(flag) -> str:
-    return "**holds**" if flag else "**does not hold**"
-
-
-def _targets_lines(t: dict) -> list[str]:
-    head = [f"## Targets (issue 53): {t['spp']} spp, {t['mark']:g} s of adaptation", "",
-            "1. Below Blender's own denoiser at equal samples (relMSE) on at least half the validation frames.",
-            f"2. The median ratio to Blender's at least {TARGET_GAIN:.0%} lower than the unadapted pair's.",
-            f"3. No frame more than {TARGET_WORST:.0%} worse (relMSE) than the unadapted pair.", ""]
-    if t.get("held") is None:
-        return head + [f"No frame at {t['spp']} spp yet: the targets are not checked.", ""]
-    b, m, w = t["below_blender"], t["median_ratio"], t["worst_change"]
-    return head + [
-        f"- 1 {_holds(b['holds'])}: below Blender's on {b['frames']} of {t['frames']} frames (needs {b['needed']}).",
-        f"- 2 {_holds(m['holds'])}: median ratio {m['adapted']:.3f} adapted vs {m['unadapted']:.3f} unadapted, "
-        f"{m['gain']:+.1%} lower (needs {TARGET_GAIN:.0%}).",
-        f"- 3 {_holds(w['holds'])}: the worst frame, {w['frame']}, changes by {w['change']:+.2%} (allowed "
-        f"{TARGET_WORST:+.0%}).",
-        "", f"All three hold: **{'yes' if t['held'] else 'no'}** (on the {t['frames']} frames measured).", ""]
-
-
-def _summary_lines(record: dict) -> list[str]:
-    head = ["spp", "frames", "method", "median relMSE", "median DSSIM", "median relMSE / Blender's",
-            "median DSSIM / Blender's", "frames below Blender's"]
-    lines = ["## Medians per spp", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for spp, block in record["summary"].items():
-        for m, s in block["methods"].items():
-            lines.append(f"| {spp} | {block['frames']} | {m} | {s['median_relmse']:.4f} | {s['median_dssim']:.4f} | "
-                         f"{s['median_ratio_blender']:.3f} | {s['median_dssim_ratio_blender']:.3f} | "
-                         f"{s['below_blender']} of {block['frames']} |")
-    lines += ["", "Frames on which the guard kept the correction, per mark: " + "; ".join(
-        f"{spp} spp: " + ", ".join(f"{k} s {v} of {b['frames']}" for k, v in b["kept"].items())
-        for spp, b in record["summary"].items()) + ". Median steps run by each mark (at the held-out check that "
-        "decided it; the machine's load sets how many a second buys): " + "; ".join(
-        f"{spp} spp: " + ", ".join(f"{k} s {v:g}" for k, v in b["median_steps"].items())
-        for spp, b in record["summary"].items()) + ".", ""]
-    return lines
-
-
-def _frame_lines(record: dict) -> list[str]:
-    marks = record["settings"]["marks"]
-    shown = [INPUT, PAIR, *map(adapted, marks), UNGUARDED, BLENDER, SINGLE]
-    head = ["scene", "spp", "groups", *(f"{m} relMSE" for m in shown), "adapted / Blender's",
-            *(f"{m} DSSIM" for m in shown), "guard per mark", "steps", "load"]
-    lines = ["## Per frame", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    target = adapted(target_mark(marks))
-    for r in record["frames"]:
-        guard = " ".join(("kept" if r["guard"][f"{m:g}"]["kept"] else "no") for m in marks)
-        lines.append(f"| {r['scene']} | {r['spp']} | {', '.join(r['groups'])} | "
-                     + " | ".join(_n(r["scores"][m]["relmse"]) for m in shown)
-                     + f" | {_ratio(r, target):.3f} | " + " | ".join(_n(r["scores"][m]["dssim"]) for m in shown)
-                     + f" | {guard} | {r['seconds']['steps']} | {r['load_average'][0]:.2f} |")
-    return lines + [""]
-
-
-def _costs_lines(c: dict | None, rows: list[dict]) -> list[str]:
-    if not c:
-        return ["## Costs", "", "Not measured yet (they are measured once the target spp's frames are done).", ""]
-    sizes = [k for k in c if isinstance(c[k], dict)]
-    head = ["frame", "crops", "preparation s", "s per step (checks included)", "s per training step",
-            "s per held-out check", "kpcn on the mean s", "correction applied s", "load"]
-    lines = ["## What adapting costs", "",
-             f"One process, {c['steps']} steps each (held-out checks included), the frame `{c['frame']}` as it is "
-             "and wrapped to the larger sizes (`card.frame_of_size`). Preparation: the model on both halves and "
-             "their crops (at most 16 of 128 pixels a side per half, so a training step costs the same at any "
-             "size; a held-out check every 10 steps runs every crop); a run of S seconds then takes about "
-             "S / (s per step) steps.", "",
-             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for k in sizes:
-        v = c[k]
-        lines.append(f"| {v['size'][0]}x{v['size'][1]} | {v['crops']} | {v['prepare_s']:.2f} | "
-                     f"{v['seconds_per_step']:.4f} | {v['step_s']:.4f} | {_n(v['check_s'])} | {v['denoise_s']:.2f} | "
-                     f"{v['apply_s']:.2f} | {v['load_average'][0]:.2f} |")
-    runs = [r["seconds"]["adapt_s"] / r["seconds"]["steps"] for r in rows if r["seconds"]["steps"]]
-    if runs:  # many steps, under the same load as the scores: the probe's few steps are noisier
-        lines += ["", f"Over the frames' own runs ({len(runs)}, at the validation size, checks included): median "
-                  f"{np.median(runs):.3f} s per step (from {min(runs):.3f} to {max(runs):.3f}), with preparations "
-                  f"of median {np.median([r['seconds']['prepare_s'] for r in rows]):.2f} s."]
-    return lines + [""]
-
-
-def _seen(record: dict) -> list[str]:
-    """The commands (cut at 100 characters) among the three busiest processes at any frame's start, once each, not
-    already named at the run's start; the CPU share and nice left out."""
-    def command(line: str) -> str:  # "%CPU nice command line", or "%CPU name" as earlier runs recorded it
-        parts = line.split(None, 2)
-        nice = len(parts) == 3 and parts[1].lstrip("-").isdigit()
-        return (parts[2] if nice else line.split(None, 1)[-1])[:100]
-
-    start = {command(p) for p in record["busy_at_start"]}
-    seen = dict.fromkeys(command(p) for r in record["frames"] for p in r.get("busy", [])[:3])
-    return [c for c in seen if c not in start and "ps -eo" not in c] or ["nothing else"]
-
-
-def _code(code: dict | None) -> str:
-    if not code:
-        return "unrecorded"
-    return (f"`{(code['commit'] or 'no commit')[:12]}`" + (" with changes" if code["changed"] else "")
-            + f", `kpcn_keras/adapt.py` sha256 `{code['adapt_py_sha256'][:12]}`")
-
-
-def format_report(record: dict) -> str:
-    s, machine = record["settings"], record["machine"]
-    lines = [f"# Adapting kpcn to each frame's two halves, beside Blender's own denoiser ({record['date']})", "",
-             f"`{record['command']}`, {record['started']} to {record['finished']}; model `{s['model']}`, seed "
-             f"{s['seed']}, marks {', '.join(f'{m:g}' for m in s['marks'])} s"
-             + (f", {s['steps']} steps" if s["steps"] else "") + f"; frames `{record['folder']}`"
-             + (f" ({record['resumed']} frames kept from an earlier run with the same settings)"
-                if record["resumed"] else "") + f"; code {_code(record.get('code'))}.", "",
-             f"Machine: {machine['cpus']} CPUs, torch threads {record['threads']}, load average "
-             f"{machine['load_average_before'][0]:.2f} before and {machine['load_average_after'][0]:.2f} after; "
-             "busiest other processes at the start (%CPU, nice, command): " + "; ".join(
-                 f"`{p}`" for p in record["busy_at_start"])
-             + ". Also among the three busiest at a frame's start: " + "; ".join(f"`{c}`" for c in _seen(record))
-             + ". Seconds of adaptation buy fewer steps on a busy machine than on an idle one; each frame's load "
-             "average and steps are in its row, what ran beside it in the json.", "",
-             "Each frame of N spp is given as two renders of N/2 spp (its halves, different seeds). `input`: their "
-             "mean; `kpcn pair`: the model on the mean, unadapted (0 s); `kpcn adapted S s`: after S seconds of "
-             "adaptation on the halves (one run, what stopping at S gives: `Adapter.snapshots`; the unadapted "
-             "output where the guard refused the correction); `kpcn unguarded`: the chosen checkpoints at "
-             f"{record['target_mark']:g} s applied whatever the guard decided (what the guard forgoes, or spares); "
-             "`blender`: Blender's own denoiser (OIDN) on one "
-             "render of N spp; `kpcn single`: the model on that one render. Scores against the 2048-spp reference "
-             "in float64 (`prep.metrics`).", ""]
-    if record["targets"].get("held") is not None or record["frames"]:
-        lines += _targets_lines(record["targets"])
-    if record["summary"]:
-        lines += _summary_lines(record)
-    lines += _costs_lines(record.get("costs"), record["frames"])
-    lines += _frame_lines(record)
-    lines += ["`adapt.png`: the median ratio of relMSE (left) and DSSIM (right) to Blender's against the seconds of "
-              "adaptation, one line per spp (0 s: unadapted); under it input | kpcn (pair, unadapted) | kpcn adapted "
-              f"({record['target_mark']:g} s) | Blender's | reference of " + ", ".join(record["panels"])
-              + " (participating media first).", ""]
-    return "\n".join(lines)
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -703,7 +545,11 @@ def _size(text: str) -> tuple[int, int]:
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m kpcn_keras.studies.adapt_report",
                                 description=__doc__.splitlines()[0])
-    p.add_argument("frames", nargs="?", default=DEFAULT_FRAMES, help="the validation folder (default: %(default)s)")
+    p.add_argument("frames", nargs="?", default=DEFAULT_FRAMES, help="the validation folder, whose frames the "
+                   "targets are judged on (default: %(default)s)")
+    p.add_argument("--more", nargs="+", default=[], metavar="FOLDER", help="further folders of frames in pairs, "
+                   "each its own tables: the project's held-out scenes (kpcn render --pair), judged against the "
+                   "better OIDN mode where a folder has no Blender frames")
     p.add_argument("--spp", type=_spps, default=SPPS,
                    help="total spp of the frames, the target first (default: 16,4,64)")
     p.add_argument("--marks", type=_floats, default=MARKS,
