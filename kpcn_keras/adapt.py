@@ -367,7 +367,7 @@ class Adapter:
             self.probes += self._probes(denoise, a, b, tiles, ca, cb, frame)
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
         self.block_folds, self.block_pixels = _number_blocks(self.crops)
-        self.probe_folds, self.probe_pixels = _number_blocks(self.probes)
+        self.probe_pixels = _number_blocks(self.probes)[1]
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
         self.snapshots: dict = {}

@@ -448,9 +448,10 @@ def _folders(args) -> list[Path]:
 
 
 def _todo(folders: list[Path], spps, rows: list[dict]) -> list[tuple]:
-    """(folder, recipe, spp, files) of each frame ready and not yet measured: the validation folder's first."""
+    """(folder, recipe, spp, files) of each frame ready and not yet measured, spp by spp (the target's first), each
+    the validation folder's first."""
     done = {(r["set"], r["scene"], r["spp"]) for r in rows}
-    return [(folder, *f) for folder in folders for f in frames_ready(folder, spps)
+    return [(folder, *f) for spp in spps for folder in folders for f in frames_ready(folder, (spp,))
             if (folder.name, f[0]["name"], f[1]) not in done]
 
 

@@ -157,9 +157,10 @@ def _costs_lines(c: dict | None, rows: list[dict]) -> list[str]:
             "s per held-out check", "kpcn on the mean s", "correction applied s", "load"]
     lines = ["## What adapting costs", "",
              f"One process, {c['steps']} steps each (held-out checks included), the frame `{c['frame']}` as it is "
-             "and wrapped to the larger sizes (`card.frame_of_size`). Preparation: the model on both halves and "
-             "their crops (at most 16 of 128 pixels a side per half, so a training step costs the same at any "
-             "size; a held-out check every 10 steps runs every crop); a run of S seconds then takes about "
+             "and wrapped to the larger sizes (`card.frame_of_size`). Preparation: the model on both halves and their "
+             "mean (the guard's), and their crops (at most 16 of 128 pixels a side per half, so a training step "
+             "costs the same at any size; a held-out check every 10 steps runs every crop); a run of S seconds then "
+             "takes about "
              "S / (s per step) steps.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k in sizes:
