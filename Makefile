@@ -247,7 +247,7 @@ ADAPT_PROJECT_SEED ?= 53
 ADAPT_PROJECT ?= data/renders/adapt-project
 adapt-report: $(KPCN) cycles-validation
 	$(BIN)/pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[oidn]'
-	$(KPCN) render --set $(notdir $(ADAPT_PROJECT)) --out $(dir $(ADAPT_PROJECT)) --pair --input-spp 16 --per-family 1 \
+	$(KPCN) render --set $(notdir $(ADAPT_PROJECT)) --out $(patsubst %/,%,$(dir $(ADAPT_PROJECT))) --pair --input-spp 16 --per-family 1 \
 		--seed $(ADAPT_PROJECT_SEED)
 	$(BIN)/python -m kpcn_keras.studies.adapt_report $(CYCLES_VALIDATION) --more $(ADAPT_PROJECT) $(ADAPT_ARGS)
 

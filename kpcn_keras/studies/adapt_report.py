@@ -1,8 +1,8 @@
 """The adaptation report (issue 53): kpcn adapted to each validation frame's two halves, beside Blender's own
 denoiser on one render of all the samples.
 
-  .venv/bin/python -m kpcn_keras.studies.adapt_report [FOLDER] [--spp 16,4,64] [--marks 10,30,60,120]
-      [--model RUN] [--seed 0] [--out reports] [--cache runs/adapt-report]      # make adapt-report
+  .venv/bin/python -m kpcn_keras.studies.adapt_report [FOLDER] [--more FOLDER ...] [--spp 16,4,64]
+      [--marks 10,30,60,120] [--model RUN] [--seed 0] [--out reports] [--cache runs/adapt-report]  # make adapt-report
 
 The contract:
 
@@ -12,14 +12,18 @@ The contract:
   scene's reference (its recipe's last frame, or the render with the most samples), names from
   ``prep.render.blender.catalogue``. Where the folder has a manifest with checksums, a file counts only once the
   manifest records it (a scene still rendering is left for later). The folder is looked at again after each
-  frame, so scenes that finish during the run are taken, target spp first.
+  frame, so scenes that finish during the run are taken, target spp first. Each folder of ``--more`` (the
+  project's own scenes, ``kpcn render --pair``'s set: no recipes, no Blender frames) the same, each scene's
+  family its group, after the validation folder at each spp; its rows have their own summary
+  (``more_summary``), out of the targets.
 - **Methods**, each scored against the reference (``prep.metrics`` in float64: relMSE, DSSIM, relSE p99.9):
   ``input`` (the halves' mean), ``kpcn pair`` (the model, unadapted, on the mean: ``prep.inputs.mean_layers``, the
   network for what a half has, as ``kpcn denoise --pair`` runs it), ``kpcn adapted S s`` for each mark S
   of ``--marks`` (one :class:`kpcn_keras.adapt.Adapter` run of max(marks) seconds, or ``--steps``; at each mark
   what stopping there gives, ``Adapter.snapshots``: its post-correction applied to the unadapted output, or that
-  output itself where the guard refused it), ``blender`` (``<scene>-<N>spp-blender-oidn.exr``), ``kpcn single``
-  (the model on the one render of N spp) and ``input single`` (that render).
+  output itself where the guard refused it), ``blender`` (``<scene>-<N>spp-blender-oidn.exr``; in a folder without
+  Blender's frames the better OIDN mode on the one render, :func:`_anchor`, named in the row's ``anchor``),
+  ``kpcn single`` (the model on the one render of N spp) and ``input single`` (that render).
 - **Per frame**: those scores, the guard's outcome at each mark (``Outcome.to_dict``), the adapter's preparation
   seconds, the load average and the busiest other processes when the frame began (the machine is shared).
 - **Summary per spp** (:func:`summarise`): per method the median relMSE and DSSIM, the median ratio of relMSE to
