@@ -287,21 +287,24 @@ class _Crop:
 
 @dataclass
 class _Probe:
-    """One crop's pixels as the guard estimates their error at all the samples (``kpcn_keras.risk``): the window of
-    the halves' mean (``mean``, its candidates from the model's output of the mean) and of each half (``halves``:
-    the two directions' crops' windows), the mean's noisy colour (``colour``), the halves' half-difference
-    (``diff``), the loss weight of the model's output (``weight``), and the crop's held-out ``blocks``, ``folds`` and
-    ``slots`` (numbered by :class:`Adapter`)."""
+    """One crop's pixels as the guard estimates their error at all the samples (``kpcn_keras.risk``): the crop of
+    half A (``crop``: its window, its held-out blocks and their slots), the window of half B (``other``) and of the
+    halves' mean (``mean``, its candidates from the model's output of the mean), the mean's noisy colour
+    (``colour``), the halves' half-difference (``diff``), the loss weight of the model's output (``weight``) and
+    the model's own estimated error per pixel (``base``: it does not change while the correction trains)."""
 
+    crop: _Crop
+    other: _Window
     mean: _Window
-    halves: tuple
     colour: np.ndarray
     diff: np.ndarray
     weight: np.ndarray
-    blocks: np.ndarray
-    folds: np.ndarray
-    frame: int
-    slots: np.ndarray | None = None
+    base: np.ndarray
+
+    @property
+    def windows(self) -> tuple:
+        """The windows of the mean, half A and half B: what :func:`kpcn_keras.risk.pair_risk` reads in that order."""
+        return self.mean, self.crop.window, self.other
 
 
 def _held_blocks(tile, s: AdaptSettings, frame_w: int) -> tuple[np.ndarray, np.ndarray]:
@@ -328,9 +331,9 @@ def _crop_tiles(shape, s: AdaptSettings, rng) -> list[tuple]:
 
 
 def _number_blocks(parts: list) -> tuple[np.ndarray, np.ndarray]:
-    """Number the held-out blocks of ``parts`` (:class:`_Crop` or :class:`_Probe`) once (a block of a frame: all its
-    pixels in them, in (frame, block) order), setting each part's ``slots``; returns the fold holding out each block
-    and the pixels of each (what a block's mean divides by)."""
+    """Number the held-out blocks of the crops ``parts`` once (a block of a frame: all its pixels in them, in
+    (frame, block) order), setting each crop's ``slots``; returns the fold holding out each block and the pixels of
+    each (what a block's mean divides by)."""
     keys = sorted({(c.frame, int(k)) for c in parts for k in np.unique(c.blocks[c.blocks >= 0])})
     place = {key: i for i, key in enumerate(keys)}
     folds, pixels = np.full(len(keys), -1), np.zeros(len(keys), np.int64)
@@ -364,10 +367,13 @@ class Adapter:
             fa, fb = denoise(a), denoise(b)
             ca, cb = self._prepare(a, fa, b, frame, tiles), self._prepare(b, fb, a, frame, tiles)
             self.crops += ca + cb
-            self.probes += self._probes(denoise, a, b, tiles, ca, cb, frame)
+            self.probes += self._probes(denoise, a, b, tiles, ca, cb)
         self.rng = rng  # the steps' draws continue the crops' stream: one seed decides both
         self.block_folds, self.block_pixels = _number_blocks(self.crops)
-        self.probe_pixels = _number_blocks(self.probes)[1]
+        # the probes hold the blocks of half A's crops: the same blocks, each pixel once
+        self.probe_pixels = sum(np.bincount(p.crop.slots, minlength=self.block_pixels.size) for p in self.probes)
+        self.model_risk = sum(np.bincount(p.crop.slots, p.base[p.crop.blocks >= 0], minlength=self.block_pixels.size)
+                              for p in self.probes) / self.probe_pixels
         self.post: keras.Model | None = None
         self.outcome: Outcome | None = None
         self.snapshots: dict = {}
@@ -387,7 +393,7 @@ class Adapter:
                              train=train, blocks=blocks, folds=folds, frame=frame))
         return out
 
-    def _probes(self, denoise, a: dict, b: dict, tiles, crops_a, crops_b, frame: int) -> list[_Probe]:
+    def _probes(self, denoise, a: dict, b: dict, tiles, crops_a, crops_b) -> list[_Probe]:
         """The guard's :class:`_Probe` of each crop of ``tiles``: the model's output of the halves' mean, cut as
         the crops are, beside the crops of each half (``crops_a``, ``crops_b``)."""
         mean = mean_layers(a, b)
@@ -397,11 +403,14 @@ class Adapter:
         for tile, ca, cb in zip(tiles, crops_a, crops_b):
             cut = np.s_[tile[0] : tile[1], tile[2] : tile[3]]
             model = np.asarray(out_mean["default"][cut], np.float64)
+            colour = np.asarray(mean["default"][cut], np.float64)
             diff = (np.asarray(a["default"][cut], np.float64) - b["default"][cut]) / 2
-            probes.append(_Probe(mean=_window(out_mean, mean, tile, shape, scale, ("default",)),
-                                 halves=(ca.window, cb.window), colour=np.asarray(mean["default"][cut], np.float64),
-                                 diff=diff, weight=1.0 / (model**2 + RELMSE_EPS), blocks=ca.blocks, folds=ca.folds,
-                                 frame=frame))
+            weight = 1.0 / (model**2 + RELMSE_EPS)
+            window = _window(out_mean, mean, tile, shape, scale, ("default",))
+            outputs = [keras.ops.convert_to_numpy(w.candidates["default"][(0, *w.kept)])
+                       for w in (window, ca.window, cb.window)]
+            probes.append(_Probe(crop=ca, other=cb.window, mean=window, colour=colour, diff=diff, weight=weight,
+                                 base=pair_risk(weight, colour, diff, *outputs)))
         return probes
 
     def _held_losses(self, weights: list | None = None) -> tuple[np.ndarray, list]:
@@ -428,27 +437,22 @@ class Adapter:
                 sums += np.bincount(crop.slots, err[crop.blocks >= 0], minlength=sums.size)
         return sums / self.block_pixels, used
 
-    def _estimates(self, nets: list | None) -> tuple[np.ndarray, np.ndarray]:
-        """Per held-out block of the probes: the error of the model's output of the halves' mean, estimated from
-        the halves (``kpcn_keras.risk.pair_risk``), and the change to it of the fold network of ``nets`` that
-        never saw the block (0 where ``nets`` is None): the corrections of the mean and of each half, the same
-        estimate."""
+    def _changes(self, nets: list) -> np.ndarray:
+        """Per held-out block of the probes: the change to the model's estimated error at all the samples
+        (:attr:`model_risk`, ``kpcn_keras.risk.pair_risk``) that the fold network of ``nets`` that never saw the
+        block makes, correcting the mean and each half alike."""
         import torch
 
-        model, change = np.zeros(self.probe_pixels.size), np.zeros(self.probe_pixels.size)
-        numpy = keras.ops.convert_to_numpy
+        change = np.zeros(self.probe_pixels.size)
         with torch.no_grad():
             for p in self.probes:
-                windows = (p.mean, *p.halves)
-                base = pair_risk(p.weight, p.colour, p.diff, *(numpy(w.candidates["default"][(0, *w.kept)])
-                                                                for w in windows))
-                held = p.blocks >= 0
-                model += np.bincount(p.slots, base[held], minlength=model.size)
-                for k, net in enumerate(nets or ()):
-                    own = (p.folds == k)[held]
-                    est = pair_risk(p.weight, p.colour, p.diff, *(numpy(_blend(net, w)["default"]) for w in windows))
-                    change += np.bincount(p.slots[own], (est - base)[held][own], minlength=change.size)
-        return model / self.probe_pixels, change / self.probe_pixels
+                held = p.crop.blocks >= 0
+                for k, net in enumerate(nets):
+                    own = (p.crop.folds == k)[held]
+                    est = pair_risk(p.weight, p.colour, p.diff,
+                                    *(keras.ops.convert_to_numpy(_blend(net, w)["default"]) for w in p.windows))
+                    change += np.bincount(p.crop.slots[own], (est - p.base)[held][own], minlength=change.size)
+        return change / self.probe_pixels
 
     def run(self, progress=None, marks=()) -> Outcome:
         """Train until ``settings.steps`` steps, or ``settings.seconds`` have passed; ``progress(step, loss,
@@ -462,7 +466,7 @@ class Adapter:
         self.snapshots = {}
         pending = sorted(marks)
         initial, weights = self._held_losses()
-        if initial.size < 2 or self.probe_pixels.size < 2:
+        if initial.size < 2:
             raise KpcnError(f"the frame is too small to hold out blocks for the guard: it needs {s.block} x "
                             f"{HELD_OUT_EVERY} pixels a side at least")
         choices = [self._choice(k, 0, initial) for k in range(FOLDS)]
@@ -518,12 +522,13 @@ class Adapter:
 
     def _decide(self, choices: list, steps: int, seconds: float) -> Outcome:
         """The guard's decision on the folds' chosen checkpoints ``choices``: each held-out block's error at all the
-        samples, estimated from the halves (:meth:`_estimates`), under the network that never saw it at a step
+        samples, estimated from the halves (:meth:`_changes`), under the network that never saw it at a step
         chosen without it, against the model's output."""
         s = self.settings
         steps_chosen = tuple(c.step for c in choices)
-        nets = fold_networks(self.apply_weights([c.weights for c in choices])) if any(steps_chosen) else None
-        model, diff = self._estimates(nets)
+        model = self.model_risk
+        diff = (self._changes(fold_networks(self.apply_weights([c.weights for c in choices]))) if any(steps_chosen)
+                else np.zeros_like(model))
         se = float(diff.std(ddof=1) / np.sqrt(diff.size))
         z = float(-diff.mean() / se) if se > 0 else (float("inf") if diff.mean() < 0 else 0.0)
         kept = any(steps_chosen) and z >= s.confidence

@@ -89,7 +89,7 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     assert ar.main(args) == 0
     record = json.loads((out / "adapt.json").read_text())
     assert (out / "adapt.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    _check_project_row(record, project, run)
+    _check_project_row(record, project)
     rows = {r["scene"]: r for r in record["frames"] if r["set"] == "frames"}
     assert sorted(rows) == sorted(s for s, _, _ in SCENES)  # the scene without its halves is left out
     assert record["panels"] == ["val-studio-000", "val-room-001"]  # participating media first
@@ -144,7 +144,7 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     assert json.loads((out / "adapt.json").read_text())["frames"] == record["frames"]
 
 
-def _check_project_row(record: dict, project: Path, run: Path) -> None:
+def _check_project_row(record: dict, project: Path) -> None:
     """A folder without Blender's frames: its row judged against the better OIDN mode on the one render, by relMSE
     against its reference; its own summary, out of the targets."""
     (row,) = [r for r in record["frames"] if r["set"] == "project"]

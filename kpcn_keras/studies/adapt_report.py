@@ -237,15 +237,18 @@ def adapt_frame(models: Frames, files: dict, settings, marks) -> tuple[dict, dic
 def _anchor(files: dict, single, reference: np.ndarray, size) -> tuple[str, np.ndarray]:
     """(name, image) of what kpcn is judged against on one render of all the samples (``single``): Blender's own
     denoised frame where the folder has it, else the better, by relMSE against ``reference``, of OIDN's modes
-    (``prep.baselines.OIDN_MODES``: prefiltered auxiliaries as Blender runs it, and plain)."""
-    from prep import baselines, metrics
+    (``blender_report.oidn_modes``, the modes every report scores: prefiltered auxiliaries as Blender runs it, and
+    plain)."""
+    from kpcn_keras.studies.blender_report import oidn_modes
+    from prep import metrics
 
     if "blender" in files:
         return BLENDER, _read_same(files["blender"], files["a"], size)
-    if not baselines.oidn_available():
+    modes = oidn_modes()
+    if not modes:
         raise KpcnError(f"{files['single']}: no Blender frame beside it, and the better OIDN mode in its place needs "
                         "pyoidn (pip install -e '.[oidn]')")
-    found = {f"oidn_{m}": baselines.oidn_denoise(single.layers, mode=m) for m in baselines.OIDN_MODES}
+    found = {name: denoise(single.layers) for name, denoise in modes.items()}
     best = min(found, key=lambda m: metrics.relmse(found[m], reference))
     return best, found[best]
 
