@@ -139,9 +139,11 @@ def test_the_report_scores_each_frame_and_states_the_targets_as_numpy_does(tiny_
     again = json.loads((out / "adapt.json").read_text())
     assert again["resumed"] == 3 and again["frames"] == record["frames"] and again["costs"] == costs
     (out / "adapt.md").unlink()
-    assert ar.main([*args, "--report-only"]) == 0  # the md again, from the json alone
+    assert ar.main(["--report-only", "--out", str(out), "--cache", str(cache)]) == 0  # the md again, from the json
     assert f"All three hold: **{'yes' if t['held'] else 'no'}**" in (out / "adapt.md").read_text()
-    assert json.loads((out / "adapt.json").read_text())["frames"] == record["frames"]
+    rewritten = json.loads((out / "adapt.json").read_text())
+    assert rewritten["frames"] == record["frames"] and rewritten["targets"] == record["targets"]
+    assert rewritten["command"] == again["command"] and rewritten["started"] == again["started"]  # its run's own
 
 
 def _check_project_row(record: dict, project: Path) -> None:
@@ -168,6 +170,12 @@ def _check_summary(record: dict, rows: list[dict]) -> None:
         assert s["median_relmse"] == pytest.approx(np.median(rel))
         assert s["median_ratio_blender"] == pytest.approx(np.median(rel / blender))
         assert s["below_blender"] == int(np.sum(rel < blender))
+    for mark in ("0.001", "0.002"):
+        chosen = [step for r in rows for step in r["guard"][mark]["best_steps"]]
+        assert block["median_chosen_step"][mark] == np.median(chosen)
+    target, last = f"{record['target_mark']:g}", "0.002"
+    same = sum(r["guard"][last]["best_steps"] == r["guard"][target]["best_steps"] for r in rows)
+    assert block["same_choice_at_last_mark"] == same
     t = record["targets"]
     adapted = np.array([r["scores"]["kpcn adapted 0.002 s"]["relmse"] for r in rows])
     plain = np.array([r["scores"]["kpcn pair"]["relmse"] for r in rows])
@@ -176,6 +184,12 @@ def _check_summary(record: dict, rows: list[dict]) -> None:
     assert t["below_blender"]["holds"] == (np.sum(adapted < blender) >= np.ceil(len(rows) / 2))
     assert t["median_ratio"]["holds"] == (np.median(adapted / blender) <= 0.75 * np.median(plain / blender))
     assert t["worst_change"]["holds"] == (np.max(adapted / plain - 1) <= 0.02)
+    # the most a guard could give: per frame the better of the unadapted output and the correction
+    unguarded = np.array([r["scores"]["kpcn unguarded"]["relmse"] for r in rows])
+    best = np.minimum(plain, unguarded)
+    assert t["any_guard"]["below_blender"] == int(np.sum(best < blender))
+    assert t["any_guard"]["median_ratio"] == pytest.approx(np.median(best / blender))
+    assert t["any_guard"]["gain"] == pytest.approx(1 - np.median(best / blender) / np.median(plain / blender))
 
 
 def test_a_folder_without_a_complete_frame_is_one_line_and_status_2(tmp_path, capsys):
@@ -183,3 +197,9 @@ def test_a_folder_without_a_complete_frame_is_one_line_and_status_2(tmp_path, ca
     assert ar.main([str(tmp_path / "empty"), "--out", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no complete frame at 16, 4, 64 spp" in err[0]
+
+
+def test_report_only_without_a_record_is_one_line_and_status_2(tmp_path, capsys):
+    assert ar.main(["--report-only", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "adapt.json: no adaptation report to write again" in err[0]

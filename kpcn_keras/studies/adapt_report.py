@@ -27,11 +27,13 @@ The contract:
 - **Per frame**: those scores, the guard's outcome at each mark (``Outcome.to_dict``), the adapter's preparation
   seconds, the load average and the busiest other processes when the frame began (the machine is shared).
 - **Summary per spp** (:func:`summarise`): per method the median relMSE and DSSIM, the median ratio of relMSE to
-  Blender's and the frames strictly below Blender's; per mark how many frames the guard kept it on.
+  Blender's and the frames strictly below Blender's; per mark how many frames the guard kept it on, the steps run
+  and the step the folds chose (where their held-out loss was lowest: what more seconds would not change).
 - **Targets** (:func:`targets`), at the first spp of ``--spp`` (16) and the mark :data:`TARGET_MARK` (60 s): below
   Blender's relMSE on at least half the frames; a median ratio to Blender's at least :data:`TARGET_GAIN` below the
   unadapted pair's; no frame's relMSE more than :data:`TARGET_WORST` above the unadapted pair's. The md says which
-  hold, on how many frames.
+  hold, on how many frames, and what the first two would read were the guard never wrong (``any_guard``: per
+  frame the better of the unadapted output and the correction, chosen with the reference).
 - **Costs** (:func:`costs`): the adaptation's preparation (the model on both halves, their crops), seconds per
   step (held-out checks included, as a run pays them), the model on the mean and the correction's application, for
   a frame wrapped to each ``--costs-size`` (256 x 256 and 1920 x 1080, ``card.frame_of_size``) and at the
@@ -39,7 +41,8 @@ The contract:
   frames.
 - **Resumable**: the record is written after every frame (``<out>/adapt.{json,md,png}``); a later run with the
   same settings keeps the rows it finds (and their panel images, cached under ``--cache``) and goes on.
-  ``--fresh`` starts over.
+  ``--fresh`` starts over; ``--report-only`` computes the tables, md and png again from the json, its run's
+  command, times and machine kept.
 - **Figure** ``adapt.png``: the median ratio of relMSE to Blender's against the adaptation's seconds, one line
   per spp (Blender's = 1); under it panels (input | kpcn | kpcn adapted | Blender's | reference) of a few frames at
   the target spp, the participating-media ones (effect group ``media``) first.
@@ -271,7 +274,9 @@ def score_row(recipe: dict, spp: int, files: dict, images: dict, marks) -> dict:
 
 def summarise(rows: list[dict], marks) -> dict:
     """Per spp: the frames; per method the median relMSE and DSSIM, the median ratio of each to Blender's and the
-    frames strictly below Blender's relMSE; per mark the frames the guard kept the correction on."""
+    frames strictly below Blender's relMSE; per mark the frames the guard kept the correction on, the median steps
+    run and the median step the folds chose (over frames and folds), and the frames whose chosen checkpoints at the
+    last mark are those of the target mark."""
     out = {}
     for spp in sorted({r["spp"] for r in rows}):
         sel = [r for r in rows if r["spp"] == spp]
@@ -286,6 +291,13 @@ def summarise(rows: list[dict], marks) -> dict:
         block["kept"] = {f"{mark:g}": sum(r["guard"][f"{mark:g}"]["kept"] for r in sel) for mark in marks}
         block["median_steps"] = {f"{mark:g}": float(np.median([r["guard"][f"{mark:g}"]["steps"] for r in sel]))
                                  for mark in marks}
+        # where the held-out loss stopped falling: the folds' chosen steps (0: the model's output)
+        block["median_chosen_step"] = {f"{mark:g}": float(np.median([s for r in sel
+                                                                       for s in r["guard"][f"{mark:g}"]["best_steps"]]))
+                                       for mark in marks}
+        last, target = f"{marks[-1]:g}", f"{target_mark(marks):g}"
+        block["same_choice_at_last_mark"] = sum(r["guard"][last]["best_steps"] == r["guard"][target]["best_steps"]
+                                                for r in sel)
         out[str(spp)] = block
     return out
 
@@ -310,7 +322,18 @@ def targets(rows: list[dict], spp: int, mark: float) -> dict:
              "worst_change": {"frame": sel[int(np.argmax(change))]["scene"], "change": worst,
                               "allowed": TARGET_WORST, "holds": worst <= TARGET_WORST}}
     found["held"] = all(found[k]["holds"] for k in ("below_blender", "median_ratio", "worst_change"))
+    found["any_guard"] = _any_guard(sel, unadapted)
     return found
+
+
+def _any_guard(sel: list[dict], unadapted: float) -> dict:
+    """The most a guard could give with these corrections: per frame the better by relMSE, chosen with the
+    reference, of the two things a guard chooses between (the unadapted output and the target mark's chosen
+    checkpoints applied, ``UNGUARDED``): what the targets would read were the guard never wrong."""
+    best = [min(r["scores"][PAIR]["relmse"], r["scores"][UNGUARDED]["relmse"]) for r in sel]
+    ratio = float(np.median([b / r["scores"][BLENDER]["relmse"] for b, r in zip(best, sel)]))
+    return {"below_blender": sum(b < r["scores"][BLENDER]["relmse"] for b, r in zip(best, sel)),
+            "median_ratio": ratio, "gain": 1.0 - ratio / unadapted}
 
 
 # ---------------------------------------------------------------- the costs
@@ -482,17 +505,21 @@ def study(args, command: str, log=print) -> dict:
               "code": code_version(), "busy_at_start": others(), "threads": torch_threads(),
               "costs": old.get("costs"), "frames": rows, "resumed": len(rows)}
     models = Frames(model)
+
+    def save() -> dict:
+        return _write(report, record, session.envelope(command), session.machine(threads=record["threads"]), cache)
+
     settings = AdaptSettings(seconds=max(args.marks), steps=args.steps, seed=args.seed)
     while True:
         todo = _todo(folders, args.spp, rows)
-        if (record["costs"] is None and args.costs_steps and rows and not args.report_only
+        if (record["costs"] is None and args.costs_steps and rows
                 and not any(f[0] == folders[0] and f[2] == args.spp[0] for f in todo)):
             first = next(r for r in rows if r["spp"] == args.spp[0])
             log("adapt-report: costs at " + ", ".join(f"{w}x{h}" for w, h in args.costs_size) + " ...")
             record["costs"] = costs(models, {k: Path(v) for k, v in first["files"].items()}, args.costs_size,
                                     args.costs_steps, args.seed)
-            _write(report, session, record, command, cache, args)
-        if args.report_only or not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
+            save()
+        if not todo or (args.limit and len(rows) - record["resumed"] >= args.limit):
             break
         folder, recipe, spp, files = todo[0]
         load, running = list(os.getloadavg()), others()
@@ -505,21 +532,41 @@ def study(args, command: str, log=print) -> dict:
         log(f"adapt-report: {recipe['name']} {spp} spp: " + ", ".join(
             f"{m} {row['scores'][m]['relmse']:.4f}" for m in (PAIR, adapted(target_mark(args.marks)), UNGUARDED))
             + f", {anchor} {row['scores'][BLENDER]['relmse']:.4f}")
-        _write(report, session, record, command, cache, args)
-    return _write(report, session, record, command, cache, args)
+        save()
+    return save()
 
 
-def _write(report: Report, session, record: dict, command: str, cache: Path, args) -> dict:
-    """The record, its md and its png: the summary, targets and panels of the validation folder's frames; each
-    further folder's summary apart (``more_summary``)."""
-    marks, first = args.marks, Path(record["folder"]).name
+RECORD_KEYS = ("settings", "folder", "more", "code", "busy_at_start", "threads", "costs", "frames", "resumed")
+
+
+def rewrite(args) -> dict:
+    """``--report-only``: the record at ``--out`` as its run wrote it (its settings, command, times and machine
+    kept), its summaries, targets, md and png computed again from its rows; no frame is run."""
+    report = Report(Path(args.out), REPORT)
+    path = report.path(".json")
+    try:
+        old = json.loads(path.read_text())
+        record, envelope = {k: old[k] for k in RECORD_KEYS}, {k: old[k] for k in ENVELOPE_KEYS}
+    except (OSError, ValueError, KeyError) as exc:
+        raise KpcnError(f"{path}: no adaptation report to write again ({type(exc).__name__}: {exc})") from None
+    return _write(report, record, envelope, old["machine"], Path(args.cache))
+
+
+ENVELOPE_KEYS = ("date", "command", "started", "finished")
+
+
+def _write(report: Report, record: dict, envelope: dict, machine: dict, cache: Path) -> dict:
+    """The record, its md and its png: the summary, targets and panels of the validation folder's frames at the
+    settings' marks and target spp; each further folder's summary apart (``more_summary``)."""
+    marks, spp = tuple(record["settings"]["marks"]), record["settings"]["target_spp"]
+    first = Path(record["folder"]).name
     rows = [r for r in record["frames"] if r["set"] == first]
     more = {Path(f).name: [r for r in record["frames"] if r["set"] == Path(f).name] for f in record["more"]}
-    out = {**session.envelope(command), **record, "methods": methods(marks),
-           "machine": session.machine(threads=record["threads"]), "summary": summarise(rows, marks) if rows else {},
+    out = {**envelope, **record, "methods": methods(marks), "machine": machine,
+           "summary": summarise(rows, marks) if rows else {},
            "more_summary": {name: summarise(sel, marks) for name, sel in more.items() if sel},
-           "targets": targets(rows, args.spp[0], target_mark(marks))}
-    panels = [(r, _cache_path(cache, (r["scene"], r["spp"]))) for r in panel_rows(rows, args.spp[0])]
+           "targets": targets(rows, spp, target_mark(marks))}
+    panels = [(r, _cache_path(cache, (r["scene"], r["spp"]))) for r in panel_rows(rows, spp)]
     out["panels"] = [r["scene"] for r, _ in panels]
     out["target_mark"] = target_mark(marks)
     return report.write(out, format_report(out), lambda rec: figure(rec, panels))
@@ -570,8 +617,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", default=DEFAULT_CACHE, help="the panels' images of each frame, kept for a resumed run "
                    "(default: %(default)s)")
     p.add_argument("--fresh", action="store_true", help="start over: keep no frame of an earlier run")
-    p.add_argument("--report-only", action="store_true", help="write the md and png again from the json an earlier "
-                   "run with the same settings wrote, computing nothing")
+    p.add_argument("--report-only", action="store_true", help="write the md and png again from the json at --out, "
+                   "its settings, command and times kept, running no frame")
     p.add_argument("--limit", type=int, default=0, help="stop after this many new frames (0: all)")
     p.add_argument("--costs-size", type=_size, nargs="+", default=COSTS_SIZES, help="WIDTH,HEIGHT of each size the "
                    "cost probe wraps the frame to (default: 256,256 1920,1080)")
@@ -588,7 +635,7 @@ def main(argv=None) -> int:
     try:
         if args.steps is not None and args.steps < 1:
             raise KpcnError(f"--steps {args.steps}: give 1 or more")
-        study(args, command)
+        rewrite(args) if args.report_only else study(args, command)
     except KpcnError as exc:
         if os.environ.get("KPCN_DEBUG"):
             raise

@@ -110,7 +110,17 @@ def _targets_lines(t: dict) -> list[str]:
         f"{m['gain']:+.1%} lower (needs {TARGET_GAIN:.0%}).",
         f"- 3 {_holds(w['holds'])}: the worst frame, {w['frame']}, changes by {w['change']:+.2%} (allowed "
         f"{TARGET_WORST:+.0%}).",
-        "", f"All three hold: **{'yes' if t['held'] else 'no'}** (on the {t['frames']} frames measured).", ""]
+        "", f"All three hold: **{'yes' if t['held'] else 'no'}** (on the {t['frames']} frames measured).", "",
+        *_any_guard_lines(t.get("any_guard"), t["frames"])]
+
+
+def _any_guard_lines(g: dict | None, frames: int) -> list[str]:
+    if g is None:  # a record written before the bound was computed
+        return []
+    return [f"The most any guard could give with these corrections (per frame the better of the unadapted output "
+            f"and the correction, chosen with the reference): below Blender's on {g['below_blender']} of {frames} "
+            f"frames, median ratio {g['median_ratio']:.3f} ({g['gain']:.1%} lower than unadapted). What targets 1 and "
+            "2 need beyond these figures no guard can give: the correction and the model fall short of it.", ""]
 
 
 def _summary_lines(summary: dict, title: str, anchor: str) -> list[str]:
@@ -129,7 +139,13 @@ def _summary_lines(summary: dict, title: str, anchor: str) -> list[str]:
         for spp, b in summary.items()) + ". Median steps run by each mark (at the held-out check that "
         "decided it; the machine's load sets how many a second buys): " + "; ".join(
         f"{spp} spp: " + ", ".join(f"{k} s {v:g}" for k, v in b["median_steps"].items())
-        for spp, b in summary.items()) + ".", ""]
+        for spp, b in summary.items()) + ". Median step the folds chose by each mark (where their held-out loss "
+        "was lowest; 0 the model's output): " + "; ".join(
+        f"{spp} spp: " + ", ".join(f"{k} s {v:g}" for k, v in b["median_chosen_step"].items())
+        for spp, b in summary.items() if "median_chosen_step" in b) + ". Frames whose chosen checkpoints at the "
+        "last mark are those of the target mark: " + "; ".join(
+        f"{spp} spp: {b['same_choice_at_last_mark']} of {b['frames']}" for spp, b in summary.items()
+        if "same_choice_at_last_mark" in b) + ".", ""]
     return lines
 
 
