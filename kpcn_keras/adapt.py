@@ -532,10 +532,13 @@ class Adapter:
         se = float(diff.std(ddof=1) / np.sqrt(diff.size))
         z = float(-diff.mean() / se) if se > 0 else (float("inf") if diff.mean() < 0 else 0.0)
         kept = any(steps_chosen) and z >= s.confidence
-        if kept:
-            reason = f"its estimated gain clears {s.confidence:g} standard errors"
-        elif not any(steps_chosen):
+        if not any(steps_chosen):
             reason = "no checkpoint did better on the held-out blocks than the model's own output"
+        elif s.confidence < 0:  # the user's call against a pessimistic estimate (AdaptSettings)
+            side = "at or above" if kept else "below"
+            reason = f"its estimate is {side} the {s.confidence:g} standard errors asked for"
+        elif kept:
+            reason = f"its estimated gain clears {s.confidence:g} standard errors"
         else:
             reason = f"its estimated gain is within {s.confidence:g} standard errors of none"
         return Outcome(bool(kept), steps, seconds, float(model.mean()), float((model + diff).mean()), steps_chosen,

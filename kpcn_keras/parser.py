@@ -32,7 +32,8 @@ def _adapt_own() -> dict:
     from prep.bounds import bound_of
 
     return {dest: bound_of(AdaptSettings, field) for dest, field in
-            (("adapt", "seconds"), ("adapt_steps", "steps"), ("adapt_seed", "seed"))}
+            (("adapt", "seconds"), ("adapt_steps", "steps"), ("adapt_seed", "seed"),
+             ("adapt_confidence", "confidence"))}
 
 
 def _mode_run(text: str) -> tuple[str, str]:
@@ -520,6 +521,9 @@ def _denoise_options(add) -> None:
     n.add_argument("--adapt-steps", type=int, help="with --pair: adapt for exactly this many steps instead (the same "
                    "seed and steps give the same result on any machine)")
     n.add_argument("--adapt-seed", type=int, help=f"the adaptation's seed {_defaults(AdaptSettings)('seed')}")
+    n.add_argument("--adapt-confidence", type=float, help="standard errors the guard's estimated gain must clear "
+                   "to keep the correction; negative keeps one estimated up to that many worse (docs/adapt.md §4) "
+                   f"{_defaults(AdaptSettings)('confidence')}")
     n.add_argument("--albedo", default=None, help="an RGB EXR of a single rgb-layout input's albedo")
     n.add_argument("--normal", default=None, help="an RGB EXR of a single rgb-layout input's normal")
     n.add_argument("--clean-aux", action="store_true", help="the frame's albedo, normal and depth are clean "
@@ -528,7 +532,8 @@ def _denoise_options(add) -> None:
 
 def adapt_settings(args):
     """The ``kpcn_keras.settings.AdaptSettings`` of the options given: ``kpcn adapt``'s own, or ``kpcn denoise``'s
-    --adapt, --adapt-steps and --adapt-seed (None where neither --adapt nor --adapt-steps is given)."""
+    --adapt, --adapt-steps, --adapt-seed and --adapt-confidence (None where neither --adapt nor --adapt-steps is
+    given)."""
     from kpcn_keras.settings import AdaptSettings
 
     if args.command == "adapt":
@@ -536,7 +541,7 @@ def adapt_settings(args):
     if "adapt" not in args and "adapt_steps" not in args:
         return None
     given = {"seconds": getattr(args, "adapt", None), "steps": getattr(args, "adapt_steps", None),
-             "seed": getattr(args, "adapt_seed", None)}
+             "seed": getattr(args, "adapt_seed", None), "confidence": getattr(args, "adapt_confidence", None)}
     return AdaptSettings(**{k: v for k, v in given.items() if v is not None})
 
 
@@ -564,7 +569,8 @@ def _adapt_options(add) -> None:
     a.add_argument("--crops", type=int, help=f"crops per render at most (bounds memory) {d('crops')}")
     a.add_argument("--block", type=int, help=f"side of the held-out blocks {d('block')}")
     a.add_argument("--check-every", type=int, help=f"steps between held-out checks {d('check_every')}")
-    a.add_argument("--confidence", type=float, help=f"standard errors the held-out gain must clear {d('confidence')}")
+    a.add_argument("--confidence", type=float, help="standard errors the held-out gain must clear; negative keeps a "
+                   f"correction estimated up to that many worse {d('confidence')}")
 
 
 def _view_options(add) -> None:

@@ -89,7 +89,9 @@ class AdaptSettings:
     memory at any frame size);
     ``block`` the side of the held-out blocks, one in :data:`kpcn_keras.adapt.HELD_OUT_EVERY` of them, which
     decide when to stop and whether to keep the adapted network (``check_every`` steps apart, the gain kept only
-    where it clears ``confidence`` standard errors)."""
+    where it clears ``confidence`` standard errors; a negative ``confidence`` keeps a correction the estimate puts
+    up to that many standard errors worse, a user's call where the estimate is pessimistic, as on path-traced
+    noise it mostly is: docs/adapt.md §5)."""
 
     seconds: float = bounded(60.0, Bound(0.0, 86400.0, integer=False))
     steps: int | None = bounded(None, Bound(1, 10**6))
@@ -99,7 +101,7 @@ class AdaptSettings:
     crops: int = bounded(16, Bound(1, 1024))
     block: int = bounded(16, Bound(2, 256))
     check_every: int = bounded(10, Bound(1, 10**4))
-    confidence: float = bounded(2.0, Bound(0.0, 10.0, integer=False))
+    confidence: float = bounded(2.0, Bound(-10.0, 10.0, integer=False))
 
     def __post_init__(self):
         check_fields(self)

@@ -139,6 +139,12 @@ def test_the_guard_keeps_the_models_output_where_the_correction_would_not_help(p
     corrected = Corrected(plain, adapter.apply_weights(chosen))(frame)["default"]
     # measured: relMSE 2.479e-4 -> 2.553e-4, MSE 8.47e-5 -> 8.60e-5
     assert relmse(corrected, clean) > relmse(model, clean) and mse(corrected, clean) > mse(model, clean)
+    # a user who asks for less than the estimate gets the same checkpoints kept, the reason naming what was asked
+    asked = dataclasses.replace(settings, confidence=min(outcome.z, 0.0) - 1.0)
+    forced = Adapter(plain, [(a, b)], asked)
+    again = forced.run()
+    assert again.kept and again.best_steps == outcome.best_steps and "asked for" in again.reason
+    np.testing.assert_array_equal(Corrected(plain, forced.post)(frame)["default"], corrected)
 
 
 @pytest.mark.slow
@@ -319,6 +325,14 @@ def test_adapt_without_a_pair_is_refused_in_one_line(renders):
     assert_one_line_error(res, "--adapt", "--pair")
 
 
+def test_an_adapt_confidence_out_of_its_range_is_refused_in_one_line(renders):
+    folder, files = renders
+    res = run_main("denoise", files["a"].name, "--pair", files["b"].name, "--adapt-steps", "2",
+                   "--adapt-confidence", "-11", cwd=folder)
+    assert_one_line_error(res, "--adapt-confidence", "-11")
+    assert not list(folder.glob("*-denoised.*"))
+
+
 @pytest.mark.slow
 def test_an_adaptation_the_guard_refuses_leaves_the_models_output_bit_for_bit(renders, serving, tmp_path):
     # 2 steps, a check every 10: no checkpoint, so the guard keeps the model; the output is its denoise of the
@@ -422,3 +436,12 @@ def test_the_progress_bar_appears_at_the_first_step_so_a_refused_pair_is_its_one
     with _AdaptBar(AdaptSettings(steps=3), quiet=True) as bar:
         bar(1, 0.5, 0.1)
     assert capsys.readouterr().err == ""
+
+
+def test_denoises_adapt_options_become_the_adaptations_settings():
+    from kpcn_keras.parser import adapt_settings, build_parser
+
+    args = build_parser().parse_args(["denoise", "a.exr", "--pair", "b.exr", "--adapt", "5", "--adapt-seed", "3",
+                                      "--adapt-confidence", "-1.5"])
+    assert adapt_settings(args) == AdaptSettings(seconds=5.0, seed=3, confidence=-1.5)
+    assert adapt_settings(build_parser().parse_args(["denoise", "a.exr"])) is None
