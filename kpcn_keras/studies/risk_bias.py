@@ -16,7 +16,9 @@ expectation at any e and for any noise (``tests/test_risk.py``). A network is no
 is its Jacobian at M, so what e changes is the secant's own nonlinearity, and what no e changes is the noise's
 higher cumulants, which a symmetric difference cannot see (E[D^3] = 0 whatever the skew of the renders' noise).
 The synthetic frames tell these apart: the same clean image under Gaussian noise and under Gamma noise of the
-same mean and variance, the same correction trained on each.
+same mean and variance, the same correction trained on each. A last column tries the second-order part of the
+skew: the secant at e = 1 less w [g(A) + g(B) - 2 g(M)] (M - f0(M)), g = f1 - f0, the model's residual standing in
+for the noise M - c.
 
 Every figure is a mean over the held-out blocks of the guard's probes (each pixel under the fold network that
 never saw it), the correction being the folds' chosen checkpoints after ``--steps`` steps whatever the guard
