@@ -104,6 +104,11 @@ def test_the_report_scores_every_frame_group_and_model_as_numpy_does(tiny_run_of
     md = (out / "blender.md").read_text()
     assert "A tiny synthetic set." in md
     assert f"| room | 4 | unknown | {rows['room', 4]['scores']['raw']['relmse']:.4f} |" in md
+    # the title names Blender's denoiser only where a frame has its denoised frame
+    assert md.startswith("# kpcn on Blender Cycles frames, beside Blender's own denoiser (")
+    for row in record["frames"]:
+        row["scores"].pop("blender", None)
+    assert br.format_report(record).startswith("# kpcn beside OIDN, on frames without Blender's own denoised frame (")
 
 
 def test_a_scenes_groups_come_from_its_recipe(tmp_path):

@@ -314,7 +314,10 @@ def format_report(record: dict) -> str:
     models = ", ".join(f"`{model_method(n)}` = `{p}`" for n, p in record["models"].items())
     oidn = (", ".join(f"`{m}`" for m in record["oidn_modes"]) or
             "none (pyoidn is not installed where this ran: no OIDN column)")
-    lines = [f"# kpcn on Blender Cycles frames, beside Blender's own denoiser ({record['date']})", "",
+    with_blender = any(BLENDER in r["scores"] for r in record["frames"])
+    title = ("kpcn on Blender Cycles frames, beside Blender's own denoiser" if with_blender else
+             "kpcn beside OIDN, on frames without Blender's own denoised frame")
+    lines = [f"# {title} ({record['date']})", "",
              f"`{record['command']}`, {record['started']} to {record['finished']}; "
              f"{record['machine']['cpus']} CPUs, load average {record['machine']['load_average_before'][0]:.2f} "
              f"before. Frames: {', '.join(f'`{p}`' for p in record['frames_given'])}. Models: {models}. "
