@@ -270,12 +270,14 @@ class _Choice:
 
 @dataclass
 class _Crop:
-    """One crop of one half as a step uses it: its window (:class:`_Window`), the other half's colour of its pixels
-    (the target), which of them each fold trains on (``train``, a mask per fold), and which are held out
+    """One crop of one half as a step uses it: its ``tile`` (y0, y1, x0, x1 in the frame), its window
+    (:class:`_Window`), the other half's colour of its pixels (the target), which of them each fold trains on
+    (``train``, a mask per fold), and which are held out
     (``blocks``: the held-out block of each, -1 where no fold holds it out; ``folds``: the fold that does);
     ``slots``: of each held-out pixel (``blocks >= 0``, in order) its block's place among all the adapter's held-out
     blocks (set by :class:`Adapter`, which numbers them once)."""
 
+    tile: tuple
     window: _Window
     target: object
     train: list
@@ -388,7 +390,7 @@ class Adapter:
             y0, y1, x0, x1 = tile
             blocks, folds = _held_blocks(tile, self.settings, shape[1])
             train = [keras.ops.convert_to_tensor((folds != k)[..., None]) for k in range(FOLDS)]
-            out.append(_Crop(window=_window(denoised, half, tile, shape, scale, ("default",)),
+            out.append(_Crop(tile=tile, window=_window(denoised, half, tile, shape, scale, ("default",)),
                              target=keras.ops.convert_to_tensor(np.asarray(other["default"][y0:y1, x0:x1], np.float32)),
                              train=train, blocks=blocks, folds=folds, frame=frame))
         return out

@@ -25,15 +25,16 @@ from kpcn_keras.options import defaults as _defaults
 from kpcn_keras.study_options import STUDY_BUILDERS
 from prep.bounds import BOUND, DISTINCT, check_distinct
 
+# kpcn denoise's adaptation options: each one's dest and the ``AdaptSettings`` field it sets
+DENOISE_ADAPT = {"adapt": "seconds", "adapt_steps": "steps", "adapt_seed": "seed", "adapt_confidence": "confidence"}
+
 
 def _adapt_own() -> dict:
     """kpcn denoise's adaptation options (dest -> bound), bounded as ``AdaptSettings``' fields are."""
     from kpcn_keras.settings import AdaptSettings
     from prep.bounds import bound_of
 
-    return {dest: bound_of(AdaptSettings, field) for dest, field in
-            (("adapt", "seconds"), ("adapt_steps", "steps"), ("adapt_seed", "seed"),
-             ("adapt_confidence", "confidence"))}
+    return {dest: bound_of(AdaptSettings, field) for dest, field in DENOISE_ADAPT.items()}
 
 
 def _mode_run(text: str) -> tuple[str, str]:
@@ -540,8 +541,7 @@ def adapt_settings(args):
         return AdaptSettings(**_given(args, AdaptSettings))
     if "adapt" not in args and "adapt_steps" not in args:
         return None
-    given = {"seconds": getattr(args, "adapt", None), "steps": getattr(args, "adapt_steps", None),
-             "seed": getattr(args, "adapt_seed", None), "confidence": getattr(args, "adapt_confidence", None)}
+    given = {field: getattr(args, dest, None) for dest, field in DENOISE_ADAPT.items()}
     return AdaptSettings(**{k: v for k, v in given.items() if v is not None})
 
 

@@ -537,6 +537,7 @@ def study(args, command: str, log=print) -> dict:
 
 
 RECORD_KEYS = ("settings", "folder", "more", "code", "busy_at_start", "threads", "costs", "frames", "resumed")
+ENVELOPE_KEYS = ("date", "command", "started", "finished")
 
 
 def rewrite(args) -> dict:
@@ -550,9 +551,6 @@ def rewrite(args) -> dict:
     except (OSError, ValueError, KeyError) as exc:
         raise KpcnError(f"{path}: no adaptation report to write again ({type(exc).__name__}: {exc})") from None
     return _write(report, record, envelope, old["machine"], Path(args.cache))
-
-
-ENVELOPE_KEYS = ("date", "command", "started", "finished")
 
 
 def _write(report: Report, record: dict, envelope: dict, machine: dict, cache: Path) -> dict:

@@ -78,7 +78,7 @@ def frame_terms(denoise, a: dict, b: dict, reference: np.ndarray, settings) -> d
     checkpoints (``guard``); None where every fold chose the model's output."""
     import torch
 
-    from kpcn_keras.adapt import Adapter, _crop_tiles, _window, fold_networks
+    from kpcn_keras.adapt import Adapter, _window, fold_networks
     from prep import features
 
     adapter = Adapter(denoise, [(a, b)], settings)
@@ -89,15 +89,15 @@ def frame_terms(denoise, a: dict, b: dict, reference: np.ndarray, settings) -> d
         return None
     nets = fold_networks(adapter.apply_weights(chosen))
     shape = a["depth"].shape
-    tiles = _crop_tiles(shape, settings, np.random.default_rng(settings.seed))  # the adapter's own first draws
     mixes = {e: [(denoise(m), m, features.depth_scale(m["depth"])) for m in (mix(a, b, e), mix(a, b, -e))]
              for e in WIDTHS}
     names = ["first", "true", "change", *(f"estimate e={e:g}" for e in WIDTHS), SKEW]
     sums = {n: np.zeros(adapter.probe_pixels.size) for n in names}
     with torch.no_grad():
-        for tile, p in zip(tiles, adapter.probes, strict=True):
+        for p in adapter.probes:
+            tile = p.crop.tile
             held, cut = p.crop.blocks >= 0, np.s_[tile[0] : tile[1], tile[2] : tile[3]]
-            w = p.weight if p.weight.ndim == 3 else p.weight[..., None]
+            w = p.weight
             f0, f1 = _outputs(nets, p.mean, p.crop.folds)
             terms = {"first": w * ((f1 - p.colour) ** 2 - (f0 - p.colour) ** 2),
                      "true": 2.0 * w * (f1 - f0) * (p.colour - reference[cut]),
