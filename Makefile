@@ -35,7 +35,7 @@ VALIDATION ?= $(shell sed -n 's/^VALIDATION_FRAMES = (\(.*\))/\1/p' kpcn_keras/s
 
 QUALITY_ARGS ?=
 
-.PHONY: addon world world-set world-tune modes ship-modes blender-report adapt-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
+.PHONY: addon world world-set world-tune modes ship-modes cycles-dev blender-report adapt-report aux-study modes-report cycles-validation model-speed venv render references shards train train-inputs model model-tune resample resample-study inputs-study quality evaluate figures compare bench test test-all test-oldest clean docs time-train
 
 # torch is pinned for installs (constraints.txt) to the local CPU build; pyproject states the range.
 $(KPCN): pyproject.toml constraints.txt
@@ -163,7 +163,8 @@ world-tune: world-set
 		$(WORLD_TRAIN_ARGS)
 
 # The quality modes besides balanced (make model's networks; kpcn denoise --quality, docs/training.md §7): each mode's
-# networks trained from its preset on its auxiliaries (config.QUALITY_PRESETS, config.QUALITY_AUXILIARIES) into
+# networks trained from its preset on its auxiliaries (config.QUALITY_PRESETS, config.QUALITY_AUXILIARIES; high from
+# the shipped networks, config.QUALITY_INIT) into
 # $(MODEL_RUN)-<mode> ($(MODEL_RUN)-<mode>-aux-<method> where they are prefiltered), for every input set, as long as
 # the held-out error falls; the no-variance networks, which serve Cycles frames, first and on the Cycles world beside
 # make model's renders (make world-tune's set, $(WORLD_MIX): WORLD_SET=world-<N> resumes one after the world grew),
@@ -175,7 +176,16 @@ MODES_ARGS ?= --steps 12000 --decay-steps 12000 --patience 20
 mode_aux = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_AUXILIARIES as a; print(a[sys.argv[1]])' $(1))
 mode_run = $(MODEL_RUN)-$(1)$$(aux=$(call mode_aux,$(1)); [ $$aux = raw ] || echo -aux-$$aux)
 mode_preset = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_PRESETS as p; print(p[sys.argv[1]])' $(1))
-modes: world-set
+# --init models/$(MODEL) for a mode that starts from the shipped networks (config.QUALITY_INIT), nothing otherwise
+mode_init = $$($(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_INIT as i; sys.argv[1] in i and print("--init", sys.argv[2])' $(1) models/$(MODEL))
+# true for a mode mixed with OIDN's frame (config.QUALITY_OIDN_MIX): its weight is fit on MIX_FRAMES, frames of
+# scenes neither trained on nor judged: a draw of the Cycles validation split apart from the judged one (make
+# cycles-dev) for the networks that serve Cycles frames, make model's held-out scenes' inputs for the full ones;
+# MIX_FRAMES= (empty) leaves the mode unmixed
+mode_mixed = $(BIN)/python -c 'import sys; from kpcn_keras.config import QUALITY_OIDN_MIX as m; sys.exit(sys.argv[1] not in m)' $(1)
+CYCLES_DEV ?= data/cycles/dev
+MIX_FRAMES ?= $(CYCLES_DEV) $(wildcard $(foreach s,$(subst $(comma), ,$(filter-out --val-scenes,$(MODEL_SHARD_ARGS))),data/renders/$(MODEL_SET)/$(s)-000[0-6][0-9]spp.exr))
+modes: world-set $(if $(filter $(CYCLES_DEV),$(MIX_FRAMES)),cycles-dev)
 	for inputs in no-variance $$($(BIN)/python -c 'from prep.inputs import INPUT_SETS; print(*INPUT_SETS)' \
 			| tr ' ' '\n' | grep -vx no-variance); do \
 		if [ $$inputs = no-variance ]; then set=$(WORLD_MIX); held="$(WORLD_VAL_SCENES)"; \
@@ -183,18 +193,21 @@ modes: world-set
 		for mode in $(MODES); do \
 			$(KPCN) shards --set $$set --inputs $$inputs $$held --auxiliaries $(call mode_aux,$$mode) || exit 1; \
 			$(KPCN) train --set $$set --run $(call mode_run,$$mode) --inputs $$inputs \
-				--auxiliaries $(call mode_aux,$$mode) --preset $(call mode_preset,$$mode) $(MODES_ARGS) || exit 1; \
+				--auxiliaries $(call mode_aux,$$mode) --preset $(call mode_preset,$$mode) $(call mode_init,$$mode) \
+				$(MODES_ARGS) || exit 1; \
 		done; \
 	done
-	for mode in $(MODES); do $(KPCN) evaluate --run $(call mode_run,$$mode) || exit 1; done
+	for mode in $(MODES); do \
+		$(if $(MIX_FRAMES),! $(call mode_mixed,$$mode) || $(KPCN) mix-oidn --run $(call mode_run,$$mode) $(MIX_FRAMES) || exit 1;) \
+		$(KPCN) evaluate --run $(call mode_run,$$mode) || exit 1; \
+	done
 
-# the trained modes shipped beside models/$(MODEL)'s balanced networks (a new folder, then renamed over it)
+# the trained modes shipped beside models/$(MODEL)'s balanced networks: the model as it is (hard links, in
+# runs/$(MODEL)-balanced) shipped again with them over models/$(MODEL), which kpcn ship replaces whole or not at all
 ship-modes: $(KPCN)
-	rm -rf models/$(MODEL).next
-	$(KPCN) ship --run models/$(MODEL) $$(for mode in $(MODES); do echo --mode $$mode=$(call mode_run,$$mode); done) \
-		--out models/$(MODEL).next
-	rm -rf models/$(MODEL).old && mv models/$(MODEL) models/$(MODEL).old && mv models/$(MODEL).next models/$(MODEL) \
-		&& rm -rf models/$(MODEL).old
+	rm -rf runs/$(MODEL)-balanced && mkdir -p runs && cp -al models/$(MODEL) runs/$(MODEL)-balanced
+	$(KPCN) ship --run runs/$(MODEL)-balanced $$(for mode in $(MODES); do echo --mode $$mode=$(call mode_run,$$mode); done) \
+		--out models/$(MODEL)
 
 # error-based resampling rounds on the trained run (RESAMPLE_ARGS="--rounds 5"); it continues runs/$(RUN)
 resample: shards
@@ -228,6 +241,12 @@ CYCLES_VALIDATION_ARGS ?=
 cycles-validation: $(KPCN) $(BPY_VENV)/bin/python
 	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --blender-python $(BPY_VENV)/bin/python $(CYCLES_VALIDATION_ARGS)
 	$(KPCN) cycles-validation $(CYCLES_VALIDATION) --verify
+
+# another draw of the validation split, for what is designed or fit on Cycles frames (the OIDN mix's weight, the
+# adaptation guard): 8 scenes at 16 spp, each with Blender's own denoised frame, never a scene of the judged set
+cycles-dev: $(KPCN) $(BPY_VENV)/bin/python
+	$(KPCN) cycles-validation $(CYCLES_DEV) --blender-python $(BPY_VENV)/bin/python --seed 1 --scenes 8 --spp 16
+	$(KPCN) cycles-validation $(CYCLES_DEV) --verify
 
 # the shipped model (BLENDER_ARGS="--model before=models/default --model after=RUN" for several) on the held-out
 # Cycles validation set (rendered first where it is not there) beside Blender's own denoised frame and both OIDN

@@ -184,7 +184,7 @@ def denoise(color, albedo=None, normal=None, depth=None, variance=None, *, diffu
         log.info("%s: %s", WHERE, outcome.line())
         if on_outcome is not None:
             on_outcome(outcome)
-    return denoiser(frame.layers, slope=slope)["default"]
+    return denoiser(frame.served_layers(), slope=slope)["default"]
 
 
 def _frame(color, arrays: dict) -> Frame:

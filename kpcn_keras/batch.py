@@ -282,7 +282,7 @@ def denoise_frame(denoiser: Denoiser, input_path, output, reference=None, *, png
     noisy = frame.layers
     ref = read_reference(reference, input_path, frame.size, reading) if reference else None
     start = time.perf_counter()
-    result = denoiser(noisy, slope=slope)
+    result = denoiser(frame.served_layers(), slope=slope)
     done = time.perf_counter()
     exr.write_aovs(output, output_layers(frame, result, denoiser.record.inputs.split), attributes=frame.attributes,
                    windows=(frame.data_window, frame.display_window))

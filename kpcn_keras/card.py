@@ -4,7 +4,8 @@
 The card is generated, never written by hand, from what the run itself holds, so it cannot disagree with it:
 
 - **Quality modes**: one row per mode the model has (``kpcn ship --mode``): its architecture, the parameters of
-  its full-input networks and the run it came from; the sections below are of the ``balanced`` mode's networks.
+  its full-input networks, the weight of each input set's networks where it is mixed with OIDN's frame
+  (``kpcn_keras.oidn_mix``) and the run it came from; the sections below are of the ``balanced`` mode's networks.
 - **Configuration**, per input set: preset, architecture and every model field, each phase's steps (those
   it trained, where early stopping ended it, and the step whose weights it keeps) and learning rate with the
   seconds it trained (``timings.json``), the batch size, the command that trained it, and the versions and
@@ -47,7 +48,7 @@ import numpy as np
 from kpcn_keras.config import DEFAULT_MODEL, DEFAULT_QUALITY, QUALITY_MODES, SPEED_FRAME, SPEED_GOAL, SPEED_REPEATS
 from kpcn_keras.evaluate import EvaluatedFrame, read_rows
 from kpcn_keras.run import CARD, METRICS, Run, RunRecord
-from kpcn_keras.shipping import check_modes, shippable_records
+from kpcn_keras.shipping import check_modes, is_shipped_model, shippable_records
 from kpcn_keras.shipping import ship as ship_folder
 from prep.errors import KpcnError
 from prep.files import atomic_write_text, read_json
@@ -166,6 +167,41 @@ def training_data(run: Run, record: RunRecord) -> list[str]:
     ]
 
 
+def training_data_section(run: Run, records: list[RunRecord]) -> list[str]:
+    """The card's training-data section: from each input set's shard set manifest (:func:`training_data`), or, for
+    a shipped model shipped again (with modes added), its own card's section as it is: its networks are those files,
+    and their shard sets need not be on this machine."""
+    if is_shipped_model(run):
+        return card_section(run.card_path.read_text(), "Training data")
+    lines = training_data(run, records[0])
+    renders = _render_set(run, records[0])
+    others = [(variant, rec, _render_set(variant, rec) == renders)
+              for variant, rec in zip(run.variants()[1:], records[1:])]
+    same = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec, alike in others if alike]
+    if same:
+        lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(same)}"]
+    for variant, rec, alike in others:
+        if not alike:
+            lines += ["", f"The {rec.inputs.name} network's:", ""] + training_data(variant, rec)
+    return lines + [""]
+
+
+def card_section(text: str, title: str) -> list[str]:
+    """The lines of a card's section ``## title``, from the line after its heading to the next heading."""
+    lines, inside = [], False
+    for line in text.splitlines():
+        if line.startswith("## "):
+            if inside:
+                break
+            inside = line == f"## {title}"
+            continue
+        if inside:
+            lines.append(line)
+    if not inside:
+        raise KpcnError(f"the card has no section '## {title}'")
+    return lines[1:] if lines and not lines[0] else lines
+
+
 def _render_set(run: Run, record: RunRecord) -> str | None:
     """The render set the run's shard set was cut from (its manifest's)."""
     return run.shard_set(record).complete_manifest().get("config", {}).get("set_name")
@@ -261,7 +297,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 
     noisy = source if source is not None else held_out_pairs(run, record)[0][0]
     width, height = frame_size
-    layers = frame_of_size(layouts.read(noisy).layers, width, height)
+    layers = frame_of_size(layouts.read(noisy).served_layers(), width, height)
     denoiser = Denoiser.from_run(run, record=record)
     slope = record.validation_slope
     calls = {"kpcn": lambda: denoiser(layers, slope=slope)}
@@ -293,6 +329,7 @@ def speed(run: Run, record: RunRecord, frame_size: tuple[int, int] = SPEED_FRAME
 def _mode_calls(modes: dict[str, Run], layers: dict, slope) -> dict:
     """A call per quality mode but the default (``kpcn MODE``: the mode's full model at its record's validation
     slope) and, where ``pyoidn`` is installed, plain OIDN at each mode's quality (``oidn MODE``)."""
+    from kpcn_keras import oidn_mix
     from kpcn_keras.denoise import Denoiser
     from prep import baselines
 
@@ -300,7 +337,7 @@ def _mode_calls(modes: dict[str, Run], layers: dict, slope) -> dict:
     for mode, source in modes.items():
         if mode != DEFAULT_QUALITY:  # the default mode is the model itself, timed as "kpcn"
             record = source.record()
-            denoiser = Denoiser.from_run(source, record=record)
+            denoiser = oidn_mix.served(Denoiser.from_run(source, record=record), record)
             calls[f"kpcn {mode}"] = lambda d=denoiser, s=record.validation_slope: d(layers, slope=s)
         if baselines.oidn_available():
             calls[f"oidn {mode}"] = lambda q=mode: baselines.oidn_denoise(layers, mode="plain", quality=q)
@@ -342,7 +379,11 @@ def speed_lines(found: dict) -> list[str]:
 
 
 def check_report(run: Run, record: RunRecord, folder: Path, command: str) -> None:
-    """KpcnError unless the report in ``folder`` is newer than every model file it evaluates."""
+    """KpcnError unless the report in ``folder`` is newer than every model file it evaluates. A shipped model's
+    report is the one it was shipped with, checked then, and its files' times are a checkout's, not the order they
+    were written in: it is not checked again (its networks are still checked against their SHA-256 at loading)."""
+    if is_shipped_model(run):
+        return
     report = folder / METRICS
     models = [run.dir / entry.file for entry in record.components.values()]
     for variant in run.variants():
@@ -361,15 +402,21 @@ def parameters(run: Run, record: RunRecord) -> int:
 def quality_lines(modes: dict[str, Run]) -> list[str]:
     """The card's quality-mode table: per mode (mode -> the run it comes from) its architecture, the parameters of
     its full-input networks and the run."""
+    from kpcn_keras.oidn_mix import of_record
+
     rows = []
     for mode, source in modes.items():
         record = source.record()
+        mixes = [(variant.record().inputs.name, of_record(variant.record().data)) for variant in source.variants()
+                 if variant.has_record()]
+        mixed = ", ".join(f"{name} {mix.weight:g}" for name, mix in mixes if mix is not None) or MISSING
         rows.append([mode + (" (default)" if mode == DEFAULT_QUALITY else ""), record.model.arch,
-                     str(parameters(source, record)), f"`{source.dir}`"])
+                     str(parameters(source, record)), mixed, f"`{source.dir}`"])
     return ["## Quality modes", "",
             "Each mode is a network set of its own (`kpcn denoise --quality MODE`; `quality/<mode>/` beside the "
-            "model's own networks, which are its balanced mode):", "",
-            *_table(["mode", "architecture", "parameters", "shipped from"], rows), ""]
+            "model's own networks, which are its balanced mode). Where a mode's input set is mixed with OIDN's "
+            "frame (`kpcn mix-oidn`), the weight of the networks' frame is given (OIDN's is 1 less it):", "",
+            *_table(["mode", "architecture", "parameters", "networks' weight beside OIDN", "shipped from"], rows), ""]
 
 
 def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tuple[int, int] = SPEED_FRAME,
@@ -401,17 +448,7 @@ def make_card(run: Run, dest: str | os.PathLike, command: str, speed_frame: tupl
              f"{platform.system()} {platform.release()}.", ""]
     for variant, rec in zip(run.variants(), records):
         lines += configuration(variant, rec) + [""]
-    lines += ["## Training data", ""] + training_data(run, record)
-    renders = _render_set(run, record)
-    others = [(variant, rec, _render_set(variant, rec) == renders)
-              for variant, rec in zip(run.variants()[1:], records[1:])]
-    same = [f"`{variant.shard_set(rec).dir.name}`" for variant, rec, alike in others if alike]
-    if same:
-        lines += [f"- the other input sets' networks: the same renders cut for each, {', '.join(same)}"]
-    for variant, rec, alike in others:
-        if not alike:
-            lines += ["", f"The {rec.inputs.name} network's:", ""] + training_data(variant, rec)
-    lines += [""]
+    lines += ["## Training data", ""] + training_data_section(run, records)
     lines += ["## Held-out frames", "",
               f"Means over the held-out scenes per input spp, from `{Path('eval') / METRICS}` "
               "(`kpcn evaluate`; relMSE and DSSIM as in docs/method.md):", ""]

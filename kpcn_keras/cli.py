@@ -324,6 +324,15 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_mix_oidn(args) -> int:
+    from kpcn_keras.evaluate import pairs_for_inputs
+    from kpcn_keras.oidn_mix_fit import fit_run
+    from kpcn_keras.run import Run
+
+    fit_run(Run(args.run), pairs_for_inputs(args.inputs))
+    return 0
+
+
 def cmd_ship(args) -> int:
     from kpcn_keras.card import ship
     from kpcn_keras.run import Run
@@ -494,6 +503,7 @@ COMMANDS = {
     "adapt": cmd_adapt,
     "view": cmd_view,
     "evaluate": cmd_evaluate,
+    "mix-oidn": cmd_mix_oidn,
     "ship": cmd_ship,
     "export": onnx_cli.cmd_export,
     "figures": cmd_figures,

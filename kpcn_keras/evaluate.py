@@ -292,7 +292,7 @@ def evaluate_frame(denoiser: Denoiser, noisy_path: str, ref_path: str, out_dir: 
     noisy = frame.layers
     ref = read_reference(ref_path, noisy_path, frame.size, reading)
     start = time.perf_counter()
-    out = denoiser(noisy, slope=slope)["default"]
+    out = denoiser(frame.served_layers(), slope=slope)["default"]
     seconds = time.perf_counter() - start
     denoised = metrics.all_metrics(out, ref)
     panels = [(f"input {spp} spp", noisy["default"]), (f"KPCN relMSE {denoised['relmse']:.4f}", out)]

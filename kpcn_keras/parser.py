@@ -653,6 +653,17 @@ def _evaluate_options(add) -> None:
     _layout_option(e)
 
 
+def _mix_oidn_options(add) -> None:
+    """The options of ``kpcn mix-oidn``."""
+    m = add("mix-oidn", help="fit the weight at which each input set's networks of a run are mixed with OIDN's "
+            "frame (prefiltered, high quality) and write it into their records: every command that denoises with "
+            "the run then mixes so (docs/denoise.md §5c)")
+    _run_option(m, required=True, help="a run folder that finished training (kpcn train)")
+    m.add_argument("inputs", nargs="+", help="noisy renders, or folders of them, each with its scene's reference "
+                   "(the same folder's render of the scene with the most samples): frames of scenes the run "
+                   "trained on and those a report will judge are both the wrong ones")
+
+
 def _ship_options(add) -> None:
     """The options of ``kpcn ship``."""
     from kpcn_keras.config import SHIPPED_MAX_BYTES, SPEED_FRAME
@@ -711,6 +722,7 @@ BUILDERS = {
     "adapt": _adapt_options,
     "view": _view_options,
     "evaluate": _evaluate_options,
+    "mix-oidn": _mix_oidn_options,
     "ship": _ship_options,
     "export": export_options,
     "figures": _figures_options,

@@ -5,7 +5,8 @@ A :class:`Serving` is one model (a run folder of ``kpcn train`` or a shipped mod
 ``settings.quality``: the model itself for ``balanced``) is found when it is made, refused in one line where the
 model lacks the mode. A frame is denoised by that run's variant trained for what the
 frame has (``Run.serving``: the run itself or one of its ``inputs/`` variants); each variant is found, its
-record read and its networks loaded (``Denoiser.from_run``) once, at its first frame, and kept for the next.
+record read and its networks loaded (``Denoiser.from_run``; mixed with OIDN's frame where its record says,
+``kpcn_keras.oidn_mix``) once, at its first frame, and kept for the next.
 ``kpcn denoise`` (``batch.denoise_files``), ``kpcn evaluate``, ``kpcn view`` and ``kpcn.denoise`` each hold one,
 so a frame is denoised by the same networks, tiles and arithmetic whichever way it came in. A model adapted on a
 shot (``kpcn adapt``: ``kpcn_keras.adapted_model``) serves the frames it was adapted for through its post-correction
@@ -18,6 +19,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
+from kpcn_keras import oidn_mix
 from kpcn_keras.denoise import Denoiser
 from kpcn_keras.run import Run, RunRecord
 from kpcn_keras.settings import InferenceSettings
@@ -84,11 +86,13 @@ class Serving:
         return self.plain(inputs, warm_up=warm_up, slope=slope)
 
     def plain(self, inputs: InputSet, *, warm_up: bool = False, slope=None) -> Denoiser:
-        """:meth:`denoiser` without an adapted model's post-correction: the networks alone."""
+        """:meth:`denoiser` without an adapted model's post-correction: the networks, their frame mixed with OIDN's
+        where the variant's record says so (``kpcn_keras.oidn_mix``)."""
         variant = self.variant(inputs)
         if variant.dir not in self._denoisers:
             begin = time.perf_counter()
-            denoiser = Denoiser.from_run(variant, self.settings, record=self.record(inputs))
+            record = self.record(inputs)
+            denoiser = oidn_mix.served(Denoiser.from_run(variant, self.settings, record=record), record)
             loaded = time.perf_counter()
             if warm_up:
                 denoiser.warm_up(slope)

@@ -54,6 +54,11 @@ def shipped_files(run: Run, record: RunRecord) -> list[str]:
     return files + [f for f in optional if (run.dir / f).is_file()]
 
 
+def is_shipped_model(run: Run) -> bool:
+    """Whether ``run`` is a shipped model folder: a record and a card, no checkpoints (what :func:`ship` writes)."""
+    return run.card_path.is_file() and run.has_record() and not run.checkpoint_dir.exists()
+
+
 def check_ship_destination(run: Run, new: Run) -> None:
     """KpcnError unless ``new`` may be written by :func:`ship` from ``run``: neither the run, in it, nor holding it,
     and absent or an earlier shipped model (which it replaces): never a folder of anything else."""
@@ -61,7 +66,7 @@ def check_ship_destination(run: Run, new: Run) -> None:
     if here == there or here in there.parents or there in here.parents:
         raise KpcnError(f"{new.dir}: the model folder (--out) cannot be the run {run.dir}, in it or hold it; "
                         "choose another, e.g. models/<name>")
-    if new.dir.exists() and not (new.card_path.is_file() and new.has_record() and not new.checkpoint_dir.exists()):
+    if new.dir.exists() and not is_shipped_model(new):
         raise KpcnError(f"{new.dir}: exists and is not a shipped model (no {CARD}, or a run with checkpoints), "
                         "which shipping would replace; choose another --out")
 

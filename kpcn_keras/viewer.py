@@ -114,7 +114,7 @@ class ViewSession:
             denoised = self.prepared(self.map)["default"]
         else:
             log("denoising")
-            denoised = denoiser(frame.layers, slope=slope)["default"]
+            denoised = denoiser(frame.served_layers(), slope=slope)["default"]
         self.views = {"input": frame.layers["default"], "denoised": denoised}
         self.missing = {}
         if reference is not None:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prep import layouts
 from prep.colour import linear_colour, log_colour, log_variance
 
 
@@ -136,7 +137,7 @@ def oidn_inputs(frame) -> dict[str, np.ndarray]:
     its renderer hands its own denoiser where the file has them in place of the network's (Cycles' Denoising
     Albedo and Denoising Normal, which Blender gives OIDN: they follow mirrors and glass, where Diffuse Color is
     black), so that the anchor is OIDN as the renderer runs it."""
-    return {**frame.layers, **{k: v for k, v in frame.alternatives.items() if k in ("albedo", "normal")}}
+    return layouts.denoiser_guides(frame.served_layers())
 
 
 # The anchors a frame is judged against, by their keys in the studies' and evaluate's rows: OIDN in each of

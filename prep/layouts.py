@@ -94,6 +94,25 @@ class Frame:
     def size(self) -> tuple[int, int]:
         return self.layers["default"].shape[:2]
 
+    def served_layers(self) -> dict[str, np.ndarray]:
+        """What a denoiser is given of the frame: its layers, and its :attr:`alternatives` under
+        :data:`ALTERNATIVE`-prefixed names (the networks read neither; OIDN, where a model mixes its frame with
+        OIDN's, reads them as :func:`denoiser_guides` does)."""
+        return {**self.layers, **{ALTERNATIVE + k: v for k, v in self.alternatives.items()}}
+
+
+# the alternatives a renderer hands its own denoiser in place of the network's layers of the same name
+DENOISER_GUIDES = ("albedo", "normal")
+
+
+def denoiser_guides(layers: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``layers`` (a frame's, or its :meth:`Frame.served_layers`) as a renderer's own denoiser is given them: the
+    albedo and normal it hands that denoiser where ``layers`` holds them as alternatives (Cycles' Denoising Albedo
+    and Normal, which follow mirrors and glass where Diffuse Color is black), the others as they are."""
+    plain = {k: v for k, v in layers.items() if not k.startswith(ALTERNATIVE)}
+    return {**plain, **{k.removeprefix(ALTERNATIVE): v for k, v in layers.items()
+                        if k.startswith(ALTERNATIVE) and k.removeprefix(ALTERNATIVE) in DENOISER_GUIDES}}
+
 
 class _Channels:
     """The channels of one file by layer, and the readers of a layer as a vector or a scalar; ``view_layer``: the

@@ -340,7 +340,7 @@ _NEEDS = {"denoise": ["in.exr", "--run", "no-run"], "evaluate": ["--run", "no-ru
           "resample": ["--run", "no-run"], "ship": ["--run", "no-run", "--out", "m"],
           "view": ["in.exr", "--run", "no-run"], "render-cycles": ["out"], "cycles-validation": ["out"],
           "import-renders": ["src", "--set", "s"], "export": ["no-run", "--onnx", "out"], "blend-pair": ["x.blend"],
-          "adapt": ["in.exr", "--out", "m", "--run", "no-run"]}
+          "adapt": ["in.exr", "--out", "m", "--run", "no-run"], "mix-oidn": ["in.exr", "--run", "no-run"]}
 _NEEDS_FOR = {("bench", "width"): ["render"], ("bench", "height"): ["render"], ("bench", "spp"): ["render"],
               ("bench", "families"): ["render"], ("train", "gamma"): ["--compositor", "alpha"],
               ("train", "compositor_kernel"): ["--compositor", "kernel"],

@@ -201,6 +201,7 @@ def test_a_page_without_the_help_region_is_refused_naming_it(tmp_path, capsys):
 # the README's results table and the JSON it names for it (the command that writes it is named beside it)
 RESULTS_JSON = "reports/blender.json"
 SHIPPED = "models/default"
+README_MODES = ("high", "balanced", "Blender's")  # the rows of each spp in the README's results table
 
 
 def readme_section(title: str) -> str:
@@ -216,27 +217,28 @@ def table_rows(text: str) -> list[list[str]]:
             if not rule[i] and not (i + 1 < len(lines) and rule[i + 1])]
 
 
-def results_rows(record: dict) -> dict[str, list[str]]:
-    """The README's results rows computed from the Blender report's frames: per spp the shipped model's,
-    Blender's and prefiltered OIDN's mean relMSE, the model's and Blender's mean DSSIM, the frames below
-    Blender's and below the better OIDN mode, and the median ratio to Blender's."""
+def results_rows(record: dict) -> dict[tuple[str, str], list[str]]:
+    """The README's results rows computed from the Blender report's frames: per spp and per shown quality mode of
+    the shipped model (and Blender's own frame) the mean relMSE and DSSIM, the frames below Blender's and below the
+    better of every OIDN mode and quality scored, and the median ratio to Blender's; keyed by (spp, mode)."""
     from statistics import mean, median
 
-    model = "kpcn " + next(name for name, path in record["models"].items() if path == SHIPPED)
+    name = next(name for name, path in record["models"].items() if path == SHIPPED)
     rows = {}
     for spp in sorted({f["spp"] for f in record["frames"]}):
         frames = [f["scores"] for f in record["frames"] if f["spp"] == spp]
-
-        def m(method, score, frames=frames):
-            return f"{mean(f[method][score] for f in frames):.4f}"
-
-        better = [min(f["oidn_plain"]["relmse"], f["oidn_prefiltered"]["relmse"]) for f in frames]
-        below_blender = sum(f[model]["relmse"] < f["blender"]["relmse"] for f in frames)
-        below_oidn = sum(f[model]["relmse"] < b for f, b in zip(frames, better))
-        ratio = median(f[model]["relmse"] / f["blender"]["relmse"] for f in frames)
-        rows[str(spp)] = [str(spp), m(model, "relmse"), m("blender", "relmse"), m("oidn_prefiltered", "relmse"),
-                          m(model, "dssim"), m("blender", "dssim"), f"{below_blender} of {len(frames)}",
-                          f"{below_oidn} of {len(frames)}", f"{ratio:.2f}×"]
+        for mode in README_MODES:
+            method = "blender" if mode == "Blender's" else f"kpcn {name} {mode}"
+            means = [f"{mean(f[method][score] for f in frames):.4f}" for score in ("relmse", "dssim")]
+            if method == "blender":
+                rows[(str(spp), mode)] = [str(spp), mode, *means, "", "", ""]
+                continue
+            better = [min(v["relmse"] for k, v in f.items() if k.startswith("oidn")) for f in frames]
+            below_blender = sum(f[method]["relmse"] < f["blender"]["relmse"] for f in frames)
+            below_oidn = sum(f[method]["relmse"] < b for f, b in zip(frames, better))
+            ratio = median(f[method]["relmse"] / f["blender"]["relmse"] for f in frames)
+            rows[(str(spp), mode)] = [str(spp), mode, *means, f"{below_blender} of {len(frames)}",
+                                      f"{below_oidn} of {len(frames)}", f"{ratio:.2f}×"]
     return rows
 
 
@@ -248,9 +250,10 @@ def test_every_figure_of_the_readme_results_table_is_the_json_it_names():
     shown = table_rows(section)
     assert shown, "no results table in the README"
     computed = results_rows(json.loads((ROOT / RESULTS_JSON).read_text(encoding="utf-8")))
-    assert {row[0] for row in shown} == set(computed), "the README's rows are not the JSON's spp"
+    assert {(row[0], row[1]) for row in shown} == set(computed), "the README's rows are not the JSON's spp and modes"
     for row in shown:
-        assert row == computed[row[0]], f"README row {row} is not {RESULTS_JSON}'s {computed[row[0]]}"
+        key = (row[0], row[1])
+        assert row == computed[key], f"README row {row} is not {RESULTS_JSON}'s {computed[key]}"
 
 
 # The living pages (docs/results/ holds the dated records, the README and the card are checked above): a

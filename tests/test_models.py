@@ -10,7 +10,15 @@ import torch
 from helpers.networks import finite_loss_and_gradients, randomise
 from helpers.numerics import extreme_features
 
-from kpcn_keras.config import PRESETS, QUALITY_AUXILIARIES, QUALITY_MODES, QUALITY_PRESETS, TrainConfig
+from kpcn_keras.config import (
+    PRESETS,
+    QUALITY_AUXILIARIES,
+    QUALITY_INIT,
+    QUALITY_MODES,
+    QUALITY_OIDN_MIX,
+    QUALITY_PRESETS,
+    TrainConfig,
+)
 from kpcn_keras.layers import apply_kernels
 from kpcn_keras.losses import SMAPE
 from kpcn_keras.models import (
@@ -167,6 +175,8 @@ def test_each_quality_mode_trains_from_a_preset_and_fast_costs_a_fraction_of_bal
     assert set(QUALITY_AUXILIARIES) == set(QUALITY_MODES)
     assert set(QUALITY_AUXILIARIES.values()) <= set(auxiliary.TRAINED)
     assert QUALITY_AUXILIARIES["balanced"] == TrainConfig().auxiliaries  # make model's networks, as trained
+    # balanced is kpcn's networks alone, the default whether or not pyoidn is installed
+    assert set(QUALITY_OIDN_MIX) <= set(QUALITY_MODES) and "balanced" not in QUALITY_OIDN_MIX
     fast, balanced = (TrainConfig.from_preset(QUALITY_PRESETS[m]).model for m in ("fast", "balanced"))
 
     def multiply_adds(cfg):  # a stack of conv_size² convolutions, then the 1x1 kernel head
@@ -178,6 +188,15 @@ def test_each_quality_mode_trains_from_a_preset_and_fast_costs_a_fraction_of_bal
     # the count above is the network's own: its weights are the multiply-adds a pixel, less the biases
     net = build_branch_model(fast)
     assert net.count_params() - fast.depth * fast.width - fast.kernel_size ** 2 == multiply_adds(fast)
+
+
+def test_a_mode_started_from_another_modes_networks_has_their_architecture():
+    # make modes passes --init models/<model> for these, which refuses networks of another configuration
+    assert set(QUALITY_INIT) <= set(QUALITY_MODES) and set(QUALITY_INIT.values()) <= set(QUALITY_MODES)
+    for mode, source in QUALITY_INIT.items():
+        assert mode != source
+        ours, theirs = (TrainConfig.from_preset(QUALITY_PRESETS[m]).model for m in (mode, source))
+        assert ours.to_dict() == theirs.to_dict()
 
 
 def test_from_dict_rejects_unknown_keys():

@@ -84,8 +84,8 @@ def test_a_model_serves_each_mode_with_its_own_networks_and_records_where_they_c
     assert f"model {two_mode_model / 'quality' / 'fast'}" in res.stdout
     # the card has a row per mode: its architecture and where it came from
     rows = card_tables((two_mode_model / "CARD.md").read_text())["Quality modes"]
-    assert [(r[0], r[1], r[3]) for r in rows[1:]] == [("balanced (default)", "kpcn", f"`{balanced.dir}`"),
-                                                      ("fast", "unet", f"`{fast.dir}`")]
+    assert [(r[0], r[1], r[3], r[4]) for r in rows[1:]] == [("balanced (default)", "kpcn", "–", f"`{balanced.dir}`"),
+                                                            ("fast", "unet", "–", f"`{fast.dir}`")]
     assert all(int(r[2]) > 0 for r in rows[1:]) and rows[1][2] != rows[2][2]
 
 

@@ -302,6 +302,24 @@ def test_a_run_not_evaluated_or_evaluated_before_more_training_is_refused(evalua
     assert not (tmp_path / "m").exists()
 
 
+def test_a_shipped_model_ships_again_whatever_the_times_a_checkout_gave_its_files(evaluated_run, tmp_path):
+    import os
+
+    first = tmp_path / "m"
+    res = run_main("ship", "--run", evaluated_run.dir, "--out", first, "--speed-frame", "48,40", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    later = os.stat(first / "eval" / "metrics.json").st_mtime + 10  # as git may write them, in any order
+    os.utime(first / "diffuse.keras", (later, later))
+    res = run_main("ship", "--run", first, "--out", tmp_path / "again", "--speed-frame", "48,40", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "again" / "diffuse.keras").read_bytes() == (first / "diffuse.keras").read_bytes()
+    # its card's training data is the first card's (the shard sets need not be on the machine that ships it again)
+    from kpcn_keras.card import card_section
+
+    sections = [card_section((m / "CARD.md").read_text(), "Training data") for m in (first, tmp_path / "again")]
+    assert sections[0] == sections[1] and any("shard set" in line for line in sections[0])
+
+
 def test_a_model_over_the_size_limit_is_refused(evaluated_run, tmp_path):
     from kpcn_keras.run import Run
     from kpcn_keras.shipping import ship

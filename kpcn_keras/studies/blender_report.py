@@ -168,7 +168,7 @@ def score_frames(paths, models: dict[str, Path], *, keep=lambda row: False, log=
     for noisy_path, frame, ref, scene, spp in read_pairs(pairs):
         shown = {"input": frame.layers["default"]}
         for name, serving in servings.items():
-            shown[model_method(name)] = serving.denoiser(frame.inputs)(frame.layers)["default"]
+            shown[model_method(name)] = serving.denoiser(frame.inputs)(frame.served_layers())["default"]
         own = renderer_denoised(noisy_path)
         if own.exists():
             shown[BLENDER] = layouts.read(own).layers["default"]

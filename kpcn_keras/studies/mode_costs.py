@@ -56,7 +56,7 @@ def methods(model: Path, frame, size: tuple[int, int]) -> dict:
     from kpcn_keras.settings import InferenceSettings
     from prep import auxiliary, baselines
 
-    layers = frame_of_size(frame.layers, *size)
+    layers = frame_of_size(frame.served_layers(), *size)
     calls, prefilters = {}, {}
     for mode in Run(model).quality_modes():
         denoiser = Serving(Run(model), InferenceSettings(quality=mode)).denoiser(frame.inputs)
