@@ -48,19 +48,20 @@ QUALITY_MODES = ("fast", "balanced", "high")
 DEFAULT_QUALITY = "balanced"
 # The training preset (PRESETS) each mode's networks are trained from (make modes; balanced is make model's):
 # fast a quarter of balanced's convolution work a pixel and 9x9 kernels; high balanced's own networks, trained on
-# from the shipped ones (QUALITY_INIT) onto OIDN's prefilter and the Cycles world. The U-Net trunk (preset unet),
-# which sees four times as far, lost to them trained from nothing on the scenes this machine renders
-# (docs/results/28, 29): it is the preset for high where hundreds of scenes and a GPU are (docs/training.md §7)
+# from the shipped ones (QUALITY_INIT) with the Cycles world. The U-Net trunk (preset unet), which sees four times
+# as far, lost to them trained from nothing on the scenes this machine renders (docs/results/28, 29): it is the
+# preset for high where hundreds of scenes and a GPU are (docs/training.md §7)
 QUALITY_PRESETS = {"fast": "fast", "balanced": "cpu", "high": "cpu"}
 # The modes whose networks start from another mode's shipped ones (make modes: --init models/<model>), as a
 # fine-tune: they are balanced's architecture, and balanced's networks were trained on all of make model's renders
 QUALITY_INIT = {"high": "balanced"}
 # The modes whose networks' frame is mixed with OIDN's (kpcn_keras.oidn_mix; make modes fits the weight on
-# MIX_FRAMES with kpcn mix-oidn): high, where the issue's yardstick allows twice OIDN's time
+# MIX_FRAMES with kpcn mix-oidn): high, whose time may be OIDN's as Blender runs it and kpcn's networks' on top
 QUALITY_OIDN_MIX = ("high",)
-# The auxiliaries (prep.auxiliary.TRAINED) each mode's networks are trained and served on: OIDN's prefilter of the
-# albedo, normal and depth for high; fast cannot afford it (at 1920x1080 the prefilter alone costs more than OIDN's
-# whole fast mode: reports/mode_costs.json) and balanced is make model's, raw
+# The auxiliaries (prep.auxiliary.TRAINED) each mode's networks are trained and served on: raw for all three.
+# OIDN's prefilter of the albedo, normal and depth costs more at 1920x1080 than OIDN's whole fast mode
+# (reports/mode_costs-architectures.json), and inside high's mix it gained little over the raw networks for it
+# (docs/results/29)
 QUALITY_AUXILIARIES = {"fast": "raw", "balanced": "raw", "high": "raw"}
 # The model ``kpcn denoise`` uses without --run: a run folder shipped in the repository's ``models/``
 # (``Run.ship``, ``make model``), found beside the package rather than in the working directory, so that it
