@@ -31,6 +31,7 @@ import keras
 import numpy as np
 
 from kpcn_keras.models import input_alignment, receptive_radius
+from kpcn_keras.oidn_mix import of_record
 from kpcn_keras.onnx_runtime import OnnxNetwork, require_onnx
 from kpcn_keras.run import Run, RunRecord, check_architecture
 from prep.errors import KpcnError
@@ -168,7 +169,14 @@ def _write_network(model: Run, run: Run, record: RunRecord, name: str, folder: P
             "sha256": hashlib.sha256(graph).hexdigest(), "inputs": record.inputs.name,
             "auxiliaries": record.auxiliaries, "channels": int(network.input_shape[-1]),
             "kernel_size": record.model.kernel_size, "alignment": align, "margin": receptive_radius(record.model),
-            "max_difference": difference}
+            "max_difference": difference, "oidn_mix": _mix_entry(record)}
+
+
+def _mix_entry(record: RunRecord) -> dict | None:
+    """What a consumer of the graphs must do after them for a variant served mixed with OIDN's frame
+    (``kpcn_keras.oidn_mix``): the weight of the networks' frame and the OIDN to mix with; None where unmixed."""
+    mix = of_record(record.data, str(record.path))
+    return None if mix is None else {"weight": mix.weight, "oidn_mode": mix.oidn_mode, "oidn_quality": mix.oidn_quality}
 
 
 def card_text(manifest: dict) -> str:

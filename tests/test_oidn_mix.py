@@ -130,6 +130,22 @@ def test_the_card_gives_each_mixed_input_sets_weight(mixed_run, tiny_run_of_ever
     assert high[3] == ", ".join(f"{name} {weight:g}" for name, weight in weights.items())
 
 
+def test_an_onnx_export_says_which_graphs_are_mixed_and_at_what_weight(mixed_run, tmp_path):
+    pytest.importorskip("onnx", reason="onnx not installed (the optional extra onnx; CI: .[test])")
+    pytest.importorskip("onnxruntime", reason="onnxruntime not installed (the optional extra onnx; CI: .[test])")
+    from kpcn_keras.onnx_export import MANIFEST, export
+    from kpcn_keras.run import Run
+
+    run, _ = mixed_run
+    out = export(Run(run), tmp_path / "exported")
+    entries = json.loads((out / MANIFEST).read_text())["networks"]
+    weight = json.loads((run / "inputs" / "no-variance" / "config.json").read_text())["oidn_mix"]["weight"]
+    for entry in entries:
+        expected = ({"weight": weight, "oidn_mode": "prefiltered", "oidn_quality": "high"}
+                    if entry["inputs"] == "no-variance" else None)
+        assert entry["oidn_mix"] == expected, entry["file"]
+
+
 def test_a_damaged_mix_entry_is_refused_in_one_line_naming_it():
     from kpcn_keras.oidn_mix import KEY, of_record
     from prep.errors import KpcnError
