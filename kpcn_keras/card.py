@@ -186,18 +186,24 @@ def training_data_section(run: Run, records: list[RunRecord]) -> list[str]:
     return lines + [""]
 
 
-def card_section(text: str, title: str) -> list[str]:
-    """The lines of a card's section ``## title``, from the line after its heading to the next heading."""
-    lines, inside = [], False
+def card_sections(text: str) -> dict[str | None, list[str]]:
+    """The lines of a card by the section (``## title``) they are in, headings left out; None holds those before the
+    first section."""
+    sections, title = {None: []}, None
     for line in text.splitlines():
         if line.startswith("## "):
-            if inside:
-                break
-            inside = line == f"## {title}"
-            continue
-        if inside:
-            lines.append(line)
-    if not inside:
+            title = line[3:].strip()
+            sections.setdefault(title, [])
+        else:
+            sections[title].append(line)
+    return sections
+
+
+def card_section(text: str, title: str) -> list[str]:
+    """The lines of a card's section ``## title``, from the line after its heading (and the blank line after it) to
+    the next heading; KpcnError where the card has none."""
+    lines = card_sections(text).get(title)
+    if lines is None:
         raise KpcnError(f"the card has no section '## {title}'")
     return lines[1:] if lines and not lines[0] else lines
 
@@ -407,8 +413,8 @@ def quality_lines(modes: dict[str, Run]) -> list[str]:
     rows = []
     for mode, source in modes.items():
         record = source.record()
-        mixes = [(variant.record().inputs.name, of_record(variant.record().data)) for variant in source.variants()
-                 if variant.has_record()]
+        variants = [variant.record() for variant in source.variants() if variant.has_record()]
+        mixes = [(rec.inputs.name, of_record(rec.data, str(rec.path))) for rec in variants]
         mixed = ", ".join(f"{name} {mix.weight:g}" for name, mix in mixes if mix is not None) or MISSING
         rows.append([mode + (" (default)" if mode == DEFAULT_QUALITY else ""), record.model.arch,
                      str(parameters(source, record)), mixed, f"`{source.dir}`"])
@@ -503,10 +509,10 @@ def retime(model: Run, source: str | os.PathLike, command: str, frame_size: tupl
 def card_tables(text: str) -> dict[str, list[list[str]]]:
     """The tables of a card, by the section (``## ...``) they are in: rows of cells, header first (for tests
     and for readers that compare a card with its run's reports)."""
-    tables, section = {}, None
-    for line in text.splitlines():
-        if line.startswith("## "):
-            section = line[3:].strip()
-        elif line.startswith("|") and not re.fullmatch(r"\|(---\|)+", line):
-            tables.setdefault(section, []).append([c.strip() for c in line.strip("|").split("|")])
+    tables = {}
+    for section, lines in card_sections(text).items():
+        rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines
+                if line.startswith("|") and not re.fullmatch(r"\|(---\|)+", line)]
+        if rows:
+            tables[section] = rows
     return tables

@@ -11,6 +11,7 @@ Fit on frames of scenes neither trained on nor judged: the weight is a parameter
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from pathlib import Path
 
 import numpy as np
 
@@ -41,18 +42,17 @@ def fit_run(run, pairs: list[tuple[str, str]], *, log: Callable[[str], None] = p
     ``pairs`` (noisy render, reference) that it serves (``Run.serving``: the variant of the most the frame has),
     and write it into that variant's record; a variant that serves none of them is left as it is. Returns
     {input set: the entry written}."""
-    frames = []
+    by_variant: dict[Path, list] = {}  # the frames each variant serves, found once per frame
     for noisy, ref in pairs:
         frame = layouts.read(noisy)
-        frames.append((noisy, frame, read_reference(ref, noisy, frame.size)))
+        by_variant.setdefault(run.serving(frame.inputs).dir, []).append(
+            (noisy, frame, read_reference(ref, noisy, frame.size)))
     written = {}
     for variant in run.variants():
-        if not variant.has_record():
-            continue
-        record = variant.record().finished()
-        served = [(n, f, r) for n, f, r in frames if run.serving(f.inputs).dir == variant.dir]
+        served = by_variant.get(variant.dir)
         if not served:
             continue
+        record = variant.record().finished()
         denoiser, mix = Denoiser.from_run(variant, record=record), Mix(1.0)
         triples, names = [], []
         for noisy, frame, ref in served:
